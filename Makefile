@@ -1,0 +1,44 @@
+# The two commands: `make demo` (the main job) and `make test` (every test). Both bootstrap the
+# project venv from requirements.lock and build the colcon workspace first, idempotently.
+SHELL := /bin/bash
+.SHELLFLAGS := -eo pipefail -c
+ROOT := $(CURDIR)
+VENV := $(ROOT)/.venv
+ENV := . $(ROOT)/tools/env.sh
+BUILD_INPUTS := $(shell find msg src -type f -not -path '*/__pycache__/*' -not -name '*.pyc' 2>/dev/null)
+PYTEST_ARGS ?=
+
+.PHONY: all venv build demo test test-unit test-graph bench lock clean distclean
+
+all: build
+
+venv: $(VENV)/.lock.sha256
+$(VENV)/.lock.sha256: requirements.lock tools/bootstrap.sh tools/fix_rosidl_paths.py
+	bash tools/bootstrap.sh
+
+build: install/.built
+install/.built: $(VENV)/.lock.sha256 $(BUILD_INPUTS)
+	$(ENV) && colcon --log-base log build --base-paths msg src --build-base build --install-base install \
+	  --symlink-install --event-handlers console_direct- console_start_end+ \
+	  --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE=$(VENV)/bin/python
+	touch $@
+
+demo: build
+	$(ENV) && python tools/demo.py --out out
+
+test: build
+	$(ENV) && python -m pytest $(PYTEST_ARGS)
+
+bench: build
+	$(ENV) && for b in bench/*.py; do python $$b --json out/bench/$$(basename $$b .py).json; done
+
+lock:
+	python3 -m venv /tmp/coop-lock-venv && /tmp/coop-lock-venv/bin/pip install -q --dry-run \
+	  --ignore-installed --report /tmp/coop-lock-report.json -r requirements.in
+	python3 tools/lock.py /tmp/coop-lock-report.json > requirements.lock
+
+clean:
+	rm -rf build install log out
+
+distclean: clean
+	rm -rf $(VENV)

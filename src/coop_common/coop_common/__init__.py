@@ -1,0 +1,1 @@
+"""Shared pieces of the cooperative field robot graph (no algorithm lives here)."""

@@ -1,0 +1,132 @@
+"""Node plumbing shared by every node: declared + validated parameters, throttled bad-input
+counting, and the Jazzy main() idiom. No algorithm lives here."""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+
+class ParamSpec:
+    """One declared parameter: default, description, optional range/choices, read_only."""
+
+    def __init__(self, default: Any, description: str, *, lo: float | None = None,
+                 hi: float | None = None, choices: Sequence[str] | None = None,
+                 read_only: bool = False) -> None:
+        self.default = default
+        self.description = description
+        self.lo, self.hi = lo, hi
+        self.choices = tuple(choices) if choices else None
+        self.read_only = read_only
+
+    def descriptor(self) -> ParameterDescriptor:
+        d = ParameterDescriptor(description=self.description, read_only=self.read_only)
+        if self.choices:
+            d.additional_constraints = 'one of: ' + ', '.join(self.choices)
+        if self.lo is not None and self.hi is not None:
+            if isinstance(self.default, bool):
+                pass
+            elif isinstance(self.default, int):
+                d.integer_range = [IntegerRange(from_value=int(self.lo), to_value=int(self.hi),
+                                                step=0)]
+            elif isinstance(self.default, float):
+                d.floating_point_range = [FloatingPointRange(from_value=float(self.lo),
+                                                             to_value=float(self.hi), step=0.0)]
+        return d
+
+    def check(self, name: str, value: Any) -> str | None:
+        """Reason `value` is not acceptable, or None."""
+        if isinstance(value, float) and not math.isfinite(value):
+            return f'{name} must be finite, got {value}'
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if self.lo is not None and value < self.lo:
+                return f'{name} must be >= {self.lo}, got {value}'
+            if self.hi is not None and value > self.hi:
+                return f'{name} must be <= {self.hi}, got {value}'
+        if self.choices and value not in self.choices:
+            return f'{name} must be one of {list(self.choices)}, got {value!r}'
+        return None
+
+
+def declare_parameters(node: Node, specs: dict[str, ParamSpec],
+                       on_change: Callable[[dict[str, Any]], None] | None = None
+                       ) -> dict[str, Any]:
+    """Declare every spec with its descriptor, validate the initial values (raising ValueError with
+    the reason, so a bad --params-file stops the node at start), and install an on-set callback
+    that rejects bad values with their reason. Returns the current values."""
+    for name, spec in specs.items():
+        node.declare_parameter(name, spec.default, spec.descriptor())
+    values = {name: node.get_parameter(name).value for name in specs}
+    bad = [r for name, v in values.items() if (r := specs[name].check(name, v))]
+    if bad:
+        raise ValueError('; '.join(bad))
+
+    def _validate(params):
+        for p in params:
+            spec = specs.get(p.name)
+            if spec is None:
+                continue
+            reason = spec.check(p.name, p.value)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        if on_change is not None:
+            on_change({p.name: p.value for p in params if p.name in specs})
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(_validate)
+    return values
+
+
+class BadInputCounter:
+    """Counts skipped inputs by reason and warns at most once per `period_s` per reason."""
+
+    def __init__(self, node: Node, period_s: float = 5.0) -> None:
+        self._node = node
+        self._period = period_s
+        self.counts: Counter[str] = Counter()
+
+    def reject(self, reason: str, detail: str = '') -> None:
+        self.counts[reason] += 1
+        self._node.get_logger().warn(
+            f'skipped input ({reason}, {self.counts[reason]} so far){": " + detail if detail else ""}',
+            throttle_duration_sec=self._period)
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+def run_node(factory: Callable[[], Node], args: list[str] | None = None,
+             executor_factory: Callable[[], Any] | None = None) -> int:
+    """The Jazzy main() idiom: init, spin, clean shutdown on Ctrl-C or external shutdown.
+
+    A node whose construction fails (bad parameter, bad file) logs the reason and returns 1.
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = factory()
+        except ValueError as exc:
+            rclpy.logging.get_logger('startup').fatal(str(exc))
+            return 1
+        if executor_factory is not None:
+            executor = executor_factory()
+            executor.add_node(node)
+            executor.spin()
+        else:
+            rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

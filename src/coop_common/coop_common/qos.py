@@ -1,0 +1,21 @@
+"""QoS profiles of the graph (house style: sensor streams, latched state, commands)."""
+from __future__ import annotations
+
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+
+#: Sensor streams: best effort, keep last 5 (publishers and subscribers alike).
+SENSOR_QOS: QoSProfile = qos_profile_sensor_data
+#: Maps, estimates and other state a late joiner must get: reliable, transient local, depth 1.
+LATCHED_QOS = QoSProfile(
+    depth=1, history=HistoryPolicy.KEEP_LAST,
+    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+#: Commands: reliable, volatile, a short queue.
+COMMAND_QOS = QoSProfile(
+    depth=10, history=HistoryPolicy.KEEP_LAST,
+    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+)
+#: /clock: as rosgraph (best effort would drop ticks under load; the sim publishes reliably).
+CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)

@@ -1,0 +1,101 @@
+"""Test isolation for node and whole-graph tests: a private ROS domain per test run, starting the
+installed executables the way `ros2 run` finds them, and waiting on conditions instead of sleeping."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+
+def pick_domain_id(pid: int | None = None) -> int:
+    """A domain id for this test run (1..100), from the pid so parallel runs do not cross-talk."""
+    return 1 + (pid if pid is not None else os.getpid()) % 100
+
+
+def isolate_ros_environment(domain_id: int | None = None) -> int:
+    """Set ROS_DOMAIN_ID / localhost discovery for this process and its children."""
+    domain = pick_domain_id() if domain_id is None else domain_id
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    return domain
+
+
+def executable_path(package: str, executable: str) -> Path:
+    """Where `ros2 run <package> <executable>` would find it: <prefix>/lib/<package>/<executable>,
+    prefix from the ament index on AMENT_PREFIX_PATH."""
+    from ament_index_python.packages import get_package_prefix  # noqa: PLC0415
+
+    path = Path(get_package_prefix(package)) / 'lib' / package / executable
+    if not (path.is_file() and os.access(path, os.X_OK)):
+        raise FileNotFoundError(f'no executable {executable!r} in package {package!r} ({path})')
+    return path
+
+
+def wait_for(predicate: Callable[[], bool], timeout_s: float, *, poll_s: float = 0.02,
+             spin: Callable[[float], None] | None = None, what: str = 'condition') -> None:
+    """Wait until predicate() holds, spinning `spin(poll_s)` (or sleeping) between checks.
+
+    Raises TimeoutError naming `what`."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'timed out after {timeout_s:.1f} s waiting for {what}')
+        if spin is not None:
+            spin(poll_s)
+        else:
+            time.sleep(poll_s)
+
+
+class NodeProcess:
+    """Start an installed executable with `--ros-args ...` as a subprocess; stop it on exit.
+
+    with NodeProcess('rover_sim', 'sim', ['-p', 'seed:=3']) as proc: ...
+    """
+
+    def __init__(self, package: str, executable: str, ros_args: Sequence[str] = (),
+                 args: Sequence[str] = (), env: dict[str, str] | None = None,
+                 log_path: Path | None = None) -> None:
+        self.cmd = [str(executable_path(package, executable)), *args]
+        if ros_args:
+            self.cmd += ['--ros-args', *ros_args]
+        self.env = {**os.environ, **(env or {})}
+        self.log_path = log_path
+        self.proc: subprocess.Popen | None = None
+        self._log = None
+
+    def __enter__(self) -> NodeProcess:
+        if self.log_path is not None:
+            self._log = open(self.log_path, 'wb')  # noqa: SIM115 - closed in __exit__
+        out = self._log if self._log is not None else subprocess.DEVNULL
+        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+        return self
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self, timeout_s: float = 10.0) -> int | None:
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGINT)
+            try:
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+        return self.proc.returncode
+
+    def log_text(self) -> str:
+        if self.log_path is None or not self.log_path.exists():
+            return ''
+        return self.log_path.read_text(errors='replace')
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+        if self._log is not None:
+            self._log.close()
