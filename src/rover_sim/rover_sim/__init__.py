@@ -1,0 +1,1 @@
+"""PyBullet two-rover world of Sujan (2002) and the rclpy node that publishes it."""

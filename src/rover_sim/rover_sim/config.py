@@ -1,0 +1,155 @@
+"""Simulator configuration: defaults, YAML loading that names a bad field, validation."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A world/params YAML or value that the simulator cannot use; the message names the field."""
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """§2.6.1: white noise up to `fraction` of each sensor's maximum sensed value.
+
+    The max_* values are the peak dynamic ranges each channel senses in the thesis scenario (the
+    Eq. 2-21 arm excitation of the Table 2-1 rover, steady state, noise-free; re-measured by
+    test_sim_world.py::test_noise_scales_match_thesis_scenario), so fraction 0.1 gives the
+    thesis's noise level. Wheel and articulation scales are the app. D rover's ranges.
+    """
+
+    fraction: float = 0.10
+    inclinometer_rad: float = 0.0004
+    accel_m_s2: float = 0.16
+    gyro_rad_s: float = 0.001
+    force_n: float = 0.8
+    torque_nm: float = 1.0
+    encoder_rad: float = 0.7
+    tach_rad_s: float = 5.0
+    pot_rad: float = 0.3
+    odom_drift: float = 0.02          # fraction of travelled distance / turned angle
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    rovers: int = 2
+    seed: int = 1
+    occlusion_density: float = 0.08
+    extent_m: float = 10.0
+    slot_width_m: float = 0.004
+    truth_yaml: str = ''                 # '' : Table 2-1 for every rover
+    physics_rate_hz: float = 200.0
+    sensor_rate_hz: float = 200.0
+    stereo_rate_hz: float = 4.0
+    image_width: int = 320
+    image_height: int = 240
+    hfov_deg: float = 41.2
+    real_time_factor: float = 1.0        # 0: as fast as possible
+    max_linear_speed_m_s: float = 0.25   # app. D: about 25 cm/s
+    max_yaw_rate_rad_s: float = 1.0
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+
+    def __post_init__(self) -> None:
+        checks = [
+            ('rovers', 1 <= self.rovers <= 8, 'must be 1..8'),
+            ('occlusion_density', 0.0 <= self.occlusion_density <= 0.5, 'must be in [0, 0.5]'),
+            ('extent_m', 2.0 <= self.extent_m <= 200.0, 'must be in [2, 200]'),
+            ('slot_width_m', 0.0 < self.slot_width_m < 0.05, 'must be in (0, 0.05)'),
+            ('physics_rate_hz', 50.0 <= self.physics_rate_hz <= 2000.0, 'must be in [50, 2000]'),
+            ('sensor_rate_hz', 0.0 < self.sensor_rate_hz <= self.physics_rate_hz,
+             'must be in (0, physics_rate_hz]'),
+            ('stereo_rate_hz', 0.0 <= self.stereo_rate_hz <= 30.0, 'must be in [0, 30]'),
+            ('image_width', 32 <= self.image_width <= 1920, 'must be in [32, 1920]'),
+            ('image_height', 24 <= self.image_height <= 1440, 'must be in [24, 1440]'),
+            ('hfov_deg', 5.0 <= self.hfov_deg <= 120.0, 'must be in [5, 120]'),
+            ('real_time_factor', 0.0 <= self.real_time_factor <= 100.0, 'must be in [0, 100]'),
+            ('noise.fraction', 0.0 <= self.noise.fraction <= 1.0, 'must be in [0, 1]'),
+        ]
+        for name, ok, why in checks:
+            value = self._lookup(name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ConfigError(f'{name}: must be finite, got {value}')
+            if not ok:
+                raise ConfigError(f'{name}: {why}, got {value!r}')
+        for f in dataclasses.fields(NoiseConfig):
+            v = getattr(self.noise, f.name)
+            if f.name != 'fraction' and not (isinstance(v, float) and v > 0 and math.isfinite(v)):
+                raise ConfigError(f'noise.{f.name}: must be a positive number, got {v!r}')
+
+    def _lookup(self, dotted: str) -> Any:
+        obj: Any = self
+        for part in dotted.split('.'):
+            obj = getattr(obj, part)
+        return obj
+
+    def replace(self, **changes: Any) -> SimConfig:
+        return dataclasses.replace(self, **changes)
+
+
+def _coerce(name: str, value: Any, default: Any) -> Any:
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f'{name}: expected true/false, got {value!r}')
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f'{name}: expected an integer, got {value!r}')
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f'{name}: expected a number, got {value!r}')
+        return float(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f'{name}: expected a string, got {value!r}')
+        return value
+    raise ConfigError(f'{name}: unsupported value {value!r}')
+
+
+def config_from_mapping(data: dict[str, Any], base: SimConfig | None = None) -> SimConfig:
+    """Overlay a mapping (as read from YAML) on `base`; unknown or mistyped fields raise
+    ConfigError naming the field."""
+    base = base or SimConfig()
+    if not isinstance(data, dict):
+        raise ConfigError('top level: expected a mapping of field names to values')
+    top = {f.name: f for f in dataclasses.fields(SimConfig)}
+    changes: dict[str, Any] = {}
+    for key, value in data.items():
+        if key not in top:
+            raise ConfigError(f'{key}: unknown field (known: {", ".join(sorted(top))})')
+        if key == 'noise':
+            if not isinstance(value, dict):
+                raise ConfigError('noise: expected a mapping')
+            nf = {f.name for f in dataclasses.fields(NoiseConfig)}
+            nchanges = {}
+            for nk, nv in value.items():
+                if nk not in nf:
+                    raise ConfigError(f'noise.{nk}: unknown field (known: {", ".join(sorted(nf))})')
+                nchanges[nk] = _coerce(f'noise.{nk}', nv, getattr(base.noise, nk))
+            changes['noise'] = dataclasses.replace(base.noise, **nchanges)
+        else:
+            changes[key] = _coerce(key, value, getattr(base, key))
+    return dataclasses.replace(base, **changes)
+
+
+def load_config(path: str | Path, base: SimConfig | None = None) -> SimConfig:
+    """Read a world/params YAML file; raises ConfigError naming the bad field."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f'{path}: cannot read: {exc}') from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f'{path}: not valid YAML: {exc}') from exc
+    if data is None:
+        return base or SimConfig()
+    try:
+        return config_from_mapping(data, base)
+    except ConfigError as exc:
+        raise ConfigError(f'{path}: {exc}') from exc

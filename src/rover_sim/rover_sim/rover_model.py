@@ -1,0 +1,144 @@
+"""URDF of one thesis rover (Fig. 2-2, app. D): a rigid base whose link frame sits at its c.g.,
+a 6-axis F/T sensor at r_2, a 4-DOF 1 kg arm on it, and a pan/tilt stereo mast.
+
+The base carries no collision shape: it floats on its 6-DOF compliance (Eq. B-3), applied by
+`world.World`, and nothing else touches it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from coop_common.dynparams import BaseParameters
+
+ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
+MAST_JOINTS = ('mast_pan', 'mast_tilt')
+WHEELS = ('wheel_fl', 'wheel_fr', 'wheel_rl', 'wheel_rr')
+
+
+@dataclass(frozen=True)
+class ArmLink:
+    name: str
+    mass: float
+    com: tuple[float, float, float]
+    inertia: tuple[float, float, float]     # principal, about the link's c.o.m., link axes
+    length: float                           # where the next joint sits along the link's x (m)
+
+
+#: Arm of §2.6.1: 1 kg in all; link 2 carries most of it so the arm as a whole has inertias close
+#: to the thesis's I_x = I_z = 0.02, I_y = 0.001 kg m^2 when stretched out.
+ARM_LINKS = (
+    ArmLink('arm_link_1', 0.15, (0.0, 0.0, 0.03), (2e-4, 2e-4, 1e-4), 0.06),
+    ArmLink('arm_link_2', 0.45, (0.125, 0.0, 0.0), (1e-4, 2.4e-3, 2.4e-3), 0.25),
+    ArmLink('arm_link_3', 0.30, (0.10, 0.0, 0.0), (5e-5, 1.0e-3, 1.0e-3), 0.20),
+    ArmLink('arm_link_4', 0.10, (0.04, 0.0, 0.0), (1e-5, 6e-5, 6e-5), 0.08),
+)
+ARM_MASS = sum(link.mass for link in ARM_LINKS)
+ARM_EFFORT_NM = (12.0, 12.0, 8.0, 4.0)
+ARM_VELOCITY_RAD_S = (3.0, 3.0, 3.0, 3.0)
+ARM_LIMITS_RAD = ((-np.pi, np.pi), (-2.0, 2.0), (-2.5, 2.5), (-2.0, 2.0))
+MAST_POSITION = (-0.12, -0.10, 0.40)      # pan joint, relative to the base c.g. (m)
+CAMERA_OFFSET = (0.04, 0.0, 0.06)          # left optical origin, in the tilt link
+STEREO_BASELINE_M = 0.038
+SENSOR_MASS = 1e-3
+
+
+def _inertial(mass: float, com, inertia) -> str:
+    ix, iy, iz = inertia
+    return (f'<inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>'
+            f'<inertia ixx="{ix}" iyy="{iy}" izz="{iz}" ixy="0" ixz="0" iyz="0"/></inertial>')
+
+
+def _box(size, xyz=(0, 0, 0), rgba=(0.6, 0.6, 0.6, 1.0)) -> str:
+    return (f'<visual><origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}"/><geometry><box size="{size[0]} '
+            f'{size[1]} {size[2]}"/></geometry><material name="m"><color rgba="{rgba[0]} '
+            f'{rgba[1]} {rgba[2]} {rgba[3]}"/></material></visual>')
+
+
+def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
+               shade: float = 0.55) -> str:
+    """URDF text of a rover whose base has the given true parameters."""
+    i = params.inertia
+    r2 = params.cg_to_arm
+    c = (shade, shade * 0.95, shade * 0.85, 1.0)
+    parts = [f'<robot name="{name}">',
+             '<link name="base_link"><inertial><origin xyz="0 0 0"/>'
+             f'<mass value="{params.mass}"/><inertia ixx="{i[0, 0]}" iyy="{i[1, 1]}" '
+             f'izz="{i[2, 2]}" ixy="{i[0, 1]}" ixz="{i[0, 2]}" iyz="{i[1, 2]}"/></inertial>',
+             _box((0.5, 0.36, 0.14), rgba=c), _box((0.04, 0.04, 0.4), (-0.12, -0.10, 0.2), c),
+             '</link>',
+             f'<link name="ft_sensor_link">{_inertial(SENSOR_MASS, (0, 0, 0), (1e-7,) * 3)}'
+             f'{_box((0.06, 0.06, 0.03), rgba=(0.2, 0.2, 0.2, 1))}</link>',
+             '<joint name="ft_sensor_joint" type="fixed"><parent link="base_link"/>'
+             f'<child link="ft_sensor_link"/><origin xyz="{r2[0]} {r2[1]} {r2[2]}"/></joint>']
+    parent = 'ft_sensor_link'
+    offset = (0.0, 0.0, 0.015)
+    axes = ('0 0 1', '0 1 0', '0 1 0', '0 1 0')
+    for k, link in enumerate(ARM_LINKS):
+        lo, hi = ARM_LIMITS_RAD[k]
+        vis = (_box((0.04, 0.04, 0.06), (0, 0, 0.03), c) if k == 0 else
+               _box((link.length, 0.035, 0.035), (link.length / 2, 0, 0), c))
+        parts.append(f'<link name="{link.name}">{_inertial(link.mass, link.com, link.inertia)}'
+                     f'{vis}</link>')
+        parts.append(f'<joint name="{ARM_JOINTS[k]}" type="revolute"><parent link="{parent}"/>'
+                     f'<child link="{link.name}"/><origin xyz="{offset[0]} {offset[1]} '
+                     f'{offset[2]}"/><axis xyz="{axes[k]}"/><limit lower="{lo}" upper="{hi}" '
+                     f'effort="{ARM_EFFORT_NM[k]}" velocity="{ARM_VELOCITY_RAD_S[k]}"/></joint>')
+        parent = link.name
+        offset = (0.0, 0.0, link.length) if k == 0 else (link.length, 0.0, 0.0)
+    if with_card:
+        parts.append(f'<link name="card_link">{_inertial(0.01, (0, 0, 0), (1e-6,) * 3)}'
+                     f'{_box((0.108, 0.003, 0.07), rgba=(0.15, 0.15, 0.15, 1))}'
+                     '<visual><origin xyz="-0.03175 -0.002 0" rpy="1.5708 0 0"/><geometry>'
+                     '<cylinder radius="0.00635" length="0.001"/></geometry><material name="w">'
+                     '<color rgba="1 1 1 1"/></material></visual>'
+                     '<visual><origin xyz="0.03175 -0.002 0" rpy="1.5708 0 0"/><geometry>'
+                     '<cylinder radius="0.00635" length="0.001"/></geometry><material name="w">'
+                     '<color rgba="1 1 1 1"/></material></visual></link>')
+        parts.append('<joint name="card_joint" type="fixed"><parent link="arm_link_4"/>'
+                     '<child link="card_link"/><origin xyz="0.134 0 0"/></joint>')
+    mx, my, mz = MAST_POSITION
+    parts.append(f'<link name="mast_pan_link">{_inertial(0.05, (0, 0, 0.02), (2e-5,) * 3)}'
+                 f'{_box((0.03, 0.03, 0.04), (0, 0, 0.02), c)}</link>')
+    parts.append('<joint name="mast_pan" type="revolute"><parent link="base_link"/>'
+                 f'<child link="mast_pan_link"/><origin xyz="{mx} {my} {mz}"/><axis xyz="0 0 1"/>'
+                 '<limit lower="-3.1" upper="3.1" effort="5" velocity="2"/></joint>')
+    cx, cy, cz = CAMERA_OFFSET
+    parts.append(f'<link name="mast_tilt_link">{_inertial(0.10, (0.02, 0, 0.06), (5e-5,) * 3)}'
+                 f'{_box((0.04, 0.08, 0.04), (cx - 0.02, -STEREO_BASELINE_M / 2, cz), (0.1, 0.1, 0.1, 1))}'
+                 '</link>')
+    parts.append('<joint name="mast_tilt" type="revolute"><parent link="mast_pan_link"/>'
+                 '<child link="mast_tilt_link"/><origin xyz="0 0 0.04"/><axis xyz="0 1 0"/>'
+                 '<limit lower="-1.2" upper="1.2" effort="5" velocity="2"/></joint>')
+    parts.append('</robot>')
+    return '\n'.join(parts)
+
+
+#: Left optical frame in the tilt link: z forward (link x), x right (link -y), y down (link -z).
+OPTICAL_IN_TILT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def arm_joint_inertias(q: np.ndarray) -> np.ndarray:
+    """Inertia (kg m^2) each arm joint drives at configuration q (planar-chain estimate): joint 1
+    about the vertical through the arm base, joints 2..4 about their pitch axes. Used to schedule
+    the joint PD gains (joint 1's inertia falls ~200x when the arm points up)."""
+    _, q2, q3, q4 = (float(v) for v in q)
+    l1, l2, l3, l4 = ARM_LINKS
+
+    def u(theta: float) -> np.ndarray:
+        return np.array([np.cos(theta), -np.sin(theta)])
+
+    t2, t3, t4 = q2, q2 + q3, q2 + q3 + q4
+    c2 = l2.com[0] * u(t2)
+    j3 = l2.length * u(t2)
+    c3 = j3 + l3.com[0] * u(t3)
+    j4 = j3 + l3.length * u(t3)
+    c4 = j4 + l4.com[0] * u(t4)
+    links = ((l2, c2), (l3, c3), (l4, c4))
+    axial = l1.inertia[2] + sum(link.inertia[0] for link, _ in links)
+    i1 = axial + sum(link.mass * c[0] ** 2 for link, c in links)
+    i2 = sum(link.mass * float(c @ c) + link.inertia[1] for link, c in links)
+    i3 = sum(link.mass * float((c - j3) @ (c - j3)) + link.inertia[1]
+             for link, c in links[1:])
+    i4 = l4.mass * l4.com[0] ** 2 + l4.inertia[1]
+    return np.array([i1, i2, i3, i4])

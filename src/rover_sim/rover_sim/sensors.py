@@ -1,0 +1,89 @@
+"""Sensor models of the thesis rovers (§2.6.1 noise, app. D hardware): pure numpy.
+
+Noise follows §2.6.1: white noise of up to `noise_fraction` of the maximum sensed value, i.e.
+uniform in [-f * max, +f * max] per sample, with `max` the largest magnitude the channel is
+expected to sense (configured per sensor group).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DEG = np.pi / 180.0
+
+
+@dataclass(frozen=True)
+class WhiteNoise:
+    """Uniform white noise bounded by fraction * max_sensed (§2.6.1)."""
+
+    fraction: float
+    max_sensed: float
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.fraction <= 1.0):
+            raise ValueError(f'noise fraction must be in [0, 1], got {self.fraction}')
+        if not (self.max_sensed > 0.0):
+            raise ValueError(f'max_sensed must be > 0, got {self.max_sensed}')
+
+    @property
+    def bound(self) -> float:
+        return self.fraction * self.max_sensed
+
+    @property
+    def variance(self) -> float:
+        """Variance of the uniform distribution on [-bound, bound]."""
+        return self.bound ** 2 / 3.0
+
+    def sample(self, rng: np.random.Generator, shape: tuple[int, ...] | int) -> np.ndarray:
+        if self.bound == 0.0:
+            return np.zeros(shape)
+        return rng.uniform(-self.bound, self.bound, size=shape)
+
+
+@dataclass(frozen=True)
+class InclinometerModel:
+    """Two-axis inclinometer (Crossbow CXTA02, app. D): linear range +-20 deg, Eq. D-1 calibration,
+    read through an n-bit converter over the linear range.
+
+    Volts out = V0 + S * angle_deg (Eq. D-1 solved for V_out), quantised to 2^bits levels over the
+    voltage span of the linear range; outside it the output saturates.
+    """
+
+    zero_volts: tuple[float, float] = (2.406, 2.381)        # roll, pitch: Table D-1 robot 1
+    sensitivity_v_per_deg: tuple[float, float] = (0.033631, 0.034733)
+    linear_range_deg: float = 20.0
+    bits: int = 10
+    noise: WhiteNoise = WhiteNoise(0.1, 0.5 * DEG)
+
+    def read(self, roll: float, pitch: float, rng: np.random.Generator
+             ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(angles_rad (roll, pitch), raw volts, saturated) for true base roll and pitch."""
+        truth = np.array([roll, pitch]) + self.noise.sample(rng, 2)
+        deg = truth / DEG
+        saturated = bool(np.any(np.abs(deg) > self.linear_range_deg))
+        deg = np.clip(deg, -self.linear_range_deg, self.linear_range_deg)
+        v0 = np.asarray(self.zero_volts)
+        s = np.asarray(self.sensitivity_v_per_deg)
+        volts = v0 + s * deg
+        lsb = 2.0 * self.linear_range_deg * s / (2 ** self.bits)
+        volts = v0 + np.round((volts - v0) / lsb) * lsb
+        angles = (volts - v0) / s * DEG              # Eq. D-1
+        return angles, volts, saturated
+
+    def variance(self) -> float:
+        """Per-axis variance (rad^2): white noise plus quantisation (lsb^2 / 12)."""
+        lsb_rad = 2.0 * self.linear_range_deg / (2 ** self.bits) * DEG
+        return self.noise.variance + lsb_rad ** 2 / 12.0
+
+
+def wheel_speeds(v: float, w: float, *, track_m: float, radius_m: float) -> np.ndarray:
+    """Skid-steer wheel angular speeds (fl, fr, rl, rr) in rad/s for body speed v and yaw rate w."""
+    left = (v - 0.5 * track_m * w) / radius_m
+    right = (v + 0.5 * track_m * w) / radius_m
+    return np.array([left, right, left, right])
+
+
+def specific_force(accel_world: np.ndarray, r_base: np.ndarray) -> np.ndarray:
+    """Accelerometer reading in the base frame: a - g (REP 145, +9.81 z at rest)."""
+    return r_base.T @ (np.asarray(accel_world) - np.array([0.0, 0.0, -9.81]))

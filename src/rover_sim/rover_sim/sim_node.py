@@ -1,0 +1,476 @@
+"""rclpy node publishing the PyBullet world (`rover_sim.world.World`).
+
+A dedicated thread steps the physics and publishes (paced by `real_time_factor`, 0 = as fast as
+possible); the executor thread only receives commands and services, which are handed to the sim
+thread and applied between steps, so the physics never races a callback.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from coop_common.dynparams import PARAM_NAMES, TruthFileError, load_truth
+from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_msgs.msg import DynamicParameters, Inclinometer
+from coop_msgs.srv import SimScenario
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Twist, WrenchStamped
+from nav_msgs.msg import Odometry
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
+from trajectory_msgs.msg import JointTrajectory
+from visualization_msgs.msg import Marker, MarkerArray
+
+from .compliance import matrix_to_quat
+from .config import ConfigError, NoiseConfig, SimConfig, load_config
+from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
+from .trajectory import TrajectoryError
+from .world import World
+
+
+def stamp(t_s: float) -> Time:
+    sec = int(math.floor(t_s))
+    return Time(sec=sec, nanosec=int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+
+
+def _pose(msg_pose, position: np.ndarray, rotation: np.ndarray) -> None:
+    msg_pose.position.x, msg_pose.position.y, msg_pose.position.z = (float(v) for v in position)
+    q = matrix_to_quat(rotation)
+    o = msg_pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in q)
+
+
+PARAMS = {
+    'world_yaml': ParamSpec('', 'World/params YAML overlaid on the defaults (fields of '
+                            'rover_sim.config.SimConfig); empty: defaults', read_only=True),
+    'truth_yaml': ParamSpec('', 'True base parameters of every rover (YAML, the 22 fields of '
+                            'coop_common.dynparams); empty: Table 2-1', read_only=True),
+    'rovers': ParamSpec(2, 'Number of rovers (namespaces rover1..roverN)', lo=1, hi=8,
+                        read_only=True),
+    'seed': ParamSpec(1, 'Seed of the world generator and of all sensor noise', lo=0,
+                      hi=2 ** 31 - 1, read_only=True),
+    'occlusion_density': ParamSpec(0.08, 'Obstacle footprint fraction of the site', lo=0.0,
+                                   hi=0.5, read_only=True),
+    'slot_width_m': ParamSpec(0.004, 'Insertion slot width (m)', lo=0.0005, hi=0.049,
+                              read_only=True),
+    'sensor_rate_hz': ParamSpec(200.0, 'IMU, inclinometer, F/T and joint state rate (Hz)',
+                                lo=1.0, hi=200.0, read_only=True),
+    'stereo_rate_hz': ParamSpec(4.0, 'Stereo pair rate (Hz); 0 disables rendering', lo=0.0,
+                                hi=30.0, read_only=True),
+    'odom_rate_hz': ParamSpec(50.0, 'Odometry, stereo/pose-free truth pose rate (Hz)', lo=1.0,
+                              hi=200.0, read_only=True),
+    'image_width': ParamSpec(320, 'Image width (px)', lo=32, hi=1920, read_only=True),
+    'image_height': ParamSpec(240, 'Image height (px)', lo=24, hi=1440, read_only=True),
+    'noise_fraction': ParamSpec(0.10, 'White noise bound as a fraction of each sensor\'s maximum '
+                                'sensed value (thesis 2.6.1)', lo=0.0, hi=1.0, read_only=True),
+    'real_time_factor': ParamSpec(1.0, 'Sim seconds per wall second; 0 = as fast as possible',
+                                  lo=0.0, hi=100.0),
+    'cmd_vel_timeout_s': ParamSpec(0.5, 'Stop a rover whose cmd_vel is older than this (sim s)',
+                                   lo=0.05, hi=10.0),
+    'map_frame': ParamSpec('map', 'Common world frame id (REP 105)', read_only=True),
+}
+
+
+class SimNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('rover_sim', **kwargs)
+        self.values = declare_parameters(self, PARAMS, on_change=self._on_param_change)
+        self._rtf = float(self.values['real_time_factor'])
+        self._cmd_timeout = float(self.values['cmd_vel_timeout_s'])
+        self.config = self._make_config()         # raises ValueError (logged by run_node)
+        self.truth_path = self.values['truth_yaml'] or None
+        try:
+            truth = load_truth(self.truth_path)
+        except TruthFileError as exc:
+            raise ValueError(str(exc)) from exc
+        self.world = World(self.config, [truth] * self.config.rovers)
+        self.bad = BadInputCounter(self)
+        self._pending: deque = deque()
+        self._lock = threading.Lock()
+        self._last_cmd_vel: dict[int, float] = {}
+        self._make_interfaces()
+        self._publish_latched()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='sim', daemon=True)
+        self.get_logger().info(
+            f'{self.config.rovers} rovers, seed {self.config.seed}, '
+            f'{len(self.world.layout.obstacles)} obstacles, physics {self.config.physics_rate_hz:g} '
+            f'Hz x {self.world.substeps} sub-steps, stereo {self.config.stereo_rate_hz:g} Hz '
+            f'{self.config.image_width}x{self.config.image_height}, rtf {self._rtf:g}')
+        self._thread.start()
+
+    # ------------------------------------------------------------------ set-up
+    #: node parameter -> SimConfig field
+    _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_width_m', 'sensor_rate_hz',
+                      'stereo_rate_hz', 'image_width', 'image_height')
+
+    def _make_config(self) -> SimConfig:
+        """Defaults <- world_yaml <- every parameter set away from its default."""
+        v = self.values
+        try:
+            base = load_config(v['world_yaml']) if v['world_yaml'] else SimConfig()
+            changes = {k: v[k] for k in self._CONFIG_PARAMS if v[k] != PARAMS[k].default}
+            if v['noise_fraction'] != PARAMS['noise_fraction'].default:
+                changes['noise'] = NoiseConfig(**{**base.noise.__dict__,
+                                                  'fraction': v['noise_fraction']})
+            return base.replace(real_time_factor=self._rtf, **changes)
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from exc
+
+    def _make_interfaces(self) -> None:
+        self.clock_pub = self.create_publisher(Clock, '/clock', CLOCK_QOS)
+        self.pubs = []
+        for i, r in enumerate(self.world.rovers):
+            n = r.name
+            pubs = {
+                'imu': self.create_publisher(Imu, f'{n}/imu', SENSOR_QOS),
+                'incl': self.create_publisher(Inclinometer, f'{n}/inclinometer', SENSOR_QOS),
+                'wrench': self.create_publisher(WrenchStamped, f'{n}/arm/wrench', SENSOR_QOS),
+                'joints': self.create_publisher(JointState, f'{n}/joint_states', SENSOR_QOS),
+                'left': self.create_publisher(Image, f'{n}/stereo/left/image_raw', SENSOR_QOS),
+                'right': self.create_publisher(Image, f'{n}/stereo/right/image_raw', SENSOR_QOS),
+                'left_info': self.create_publisher(CameraInfo, f'{n}/stereo/left/camera_info',
+                                                   SENSOR_QOS),
+                'right_info': self.create_publisher(CameraInfo, f'{n}/stereo/right/camera_info',
+                                                    SENSOR_QOS),
+                'cam_est': self.create_publisher(PoseWithCovarianceStamped, f'{n}/stereo/pose',
+                                                 SENSOR_QOS),
+                'odom': self.create_publisher(Odometry, f'{n}/odom', SENSOR_QOS),
+                'truth_base': self.create_publisher(PoseStamped, f'sim/{n}/base_pose', SENSOR_QOS),
+                'truth_cam': self.create_publisher(PoseStamped, f'sim/{n}/camera_pose',
+                                                   SENSOR_QOS),
+                'truth_params': self.create_publisher(DynamicParameters, f'sim/{n}/parameters',
+                                                      LATCHED_QOS),
+            }
+            self.pubs.append(pubs)
+            self.create_subscription(JointTrajectory, f'{n}/arm/joint_command',
+                                     lambda m, i=i: self._on_traj(i, m, 'arm'), COMMAND_QOS)
+            self.create_subscription(JointTrajectory, f'{n}/mast/command',
+                                     lambda m, i=i: self._on_traj(i, m, 'mast'), COMMAND_QOS)
+            self.create_subscription(Twist, f'{n}/cmd_vel', lambda m, i=i: self._on_twist(i, m),
+                                     COMMAND_QOS)
+        self.world_pub = self.create_publisher(MarkerArray, 'sim/world', LATCHED_QOS)
+        self.create_service(SimScenario, 'sim/reset', self._on_reset)
+
+    def _on_param_change(self, changed: dict) -> None:
+        if 'real_time_factor' in changed:
+            self._rtf = float(changed['real_time_factor'])
+            self._pace_origin = None
+        if 'cmd_vel_timeout_s' in changed:
+            self._cmd_timeout = float(changed['cmd_vel_timeout_s'])
+
+    # ------------------------------------------------------------------ commands (executor)
+    def _on_traj(self, index: int, msg: JointTrajectory, group: str) -> None:
+        rover = self.world.rovers[index].name
+        known = ARM_JOINTS if group == 'arm' else MAST_JOINTS
+        if msg.header.frame_id not in ('', f'{rover}/base_link'):
+            self.bad.reject('trajectory frame', f'{msg.header.frame_id!r} is not {rover}/base_link')
+            return
+        names = list(msg.joint_names)
+        if not names or any(n not in known for n in names) or len(set(names)) != len(names):
+            self.bad.reject('trajectory joints', f'{names} not a subset of {list(known)}')
+            return
+        if not msg.points:
+            self.bad.reject('trajectory empty')
+            return
+        times, positions = [], []
+        for p in msg.points:
+            if len(p.positions) != len(names):
+                self.bad.reject('trajectory joint count',
+                                f'{len(p.positions)} positions for {len(names)} joints')
+                return
+            times.append(p.time_from_start.sec + p.time_from_start.nanosec * 1e-9)
+            positions.append(list(p.positions))
+        if not (np.all(np.isfinite(positions)) and np.all(np.isfinite(times))):
+            self.bad.reject('trajectory NaN')
+            return
+        start = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        with self._lock:
+            self._pending.append(('traj', index, group, names, times, positions, start))
+
+    def _on_twist(self, index: int, msg: Twist) -> None:
+        v, w = msg.linear.x, msg.angular.z
+        if not (math.isfinite(v) and math.isfinite(w)):
+            self.bad.reject('cmd_vel NaN')
+            return
+        with self._lock:
+            self._pending.append(('twist', index, v, w))
+
+    def _on_reset(self, request: SimScenario.Request, response: SimScenario.Response):
+        changes = {}
+        if request.seed >= 0:
+            changes['seed'] = int(request.seed)
+        if request.occlusion_density >= 0:
+            changes['occlusion_density'] = float(request.occlusion_density)
+        if request.slot_width_m > 0:
+            changes['slot_width_m'] = float(request.slot_width_m)
+        try:
+            config = self.config.replace(**changes)
+            truth = load_truth(request.truth_yaml or self.truth_path)
+        except (ConfigError, TruthFileError) as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        done = threading.Event()
+        with self._lock:
+            self._pending.append(('reset', config, truth, request.truth_yaml, done))
+        if not done.wait(timeout=30.0):
+            response.success, response.message = False, 'simulator did not reset within 30 s'
+            return response
+        response.success = True
+        response.message = (f'reset: seed {config.seed}, occlusion {config.occlusion_density:g}, '
+                            f'slot {config.slot_width_m:g} m')
+        return response
+
+    # ------------------------------------------------------------------ sim thread
+    def _apply_pending(self) -> None:
+        with self._lock:
+            items = list(self._pending)
+            self._pending.clear()
+        for item in items:
+            kind = item[0]
+            if kind == 'traj':
+                _, i, group, names, times, positions, start = item
+                try:
+                    fn = self.world.command_arm if group == 'arm' else self.world.command_mast
+                    fn(i, names, times, positions, start_s=start)
+                except TrajectoryError as exc:
+                    self.bad.reject('trajectory', str(exc))
+            elif kind == 'twist':
+                _, i, v, w = item
+                self.world.command_velocity(i, v, w)
+                self._last_cmd_vel[i] = self.world.time_s
+            elif kind == 'reset':
+                _, config, truth, truth_yaml, done = item
+                self.world.close()
+                self.config = config
+                if truth_yaml:
+                    self.truth_path = truth_yaml
+                self.world = World(config, [truth] * config.rovers)
+                self._last_cmd_vel.clear()
+                self._pace_origin = None
+                self._publish_latched()
+                self.get_logger().info(f'reset to seed {config.seed}')
+                done.set()
+
+    def _run(self) -> None:
+        self._pace_origin = None
+        try:
+            while not self._stop.is_set() and rclpy.ok(context=self.context):
+                self._apply_pending()
+                w = self.world
+                for i, t in list(self._last_cmd_vel.items()):
+                    if w.time_s - t > self._cmd_timeout:
+                        w.command_velocity(i, 0.0, 0.0)
+                        del self._last_cmd_vel[i]
+                w.step()
+                self._publish_step()
+                self._pace()
+        except Exception as exc:  # noqa: BLE001 - the node must report, not die silently
+            if not self._stop.is_set():
+                self.get_logger().fatal(f'simulation thread stopped: {exc!r}')
+                raise
+
+    def _pace(self) -> None:
+        if self._rtf <= 0.0:
+            return
+        now = time.monotonic()
+        if self._pace_origin is None:
+            self._pace_origin = (now, self.world.time_s)
+        wall0, sim0 = self._pace_origin
+        ahead = (self.world.time_s - sim0) / self._rtf - (now - wall0)
+        if ahead > 0:
+            time.sleep(ahead)
+        elif ahead < -0.5:            # fell behind (rendering, load): do not try to catch up
+            self._pace_origin = (now, self.world.time_s)
+
+    def _every(self, rate_hz: float) -> bool:
+        if rate_hz <= 0:
+            return False
+        n = max(1, int(round(self.config.physics_rate_hz / rate_hz)))
+        return self.world.steps % n == 0
+
+    def _publish_step(self) -> None:
+        w = self.world
+        t = stamp(w.time_s)
+        self.clock_pub.publish(Clock(clock=t))
+        sensors = self._every(self.config.sensor_rate_hz)
+        odom = self._every(self.values['odom_rate_hz'])
+        stereo = self._every(self.config.stereo_rate_hz)
+        for i, r in enumerate(w.rovers):
+            pubs = self.pubs[i]
+            if sensors:
+                self._publish_sensors(i, r.name, pubs, t)
+            if odom:
+                self._publish_odom(i, r.name, pubs, t)
+            if stereo:
+                self._publish_stereo(i, r.name, pubs, t)
+
+    def _publish_sensors(self, i: int, name: str, pubs: dict, t: Time) -> None:
+        s = self.world.sense(i)
+        imu = Imu()
+        imu.header.stamp, imu.header.frame_id = t, f'{name}/base_link'
+        imu.orientation_covariance[0] = -1.0
+        imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z = (
+            float(v) for v in s.angular_velocity)
+        a = imu.linear_acceleration
+        a.x, a.y, a.z = (float(v) for v in s.specific_force)
+        nz = self.world._noise
+        for k in range(3):
+            imu.angular_velocity_covariance[4 * k] = nz['gyro'].variance
+            imu.linear_acceleration_covariance[4 * k] = nz['accel'].variance
+        pubs['imu'].publish(imu)
+        inc = Inclinometer()
+        inc.header.stamp, inc.header.frame_id = t, f'{name}/base_link'
+        inc.roll, inc.pitch = float(s.incl_angles[0]), float(s.incl_angles[1])
+        inc.roll_variance = inc.pitch_variance = float(s.incl_variance)
+        inc.raw_roll_volts, inc.raw_pitch_volts = float(s.incl_volts[0]), float(s.incl_volts[1])
+        inc.saturated = s.incl_saturated
+        pubs['incl'].publish(inc)
+        wr = WrenchStamped()
+        wr.header.stamp, wr.header.frame_id = t, f'{name}/ft_sensor_link'
+        wr.wrench.force.x, wr.wrench.force.y, wr.wrench.force.z = (float(v) for v in s.force)
+        wr.wrench.torque.x, wr.wrench.torque.y, wr.wrench.torque.z = (float(v) for v in s.torque)
+        pubs['wrench'].publish(wr)
+        js = JointState()
+        js.header.stamp = t
+        js.name = list(s.joint_names)
+        js.position = [float(v) for v in s.joint_positions]
+        js.velocity = [float(v) for v in s.joint_velocities]
+        pubs['joints'].publish(js)
+
+    def _publish_odom(self, i: int, name: str, pubs: dict, t: Time) -> None:
+        from .compliance import rpy_to_matrix
+        xy, yaw, v, w = self.world.odometry(i)
+        od = Odometry()
+        od.header.stamp, od.header.frame_id = t, 'odom'
+        od.child_frame_id = f'{name}/base_link'
+        _pose(od.pose.pose, np.array([xy[0], xy[1], 0.0]), rpy_to_matrix(0.0, 0.0, yaw))
+        od.twist.twist.linear.x, od.twist.twist.angular.z = float(v), float(w)
+        pubs['odom'].publish(od)
+        tr = self.world.truth(i)
+        ps = PoseStamped()
+        ps.header.stamp, ps.header.frame_id = t, self.values['map_frame']
+        _pose(ps.pose, tr.base_position, tr.base_rotation)
+        pubs['truth_base'].publish(ps)
+
+    def _camera_info(self, t: Time, frame: str, right: bool) -> CameraInfo:
+        k = self.world.intrinsics()
+        info = CameraInfo()
+        info.header.stamp, info.header.frame_id = t, frame
+        info.width, info.height = self.config.image_width, self.config.image_height
+        info.distortion_model = 'plumb_bob'
+        info.d = [0.0] * 5
+        info.k = [float(v) for v in k.ravel()]
+        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        p = np.hstack([k, np.zeros((3, 1))])
+        if right:
+            p[0, 3] = -k[0, 0] * STEREO_BASELINE_M     # Tx = -fx * baseline (ROS convention)
+        info.p = [float(v) for v in p.ravel()]
+        return info
+
+    def _publish_stereo(self, i: int, name: str, pubs: dict, t: Time) -> None:
+        left, right = self.world.render_stereo(i)
+        for key, img, frame, is_right in (('left', left, 'left', False),
+                                          ('right', right, 'right', True)):
+            msg = Image()
+            msg.header.stamp = t
+            msg.header.frame_id = f'{name}/{frame}_camera_optical_frame'
+            msg.height, msg.width = img.shape
+            msg.encoding, msg.step = 'mono8', img.shape[1]
+            msg.data = img.tobytes()
+            pubs[key].publish(msg)
+            pubs[f'{key}_info'].publish(self._camera_info(t, msg.header.frame_id, is_right))
+        pos, rot, cov = self.world.estimated_camera_pose(i)
+        est = PoseWithCovarianceStamped()
+        est.header.stamp, est.header.frame_id = t, self.values['map_frame']
+        _pose(est.pose.pose, pos, rot)
+        est.pose.covariance = [float(v) for v in cov.ravel()]
+        pubs['cam_est'].publish(est)
+        cp, cr = self.world.camera_pose(i)
+        ps = PoseStamped()
+        ps.header.stamp, ps.header.frame_id = t, self.values['map_frame']
+        _pose(ps.pose, cp, cr)
+        pubs['truth_cam'].publish(ps)
+
+    def _publish_latched(self) -> None:
+        t = stamp(self.world.time_s)
+        for i, r in enumerate(self.world.rovers):
+            dp = DynamicParameters()
+            dp.header.stamp, dp.header.frame_id = t, f'{r.name}/base_link'
+            dp.names = list(PARAM_NAMES)
+            dp.values = [float(v) for v in r.params.to_vector()]
+            n = len(PARAM_NAMES)
+            dp.std_devs = [0.0] * n
+            dp.ci95_low = list(dp.values)
+            dp.ci95_high = list(dp.values)
+            dp.information_bits = [10.0] * n
+            dp.observable = [True] * n
+            dp.max_information_bits = 10.0
+            dp.physically_consistent = True
+            dp.strategy = 'truth'
+            self.pubs[i]['truth_params'].publish(dp)
+        self.world_pub.publish(self._world_markers(t))
+
+    def _world_markers(self, t: Time) -> MarkerArray:
+        arr = MarkerArray()
+        frame = self.values['map_frame']
+        clear = Marker(action=Marker.DELETEALL)
+        clear.header.frame_id = frame
+        arr.markers.append(clear)
+        for k, ob in enumerate(self.world.layout.obstacles):
+            m = Marker()
+            m.header.stamp, m.header.frame_id = t, frame
+            m.ns, m.id = ob.kind, k
+            m.type = Marker.SPHERE if ob.kind == 'rock' else Marker.CYLINDER
+            m.pose.position.x, m.pose.position.y, m.pose.position.z = ob.position
+            m.pose.orientation.w = 1.0
+            m.scale.x = m.scale.y = 2 * ob.radius
+            m.scale.z = 2 * ob.radius if ob.kind == 'rock' else ob.height
+            m.color.r = m.color.g = m.color.b = float(ob.shade)
+            m.color.a = 1.0
+            arr.markers.append(m)
+        site = self.world.layout.site
+        for k, (x, y, z) in enumerate(site.markers):
+            m = Marker()
+            m.header.stamp, m.header.frame_id = t, frame
+            m.ns, m.id, m.type = 'site_marker', k, Marker.CYLINDER
+            m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, z
+            m.pose.orientation.y = m.pose.orientation.w = math.sqrt(0.5)
+            m.scale.x = m.scale.y = 0.04
+            m.scale.z = 0.002
+            m.color.r = m.color.g = m.color.b = m.color.a = 1.0
+            arr.markers.append(m)
+        m = Marker()
+        m.header.stamp, m.header.frame_id = t, frame
+        m.ns, m.id, m.type = 'site', 0, Marker.CUBE
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = site.position
+        m.pose.orientation.w = 1.0
+        m.scale.x, m.scale.y, m.scale.z = 0.2, 0.6 + site.slot_width_m, 0.4
+        m.color.r = m.color.g = 0.25
+        m.color.b, m.color.a = 0.3, 1.0
+        m.text = f'slot_width_m={site.slot_width_m:g}'
+        arr.markers.append(m)
+        return arr
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+        self.world.close()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(SimNode, args, executor_factory=lambda: MultiThreadedExecutor(num_threads=2))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

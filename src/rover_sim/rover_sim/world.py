@@ -1,0 +1,492 @@
+"""The PyBullet world: rovers on their base compliance, arms, masts, stereo cameras, obstacles,
+the card and the insertion site. No rclpy: `World` steps, senses and renders; the node publishes.
+"""
+from __future__ import annotations
+
+import math
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pybullet as pb
+from coop_common.dynparams import BaseParameters
+
+from .compliance import (FastCompliance, deflection, matrix_to_quat, matrix_to_rpy,
+                         quat_to_matrix, rotation_vector, rpy_to_matrix, static_preload)
+from .config import SimConfig
+from .rover_model import (ARM_EFFORT_NM, ARM_JOINTS, CAMERA_OFFSET, MAST_JOINTS, OPTICAL_IN_TILT,
+                          STEREO_BASELINE_M, WHEELS, arm_joint_inertias, rover_urdf)
+from .sensors import DEG, InclinometerModel, WhiteNoise, specific_force, wheel_speeds
+from .trajectory import JointTrajectoryFollower
+from .worldgen import WorldLayout, generate_world
+
+NOMINAL_HEIGHT_M = 0.30       # base c.g. above the ground at rest
+TRACK_M = 0.30
+WHEEL_RADIUS_M = 0.06
+ARM_HOME = np.array([0.0, -0.6, 1.2, 0.0])
+# Joint PD: about 15 Hz bandwidth, critically damped, gains scheduled on the inertia each joint
+# drives (arm_joint_inertias; mast pan and tilt constant); explicit at the physics sub-step,
+# inside its stability limit for every configuration.
+PD_OMEGA = 2 * np.pi * 15.0
+MAST_INERTIA = np.array([4e-4, 4e-4])
+EFFORT = (*ARM_EFFORT_NM, 5.0, 5.0)
+
+
+@dataclass
+class Readings:
+    """One rover's sensor outputs at one instant (noisy unless noise fraction is 0)."""
+
+    stamp_s: float
+    specific_force: np.ndarray        # base frame, m/s^2
+    angular_velocity: np.ndarray      # base frame, rad/s
+    incl_angles: np.ndarray           # roll, pitch (rad)
+    incl_volts: np.ndarray
+    incl_saturated: bool
+    incl_variance: float
+    force: np.ndarray                 # F_12 at the sensor, sensor (= base) axes, N
+    torque: np.ndarray                # N_12 about the sensor origin, N m
+    joint_names: tuple[str, ...]
+    joint_positions: np.ndarray       # NaN where a sensor gives no position (tachometers)
+    joint_velocities: np.ndarray
+
+
+@dataclass
+class Truth:
+    """Ground truth of one rover (published only under /sim)."""
+
+    stamp_s: float
+    base_position: np.ndarray         # c.g., map frame
+    base_rotation: np.ndarray         # base_link in map
+    dr: np.ndarray                    # compliance deflection, anchor frame
+    dtheta: np.ndarray
+    camera_position: np.ndarray       # left optical frame origin, map frame
+    camera_rotation: np.ndarray
+    anchor_position: np.ndarray
+    anchor_yaw: float
+
+
+@dataclass
+class _Rover:
+    name: str
+    body: int
+    params: BaseParameters
+    joint_index: dict[str, int]
+    ft_index: int
+    tilt_index: int
+    inertial_rot: np.ndarray          # principal-axes frame in the link frame
+    arm: JointTrajectoryFollower
+    mast: JointTrajectoryFollower
+    anchor_xy: np.ndarray
+    anchor_yaw: float
+    cmd: tuple[float, float]
+    preload: np.ndarray
+    prev_velocity: np.ndarray
+    accel: np.ndarray
+    wheel_rates: np.ndarray
+    odom_xy: np.ndarray
+    odom_yaw: float
+    fast: FastCompliance | None = None
+    actuated: list[int] | None = None
+    ft_sum: np.ndarray | None = None
+    ft_mean: np.ndarray | None = None
+
+
+def substeps_for(params: Sequence[BaseParameters], dt: float) -> int:
+    """Physics sub-steps per control step so that the explicit spring-damper of Eq. B-3 is stable:
+    b_i dt_sub / I_ii <= 1 and sqrt(k_i / I_ii) dt_sub <= 0.5 on every axis."""
+    rate = 0.0
+    for p in params:
+        inertia = np.array([p.inertia[0, 0], p.inertia[1, 1], p.inertia[2, 2]])
+        masses = np.full(3, p.mass)
+        diag = np.concatenate([masses, inertia])
+        rate = max(rate, float(np.max(p.damping / diag)),
+                   float(np.max(2.0 * np.sqrt(p.stiffness / diag))))
+    return max(1, int(math.ceil(rate * dt)))
+
+
+class World:
+    """The simulated site. Deterministic for a given config (seed) and command sequence."""
+
+    def __init__(self, config: SimConfig, truths: Sequence[BaseParameters]) -> None:
+        if len(truths) != config.rovers:
+            raise ValueError(f'expected {config.rovers} truth parameter sets, got {len(truths)}')
+        self.config = config
+        self.dt = 1.0 / config.physics_rate_hz
+        self.substeps = substeps_for(truths, self.dt)
+        self.time_s = 0.0
+        self.steps = 0
+        self.rng = np.random.default_rng(config.seed)
+        self._tmp = Path(tempfile.mkdtemp(prefix='rover_sim_'))
+        self.client = pb.connect(pb.DIRECT)
+        pb.resetSimulation(physicsClientId=self.client)
+        pb.setGravity(0, 0, -9.81, physicsClientId=self.client)
+        pb.setPhysicsEngineParameter(fixedTimeStep=self.dt / self.substeps, numSubSteps=0,
+                                     deterministicOverlappingPairs=1,
+                                     physicsClientId=self.client)
+        n = config.rovers
+        starts = [(-2.0, 1.5 * (i - (n - 1) / 2.0)) for i in range(n)]
+        self.layout: WorldLayout = generate_world(
+            seed=config.seed, occlusion_density=config.occlusion_density,
+            extent_m=config.extent_m, slot_width_m=config.slot_width_m,
+            keep_clear=tuple((x, y, 0.9) for x, y in starts))
+        self._textures = self._make_textures()
+        self._build_static()
+        noise = config.noise
+        self.incl_model = InclinometerModel(noise=WhiteNoise(noise.fraction, noise.inclinometer_rad))
+        self._noise = {
+            'accel': WhiteNoise(noise.fraction, noise.accel_m_s2),
+            'gyro': WhiteNoise(noise.fraction, noise.gyro_rad_s),
+            'force': WhiteNoise(noise.fraction, noise.force_n),
+            'torque': WhiteNoise(noise.fraction, noise.torque_nm),
+            'encoder': WhiteNoise(noise.fraction, noise.encoder_rad),
+            'tach': WhiteNoise(noise.fraction, noise.tach_rad_s),
+            'pot': WhiteNoise(noise.fraction, noise.pot_rad),
+        }
+        self.rovers: list[_Rover] = []
+        for i, (params, (x, y)) in enumerate(zip(truths, starts)):
+            self.rovers.append(self._spawn(f'rover{i + 1}', params, x, y, with_card=(i == 1)))
+
+    # ----------------------------------------------------------------- construction
+    def _make_textures(self) -> dict[str, int]:
+        rng = np.random.default_rng(self.config.seed + 7919)
+        out = {}
+        for name, size, blur in (('ground', 1024, 3), ('rock', 256, 3)):
+            img = rng.integers(0, 256, size=(size, size), dtype=np.uint8)
+            img = cv2.GaussianBlur(img, (blur, blur), 0)
+            img = cv2.normalize(img, None, 40, 230, cv2.NORM_MINMAX)
+            path = self._tmp / f'{name}.png'
+            cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+            out[name] = pb.loadTexture(str(path), physicsClientId=self.client)
+        return out
+
+    def _static_body(self, shape: int, position, orientation=(0, 0, 0, 1)) -> int:
+        return pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
+                                  basePosition=position, baseOrientation=orientation,
+                                  physicsClientId=self.client)
+
+    def _build_static(self) -> None:
+        c = self.client
+        half = self.config.extent_m
+        ground = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half, half, 0.005],
+                                      rgbaColor=[0.75, 0.7, 0.6, 1], physicsClientId=c)
+        self.ground = self._static_body(ground, [0, 0, -0.005])
+        pb.changeVisualShape(self.ground, -1, textureUniqueId=self._textures['ground'],
+                             physicsClientId=c)
+        self.obstacle_bodies = []
+        for ob in self.layout.obstacles:
+            s = ob.shade
+            if ob.kind == 'rock':
+                vis = pb.createVisualShape(pb.GEOM_SPHERE, radius=ob.radius,
+                                           rgbaColor=[s, s * 0.9, s * 0.8, 1], physicsClientId=c)
+            else:
+                vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=ob.radius, length=ob.height,
+                                           rgbaColor=[s * 0.6, s * 0.7, s, 1], physicsClientId=c)
+            body = self._static_body(vis, ob.position)
+            pb.changeVisualShape(body, -1, textureUniqueId=self._textures['rock'],
+                                 physicsClientId=c)
+            self.obstacle_bodies.append(body)
+        site = self.layout.site
+        sx, sy, sz = site.position
+        gap = site.slot_width_m
+        for side in (-1, 1):
+            vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[0.1, 0.15, 0.2],
+                                       rgbaColor=[0.25, 0.25, 0.3, 1], physicsClientId=c)
+            self._static_body(vis, [sx, sy + side * (0.15 + gap / 2), sz])
+        for m in site.markers:
+            vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=0.02, length=0.002,
+                                       rgbaColor=[1, 1, 1, 1], physicsClientId=c)
+            self._static_body(vis, m, pb.getQuaternionFromEuler([0, math.pi / 2, 0]))
+
+    def _spawn(self, name: str, params: BaseParameters, x: float, y: float,
+               with_card: bool) -> _Rover:
+        c = self.client
+        urdf = self._tmp / f'{name}.urdf'
+        urdf.write_text(rover_urdf(name, params, with_card=with_card))
+        body = pb.loadURDF(str(urdf), [x, y, NOMINAL_HEIGHT_M], [0, 0, 0, 1],
+                           flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
+        joints = {}
+        for j in range(pb.getNumJoints(body, physicsClientId=c)):
+            info = pb.getJointInfo(body, j, physicsClientId=c)
+            joints[info[1].decode()] = j
+            pb.changeDynamics(body, j, linearDamping=0, angularDamping=0, jointDamping=0,
+                              physicsClientId=c)
+        pb.changeDynamics(body, -1, linearDamping=0, angularDamping=0, physicsClientId=c)
+        q_in = pb.getDynamicsInfo(body, -1, physicsClientId=c)[4]
+        ft = joints['ft_sensor_joint']
+        pb.enableJointForceTorqueSensor(body, ft, True, physicsClientId=c)
+        for k, jn in enumerate(ARM_JOINTS):
+            pb.resetJointState(body, joints[jn], ARM_HOME[k], physicsClientId=c)
+        rover = _Rover(
+            name=name, body=body, params=params, joint_index=joints, ft_index=ft,
+            tilt_index=joints['mast_tilt'], inertial_rot=quat_to_matrix(q_in),
+            arm=JointTrajectoryFollower(ARM_JOINTS, ARM_HOME),
+            mast=JointTrajectoryFollower(MAST_JOINTS, np.zeros(2)),
+            anchor_xy=np.array([x, y]), anchor_yaw=0.0, cmd=(0.0, 0.0),
+            preload=np.zeros(6), prev_velocity=np.zeros(3), accel=np.zeros(3),
+            wheel_rates=np.zeros(4), odom_xy=np.array([x, y]), odom_yaw=0.0)
+        self._set_base_pose(rover, np.array([x, y, NOMINAL_HEIGHT_M]), np.eye(3))
+        rover.preload = self._preload(rover)
+        rover.actuated = [joints[j] for j in ARM_JOINTS + MAST_JOINTS]
+        # Joints are driven by explicit PD torques (TORQUE_CONTROL): PyBullet's joint reaction
+        # forces leave out the impulses of its POSITION_CONTROL motors, so the F/T sensor would
+        # miss the arm's dynamic reaction. Free the default velocity motors first.
+        pb.setJointMotorControlArray(body, rover.actuated, pb.VELOCITY_CONTROL,
+                                     forces=[0.0] * len(rover.actuated), physicsClientId=c)
+        rover.fast = FastCompliance(params.stiffness, params.damping, rover.preload, q_in)
+        return rover
+
+    # ----------------------------------------------------------------- kinematics
+    def _base_state(self, r: _Rover) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        c = self.client
+        pos, orn = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+        vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
+        rot = quat_to_matrix(orn) @ r.inertial_rot.T
+        return np.array(pos), rot, np.array(vel), np.array(ang)
+
+    def _set_base_pose(self, r: _Rover, pos: np.ndarray, rot: np.ndarray) -> None:
+        q = matrix_to_quat(rot @ r.inertial_rot)
+        pb.resetBasePositionAndOrientation(r.body, pos.tolist(), q.tolist(),
+                                           physicsClientId=self.client)
+        pb.resetBaseVelocity(r.body, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
+
+    def _anchor(self, r: _Rover) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        v, w = r.cmd
+        rot = rpy_to_matrix(0.0, 0.0, r.anchor_yaw)
+        p = np.array([r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M])
+        return p, rot, rot @ np.array([v, 0.0, 0.0]), np.array([0.0, 0.0, w])
+
+    def _preload(self, r: _Rover) -> np.ndarray:
+        c = self.client
+        pos, _, _, _ = self._base_state(r)
+        masses, coms = [], []
+        for j in range(pb.getNumJoints(r.body, physicsClientId=c)):
+            masses.append(pb.getDynamicsInfo(r.body, j, physicsClientId=c)[0])
+            coms.append(pb.getLinkState(r.body, j, computeForwardKinematics=1,
+                                        physicsClientId=c)[0])
+        masses.append(r.params.mass)
+        coms.append(pos)
+        _, rot_a, _, _ = self._anchor(r)
+        return static_preload(np.array(masses), np.array(coms), pos, rot_a)
+
+    def link_masses_and_coms(self, index: int, links: Sequence[int]) -> tuple[np.ndarray,
+                                                                              np.ndarray]:
+        """Masses and world c.o.m. positions of the given links (used by tests)."""
+        r = self.rovers[index]
+        c = self.client
+        m = np.array([pb.getDynamicsInfo(r.body, j, physicsClientId=c)[0] for j in links])
+        p = np.array([pb.getLinkState(r.body, j, computeForwardKinematics=1,
+                                      physicsClientId=c)[0] for j in links])
+        return m, p
+
+    # ----------------------------------------------------------------- commands
+    def rover_index(self, name: str) -> int:
+        for i, r in enumerate(self.rovers):
+            if r.name == name:
+                return i
+        raise KeyError(name)
+
+    def command_arm(self, index: int, names: Sequence[str], times_s: Sequence[float],
+                    positions: Sequence[Sequence[float]], start_s: float | None = None) -> None:
+        """Follow an arm trajectory (TrajectoryError on a bad one, the old one kept)."""
+        r = self.rovers[index]
+        now = self.time_s
+        r.arm.set(names, times_s, positions, now if start_s is None or start_s <= 0 else start_s,
+                  r.arm.target(now)[0])
+
+    def command_mast(self, index: int, names: Sequence[str], times_s: Sequence[float],
+                     positions: Sequence[Sequence[float]], start_s: float | None = None) -> None:
+        r = self.rovers[index]
+        now = self.time_s
+        r.mast.set(names, times_s, positions, now if start_s is None or start_s <= 0 else start_s,
+                   r.mast.target(now)[0])
+
+    def command_velocity(self, index: int, v: float, w: float) -> None:
+        """Skid-steer body speed (m/s) and yaw rate (rad/s), clipped to the rover's limits."""
+        if not (math.isfinite(v) and math.isfinite(w)):
+            raise ValueError('velocity command must be finite')
+        cfg = self.config
+        self.rovers[index].cmd = (float(np.clip(v, -cfg.max_linear_speed_m_s,
+                                                cfg.max_linear_speed_m_s)),
+                                  float(np.clip(w, -cfg.max_yaw_rate_rad_s,
+                                                cfg.max_yaw_rate_rad_s)))
+
+    # ----------------------------------------------------------------- stepping
+    def step(self) -> None:
+        """Advance one control period (1 / physics_rate_hz) with the compliance applied at every
+        physics sub-step."""
+        c = self.client
+        targets = []
+        for r in self.rovers:
+            pa, pv = r.arm.target(self.time_s)
+            mp, mv = r.mast.target(self.time_s)
+            q_arm = [st[0] for st in pb.getJointStates(r.body, r.actuated[:4], physicsClientId=c)]
+            inertia = np.concatenate([arm_joint_inertias(np.array(q_arm)), MAST_INERTIA])
+            kp = (inertia * PD_OMEGA ** 2).tolist()
+            kd = (2.0 * inertia * PD_OMEGA).tolist()
+            targets.append((np.concatenate([pa, mp]), np.concatenate([pv, mv]), kp, kd))
+        h = self.dt / self.substeps
+        for r in self.rovers:
+            r.ft_sum = np.zeros(6)
+        for sub in range(self.substeps):
+            for r, (q_ref, qd_ref, kp, kd) in zip(self.rovers, targets):
+                states = pb.getJointStates(r.body, r.actuated, physicsClientId=c)
+                tau = [0.0] * len(r.actuated)
+                for j, st in enumerate(states):
+                    ref = q_ref[j] + qd_ref[j] * sub * h
+                    t_j = kp[j] * (ref - st[0]) + kd[j] * (qd_ref[j] - st[1])
+                    tau[j] = max(-EFFORT[j], min(EFFORT[j], t_j))
+                pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL, forces=tau,
+                                             physicsClientId=c)
+                pos, quat = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+                vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
+                v, w = r.cmd
+                cy, sy = math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)
+                f, t = r.fast.wrench(pos, quat, vel, ang,
+                                     (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
+                                     r.anchor_yaw, (v * cy, v * sy, 0.0), w)
+                pb.applyExternalForce(r.body, -1, f, pos, pb.WORLD_FRAME, physicsClientId=c)
+                pb.applyExternalTorque(r.body, -1, t, pb.WORLD_FRAME, physicsClientId=c)
+            pb.stepSimulation(physicsClientId=c)
+            for r in self.rovers:
+                r.ft_sum += pb.getJointState(r.body, r.ft_index, physicsClientId=c)[2]
+                v, w = r.cmd
+                r.anchor_yaw += w * h
+                r.anchor_xy += h * v * np.array([math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)])
+        self.time_s = (self.steps + 1) * self.dt
+        self.steps += 1
+        for r in self.rovers:
+            # The F/T sensor reads the mean wrench over the control period (its anti-alias
+            # filter), consistent with the mean accelerations the IMU differences give.
+            r.ft_mean = r.ft_sum / self.substeps
+            _, _, vel, _ = self._base_state(r)
+            r.accel = (vel - r.prev_velocity) / self.dt
+            r.prev_velocity = vel
+            v, w = r.cmd
+            r.wheel_rates = wheel_speeds(v, w, track_m=TRACK_M, radius_m=WHEEL_RADIUS_M)
+            drift = self.config.noise.odom_drift
+            v_est = v * (1.0 + drift * self.rng.standard_normal())
+            w_est = w + drift * abs(v) * self.rng.standard_normal()
+            r.odom_yaw += w_est * self.dt
+            r.odom_xy += self.dt * v_est * np.array([math.cos(r.odom_yaw), math.sin(r.odom_yaw)])
+
+    # ----------------------------------------------------------------- sensing
+    def camera_pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """True left optical frame (origin, rotation) in the map frame."""
+        r = self.rovers[index]
+        st = pb.getLinkState(r.body, r.tilt_index, computeForwardKinematics=1,
+                             physicsClientId=self.client)
+        rot_t = quat_to_matrix(st[5])
+        return np.array(st[4]) + rot_t @ np.array(CAMERA_OFFSET), rot_t @ OPTICAL_IN_TILT
+
+    def truth(self, index: int) -> Truth:
+        r = self.rovers[index]
+        p, rot, v, w = self._base_state(r)
+        pa, ra, va, wa = self._anchor(r)
+        d = deflection(p, rot, v, w, pa, ra, va, wa)
+        cp, cr = self.camera_pose(index)
+        return Truth(self.time_s, p, rot, d.dr, d.dtheta, cp, cr, pa, r.anchor_yaw)
+
+    def joint_positions(self, index: int, names: Sequence[str]) -> np.ndarray:
+        r = self.rovers[index]
+        return np.array([pb.getJointState(r.body, r.joint_index[n], physicsClientId=self.client)[0]
+                         for n in names])
+
+    def sense(self, index: int) -> Readings:
+        """Noisy readings of every sensor of rover `index` (§2.6.1 noise, app. D sensors)."""
+        r = self.rovers[index]
+        c = self.client
+        rng = self.rng
+        nz = self._noise
+        _, rot, _, w = self._base_state(r)
+        sf = specific_force(r.accel, rot) + nz['accel'].sample(rng, 3)
+        gyro = rot.T @ w + nz['gyro'].sample(rng, 3)
+        roll, pitch, _ = matrix_to_rpy(rot)
+        angles, volts, sat = self.incl_model.read(roll, pitch, rng)
+        ft = (r.ft_mean if r.ft_mean is not None else
+              np.array(pb.getJointState(r.body, r.ft_index, physicsClientId=c)[2]))
+        force = ft[:3] + nz['force'].sample(rng, 3)
+        torque = ft[3:] + nz['torque'].sample(rng, 3)
+        names = ARM_JOINTS + MAST_JOINTS
+        states = [pb.getJointState(r.body, r.joint_index[n], physicsClientId=c) for n in names]
+        pos = np.array([s[0] for s in states]) + nz['encoder'].sample(rng, len(names))
+        vel = np.array([s[1] for s in states])
+        tach = r.wheel_rates + nz['tach'].sample(rng, 4)
+        pot = nz['pot'].sample(rng, 1)    # flat ground: the articulation stays straight
+        all_names = names + WHEELS + ('articulation',)
+        return Readings(
+            stamp_s=self.time_s, specific_force=sf, angular_velocity=gyro, incl_angles=angles,
+            incl_volts=volts, incl_saturated=sat, incl_variance=self.incl_model.variance(),
+            force=force, torque=torque, joint_names=all_names,
+            joint_positions=np.concatenate([pos, np.full(4, np.nan), pot]),
+            joint_velocities=np.concatenate([vel, tach, [0.0]]))
+
+    def odometry(self, index: int) -> tuple[np.ndarray, float, float, float]:
+        """Dead-reckoned (xy, yaw) from the tachometers, and the commanded (v, w)."""
+        r = self.rovers[index]
+        return r.odom_xy.copy(), r.odom_yaw, r.cmd[0], r.cmd[1]
+
+    def estimated_camera_pose(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rover's own estimate of its left optical pose: odometry + encoders + nominal mast
+        kinematics, blind to the compliance deflection. Returns (position, rotation, 6x6 cov)."""
+        r = self.rovers[index]
+        pan, tilt = self.joint_positions(index, MAST_JOINTS)
+        from .rover_model import MAST_POSITION
+        rot_base = rpy_to_matrix(0.0, 0.0, r.odom_yaw)
+        base = np.array([r.odom_xy[0], r.odom_xy[1], NOMINAL_HEIGHT_M])
+        rot_pan = rot_base @ rpy_to_matrix(0.0, 0.0, pan)
+        p_pan = base + rot_base @ np.array(MAST_POSITION)
+        rot_tilt = rot_pan @ rpy_to_matrix(0.0, tilt, 0.0)
+        p_tilt = p_pan + rot_pan @ np.array([0.0, 0.0, 0.04])
+        pos = p_tilt + rot_tilt @ np.array(CAMERA_OFFSET)
+        travelled = np.linalg.norm(r.odom_xy - r.anchor_xy) + 0.01
+        cov = np.diag([travelled ** 2 * 0.25] * 2 + [1e-4] + [(2 * DEG) ** 2] * 3)
+        return pos, rot_tilt @ OPTICAL_IN_TILT, cov
+
+    # ----------------------------------------------------------------- rendering
+    def intrinsics(self) -> np.ndarray:
+        """3x3 K of both (rectified, identical) cameras."""
+        w, h = self.config.image_width, self.config.image_height
+        f = (w / 2.0) / math.tan(math.radians(self.config.hfov_deg) / 2.0)
+        return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+    def render_stereo(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Left and right mono8 images of rover `index`'s stereo pair (TinyRenderer)."""
+        w, h = self.config.image_width, self.config.image_height
+        k = self.intrinsics()
+        vfov = math.degrees(2.0 * math.atan((h / 2.0) / k[1, 1]))
+        proj = pb.computeProjectionMatrixFOV(vfov, w / h, 0.05, 60.0)
+        pos, rot = self.camera_pose(index)
+        images = []
+        for offset in (0.0, STEREO_BASELINE_M):
+            eye = pos + rot[:, 0] * offset
+            view = pb.computeViewMatrix(eye.tolist(), (eye + rot[:, 2]).tolist(),
+                                        (-rot[:, 1]).tolist())
+            _, _, rgba, _, _ = pb.getCameraImage(w, h, view, proj, renderer=pb.ER_TINY_RENDERER,
+                                                 flags=pb.ER_NO_SEGMENTATION_MASK,
+                                                 physicsClientId=self.client)
+            rgb = np.reshape(np.asarray(rgba, dtype=np.uint8), (h, w, 4))[:, :, :3]
+            images.append(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY))
+        return images[0], images[1]
+
+    # ----------------------------------------------------------------- life cycle
+    def close(self) -> None:
+        if self.client is not None and self.client >= 0:
+            try:
+                pb.disconnect(physicsClientId=self.client)
+            except pb.error:
+                pass
+            self.client = -1
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def __enter__(self) -> World:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+__all__ = ['World', 'Readings', 'Truth', 'substeps_for', 'rotation_vector']
