@@ -1,0 +1,162 @@
+"""Unit tests of the simulator's pure parts: compliance (Eq. B-3), sensor models, trajectories,
+world generator, configuration."""
+import math
+
+import numpy as np
+import pytest
+from rover_sim.compliance import (Deflection, FastCompliance, compliance_wrench, deflection,
+                                  matrix_to_quat, matrix_to_rpy, quat_to_matrix,
+                                  rotation_vector, rpy_to_matrix, static_preload)
+from rover_sim.config import ConfigError, SimConfig, config_from_mapping, load_config
+from rover_sim.sensors import DEG, InclinometerModel, WhiteNoise, specific_force, wheel_speeds
+from rover_sim.trajectory import JointTrajectoryFollower, TrajectoryError
+from rover_sim.worldgen import generate_world, occlusion_fraction
+
+K = np.array([1000.0, 1000.0, 500.0, 2500.0, 2000.0, 3000.0])
+B = np.array([100.0, 100.0, 300.0, 300.0, 200.0, 400.0])
+
+
+def test_compliance_wrench_hand_case():
+    # 1 mm along x, 0.01 rad about y, 0.1 m/s along z, nothing else; anchor at identity
+    d = Deflection(np.array([1e-3, 0, 0]), np.array([0, 0.01, 0]), np.array([0, 0, 0.1]),
+                   np.zeros(3))
+    f, t = compliance_wrench(d, K, B, np.zeros(6), np.eye(3))
+    np.testing.assert_allclose(f, [-1.0, 0.0, -30.0])
+    np.testing.assert_allclose(t, [0.0, -20.0, 0.0])
+
+
+def test_compliance_wrench_rotates_with_the_anchor():
+    d = Deflection(np.array([1e-3, 0, 0]), np.zeros(3), np.zeros(3), np.zeros(3))
+    ra = rpy_to_matrix(0, 0, math.pi / 2)
+    f, _ = compliance_wrench(d, K, B, np.zeros(6), ra)
+    np.testing.assert_allclose(f, [0.0, -1.0, 0.0], atol=1e-12)
+
+
+def test_fast_compliance_matches_reference():
+    rng = np.random.default_rng(3)
+    q_in = matrix_to_quat(rpy_to_matrix(-0.27, 0.0, 0.0))
+    pre = rng.normal(size=6)
+    fast = FastCompliance(K, B, pre, q_in)
+    for _ in range(20):
+        yaw = rng.uniform(-3, 3)
+        r_link = rpy_to_matrix(*rng.normal(scale=0.02, size=2), yaw + rng.normal(scale=0.02))
+        p = rng.normal(size=3)
+        pa = p + rng.normal(scale=0.01, size=3)
+        v, w = rng.normal(size=3), rng.normal(size=3)
+        va, wa = np.array([0.1 * math.cos(yaw), 0.1 * math.sin(yaw), 0.0]), 0.3
+        ra = rpy_to_matrix(0, 0, yaw)
+        d = deflection(p, r_link, v, w, pa, ra, va, np.array([0, 0, wa]))
+        f_ref, t_ref = compliance_wrench(d, K, B, pre, ra)
+        quat_reported = matrix_to_quat(r_link @ quat_to_matrix(q_in))
+        f, t = fast.wrench(p, quat_reported, v, w, pa, yaw, va, wa)
+        np.testing.assert_allclose(f, f_ref, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(t, t_ref, rtol=1e-6, atol=1e-8)
+
+
+def test_static_preload_balances_gravity():
+    masses = np.array([3.0, 1.0])
+    coms = np.array([[0.0, 0.0, 0.3], [0.2, 0.3, 0.4]])
+    pre = static_preload(masses, coms, coms[0], np.eye(3))
+    np.testing.assert_allclose(pre[:3], [0, 0, 4 * 9.81])
+    # torque = -(r x m g) of the arm about the c.g.: r = (0.2, 0.3, 0.1), m g = (0, 0, -9.81)
+    np.testing.assert_allclose(pre[3:], -np.cross([0.2, 0.3, 0.1], [0, 0, -9.81]))
+
+
+def test_rotation_helpers_round_trip():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        rpy = rng.uniform([-1, -1.2, -3], [1, 1.2, 3])
+        r = rpy_to_matrix(*rpy)
+        np.testing.assert_allclose(matrix_to_rpy(r), rpy, atol=1e-12)
+        np.testing.assert_allclose(quat_to_matrix(matrix_to_quat(r)), r, atol=1e-12)
+    np.testing.assert_allclose(rotation_vector(rpy_to_matrix(0.0, 0.3, 0.0)), [0, 0.3, 0],
+                               atol=1e-12)
+
+
+def test_inclinometer_quantises_calibrates_and_saturates():
+    model = InclinometerModel(noise=WhiteNoise(0.0, 1.0))
+    rng = np.random.default_rng(0)
+    lsb = 40.0 / 1024 * DEG
+    angles, volts, sat = model.read(5 * DEG, -3 * DEG, rng)
+    assert not sat
+    np.testing.assert_allclose(angles, [5 * DEG, -3 * DEG], atol=lsb / 2 + 1e-12)
+    # Eq. D-1 inverse: V = V0 + S * angle_deg (Table D-1, robot 1)
+    np.testing.assert_allclose(volts, [2.406 + 0.033631 * 5, 2.381 - 0.034733 * 3],
+                               atol=0.034733 * 40 / 1024)
+    angles, _, sat = model.read(30 * DEG, 0.0, rng)
+    assert sat and angles[0] == pytest.approx(20 * DEG)
+    assert model.variance() == pytest.approx(lsb ** 2 / 12)
+
+
+def test_white_noise_bounded_by_fraction_of_max_sensed():
+    n = WhiteNoise(0.1, 2.0)
+    x = n.sample(np.random.default_rng(1), 20000)
+    assert np.abs(x).max() <= 0.2 and np.abs(x).max() > 0.19
+    assert x.var() == pytest.approx(n.variance, rel=0.05)
+    with pytest.raises(ValueError):
+        WhiteNoise(1.5, 1.0)
+
+
+def test_wheel_speeds_and_specific_force():
+    np.testing.assert_allclose(wheel_speeds(0.3, 0.0, track_m=0.3, radius_m=0.06), [5, 5, 5, 5])
+    left, right = wheel_speeds(0.0, 1.0, track_m=0.3, radius_m=0.06)[:2]
+    assert left == pytest.approx(-2.5) and right == pytest.approx(2.5)
+    np.testing.assert_allclose(specific_force(np.zeros(3), np.eye(3)), [0, 0, 9.81])
+    tilted = rpy_to_matrix(0.0, 0.1, 0.0)
+    assert specific_force(np.zeros(3), tilted)[0] == pytest.approx(-9.81 * math.sin(0.1))
+
+
+def test_trajectory_follower_interpolates_and_holds():
+    f = JointTrajectoryFollower(('a', 'b'), np.array([0.0, 1.0]))
+    f.set(['b'], [1.0, 2.0], [[2.0], [4.0]], start_s=10.0, current=np.array([0.0, 1.0]))
+    pos, vel = f.target(10.5)
+    np.testing.assert_allclose(pos, [0.0, 1.5])
+    np.testing.assert_allclose(vel, [0.0, 1.0])
+    np.testing.assert_allclose(f.target(11.5)[0], [0.0, 3.0])
+    np.testing.assert_allclose(f.target(99.0)[0], [0.0, 4.0])
+    with pytest.raises(TrajectoryError):
+        f.set(['c'], [1.0], [[0.0]], 0.0, np.zeros(2))
+    with pytest.raises(TrajectoryError):
+        f.set(['a'], [1.0, 0.5], [[0.0], [1.0]], 0.0, np.zeros(2))
+    with pytest.raises(TrajectoryError):
+        f.set(['a'], [1.0], [[float('nan')]], 0.0, np.zeros(2))
+
+
+def test_world_generator_density_determinism_and_clearance():
+    a = generate_world(seed=4, occlusion_density=0.2, keep_clear=((-2.0, 0.0, 1.0),))
+    b = generate_world(seed=4, occlusion_density=0.2, keep_clear=((-2.0, 0.0, 1.0),))
+    c = generate_world(seed=5, occlusion_density=0.2, keep_clear=((-2.0, 0.0, 1.0),))
+    assert a == b and a != c
+    assert 0.2 <= occlusion_fraction(a) < 0.2 + 0.7 / 100
+    obs = a.obstacles
+    for i, o in enumerate(obs):
+        assert math.hypot(o.position[0] + 2.0, o.position[1]) > 1.0 + o.radius
+        for p in obs[i + 1:]:
+            assert (math.hypot(o.position[0] - p.position[0], o.position[1] - p.position[1])
+                    > o.radius + p.radius)
+    assert generate_world(seed=1, occlusion_density=0.0).obstacles == ()
+    with pytest.raises(ValueError):
+        generate_world(seed=1, occlusion_density=0.9)
+    site = a.site
+    gap = abs(site.markers[0][1] - site.markers[1][1])
+    assert gap == pytest.approx(0.12 + site.slot_width_m)
+
+
+def test_config_errors_name_the_field(tmp_path):
+    with pytest.raises(ConfigError, match='stereo_rate_hz'):
+        config_from_mapping({'stereo_rate_hz': 100.0})
+    with pytest.raises(ConfigError, match='bogus'):
+        config_from_mapping({'bogus': 1})
+    with pytest.raises(ConfigError, match='noise.fraction'):
+        config_from_mapping({'noise': {'fraction': 'high'}})
+    with pytest.raises(ConfigError, match='rovers'):
+        config_from_mapping({'rovers': 2.5})
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('rovers: [1, 2\n')
+    with pytest.raises(ConfigError, match='not valid YAML'):
+        load_config(bad)
+    good = tmp_path / 'good.yaml'
+    good.write_text('occlusion_density: 0.2\nnoise:\n  fraction: 0.05\n')
+    cfg = load_config(good)
+    assert cfg.occlusion_density == 0.2 and cfg.noise.fraction == 0.05
+    assert cfg.rovers == SimConfig().rovers

@@ -1,0 +1,193 @@
+"""The PyBullet world without DDS: equilibrium, F/T against Newton-Euler on the arm,
+inclinometer against the compliance, determinism, noise scales, rendering, driving."""
+import dataclasses
+
+import numpy as np
+import pybullet as pb
+import pytest
+from coop_common.dynparams import BaseParameters, load_truth
+from rover_sim.compliance import matrix_to_rpy
+from rover_sim.config import NoiseConfig, SimConfig
+from rover_sim.rover_model import ARM_MASS, SENSOR_MASS
+from rover_sim.world import World
+
+QUIET = NoiseConfig(fraction=0.0)
+
+
+def one_rover(noise=QUIET, truth=None, **kw) -> World:
+    return World(SimConfig(rovers=1, noise=noise, stereo_rate_hz=0.0, **kw),
+                 [truth or load_truth()])
+
+
+def excite(world: World, seconds: float, warmup: float = 2.0):
+    """Arm to the Eq. 2-21 offset, then f(t) = pi/4 + 2pi/9 sin(pi/2 t) on arm joint 2."""
+    world.command_arm(0, ['arm_joint_1', 'arm_joint_2'], [warmup], [[0.0, np.pi / 4]])
+    for _ in range(int(warmup / world.dt) + 40):
+        world.step()
+    ts = np.arange(0.02, seconds + 0.5, 0.02)
+    # start with the sine's phase at rest: a ramped amplitude avoids the velocity step at t = 0
+    amp = 2 * np.pi / 9 * np.minimum(1.0, ts / 0.5)
+    world.command_arm(0, ['arm_joint_2'], ts, (np.pi / 4 + amp * np.sin(np.pi / 2 * ts))[:, None])
+
+
+def test_rest_is_equilibrium_and_ft_reads_the_arm_weight():
+    with one_rover() as w:
+        for _ in range(200):
+            w.step()
+        tr, s = w.truth(0), w.sense(0)
+        assert np.abs(tr.dr).max() < 1e-5 and np.abs(tr.dtheta).max() < 1e-5
+        np.testing.assert_allclose(s.force, [0, 0, (ARM_MASS + SENSOR_MASS) * 9.81], atol=1e-3)
+        np.testing.assert_allclose(s.specific_force, [0, 0, 9.81], atol=1e-5)
+
+
+def _arm_links(w: World) -> list[int]:
+    ji = w.rovers[0].joint_index
+    return [ji[n] for n in ('ft_sensor_joint', 'arm_joint_1', 'arm_joint_2', 'arm_joint_3',
+                            'arm_joint_4')]
+
+
+def _newton_euler_force(w: World, links, prev_v):
+    m, _ = w.link_masses_and_coms(0, links)
+    v = np.array([pb.getLinkState(w.rovers[0].body, j, computeLinkVelocity=1,
+                                  physicsClientId=w.client)[6] for j in links])
+    if prev_v is None:
+        return None, v
+    a = (v - prev_v) / w.dt
+    return (m[:, None] * (a - np.array([0, 0, -9.81]))).sum(axis=0), v
+
+
+def test_ft_equals_the_arms_newton_euler_reaction():
+    """Eq. B-1: F_12 = m_2 (a_cm2 - g), from the arm links' own accelerations."""
+    with one_rover() as w:
+        excite(w, 3.0)
+        links = _arm_links(w)
+        prev, meas, ne = None, [], []
+        for _ in range(500):
+            w.step()
+            f, prev = _newton_euler_force(w, links, prev)
+            if f is not None:
+                meas.append(w.sense(0).force)
+                ne.append(f)
+        meas, ne = np.array(meas), np.array(ne)
+        signal = meas.std(axis=0)
+        assert signal[0] > 0.05 and signal[2] > 0.05          # the arm really shakes the base
+        rms = np.sqrt(((meas - ne) ** 2).mean(axis=0))
+        assert np.all(rms[[0, 2]] < 0.1 * signal[[0, 2]]), (rms, signal)
+
+
+def test_noisy_ft_differs_from_the_reaction_by_the_configured_noise():
+    noise = NoiseConfig(fraction=0.1)
+    with one_rover(noise=noise) as w:
+        excite(w, 2.0)
+        links = _arm_links(w)
+        prev, diff = None, []
+        for _ in range(400):
+            w.step()
+            f, prev = _newton_euler_force(w, links, prev)
+            if f is not None:
+                diff.append(w.sense(0).force - f)
+        diff = np.array(diff)
+        bound = noise.fraction * noise.force_n
+        assert np.abs(diff.mean(axis=0)).max() < 0.2 * bound
+        np.testing.assert_allclose(diff.std(axis=0), bound / np.sqrt(3), rtol=0.2)
+
+
+def test_inclinometer_tilts_the_way_the_compliance_moves():
+    soft = dataclasses.replace(load_truth(), stiffness=np.array([1e3, 1e3, 500, 250, 200, 3e3]))
+    with one_rover(truth=soft) as w:
+        readings = []
+        for target in ([0.0, 0.0], [0.0, 1.2], [np.pi / 2, 0.0]):   # out front, up, to the left
+            w.command_arm(0, ['arm_joint_1', 'arm_joint_2'], [1.5], [target])
+            for _ in range(500):
+                w.step()
+            s, tr = w.sense(0), w.truth(0)
+            truth_rp = matrix_to_rpy(tr.base_rotation)[:2]
+            np.testing.assert_allclose(s.incl_angles, truth_rp, atol=40 / 1024 * np.pi / 180)
+            np.testing.assert_allclose(truth_rp, tr.dtheta[:2], atol=1e-4)
+            readings.append(s.incl_angles)
+        front, up, left = readings
+        # arm weight out front pitches the nose down (positive pitch about y, REP 103)
+        assert front[1] - up[1] > 0.005
+        # arm to the left rolls the base left-side down (negative roll about x)
+        assert left[0] - up[0] < -0.005
+
+
+def test_same_seed_same_world_and_readings():
+    def run(seed):
+        cfg = SimConfig(rovers=2, seed=seed, stereo_rate_hz=0.0)
+        with World(cfg, [load_truth()] * 2) as w:
+            w.command_arm(1, ['arm_joint_2'], [0.5], [[0.3]])
+            w.command_velocity(0, 0.1, 0.2)
+            out = []
+            for _ in range(150):
+                w.step()
+                s = w.sense(1)
+                out.append(np.concatenate([s.force, s.incl_angles, s.specific_force]))
+            return w.layout, np.array(out)
+    l1, a = run(7)
+    l2, b = run(7)
+    l3, c = run(8)
+    assert l1 == l2 and l1 != l3
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_noise_scales_match_thesis_scenario():
+    """The default max_sensed values are the dynamic ranges sensed under Eq. 2-21 (factor 2)."""
+    with one_rover() as w:
+        excite(w, 6.5)
+        for _ in range(300):
+            w.step()
+        rows = []
+        for _ in range(800):
+            w.step()
+            s = w.sense(0)
+            rows.append(np.concatenate([s.specific_force, s.angular_velocity, s.force, s.torque]))
+        r = np.array(rows)
+        dev = np.abs(r - r.mean(axis=0)).max(axis=0)
+        measured = {'accel_m_s2': dev[0:3].max(), 'gyro_rad_s': dev[3:6].max(),
+                    'force_n': dev[6:9].max(), 'torque_nm': dev[9:12].max()}
+        for name, value in measured.items():
+            default = getattr(NoiseConfig(), name)
+            assert 0.5 < value / default < 2.0, (name, value, default)
+
+
+def test_stereo_pair_is_textured_and_offset_by_the_baseline():
+    cfg = SimConfig(rovers=1, stereo_rate_hz=4.0, image_width=160, image_height=120)
+    with World(cfg, [load_truth()]) as w:
+        w.step()
+        left, right = w.render_stereo(0)
+        assert left.shape == (120, 160) and left.dtype == np.uint8
+        assert left.std() > 10 and right.std() > 10
+        assert not np.array_equal(left, right)
+        k = w.intrinsics()
+        assert k[0, 0] == pytest.approx(80 / np.tan(np.radians(41.2) / 2))
+        p, r = w.camera_pose(0)
+        assert np.allclose(r.T @ r, np.eye(3), atol=1e-9) and p[2] > 0.5
+
+
+def test_cmd_vel_moves_the_anchor_and_the_base_follows():
+    with one_rover() as w:
+        start = w.truth(0).base_position.copy()
+        w.command_velocity(0, 0.2, 0.0)
+        for _ in range(200):
+            w.step()
+        tr = w.truth(0)
+        assert tr.anchor_position[0] - start[0] == pytest.approx(0.2, abs=1e-6)
+        assert tr.base_position[0] - start[0] == pytest.approx(0.2, abs=0.01)
+        xy, _, v, _ = w.odometry(0)
+        assert v == pytest.approx(0.2) and xy[0] - start[0] == pytest.approx(0.2, abs=0.02)
+        w.command_velocity(0, 5.0, 0.0)
+        assert w.rovers[0].cmd[0] == pytest.approx(0.25)     # app. D top speed
+        with pytest.raises(ValueError):
+            w.command_velocity(0, float('nan'), 0.0)
+
+
+def test_mismatched_truth_count_is_rejected():
+    with pytest.raises(ValueError):
+        World(SimConfig(rovers=2), [load_truth()])
+
+
+def test_truth_vector_round_trip():
+    t = load_truth()
+    assert BaseParameters.from_vector(t.to_vector()).to_dict() == t.to_dict()
