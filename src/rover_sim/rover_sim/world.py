@@ -28,12 +28,10 @@ NOMINAL_HEIGHT_M = 0.30       # base c.g. above the ground at rest
 TRACK_M = 0.30
 WHEEL_RADIUS_M = 0.06
 ARM_HOME = np.array([0.0, -0.6, 1.2, 0.0])
-# Joint PD: about 15 Hz bandwidth, critically damped, gains scheduled on the inertia each joint
-# drives (arm_joint_inertias; mast pan and tilt constant); explicit at the physics sub-step,
-# inside its stability limit for every configuration.
+# Arm joint PD: about 15 Hz bandwidth, critically damped, gains scheduled on the inertia each
+# joint drives (arm_joint_inertias); explicit at the physics sub-step, inside its stability limit
+# for every configuration.
 PD_OMEGA = 2 * np.pi * 15.0
-MAST_INERTIA = np.array([4e-4, 4e-4])
-EFFORT = (*ARM_EFFORT_NM, 5.0, 5.0)
 
 
 @dataclass
@@ -91,7 +89,8 @@ class _Rover:
     odom_yaw: float
     fast: FastCompliance | None = None
     actuated: list[int] | None = None
-    ft_sum: np.ndarray | None = None
+    mast_joints: list[int] | None = None
+    ft_sum: list[float] | None = None
     ft_mean: np.ndarray | None = None
 
 
@@ -230,10 +229,11 @@ class World:
             wheel_rates=np.zeros(4), odom_xy=np.array([x, y]), odom_yaw=0.0)
         self._set_base_pose(rover, np.array([x, y, NOMINAL_HEIGHT_M]), np.eye(3))
         rover.preload = self._preload(rover)
-        rover.actuated = [joints[j] for j in ARM_JOINTS + MAST_JOINTS]
-        # Joints are driven by explicit PD torques (TORQUE_CONTROL): PyBullet's joint reaction
-        # forces leave out the impulses of its POSITION_CONTROL motors, so the F/T sensor would
-        # miss the arm's dynamic reaction. Free the default velocity motors first.
+        rover.actuated = [joints[j] for j in ARM_JOINTS]
+        rover.mast_joints = [joints[j] for j in MAST_JOINTS]
+        # Arm joints are driven by explicit PD torques (TORQUE_CONTROL): PyBullet's joint
+        # reaction forces leave out the impulses of its POSITION_CONTROL motors, so the F/T
+        # sensor would miss the arm's dynamic reaction. Free the default velocity motors first.
         pb.setJointMotorControlArray(body, rover.actuated, pb.VELOCITY_CONTROL,
                                      forces=[0.0] * len(rover.actuated), physicsClientId=c)
         rover.fast = FastCompliance(params.stiffness, params.damping, rover.preload, q_in)
@@ -323,14 +323,18 @@ class World:
         for r in self.rovers:
             pa, pv = r.arm.target(self.time_s)
             mp, mv = r.mast.target(self.time_s)
-            q_arm = [st[0] for st in pb.getJointStates(r.body, r.actuated[:4], physicsClientId=c)]
-            inertia = np.concatenate([arm_joint_inertias(np.array(q_arm)), MAST_INERTIA])
-            kp = (inertia * PD_OMEGA ** 2).tolist()
-            kd = (2.0 * inertia * PD_OMEGA).tolist()
-            targets.append((np.concatenate([pa, mp]), np.concatenate([pv, mv]), kp, kd))
+            q_arm = [st[0] for st in pb.getJointStates(r.body, r.actuated, physicsClientId=c)]
+            inertia = arm_joint_inertias(np.array(q_arm))
+            targets.append((pa.tolist(), pv.tolist(), (inertia * PD_OMEGA ** 2).tolist(),
+                            (2.0 * inertia * PD_OMEGA).tolist()))
+            # the mast does not load the arm's F/T sensor: the engine's motors hold it
+            pb.setJointMotorControlArray(r.body, r.mast_joints, pb.POSITION_CONTROL,
+                                         targetPositions=mp.tolist(), targetVelocities=mv.tolist(),
+                                         positionGains=[0.05] * 2, velocityGains=[1.0] * 2,
+                                         forces=[5.0, 5.0], physicsClientId=c)
         h = self.dt / self.substeps
         for r in self.rovers:
-            r.ft_sum = np.zeros(6)
+            r.ft_sum = [0.0] * 6
         for sub in range(self.substeps):
             for r, (q_ref, qd_ref, kp, kd) in zip(self.rovers, targets):
                 states = pb.getJointStates(r.body, r.actuated, physicsClientId=c)
@@ -338,7 +342,7 @@ class World:
                 for j, st in enumerate(states):
                     ref = q_ref[j] + qd_ref[j] * sub * h
                     t_j = kp[j] * (ref - st[0]) + kd[j] * (qd_ref[j] - st[1])
-                    tau[j] = max(-EFFORT[j], min(EFFORT[j], t_j))
+                    tau[j] = max(-ARM_EFFORT_NM[j], min(ARM_EFFORT_NM[j], t_j))
                 pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL, forces=tau,
                                              physicsClientId=c)
                 pos, quat = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
@@ -352,16 +356,21 @@ class World:
                 pb.applyExternalTorque(r.body, -1, t, pb.WORLD_FRAME, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
             for r in self.rovers:
-                r.ft_sum += pb.getJointState(r.body, r.ft_index, physicsClientId=c)[2]
+                ft = pb.getJointState(r.body, r.ft_index, physicsClientId=c)[2]
+                acc = r.ft_sum
+                for k in range(6):
+                    acc[k] += ft[k]
                 v, w = r.cmd
-                r.anchor_yaw += w * h
-                r.anchor_xy += h * v * np.array([math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)])
+                if v != 0.0 or w != 0.0:
+                    r.anchor_yaw += w * h
+                    r.anchor_xy[0] += h * v * math.cos(r.anchor_yaw)
+                    r.anchor_xy[1] += h * v * math.sin(r.anchor_yaw)
         self.time_s = (self.steps + 1) * self.dt
         self.steps += 1
         for r in self.rovers:
             # The F/T sensor reads the mean wrench over the control period (its anti-alias
             # filter), consistent with the mean accelerations the IMU differences give.
-            r.ft_mean = r.ft_sum / self.substeps
+            r.ft_mean = np.array(r.ft_sum) / self.substeps
             _, _, vel, _ = self._base_state(r)
             r.accel = (vel - r.prev_velocity) / self.dt
             r.prev_velocity = vel
@@ -403,7 +412,7 @@ class World:
         nz = self._noise
         _, rot, _, w = self._base_state(r)
         sf = specific_force(r.accel, rot) + nz['accel'].sample(rng, 3)
-        gyro = rot.T @ w + nz['gyro'].sample(rng, 3)
+        gyro = rot.T @ w + nz['gyro'].sample(rng, 3)  # (one draw per group keeps seeds stable)
         roll, pitch, _ = matrix_to_rpy(rot)
         angles, volts, sat = self.incl_model.read(roll, pitch, rng)
         ft = (r.ft_mean if r.ft_mean is not None else

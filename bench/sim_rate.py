@@ -1,0 +1,133 @@
+#!/usr/bin/env python3
+"""Simulator real-time factor: 2 rovers without rendering, with stereo at 4 Hz (320x240 and
+640x480), and the node publishing everything over DDS; beside it, the peer: PyBullet stepping the
+same bodies with no compliance or sensors (the engine's own ceiling), measured in the same run.
+
+Usage: bench/sim_rate.py --json OUT [--seconds S]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+
+import pybullet as pb  # noqa: E402
+from coop_common.dynparams import load_truth  # noqa: E402
+from rover_sim.config import SimConfig  # noqa: E402
+from rover_sim.world import World  # noqa: E402
+
+
+def world_rtf(seconds: float, **cfg) -> tuple[float, float, int]:
+    """(wall-clock RTF, CPU-time RTF, sub-steps). CPU time is this process's own: it does not
+    grow when other processes load the machine, so it is the figure compared with the target."""
+    config = SimConfig(rovers=2, **cfg)
+    with World(config, [load_truth()] * 2) as w:
+        render_every = (int(round(config.physics_rate_hz / config.stereo_rate_hz))
+                        if config.stereo_rate_hz > 0 else 0)
+        w.command_velocity(0, 0.1, 0.1)
+        w.command_arm(1, ['arm_joint_2'], [seconds], [[0.8]])
+        steps = int(seconds * config.physics_rate_hz)
+        t0, c0 = time.perf_counter(), time.process_time()
+        for k in range(steps):
+            w.step()
+            for i in range(2):
+                w.sense(i)
+                if render_every and k % render_every == 0:
+                    w.render_stereo(i)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        return seconds / wall, seconds / cpu, w.substeps
+
+
+def raw_pybullet_rtf(seconds: float, substeps: int) -> tuple[float, float]:
+    """The peer: pb.stepSimulation alone on the same world at the same sub-step."""
+    with World(SimConfig(rovers=2, stereo_rate_hz=0.0), [load_truth()] * 2) as w:
+        n = int(seconds * w.config.physics_rate_hz) * substeps
+        t0, c0 = time.perf_counter(), time.process_time()
+        for _ in range(n):
+            pb.stepSimulation(physicsClientId=w.client)
+        return seconds / (time.perf_counter() - t0), seconds / (time.process_time() - c0)
+
+
+def node_rtf(seconds: float) -> float | None:
+    """The installed node at real_time_factor 0, stereo 4 Hz 320x240, measured from /clock."""
+    try:
+        import rclpy
+        from coop_common.testing import NodeProcess, isolate_ros_environment
+        from rclpy.node import Node
+        from rosgraph_msgs.msg import Clock
+    except ImportError:
+        return None
+    isolate_ros_environment()
+    rclpy.init()
+    node = Node('sim_rate_bench')
+    stamps: list[tuple[float, float]] = []
+    node.create_subscription(
+        Clock, '/clock',
+        lambda m: stamps.append((time.perf_counter(), m.clock.sec + m.clock.nanosec * 1e-9)), 100)
+    try:
+        with NodeProcess('rover_sim', 'sim', ['-p', 'real_time_factor:=0.0']):
+            deadline = time.perf_counter() + 60
+            while (not stamps or stamps[-1][1] < 1.0) and time.perf_counter() < deadline:
+                rclpy.spin_once(node, timeout_sec=0.05)
+            start = len(stamps)
+            t_end = time.perf_counter() + seconds
+            while time.perf_counter() < t_end:
+                rclpy.spin_once(node, timeout_sec=0.05)
+            (w0, s0), (w1, s1) = stamps[start], stamps[-1]
+            return (s1 - s0) / (w1 - w0)
+    except (FileNotFoundError, IndexError, subprocess.SubprocessError):
+        return None
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--json', type=Path, required=True)
+    ap.add_argument('--seconds', type=float, default=5.0, help='sim seconds per case')
+    args = ap.parse_args()
+    rows = []
+    none = world_rtf(args.seconds, stereo_rate_hz=0.0)
+    substeps = none[2]
+    rows.append(('world, 2 rovers, no rendering', none[:2], 5.0))
+    s320 = world_rtf(args.seconds, stereo_rate_hz=4.0)
+    rows.append(('world, 2 rovers, stereo 4 Hz 320x240', s320[:2], 1.0))
+    s640 = world_rtf(args.seconds / 2, stereo_rate_hz=4.0, image_width=640, image_height=480)
+    rows.append(('world, 2 rovers, stereo 4 Hz 640x480', s640[:2], None))
+    peer = raw_pybullet_rtf(args.seconds, substeps)
+    rows.append((f'peer: pb.stepSimulation only ({substeps} sub-steps)', peer, None))
+    node = node_rtf(args.seconds)
+    print(f'{"case":<52} {"RTF (CPU)":>10} {"RTF (wall)":>11} {"target":>8}')
+    for name, (wall, cpu), target in rows:
+        tgt = f'>= {target:g}x' if target else '-'
+        print(f'{name:<52} {cpu:>9.2f}x {wall:>10.2f}x {tgt:>8}')
+    if node is not None:
+        print(f'{"node over DDS, stereo 4 Hz 320x240, all topics":<52} {"-":>10} '
+              f'{node:>10.2f}x {">= 1x":>8}')
+    print(f'{"ours / peer, CPU (no rendering)":<52} {none[1] / peer[1]:>9.2f}')
+    result = {
+        'rtf_no_render': none[1], 'rtf_stereo_4hz_320x240': s320[1],
+        'rtf_stereo_4hz_640x480': s640[1], 'rtf_peer_pybullet_only': peer[1],
+        'wall': {'rtf_no_render': none[0], 'rtf_stereo_4hz_320x240': s320[0],
+                 'rtf_stereo_4hz_640x480': s640[0], 'rtf_peer_pybullet_only': peer[0],
+                 'rtf_node_over_dds': node},
+        'ratio_to_peer': none[1] / peer[1], 'substeps': substeps, 'sim_seconds': args.seconds,
+        'clock': 'rtf_* are sim seconds per CPU second of this process; wall.* per wall second',
+        'targets': {'rtf_no_render': 5.0, 'rtf_stereo_4hz_320x240': 1.0},
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.json.with_suffix('.tmp')
+    tmp.write_text(json.dumps(result, indent=2))
+    tmp.replace(args.json)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

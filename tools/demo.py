@@ -1,0 +1,212 @@
+#!/usr/bin/env python3
+"""`make demo`: the two-rover world over DDS. Starts the installed simulator (`rover_sim sim`),
+drives both arms and camera masts through a short scripted motion (rover 1 shakes its arm with
+the thesis's Eq. 2-21 excitation, rover 2 drives and pans its cameras), prints what each rover
+senses, and writes under OUT/: a stereo pair (PNG) per rover and a plot of base tilt and
+arm-base force."""
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rclpy
+from coop_common.qos import COMMAND_QOS, SENSOR_QOS
+from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
+from coop_msgs.msg import Inclinometer
+from geometry_msgs.msg import Twist, WrenchStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Image, Imu, JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+ROVERS = ('rover1', 'rover2')
+
+
+def traj(names, times, positions) -> JointTrajectory:
+    msg = JointTrajectory(joint_names=list(names))
+    for t, p in zip(times, positions):
+        pt = JointTrajectoryPoint(positions=[float(v) for v in p])
+        pt.time_from_start.sec, pt.time_from_start.nanosec = int(t), int(round((t % 1) * 1e9))
+        msg.points.append(pt)
+    return msg
+
+
+class DemoNode(Node):
+    def __init__(self) -> None:
+        super().__init__('demo')
+        self.sim_time = 0.0
+        self.log = {r: {'t': [], 'roll': [], 'pitch': [], 'fx': [], 'fy': [], 'fz': []}
+                    for r in ROVERS}
+        self.last: dict[str, dict] = {r: {} for r in ROVERS}
+        self.images: dict[tuple[str, str], np.ndarray] = {}
+        self.lock = threading.Lock()
+        self.create_subscription(Clock, '/clock', self._on_clock, 10)
+        self.pubs = {}
+        for r in ROVERS:
+            self.create_subscription(Inclinometer, f'/{r}/inclinometer',
+                                     lambda m, r=r: self._incl(r, m), SENSOR_QOS)
+            self.create_subscription(WrenchStamped, f'/{r}/arm/wrench',
+                                     lambda m, r=r: self._wrench(r, m), SENSOR_QOS)
+            self.create_subscription(Imu, f'/{r}/imu', lambda m, r=r: self._keep(r, 'imu', m),
+                                     SENSOR_QOS)
+            self.create_subscription(JointState, f'/{r}/joint_states',
+                                     lambda m, r=r: self._keep(r, 'joints', m), SENSOR_QOS)
+            for side in ('left', 'right'):
+                self.create_subscription(Image, f'/{r}/stereo/{side}/image_raw',
+                                         lambda m, r=r, s=side: self._image(r, s, m), SENSOR_QOS)
+            self.pubs[r] = {
+                'arm': self.create_publisher(JointTrajectory, f'/{r}/arm/joint_command',
+                                             COMMAND_QOS),
+                'mast': self.create_publisher(JointTrajectory, f'/{r}/mast/command', COMMAND_QOS),
+                'cmd_vel': self.create_publisher(Twist, f'/{r}/cmd_vel', COMMAND_QOS),
+            }
+
+    def _on_clock(self, m: Clock) -> None:
+        self.sim_time = m.clock.sec + m.clock.nanosec * 1e-9
+
+    def _keep(self, r: str, key: str, m) -> None:
+        self.last[r][key] = m
+
+    def _incl(self, r: str, m: Inclinometer) -> None:
+        self.last[r]['incl'] = m
+        with self.lock:
+            log = self.log[r]
+            log['t'].append(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9)
+            log['roll'].append(np.degrees(m.roll))
+            log['pitch'].append(np.degrees(m.pitch))
+
+    def _wrench(self, r: str, m: WrenchStamped) -> None:
+        self.last[r]['wrench'] = m
+        with self.lock:
+            f = m.wrench.force
+            log = self.log[r]
+            log['fx'].append(f.x)
+            log['fy'].append(f.y)
+            log['fz'].append(f.z)
+
+    def _image(self, r: str, side: str, m: Image) -> None:
+        self.images[(r, side)] = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height,
+                                                                                m.width)
+
+    def report(self, r: str) -> str:
+        d = self.last[r]
+        if not {'incl', 'wrench', 'imu', 'joints'} <= set(d):
+            return f'{r}: waiting for sensors'
+        inc, w, imu, js = d['incl'], d['wrench'].wrench, d['imu'], d['joints']
+        pos = dict(zip(js.name, js.position))
+        vel = dict(zip(js.name, js.velocity))
+        a = imu.linear_acceleration
+        return (f'{r}: tilt roll {np.degrees(inc.roll):+6.2f} pitch {np.degrees(inc.pitch):+6.2f} '
+                f'deg | accel ({a.x:+5.2f} {a.y:+5.2f} {a.z:+5.2f}) m/s^2 | F ({w.force.x:+5.2f} '
+                f'{w.force.y:+5.2f} {w.force.z:+5.2f}) N  T ({w.torque.x:+5.2f} {w.torque.y:+5.2f} '
+                f'{w.torque.z:+5.2f}) N m | arm j2 {pos["arm_joint_2"]:+5.2f} rad | mast pan '
+                f'{pos["mast_pan"]:+5.2f} rad | wheel fl {vel["wheel_fl"]:+5.2f} rad/s')
+
+
+def script(node: DemoNode) -> None:
+    """The scripted motion, in sim time from now."""
+    t = np.arange(0.05, 12.0, 0.05)
+    amp = 2 * np.pi / 9 * np.minimum(1.0, t / 0.5)
+    eq_2_21 = np.pi / 4 + amp * np.sin(np.pi / 2 * t)          # Eq. 2-21 with a soft start
+    node.pubs['rover1']['arm'].publish(
+        traj(['arm_joint_1', 'arm_joint_2'], [1.5], [[0.0, np.pi / 4]]))
+    node.pubs['rover1']['arm'].publish(traj(['arm_joint_2'], 1.5 + t, eq_2_21[:, None]))
+    node.pubs['rover2']['arm'].publish(
+        traj(['arm_joint_1', 'arm_joint_2', 'arm_joint_3'], [3.0, 6.0, 9.0],
+             [[0.8, 0.3, 0.6], [-0.8, 0.0, 1.0], [0.0, -0.4, 1.2]]))
+    for r, pan in (('rover1', 0.5), ('rover2', -0.6)):
+        node.pubs[r]['mast'].publish(traj(['mast_pan', 'mast_tilt'], [4.0, 8.0, 12.0],
+                                          [[pan, 0.25], [-pan, 0.35], [0.0, 0.3]]))
+
+
+def save_outputs(node: DemoNode, out: Path) -> list[Path]:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    written = []
+    for r in ROVERS:
+        for side in ('left', 'right'):
+            img = node.images.get((r, side))
+            if img is not None:
+                path = out / f'{r}_stereo_{side}.png'
+                cv2.imwrite(str(path), img)
+                written.append(path)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6), sharex=True)
+    with node.lock:
+        for col, r in enumerate(ROVERS):
+            log = node.log[r]
+            n = min(len(log['t']), len(log['fz']))
+            t = np.array(log['t'][:n])
+            axes[0, col].plot(t, log['roll'][:n], label='roll')
+            axes[0, col].plot(t, log['pitch'][:n], label='pitch')
+            axes[0, col].set_title(f'{r}: inclinometer tilt (deg)')
+            axes[0, col].legend(loc='upper right')
+            for k in ('fx', 'fy', 'fz'):
+                axes[1, col].plot(t, np.array(log[k][:n]) - np.mean(log[k][:n]),
+                                  label=f'{k} - mean', lw=0.8)
+            axes[1, col].set_title(f'{r}: arm-base force F_12 (N, mean removed)')
+            axes[1, col].set_xlabel('sim time (s)')
+            axes[1, col].legend(loc='upper right')
+    fig.tight_layout()
+    path = out / 'tilt_and_force.png'
+    fig.savefig(path, dpi=90)
+    written.append(path)
+    return written
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--out', type=Path, default=Path('out'))
+    ap.add_argument('--seconds', type=float, default=14.0, help='sim seconds of scripted motion')
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    isolate_ros_environment()
+    log_path = args.out / 'sim.log'
+    print(f'demo: starting rover_sim (2 rovers, stereo 4 Hz); its log: {log_path}')
+    with NodeProcess('rover_sim', 'sim', ['-p', 'real_time_factor:=0.0'],
+                     log_path=log_path) as sim:
+        rclpy.init()
+        node = DemoNode()
+        ex = SingleThreadedExecutor()
+        ex.add_node(node)
+        try:
+            def spin(s):
+                ex.spin_once(timeout_sec=s)
+                if not sim.alive():
+                    raise RuntimeError(f'the simulator exited:\n{sim.log_text()[-2000:]}')
+            wait_for(lambda: node.pubs['rover2']['arm'].get_subscription_count() > 0
+                     and all('wrench' in node.last[r] for r in ROVERS), 60.0, spin=spin,
+                     what='the simulator')
+            start = node.sim_time
+            script(node)
+            print(f'demo: scripted motion for {args.seconds:g} s of sim time')
+            next_report = start
+            drive = Twist()
+            while node.sim_time < start + args.seconds:
+                # rover 2 drives an arc (re-sent: the sim stops a rover after 0.5 s of silence)
+                drive.linear.x, drive.angular.z = 0.15, 0.2 * np.sin(0.5 * (node.sim_time - start))
+                node.pubs['rover2']['cmd_vel'].publish(drive)
+                spin(0.05)
+                if node.sim_time >= next_report:
+                    pct = 100 * (node.sim_time - start) / args.seconds
+                    print(f'[{pct:5.1f}%] sim t = {node.sim_time:6.2f} s')
+                    for r in ROVERS:
+                        print('   ' + node.report(r))
+                    next_report += 2.0
+            for path in save_outputs(node, args.out):
+                print(f'demo: wrote {path}')
+        finally:
+            ex.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
