@@ -248,16 +248,28 @@ def test_reset_service_changes_the_world(live):
 
 
 def _first_imus(tmp_path: Path, seed: int, n: int = 100, name: str = 'det') -> dict:
+    """IMU readings keyed by stamp for the first n steps after /sim/reset to `seed`: a late
+    subscriber misses the start of a run, so every run is restarted at t = 0 once connected."""
     # its own namespace: the module's live simulator publishes /rover1/imu meanwhile
-    with sim_process(tmp_path, '-r', '__ns:=/det', '-p', f'seed:={seed}',
-                     '-p', 'stereo_rate_hz:=0.0', name=name):
+    with sim_process(tmp_path, '-r', '__ns:=/det', '-p', 'seed:=1', '-p', 'stereo_rate_hz:=0.0',
+                     '-p', 'real_time_factor:=0.5', name=name):
         probe = Probe()
         probe.listen(Imu, '/det/rover1/imu', QoSProfile(depth=1000,
-                                                    reliability=ReliabilityPolicy.BEST_EFFORT))
+                                                        reliability=ReliabilityPolicy.BEST_EFFORT))
         try:
-            probe.spin_until(lambda: probe.count('/det/rover1/imu') >= n, 30.0, 'imu messages')
+            probe.spin_until(lambda: probe.count('/det/rover1/imu') >= 300, 60.0, 'imu messages')
+            client = probe.node.create_client(SimScenario, '/det/sim/reset')
+            assert client.wait_for_service(timeout_sec=10.0)
+            future = client.call_async(SimScenario.Request(seed=seed, occlusion_density=-1.0,
+                                                           slot_width_m=0.0, truth_yaml=''))
+            probe.spin_until(future.done, 30.0, 'the reset')
+            assert future.result().success
+            msgs = probe.msgs['/det/rover1/imu']
+            msgs.clear()
+            probe.spin_until(lambda: sum(t_of(m.header) < 1.0 for m in msgs) >= n, 60.0,
+                             'imu messages after the reset')
             return {round(t_of(m.header), 4): (m.linear_acceleration.x, m.angular_velocity.y)
-                    for m in probe.msgs['/det/rover1/imu']}
+                    for m in msgs if t_of(m.header) < 1.0}
         finally:
             probe.close()
 
