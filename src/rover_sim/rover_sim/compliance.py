@@ -134,23 +134,40 @@ def _qmul(a: tuple[float, float, float, float], b: tuple[float, float, float, fl
             aw * bw - ax * bx - ay * by - az * bz)
 
 
+def _rotate(q: tuple[float, float, float, float], v: tuple[float, float, float]
+            ) -> tuple[float, float, float]:
+    """v rotated by unit quaternion q (x, y, z, w)."""
+    x, y, z, w = q
+    tx, ty, tz = 2 * (y * v[2] - z * v[1]), 2 * (z * v[0] - x * v[2]), 2 * (x * v[1] - y * v[0])
+    return (v[0] + w * tx + y * tz - z * ty, v[1] + w * ty + z * tx - x * tz,
+            v[2] + w * tz + x * ty - y * tx)
+
+
 class FastCompliance:
     """Eq. B-3 for one rover in scalar Python, for the physics sub-step loop (numpy's per-call
     overhead on 3-vectors dominates there). Same result as `deflection` + `compliance_wrench`
     for an anchor that only yaws (flat ground); checked against them in the tests."""
 
     def __init__(self, stiffness: np.ndarray, damping: np.ndarray, preload: np.ndarray,
-                 inertial_quat: np.ndarray) -> None:
+                 inertial_quat: np.ndarray, com_offset: np.ndarray = np.zeros(3)) -> None:
+        self.com_offset = tuple(float(v) for v in com_offset)
         self.k = tuple(float(v) for v in stiffness)
         self.b = tuple(float(v) for v in damping)
         self.pre = tuple(float(v) for v in preload)
         x, y, z, w = (float(v) for v in inertial_quat)
         self.q_in_inv = (-x, -y, -z, w)
 
-    def wrench(self, pos, quat, vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
-               anchor_w: float) -> tuple[list[float], list[float]]:
-        """(force, torque) in the world frame on the base c.g.; quat is PyBullet's base
-        (principal-axes) orientation."""
+    def wrench(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
+               anchor_w: float) -> tuple[list[float], list[float], list[float]]:
+        """(force, torque, point) in the world frame: the compliance wrench acts at the sprung
+        body's c.g. (the base link origin); com, com_vel, quat are PyBullet's base link c.o.m.
+        position, velocity and principal-axes orientation."""
+        q_link = _qmul(tuple(quat), self.q_in_inv)
+        ox, oy, oz = _rotate(q_link, self.com_offset)
+        pos = (com[0] - ox, com[1] - oy, com[2] - oz)
+        vel = (com_vel[0] - (ang[1] * oz - ang[2] * oy),
+               com_vel[1] - (ang[2] * ox - ang[0] * oz),
+               com_vel[2] - (ang[0] * oy - ang[1] * ox))
         c, s = math.cos(anchor_yaw), math.sin(anchor_yaw)
         # world -> anchor: rotate by -yaw about z
         dx, dy, dz = pos[0] - anchor_pos[0], pos[1] - anchor_pos[1], pos[2] - anchor_pos[2]
@@ -159,7 +176,6 @@ class FastCompliance:
         dv = (c * vx + s * vy, -s * vx + c * vy, vz)
         wx, wy, wz = ang[0], ang[1], ang[2] - anchor_w
         dw = (c * wx + s * wy, -s * wx + c * wy, wz)
-        q_link = _qmul(tuple(quat), self.q_in_inv)
         h = 0.5 * anchor_yaw
         q_rel = _qmul((0.0, 0.0, -math.sin(h), math.cos(h)), q_link)
         qx, qy, qz, qw = q_rel
@@ -173,4 +189,4 @@ class FastCompliance:
         t = [-k[i + 3] * dth[i] - b[i + 3] * dw[i] + pre[i + 3] for i in range(3)]
         # anchor -> world
         return ([c * f[0] - s * f[1], s * f[0] + c * f[1], f[2]],
-                [c * t[0] - s * t[1], s * t[0] + c * t[1], t[2]])
+                [c * t[0] - s * t[1], s * t[0] + c * t[1], t[2]], list(pos))

@@ -41,6 +41,37 @@ MAST_POSITION = (-0.12, -0.10, 0.40)      # pan joint, relative to the base c.g.
 CAMERA_OFFSET = (0.04, 0.0, 0.06)          # left optical origin, in the tilt link
 STEREO_BASELINE_M = 0.038
 SENSOR_MASS = 1e-3
+#: mast links: (mass, c.o.m. in the base frame at pan = tilt = 0, principal inertia)
+#: Light (50 g in all) so that the Table 2-1 inertia less the mast's is still a physical body.
+MAST_PAN = (0.02, (MAST_POSITION[0], MAST_POSITION[1], MAST_POSITION[2] + 0.02), (1e-5,) * 3)
+MAST_TILT = (0.03, (MAST_POSITION[0] + 0.02, MAST_POSITION[1], MAST_POSITION[2] + 0.10),
+             (2e-5,) * 3)
+
+
+def _shift(mass: float, c: np.ndarray) -> np.ndarray:
+    """Parallel-axis term m (|c|^2 E - c c^T)."""
+    c = np.asarray(c, dtype=float)
+    return mass * (float(c @ c) * np.eye(3) - np.outer(c, c))
+
+
+def base_link_inertial(params: BaseParameters) -> tuple[float, np.ndarray, np.ndarray]:
+    """(mass, c.o.m. offset, inertia about that c.o.m.) of the base link alone such that the
+    sprung body the compliance holds, base link + mast at home, has exactly the true mass, c.g.
+    (the link origin) and inertia tensor of `params`: the mast rides on the base, and Eq. 2-1's
+    m_1, I_1 are those of everything sprung except the arm beyond the F/T sensor."""
+    mast = (MAST_PAN, MAST_TILT)
+    m_b = params.mass - sum(m for m, _, _ in mast)
+    if m_b <= 0:
+        raise ValueError(f'base mass {params.mass} kg does not exceed the mast mass')
+    c_b = -sum(m * np.asarray(c) for m, c, _ in mast) / m_b
+    inertia = params.inertia - _shift(m_b, c_b)
+    for m, c, i in mast:
+        inertia = inertia - np.diag(i) - _shift(m, np.asarray(c))
+    eig = np.linalg.eigvalsh(inertia)
+    if np.any(eig <= 0) or eig[0] + eig[1] < eig[2]:
+        raise ValueError('the true inertia less the mast\'s is not a physical body '
+                         f'(principal moments {np.round(eig, 5).tolist()})')
+    return m_b, c_b, inertia
 
 
 def _inertial(mass: float, com, inertia) -> str:
@@ -58,12 +89,12 @@ def _box(size, xyz=(0, 0, 0), rgba=(0.6, 0.6, 0.6, 1.0)) -> str:
 def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
                shade: float = 0.55) -> str:
     """URDF text of a rover whose base has the given true parameters."""
-    i = params.inertia
+    m_b, c_b, i = base_link_inertial(params)
     r2 = params.cg_to_arm
     c = (shade, shade * 0.95, shade * 0.85, 1.0)
     parts = [f'<robot name="{name}">',
-             '<link name="base_link"><inertial><origin xyz="0 0 0"/>'
-             f'<mass value="{params.mass}"/><inertia ixx="{i[0, 0]}" iyy="{i[1, 1]}" '
+             f'<link name="base_link"><inertial><origin xyz="{c_b[0]} {c_b[1]} {c_b[2]}"/>'
+             f'<mass value="{m_b}"/><inertia ixx="{i[0, 0]}" iyy="{i[1, 1]}" '
              f'izz="{i[2, 2]}" ixy="{i[0, 1]}" ixz="{i[0, 2]}" iyz="{i[1, 2]}"/></inertial>',
              _box((0.5, 0.36, 0.14), rgba=c), _box((0.04, 0.04, 0.4), (-0.12, -0.10, 0.2), c),
              '</link>',
@@ -98,13 +129,15 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
         parts.append('<joint name="card_joint" type="fixed"><parent link="arm_link_4"/>'
                      '<child link="card_link"/><origin xyz="0.134 0 0"/></joint>')
     mx, my, mz = MAST_POSITION
-    parts.append(f'<link name="mast_pan_link">{_inertial(0.05, (0, 0, 0.02), (2e-5,) * 3)}'
+    pan_inertial = _inertial(MAST_PAN[0], (0, 0, 0.02), MAST_PAN[2])
+    parts.append(f'<link name="mast_pan_link">{pan_inertial}'
                  f'{_box((0.03, 0.03, 0.04), (0, 0, 0.02), c)}</link>')
     parts.append('<joint name="mast_pan" type="revolute"><parent link="base_link"/>'
                  f'<child link="mast_pan_link"/><origin xyz="{mx} {my} {mz}"/><axis xyz="0 0 1"/>'
                  '<limit lower="-3.1" upper="3.1" effort="5" velocity="2"/></joint>')
     cx, cy, cz = CAMERA_OFFSET
-    parts.append(f'<link name="mast_tilt_link">{_inertial(0.10, (0.02, 0, 0.06), (5e-5,) * 3)}'
+    tilt_inertial = _inertial(MAST_TILT[0], (0.02, 0, 0.06), MAST_TILT[2])
+    parts.append(f'<link name="mast_tilt_link">{tilt_inertial}'
                  f'{_box((0.04, 0.08, 0.04), (cx - 0.02, -STEREO_BASELINE_M / 2, cz), (0.1, 0.1, 0.1, 1))}'
                  '</link>')
     parts.append('<joint name="mast_tilt" type="revolute"><parent link="mast_pan_link"/>'

@@ -20,7 +20,8 @@ from .compliance import (FastCompliance, deflection, matrix_to_quat, matrix_to_r
                          quat_to_matrix, rotation_vector, rpy_to_matrix, static_preload)
 from .config import SimConfig
 from .rover_model import (ARM_EFFORT_NM, ARM_JOINTS, CAMERA_OFFSET, MAST_JOINTS, OPTICAL_IN_TILT,
-                          STEREO_BASELINE_M, WHEELS, arm_joint_inertias, rover_urdf)
+                          STEREO_BASELINE_M, WHEELS, arm_joint_inertias, base_link_inertial,
+                          rover_urdf)
 from .sensors import DEG, InclinometerModel, WhiteNoise, specific_force, wheel_speeds
 from .trajectory import JointTrajectoryFollower
 from .worldgen import WorldLayout, generate_world
@@ -78,6 +79,7 @@ class _Rover:
     ft_index: int
     tilt_index: int
     inertial_rot: np.ndarray          # principal-axes frame in the link frame
+    com_offset: np.ndarray            # base link c.o.m. in the link frame (mast compensation)
     arm: JointTrajectoryFollower
     mast: JointTrajectoryFollower
     anchor_xy: np.ndarray
@@ -230,6 +232,7 @@ class World:
         rover = _Rover(
             name=name, body=body, params=params, joint_index=joints, ft_index=ft,
             tilt_index=joints['mast_tilt'], inertial_rot=quat_to_matrix(q_in),
+            com_offset=base_link_inertial(params)[1],
             arm=JointTrajectoryFollower(ARM_JOINTS, ARM_HOME),
             mast=JointTrajectoryFollower(MAST_JOINTS, np.zeros(2)),
             anchor_xy=np.array([x, y]), anchor_yaw=0.0, cmd=(0.0, 0.0),
@@ -244,21 +247,27 @@ class World:
         # sensor would miss the arm's dynamic reaction. Free the default velocity motors first.
         pb.setJointMotorControlArray(body, rover.actuated, pb.VELOCITY_CONTROL,
                                      forces=[0.0] * len(rover.actuated), physicsClientId=c)
-        rover.fast = FastCompliance(params.stiffness, params.damping, rover.preload, q_in)
+        rover.fast = FastCompliance(params.stiffness, params.damping, rover.preload, q_in,
+                                    rover.com_offset)
         return rover
 
     # ----------------------------------------------------------------- kinematics
     def _base_state(self, r: _Rover) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Base link origin (= c.g. of the sprung body) position, rotation, velocity, angular
+        velocity, all world frame. PyBullet reports the base link's own c.o.m. and principal
+        axes; both are moved back to the link frame here."""
         c = self.client
-        pos, orn = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+        com, orn = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
         vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
         rot = quat_to_matrix(orn) @ r.inertial_rot.T
-        return np.array(pos), rot, np.array(vel), np.array(ang)
+        off = rot @ r.com_offset
+        ang = np.array(ang)
+        return np.array(com) - off, rot, np.array(vel) - np.cross(ang, off), ang
 
     def _set_base_pose(self, r: _Rover, pos: np.ndarray, rot: np.ndarray) -> None:
         q = matrix_to_quat(rot @ r.inertial_rot)
-        pb.resetBasePositionAndOrientation(r.body, pos.tolist(), q.tolist(),
-                                           physicsClientId=self.client)
+        pb.resetBasePositionAndOrientation(r.body, (pos + rot @ r.com_offset).tolist(),
+                                           q.tolist(), physicsClientId=self.client)
         pb.resetBaseVelocity(r.body, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
 
     def _anchor(self, r: _Rover) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -275,8 +284,8 @@ class World:
             masses.append(pb.getDynamicsInfo(r.body, j, physicsClientId=c)[0])
             coms.append(pb.getLinkState(r.body, j, computeForwardKinematics=1,
                                         physicsClientId=c)[0])
-        masses.append(r.params.mass)
-        coms.append(pos)
+        masses.append(pb.getDynamicsInfo(r.body, -1, physicsClientId=c)[0])
+        coms.append(pos + self._base_state(r)[1] @ r.com_offset)
         _, rot_a, _, _ = self._anchor(r)
         return static_preload(np.array(masses), np.array(coms), pos, rot_a)
 
@@ -359,10 +368,10 @@ class World:
                 vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
                 v, w = r.cmd
                 cy, sy = math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)
-                f, t = r.fast.wrench(pos, quat, vel, ang,
-                                     (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
-                                     r.anchor_yaw, (v * cy, v * sy, 0.0), w)
-                pb.applyExternalForce(r.body, -1, f, pos, pb.WORLD_FRAME, physicsClientId=c)
+                f, t, at = r.fast.wrench(pos, quat, vel, ang,
+                                         (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
+                                         r.anchor_yaw, (v * cy, v * sy, 0.0), w)
+                pb.applyExternalForce(r.body, -1, f, at, pb.WORLD_FRAME, physicsClientId=c)
                 pb.applyExternalTorque(r.body, -1, t, pb.WORLD_FRAME, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
             for r in self.rovers:

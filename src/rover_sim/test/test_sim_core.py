@@ -48,7 +48,8 @@ def test_fast_compliance_matches_reference():
         d = deflection(p, r_link, v, w, pa, ra, va, np.array([0, 0, wa]))
         f_ref, t_ref = compliance_wrench(d, K, B, pre, ra)
         quat_reported = matrix_to_quat(r_link @ quat_to_matrix(q_in))
-        f, t = fast.wrench(p, quat_reported, v, w, pa, yaw, va, wa)
+        f, t, at = fast.wrench(p, quat_reported, v, w, pa, yaw, va, wa)
+        np.testing.assert_allclose(at, p)
         np.testing.assert_allclose(f, f_ref, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(t, t_ref, rtol=1e-6, atol=1e-8)
 

@@ -191,3 +191,34 @@ def test_mismatched_truth_count_is_rejected():
 def test_truth_vector_round_trip():
     t = load_truth()
     assert BaseParameters.from_vector(t.to_vector()).to_dict() == t.to_dict()
+
+
+def test_sprung_body_has_exactly_the_true_mass_cg_and_inertia():
+    """Base link + mast (everything the compliance holds, the arm excluded) = the truth YAML:
+    mass, c.g. at the base frame origin, inertia tensor about it (Eq. 2-1's m_1, I_1)."""
+    truth = load_truth()
+    with one_rover(truth=truth) as w:
+        r, c = w.rovers[0], w.client
+        parts = []
+        com, orn = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+        info = pb.getDynamicsInfo(r.body, -1, physicsClientId=c)
+        parts.append((info[0], np.array(com), np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3),
+                      np.array(info[2])))
+        for name in ('mast_pan', 'mast_tilt'):
+            j = r.joint_index[name]
+            st = pb.getLinkState(r.body, j, computeForwardKinematics=1, physicsClientId=c)
+            info = pb.getDynamicsInfo(r.body, j, physicsClientId=c)
+            parts.append((info[0], np.array(st[0]),
+                          np.array(pb.getMatrixFromQuaternion(st[1])).reshape(3, 3),
+                          np.array(info[2])))
+        tr = w.truth(0)
+        origin, rot = tr.base_position, tr.base_rotation
+        mass = sum(p[0] for p in parts)
+        cg = sum(p[0] * p[1] for p in parts) / mass
+        inertia = np.zeros((3, 3))
+        for m, pos, rr, diag in parts:
+            d = pos - origin
+            inertia += rr @ np.diag(diag) @ rr.T + m * (d @ d * np.eye(3) - np.outer(d, d))
+        assert mass == pytest.approx(truth.mass, rel=1e-9)
+        np.testing.assert_allclose(cg, origin, atol=1e-9)
+        np.testing.assert_allclose(rot.T @ inertia @ rot, truth.inertia, atol=1e-6)
