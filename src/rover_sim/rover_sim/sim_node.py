@@ -274,9 +274,11 @@ class SimNode(Node):
                 self._publish_step()
                 self._pace()
         except Exception as exc:  # noqa: BLE001 - the node must report, not die silently
-            if not self._stop.is_set():
-                self.get_logger().fatal(f'simulation thread stopped: {exc!r}')
-                raise
+            # on Ctrl-C the context goes invalid under a publish in flight: a clean stop
+            if self._stop.is_set() or not rclpy.ok(context=self.context):
+                return
+            self.get_logger().fatal(f'simulation thread stopped: {exc!r}')
+            raise
 
     def _pace(self) -> None:
         if self._rtf <= 0.0:
