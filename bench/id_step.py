@@ -1,0 +1,114 @@
+#!/usr/bin/env python3
+"""Benchmark: one full 0.4 s identification step of coop_id (thesis §2.6.1: 75 ms on a PIII 750).
+
+One step = build A x = F for 80 samples x 3 arm modes (raw channels + filter bank), the Kalman
+filter updates (decimated rows), the Eq. 2-12 information metric + bias-compensated consistent
+report, and the excitation
+re-optimisation (LM, Eq. 2-16..2-20). Peer in the same run: a batch pseudo-inverse (numpy lstsq)
+of the same window, the per-step cost a non-recursive solution would pay.
+
+    python bench/id_step.py --json OUT [--steps 25] [--strategy information]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+
+import numpy as np  # noqa: E402
+
+from coop_common.dynparams import load_truth  # noqa: E402
+from coop_id.excitation import constant_excitation  # noqa: E402
+from coop_id.experiment import reference_noise_scales  # noqa: E402
+from coop_id.identifier_core import Identifier, IdentifierConfig  # noqa: E402
+from coop_id.model import FilterBank, SensorNoise, filtered_rows, raw_channels  # noqa: E402
+from coop_id.modelsim import ThesisRover, add_noise, stack_frames  # noqa: E402
+
+
+def windows(n: int, seed: int = 0) -> tuple[list[dict], dict]:
+    truth = load_truth()
+    scales = reference_noise_scales(truth, 4.0)
+    rover, exc, rng = ThesisRover(truth), constant_excitation(), np.random.default_rng(seed)
+    out, frames = [], [rover.rest_frame()]
+    for _ in range(n):
+        for _ in range(80):
+            frames.append(rover.step(exc(rover.t + 0.005)))
+        out.append(add_noise(stack_frames(frames), scales, 0.1, rng))
+        frames = []
+    sig = {c: 0.1 * scales[c] / np.sqrt(3.0) for c in scales}
+    noise = {m: SensorNoise(sig['specific_force'][m], sig['gyro'][m], sig['incl'][m],
+                            sig['force'][m]) for m in range(3)}
+    return out, noise
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--json', required=True)
+    ap.add_argument('--steps', type=int, default=25)
+    ap.add_argument('--strategy', default='information')
+    args = ap.parse_args()
+    data, noise = windows(args.steps + 3)
+    ident = Identifier(IdentifierConfig(strategy=args.strategy), sensor_noise=noise)
+    t_rows, t_kf, t_info, t_opt, t_total, t_peer = [], [], [], [], [], []
+    bank = FilterBank()
+    for k, win in enumerate(data):
+        # (a) build A for 80 samples x 3 modes, timed separately on a twin filter bank
+        ta = time.perf_counter()
+        rows = []
+        for m in range(3):
+            ch = raw_channels(specific_force=win['specific_force'][:, m], gyro=win['gyro'][:, m],
+                              incl_roll_pitch=win['incl'][:, m], force=win['force'][:, m],
+                              torque=win['torque'][:, m])
+            rows.append(filtered_rows(bank, ch, tag=str(m)))
+        tb = time.perf_counter()
+        # peer: batch pseudo-inverse of the window's 1440 x 22 rows
+        a = np.concatenate([r[0] for r in rows]).reshape(-1, 22)
+        y = np.concatenate([r[1] for r in rows]).ravel()
+        tp = time.perf_counter()
+        np.linalg.lstsq(a, y, rcond=None)
+        tq = time.perf_counter()
+        # (b) the identifier's own step: rows + KF updates, then window end (info + optimise)
+        t1 = time.perf_counter()
+        ident.add_samples_all(specific_force=win['specific_force'], gyro=win['gyro'],
+                              incl=win['incl'], force=win['force'], torque=win['torque'])
+        t2 = time.perf_counter()
+        ident.end_window(optimise_excitation=False)
+        t3 = time.perf_counter()
+        if np.all(np.isfinite(ident.row_var)) and ident.cfg.strategy != 'constant':
+            ident.excitation = ident._reoptimise()
+        t4 = time.perf_counter()
+        if k < 3:      # warm-up: R not yet estimated, caches cold
+            continue
+        t_rows.append(1e3 * (tb - ta))
+        t_peer.append(1e3 * (tq - tp))
+        t_kf.append(1e3 * (t2 - t1) - 1e3 * (tb - ta))
+        t_info.append(1e3 * (t3 - t2))
+        t_opt.append(1e3 * (t4 - t3))
+        t_total.append(1e3 * (t4 - t1))
+    med = {name: statistics.median(v) for name, v in (
+        ('build_A_80x3_ms', t_rows), ('kf_updates_ms', t_kf), ('information_report_ms', t_info),
+        ('excitation_reoptimise_ms', t_opt), ('full_step_ms', t_total),
+        ('peer_batch_lstsq_ms', t_peer))}
+    print(f'coop_id full 0.4 s step, strategy {args.strategy}, {len(t_total)} steps, '
+          f'OPENBLAS_NUM_THREADS={os.environ.get("OPENBLAS_NUM_THREADS")}')
+    print(f'{"part":28s}{"median ms":>10s}')
+    for k_, v in med.items():
+        print(f'{k_:28s}{v:10.2f}')
+    print(f'{"thesis (PIII 750 MHz)":28s}{75.0:10.2f}')
+    print(f'{"target":28s}{20.0:10.2f}')
+    ratio = med['full_step_ms'] / med['peer_batch_lstsq_ms']
+    print(f'ratio full step / peer batch lstsq = {ratio:.1f}')
+    with open(args.json, 'w') as fh:
+        json.dump({'strategy': args.strategy, 'steps': len(t_total), 'median_ms': med,
+                   'thesis_ms': 75.0, 'target_ms': 20.0,
+                   'ratio_full_over_peer': med['full_step_ms'] / med['peer_batch_lstsq_ms']},
+                  fh, indent=1)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,356 @@
+"""Node `identifier`: on-line identification of this rover's base dynamics (thesis ch. 2).
+
+Thin wrapper over coop_id.identifier_core.Identifier. Subscribes to the rover's `imu`,
+`inclinometer`, `arm/wrench` (and `joint_states` for the arm's current pose), drives the arm
+excitation on `arm/joint_command` while an `identify` action goal runs, publishes the latched
+`dynamic_parameters`. Run under the rover's namespace: `--ros-args -r __ns:=/rover1`.
+Time base: the sensor stamps (sim time, wall time or a replayed bag alike).
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+
+import numpy as np
+from builtin_interfaces.msg import Duration
+from coop_msgs.action import Identify
+from coop_msgs.msg import DynamicParameters, Inclinometer
+from geometry_msgs.msg import WrenchStamped
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from coop_common.dynparams import PARAM_NAMES
+from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+
+from .excitation import STRATEGIES, Excitation
+from .identifier_core import Identifier, IdentifierConfig
+from .model import SensorNoise
+
+#: Arm base joints and the three rotation modes of §2.2: (joint driven, (joint1, joint2) hold).
+MODES = (('arm_joint_1', 0.0, None), ('arm_joint_2', 0.0, None),
+         ('arm_joint_2', math.pi / 2, None))   # about z, about y, about x (joint 1 = pi/2)
+
+SPECS = {
+    'strategy': ParamSpec('information', 'default excitation strategy (goal may override)',
+                          choices=STRATEGIES),
+    'rate_hz': ParamSpec(200.0, 'sensor sample rate the filters are designed for',
+                         lo=20.0, hi=2000.0, read_only=True),
+    'window_s': ParamSpec(0.4, 'information / excitation re-optimisation period (§2.6.1)',
+                          lo=0.1, hi=5.0, read_only=True),
+    'decimation': ParamSpec(4, 'filter update every N-th sample', lo=1, hi=50, read_only=True),
+    'information_bits': ParamSpec(10, 'n of the n-bit information metric (Eq. 2-12)',
+                                  lo=2, hi=16, read_only=True),
+    'use_accelerometer': ParamSpec(True, 'false: rotational subset only (§2.6.2)',
+                                   read_only=True),
+    'drift_per_s': ParamSpec(0.0, 'parameter random walk, fraction of range per sqrt(s)',
+                             lo=0.0, hi=1.0, read_only=True),
+    'mode_period_s': ParamSpec(2.0, 'seconds per arm rotation mode (z, y, x cycle)',
+                               lo=0.4, hi=60.0),
+    'sync_tolerance_s': ParamSpec(0.006, 'max stamp difference when pairing sensors',
+                                  lo=0.0005, hi=0.1),
+    'stale_timeout_s': ParamSpec(0.1, 'a sensor silent this long stops the sample stream',
+                                 lo=0.01, hi=10.0),
+    'ft_force_limit_n': ParamSpec(200.0, 'F/T force saturation (samples beyond are skipped)',
+                                  lo=1.0, hi=1e4),
+    'ft_torque_limit_nm': ParamSpec(50.0, 'F/T torque saturation', lo=0.1, hi=1e4),
+    'ft_force_noise_std_n': ParamSpec(0.0, 'F/T force noise 1-sigma (datasheet; WrenchStamped '
+                                      'has no covariance); 0 = unknown', lo=0.0, hi=100.0),
+    'bias_compensation': ParamSpec(True, 'remove the errors-in-variables bias using the sensor '
+                                   'noise covariances of the messages', read_only=True),
+}
+
+
+class IdentifierNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('identifier', **kwargs)
+        self.p = declare_parameters(self, SPECS, on_change=self._on_change)
+        self.bad = BadInputCounter(self)
+        self._lock = threading.Lock()
+        self._sensors = MutuallyExclusiveCallbackGroup()
+        self._imu: deque[tuple[float, Imu]] = deque(maxlen=50)
+        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=50)
+        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=50)
+        self._last_stamp = {'imu': -math.inf, 'inclinometer': -math.inf, 'wrench': -math.inf}
+        self._last_sample_t = -math.inf
+        self._buffer: list[tuple[float, np.ndarray]] = []
+        self.ident: Identifier | None = None
+        self._current_exc: Excitation | None = None
+        self._active = threading.Event()
+        self._window_done = threading.Condition(self._lock)
+        self._t0 = None
+        self._t_now = 0.0
+        self._windows = 0
+        self._exc_t0 = 0.0
+        self.create_subscription(Imu, 'imu', self._on_imu, SENSOR_QOS,
+                                 callback_group=self._sensors)
+        self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, SENSOR_QOS,
+                                 callback_group=self._sensors)
+        self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, SENSOR_QOS,
+                                 callback_group=self._sensors)
+        self.create_subscription(JointState, 'joint_states', self._on_joints, SENSOR_QOS,
+                                 callback_group=self._sensors)
+        self.pub_params = self.create_publisher(DynamicParameters, 'dynamic_parameters',
+                                                LATCHED_QOS)
+        self.pub_cmd = self.create_publisher(JointTrajectory, 'arm/joint_command', COMMAND_QOS)
+        self._action = ActionServer(
+            self, Identify, '~/identify', execute_callback=self._execute,
+            goal_callback=self._on_goal, cancel_callback=lambda _g: CancelResponse.ACCEPT,
+            callback_group=ReentrantCallbackGroup())
+        self.joint_positions: dict[str, float] = {}
+        self._noise_var = {'acc': np.zeros(3), 'gyro': np.zeros(3), 'incl': np.zeros(2)}
+        self.get_logger().info('identifier ready (action ~/identify)')
+
+    # -- parameters ----------------------------------------------------------------------------
+    def _on_change(self, changed: dict) -> None:
+        self.p.update(changed)
+
+    # -- sensors -------------------------------------------------------------------------------
+    @staticmethod
+    def _stamp(msg) -> float:
+        return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+    def _accept(self, name: str, t: float, values: list[float]) -> bool:
+        if not all(math.isfinite(v) for v in values):
+            self.bad.reject('non-finite', name)
+            return False
+        if t <= self._last_stamp[name]:
+            self.bad.reject('out-of-order stamp',
+                            f'{name} {t:.4f} <= {self._last_stamp[name]:.4f}')
+            return False
+        self._last_stamp[name] = t
+        return True
+
+    def _on_imu(self, msg: Imu) -> None:
+        a, w = msg.linear_acceleration, msg.angular_velocity
+        t = self._stamp(msg)
+        if self._accept('imu', t, [a.x, a.y, a.z, w.x, w.y, w.z]):
+            self._noise_var['acc'] = np.array(msg.linear_acceleration_covariance)[[0, 4, 8]]
+            self._noise_var['gyro'] = np.array(msg.angular_velocity_covariance)[[0, 4, 8]]
+            self._imu.append((t, msg))
+            self._assemble()
+
+    def _on_incl(self, msg: Inclinometer) -> None:
+        t = self._stamp(msg)
+        if msg.saturated:
+            self.bad.reject('saturated inclinometer')
+            return
+        if self._accept('inclinometer', t, [msg.roll, msg.pitch]):
+            self._noise_var['incl'] = np.array([msg.roll_variance, msg.pitch_variance])
+            self._incl.append((t, msg))
+            self._assemble()
+
+    def _on_wrench(self, msg: WrenchStamped) -> None:
+        f, n = msg.wrench.force, msg.wrench.torque
+        t = self._stamp(msg)
+        if not self._accept('wrench', t, [f.x, f.y, f.z, n.x, n.y, n.z]):
+            return
+        if (max(abs(f.x), abs(f.y), abs(f.z)) > self.p['ft_force_limit_n']
+                or max(abs(n.x), abs(n.y), abs(n.z)) > self.p['ft_torque_limit_nm']):
+            self.bad.reject('saturated F/T')
+            return
+        self._wrench.append((t, msg))
+        self._assemble()
+
+    def _on_joints(self, msg: JointState) -> None:
+        for name, pos in zip(msg.name, msg.position):
+            if math.isfinite(pos):
+                self.joint_positions[name] = pos
+
+    def _assemble(self) -> None:
+        """Pair the newest IMU sample with inclinometer and wrench samples of the same instant."""
+        tol = self.p['sync_tolerance_s']
+        while self._imu:
+            t, imu = self._imu[0]
+            incl = _nearest(self._incl, t, tol)
+            wr = _nearest(self._wrench, t, tol)
+            newest_other = min(self._last_stamp['inclinometer'], self._last_stamp['wrench'])
+            if incl is None or wr is None:
+                if newest_other > t + tol:        # the partner will never come: drop it
+                    self._imu.popleft()
+                    self.bad.reject('unpaired sample', f'imu {t:.4f}')
+                    continue
+                if t - newest_other > self.p['stale_timeout_s']:
+                    self._imu.popleft()
+                    self.bad.reject('silent sensor', 'inclinometer or wrench')
+                    continue
+                return
+            self._imu.popleft()
+            a, w = imu.linear_acceleration, imu.angular_velocity
+            f, n = wr.wrench.force, wr.wrench.torque
+            row = np.array([a.x, a.y, a.z, w.x, w.y, w.z, incl.roll, incl.pitch,
+                            f.x, f.y, f.z, n.x, n.y, n.z])
+            self._on_sample(t, row)
+
+    def _on_sample(self, t: float, row: np.ndarray) -> None:
+        if not self._active.is_set() or self.ident is None:
+            return
+        if self._buffer and t - self._buffer[-1][0] > self.p['stale_timeout_s']:
+            self.bad.reject('gap in sample stream', f'{t - self._buffer[-1][0]:.3f} s')
+        self._buffer.append((t, row))
+        self._t_now = t
+        if self._t0 is None:   # first sample of a goal: the rover is at rest, start the arm
+            self._t0 = t
+            self._exc_t0 = t
+            self._command_arm()
+        per_window = int(round(self.p['window_s'] * self.p['rate_hz']))
+        if len(self._buffer) >= per_window + (1 if self._windows == 0 else 0):
+            self._process_window()
+
+    def _process_window(self) -> None:
+        data = np.stack([r for _, r in self._buffer])
+        self._buffer.clear()
+        ident = self.ident
+        ident.add_samples(0, specific_force=data[:, 0:3], gyro=data[:, 3:6], incl=data[:, 6:8],
+                          force=data[:, 8:11], torque=data[:, 11:14])
+        ident.end_window()
+        self._windows += 1
+        self._publish_estimate()
+        if ident.excitation is not self._current_exc:
+            self._current_exc = ident.excitation
+            self._exc_t0 = self._t_now
+        self._command_arm()
+        with self._window_done:
+            self._window_done.notify_all()
+
+    # -- outputs -------------------------------------------------------------------------------
+    def _estimate_msg(self) -> DynamicParameters:
+        rep = self.ident.report
+        msg = DynamicParameters()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = 'base_link'
+        msg.names = list(PARAM_NAMES)
+        msg.values = rep.values.tolist()
+        msg.std_devs = rep.std.tolist()
+        msg.ci95_low = rep.ci_low.tolist()
+        msg.ci95_high = rep.ci_high.tolist()
+        msg.information_bits = rep.information_bits.tolist()
+        msg.observable = [bool(o) for o in rep.observable]
+        msg.max_information_bits = float(self.ident.cfg.bits)
+        msg.physically_consistent = bool(rep.consistent)
+        msg.strategy = self.ident.cfg.strategy
+        exc = self.ident.excitation
+        msg.excitation_amplitude_rad = float(exc.amplitude_rad)
+        msg.excitation_frequency_rad_s = float(exc.frequency_rad_s)
+        msg.excitation_offset_rad = float(exc.offset_rad)
+        msg.samples = int(self.ident.samples)
+        msg.rejected_samples = int(self.bad.total)
+        return msg
+
+    def _publish_estimate(self) -> None:
+        self.pub_params.publish(self._estimate_msg())
+
+    def _command_arm(self) -> None:
+        """Send the next window (+ margin) of f(t) for the current rotation mode."""
+        mode = int((self._t_now - self._t0) // self.p['mode_period_s']) % 3
+        joint, hold1, _ = MODES[mode]
+        exc: Excitation = self._current_exc
+        traj = JointTrajectory()
+        traj.joint_names = ['arm_joint_1', 'arm_joint_2']
+        horizon = 1.5 * self.p['window_s']
+        # resolve the sinusoid: >= 20 points per period (the controller interpolates linearly)
+        step = min(0.05, 2 * math.pi / exc.frequency_rad_s / 20)
+        for k in range(int(horizon / step) + 1):
+            tk = k * step
+            f, fd, _ = exc(self._t_now - self._exc_t0 + tk)
+            pt = JointTrajectoryPoint()
+            if joint == 'arm_joint_1':
+                pt.positions, pt.velocities = [float(f), 0.0], [float(fd), 0.0]
+            else:
+                pt.positions, pt.velocities = [hold1, float(f)], [0.0, float(fd)]
+            pt.time_from_start = Duration(sec=int(tk), nanosec=int((tk % 1) * 1e9))
+            traj.points.append(pt)
+        self.pub_cmd.publish(traj)
+
+    # -- action --------------------------------------------------------------------------------
+    def _on_goal(self, goal: Identify.Goal) -> GoalResponse:
+        strategy = goal.strategy or self.p['strategy']
+        if strategy not in STRATEGIES or not (0 < goal.duration_s <= 3600):
+            self.get_logger().warn(f'rejected goal: strategy {goal.strategy!r}, '
+                                   f'duration {goal.duration_s}')
+            return GoalResponse.REJECT
+        if self._active.is_set():
+            self.get_logger().warn('rejected goal: an identification is running')
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    def _sensor_noise(self) -> dict[int, SensorNoise] | None:
+        """Sensor noise sigmas from the message covariances (datasheet values), for the
+        errors-in-variables correction; None when not enabled or not published."""
+        v = self._noise_var
+        if not self.p['bias_compensation'] or not all(
+                np.all(np.isfinite(a)) and np.all(a > 0) for a in v.values()):
+            return None
+        f = np.full(3, self.p['ft_force_noise_std_n'])
+        return {0: SensorNoise(np.sqrt(v['acc']), np.sqrt(v['gyro']), np.sqrt(v['incl']), f)}
+
+    def _execute(self, handle) -> Identify.Result:
+        goal = handle.request
+        cfg = IdentifierConfig(
+            strategy=goal.strategy or self.p['strategy'], rate_hz=self.p['rate_hz'],
+            window_s=self.p['window_s'], decimation=self.p['decimation'],
+            bits=self.p['information_bits'], accelerometer=self.p['use_accelerometer'],
+            drift_per_s=self.p['drift_per_s'])
+        noise = self._sensor_noise()
+        with self._lock:
+            self.ident = Identifier(cfg, sensor_noise=noise)
+            self._current_exc = self.ident.excitation
+            self._buffer.clear()
+            self._t0 = None
+            self._windows = 0
+        self.get_logger().info(f'identifying with {cfg.strategy} for {goal.duration_s} s')
+        self._active.set()
+        result = Identify.Result()
+        last_t, last_wall = None, time.monotonic()
+        try:
+            while True:
+                with self._window_done:
+                    self._window_done.wait(timeout=0.5)
+                if self._t_now != last_t:
+                    last_t, last_wall = self._t_now, time.monotonic()
+                elif time.monotonic() - last_wall > max(1.0, 10 * self.p['stale_timeout_s']):
+                    self.bad.reject('silent sensor', 'no paired samples arrive')
+                if handle.is_cancel_requested:
+                    handle.canceled()
+                    result.success, result.message = False, 'canceled'
+                    break
+                elapsed = 0.0 if self._t0 is None else self._t_now - self._t0
+                if self._windows:
+                    fb = Identify.Feedback(estimate=self._estimate_msg(), elapsed_s=elapsed)
+                    handle.publish_feedback(fb)
+                if elapsed >= goal.duration_s:
+                    handle.succeed()
+                    rep = self.ident.report
+                    result.success = True
+                    result.message = (f'{int(rep.observable.sum())}/22 observable, '
+                                      f'{self.bad.total} rejected samples')
+                    break
+        finally:
+            self._active.clear()
+        result.estimate = self._estimate_msg()
+        self.get_logger().info(f'identification done: {result.message}')
+        return result
+
+
+def _nearest(buf: deque, t: float, tol: float):
+    best, best_dt = None, tol
+    for tb, msg in buf:
+        dt = abs(tb - t)
+        if dt <= best_dt:
+            best, best_dt = msg, dt
+    return best
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(IdentifierNode, args,
+                    executor_factory=lambda: MultiThreadedExecutor(num_threads=3))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,25 @@
+from setuptools import find_packages, setup
+
+package_name = 'coop_id'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    package_data={package_name: ['data/*.yaml']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='Coop Field Robots maintainers',
+    maintainer_email='maintainers@coop-field-robots.org',
+    description='On-line identification of a rover base dynamics with information-optimal '
+                'arm excitation (Sujan 2002, ch. 2, app. B).',
+    license='Apache-2.0',
+    entry_points={'console_scripts': [
+        'table_2_1 = coop_id.table_2_1:main',
+        'identifier = coop_id.identifier_node:main',
+    ]},
+)

@@ -1,0 +1,49 @@
+"""The experiment executable at reduced size (CLI, JSON keys, plots)."""
+import json
+
+import pytest
+
+from coop_id.table_2_1 import main, time_to
+
+
+def test_cli_writes_the_issue_json_keys(tmp_path, capsys):
+    out = tmp_path / 'r.json'
+    rc = main(['--seeds', '1', '--duration', '2', '--strategies', 'constant,information',
+               '--json', str(out), '--plots', str(tmp_path / 'plots')])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert 'Table 2-1' in text and 'Stiffness th_p' in text and '% Avg. Error' in text
+    doc = json.loads(out.read_text())
+    assert doc['seeds'] == 1
+    for s in ('constant', 'information'):
+        st = doc['strategies'][s]
+        assert 0 <= st['mean_abs_rel_error'] < 10
+        assert st['time_to_20pct_s'] is None or st['time_to_20pct_s'] > 0
+        assert set(st['per_parameter']['mass']) >= {'estimate', 'std'}
+        assert len(st['per_parameter']) == 22
+    assert (tmp_path / 'plots' / 'fig_2_6_information_k_pitch.png').stat().st_size > 1000
+
+
+def test_cli_rejects_bad_arguments(tmp_path):
+    with pytest.raises(SystemExit):
+        main(['--strategies', 'constant,magic'])
+    bad = tmp_path / 'truth.yaml'
+    bad.write_text('mass: -1\n')
+    assert main(['--truth', str(bad), '--seeds', '1', '--duration', '1']) == 2
+
+
+def test_time_to_settles():
+    assert time_to([1, 2, 3, 4], [0.5, 0.1, 0.3, 0.1], 0.2) == 4
+    assert time_to([1, 2, 3], [0.5, 0.3, 0.3], 0.2) is None
+    assert time_to([1, 2], [0.1, 0.1], 0.2) == 1
+
+
+def test_installed_like_ros2_run():
+    import subprocess
+
+    from coop_common.testing import executable_path
+    for exe in ('table_2_1', 'identifier'):
+        assert executable_path('coop_id', exe).is_file()
+    out = subprocess.run([str(executable_path('coop_id', 'table_2_1')), '--help'],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and '--strategies' in out.stdout
