@@ -1,0 +1,386 @@
+#!/usr/bin/env python3
+"""rover_bag: record throughput and playback timing, side by side with the peer (rosbags' own
+Writer / AnyReader) in the same run. Ratios matter, not absolute times (2 shared cores).
+
+1. core write: the sim's message mix (pre-serialized CDR of the 200 Hz sensor topics) written
+   by the raw rosbags Writer (peer) and by rover_bag.bagio.BagWriter (unsplit, split every 8 MB);
+   read back by AnyReader (peer) and read_messages, raw and deserialized. Best of --repeats.
+2. live record over DDS: this process publishes the sim's full load (2 rovers x 4 sensor topics
+   at 200 Hz + /clock 200 Hz + 4 stereo images 640x480 mono8 at 4 Hz) for --seconds; the
+   installed `record` executable records it; counted: published vs recorded vs reported lost.
+   Then a burst: 20k small reliable messages as fast as this process can publish them.
+3. playback timing: a 200 Hz topic (--seconds long) played by the installed `play` executable;
+   this process receives it; jitter = |inter-arrival - recorded interval| per message, and the
+   player's own lateness behind its schedule (from its log).
+
+    bench/bag_rate.py --json out/bench/bag_rate.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+
+try:
+    import rover_bag  # noqa: F401
+except ImportError:  # a source checkout before the package is built
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'rover_bag'))
+
+import numpy as np  # noqa: E402
+from rosbags.highlevel import AnyReader  # noqa: E402
+from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
+
+from rover_bag.bagio import BagWriter, bag_info, make_qos, make_typestore, read_messages  # noqa
+
+SENSOR = [make_qos(reliable=False, transient_local=False, depth=5)]
+
+
+def sim_mix(ts, n: int, seed: int = 0) -> list[tuple[str, str, int, bytes]]:
+    """n messages of the sim's 200 Hz topics (2 rovers x imu, inclinometer, wrench, joints)."""
+    rng = np.random.default_rng(seed)
+    from rclpy.serialization import serialize_message
+    from coop_msgs.msg import Inclinometer
+    from geometry_msgs.msg import WrenchStamped
+    from sensor_msgs.msg import Imu, JointState
+    kinds = []
+    for r in ('rover1', 'rover2'):
+        imu = Imu()
+        imu.linear_acceleration.z = 9.81
+        js = JointState(name=[f'j{i}' for i in range(9)], position=rng.normal(size=9).tolist(),
+                        velocity=rng.normal(size=9).tolist(), effort=rng.normal(size=9).tolist())
+        kinds += [(f'/{r}/imu', 'sensor_msgs/msg/Imu', serialize_message(imu)),
+                  (f'/{r}/inclinometer', 'coop_msgs/msg/Inclinometer',
+                   serialize_message(Inclinometer(roll=0.1))),
+                  (f'/{r}/arm/wrench', 'geometry_msgs/msg/WrenchStamped',
+                   serialize_message(WrenchStamped())),
+                  (f'/{r}/joint_states', 'sensor_msgs/msg/JointState', serialize_message(js))]
+    out = []
+    for i in range(n):
+        topic, msgtype, data = kinds[i % len(kinds)]
+        out.append((topic, msgtype, 1_000_000_000 + (i // len(kinds)) * 5_000_000, data))
+    return out
+
+
+def best_rate(fn, n: int, repeats: int) -> float:
+    best = float('inf')
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return n / best
+
+
+def bench_core(n: int, repeats: int, tmp: Path) -> dict:
+    ts = make_typestore()
+    msgs = sim_mix(ts, n)
+    topics = sorted({(m[0], m[1]) for m in msgs})
+    counter = iter(range(10**6))
+
+    def peer_write():
+        path = tmp / f'peer{next(counter)}'
+        with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+            conns = {t: w.add_connection(t, mt, typestore=ts, offered_qos_profiles=SENSOR)
+                     for t, mt in topics}
+            for topic, _mt, t, data in msgs:
+                w.write(conns[topic], t, data)
+        return path
+
+    def ours_write(**kw):
+        path = tmp / f'ours{next(counter)}'
+        with BagWriter(path, typestore=ts, **kw) as bag:
+            for t, mt in topics:
+                bag.add_topic(t, mt, offered_qos=SENSOR)
+            write = bag.write
+            for topic, _mt, t, data in msgs:
+                write(topic, t, data)
+        return path
+
+    res = {'messages': n}
+    res['peer_write_msgs_s'] = best_rate(peer_write, n, repeats)
+    res['ours_write_msgs_s'] = best_rate(ours_write, n, repeats)
+    res['ours_write_split8MB_msgs_s'] = best_rate(lambda: ours_write(max_bytes=8_000_000), n,
+                                                  repeats)
+    bag = ours_write()
+    res['split_files_8MB'] = len(bag_info(ours_write(max_bytes=8_000_000)).files)
+
+    def peer_read(deser: bool):
+        with AnyReader([bag], default_typestore=ts) as r:
+            for c, _t, d in r.messages():
+                if deser:
+                    r.deserialize(d, c.msgtype)
+
+    res['peer_read_raw_msgs_s'] = best_rate(lambda: peer_read(False), n, repeats)
+    res['ours_read_raw_msgs_s'] = best_rate(
+        lambda: sum(1 for _ in read_messages(bag, raw=True)), n, repeats)
+    res['peer_read_deser_msgs_s'] = best_rate(lambda: peer_read(True), n, repeats)
+    res['ours_read_deser_msgs_s'] = best_rate(
+        lambda: sum(1 for _ in read_messages(bag, typestore=ts)), n, repeats)
+    return res
+
+
+# ----------------------------------------------------------------------------------------------
+def _ros():
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node('bag_rate_bench', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    return ctx, node, ex
+
+
+def bench_live_record(seconds: float, tmp: Path) -> dict:
+    from coop_common.qos import CLOCK_QOS, SENSOR_QOS
+    from coop_common.testing import NodeProcess, wait_for
+    from coop_msgs.msg import Inclinometer
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import Image, Imu, JointState
+    from std_msgs.msg import String
+
+    ctx, node, ex = _ros()
+    pubs = {}
+    for r in ('rover1', 'rover2'):
+        pubs[f'/{r}/imu'] = (node.create_publisher(Imu, f'/{r}/imu', SENSOR_QOS), Imu())
+        pubs[f'/{r}/inclinometer'] = (node.create_publisher(
+            Inclinometer, f'/{r}/inclinometer', SENSOR_QOS), Inclinometer())
+        pubs[f'/{r}/arm/wrench'] = (node.create_publisher(
+            WrenchStamped, f'/{r}/arm/wrench', SENSOR_QOS), WrenchStamped())
+        pubs[f'/{r}/joint_states'] = (node.create_publisher(
+            JointState, f'/{r}/joint_states', SENSOR_QOS),
+            JointState(name=[f'j{i}' for i in range(9)], position=[0.1] * 9))
+    img = Image(height=480, width=640, encoding='mono8', step=640,
+                data=np.random.default_rng(1).integers(0, 255, 640 * 480, dtype=np.uint8)
+                .tobytes())
+    for r in ('rover1', 'rover2'):
+        for side in ('left', 'right'):
+            topic = f'/{r}/stereo/{side}/image_raw'
+            pubs[topic] = (node.create_publisher(Image, topic, SENSOR_QOS), img)
+    clock_pub = node.create_publisher(Clock, '/clock', CLOCK_QOS)
+    burst_qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    burst = node.create_publisher(String, '/burst', burst_qos)
+    out = tmp / 'live'
+    published = {t: 0 for t in pubs}
+    published['/clock'] = 0
+    res = {}
+    with NodeProcess('rover_bag', 'record',
+                     ['-p', f'output:={out}', '-p', 'discovery_period_s:=0.2'],
+                     log_path=tmp / 'record.log') as rec:
+        wait_for(lambda: all(p.get_subscription_count() for p, _ in pubs.values())
+                 and burst.get_subscription_count(), 60,
+                 spin=lambda dt: ex.spin_once(timeout_sec=dt), what='recorder subscriptions')
+        t0 = time.perf_counter()
+        steps = int(seconds * 200)
+        clock = Clock()
+        for k in range(steps):
+            clock.clock.sec, clock.clock.nanosec = divmod(k * 5_000_000, 10**9)
+            clock_pub.publish(clock)
+            published['/clock'] += 1
+            for topic, (pub, msg) in pubs.items():
+                if 'image' in topic and k % 50:
+                    continue
+                if hasattr(msg, 'header'):
+                    msg.header.stamp.sec = k     # step index: where losses fall
+                pub.publish(msg)
+                published[topic] += 1
+            time.sleep(max(0.0, t0 + (k + 1) * 0.005 - time.perf_counter()))
+        res['live_wall_s'] = time.perf_counter() - t0
+        # burst: as fast as this process can publish (reliable, so every message must arrive)
+        n_burst = 20000
+        msg = String(data='x' * 64)
+        t1 = time.perf_counter()
+        for _ in range(n_burst):
+            burst.publish(msg)
+        res['burst_publish_msgs_s'] = n_burst / (time.perf_counter() - t1)
+        published['/burst'] = n_burst
+        # caught up: every burst message in the file, or no new one for 2 s (it dropped some)
+        seen = [-1, time.perf_counter()]
+
+        def settled() -> bool:
+            c = _count_flushed(out, '/burst')
+            if c != seen[0]:
+                seen[:] = [c, time.perf_counter()]
+            return c >= n_burst or time.perf_counter() - seen[1] > 2.0
+        wait_for(settled, 300, poll_s=0.5, what='recorder to catch up with the burst')
+        rec.stop()
+    log = rec.log_text()
+    info = bag_info(out)
+    recorded = {t: info.topics[t].count if t in info.topics else 0 for t in published}
+    stamps = [m.t_ns for m in read_messages(out, ['/burst'], raw=True)]
+    res['burst_recorded'] = len(stamps)
+    # the recorder stamps with the middleware's reception time: its own sustained rate
+    res['burst_record_msgs_s'] = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9)
+    res['live_published'] = published
+    res['live_recorded'] = recorded
+    res['live_missing_total'] = sum(published[t] - recorded[t] for t in published)
+    steps = {m.msg.header.stamp.sec for m in read_messages(out, ['/rover1/imu'])}
+    res['live_rover1_imu_missing_steps'] = sorted(set(range(int(seconds * 200))) - steps)
+    m = re.search(r'(\d+) lost', log)
+    res['recorder_reported_lost'] = int(m.group(1)) if m else None
+    ex.shutdown()
+    node.destroy_node()
+    ctx.try_shutdown()
+    return res
+
+
+def _count_flushed(path: Path, topic: str) -> int:
+    import warnings
+    if not list(path.glob('*.mcap')):
+        return 0
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        try:
+            return sum(1 for m in read_messages(path, raw=True, strict=False)
+                       if m.topic == topic)
+        except Exception:  # noqa: BLE001 - being written
+            return 0
+
+
+def bench_play_jitter(seconds: float, tmp: Path) -> dict:
+    from coop_common.testing import NodeProcess, wait_for
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Imu
+
+    n = int(seconds * 200)
+    path = tmp / 'play200'
+    with BagWriter(path) as bag:
+        bag.add_topic('/rover1/imu', 'sensor_msgs/msg/Imu',
+                      offered_qos=[make_qos(reliable=True, transient_local=False)])
+        for i in range(n):
+            m = Imu()
+            m.header.stamp.nanosec = i
+            bag.write('/rover1/imu', 10**18 + i * 5_000_000, serialize_message(m))
+    ctx, node, ex = _ros()
+    arrivals = []
+    lock = threading.Lock()
+
+    def on_msg(m, info):
+        with lock:
+            arrivals.append((m.header.stamp.nanosec, info['received_timestamp']))
+    node.create_subscription(Imu, '/rover1/imu', on_msg,
+                             QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    with NodeProcess('rover_bag', 'play',
+                     ['-p', f'bag:={path}', '-p', 'wait_for_subscribers_s:=30.0',
+                      '-p', 'publish_clock:=false'], log_path=tmp / 'play.log') as play:
+        wait_for(lambda: not play.alive() and len(arrivals) >= n, seconds * 5 + 60,
+                 spin=lambda dt: ex.spin_once(timeout_sec=dt), what='playback')
+    ex.shutdown()
+    node.destroy_node()
+    ctx.try_shutdown()
+    idx = np.array([a[0] for a in arrivals])
+    rt = np.array([a[1] for a in arrivals], dtype=np.int64)
+    in_order = bool(np.all(np.diff(idx) > 0))
+    d_rec = np.diff(idx) * 5_000_000
+    jitter_ms = np.abs(np.diff(rt) - d_rec) / 1e6
+    late_ms = (rt - rt[0] - (idx - idx[0]) * 5_000_000) / 1e6
+    log = play.log_text()
+    m = re.search(r'median ([\d.]+) ms, p99 ([\d.]+) ms, max ([\d.]+) ms', log)
+    return {
+        'play_messages': n, 'play_received': len(arrivals), 'play_in_order': in_order,
+        'play_interarrival_jitter_median_ms': float(np.median(jitter_ms)),
+        'play_interarrival_jitter_p99_ms': float(np.percentile(jitter_ms, 99)),
+        'play_arrival_vs_schedule_median_ms': float(np.median(late_ms - late_ms.min())),
+        'player_lateness_median_ms': float(m.group(1)) if m else None,
+        'player_lateness_p99_ms': float(m.group(2)) if m else None,
+    }
+
+
+LARGE_SHM_PROFILE = (Path(__file__).resolve().parents[1] / 'src' / 'rover_bag' / 'config'
+                     / 'fastdds_large_shm.xml')
+
+
+def live_in_child(seconds: float, profile: Path | None, tmp: Path) -> dict:
+    """Fast DDS reads its XML profile once per process: each transport setting in a child."""
+    import subprocess
+    env = dict(os.environ)
+    env.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
+    if profile is not None:
+        env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(profile)
+    out = tmp / f'live_{"large" if profile else "default"}.json'
+    subprocess.run([sys.executable, __file__, '--live-only', str(out), '--seconds',
+                    str(seconds)], env=env, check=True)
+    return json.loads(out.read_text())
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--json', type=Path, help='write the figures here')
+    ap.add_argument('--messages', type=int, default=100_000)
+    ap.add_argument('--repeats', type=int, default=3)
+    ap.add_argument('--seconds', type=float, default=10.0, help='live record / play duration')
+    ap.add_argument('--skip-live', action='store_true', help='core figures only (no DDS)')
+    ap.add_argument('--live-only', type=Path, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix='bag_rate_'))
+    try:
+        if args.live_only:
+            args.live_only.write_text(json.dumps(bench_live_record(args.seconds, tmp)))
+            return 0
+        res = bench_core(args.messages, args.repeats, tmp)
+        if not args.skip_live:
+            res['live_fastdds_default'] = live_in_child(args.seconds, None, tmp)
+            res['live_large_shm'] = live_in_child(args.seconds, LARGE_SHM_PROFILE, tmp)
+            res.update(bench_play_jitter(args.seconds, tmp))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    rows = [
+        ('write, raw rosbags Writer (peer)', res['peer_write_msgs_s'], ''),
+        ('write, BagWriter', res['ours_write_msgs_s'],
+         f'{res["ours_write_msgs_s"] / res["peer_write_msgs_s"]:.2f}x peer; target >= 50k'),
+        ('write, BagWriter split every 8 MB', res['ours_write_split8MB_msgs_s'],
+         f'{res["ours_write_split8MB_msgs_s"] / res["peer_write_msgs_s"]:.2f}x peer'),
+        ('read raw, AnyReader (peer)', res['peer_read_raw_msgs_s'], ''),
+        ('read raw, read_messages', res['ours_read_raw_msgs_s'],
+         f'{res["ours_read_raw_msgs_s"] / res["peer_read_raw_msgs_s"]:.2f}x peer'),
+        ('read+deserialize, AnyReader (peer)', res['peer_read_deser_msgs_s'], ''),
+        ('read+deserialize, read_messages', res['ours_read_deser_msgs_s'],
+         f'{res["ours_read_deser_msgs_s"] / res["peer_read_deser_msgs_s"]:.2f}x peer'),
+    ]
+    print(f'{"figure":42s} {"msgs/s":>10s}  note')
+    for name, val, note in rows:
+        print(f'{name:42s} {val:10.0f}  {note}')
+    if not args.skip_live:
+        lives = [('Fast DDS defaults (0.5 MB SHM segment)', res['live_fastdds_default']),
+                 ('16 MB SHM segment (config/fastdds_large_shm.xml)', res['live_large_shm'])]
+        print(f'\nlive record, sim load for {args.seconds:g} s, recorded / published:')
+        print(f'{"topic":34s} ' + ' '.join(f'{n.split(" (")[0]:>24s}' for n, _ in lives))
+        for t in lives[0][1]['live_published']:
+            print(f'{t:34s} ' + ' '.join(
+                f'{str(r["live_recorded"][t]) + " / " + str(r["live_published"][t]):>24s}'
+                for _n, r in lives))
+        for name, r in lives:
+            print(f'{name}: missing {r["live_missing_total"]} (recorder reported lost '
+                  f'{r["recorder_reported_lost"]}); /rover1/imu steps missing '
+                  f'{r["live_rover1_imu_missing_steps"][:12]}; burst of 20000 reliable published'
+                  f' at {r["burst_publish_msgs_s"]:.0f} msgs/s: recorded {r["burst_recorded"]} '
+                  f'at {r["burst_record_msgs_s"]:.0f} msgs/s')
+        print(f'\nplayback 200 Hz, {res["play_messages"]} msgs: received {res["play_received"]}'
+              f', in order {res["play_in_order"]}')
+        print(f'inter-arrival jitter median {res["play_interarrival_jitter_median_ms"]:.3f} ms,'
+              f' p99 {res["play_interarrival_jitter_p99_ms"]:.3f} ms (target median <= 1 ms)')
+        print(f'arrival behind schedule median {res["play_arrival_vs_schedule_median_ms"]:.3f} ms'
+              f'; player lateness median {res["player_lateness_median_ms"]} ms, p99 '
+              f'{res["player_lateness_p99_ms"]} ms')
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,737 @@
+"""Bag files without DDS: the typestore, a splitting rosbag2/MCAP writer and a batch reader.
+
+Bags are rosbag2 version 9 directories with MCAP storage, written through rosbags' `Writer`, so a
+full Jazzy install can `ros2 bag play` them and rosbags' AnyReader / the `mcap` package read them.
+No rclpy here: offline tools (identification, mapping, insertion experiments) read bags with
+`read_messages` as fast as the CPU allows.
+"""
+from __future__ import annotations
+
+import io
+import struct
+import warnings
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from importlib.metadata import version as _dist_version
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                QosTime)
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2.errors import ReaderError, WriterError
+from rosbags.rosbag2.storage_mcap import McapWriter, decompress, get_qos, write_record
+from rosbags.rosbag2.storage_mcap import write_string as _mcap_write_string
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+
+#: Interface packages of this project whose .msg files are registered in every typestore.
+PROJECT_INTERFACE_PACKAGES: tuple[str, ...] = ('coop_msgs',)
+_MCAP_MAGIC = b'\x89MCAP0\r\n'
+#: MCAP chunk compression choices of BagWriter
+COMPRESSIONS: tuple[str, ...] = ('none', 'zstd')
+
+
+class BagError(Exception):
+    """Base of every error this module raises about a bag."""
+
+
+class BagNotFoundError(BagError, FileNotFoundError):
+    """The bag path (or a file its metadata names) does not exist."""
+
+
+class UnknownTypeError(BagError, KeyError):
+    """A message type is neither in the typestore nor defined by the bag or the ament index."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ''
+
+
+class DamagedBagError(BagError):
+    """A bag is truncated or lacks metadata; `problems` names each defect. Raised by strict reads
+    only after every still readable message has been yielded."""
+
+    def __init__(self, problems: Sequence[str]) -> None:
+        super().__init__('; '.join(problems))
+        self.problems = list(problems)
+
+
+class DamagedBagWarning(UserWarning):
+    """Non-strict reads warn with this instead of raising DamagedBagError."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Types
+# ---------------------------------------------------------------------------------------------
+
+def _share_dir(package: str) -> Path | None:
+    try:
+        from ament_index_python.packages import (  # noqa: PLC0415 - optional dependency
+            PackageNotFoundError, get_package_share_directory)
+    except ImportError:  # pragma: no cover - ament_index_python is in the venv
+        return None
+    try:
+        return Path(get_package_share_directory(package))
+    except (PackageNotFoundError, ValueError, LookupError):
+        return None
+
+
+def register_package_msgs(typestore: Typestore, package: str,
+                          share_dir: Path | None = None) -> list[str]:
+    """Register every `<share>/<package>/msg/*.msg` of `package` (srv/action are not topics).
+
+    Returns the registered type names. Raises UnknownTypeError when the package is not found."""
+    share = share_dir if share_dir is not None else _share_dir(package)
+    if share is None or not (share / 'msg').is_dir():
+        raise UnknownTypeError(f'interface package {package!r} not found on the ament index '
+                               '(is the workspace built and sourced?)')
+    types: dict[str, Any] = {}
+    for path in sorted((share / 'msg').glob('*.msg')):
+        types.update(get_types_from_msg(path.read_text(), f'{package}/msg/{path.stem}'))
+    typestore.register(types)
+    return sorted(types)
+
+
+def make_typestore(packages: Iterable[str] = PROJECT_INTERFACE_PACKAGES) -> Typestore:
+    """Jazzy's standard types plus the project's interface packages, registered from .msg files."""
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    for package in packages:
+        register_package_msgs(typestore, package)
+    return typestore
+
+
+def ensure_type(typestore: Typestore, msgtype: str) -> None:
+    """Make `msgtype` ('pkg/msg/Name') known, loading its package's .msg files from the ament index
+    when it is not yet registered. Raises UnknownTypeError naming the type."""
+    if msgtype in typestore.fielddefs:
+        return
+    parts = msgtype.split('/')
+    if len(parts) != 3 or parts[1] != 'msg':
+        raise UnknownTypeError(f'{msgtype!r} is not a message type name (pkg/msg/Name)')
+    try:
+        register_package_msgs(typestore, parts[0])
+    except UnknownTypeError as exc:
+        raise UnknownTypeError(f'unknown message type {msgtype!r}: {exc}') from None
+    if msgtype not in typestore.fielddefs:
+        raise UnknownTypeError(f'unknown message type {msgtype!r}: package {parts[0]!r} has no '
+                               f'{parts[2]}.msg')
+
+
+# ---------------------------------------------------------------------------------------------
+# QoS as recorded in metadata (rosbags' Qos), independent of rclpy
+# ---------------------------------------------------------------------------------------------
+
+_INFINITE = QosTime(9223372036, 854775807)   # how rosbag2 writes an infinite duration
+
+
+def make_qos(*, reliable: bool, transient_local: bool, depth: int = 10,
+             keep_all: bool = False) -> Qos:
+    """A rosbag2 offered-QoS entry with the policies that matter for matching."""
+    return Qos(
+        history=QosHistory.KEEP_ALL if keep_all else QosHistory.KEEP_LAST,
+        depth=depth,
+        reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+        durability=(QosDurability.TRANSIENT_LOCAL if transient_local
+                    else QosDurability.VOLATILE),
+        deadline=_INFINITE, lifespan=_INFINITE, liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=_INFINITE, avoid_ros_namespace_conventions=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+# ---------------------------------------------------------------------------------------------
+
+class _McapFile(McapWriter):
+    """rosbags' MCAP storage writing to an explicit file name.
+
+    rosbags names its one file `<dir>/<dir>.mcap`; a split rosbag2 bag holds `<bag>_<i>.mcap`
+    files in one directory, so the constructor is the only thing replaced (same header record)."""
+
+    def __init__(self, file_path: Path, compression: str = 'none') -> None:  # noqa: D107
+        self.path = file_path
+        self.bio = self.path.open('xb')
+        self.bio.write(_MCAP_MAGIC)
+        rec = io.BytesIO()
+        _mcap_write_string(rec, 'ros2')
+        _mcap_write_string(rec, f'rosbags-{_dist_version("rosbags")}')
+        write_record(self.bio, 0x01, rec)
+        self.schemas = []
+        self.channels = []
+        self.chunks = []
+        self.chunk = self._new_chunk()
+        if compression == 'zstd':
+            # MCAP chunk compression: transparent to every MCAP reader (ros2 bag play included);
+            # the rosbag2 metadata keeps compression_mode '' as rosbag2's own MCAP presets do
+            from rosbags.rosbag2.storage_mcap import zstd  # noqa: PLC0415
+            self.compression, self.compressor = 'zstd', zstd.compress
+        else:
+            self.compression, self.compressor = '', (lambda x: x)
+        self.message_start_time = 2**63 - 1
+        self.message_end_time = 0
+        self.channel_stats = {}
+
+    @staticmethod
+    def _new_chunk():
+        from collections import defaultdict  # noqa: PLC0415
+
+        from rosbags.rosbag2.storage_mcap import PendingChunk  # noqa: PLC0415
+        return PendingChunk(2**63 - 1, 0, io.BytesIO(), defaultdict(list))
+
+    def pending_bytes(self) -> int:
+        return self.chunk.bio.tell()
+
+    def flush(self) -> None:
+        """Write the pending chunk and its indexes to the OS: a killed recorder keeps them."""
+        if self.chunk.bio.tell():
+            self.close_chunk()
+        self.bio.flush()
+
+
+class _FileWriter(Writer):
+    """One split file of a bag: rosbags' Writer on `_McapFile`, its metadata kept in memory."""
+
+    def __init__(self, file_path: Path, compression: str = 'none') -> None:
+        super().__init__(file_path.with_suffix(''), version=9,
+                         storage_plugin=StoragePlugin.MCAP)
+        self.file_path = file_path
+        self.chunk_compression = compression
+        self.metapath = file_path.with_name(f'.{file_path.stem}.metadata.yaml')
+
+    def open(self) -> None:
+        self.storage = _McapFile(self.file_path, self.chunk_compression)
+
+
+@dataclass
+class TopicSpec:
+    """A topic's connection data: type, offered QoS, RIHS01 type hash."""
+
+    name: str
+    msgtype: str
+    offered_qos: list[Qos] = field(default_factory=list)
+    type_hash: str = ''
+
+
+class BagWriter:
+    """A rosbag2 v9 MCAP bag written with rosbags, split by size and/or duration.
+
+    with BagWriter(path, max_bytes=100 << 20) as bag:
+        bag.add_topic('/rover1/imu', 'sensor_msgs/msg/Imu', offered_qos=[make_qos(...)])
+        bag.write('/rover1/imu', t_ns, cdr_bytes)
+
+    `compression='zstd'` compresses MCAP chunks (stereo images shrink several-fold).
+    Split files are `<path>/<name>_<i>.mcap` as rosbag2 names them; metadata.yaml (listing all of
+    them) is written by `close()`. `flush()` pushes the pending chunk to the OS, so a killed
+    process leaves every message up to the last flush readable (`read_messages` recovers it).
+    """
+
+    def __init__(self, path: str | Path, *, typestore: Typestore | None = None,
+                 max_bytes: int = 0, max_duration_s: float = 0.0, compression: str = 'none',
+                 custom_data: dict[str, str] | None = None) -> None:
+        self.path = Path(path)
+        if compression not in COMPRESSIONS:
+            raise ValueError(f'compression must be one of {COMPRESSIONS}, got {compression!r}')
+        self.compression = compression
+        if self.path.exists():
+            raise BagError(f'{self.path} exists already; a bag is never overwritten')
+        if max_bytes < 0 or max_duration_s < 0:
+            raise ValueError('max_bytes and max_duration_s must be >= 0 (0: no splitting)')
+        self.typestore = typestore if typestore is not None else make_typestore()
+        self.max_bytes = int(max_bytes)
+        self.max_duration_ns = int(max_duration_s * 1e9)
+        self.custom_data = dict(custom_data or {})
+        self.topics: dict[str, TopicSpec] = {}
+        self.counts: dict[str, int] = {}
+        self._files: list[dict[str, Any]] = []    # closed files' metadata
+        self._file: _FileWriter | None = None
+        self._conns: dict[str, Any] = {}
+        self._file_start_ns: int | None = None
+        self._file_bytes = 0
+        self._closed = False
+        self.path.mkdir(parents=True)
+
+    # -- topics -----------------------------------------------------------------------------
+    def add_topic(self, name: str, msgtype: str, *, offered_qos: Sequence[Qos] = (),
+                  type_hash: str | None = None) -> TopicSpec:
+        """Register a topic (idempotent for the same type). Raises UnknownTypeError for a type the
+        typestore cannot define and BagError for a topic re-added with another type."""
+        if name in self.topics:
+            if self.topics[name].msgtype != msgtype:
+                raise BagError(f'topic {name!r} already recorded as {self.topics[name].msgtype}, '
+                               f'cannot add it as {msgtype}')
+            return self.topics[name]
+        ensure_type(self.typestore, msgtype)
+        computed = self.typestore.hash_rihs01(msgtype)
+        spec = TopicSpec(name, msgtype, list(offered_qos), type_hash or computed)
+        self.topics[name] = spec
+        self.counts[name] = 0
+        if self._file is not None:
+            self._add_connection(spec)
+        return spec
+
+    def _add_connection(self, spec: TopicSpec) -> None:
+        assert self._file is not None
+        self._conns[spec.name] = self._file.add_connection(
+            spec.name, spec.msgtype, typestore=self.typestore, rihs01=spec.type_hash,
+            msgdef=self.typestore.generate_msgdef(spec.msgtype, ros_version=2)[0],
+            offered_qos_profiles=spec.offered_qos)
+
+    # -- writing ----------------------------------------------------------------------------
+    def _open_file(self) -> None:
+        index = len(self._files)
+        self._file = _FileWriter(self.path / f'{self.path.name}_{index}.mcap', self.compression)
+        self._file.open()
+        self._conns = {}
+        self._file_start_ns = None
+        self._file_bytes = 0
+        for spec in self.topics.values():
+            self._add_connection(spec)
+
+    def _close_file(self) -> None:
+        file, self._file = self._file, None
+        if file is None:
+            return
+        if not any(file.counts.values()):
+            file.abort()
+            file.file_path.unlink(missing_ok=True)
+            return
+        file.close()
+        from ruamel.yaml import YAML  # noqa: PLC0415 - rosbags' own YAML dependency
+
+        info = YAML(typ='safe').load(file.metapath.read_text())['rosbag2_bagfile_information']
+        file.metapath.unlink()
+        self._files.append(info)
+
+    def write(self, topic: str, t_ns: int, data: bytes | memoryview) -> None:
+        """Write one serialized (CDR) message received at `t_ns`."""
+        if self._closed:
+            raise BagError(f'{self.path}: bag is closed')
+        spec = self.topics.get(topic)
+        if spec is None:
+            raise BagError(f'topic {topic!r} was not added to {self.path}')
+        if self._file is not None and self._file_start_ns is not None and (
+                (self.max_bytes and self._file_bytes >= self.max_bytes)
+                or (self.max_duration_ns
+                    and t_ns - self._file_start_ns >= self.max_duration_ns)):
+            self._close_file()
+        if self._file is None:
+            self._open_file()
+        if self._file_start_ns is None:
+            self._file_start_ns = t_ns
+        self._file.write(self._conns[topic], t_ns, data)
+        self._file_bytes += len(data) + 31   # message record + index entry
+        self.counts[topic] += 1
+
+    def flush(self) -> None:
+        """Push buffered messages to the OS (not fsync: a killed process, not a power cut)."""
+        if self._file is not None:
+            self._file.storage.flush()
+
+    @property
+    def files(self) -> list[Path]:
+        names = [self.path / f['relative_file_paths'][0] for f in self._files]
+        if self._file is not None:
+            names.append(self._file.file_path)
+        return names
+
+    def close(self) -> Path:
+        """Close the current file and write metadata.yaml for all files. Idempotent."""
+        if self._closed:
+            return self.path
+        self._closed = True
+        self._close_file()
+        self._write_metadata()
+        return self.path
+
+    def _write_metadata(self) -> None:
+        from rosbags.rosbag2.metadata import dump_qos_v9  # noqa: PLC0415
+        from ruamel.yaml import YAML  # noqa: PLC0415
+
+        starts = [f['starting_time']['nanoseconds_since_epoch'] for f in self._files]
+        ends = [f['starting_time']['nanoseconds_since_epoch'] + f['duration']['nanoseconds']
+                for f in self._files]
+        start = min(starts) if starts else 0
+        duration = (max(ends) - start) if ends else 0
+        info = {
+            'version': 9,
+            'storage_identifier': 'mcap',
+            'relative_file_paths': [f['relative_file_paths'][0] for f in self._files],
+            'duration': {'nanoseconds': duration},
+            'starting_time': {'nanoseconds_since_epoch': start},
+            'message_count': sum(self.counts.values()),
+            'topics_with_message_count': [{
+                'topic_metadata': {
+                    'name': s.name, 'type': s.msgtype, 'serialization_format': 'cdr',
+                    'offered_qos_profiles': dump_qos_v9(s.offered_qos),
+                    'type_description_hash': s.type_hash,
+                },
+                'message_count': self.counts[s.name],
+            } for s in self.topics.values()],
+            'compression_format': '',
+            'compression_mode': '',
+            'files': [f['files'][0] for f in self._files],
+            'custom_data': self.custom_data or None,
+            'ros_distro': 'jazzy',
+        }
+        yaml = YAML(typ='safe')
+        yaml.default_flow_style = False
+        yaml.width = 4096          # no folded hashes: one `key: value` line as rosbag2 writes
+        tmp = self.path / 'metadata.yaml.tmp'
+        with tmp.open('w') as out:
+            yaml.dump({'rosbag2_bagfile_information': info}, out)
+        tmp.replace(self.path / 'metadata.yaml')
+
+    def abort(self) -> None:
+        """Stop without metadata (what a crash leaves, minus unflushed data)."""
+        self._closed = True
+        if self._file is not None:
+            self._file.storage.bio.close()
+            self._file = None
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+# ---------------------------------------------------------------------------------------------
+
+class BagMessage(NamedTuple):
+    """One message of a bag: `msg` is the deserialized message, or CDR bytes with raw=True."""
+
+    topic: str
+    msgtype: str
+    t_ns: int
+    msg: Any
+
+
+@dataclass
+class TopicInfo:
+    name: str
+    msgtype: str
+    count: int
+    offered_qos: list[Qos]
+    type_hash: str = ''
+    msgdef: str = ''
+
+
+@dataclass
+class BagInfo:
+    """What a bag holds, and what is wrong with it (`problems` empty for a sound bag)."""
+
+    path: Path
+    files: list[Path]
+    topics: dict[str, TopicInfo]
+    start_ns: int
+    end_ns: int
+    message_count: int
+    problems: list[str]
+    recovered: bool     # read by scanning the MCAP files (metadata or index missing)
+
+    @property
+    def duration_s(self) -> float:
+        return max(0, self.end_ns - self.start_ns) / 1e9
+
+
+@dataclass
+class _Channel:
+    topic: str
+    msgtype: str
+    qos: list[Qos]
+    msgdef: str
+
+
+@dataclass
+class _ScanResult:
+    channels: dict[int, _Channel] = field(default_factory=dict)
+    messages: list[tuple[int, int, bytes]] = field(default_factory=list)  # (t_ns, channel, data)
+    problem: str = ''
+
+
+def _scan_mcap(path: Path, *, want_data: bool = True) -> _ScanResult:
+    """Read an MCAP file record by record from the start, without its summary, stopping at the
+    first incomplete or corrupt record (a killed writer). Chunks are read whole or not at all."""
+    res = _ScanResult()
+    schemas: dict[int, tuple[str, str]] = {}
+    data = path.read_bytes()
+    size = len(data)
+    if data[:8] != _MCAP_MAGIC:
+        res.problem = f'{path.name}: not an MCAP file (bad magic)'
+        return res
+
+    def records(buf: bytes | memoryview, start: int, end: int) -> Iterator[tuple[int, int,
+                                                                               memoryview]]:
+        pos = start
+        view = memoryview(buf)
+        while pos < end:
+            if pos + 9 > end:
+                raise EOFError(pos)
+            op = view[pos]
+            (length,) = struct.unpack_from('<Q', view, pos + 1)
+            if pos + 9 + length > end:
+                raise EOFError(pos)
+            yield pos, op, view[pos + 9:pos + 9 + length]
+            pos += 9 + length
+
+    def handle(op: int, rec: memoryview, offset: int) -> bool:
+        if op == 0x03:
+            sid, = struct.unpack_from('<H', rec, 0)
+            name, p = _read_str(rec, 2)
+            _enc, p = _read_str(rec, p)
+            text, p = _read_str(rec, p)
+            schemas[sid] = (name, text)
+        elif op == 0x04:
+            cid, sid = struct.unpack_from('<HH', rec, 0)
+            topic, p = _read_str(rec, 4)
+            _enc, p = _read_str(rec, p)
+            (mlen,) = struct.unpack_from('<I', rec, p)
+            meta = bytes(rec[p + 4:p + 4 + mlen])
+            name, text = schemas.get(sid, ('', ''))
+            res.channels[cid] = _Channel(topic, name, get_qos(meta), text)
+        elif op == 0x05:
+            cid, = struct.unpack_from('<H', rec, 0)
+            (log_time,) = struct.unpack_from('<Q', rec, 6)
+            res.messages.append((log_time, cid, bytes(rec[22:]) if want_data else b''))
+        elif op == 0x02:      # footer: the end
+            return False
+        return True
+
+    try:
+        for pos, op, rec in records(data, 8, size):
+            if op == 0x06:   # chunk: start, end, uncompressed size, crc, compression, data
+                _s, _e, usize, crc = struct.unpack_from('<QQQI', rec, 0)
+                compression, p = _read_str(rec, 28)
+                (csize,) = struct.unpack_from('<Q', rec, p)
+                try:
+                    raw = decompress(bytes(rec[p + 8:p + 8 + csize]), compression, usize, crc)
+                except ReaderError as exc:
+                    res.problem = f'{path.name}: corrupt chunk at byte {pos}: {exc}'
+                    break
+                for _p, op2, rec2 in records(raw, 0, len(raw)):
+                    handle(op2, rec2, pos)
+            elif not handle(op, rec, pos):
+                return res
+    except EOFError as exc:
+        lost = size - exc.args[0]
+        res.problem = (f'{path.name}: truncated at byte {exc.args[0]} of {size} (no MCAP footer; '
+                       f'{lost} trailing bytes unreadable)')
+        return res
+    except (struct.error, UnicodeDecodeError) as exc:
+        res.problem = f'{path.name}: corrupt record: {exc}'
+        return res
+    res.problem = f'{path.name}: truncated: no MCAP footer ({size} bytes)'
+    return res
+
+
+def _read_str(rec: memoryview, pos: int) -> tuple[str, int]:
+    (n,) = struct.unpack_from('<I', rec, pos)
+    return bytes(rec[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
+
+
+def _mcap_is_complete(path: Path) -> bool:
+    with path.open('rb') as f:
+        head = f.read(8)
+        if f.seek(0, 2) < 16:
+            return False
+        f.seek(-8, 2)
+        return head == _MCAP_MAGIC and f.read(8) == _MCAP_MAGIC
+
+
+class _Source:
+    """Where a bag's messages come from: rosbags' indexed Reader, or a scan of damaged files."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.problems: list[str] = []
+        self.reader: Reader | None = None
+        self.scans: list[_ScanResult] = []
+        if not path.exists():
+            raise BagNotFoundError(f'bag {str(path)!r} does not exist')
+        if path.is_file():
+            if path.suffix != '.mcap':
+                raise BagError(f'{path}: not a bag directory or an .mcap file')
+            self.files = [path]
+            self._scan_all(complete_ok=True)
+            return
+        meta = path / 'metadata.yaml'
+        if meta.is_file():
+            from ruamel.yaml import YAML  # noqa: PLC0415 - rosbags' own YAML dependency
+            try:
+                doc = YAML(typ='safe').load(meta.read_text())
+                names = doc['rosbag2_bagfile_information']['relative_file_paths']
+            except Exception as exc:  # noqa: BLE001 - any defect of the YAML is reported
+                self.problems.append(f'{meta.name}: unreadable ({exc}); recovered from the '
+                                     'MCAP files')
+            else:
+                self.files = [path / Path(p).name for p in names]
+                missing = [f.name for f in self.files if not f.exists()]
+                if missing:
+                    raise BagNotFoundError(f'{path}: metadata.yaml names missing file(s) '
+                                           f'{missing}')
+                if all(_mcap_is_complete(f) for f in self.files):
+                    reader = Reader(path)
+                    try:
+                        reader.open()
+                        self.reader = reader
+                        return
+                    except ReaderError as exc:
+                        self.problems.append(f'indexed read failed ({exc}); recovered from '
+                                             'the MCAP files')
+        else:
+            self.problems.append(f'{path.name}: no metadata.yaml (recorder did not close the '
+                                 'bag); recovered from the MCAP files')
+        self.files = sorted(path.glob('*.mcap'), key=_split_index)
+        if not self.files:
+            raise BagNotFoundError(f'{path}: no metadata.yaml and no .mcap file')
+        self._scan_all(complete_ok=False)
+
+    def _scan_all(self, *, complete_ok: bool) -> None:
+        for f in self.files:
+            scan = _scan_mcap(f)
+            if scan.problem:
+                self.problems.append(scan.problem)
+            self.scans.append(scan)
+
+    def topics(self) -> dict[str, TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        if self.reader is not None:
+            for c in self.reader.connections:
+                info = out.setdefault(c.topic, TopicInfo(c.topic, c.msgtype, 0,
+                                                         list(c.ext.offered_qos_profiles),
+                                                         c.digest, c.msgdef.data))
+                info.count += c.msgcount
+            return out
+        for scan in self.scans:
+            counts: dict[int, int] = {}
+            for _t, cid, _d in scan.messages:
+                counts[cid] = counts.get(cid, 0) + 1
+            for cid, ch in scan.channels.items():
+                info = out.setdefault(ch.topic, TopicInfo(ch.topic, ch.msgtype, 0, ch.qos, '',
+                                                          ch.msgdef))
+                info.count += counts.get(cid, 0)
+        return out
+
+    def messages(self, topics: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
+        if self.reader is not None:
+            conns = [c for c in self.reader.connections if topics is None or c.topic in topics]
+            for c, t, data in self.reader.messages(connections=conns):
+                yield c.topic, c.msgtype, t, data
+            return
+        import heapq  # noqa: PLC0415
+
+        streams = []
+        for scan in self.scans:
+            chans = scan.channels
+            msgs = sorted(((t, i, cid, d) for i, (t, cid, d) in enumerate(scan.messages)
+                           if cid in chans and (topics is None or chans[cid].topic in topics)),
+                          key=lambda m: (m[0], m[1]))
+            streams.append([(t, chans[cid].topic, chans[cid].msgtype, d)
+                            for t, _i, cid, d in msgs])
+        for t, topic, msgtype, data in heapq.merge(*streams, key=lambda m: m[0]):
+            yield topic, msgtype, t, data
+
+    def close(self) -> None:
+        if self.reader is not None:
+            self.reader.close()
+
+
+def _split_index(p: Path) -> tuple[int, str]:
+    tail = p.stem.rsplit('_', 1)[-1]
+    return (int(tail) if tail.isdigit() else -1, p.name)
+
+
+def bag_info(path: str | Path) -> BagInfo:
+    """Topics, counts, time span and defects of a bag (directory or single .mcap file)."""
+    src = _Source(Path(path))
+    try:
+        topics = src.topics()
+        if src.reader is not None:
+            start, end = src.reader.start_time, src.reader.end_time - 1
+            count = src.reader.message_count
+        else:
+            times = [t for s in src.scans for t, cid, _ in s.messages if cid in s.channels]
+            start, end = (min(times), max(times)) if times else (0, 0)
+            count = len(times)
+        return BagInfo(Path(path), src.files, topics, start, max(start, end), count,
+                       list(src.problems), src.reader is None)
+    finally:
+        src.close()
+
+
+def _register_bag_types(typestore: Typestore, topics: Iterable[TopicInfo]) -> list[str]:
+    """Make every topic's type known: typestore, else the bag's own definition, else the ament
+    index. Returns the 'topic (type)' entries that stay unknown."""
+    unknown = []
+    for info in topics:
+        if info.msgtype in typestore.fielddefs:
+            continue
+        if info.msgdef:
+            try:
+                typestore.register(get_types_from_msg(info.msgdef, info.msgtype))
+                continue
+            except Exception:  # noqa: BLE001 - fall back to the ament index
+                pass
+        try:
+            ensure_type(typestore, info.msgtype)
+        except UnknownTypeError:
+            unknown.append(f'{info.name} ({info.msgtype})')
+    return unknown
+
+
+def read_messages(path: str | Path, topics: Iterable[str] | None = None, *, raw: bool = False,
+                  strict: bool = True, typestore: Typestore | None = None
+                  ) -> Iterator[BagMessage]:
+    """Yield (topic, msgtype, t_ns, msg) of a bag in time order, without DDS.
+
+    `path`: a bag directory or one .mcap file. `topics`: only these (None: all). `raw=True`
+    yields CDR bytes (no deserialization). A damaged bag (truncated file, no metadata.yaml) is
+    read as far as its files allow; then `strict=True` raises DamagedBagError naming the defects,
+    `strict=False` warns with DamagedBagWarning. A topic whose type is unknown (not in the
+    typestore, the bag or the ament index) raises UnknownTypeError before anything is yielded
+    when strict, and is yielded as raw bytes otherwise.
+    """
+    src = _Source(Path(path))
+    try:
+        wanted = set(topics) if topics is not None else None
+        infos = src.topics()
+        if wanted is not None:
+            absent = sorted(wanted - set(infos))
+            if absent:
+                raise BagError(f'{path}: topic(s) {absent} not in the bag '
+                               f'(has {sorted(infos)})')
+        undecodable: set[str] = set()
+        ts = None
+        if not raw:
+            ts = typestore if typestore is not None else make_typestore()
+            sel = [i for i in infos.values() if wanted is None or i.name in wanted]
+            unknown = _register_bag_types(ts, sel)
+            if unknown:
+                if strict:
+                    raise UnknownTypeError(f'{path}: unknown message type(s), cannot deserialize:'
+                                           f' {", ".join(unknown)} (read with raw=True, or '
+                                           'strict=False to get these as bytes)')
+                warnings.warn(f'{path}: yielding raw bytes for unknown type(s) '
+                              f'{", ".join(unknown)}', DamagedBagWarning, stacklevel=2)
+                undecodable = {u.split(' ')[0] for u in unknown}
+        deser = ts.deserialize_cdr if ts is not None else None
+        for topic, msgtype, t, data in src.messages(wanted):
+            if raw or topic in undecodable:
+                yield BagMessage(topic, msgtype, t, data)
+            else:
+                yield BagMessage(topic, msgtype, t, deser(data, msgtype))
+        if src.problems:
+            if strict:
+                raise DamagedBagError(src.problems)
+            warnings.warn('; '.join(src.problems), DamagedBagWarning, stacklevel=2)
+    finally:
+        src.close()
+
+
+__all__ = [
+    'BagError', 'BagInfo', 'BagMessage', 'BagNotFoundError', 'BagWriter', 'DamagedBagError',
+    'DamagedBagWarning', 'TopicInfo', 'TopicSpec', 'UnknownTypeError', 'WriterError',
+    'bag_info', 'ensure_type', 'make_qos', 'make_typestore', 'read_messages',
+    'register_package_msgs',
+]
