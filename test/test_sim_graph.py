@@ -170,15 +170,37 @@ def test_stamps_follow_clock_and_use_sim_time(live):
     assert min(abs(imu_t - c) for c in clock_t) < 1e-9
 
 
-def _send_arm(probe: Probe, positions: list[float], duration: float) -> None:
-    pub = probe.node.create_publisher(JointTrajectory, '/rover1/arm/joint_command', 10)
+def _move_arm(probe: Probe, positions: list[float], duration: float) -> None:
+    """Command arm joints 1, 2 and wait until the encoders show them there (re-sending, since a
+    fresh publisher's first message can be lost while the match completes), then 2 s to settle."""
+    if not hasattr(probe, 'arm_pub'):
+        probe.arm_pub = probe.node.create_publisher(JointTrajectory, '/rover1/arm/joint_command',
+                                                    10)
+    pub = probe.arm_pub
     wait_for(lambda: pub.get_subscription_count() > 0, 10.0, what='sim arm subscriber')
     traj = JointTrajectory(joint_names=['arm_joint_1', 'arm_joint_2'])
     pt = JointTrajectoryPoint(positions=positions)
     pt.time_from_start.sec, pt.time_from_start.nanosec = int(duration), int(
         (duration % 1) * 1e9)
     traj.points = [pt]
-    pub.publish(traj)
+
+    def there() -> bool:
+        recent = probe.msgs['/rover1/joint_states'][-40:]
+        q = np.mean([[dict(zip(m.name, m.position))[j] for j in traj.joint_names]
+                     for m in recent], axis=0)
+        return bool(np.all(np.abs(q - positions) < 0.05))
+
+    deadline = time.monotonic() + 60.0
+    while not there():
+        assert time.monotonic() < deadline, 'the arm never reached its target'
+        pub.publish(traj)
+        try:
+            probe.spin_until(there, 5.0, 'the arm at its target')
+        except TimeoutError:
+            continue
+    clock0 = probe.msgs['/clock'][-1].clock.sec
+    probe.spin_until(lambda: probe.msgs['/clock'][-1].clock.sec >= clock0 + 2, 30.0,
+                     'the arm to settle')
 
 
 def _mean_after(probe: Probe, topic: str, n: int, fn):
@@ -191,10 +213,7 @@ def test_ft_reads_the_arm_reaction_and_inclinometer_follows_the_compliance(live)
     _, probe = live
     readings = {}
     for label, target in (('up', [0.0, 1.2]), ('front', [0.0, 0.0]), ('left', [1.5708, 0.0])):
-        _send_arm(probe, target, 1.0)
-        clock0 = probe.msgs['/clock'][-1].clock.sec
-        probe.spin_until(lambda c=clock0: probe.msgs['/clock'][-1].clock.sec >= c + 3, 30.0,
-                         'the arm to settle')
+        _move_arm(probe, target, 1.0)
         force = _mean_after(probe, '/rover1/arm/wrench', 200,
                             lambda m: [m.wrench.force.x, m.wrench.force.y, m.wrench.force.z])
         incl = _mean_after(probe, '/rover1/inclinometer', 200, lambda m: [m.roll, m.pitch])

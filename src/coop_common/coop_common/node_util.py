@@ -10,6 +10,7 @@ from typing import Any
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
@@ -114,8 +115,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     try:
         try:
             node = factory()
-        except ValueError as exc:
-            rclpy.logging.get_logger('startup').fatal(str(exc))
+        except (ValueError, InvalidParameterValueException, ParameterException) as exc:
+            rclpy.logging.get_logger('startup').fatal(f'cannot start: {exc}')
             return 1
         if executor_factory is not None:
             executor = executor_factory()
