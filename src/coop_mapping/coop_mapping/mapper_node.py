@@ -1,0 +1,315 @@
+"""Node `mapper` (one per team): fuses every rover's stereo clouds into one VoxelMap.
+
+Subscribes, per rover name r in the `rovers` parameter: `/<r>/stereo/points` (PointCloud2 in
+the map frame with the covariance fields, sensor QoS) and `/<r>/camera_pose`
+(PoseWithCovarianceStamped, the pose the cloud was taken from, matched by stamp; its position is
+the ray origin). Publishes `/map/voxels` (coop_msgs/VoxelMap, latched, at most every
+`publish_period_s`), `/map/updates` (coop_msgs/VoxelMapUpdate per fused cloud), `/map/occupied`
+(PointCloud2 of occupied voxel centres, latched) and `/map/grid` (nav_msgs/OccupancyGrid slice at
+`grid_z_m`, latched). Services `/map/save`, `/map/load` (coop_msgs/srv/MapFile), `/map/query`
+(coop_msgs/srv/QueryMap), `/map/reset` (std_srvs/Trigger). Autosaves every `autosave_period_s`
+to `map_file` and loads it at start if it is there.
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections import OrderedDict
+
+import numpy as np
+from coop_msgs.msg import VoxelMap as VoxelMapMsg
+from coop_msgs.msg import VoxelMapUpdate
+from coop_msgs.srv import MapFile, QueryMap
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+
+from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+
+from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, voxelset
+from .voxelmap import MapFileError, MapInputError, VoxelMap
+
+PARAMS = {
+    'rovers': ParamSpec(['rover1', 'rover2'], 'rover namespaces whose clouds are fused',
+                        read_only=True),
+    'resolution_m': ParamSpec(0.1, 'voxel edge (m)', lo=0.005, hi=10.0, read_only=True),
+    'map_frame': ParamSpec('map', 'common frame of clouds and map', read_only=True),
+    'map_file': ParamSpec('', 'autosave / default save-load file ("" = no autosave)',
+                          read_only=True),
+    'autosave_period_s': ParamSpec(30.0, 'autosave period (0 = off)', lo=0.0, hi=86400.0),
+    'publish_period_s': ParamSpec(1.0, 'minimum period of full-map publications', lo=0.0,
+                                  hi=3600.0),
+    'max_points': ParamSpec(1_000_000, 'clouds with more points are rejected', lo=1,
+                            hi=50_000_000),
+    'max_range_m': ParamSpec(30.0, 'clouds with a point farther from the camera are rejected',
+                             lo=0.1, hi=1000.0),
+    'ray_subdivision': ParamSpec(4, 'rays per end voxel edge (0 = one ray per point)', lo=0,
+                                 hi=16, read_only=True),
+    'grid_z_m': ParamSpec(0.2, 'height of the OccupancyGrid slice (m)', lo=-1000.0, hi=1000.0),
+    'pose_wait_s': ParamSpec(1.0, 'how long a cloud waits for its camera pose', lo=0.0,
+                             hi=60.0),
+}
+
+
+def _stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+class MapperNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('mapper', **kwargs)
+        self.p = declare_parameters(self, PARAMS, on_change=self.p_update)
+        self.bad = BadInputCounter(self)
+        self.map = VoxelMap(self.p['resolution_m'], max_points=self.p['max_points'],
+                            ray_subdivision=self.p['ray_subdivision'])
+        self._load_at_start()
+        self.pub_map = self.create_publisher(VoxelMapMsg, '/map/voxels', LATCHED_QOS)
+        self.pub_upd = self.create_publisher(VoxelMapUpdate, '/map/updates', COMMAND_QOS)
+        self.pub_occ = self.create_publisher(PointCloud2, '/map/occupied', LATCHED_QOS)
+        self.pub_grid = self.create_publisher(OccupancyGrid, '/map/grid', LATCHED_QOS)
+        self.poses: dict[str, OrderedDict[int, np.ndarray]] = {}
+        self.pending: dict[str, OrderedDict[int, tuple[PointCloud2, float]]] = {}
+        for r in self.p['rovers']:
+            self.poses[r] = OrderedDict()
+            self.pending[r] = OrderedDict()
+            self.create_subscription(PointCloud2, f'/{r}/stereo/points',
+                                     lambda m, r=r: self.on_cloud(r, m), SENSOR_QOS)
+            self.create_subscription(PoseWithCovarianceStamped, f'/{r}/camera_pose',
+                                     lambda m, r=r: self.on_pose(r, m), LATCHED_QOS)
+        self.create_service(MapFile, '/map/save', self.srv_save)
+        self.create_service(MapFile, '/map/load', self.srv_load)
+        self.create_service(QueryMap, '/map/query', self.srv_query)
+        self.create_service(Trigger, '/map/reset', self.srv_reset)
+        self._last_pub = -np.inf
+        self._dirty = True
+        self._saved_seq = self.map.sequence
+        self.create_timer(0.1, self.on_timer)
+        self._last_save = time.monotonic()
+        self.fused = 0
+        self.last_latency_s = float('nan')
+        self.get_logger().info(
+            f'mapper up: rovers {self.p["rovers"]}, {self.p["resolution_m"]} m voxels, '
+            f'{len(self.map)} voxels loaded')
+
+    def p_update(self, changed: dict) -> None:
+        self.p.update(changed)
+
+    # ---------------------------------------------------------------- start / persistence
+    def _load_at_start(self) -> None:
+        path = self.p['map_file']
+        if not path or not os.path.exists(path):
+            return
+        try:
+            m = VoxelMap.load(path)
+        except MapFileError as exc:
+            self.get_logger().error(f'not loading the last save: {exc}')
+            return
+        if m.resolution != self.p['resolution_m']:
+            self.get_logger().error(f'{path} has resolution {m.resolution}, not '
+                                    f'{self.p["resolution_m"]}: not loaded')
+            return
+        m.max_points = self.p['max_points']
+        m.ray_subdivision = self.p['ray_subdivision']
+        self.map = m
+        self.get_logger().info(f'loaded {len(m)} voxels (sequence {m.sequence}) from {path}')
+
+    # ---------------------------------------------------------------- inputs
+    def on_pose(self, rover: str, msg: PoseWithCovarianceStamped) -> None:
+        if msg.header.frame_id != self.p['map_frame']:
+            self.bad.reject('pose_frame', f'{rover}: frame {msg.header.frame_id!r}')
+            return
+        p = msg.pose.pose.position
+        origin = np.array([p.x, p.y, p.z])
+        if not np.all(np.isfinite(origin)):
+            self.bad.reject('pose_nan', rover)
+            return
+        st = _stamp_ns(msg.header.stamp)
+        poses = self.poses[rover]
+        poses[st] = origin
+        while len(poses) > 50:
+            poses.popitem(last=False)
+        cloud = self.pending[rover].pop(st, None)
+        if cloud is not None:
+            self.fuse(rover, cloud[0], origin, cloud[1])
+
+    def on_cloud(self, rover: str, msg: PointCloud2) -> None:
+        t_arrival = time.monotonic()
+        if msg.header.frame_id != self.p['map_frame']:
+            self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
+            return
+        st = _stamp_ns(msg.header.stamp)
+        origin = self.poses[rover].get(st)
+        if origin is None:
+            pend = self.pending[rover]
+            pend[st] = (msg, t_arrival)
+            while len(pend) > 5:
+                pend.popitem(last=False)
+                self.bad.reject('no_pose', f'{rover}: cloud without a camera pose')
+            return
+        self.fuse(rover, msg, origin, t_arrival)
+
+    def fuse(self, rover: str, msg: PointCloud2, origin: np.ndarray, t_arrival: float) -> None:
+        n = msg.width * msg.height
+        if n == 0:
+            self.bad.reject('empty', rover)
+            return
+        if n > self.p['max_points']:
+            self.bad.reject('too_large', f'{rover}: {n} points')
+            return
+        try:
+            pts, cov = msg_to_cloud(msg)
+        except CloudFormatError as exc:
+            self.bad.reject('format', f'{rover}: {exc}')
+            return
+        if not (np.all(np.isfinite(pts)) and (cov is None or np.all(np.isfinite(cov)))):
+            self.bad.reject('nan', rover)
+            return
+        if np.max(np.linalg.norm(pts - origin, axis=1)) > self.p['max_range_m']:
+            self.bad.reject('absurd_range', rover)
+            return
+        base = self.map.sequence
+        try:
+            res = self.map.insert_scan(pts, origin, covariances=cov, source=rover)
+        except MapInputError as exc:
+            self.bad.reject('map_input', f'{rover}: {exc}')
+            return
+        upd = VoxelMapUpdate()
+        upd.header = Header(stamp=msg.header.stamp, frame_id=self.p['map_frame'])
+        upd.resolution_m = self.map.resolution
+        upd.base_sequence = base
+        upd.sequence = self.map.sequence
+        upd.source = rover
+        upd.changed = voxelset(self.map, res.changed)
+        self.pub_upd.publish(upd)
+        self.fused += 1
+        self._dirty = True
+        self.last_latency_s = time.monotonic() - t_arrival
+        self.get_logger().debug(f'{rover}: {res.n_points} points, {res.n_new} new voxels, '
+                                f'{1e3 * self.last_latency_s:.1f} ms')
+
+    # ---------------------------------------------------------------- outputs
+    def publish_map(self) -> None:
+        now = self.get_clock().now().to_msg()
+        hdr = Header(stamp=now, frame_id=self.p['map_frame'])
+        m = VoxelMapMsg()
+        m.header = hdr
+        m.resolution_m = self.map.resolution
+        m.sequence = self.map.sequence
+        m.voxels = voxelset(self.map)
+        names = sorted(self.map.contributions)
+        m.contributors = names
+        m.contributions = [int(self.map.contributions[n]) for n in names]
+        self.pub_map.publish(m)
+        self.pub_occ.publish(cloud_to_msg(self.map.occupied_centres(), None, hdr))
+        origin, grid = self.map.slice_grid(self.p['grid_z_m'])
+        g = OccupancyGrid()
+        g.header = hdr
+        g.info.resolution = float(self.map.resolution)
+        g.info.width = int(grid.shape[1])
+        g.info.height = int(grid.shape[0])
+        g.info.origin.position.x = float(origin[0])
+        g.info.origin.position.y = float(origin[1])
+        g.info.origin.position.z = float(self.p['grid_z_m'])
+        g.info.origin.orientation.w = 1.0
+        g.data = grid.reshape(-1).tolist()
+        self.pub_grid.publish(g)
+        self._dirty = False
+        self._last_pub = time.monotonic()
+
+    def on_timer(self) -> None:
+        now = time.monotonic()
+        if self._dirty and now - self._last_pub >= self.p['publish_period_s']:
+            self.publish_map()
+        # clouds whose pose never came
+        for rover, pend in self.pending.items():
+            for st in [s for s, (_, t) in pend.items() if now - t > self.p['pose_wait_s']]:
+                del pend[st]
+                self.bad.reject('no_pose', f'{rover}: cloud without a camera pose')
+        per = self.p['autosave_period_s']
+        if per > 0 and self.p['map_file'] and now - self._last_save >= per:
+            self._last_save = now
+            if self.map.sequence != self._saved_seq:
+                self._save(self.p['map_file'])
+
+    def _save(self, path: str) -> str | None:
+        try:
+            self.map.save(path)
+        except OSError as exc:
+            self.get_logger().error(f'save to {path} failed: {exc}')
+            return str(exc)
+        self._saved_seq = self.map.sequence
+        self.get_logger().info(f'saved {len(self.map)} voxels to {path}')
+        return None
+
+    # ---------------------------------------------------------------- services
+    def srv_save(self, req, resp):
+        path = req.path or self.p['map_file']
+        if not path:
+            resp.success, resp.message = False, 'no path given and no map_file parameter'
+            return resp
+        err = self._save(path)
+        resp.success = err is None
+        resp.message = err or f'saved to {path}'
+        resp.voxels, resp.sequence = len(self.map), self.map.sequence
+        return resp
+
+    def srv_load(self, req, resp):
+        path = req.path or self.p['map_file']
+        try:
+            m = VoxelMap.load(path)
+            if m.resolution != self.map.resolution:
+                raise MapFileError(f'{path}: resolution {m.resolution} differs from the '
+                                   f'node\'s {self.map.resolution}')
+        except MapFileError as exc:
+            resp.success, resp.message = False, f'{exc} (current map kept)'
+            resp.voxels, resp.sequence = len(self.map), self.map.sequence
+            self.get_logger().warn(resp.message)
+            return resp
+        m.max_points = self.p['max_points']
+        m.ray_subdivision = self.p['ray_subdivision']
+        self.map = m
+        self._dirty = True
+        resp.success, resp.message = True, f'loaded {path}'
+        resp.voxels, resp.sequence = len(m), m.sequence
+        self.get_logger().info(resp.message)
+        return resp
+
+    def srv_query(self, req, resp):
+        pts = np.array([[p.x, p.y, p.z] for p in req.points], float).reshape(-1, 3)
+        if not np.all(np.isfinite(pts)):
+            resp.success, resp.message = False, 'non-finite query point'
+            return resp
+        resp.occupancy = self.map.probability_at(pts).astype(np.float32).tolist() \
+            if len(pts) else []
+        lo = np.array([req.box_min.x, req.box_min.y, req.box_min.z])
+        hi = np.array([req.box_max.x, req.box_max.y, req.box_max.z])
+        if np.all(hi > lo):
+            try:
+                c = self.map.box_counts(lo, hi)
+            except ValueError as exc:
+                resp.success, resp.message = False, str(exc)
+                return resp
+            resp.box_unknown, resp.box_free, resp.box_occupied = (
+                c['unknown'], c['free'], c['occupied'])
+        resp.success = True
+        return resp
+
+    def srv_reset(self, req, resp):
+        self.map = VoxelMap(self.map.resolution, max_points=self.p['max_points'],
+                            ray_subdivision=self.p['ray_subdivision'])
+        self._dirty = True
+        resp.success, resp.message = True, 'map cleared'
+        self.get_logger().info('map reset')
+        return resp
+
+
+def main(args=None) -> int:
+    return run_node(MapperNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,122 @@
+"""Message <-> numpy conversions for the coop_mapping nodes (message types only, no rclpy).
+
+PointCloud2 layout of `stereo/points`: float32 x, y, z and the six unique covariance terms
+cov_xx, cov_xy, cov_xz, cov_yy, cov_yz, cov_zz (m^2, same frame as the points), 36 B per point,
+little endian, dense (no NaN points).
+"""
+from __future__ import annotations
+
+import array
+
+import numpy as np
+from coop_msgs.msg import VoxelSet
+from geometry_msgs.msg import Pose
+from sensor_msgs.msg import PointCloud2, PointField
+
+from .gauss import sym6_from_cholesky
+from .voxelmap import LOGODDS_SCALE, VoxelMap, unpack_keys
+
+CLOUD_FIELDS = ('x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_xz', 'cov_yy', 'cov_yz', 'cov_zz')
+
+
+class CloudFormatError(ValueError):
+    """A PointCloud2 this package cannot read."""
+
+
+def _arr(code: str, a: np.ndarray) -> array.array:
+    out = array.array(code)
+    out.frombytes(np.ascontiguousarray(a).tobytes())
+    return out
+
+
+def cloud_to_msg(points: np.ndarray, covariances: np.ndarray | None, header) -> PointCloud2:
+    n = len(points)
+    fields = CLOUD_FIELDS if covariances is not None else CLOUD_FIELDS[:3]
+    data = np.empty((n, len(fields)), np.float32)
+    data[:, :3] = points
+    if covariances is not None:
+        data[:, 3:] = covariances
+    msg = PointCloud2()
+    msg.header = header
+    msg.height = 1
+    msg.width = n
+    msg.fields = [PointField(name=f, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                  for i, f in enumerate(fields)]
+    msg.is_bigendian = False
+    msg.point_step = 4 * len(fields)
+    msg.row_step = msg.point_step * n
+    msg.is_dense = True
+    msg.data = _arr('B', data.view(np.uint8).reshape(-1))
+    return msg
+
+
+def msg_to_cloud(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N, 3) float64 points and (N, 6) covariances (None if the cloud has no covariance
+    fields). Raises CloudFormatError on a layout it cannot read."""
+    names = {f.name: f for f in msg.fields}
+    for f in ('x', 'y', 'z'):
+        if f not in names or names[f].datatype != PointField.FLOAT32:
+            raise CloudFormatError(f'field {f} missing or not float32')
+    if msg.is_bigendian:
+        raise CloudFormatError('big-endian clouds are not supported')
+    n = msg.width * msg.height
+    step = msg.point_step
+    if step <= 0 or len(msg.data) < n * step:
+        raise CloudFormatError(f'data has {len(msg.data)} bytes, need {n * step}')
+    buf = np.frombuffer(msg.data, np.uint8, count=n * step)
+    want = CLOUD_FIELDS if all(f in names for f in CLOUD_FIELDS) else CLOUD_FIELDS[:3]
+    if step % 4 == 0 and all(names[f].offset == 4 * i and names[f].datatype == PointField.FLOAT32
+                             for i, f in enumerate(want)):
+        # our own layout: one strided view, one conversion
+        flat = buf.view('<f4').reshape(n, step // 4)[:, :len(want)].astype(np.float64)
+        return flat[:, :3], (flat[:, 3:] if len(want) == 9 else None)
+    raw = buf.reshape(n, step)
+
+    def col(name):
+        if names[name].datatype != PointField.FLOAT32:
+            raise CloudFormatError(f'field {name} is not float32')
+        o = names[name].offset
+        return raw[:, o:o + 4].copy().view('<f4').reshape(n)
+
+    pts = np.stack([col('x'), col('y'), col('z')], -1).astype(np.float64)
+    cov = None
+    if len(want) == 9:
+        cov = np.stack([col(f) for f in CLOUD_FIELDS[3:]], -1).astype(np.float64)
+    return pts, cov
+
+
+def pose_to_rt(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
+    """geometry_msgs/Pose -> (R (3, 3), t (3,))."""
+    q = pose.orientation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    n = x * x + y * y + z * z + w * w
+    if not n > 0:
+        raise ValueError('zero quaternion')
+    s = 2.0 / n
+    R = np.array([[1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
+                  [s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)],
+                  [s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)]])
+    p = pose.position
+    return R, np.array([p.x, p.y, p.z])
+
+
+def voxelset(vm: VoxelMap, packed: np.ndarray | None = None) -> VoxelSet:
+    """The map's voxels (all, or the given packed keys that are known) as a VoxelSet."""
+    if packed is None:
+        idx = np.arange(len(vm))
+    else:
+        pos, found = vm._find(np.asarray(packed, np.int64))
+        idx = pos[found]
+    keys = vm.keys[idx]
+    res = vm.resolution
+    k = unpack_keys(keys)
+    mean = (k + 0.5) * res + vm.mean_off[idx].astype(np.float64) * res
+    cov = sym6_from_cholesky(vm.chol[idx].astype(np.float64)) * res * res
+    vs = VoxelSet()
+    vs.keys = _arr('i', k.astype(np.int32).reshape(-1))
+    p = 1.0 / (1.0 + np.exp(-vm.logodds[idx] / LOGODDS_SCALE))
+    vs.occupancy = _arr('f', p.astype(np.float32))
+    vs.mean = _arr('f', mean.astype(np.float32).reshape(-1))
+    vs.covariance = _arr('f', cov.astype(np.float32).reshape(-1))
+    vs.hits = _arr('I', vm.hits[idx].astype(np.uint32))
+    return vs

@@ -1,0 +1,196 @@
+"""Stereo ranging with the thesis's error model (Sujan 2002, §3.2.3, Eq. 3-1..3-9).
+
+Rectified mono8 pair -> OpenCV StereoSGBM disparity -> 3-D points in the left optical frame
+(z forward, x right, y down) -> per-point covariance from Eq. 3-7 -> common (map) frame with
+Eq. 3-9. No rclpy here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .gauss import rotate_sym6
+
+__all__ = ['StereoCamera', 'ErrorModel', 'StereoError', 'compute_disparity', 'disparity_to_range',
+           'range_sigma', 'disparity_to_points', 'StereoRanger', 'StereoScan']
+
+
+class StereoError(ValueError):
+    """Bad stereo input (shape, dtype, mismatched pair, bad calibration)."""
+
+
+@dataclass(frozen=True)
+class StereoCamera:
+    """Rectified pinhole pair: identical intrinsics, right camera at +baseline along x."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if not (self.fx > 0 and self.fy > 0 and self.baseline > 0):
+            raise StereoError('fx, fy and baseline must be > 0')
+        if not (self.width > 0 and self.height > 0):
+            raise StereoError('image size must be > 0')
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_rad: float, baseline: float) -> StereoCamera:
+        f = width / 2.0 / np.tan(hfov_rad / 2.0)
+        return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0, baseline, width, height)
+
+    @classmethod
+    def from_projection(cls, P_left: np.ndarray, P_right: np.ndarray, width: int, height: int
+                        ) -> StereoCamera:
+        """From the 3x4 projection matrices of a rectified pair (CameraInfo.p, ROS
+        convention: P_right[0, 3] = -fx * baseline)."""
+        Pl = np.asarray(P_left, float).reshape(3, 4)
+        Pr = np.asarray(P_right, float).reshape(3, 4)
+        fx = Pl[0, 0]
+        if not fx > 0:
+            raise StereoError('projection matrix with fx <= 0')
+        return cls(fx, Pl[1, 1], Pl[0, 2], Pl[1, 2], -Pr[0, 3] / fx, width, height)
+
+
+def disparity_to_range(d_px: np.ndarray, f_px: float, baseline: float) -> np.ndarray:
+    """Eq. 3-1..3-3: Y = b / delta with delta = d / f, i.e. Y = f b / d."""
+    d = np.asarray(d_px, float)
+    with np.errstate(divide='ignore'):
+        return np.where(d > 0, f_px * baseline / np.where(d > 0, d, 1.0), np.nan)
+
+
+def range_sigma(range_m: np.ndarray, f_px: float, baseline: float, sigma_d_px: float
+                ) -> np.ndarray:
+    """Eq. 3-4..3-6: s_yy = J s_dd J^T with J = -b / delta^2, so sigma_Y = Y^2 sigma_delta / b
+    with sigma_delta = sigma_d / f: the range sigma grows with range squared."""
+    Y = np.asarray(range_m, float)
+    return Y * Y * (sigma_d_px / f_px) / baseline
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """Eq. 3-7: sigma_{x,y,z} = S * T_{x,y,z} * L^n in the camera frame, uncorrelated (Eq. 3-8
+    with rho = 0). The camera frame here is the optical frame, so z is the range axis."""
+
+    S: float
+    T: tuple[float, float, float] = (0.1, 0.1, 1.0)
+    n: float = 2.0
+    floor_m: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if not (self.S > 0 and all(t > 0 for t in self.T) and self.n >= 0 and self.floor_m > 0):
+            raise StereoError('S, T must be > 0, n >= 0, floor_m > 0')
+
+    @classmethod
+    def from_stereo(cls, camera: StereoCamera, *, sigma_d_px: float = 0.5,
+                    lateral: float = 0.1, n: float = 2.0) -> ErrorModel:
+        """S from Eq. 3-6 (sigma_Y = Y^2 sigma_d / (f b)); T = (lateral, lateral, 1)."""
+        return cls(S=sigma_d_px / (camera.fx * camera.baseline), T=(lateral, lateral, 1.0), n=n)
+
+    def sigmas(self, points_cam: np.ndarray) -> np.ndarray:
+        """(N, 3) sigma_x, sigma_y, sigma_z of points given in the camera frame."""
+        L = np.linalg.norm(np.asarray(points_cam, float), axis=1)
+        return np.maximum(self.S * np.asarray(self.T)[None, :] * (L ** self.n)[:, None],
+                          self.floor_m)
+
+    def covariances(self, points_cam: np.ndarray, R_wc: np.ndarray | None = None) -> np.ndarray:
+        """(N, 6) covariances xx, xy, xz, yy, yz, zz; in the common frame when R_wc (the
+        camera's orientation in it) is given (Eq. 3-9)."""
+        sg = self.sigmas(points_cam)
+        c = np.zeros((len(sg), 6))
+        c[:, [0, 3, 5]] = sg * sg
+        return c if R_wc is None else rotate_sym6(c, R_wc)
+
+
+def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
+    for img in (left, right):
+        if not isinstance(img, np.ndarray) or img.ndim != 2 or img.dtype != np.uint8:
+            raise StereoError('images must be 2-D uint8 (mono8) arrays')
+    if left.shape != right.shape:
+        raise StereoError(f'image sizes differ: {left.shape} vs {right.shape}')
+
+
+def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: int = 64,
+                      block_size: int = 5, uniqueness: int = 10, speckle_window: int = 50,
+                      speckle_range: int = 2) -> np.ndarray:
+    """StereoSGBM (3-way) disparity in pixels (float32), NaN where invalid."""
+    _check_pair(left, right)
+    if num_disparities <= 0 or num_disparities % 16:
+        raise StereoError('num_disparities must be a positive multiple of 16')
+    if block_size < 1 or block_size % 2 == 0:
+        raise StereoError('block_size must be odd and >= 1')
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
+        P1=8 * block_size ** 2, P2=32 * block_size ** 2, disp12MaxDiff=1,
+        uniquenessRatio=uniqueness, speckleWindowSize=speckle_window,
+        speckleRange=speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    d = sgbm.compute(left, right).astype(np.float32) / 16.0
+    d[d <= 0] = np.nan
+    # the left num_disparities columns have no full search range
+    d[:, :num_disparities] = np.nan
+    return d
+
+
+def disparity_to_points(disp: np.ndarray, camera: StereoCamera, *, stride: int = 1,
+                        min_range: float = 0.0, max_range: float = np.inf
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Valid pixels -> (N, 3) points in the left optical frame and their (N, 2) u, v."""
+    if disp.shape != (camera.height, camera.width):
+        raise StereoError(f'disparity {disp.shape} does not match the camera '
+                          f'{(camera.height, camera.width)}')
+    d = disp[::stride, ::stride]
+    v, u = np.mgrid[0:disp.shape[0]:stride, 0:disp.shape[1]:stride]
+    z = camera.fx * camera.baseline / d
+    ok = np.isfinite(z) & (z >= min_range) & (z <= max_range)
+    z, u, v = z[ok], u[ok].astype(float), v[ok].astype(float)
+    x = (u - camera.cx) * z / camera.fx
+    y = (v - camera.cy) * z / camera.fy
+    return np.stack([x, y, z], -1), np.stack([u, v], -1)
+
+
+@dataclass
+class StereoScan:
+    """One processed stereo pair: points and covariances in the common frame."""
+
+    points: np.ndarray       # (N, 3) map frame
+    covariances: np.ndarray  # (N, 6) map frame
+    origin: np.ndarray       # (3,) camera centre in the map frame
+    points_cam: np.ndarray   # (N, 3) optical frame
+    uv: np.ndarray           # (N, 2) pixels
+
+
+class StereoRanger:
+    """Rectified pair + camera pose -> StereoScan (Eq. 3-1..3-9)."""
+
+    def __init__(self, camera: StereoCamera, *, error_model: ErrorModel | None = None,
+                 num_disparities: int = 64, block_size: int = 5, stride: int = 1,
+                 min_range: float = 0.2, max_range: float = 20.0) -> None:
+        self.camera = camera
+        self.error_model = error_model or ErrorModel.from_stereo(camera)
+        self.num_disparities = num_disparities
+        self.block_size = block_size
+        self.stride = stride
+        self.min_range = min_range
+        self.max_range = max_range
+
+    def process(self, left: np.ndarray, right: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
+                *, disparity: np.ndarray | None = None) -> StereoScan:
+        """`disparity`: reuse one already computed for this pair."""
+        R = np.asarray(R_wc, float)
+        t = np.asarray(t_wc, float).reshape(3)
+        if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise StereoError('R_wc must be a rotation matrix')
+        if left.shape != (self.camera.height, self.camera.width):
+            raise StereoError(f'image {left.shape} does not match camera_info '
+                              f'{(self.camera.height, self.camera.width)}')
+        disp = disparity if disparity is not None else compute_disparity(
+            left, right, num_disparities=self.num_disparities, block_size=self.block_size)
+        pc, uv = disparity_to_points(disp, self.camera, stride=self.stride,
+                                     min_range=self.min_range, max_range=self.max_range)
+        return StereoScan(points=pc @ R.T + t, covariances=self.error_model.covariances(pc, R),
+                          origin=t.copy(), points_cam=pc, uv=uv)

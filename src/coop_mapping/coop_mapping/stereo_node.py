@@ -1,0 +1,198 @@
+"""Node `stereo` (one per rover, run under its namespace): rectified pair -> 3-D points with the
+Eq. 3-7 covariances in the map frame.
+
+Subscribes `stereo/left/image_raw`, `stereo/right/image_raw` (mono8), `stereo/left/camera_info`,
+`stereo/right/camera_info`, `stereo/pose` (PoseWithCovarianceStamped of the left optical frame
+in `map`, stamped with the image stamp). Publishes `stereo/points` (PointCloud2 in `map` with the
+covariance fields, see ros_conv) and `camera_pose` (the pose the cloud was computed with, same
+stamp; the mapper takes its position as the ray origin).
+
+With `fiducial_correction` set to a g01 method (`pnp`, `rigid`, `linear`), the pose is corrected
+by scene fiducials (§3.2.5, fiducial_odometry): the first frame's `stereo/pose` is taken as
+known (§3.2.2), later frames are predicted with the dead-reckoned increment between successive
+`stereo/pose` messages and corrected by the fiducials; `camera_pose` then carries the corrected
+pose with the Eq. 3-19 translation covariance. `none` passes `stereo/pose` through.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+
+from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.qos import LATCHED_QOS, SENSOR_QOS
+
+from .fiducial_odometry import FiducialOdometry, OdometryConfig
+from .ros_conv import cloud_to_msg, pose_to_rt
+from .stereo import ErrorModel, StereoCamera, StereoError, StereoRanger, compute_disparity
+
+PARAMS = {
+    'num_disparities': ParamSpec(64, 'StereoSGBM disparity range (multiple of 16)', lo=16,
+                                 hi=256),
+    'block_size': ParamSpec(5, 'StereoSGBM block size (odd)', lo=1, hi=21),
+    'stride': ParamSpec(1, 'use every stride-th pixel in u and v', lo=1, hi=16),
+    'min_range_m': ParamSpec(0.2, 'nearest point kept (m)', lo=0.0, hi=100.0),
+    'max_range_m': ParamSpec(10.0, 'farthest point kept (m)', lo=0.1, hi=1000.0),
+    'sigma_disparity_px': ParamSpec(0.5, 'disparity sigma of Eq. 3-6 (px), gives S', lo=0.01,
+                                    hi=10.0),
+    'error_T_lateral': ParamSpec(0.1, 'Eq. 3-7 T_x = T_y relative to T_z = 1', lo=1e-3, hi=10.0),
+    'error_n': ParamSpec(2.0, 'Eq. 3-7 exponent n', lo=0.0, hi=4.0),
+    'map_frame': ParamSpec('map', 'frame of stereo/pose and of the published cloud',
+                           read_only=True),
+    'fiducial_correction': ParamSpec('none', 'camera pose correction by scene fiducials: g01 '
+                                     'method or none', choices=['none', 'pnp', 'rigid', 'linear'],
+                                     read_only=True),
+    'n_fiducials': ParamSpec(40, 'fiducials kept in view', lo=4, hi=500, read_only=True),
+    'scene_distance_m': ParamSpec(1.1, 'typical scene distance (sets the fiducial map voxel)',
+                                  lo=0.05, hi=100.0, read_only=True),
+}
+
+
+def image_to_array(msg: Image) -> np.ndarray:
+    if msg.encoding not in ('mono8', '8UC1'):
+        raise StereoError(f'encoding {msg.encoding!r}, need mono8')
+    if msg.step < msg.width or len(msg.data) < msg.step * msg.height:
+        raise StereoError('image data shorter than step * height')
+    a = np.frombuffer(bytes(msg.data), np.uint8, count=msg.step * msg.height)
+    return a.reshape(msg.height, msg.step)[:, :msg.width].copy()
+
+
+def _stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+class StereoNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('stereo', **kwargs)
+        self.p = declare_parameters(self, PARAMS, on_change=self._changed)
+        self.bad = BadInputCounter(self)
+        self.info: dict[str, CameraInfo] = {}
+        self.ranger: StereoRanger | None = None
+        self.buf: dict[str, OrderedDict[int, object]] = {
+            'left': OrderedDict(), 'right': OrderedDict(), 'pose': OrderedDict()}
+        self.pub_cloud = self.create_publisher(PointCloud2, 'stereo/points', SENSOR_QOS)
+        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'camera_pose',
+                                              LATCHED_QOS)
+        self.create_subscription(Image, 'stereo/left/image_raw',
+                                 lambda m: self._put('left', m), SENSOR_QOS)
+        self.create_subscription(Image, 'stereo/right/image_raw',
+                                 lambda m: self._put('right', m), SENSOR_QOS)
+        self.create_subscription(CameraInfo, 'stereo/left/camera_info',
+                                 lambda m: self._info('left', m), SENSOR_QOS)
+        self.create_subscription(CameraInfo, 'stereo/right/camera_info',
+                                 lambda m: self._info('right', m), SENSOR_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, 'stereo/pose',
+                                 lambda m: self._put('pose', m), SENSOR_QOS)
+        self.frames = 0
+        self.odometry: FiducialOdometry | None = None
+        self._prev_dr: np.ndarray | None = None
+
+    def _changed(self, changed: dict) -> None:
+        self.p.update(changed)
+        self.ranger = None  # rebuilt with the new settings at the next frame
+
+    def _info(self, side: str, msg: CameraInfo) -> None:
+        old = self.info.get(side)
+        if old is None or list(old.p) != list(msg.p) or old.width != msg.width:
+            self.ranger = None
+        self.info[side] = msg
+
+    def _make_ranger(self) -> StereoRanger:
+        li, ri = self.info['left'], self.info['right']
+        cam = StereoCamera.from_projection(li.p, ri.p, li.width, li.height)
+        em = ErrorModel.from_stereo(cam, sigma_d_px=self.p['sigma_disparity_px'],
+                                    lateral=self.p['error_T_lateral'], n=self.p['error_n'])
+        return StereoRanger(cam, error_model=em, num_disparities=self.p['num_disparities'],
+                            block_size=self.p['block_size'] | 1, stride=self.p['stride'],
+                            min_range=self.p['min_range_m'], max_range=self.p['max_range_m'])
+
+    def _put(self, kind: str, msg) -> None:
+        st = _stamp_ns(msg.header.stamp)
+        b = self.buf[kind]
+        b[st] = msg
+        while len(b) > 10:
+            b.popitem(last=False)
+        if all(st in self.buf[k] for k in ('left', 'right', 'pose')):
+            msgs = {k: self.buf[k].pop(st) for k in ('left', 'right', 'pose')}
+            for k in self.buf:  # older unmatched frames will never complete
+                for s in [s for s in self.buf[k] if s < st]:
+                    del self.buf[k][s]
+            self._process(msgs)
+
+    def _process(self, m: dict) -> None:
+        if 'left' not in self.info or 'right' not in self.info:
+            self.bad.reject('no_camera_info')
+            return
+        pose: PoseWithCovarianceStamped = m['pose']
+        if pose.header.frame_id != self.p['map_frame']:
+            self.bad.reject('pose_frame', pose.header.frame_id)
+            return
+        try:
+            if self.ranger is None:
+                self.ranger = self._make_ranger()
+            left, right = image_to_array(m['left']), image_to_array(m['right'])
+            R, t = pose_to_rt(pose.pose.pose)
+            disp = None
+            if self.p['fiducial_correction'] != 'none':
+                disp = compute_disparity(left, right, num_disparities=self.p['num_disparities'],
+                                         block_size=self.p['block_size'] | 1)
+                R, t, pose = self._correct(left, disp, R, t, pose)
+            scan = self.ranger.process(left, right, R, t, disparity=disp)
+        except (StereoError, ValueError) as exc:
+            self.bad.reject('stereo', str(exc))
+            return
+        hdr = Header(stamp=m['left'].header.stamp, frame_id=self.p['map_frame'])
+        self.pub_pose.publish(pose)
+        self.pub_cloud.publish(cloud_to_msg(scan.points, scan.covariances, hdr))
+        self.frames += 1
+
+    def _correct(self, left, disp, R, t, pose: PoseWithCovarianceStamped):
+        """§3.2.5 on the live stream: dead-reckoned increment as prediction, fiducials as
+        correction. Returns the corrected (R, t, pose message)."""
+        T_dr = np.eye(4)
+        T_dr[:3, :3], T_dr[:3, 3] = R, t
+        if self.odometry is None:
+            cfg = OdometryConfig(n_fiducials=self.p['n_fiducials'],
+                                 method=self.p['fiducial_correction'],
+                                 scene_distance=self.p['scene_distance_m'],
+                                 spacing_px=left.shape[1] / 16)
+            self.odometry = FiducialOdometry(self.ranger.camera, cfg, T_dr)
+            self.odometry.first(left, disp)
+            self.get_logger().info(f'fiducial correction ({cfg.method}) started with '
+                                   f'{len(self.odometry.x)} fiducials')
+            T = T_dr
+        else:
+            delta = np.linalg.inv(self._prev_dr) @ T_dr
+            T = self.odometry.step([(left, disp)], delta)
+        self._prev_dr = T_dr
+        out = PoseWithCovarianceStamped()
+        out.header = pose.header
+        p = out.pose.pose
+        p.position.x, p.position.y, p.position.z = (float(v) for v in T[:3, 3])
+        q = _quat(T[:3, :3])
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
+        cov = np.array(pose.pose.covariance, float).reshape(6, 6)
+        cov[:3, :3] = self.odometry.C_X
+        out.pose.covariance = cov.reshape(-1).tolist()
+        return T[:3, :3], T[:3, 3], out
+
+
+def _quat(R: np.ndarray) -> tuple[float, float, float, float]:
+    """Rotation matrix -> quaternion (x, y, z, w)."""
+    w = np.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+    x = np.copysign(np.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2, R[2, 1] - R[1, 2])
+    y = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2, R[0, 2] - R[2, 0])
+    z = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2, R[1, 0] - R[0, 1])
+    return float(x), float(y), float(z), float(w)
+
+
+def main(args=None) -> int:
+    return run_node(StereoNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,285 @@
+"""mapper and stereo nodes in-process with a private context: fusion, services, bad input."""
+import numpy as np
+import pytest
+import rclpy
+from coop_msgs.msg import VoxelMap as VoxelMapMsg
+from coop_msgs.msg import VoxelMapUpdate
+from coop_msgs.srv import MapFile, QueryMap
+from geometry_msgs.msg import Point, PoseWithCovarianceStamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+
+from coop_common.qos import LATCHED_QOS, SENSOR_QOS
+from coop_common.testing import wait_for
+from coop_mapping.mapper_node import MapperNode
+from coop_mapping.ros_conv import cloud_to_msg, msg_to_cloud
+from coop_mapping.stereo_node import StereoNode
+
+
+@pytest.fixture
+def ctx():
+    c = Context()
+    rclpy.init(context=c)
+    yield c
+    rclpy.try_shutdown(context=c)
+
+
+def _pose(stamp, xyz, frame='map'):
+    m = PoseWithCovarianceStamped()
+    m.header = Header(stamp=stamp, frame_id=frame)
+    m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z = map(float, xyz)
+    m.pose.pose.orientation.w = 1.0
+    return m
+
+
+def _call(ex, client, req, timeout=10.0):
+    assert client.wait_for_service(timeout_sec=timeout)
+    fut = client.call_async(req)
+    wait_for(fut.done, timeout, spin=lambda t: ex.spin_once(timeout_sec=t), what='service')
+    return fut.result()
+
+
+def test_mapper_fuses_queries_saves_and_rejects(ctx, tmp_path):
+    mapfile = str(tmp_path / 'team.cmap')
+    node = MapperNode(context=ctx, parameter_overrides=[
+        Parameter('rovers', value=['rover1', 'rover2']),
+        Parameter('map_file', value=mapfile),
+        Parameter('publish_period_s', value=0.0),
+        Parameter('autosave_period_s', value=0.0),
+        Parameter('max_points', value=5000)])
+    peer = Node('peer', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(peer)
+    try:
+        pose_pub = {r: peer.create_publisher(PoseWithCovarianceStamped, f'/{r}/camera_pose',
+                                             LATCHED_QOS) for r in ('rover1', 'rover2')}
+        cloud_pub = {r: peer.create_publisher(PointCloud2, f'/{r}/stereo/points', SENSOR_QOS)
+                     for r in ('rover1', 'rover2')}
+        updates, maps = [], []
+        peer.create_subscription(VoxelMapUpdate, '/map/updates', updates.append, 10)
+        peer.create_subscription(VoxelMapMsg, '/map/voxels', maps.append, LATCHED_QOS)
+        wait_for(lambda: peer.count_subscribers('/rover1/stereo/points') > 0
+                 and peer.count_subscribers('/rover2/stereo/points') > 0
+                 and peer.count_subscribers('/rover2/camera_pose') > 0, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='discovery')
+        rng = np.random.default_rng(0)
+        origin = np.array([0.05, 0.05, 1.05])
+        # a wall at x = 2.03 seen by both rovers
+        wall = np.column_stack([np.full(2000, 2.03), rng.uniform(-1, 1, 2000),
+                                rng.uniform(0, 2, 2000)])
+        cov = np.tile([1e-4, 0, 0, 1e-4, 0, 1e-4], (2000, 1))
+        for i, r in enumerate(('rover1', 'rover2')):
+            stamp = peer.get_clock().now().to_msg()
+            stamp.sec += i
+            pose_pub[r].publish(_pose(stamp, origin))
+            cloud_pub[r].publish(cloud_to_msg(wall, cov, Header(stamp=stamp, frame_id='map')))
+        wait_for(lambda: node.fused == 2 and len(updates) == 2, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='two fused clouds')
+        assert {u.source for u in updates} == {'rover1', 'rover2'}
+        assert updates[1].base_sequence == updates[0].sequence
+        wait_for(lambda: maps and maps[-1].sequence == 2, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='latched map')
+        m = maps[-1]
+        assert sorted(m.contributors) == ['rover1', 'rover2'] and list(m.contributions) == [1, 1]
+        assert len(m.voxels.keys) == 3 * len(m.voxels.occupancy)
+        # query: the wall is occupied, the space in front free, far away unknown
+        q = QueryMap.Request()
+        q.points = [Point(x=2.05, y=0.05, z=1.05), Point(x=1.0, y=0.05, z=1.05),
+                    Point(x=-5.0, y=0.0, z=0.0)]
+        q.box_min, q.box_max = Point(x=0.0, y=0.0, z=1.0), Point(x=1.0, y=0.1, z=1.1)
+        resp = _call(ex, peer.create_client(QueryMap, '/map/query'), q)
+        assert resp.success and resp.occupancy[0] > 0.6 and resp.occupancy[1] < 0.4
+        assert resp.occupancy[2] == 0.5
+        assert resp.box_free == 10 and resp.box_occupied == 0
+        # bad input: NaN, wrong frame, empty, absurd range, too large
+        stamp = peer.get_clock().now().to_msg()
+        stamp.sec += 10
+        pose_pub['rover1'].publish(_pose(stamp, origin))
+        nan = wall.copy()
+        nan[0, 0] = np.nan
+        bad = [cloud_to_msg(nan, cov, Header(stamp=stamp, frame_id='map')),
+               cloud_to_msg(wall, cov, Header(stamp=stamp, frame_id='odom')),
+               cloud_to_msg(wall[:0], cov[:0], Header(stamp=stamp, frame_id='map')),
+               cloud_to_msg(wall * 100, cov, Header(stamp=stamp, frame_id='map')),
+               cloud_to_msg(np.tile(wall, (3, 1)), np.tile(cov, (3, 1)),
+                            Header(stamp=stamp, frame_id='map'))]
+        wait_for(lambda: stamp.sec * 10**9 + stamp.nanosec in node.poses['rover1'], 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='pose')
+        for b in bad:
+            cloud_pub['rover1'].publish(b)
+        want = {'nan', 'unknown_frame', 'empty', 'absurd_range', 'too_large'}
+        wait_for(lambda: want <= set(node.bad.counts), 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='rejections')
+        assert node.fused == 2
+        # save, a corrupted file is refused and the map kept, reload, reset
+        save = _call(ex, peer.create_client(MapFile, '/map/save'), MapFile.Request())
+        assert save.success and save.voxels == len(node.map)
+        (tmp_path / 'bad.cmap').write_bytes(open(mapfile, 'rb').read()[:100])
+        load = peer.create_client(MapFile, '/map/load')
+        r = _call(ex, load, MapFile.Request(path=str(tmp_path / 'bad.cmap')))
+        assert not r.success and 'kept' in r.message and r.voxels == save.voxels
+        assert _call(ex, peer.create_client(Trigger, '/map/reset'), Trigger.Request()).success
+        assert len(node.map) == 0
+        r = _call(ex, load, MapFile.Request())
+        assert r.success and r.voxels == save.voxels and node.map.sequence == 2
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+
+
+def test_mapper_loads_last_save_on_restart(ctx, tmp_path):
+    from coop_mapping.voxelmap import VoxelMap
+    path = tmp_path / 'team.cmap'
+    vm = VoxelMap(0.1)
+    vm.insert_scan(np.array([[1.05, 0.05, 0.05]]), np.array([0.05, 0.05, 0.05]),
+                   source='rover1')
+    vm.save(path)
+    node = MapperNode(context=ctx, parameter_overrides=[Parameter('map_file', value=str(path))])
+    try:
+        assert len(node.map) == len(vm) and node.map.contributions == {'rover1': 1}
+    finally:
+        node.destroy_node()
+
+
+def _image(a, stamp, frame):
+    m = Image()
+    m.header = Header(stamp=stamp, frame_id=frame)
+    m.height, m.width = a.shape
+    m.encoding = 'mono8'
+    m.step = a.shape[1]
+    m.data = a.tobytes()
+    return m
+
+
+def test_stereo_node_publishes_cloud_with_covariance(ctx):
+    pytest.importorskip('pybullet')
+    from coop_mapping.render import TexturedScene, look_at
+    from coop_mapping.stereo import StereoCamera
+    cam = StereoCamera.from_fov(320, 240, np.radians(41.2), 0.038)
+    eye = np.array([0.0, 0.0, 1.0])
+    R = look_at(eye, np.array([2.5, 0.0, 0.2]))
+    with TexturedScene(cam, seed=2) as scene:
+        left, right, depth = scene.render(R, eye)
+    node = StereoNode(context=ctx, namespace='rover1',
+                      parameter_overrides=[Parameter('num_disparities', value=32)])
+    peer = Node('peer', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(peer)
+    try:
+        pubs = {k: peer.create_publisher(t, f'/rover1/{n}', SENSOR_QOS) for k, t, n in [
+            ('l', Image, 'stereo/left/image_raw'), ('r', Image, 'stereo/right/image_raw'),
+            ('li', CameraInfo, 'stereo/left/camera_info'),
+            ('ri', CameraInfo, 'stereo/right/camera_info'),
+            ('pose', PoseWithCovarianceStamped, 'stereo/pose')]}
+        clouds = []
+        peer.create_subscription(PointCloud2, '/rover1/stereo/points', clouds.append, SENSOR_QOS)
+        wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values())
+                 and peer.count_publishers('/rover1/stereo/points') > 0, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='discovery')
+        for side, frame in (('li', 'left'), ('ri', 'right')):
+            info = CameraInfo()
+            info.width, info.height = cam.width, cam.height
+            tx = 0.0 if side == 'li' else -cam.fx * cam.baseline
+            info.p = [cam.fx, 0.0, cam.cx, tx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+            info.header.frame_id = f'rover1/{frame}_camera_optical_frame'
+            pubs[side].publish(info)
+        wait_for(lambda: len(node.info) == 2, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='camera_info')
+        stamp = peer.get_clock().now().to_msg()
+        q = np.zeros(4)
+        # rotation matrix -> quaternion (x, y, z, w)
+        w = np.sqrt(max(0.0, 1 + np.trace(R))) / 2
+        q[:3] = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
+        q[3] = w
+        pose = _pose(stamp, eye)
+        o = pose.pose.pose.orientation
+        o.x, o.y, o.z, o.w = map(float, q)
+        pubs['pose'].publish(pose)
+        pubs['l'].publish(_image(left, stamp, 'rover1/left_camera_optical_frame'))
+        pubs['r'].publish(_image(right, stamp, 'rover1/right_camera_optical_frame'))
+        wait_for(lambda: clouds, 20.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+                 what='stereo/points')
+        pts, cov = msg_to_cloud(clouds[0])
+        assert clouds[0].header.frame_id == 'map' and cov is not None
+        assert len(pts) > 0.4 * cam.width * cam.height
+        # the map-frame points lie on the true surfaces: most are at or above the ground
+        assert np.median(pts[:, 2]) > -0.05 and np.percentile(pts[:, 2], 5) > -0.3
+        assert np.all(cov[:, 0] > 0) and np.all(cov[:, 5] > 0)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+
+
+def _quat_of(R):
+    w = np.sqrt(max(0.0, 1 + np.trace(R))) / 2
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
+    return float(v[0]), float(v[1]), float(v[2]), float(w)
+
+
+def test_stereo_node_corrects_dead_reckoning_with_fiducials(ctx):
+    pytest.importorskip('pybullet')
+    from coop_mapping.render import TexturedScene, look_at
+    from coop_mapping.stereo import StereoCamera
+    cam = StereoCamera.from_fov(320, 240, np.radians(41.2), 0.038)
+    R = look_at(np.zeros(3), np.array([1.0, 0.0, -0.3]))
+    true_eyes = [np.array([0.8, 0.0, 0.6]), np.array([0.8, 0.06, 0.6])]
+    # the dead reckoning gets the second step 40 % wrong sideways and 2 cm forward
+    dr_eyes = [true_eyes[0], true_eyes[1] + np.array([0.02, 0.024, 0.0])]
+    with TexturedScene(cam, seed=4) as scene:
+        pairs = [scene.render(R, e)[:2] for e in true_eyes]
+    node = StereoNode(context=ctx, namespace='rover1', parameter_overrides=[
+        Parameter('num_disparities', value=32), Parameter('fiducial_correction', value='pnp'),
+        Parameter('scene_distance_m', value=2.0)])
+    peer = Node('peer', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(peer)
+    spin = lambda t: ex.spin_once(timeout_sec=t)  # noqa: E731
+    try:
+        pubs = {k: peer.create_publisher(t, f'/rover1/{n}', SENSOR_QOS) for k, t, n in [
+            ('l', Image, 'stereo/left/image_raw'), ('r', Image, 'stereo/right/image_raw'),
+            ('li', CameraInfo, 'stereo/left/camera_info'),
+            ('ri', CameraInfo, 'stereo/right/camera_info'),
+            ('pose', PoseWithCovarianceStamped, 'stereo/pose')]}
+        poses = []
+        peer.create_subscription(PoseWithCovarianceStamped, '/rover1/camera_pose',
+                                 poses.append, LATCHED_QOS)
+        wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 10.0,
+                 spin=spin, what='discovery')
+        for side in ('li', 'ri'):
+            info = CameraInfo()
+            info.width, info.height = cam.width, cam.height
+            tx = 0.0 if side == 'li' else -cam.fx * cam.baseline
+            info.p = [cam.fx, 0.0, cam.cx, tx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+            pubs[side].publish(info)
+        wait_for(lambda: len(node.info) == 2, 10.0, spin=spin, what='camera_info')
+        for i, ((left, right), eye) in enumerate(zip(pairs, dr_eyes)):
+            stamp = peer.get_clock().now().to_msg()
+            stamp.sec += i
+            pose = _pose(stamp, eye)
+            o = pose.pose.pose.orientation
+            o.x, o.y, o.z, o.w = _quat_of(R)
+            pubs['pose'].publish(pose)
+            pubs['l'].publish(_image(left, stamp, 'l'))
+            pubs['r'].publish(_image(right, stamp, 'r'))
+            wait_for(lambda: len(poses) == i + 1, 20.0, spin=spin, what=f'camera_pose {i}')
+        p = poses[-1].pose.pose.position
+        corrected = np.array([p.x, p.y, p.z])
+        err_dr = np.linalg.norm(dr_eyes[1] - true_eyes[1])
+        err_fc = np.linalg.norm(corrected - true_eyes[1])
+        print(f'dead-reckoned error {err_dr:.4f} m, corrected {err_fc:.4f} m')
+        assert err_fc < 0.5 * err_dr
+        assert poses[-1].pose.covariance[0] >= 0.0
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()

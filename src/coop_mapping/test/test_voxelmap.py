@@ -1,0 +1,237 @@
+"""Map core: fusion maths against hand-computed cases, ray carving, OctoMap agreement, files."""
+import numpy as np
+import pytest
+
+from coop_mapping.gauss import (mat_from_sym6, merge_two, rotate_sym6, sym6_cholesky,
+                                sym6_from_cholesky, sym6_from_mat, sym6_inv)
+from coop_mapping.voxelmap import (FREE, OCCUPIED, UNKNOWN, MapFileError, MapInputError,
+                                   OccupancyModel, VoxelMap, pack_keys, ray_voxel_keys,
+                                   unpack_keys)
+
+
+def test_two_gaussians_merge_hand_computed():
+    # 1-D along x: N(0, 1) * N(2, 1) = N(1, 0.5); y, z: sigma 1 and 2 -> 1/(1 + 1/4) = 0.8
+    m, c = merge_two(np.zeros(3), np.diag([1.0, 1.0, 1.0]), np.array([2.0, 0, 0]),
+                     np.diag([1.0, 1.0, 4.0]))
+    assert np.allclose(m, [1.0, 0, 0])
+    assert np.allclose(c, np.diag([0.5, 0.5, 0.8]))
+
+
+def test_map_gaussian_equals_sequential_eq_3_10():
+    rng = np.random.default_rng(3)
+    res = 0.5
+    pts = rng.uniform(0.05, 0.45, (6, 3)) + np.array([2.0, 0.0, 0.0])
+    covs = []
+    for _ in pts:
+        A = rng.normal(size=(3, 3)) * 0.02
+        covs.append(A @ A.T + np.eye(3) * 1e-4)
+    covs = np.array(covs)
+    vm = VoxelMap(res)
+    # two scans: three points each, so the stored (float16) Gaussian is merged again
+    vm.insert_scan(pts[:3], np.zeros(3) + 0.01, covariances=sym6_from_mat(covs[:3]))
+    vm.insert_scan(pts[3:], np.zeros(3) + 0.01, covariances=sym6_from_mat(covs[3:]))
+    mean, cov = pts[0], covs[0]
+    for p, c in zip(pts[1:], covs[1:]):
+        mean, cov = merge_two(mean, cov, p, c)
+    keys, gm, gc, hits = vm.gaussians()
+    assert len(keys) == 1 and hits[0] == 6
+    assert np.allclose(gm[0], mean, atol=2e-4 * res)
+    assert np.allclose(mat_from_sym6(gc)[0], cov, rtol=5e-3, atol=1e-8)
+
+
+def test_sym6_algebra():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(20, 3, 3))
+    C = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3)
+    s = sym6_from_mat(C)
+    assert np.allclose(mat_from_sym6(sym6_inv(s)), np.linalg.inv(C))
+    assert np.allclose(sym6_from_cholesky(sym6_cholesky(s)), s)
+    R = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # 90 deg about z
+    r = rotate_sym6(sym6_from_mat(np.diag([1.0, 4.0, 9.0])[None]), R)
+    assert np.allclose(mat_from_sym6(r)[0], np.diag([4.0, 1.0, 9.0]))
+
+
+def test_ray_carves_hand_computed_voxels():
+    # from the centre of voxel (0,0,0) to voxel (3,0,0) along x at res 1: 0,1,2 free, 3 end
+    k = unpack_keys(np.unique(ray_voxel_keys(np.array([0.5, 0.5, 0.5]),
+                                             np.array([[3.5, 0.5, 0.5]]), 1.0)))
+    assert k.tolist() == [[0, 0, 0], [1, 0, 0], [2, 0, 0]]
+    # a diagonal in the xy plane, not through corners: (0.2,0.6) -> (2.7,1.9)
+    k = unpack_keys(np.unique(ray_voxel_keys(np.array([0.2, 0.6, 0.5]),
+                                             np.array([[2.7, 1.9, 0.5]]), 1.0)))
+    # crossings: x=1 at t=.32 (y=1.016 -> already past y=1 at t=.308), so (0,0)->(0,1)->(1,1)
+    assert k[:, :2].tolist() == [[0, 0], [0, 1], [1, 1]]
+    # negative direction, also across 0
+    k = unpack_keys(np.unique(ray_voxel_keys(np.array([0.5, 0.5, 0.5]),
+                                             np.array([[0.5, 0.5, -1.5]]), 1.0)))
+    assert k.tolist() == [[0, 0, -1], [0, 0, 0]]
+
+
+def _sequential_dda(o, e, res):
+    """Textbook per-ray Amanatides-Woo, the way OctoMap's computeRayKeys walks."""
+    key = np.floor(o / res).astype(int)
+    end = np.floor(e / res).astype(int)
+    d = e - o
+    out = []
+    if np.all(key == end):
+        return out
+    out.append(tuple(key))
+    step = np.sign(d).astype(int)
+    with np.errstate(divide='ignore'):
+        tmax = np.where(step != 0, ((key + (step > 0)) * res - o) / d, np.inf)
+        tdel = np.where(step != 0, res / np.abs(d), np.inf)
+    while True:
+        a = int(np.argmin(tmax))
+        key[a] += step[a]
+        tmax[a] += tdel[a]
+        if np.all(key == end) or min(tmax) > 1.0 + 1e-12 and np.all(key == end):
+            break
+        if len(out) > 1000:
+            raise AssertionError('runaway')
+        out.append(tuple(key))
+    return out
+
+
+def test_batched_rays_equal_sequential_dda():
+    rng = np.random.default_rng(7)
+    o = rng.uniform(-1, 1, 3)
+    ends = o + rng.normal(size=(200, 3)) * 2.0
+    got = unpack_keys(ray_voxel_keys(o, ends, 0.1))
+    want = set()
+    for e in ends:
+        want.update(_sequential_dda(o, e, 0.1))
+    assert set(map(tuple, got.tolist())) == want
+
+
+def test_insert_states_clamp_and_counts():
+    vm = VoxelMap(0.1)
+    origin = np.array([0.05, 0.05, 0.05])
+    wall = np.array([[1.05, 0.05, 0.05]])
+    for _ in range(20):
+        vm.insert_scan(wall, origin, source='rover1')
+    vm.insert_scan(wall, origin, source='rover2')
+    st = vm.state_of_keys(pack_keys(np.array([[10, 0, 0], [5, 0, 0], [0, 0, 0], [20, 0, 0]])))
+    assert st.tolist() == [OCCUPIED, FREE, FREE, UNKNOWN]
+    p = vm.probability_at(np.array([[1.05, 0.05, 0.05], [0.55, 0.05, 0.05], [9.0, 9.0, 9.0]]))
+    m = vm.model
+    assert p[0] == pytest.approx(m.clamp_max, abs=1e-3)
+    assert p[1] == pytest.approx(m.clamp_min, abs=1e-3)
+    assert p[2] == 0.5
+    assert vm.contributions == {'rover1': 20, 'rover2': 1}
+    assert len(vm) == 11 and vm.bytes_per_known_voxel() <= 32
+    box = vm.box_counts(np.array([0.0, 0.0, 0.0]), np.array([1.2, 0.1, 0.1]))
+    assert box == {'unknown': 1, 'free': 10, 'occupied': 1}
+
+
+def test_occupied_preference_and_octomap_agreement():
+    octomap = pytest.importorskip('octomap')
+    rng = np.random.default_rng(1)
+    res = 0.1
+    vm = VoxelMap(res)
+    tree = octomap.OcTree(res)
+    for i in range(3):
+        origin = np.array([0.03 + 0.3 * i, 0.02, 1.0])
+        d = rng.normal(size=(4000, 3))
+        d[:, 2] = -np.abs(d[:, 2]) * 0.5 - 0.05
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        pts = origin + d * ((0.013 - origin[2]) / d[:, 2])[:, None]
+        pts = pts[np.linalg.norm(pts - origin, axis=1) < 4]
+        vm.insert_scan(pts, origin)
+        tree.insertPointCloud(pts, origin)
+    keys = np.union1d(vm.keys, _octomap_keys(tree, res)[0])
+    ours = vm.state_of_keys(keys)
+    ok, oocc = _octomap_keys(tree, res)
+    theirs = np.full(len(keys), UNKNOWN)
+    theirs[np.searchsorted(keys, ok)] = np.where(oocc, OCCUPIED, FREE)
+    assert np.mean(ours == theirs) >= 0.995
+
+
+def _octomap_keys(tree, res):
+    keys, occ = [], []
+    for leaf in tree.begin_leafs():
+        c = np.array(leaf.getCoordinate())
+        s = leaf.getSize()
+        n = int(round(s / res))
+        lo = np.round((c - s / 2) / res).astype(int)
+        g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing='ij'), -1).reshape(-1, 3) + lo
+        keys.append(g)
+        occ.append(np.full(len(g), tree.isNodeOccupied(leaf)))
+    k = pack_keys(np.concatenate(keys))
+    o = np.concatenate(occ)
+    i = np.argsort(k)
+    return k[i], o[i]
+
+
+def test_bad_input_rejected():
+    vm = VoxelMap(0.1)
+    with pytest.raises(MapInputError):
+        vm.insert_scan(np.array([[np.nan, 0, 0]]), np.zeros(3))
+    with pytest.raises(MapInputError):
+        vm.insert_scan(np.zeros((3, 2)), np.zeros(3))
+    with pytest.raises(MapInputError):
+        vm.insert_scan(np.array([[1e6, 0, 0]]), np.zeros(3))
+    with pytest.raises(MapInputError):
+        VoxelMap(0.1, max_points=5).insert_scan(np.ones((6, 3)), np.zeros(3))
+    with pytest.raises(ValueError):
+        OccupancyModel(prob_hit=0.4)
+    assert len(vm) == 0
+
+
+def test_max_range_carves_without_hit():
+    vm = VoxelMap(0.1)
+    vm.insert_scan(np.array([[5.05, 0.05, 0.05]]), np.array([0.05, 0.05, 0.05]), max_range=1.0)
+    k = unpack_keys(vm.keys)
+    assert vm.states().max() == FREE and k[:, 0].max() <= 10
+
+
+def test_frustum_and_raycast():
+    vm = VoxelMap(0.1)
+    origin = np.array([0.05, 0.05, 0.05])
+    vm.insert_scan(np.array([[1.05, 0.05, 0.05]]), origin)
+    hit = vm.raycast(origin, np.array([1.0, 0, 0]), 3.0)
+    assert np.allclose(hit, [1.05, 0.05, 0.05])
+    assert vm.raycast(origin, np.array([0, 1.0, 0]), 3.0) is None
+    R = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # optical z along map +x
+    known, unknown = vm.frustum(R, origin, fov_x=0.5, fov_y=0.5, near=0.0, far=1.2)
+    assert set(pack_keys(np.array([[10, 0, 0], [5, 0, 0]])).tolist()) <= set(known.tolist())
+    assert len(known) == 11 and len(unknown) > 100
+
+
+def test_merge_maps_equals_single_map():
+    rng = np.random.default_rng(2)
+    a, b, single = VoxelMap(0.1), VoxelMap(0.1), VoxelMap(0.1)
+    for i in range(4):
+        origin = np.array([0.0, 0.3 * i, 1.0]) + 0.01
+        pts = np.column_stack([rng.uniform(1, 3, 3000), rng.uniform(-1, 2, 3000),
+                               np.full(3000, 0.013)])
+        (a if i % 2 else b).insert_scan(pts, origin, source=f'rover{1 + i % 2}')
+        single.insert_scan(pts, origin, source=f'rover{1 + i % 2}')
+    a.merge_map(b)
+    assert np.array_equal(a.keys, single.keys)
+    diff = np.mean(a.states() != single.states())
+    assert diff <= 0.005
+    assert a.contributions == single.contributions
+
+
+def test_save_load_roundtrip_and_corruption(tmp_path):
+    rng = np.random.default_rng(4)
+    vm = VoxelMap(0.1)
+    vm.insert_scan(rng.uniform(1, 2, (500, 3)), np.zeros(3), source='rover1')
+    path = tmp_path / 'map.cmap'
+    vm.save(path)
+    back = VoxelMap.load(path)
+    for name in ('keys', 'logodds', 'mean_off', 'chol', 'hits'):
+        assert np.array_equal(getattr(back, name), getattr(vm, name))
+    assert back.sequence == vm.sequence and back.contributions == vm.contributions
+    raw = path.read_bytes()
+    (tmp_path / 'trunc.cmap').write_bytes(raw[:len(raw) // 2])
+    with pytest.raises(MapFileError):
+        VoxelMap.load(tmp_path / 'trunc.cmap')
+    flipped = bytearray(raw)
+    flipped[len(raw) // 2] ^= 0xFF
+    (tmp_path / 'flip.cmap').write_bytes(bytes(flipped))
+    with pytest.raises(MapFileError):
+        VoxelMap.load(tmp_path / 'flip.cmap')
+    with pytest.raises(MapFileError):
+        VoxelMap.load(tmp_path / 'missing.cmap')
+    assert not list(tmp_path.glob('*.tmp'))
