@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
-"""`make demo`: the two-rover world over DDS. Starts the installed simulator (`rover_sim sim`),
-drives both arms and camera masts through a short scripted motion (rover 1 shakes its arm with
-the thesis's Eq. 2-21 excitation, rover 2 drives and pans its cameras), prints what each rover
-senses, and writes under OUT/: a stereo pair (PNG) per rover and a plot of base tilt and
-arm-base force."""
+"""`make demo`: the two-rover graph over DDS. Starts the installed simulator (`rover_sim sim`),
+one `coop_mapping stereo` node per rover and the team's `coop_mapping mapper`; drives both arms
+and camera masts through a short scripted motion (rover 1 shakes its arm with the thesis's
+Eq. 2-21 excitation, rover 2 drives an arc, both pan their cameras), prints what each rover senses
+and how the shared map grows, and writes under OUT/: a stereo pair (PNG) per rover, a plot of base
+tilt and arm-base force, the shared map (`team.cmap`) and its occupancy slice (`map_grid.png`)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import threading
 import time
@@ -15,9 +17,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import rclpy
-from coop_common.qos import COMMAND_QOS, SENSOR_QOS
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
-from coop_msgs.msg import Inclinometer
+from coop_msgs.msg import Inclinometer, VoxelMap
+from coop_msgs.srv import MapFile
+from nav_msgs.msg import OccupancyGrid
 from geometry_msgs.msg import Twist, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -47,6 +51,12 @@ class DemoNode(Node):
         self.images: dict[tuple[str, str], np.ndarray] = {}
         self.lock = threading.Lock()
         self.create_subscription(Clock, '/clock', self._on_clock, 10)
+        self.map: VoxelMap | None = None
+        self.grid: OccupancyGrid | None = None
+        self.create_subscription(VoxelMap, '/map/voxels', lambda m: setattr(self, 'map', m),
+                                 LATCHED_QOS)
+        self.create_subscription(OccupancyGrid, '/map/grid', lambda m: setattr(self, 'grid', m),
+                                 LATCHED_QOS)
         self.pubs = {}
         for r in ROVERS:
             self.create_subscription(Inclinometer, f'/{r}/inclinometer',
@@ -125,6 +135,29 @@ def script(node: DemoNode) -> None:
                                           [[pan, 0.25], [-pan, 0.35], [0.0, 0.3]]))
 
 
+def map_summary(node: DemoNode) -> str:
+    m = node.map
+    if m is None:
+        return 'shared map: nothing fused yet'
+    occ = np.asarray(m.voxels.occupancy)
+    per = ', '.join(f'{r} {n} scans' for r, n in zip(m.contributors, m.contributions))
+    return (f'shared map: {occ.size} known voxels at {m.resolution_m:g} m, '
+            f'{int((occ > 0.5).sum())} occupied, {int((occ < 0.5).sum())} free ({per})')
+
+
+def save_grid(grid: OccupancyGrid, path: Path) -> None:
+    """The occupancy slice as an image: unknown grey, free white, occupied black; +x right,
+    +y up (REP 103 seen from above)."""
+    data = np.asarray(grid.data, dtype=np.int16).reshape(grid.info.height, grid.info.width)
+    img = np.full(data.shape, 128, np.uint8)
+    img[(data >= 0) & (data < 50)] = 255
+    img[data >= 50] = 0
+    img = np.flipud(img)
+    scale = max(1, 600 // max(img.shape))
+    cv2.imwrite(str(path), cv2.resize(img, None, fx=scale, fy=scale,
+                                      interpolation=cv2.INTER_NEAREST))
+
+
 def save_outputs(node: DemoNode, out: Path) -> list[Path]:
     import matplotlib
     matplotlib.use('Agg')
@@ -157,6 +190,10 @@ def save_outputs(node: DemoNode, out: Path) -> list[Path]:
     path = out / 'tilt_and_force.png'
     fig.savefig(path, dpi=90)
     written.append(path)
+    if node.grid is not None:
+        path = out / 'map_grid.png'
+        save_grid(node.grid, path)
+        written.append(path)
     return written
 
 
@@ -168,9 +205,21 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     isolate_ros_environment()
     log_path = args.out / 'sim.log'
-    print(f'demo: starting rover_sim (2 rovers, stereo 4 Hz); its log: {log_path}')
-    with NodeProcess('rover_sim', 'sim', ['-p', 'real_time_factor:=0.0'],
-                     log_path=log_path) as sim:
+    print(f'demo: starting rover_sim (2 rovers, stereo 4 Hz), two stereo nodes and the mapper; '
+          f'logs in {args.out}/')
+    map_file = (args.out / 'team.cmap').resolve()
+    map_file.unlink(missing_ok=True)        # the mapper loads its file at start: begin empty
+    with contextlib.ExitStack() as stack:
+        sim = stack.enter_context(NodeProcess('rover_sim', 'sim', ['-p', 'real_time_factor:=0.0'],
+                                              log_path=log_path))
+        for r in ROVERS:
+            stack.enter_context(NodeProcess('coop_mapping', 'stereo',
+                                            ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'],
+                                            log_path=args.out / f'stereo_{r}.log'))
+        stack.enter_context(NodeProcess('coop_mapping', 'mapper',
+                                        ['-p', 'use_sim_time:=true', '-p', f'map_file:={map_file}',
+                                         '-p', 'autosave_period_s:=0.0'],
+                                        log_path=args.out / 'mapper.log'))
         rclpy.init()
         node = DemoNode()
         ex = SingleThreadedExecutor()
@@ -198,7 +247,17 @@ def main() -> int:
                     print(f'[{pct:5.1f}%] sim t = {node.sim_time:6.2f} s')
                     for r in ROVERS:
                         print('   ' + node.report(r))
+                    print('   ' + map_summary(node))
                     next_report += 2.0
+            # let the last scans reach the map, then save it
+            wait_for(lambda: node.map is not None, 30.0, spin=spin, what='the shared map')
+            client = node.create_client(MapFile, '/map/save')
+            if client.wait_for_service(timeout_sec=10.0):
+                future = client.call_async(MapFile.Request(path=str(map_file)))
+                wait_for(future.done, 30.0, spin=spin, what='the map save')
+                res = future.result()
+                print(f'demo: /map/save -> {res.message} ({res.voxels} voxels)')
+            print('demo: ' + map_summary(node))
             for path in save_outputs(node, args.out):
                 print(f'demo: wrote {path}')
         finally:
