@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import signal
 import sys
 import threading
 import time
@@ -19,18 +18,16 @@ from collections import deque
 from typing import Any
 
 import rclpy
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 
 from coop_common.node_util import ParamSpec, declare_parameters
 from coop_common.qos import CLOCK_QOS
 
-from .bagio import BagError, bag_info, read_messages
+from .bagio import bag_info, read_messages
+from .cli import spin_until_stopped
 from .playback import parse_remaps, publisher_qos, remap_topic, schedule, summarize_lateness
 from .recorder import message_class
 
@@ -175,31 +172,9 @@ def main(args: list[str] | None = None) -> int:
     cli.add_argument('bag', nargs='?', help='bag directory or .mcap file (same as -p bag:=...)')
     ns = cli.parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
     overrides = [Parameter('bag', value=ns.bag)] if ns.bag else []
-    stop = threading.Event()     # SIGINT/SIGTERM: stop playing, then shut down in order
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
-    node = None
-    try:
-        try:
-            node = Player(parameter_overrides=overrides)
-        except (ValueError, OSError, BagError, ParameterException) as exc:
-            rclpy.logging.get_logger('play').fatal(str(exc))
-            return 1
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while rclpy.ok() and not node.done.is_set() and not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-    except ExternalShutdownException:
-        pass
-    finally:
-        if node is not None:
-            node.stop()
-            node.destroy_node()
-        rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return 0
+    return spin_until_stopped(lambda: Player(parameter_overrides=overrides), argv,
+                              logger='play', done=lambda node: node.done.is_set(),
+                              before_destroy=lambda node: node.stop())
 
 if __name__ == '__main__':
     sys.exit(main())

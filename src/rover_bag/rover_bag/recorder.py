@@ -12,24 +12,20 @@ from __future__ import annotations
 import argparse
 import datetime
 import importlib
-import signal
 import sys
-import threading
 from collections import Counter
 from typing import Any
 
 import rclpy
-from rclpy.exceptions import ParameterException
 from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 
 from coop_common.node_util import ParamSpec, declare_parameters
 
-from .bagio import (COMPRESSIONS, BagError, BagWriter, UnknownTypeError, make_qos,
+from .bagio import (COMPRESSIONS, BagWriter, UnknownTypeError, make_qos,
                     make_typestore)
+from .cli import spin_until_stopped
 from .playback import select_topics, subscription_qos
 
 PARAMS = {
@@ -211,32 +207,11 @@ def main(args: list[str] | None = None) -> int:
         overrides.append(Parameter('output', value=ns.output))
     if ns.topics:
         overrides.append(Parameter('topics', value=ns.topics))
-    # SIGINT/SIGTERM only set a flag: a KeyboardInterrupt raised in the middle of a write
-    # callback would leave the bag's counts one message off
-    stop = threading.Event()
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
-    node = None
-    try:
-        try:
-            node = Recorder(parameter_overrides=overrides)
-        except (ValueError, OSError, BagError, ParameterException) as exc:
-            rclpy.logging.get_logger('record').fatal(str(exc))
-            return 1
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-    except ExternalShutdownException:
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return 0
+    # a KeyboardInterrupt raised in the middle of a write callback would leave the bag's
+    # counts one message off: signals only set a flag (cli.spin_until_stopped)
+    return spin_until_stopped(lambda: Recorder(parameter_overrides=overrides), argv,
+                              logger='record')
+
 
 if __name__ == '__main__':
     sys.exit(main())
