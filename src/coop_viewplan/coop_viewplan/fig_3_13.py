@@ -1,0 +1,241 @@
+"""Figs. 3-13, 3-16, 3-20: fraction mapped and distance moved vs scan number for the five pose
+selection methods of §3.3.1 and a nearest-frontier baseline, mean and 95 % interval over seeds.
+
+    ros2 run coop_viewplan fig_3_13 --world unstructured --cameras 1 --seeds 5 --scans 150 \\
+        --json out/fig_3_13.json --plots out/fig_3_13
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from .explore import explore, make_world
+from .nbv import STRATEGIES, NbvConfig
+
+THESIS_FIGURE = {('unstructured', 1): 'Fig. 3-13', ('unstructured', 2): 'Fig. 3-16',
+                 ('rooms', 1): 'Fig. 3-20'}
+
+
+def _ci(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and 95 % t-interval over axis 0."""
+    a = np.asarray(a, float)
+    m = a.mean(axis=0)
+    n = a.shape[0]
+    if n < 2:
+        return m, m.copy(), m.copy()
+    h = stats.t.ppf(0.975, n - 1) * a.std(axis=0, ddof=1) / np.sqrt(n)
+    return m, m - h, m + h
+
+
+def _first_reach(frac: np.ndarray, level: float) -> int | None:
+    hit = np.flatnonzero(frac >= level)
+    return int(hit[0]) if len(hit) else None
+
+
+def _summary(values: list[float | None]) -> dict:
+    got = [v for v in values if v is not None]
+    out = {'per_seed': values, 'reached': len(got), 'mean': None, 'ci95': None}
+    if got:
+        m, lo, hi = _ci(np.array(got)[:, None])
+        out.update(mean=float(m[0]), ci95=[float(lo[0]), float(hi[0])])
+    return out
+
+
+def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int, scans: int,
+        resolution_m: float, strategies: list[str], k_rel: float, n_positions: int,
+        distance_metric: str = 'configuration', level: float = 0.9) -> dict:
+    cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
+                    distance_metric=distance_metric)
+    res: dict = {}
+    for name in strategies:
+        fr, di, s90, d90 = [], [], [], []
+        t0 = time.perf_counter()
+        for seed in range(seeds):
+            w = make_world(world, seed=seed, resolution=resolution_m)
+            tr = explore(w, strategy=name, n_cameras=cameras, config=cfg, scans=scans,
+                         seed=1000 + seed)
+            fr.append(tr.fraction)
+            di.append(tr.distance)
+            k = _first_reach(tr.fraction, level)
+            s90.append(k)
+            d90.append(None if k is None else float(tr.distance[k]))
+        fm, flo, fhi = _ci(np.array(fr))
+        dm, dlo, dhi = _ci(np.array(di))
+        s_sum, d_sum = _summary(s90), _summary(d90)
+        res[name] = {
+            'scans_to_90pct': s_sum['mean'], 'distance_to_90pct_m': d_sum['mean'],
+            'scans_to_90pct_detail': s_sum, 'distance_to_90pct_detail': d_sum,
+            'final_fraction': float(fm[-1]), 'final_distance_m': float(dm[-1]),
+            'seconds': time.perf_counter() - t0,
+            'curve': {'scan': list(range(scans + 1)),
+                      'fraction_mean': fm.tolist(), 'fraction_lo': flo.tolist(),
+                      'fraction_hi': fhi.tolist(), 'distance_mean_m': dm.tolist(),
+                      'distance_lo_m': dlo.tolist(), 'distance_hi_m': dhi.tolist()},
+        }
+    return res
+
+
+def _fmt(v: float | None, ci: list | None = None, p: int = 0) -> str:
+    if v is None:
+        return 'not reached'
+    s = f'{v:.{p}f}'
+    if ci is not None:
+        s += f' [{ci[0]:.{p}f}, {ci[1]:.{p}f}]'
+    return s
+
+
+def verdict(strategies: dict) -> dict:
+    """Where maximum information stands: rank among the five thesis methods (censored runs
+    count as scans + 1), distance ratio against the frontier baseline."""
+    def key(name: str, what: str) -> float:
+        d = strategies[name][what + '_detail']
+        return d['mean'] if d['mean'] is not None and d['reached'] == len(d['per_seed']) \
+            else float('inf')
+    five = [s for s in STRATEGIES[:5] if s in strategies]
+    out: dict = {}
+    if 'max_information' in strategies:
+        for what in ('scans_to_90pct', 'distance_to_90pct'):
+            # Runs that never reach 90 % rank after those that do, by their final fraction.
+            order = sorted(five, key=lambda s: (key(s, what),
+                                                -strategies[s]['final_fraction']))
+            out[f'{what}_rank_of_max_information'] = order.index('max_information') + 1
+            out[f'{what}_order'] = order
+        ranked = sorted(five, key=lambda s: -strategies[s]['final_fraction'])
+        out['final_fraction_rank_of_max_information'] = ranked.index('max_information') + 1
+        if 'frontier' in strategies:
+            a = key('max_information', 'distance_to_90pct')
+            b = key('frontier', 'distance_to_90pct')
+            out['distance_to_90pct_max_information_over_frontier'] = (
+                a / b if np.isfinite(a) and np.isfinite(b) else None)
+            a = key('max_information', 'scans_to_90pct')
+            b = key('frontier', 'scans_to_90pct')
+            out['scans_to_90pct_max_information_over_frontier'] = (
+                a / b if np.isfinite(a) and np.isfinite(b) else None)
+    return out
+
+
+def plot(result: dict, out_dir: Path) -> list[Path]:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for name, r in result['strategies'].items():
+        c = r['curve']
+        x = c['scan']
+        line, = ax[0].plot(x, c['fraction_mean'], label=name)
+        ax[0].fill_between(x, c['fraction_lo'], c['fraction_hi'], color=line.get_color(),
+                           alpha=0.2)
+        ax[1].plot(x, c['distance_mean_m'], label=name, color=line.get_color())
+        ax[1].fill_between(x, c['distance_lo_m'], c['distance_hi_m'], color=line.get_color(),
+                           alpha=0.2)
+    ax[0].axhline(0.9, color='k', lw=0.5, ls='--')
+    ax[0].set(xlabel='scan number', ylabel='fraction of environment mapped', ylim=(0, 1))
+    ax[1].set(xlabel='scan number', ylabel='distance moved (m)')
+    ax[0].legend(fontsize=8)
+    fig.suptitle(f"{result['figure']}: {result['world']}, {result['cameras']} camera(s), "
+                 f"{result['fov_deg']:.0f} deg / {result['depth_m']:.0f} m, "
+                 f"{result['seeds']} seeds (mean, 95% CI)")
+    fig.tight_layout()
+    stem = f"fig_3_13_{Path(result['world']).stem}_{result['cameras']}cam"
+    path = out_dir / f'{stem}.png'
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog='fig_3_13', description=__doc__.split('\n\n')[0])
+    p.add_argument('--world', default='unstructured',
+                   help='unstructured | rooms | path to a PNG (dark = obstacle)')
+    p.add_argument('--cameras', type=int, choices=(1, 2), default=1)
+    p.add_argument('--fov-deg', type=float, default=None,
+                   help='default: 90 (one camera, unstructured) else 75, as in the thesis')
+    p.add_argument('--depth-m', type=float, default=None,
+                   help='default: 15 (one camera, unstructured) else 10, as in the thesis')
+    p.add_argument('--seeds', type=int, default=5)
+    p.add_argument('--scans', type=int, default=150)
+    p.add_argument('--resolution-m', type=float, default=1.0)
+    p.add_argument('--strategies', default=','.join(STRATEGIES))
+    p.add_argument('--k-rel', type=float, default=NbvConfig.k_rel,
+                   help='K of Eq. 3-15 relative to the NI of a fully unknown view per depth')
+    p.add_argument('--distance', choices=('configuration', 'path'), default='configuration',
+                   help='d of Eq. 3-15: Eq. 3-11 straight-line configuration distance, or '
+                        'with the translation measured along the collision-free path')
+    p.add_argument('--candidates', type=int, default=NbvConfig.n_positions,
+                   help='candidate positions per decision (x 8 headings)')
+    p.add_argument('--compare-one-camera', action='store_true',
+                   help='with --cameras 2: also run max_information with one camera, same '
+                        'sensor, and report the scans ratio')
+    p.add_argument('--json', type=Path, default=None)
+    p.add_argument('--plots', type=Path, default=None, help='directory for PNG plots')
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    default_wide = args.world == 'unstructured' and args.cameras == 1
+    fov = args.fov_deg if args.fov_deg is not None else (90.0 if default_wide else 75.0)
+    depth = args.depth_m if args.depth_m is not None else (15.0 if default_wide else 10.0)
+    strategies = [s.strip() for s in args.strategies.split(',') if s.strip()]
+    bad = [s for s in strategies if s not in STRATEGIES]
+    if bad or args.seeds < 1 or args.scans < 1:
+        print(f'bad arguments: unknown strategies {bad}' if bad else 'seeds, scans must be >= 1',
+              file=sys.stderr)
+        return 2
+    try:
+        make_world(args.world, seed=0, resolution=args.resolution_m)
+    except ValueError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    common = dict(world=args.world, fov_deg=fov, depth_m=depth, seeds=args.seeds,
+                  scans=args.scans, resolution_m=args.resolution_m, k_rel=args.k_rel,
+                  n_positions=args.candidates, distance_metric=args.distance)
+    strat = run(cameras=args.cameras, strategies=strategies, **common)
+    result = {'figure': THESIS_FIGURE.get((args.world, args.cameras), 'Fig. 3-13 analogue'),
+              'world': args.world, 'cameras': args.cameras, 'fov_deg': fov, 'depth_m': depth,
+              'seeds': args.seeds, 'scans': args.scans, 'resolution_m': args.resolution_m,
+              'k_rel': args.k_rel, 'distance': args.distance, 'strategies': strat,
+              'verdict': verdict(strat)}
+    if args.compare_one_camera and args.cameras == 2:
+        one = run(cameras=1, strategies=['max_information'], **common)['max_information']
+        two = strat.get('max_information')
+        ratio = None
+        if two and one['scans_to_90pct'] and two['scans_to_90pct']:
+            ratio = one['scans_to_90pct'] / two['scans_to_90pct']
+        result['one_camera_max_information'] = {k: one[k] for k in (
+            'scans_to_90pct', 'distance_to_90pct_m', 'scans_to_90pct_detail', 'final_fraction')}
+        result['verdict']['scans_one_over_two_cameras'] = ratio
+    print(f"{result['figure']}: world={args.world} cameras={args.cameras} fov={fov:.0f} deg "
+          f"depth={depth:.0f} m seeds={args.seeds} scans={args.scans} "
+          f"res={args.resolution_m} m")
+    print(f"{'strategy':16s} {'scans to 90% [95% CI]':>24s} {'reached':>8s} "
+          f"{'distance to 90% m [95% CI]':>30s} {'final frac':>10s} {'final dist m':>12s}")
+    for name, r in strat.items():
+        s, d = r['scans_to_90pct_detail'], r['distance_to_90pct_detail']
+        print(f"{name:16s} {_fmt(s['mean'], s['ci95'], 1):>24s} "
+              f"{s['reached']:>4d}/{args.seeds:<3d} {_fmt(d['mean'], d['ci95']):>30s} "
+              f"{r['final_fraction']:>10.3f} {r['final_distance_m']:>12.0f}")
+    if 'one_camera_max_information' in result:
+        o = result['one_camera_max_information']
+        print(f"{'max_info 1 cam':16s} {_fmt(o['scans_to_90pct'], None, 1):>24s} "
+              f"{o['scans_to_90pct_detail']['reached']:>4d}/{args.seeds:<3d}")
+    print('verdict:', json.dumps(result['verdict']))
+    if args.plots is not None:
+        for p in plot(result, args.plots):
+            print(f'plot: {p}')
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+        print(f'json: {args.json}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,130 @@
+"""Dense occupancy-probability grids for view planning (thesis ch. 3.2, 3.2.4).
+
+A grid holds, per voxel (3-D) or cell (2-D), a probability of occupancy and a `known` flag. The
+planner takes only these numpy arrays, so it runs on the experiment worlds and on the live shared
+map (`from_sparse` converts the sparse keys of coop_msgs/VoxelMap without importing any ROS code).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+
+class MapError(ValueError):
+    """The map cannot be used for planning (empty, malformed, inconsistent)."""
+
+
+@dataclass
+class OccupancyGrid:
+    """Occupancy probabilities `prob` (0..1) with a `known` mask, both of shape (nx, ny[, nz]).
+
+    Cell i spans [origin + i * resolution, origin + (i + 1) * resolution). Unknown cells' `prob`
+    values are ignored by the planner (it uses the Markov-chain estimate instead).
+    """
+
+    prob: np.ndarray
+    known: np.ndarray
+    resolution: float
+    origin: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.prob = np.asarray(self.prob, dtype=np.float32)
+        self.known = np.asarray(self.known, dtype=bool)
+        self.origin = np.asarray(self.origin, dtype=float).reshape(-1)
+        if self.prob.ndim not in (2, 3):
+            raise MapError(f'grid must be 2-D or 3-D, got {self.prob.ndim}-D')
+        if self.known.shape != self.prob.shape:
+            raise MapError(f'known mask {self.known.shape} != prob {self.prob.shape}')
+        if self.origin.shape != (self.prob.ndim,):
+            raise MapError(f'origin must have {self.prob.ndim} coordinates')
+        if not (np.isfinite(self.resolution) and self.resolution > 0):
+            raise MapError(f'resolution must be > 0, got {self.resolution}')
+        if np.any(~np.isfinite(self.prob[self.known])):
+            raise MapError('known cells must have finite probabilities')
+
+    @classmethod
+    def empty(cls, shape: tuple[int, ...], *, resolution: float,
+              origin: np.ndarray | None = None) -> OccupancyGrid:
+        """An all-unknown grid (p = 0.5 everywhere)."""
+        org = np.zeros(len(shape)) if origin is None else np.asarray(origin, dtype=float)
+        return cls(np.full(shape, 0.5, np.float32), np.zeros(shape, bool), resolution, org)
+
+    @classmethod
+    def from_sparse(cls, keys: np.ndarray, occupancy: np.ndarray, *, resolution: float,
+                    pad_cells: int = 0, bounds_keys: tuple[np.ndarray, np.ndarray] | None = None
+                    ) -> OccupancyGrid:
+        """Dense grid from sparse integer voxel keys (N, 3) = floor(p / resolution) and their
+        occupancy; absent keys are unknown (the coop_msgs/VoxelSet convention).
+
+        The grid spans the keys' bounding box grown by `pad_cells`, or `bounds_keys` (lo, hi)
+        inclusive if given."""
+        keys = np.asarray(keys, dtype=np.int64)
+        occ = np.asarray(occupancy, dtype=np.float32).reshape(-1)
+        if keys.ndim != 2 or keys.shape[1] not in (2, 3):
+            raise MapError(f'keys must be (N, 2|3), got {keys.shape}')
+        if keys.shape[0] == 0:
+            raise MapError('empty map: no known voxels')
+        if occ.shape[0] != keys.shape[0]:
+            raise MapError(f'{keys.shape[0]} keys but {occ.shape[0]} occupancies')
+        if np.any(~np.isfinite(occ)) or np.any((occ < 0) | (occ > 1)):
+            raise MapError('occupancy must be finite and within 0..1')
+        if bounds_keys is None:
+            lo = keys.min(axis=0) - pad_cells
+            hi = keys.max(axis=0) + pad_cells
+        else:
+            lo, hi = (np.asarray(b, dtype=np.int64) for b in bounds_keys)
+        shape = tuple(int(s) for s in hi - lo + 1)
+        grid = cls.empty(shape, resolution=resolution, origin=lo * resolution)
+        inside = np.all((keys >= lo) & (keys <= hi), axis=1)
+        idx = tuple((keys[inside] - lo).T)
+        grid.prob[idx] = occ[inside]
+        grid.known[idx] = True
+        return grid
+
+    @property
+    def ndim(self) -> int:
+        return self.prob.ndim
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.prob.shape
+
+    def to_index(self, points: np.ndarray) -> np.ndarray:
+        """Integer cell index of world points (..., ndim); may lie outside the grid."""
+        return np.floor((np.asarray(points, dtype=float) - self.origin)
+                        / self.resolution).astype(np.int64)
+
+    def to_world(self, index: np.ndarray) -> np.ndarray:
+        """World coordinates of cell centres."""
+        return self.origin + (np.asarray(index, dtype=float) + 0.5) * self.resolution
+
+    def in_bounds(self, index: np.ndarray) -> np.ndarray:
+        index = np.asarray(index)
+        return np.all((index >= 0) & (index < np.array(self.shape)), axis=-1)
+
+    def occupied(self, *, threshold: float = 0.5) -> np.ndarray:
+        """Known cells that block sight (p >= threshold)."""
+        return self.known & (self.prob >= threshold)
+
+    def free(self, *, p_empty: float = 0.05) -> np.ndarray:
+        """Known cells with P < P_empty (thesis §3.2.4 (i): 0.05, 2 sigma)."""
+        return self.known & (self.prob < p_empty)
+
+
+def markov_estimate(grid: OccupancyGrid, *, iterations: int = 6) -> np.ndarray:
+    """Occupancy estimate for every cell: known cells keep their probability, unknown ones get the
+    Markov-chain estimate of §3.2.4 ("p of a voxel is the average of p of its neighbours"),
+    found by Jacobi iteration of the neighbour average with the known cells held fixed.
+
+    Unknown cells far from anything known stay at 0.5; unknown cells next to known free space
+    lean towards free, next to obstacles towards occupied."""
+    if iterations < 0:
+        raise ValueError('iterations must be >= 0')
+    est = np.where(grid.known, grid.prob, np.float32(0.5)).astype(np.float32)
+    unknown = ~grid.known
+    for _ in range(iterations):
+        avg = ndimage.uniform_filter(est, size=3, mode='nearest')
+        est[unknown] = avg[unknown]
+    return est

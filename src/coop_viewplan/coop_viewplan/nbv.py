@@ -1,0 +1,660 @@
+"""Next-best-view selection for environment modelling (thesis §3.2.4, §3.3.1).
+
+Candidates: a finite set of O(m) camera configurations (§3.3.1) on known free cells with
+P < P_empty = 0.05 (constraint (i)), reachable through known free space (constraint (ii),
+geodesic distance on the grid), rated by RF = (NI - K d^n)(1 - P) (Eq. 3-15) with d the weighted
+configuration distance (Eq. 3-11) and NI the expected new information (Eq. 3-12b..3-14).
+
+Reading of Eq. 3-12b..3-14 used here (the thesis leaves the details open):
+* gray value of a cell: its occupancy p if known, else the Markov-chain estimate (neighbour
+  average, `grid.markov_estimate`);
+* the scene distribution is a uniform discretisation of p (the thesis's "alternatively (better)")
+  into `n_gray` levels, evaluated separately for known and unknown cells (Eq. 3-12b); Eq. 3-14's
+  stretching divides by the cell's distance d_voxel, making the level distance dependent - we
+  realise it by also splitting each level into `n_shells` equal range shells, which keeps every
+  q_k = f_k / N <= 1/e so NI grows with every extra unknown cell in view (as §3.2.4 requires);
+* N is the number of cells in the unobstructed frustum (Eq. 3-13's "maximum number of voxels
+  visible");
+* each -q_k log2 q_k is premultiplied by the mean occupancy entropy of the cells in level k
+  (binary -p log2 p - (1-p) log2 (1-p), which is largest at p = 0.5 as the text intends), so a
+  field of view that is entirely known (p = 0 or 1) gives NI = 0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from .grid import MapError, OccupancyGrid, markov_estimate
+from .raycast import Cast, RayTemplate, cast, make_template
+
+STRATEGIES = ('random', 'raster', 'max_unmapped', 'min_mapped', 'max_information', 'frontier')
+
+
+class PlanningError(RuntimeError):
+    """No admissible view (no free reachable candidate, camera outside the map, ...)."""
+
+
+def binary_entropy(p: np.ndarray) -> np.ndarray:
+    """-p log2 p - (1 - p) log2 (1 - p), 0 at p = 0 and 1."""
+    p = np.clip(np.asarray(p, dtype=np.float64), 0.0, 1.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        h = -(p * np.log2(p) + (1 - p) * np.log2(1 - p))
+    return np.nan_to_num(h, nan=0.0)
+
+
+@dataclass(frozen=True)
+class NbvConfig:
+    """Planner settings. K is given relative: moving one depth of field costs `k_rel` times the
+    NI of a fully unknown, unobstructed view (so K has bits/m^n units without hand scaling)."""
+
+    fov_deg: float = 90.0
+    depth_m: float = 15.0
+    vfov_deg: float | None = None
+    n_az: int | None = None
+    n_el: int | None = None
+    step_cells: float = 0.5
+    n_gray: int = 10
+    n_shells: int = 8
+    k_rel: float = 0.15
+    n_exp: float = 1.0
+    alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 0.0, 0.0)   # x, y, z, yaw, pitch (Eq. 3-11)
+    n_positions: int = 80
+    n_yaw: int = 8
+    pitches_deg: tuple[float, ...] = (0.0,)
+    camera_height_m: float = 1.0
+    ground_clearance_m: float = 0.2
+    p_empty: float = 0.05
+    clearance_m: float = 1.0
+    markov_iterations: int = 6
+    raster_spacing_m: float | None = None
+    distance_metric: str = 'configuration'     # 'configuration' (Eq. 3-11) or 'path'
+    chunk_samples: int = 400_000
+
+    def template(self, *, ndim: int, resolution: float) -> RayTemplate:
+        return make_template(ndim=ndim, fov_deg=self.fov_deg, depth_m=self.depth_m,
+                             resolution=resolution, n_az=self.n_az, n_el=self.n_el,
+                             vfov_deg=self.vfov_deg, step_cells=self.step_cells)
+
+
+@dataclass
+class Candidates:
+    """M candidate poses: positions (M, ndim), yaw, pitch (M,), path length to reach (M,),
+    Eq. 3-11 distance d (M,), collision probability P (M,)."""
+
+    positions: np.ndarray
+    yaw: np.ndarray
+    pitch: np.ndarray
+    path_length: np.ndarray
+    distance: np.ndarray
+    collision_p: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.positions.shape[0])
+
+    def take(self, sel: np.ndarray) -> Candidates:
+        return Candidates(*(np.asarray(a)[sel] for a in (
+            self.positions, self.yaw, self.pitch, self.path_length, self.distance,
+            self.collision_p)))
+
+
+@dataclass
+class ViewScores:
+    """Per candidate: NI (bits), visible unknown and known cell counts."""
+
+    ni: np.ndarray
+    unknown_cells: np.ndarray
+    known_cells: np.ndarray
+
+
+@dataclass
+class Decision:
+    """The chosen view and the ranking it came from."""
+
+    index: int
+    candidates: Candidates
+    scores: ViewScores
+    rating: np.ndarray
+    strategy: str
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.candidates.positions[self.index]
+
+    @property
+    def yaw(self) -> float:
+        return float(self.candidates.yaw[self.index])
+
+    @property
+    def pitch(self) -> float:
+        return float(self.candidates.pitch[self.index])
+
+    @property
+    def path_length(self) -> float:
+        return float(self.candidates.path_length[self.index])
+
+    def ranked(self) -> np.ndarray:
+        return np.argsort(-self.rating, kind='stable')
+
+
+@dataclass
+class CameraState:
+    """Where a camera is and what it has done: position (ndim,), yaw, pitch, scan positions."""
+
+    position: np.ndarray
+    yaw: float = 0.0
+    pitch: float = 0.0
+    visited: list = field(default_factory=list)
+    raster_cursor: int = 0
+
+
+# ----------------------------------------------------------------------------- information
+
+
+@dataclass
+class InfoLookup:
+    """Per-cell quantities NI needs, computed once per map: gray level code
+    (unknown * n_gray + level) and occupancy entropy."""
+
+    code: np.ndarray
+    entropy: np.ndarray
+    n_gray: int
+
+    @classmethod
+    def build(cls, grid: OccupancyGrid, estimate: np.ndarray, *, n_gray: int = 10,
+              claimed: np.ndarray | None = None) -> InfoLookup:
+        if n_gray < 1:
+            raise ValueError('n_gray must be >= 1')
+        p = np.clip(estimate.reshape(-1).astype(np.float32), 0.0, 1.0)
+        level = np.minimum((p * n_gray).astype(np.int16), n_gray - 1)
+        unknown = ~grid.known.reshape(-1)
+        # Entropy by table over 1024 levels: exact to 1e-3 bits, 10x cheaper than logs.
+        table = binary_entropy(np.linspace(0, 1, 1025)).astype(np.float32)
+        h = table[np.rint(p * 1024).astype(np.int32)]
+        if claimed is not None:
+            h[np.asarray(claimed, bool).reshape(-1) & unknown] = 0.0
+        return cls((unknown * np.int16(n_gray) + level).astype(np.int16), h, n_gray)
+
+
+def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cast, *,
+                         n_gray: int = 10, n_shells: int = 8,
+                         claimed: np.ndarray | None = None,
+                         lookup: InfoLookup | None = None) -> ViewScores:
+    """NI of every cast pose (Eq. 3-12b with Eq. 3-13 q_k = f_k / N and the entropy weighting;
+    see the module docstring for the reading of Eq. 3-14). `claimed` cells (bool, grid shape)
+    are about to be measured by another camera and count as known-certain (weight 0)."""
+    if n_shells < 1:
+        raise ValueError('n_shells must be >= 1')
+    lk = lookup if lookup is not None else InfoLookup.build(grid, estimate, n_gray=n_gray,
+                                                            claimed=claimed)
+    tpl = casting.template
+    m = casting.flat.shape[0]
+    mi, ri, si = np.nonzero(casting.visible)
+    cellv = casting.flat[mi, ri, si]
+    code = lk.code[cellv].astype(np.int64)
+    h = lk.entropy[cellv]
+    w = tpl.weights[ri, si]
+    shell = np.minimum((tpl.ranges / tpl.depth_m * n_shells).astype(np.int64), n_shells - 1)
+    bins = 2 * lk.n_gray * n_shells
+    key = mi * bins + code * n_shells + shell[si]
+    f = np.bincount(key, weights=w, minlength=m * bins).reshape(m, bins)
+    hs = np.bincount(key, weights=w * h, minlength=m * bins).reshape(m, bins)
+    q = f / tpl.frustum_cells
+    with np.errstate(divide='ignore', invalid='ignore'):
+        mean_h = np.where(f > 0, hs / f, 0.0)
+        term = np.where(q > 0, -q * np.log2(q), 0.0)
+    ni = (mean_h * term).sum(axis=1)
+    half = lk.n_gray * n_shells
+    kn = f[:, :half].sum(axis=1)
+    unk = f[:, half:].sum(axis=1)
+    return ViewScores(ni, unk, kn)
+
+
+def max_information(template: RayTemplate, *, n_gray: int = 10, n_shells: int = 8) -> float:
+    """NI of a fully unknown, unobstructed view (p = 0.5 everywhere): the scale of K."""
+    shell = np.minimum((template.ranges / template.depth_m * n_shells).astype(int), n_shells - 1)
+    f = np.bincount(shell, weights=template.weights.sum(axis=0), minlength=n_shells)
+    q = f / template.frustum_cells
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return float(np.where(q > 0, -q * np.log2(q), 0.0).sum())
+
+
+def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray,
+                yaw: np.ndarray, pitch: np.ndarray | None, template: RayTemplate, *,
+                n_gray: int = 10, n_shells: int = 8, claimed: np.ndarray | None = None,
+                chunk_samples: int = 400_000, lookup: InfoLookup | None = None
+                ) -> ViewScores:
+    """Cast and score many poses in chunks of at most `chunk_samples` ray samples
+    (`lookup` reuses the per-map tables across calls)."""
+    positions = np.asarray(positions, dtype=float).reshape(-1, grid.ndim)
+    m = positions.shape[0]
+    yaw = np.broadcast_to(np.asarray(yaw, float).reshape(-1), (m,))
+    pitch_a = None if pitch is None else np.broadcast_to(np.asarray(pitch, float).reshape(-1),
+                                                         (m,))
+    per = template.weights.size
+    step = max(1, chunk_samples // per)
+    parts = []
+    lk = lookup if lookup is not None else InfoLookup.build(grid, estimate, n_gray=n_gray,
+                                                            claimed=claimed)
+    block = grid.occupied()
+    for s in range(0, m, step):
+        c = cast(grid, positions[s:s + step], yaw[s:s + step],
+                 None if pitch_a is None else pitch_a[s:s + step], template, blocking=block)
+        parts.append(expected_information(grid, estimate, c, n_shells=n_shells, lookup=lk))
+    if not parts:
+        z = np.zeros(0)
+        return ViewScores(z, z, z)
+    return ViewScores(*(np.concatenate([getattr(p, k) for p in parts])
+                        for k in ('ni', 'unknown_cells', 'known_cells')))
+
+
+def configuration_distance(current: np.ndarray, new: np.ndarray,
+                           alpha: tuple[float, ...] | np.ndarray) -> np.ndarray:
+    """Eq. 3-11: d = (sum_i alpha_i (c_i - c'_i)^2)^(1/2); angle differences wrapped to +-pi.
+
+    Configurations are (x, y, z, yaw, pitch) rows; `alpha` weights each degree of freedom."""
+    cur = np.asarray(current, dtype=float)
+    new = np.atleast_2d(np.asarray(new, dtype=float))
+    a = np.asarray(alpha, dtype=float)[:new.shape[1]]
+    diff = new - cur
+    diff[:, 3:] = (diff[:, 3:] + np.pi) % (2 * np.pi) - np.pi
+    return np.sqrt((a * diff ** 2).sum(axis=1))
+
+
+def rating_function(ni: np.ndarray, distance: np.ndarray, collision_p: np.ndarray, *,
+                    k: float, n: float) -> np.ndarray:
+    """Eq. 3-15: RF = (NI - K d^n)(1 - P)."""
+    return (np.asarray(ni) - k * np.asarray(distance) ** n) * (1 - np.asarray(collision_p))
+
+
+# ----------------------------------------------------------------------------- candidates
+
+
+def _disk(radius_cells: int, ndim: int) -> np.ndarray:
+    r = max(0, int(radius_cells))
+    ax = np.arange(-r, r + 1)
+    g = np.meshgrid(*([ax] * ndim), indexing='ij')
+    return sum(x ** 2 for x in g) <= r * r + 1e-9
+
+
+def footprint_probability(grid2d_prob: np.ndarray, known2d: np.ndarray,
+                          clearance_cells: int) -> np.ndarray:
+    """Collision probability P of a rover standing on each cell: the largest occupancy within
+    the clearance disk (unknown cells count 0.5, cells beyond the border 1)."""
+    from scipy import ndimage
+    p = np.where(known2d, grid2d_prob, 0.5)
+    return ndimage.maximum_filter(p, footprint=_disk(clearance_cells, 2), mode='constant',
+                                  cval=1.0)
+
+
+def geodesic_distance(navigable: np.ndarray, start: tuple[int, int], *,
+                      resolution: float) -> np.ndarray:
+    """Path length (m) through 8-connected navigable cells from `start`; inf if unreachable
+    (constraint (ii): the goal is reached by a collision free path)."""
+    nav = np.asarray(navigable, bool)
+    if nav.ndim != 2:
+        raise ValueError('navigable must be 2-D')
+    h, w = nav.shape
+    ids = np.full(nav.shape, -1, np.int64)
+    ids[nav] = np.arange(int(nav.sum()))
+    si, sj = start
+    if not (0 <= si < h and 0 <= sj < w) or not nav[si, sj]:
+        out = np.full(nav.shape, np.inf)
+        return out
+    rows, cols, vals = [], [], []
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = nav[max(0, -di):h - max(0, di), max(0, -dj):w - max(0, dj)]
+        b = nav[max(0, di):h + min(0, di), max(0, dj):w + min(0, dj)]
+        ok = a & b
+        ia = ids[max(0, -di):h - max(0, di), max(0, -dj):w - max(0, dj)][ok]
+        ib = ids[max(0, di):h + min(0, di), max(0, dj):w + min(0, dj)][ok]
+        rows.append(ia)
+        cols.append(ib)
+        vals.append(np.full(ia.shape, np.hypot(di, dj) * resolution))
+    n = int(nav.sum())
+    mat = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                     shape=(n, n)).tocsr()
+    d = dijkstra(mat, directed=False, indices=int(ids[si, sj]))
+    out = np.full(nav.shape, np.inf)
+    out[nav] = d
+    return out
+
+
+@dataclass
+class PlanContext:
+    """Everything a strategy needs for one camera's decision."""
+
+    grid: OccupancyGrid
+    estimate: np.ndarray
+    template: RayTemplate
+    config: NbvConfig
+    camera: CameraState
+    navigable: np.ndarray          # 2-D
+    reach: np.ndarray              # 2-D geodesic distance (m) from the camera
+    collision_p: np.ndarray        # 2-D footprint P
+    claimed: np.ndarray | None
+    k: float
+    rng: np.random.Generator
+
+    def position_of(self, cells2d: np.ndarray) -> np.ndarray:
+        """Camera positions above 2-D cells (z = camera height in 3-D)."""
+        xy = self.grid.origin[:2] + (np.asarray(cells2d, float) + 0.5) * self.grid.resolution
+        if self.grid.ndim == 2:
+            return xy
+        z = np.full((xy.shape[0], 1), self.config.camera_height_m)
+        return np.hstack([xy, z])
+
+    def candidates_at(self, cells2d: np.ndarray, yaws: np.ndarray | None = None) -> Candidates:
+        """All (cell, yaw, pitch) combinations, or cell-wise given yaws (one per cell)."""
+        cells2d = np.asarray(cells2d, np.int64).reshape(-1, 2)
+        cfg = self.config
+        pitches = np.radians(np.asarray(cfg.pitches_deg if self.grid.ndim == 3 else (0.0,)))
+        if yaws is None:
+            yaw_set = np.arange(cfg.n_yaw) * 2 * np.pi / cfg.n_yaw
+            ci, yi, pi = np.meshgrid(np.arange(len(cells2d)), np.arange(len(yaw_set)),
+                                     np.arange(len(pitches)), indexing='ij')
+            ci, yaw, pitch = ci.ravel(), yaw_set[yi.ravel()], pitches[pi.ravel()]
+        else:
+            ci = np.repeat(np.arange(len(cells2d)), len(pitches))
+            yaw = np.repeat(np.asarray(yaws, float), len(pitches))
+            pitch = np.tile(pitches, len(cells2d))
+        c = cells2d[ci]
+        pos = self.position_of(c)
+        cur = np.r_[self.camera.position, [0.0] * (3 - self.grid.ndim),
+                    self.camera.yaw, self.camera.pitch]
+        new = np.hstack([pos, np.zeros((len(pos), 3 - self.grid.ndim)), yaw[:, None],
+                         pitch[:, None]])
+        d = configuration_distance(cur, new, self.config.alpha)
+        path = self.reach[c[:, 0], c[:, 1]]
+        if self.config.distance_metric == 'path':
+            # Eq. 3-11 with the translation measured along the collision-free path (ii).
+            ang = configuration_distance(cur * np.r_[0, 0, 0, 1, 1], new * np.r_[0, 0, 0, 1, 1],
+                                         self.config.alpha)
+            d = np.sqrt(path ** 2 + ang ** 2)
+        return Candidates(pos, yaw, pitch, path, d,
+                          self.collision_p[c[:, 0], c[:, 1]])
+
+    def reachable_cells(self) -> np.ndarray:
+        return np.argwhere(np.isfinite(self.reach) & self.navigable)
+
+    def score(self, cands: Candidates) -> ViewScores:
+        cfg = self.config
+        return score_views(self.grid, self.estimate, cands.positions, cands.yaw,
+                           cands.pitch if self.grid.ndim == 3 else None, self.template,
+                           n_gray=cfg.n_gray, n_shells=cfg.n_shells, claimed=self.claimed,
+                           chunk_samples=cfg.chunk_samples)
+
+
+class Strategy(Protocol):
+    """One camera pose selection method of §3.3.1 (or the frontier baseline)."""
+
+    name: str
+
+    def choose(self, ctx: PlanContext) -> Decision: ...
+
+
+def _sample_cells(ctx: PlanContext) -> np.ndarray:
+    cells = ctx.reachable_cells()
+    n = ctx.config.n_positions
+    if len(cells) > n:
+        cells = cells[ctx.rng.choice(len(cells), n, replace=False)]
+    return cells
+
+
+def _decide(ctx: PlanContext, name: str, cands: Candidates, key: np.ndarray,
+            scores: ViewScores | None = None, rating: np.ndarray | None = None) -> Decision:
+    if scores is None:
+        scores = ctx.score(cands)
+    if rating is None:
+        rating = rating_function(scores.ni, cands.distance, cands.collision_p, k=ctx.k,
+                                 n=ctx.config.n_exp)
+    return Decision(int(np.argmax(key)), cands, scores, np.asarray(rating, float), name)
+
+
+class RandomStrategy:
+    """(i) the next pose is random within the known (free, reachable) environment."""
+
+    name = 'random'
+
+    def choose(self, ctx: PlanContext) -> Decision:
+        cells = ctx.reachable_cells()
+        pick = cells[ctx.rng.integers(len(cells))][None]
+        yaw = ctx.rng.uniform(0, 2 * np.pi, size=1)
+        cands = ctx.candidates_at(pick, yaw)
+        return _decide(ctx, self.name, cands, np.zeros(len(cands)))
+
+
+class RasterStrategy:
+    """(ii) sequential/raster: the next free location of a boustrophedon lattice (spacing half
+    the depth of field) from which no measurement has been made, looking along the raster."""
+
+    name = 'raster'
+
+    def choose(self, ctx: PlanContext) -> Decision:
+        g = ctx.grid
+        spacing = ctx.config.raster_spacing_m or ctx.config.depth_m / 2
+        step = max(1, int(round(spacing / g.resolution)))
+        rows = np.arange(step // 2, g.shape[0], step)
+        cols = np.arange(step // 2, g.shape[1], step)
+        order, heading = [], []
+        for k, i in enumerate(rows):
+            cs = cols if k % 2 == 0 else cols[::-1]
+            order += [(i, j) for j in cs]
+            heading += [np.pi / 2 if k % 2 == 0 else -np.pi / 2] * len(cs)
+        order = np.array(order)
+        visited = np.array(ctx.camera.visited).reshape(-1, 2) if ctx.camera.visited else None
+        n = len(order)
+        for t in range(n):
+            j = (ctx.camera.raster_cursor + t) % n
+            cell = order[j]
+            if not (np.isfinite(ctx.reach[cell[0], cell[1]]) and ctx.navigable[tuple(cell)]):
+                continue
+            if visited is not None and np.min(np.abs(visited - cell).max(axis=1)) < step / 2:
+                continue
+            ctx.camera.raster_cursor = j + 1
+            # The grid's first axis is x: moving along a row changes y, hence yaw = +-pi/2.
+            cands = ctx.candidates_at(cell[None], np.array([heading[j]]))
+            return _decide(ctx, self.name, cands, np.zeros(len(cands)))
+        # Every lattice point done or unreachable: fall back to the nearest unvisited free cell.
+        cells = ctx.reachable_cells()
+        if visited is not None:
+            far = np.abs(cells[:, None, :] - visited[None]).max(axis=2).min(axis=1) >= step / 2
+            cells = cells[far] if far.any() else cells
+        pick = cells[np.argmin(ctx.reach[cells[:, 0], cells[:, 1]] + 1e-9 * np.arange(len(cells)))]
+        move = pick - ctx.grid.to_index(ctx.camera.position)[:2]
+        yaw = float(np.arctan2(move[1], move[0])) if np.any(move) else ctx.camera.yaw
+        cands = ctx.candidates_at(pick[None], np.array([yaw]))   # looking where it goes
+        return _decide(ctx, self.name, cands, np.zeros(len(cands)))
+
+
+class MaxUnmappedStrategy:
+    """(iii) the pose with the largest expected unmapped region, accounting for known
+    occlusions."""
+
+    name = 'max_unmapped'
+
+    def choose(self, ctx: PlanContext) -> Decision:
+        cands = ctx.candidates_at(_sample_cells(ctx))
+        s = ctx.score(cands)
+        return _decide(ctx, self.name, cands, s.unknown_cells, s)
+
+
+class MinMappedStrategy:
+    """(iv) the pose that will see the smallest known (already mapped) region."""
+
+    name = 'min_mapped'
+
+    def choose(self, ctx: PlanContext) -> Decision:
+        cands = ctx.candidates_at(_sample_cells(ctx))
+        s = ctx.score(cands)
+        return _decide(ctx, self.name, cands, -s.known_cells, s)
+
+
+class MaxInformationStrategy:
+    """(v) maximum expected information: argmax RF = (NI - K d^n)(1 - P), Eq. 3-15."""
+
+    name = 'max_information'
+
+    def choose(self, ctx: PlanContext) -> Decision:
+        cands = ctx.candidates_at(_sample_cells(ctx))
+        s = ctx.score(cands)
+        rf = rating_function(s.ni, cands.distance, cands.collision_p, k=ctx.k,
+                             n=ctx.config.n_exp)
+        return _decide(ctx, self.name, cands, rf, s, rf)
+
+
+class FrontierStrategy:
+    """Nearest-frontier baseline (Yamauchi 1997): drive to the closest reachable free cell that
+    borders unknown space and look at the unknown."""
+
+    name = 'frontier'
+
+    def choose(self, ctx: PlanContext) -> Decision:
+        from scipy import ndimage
+        g = ctx.grid
+        if g.ndim == 2:
+            unknown2d, free2d = ~g.known, g.free(p_empty=ctx.config.p_empty)
+        else:
+            unknown2d = ~g.known.any(axis=2)
+            free2d = g.free(p_empty=ctx.config.p_empty).any(axis=2)
+        # Frontier: unknown cells bordering known free space (not obstacle interiors).
+        # 4-adjacency: an obstacle's interior cell touching free space only at a corner is
+        # hidden behind the obstacle's known faces and never observable.
+        frontier = unknown2d & ndimage.binary_dilation(free2d)
+        # The rover stands on a navigable cell within its clearance of the frontier.
+        r = max(1, int(np.ceil(ctx.config.clearance_m / g.resolution))) + 1
+        near = ndimage.binary_dilation(frontier, structure=_disk(r, 2))
+        cells = ctx.reachable_cells()
+        is_front = near[cells[:, 0], cells[:, 1]]
+        cur = g.to_index(ctx.camera.position)[:2]
+        keep = is_front & (np.abs(cells - cur).max(axis=1) > 0)
+        if ctx.camera.visited:
+            # Blacklist goals already scanned from (a frontier that did not clear from there).
+            vis = np.array(ctx.camera.visited).reshape(-1, 2)
+            keep &= np.abs(cells[:, None, :] - vis[None]).max(axis=2).min(axis=1) > 1
+        front = cells[keep]
+        if len(front) == 0:
+            return RandomStrategy().choose(ctx)
+        pick = front[np.argmin(ctx.reach[front[:, 0], front[:, 1]])]
+        win = 2 * r + 1
+        lo = np.maximum(pick - win, 0)
+        sub = frontier[lo[0]:pick[0] + win + 1, lo[1]:pick[1] + win + 1]
+        uv = np.argwhere(sub) + lo - pick
+        yaw = float(np.arctan2(uv[:, 1].mean(), uv[:, 0].mean())) if len(uv) else ctx.camera.yaw
+        cands = ctx.candidates_at(pick[None], np.array([yaw]))
+        return _decide(ctx, self.name, cands, np.zeros(len(cands)))
+
+
+def make_strategy(name: str) -> Strategy:
+    """The strategy called `name` (one of STRATEGIES); ValueError otherwise."""
+    table = {s.name: s for s in (RandomStrategy, RasterStrategy, MaxUnmappedStrategy,
+                                 MinMappedStrategy, MaxInformationStrategy, FrontierStrategy)}
+    if name not in table:
+        raise ValueError(f'unknown strategy {name!r}; one of {list(STRATEGIES)}')
+    return table[name]()
+
+
+# ----------------------------------------------------------------------------- planner
+
+
+class NextBestViewPlanner:
+    """Plans the next view of one or several cameras on one shared map (Fig. 3-9)."""
+
+    def __init__(self, config: NbvConfig | None = None) -> None:
+        self.config = config or NbvConfig()
+        self._templates: dict[tuple[int, float], RayTemplate] = {}
+
+    def template(self, grid: OccupancyGrid) -> RayTemplate:
+        key = (grid.ndim, float(grid.resolution))
+        if key not in self._templates:
+            self._templates[key] = self.config.template(ndim=grid.ndim,
+                                                        resolution=grid.resolution)
+        return self._templates[key]
+
+    def k_value(self, grid: OccupancyGrid) -> float:
+        """K of Eq. 3-15 from k_rel (see NbvConfig)."""
+        cfg = self.config
+        ni_max = max_information(self.template(grid), n_gray=cfg.n_gray, n_shells=cfg.n_shells)
+        return cfg.k_rel * ni_max / cfg.depth_m ** cfg.n_exp
+
+    def traversability(self, grid: OccupancyGrid) -> tuple[np.ndarray, np.ndarray]:
+        """(navigable, P) on the 2-D ground plane: in 3-D a column is as occupied as its
+        most occupied cell up to the camera height."""
+        cfg = self.config
+        if grid.ndim == 2:
+            prob2, known2 = grid.prob, grid.known
+        else:
+            # The slab the rover and mast sweep: above the ground, up to the camera.
+            bot = int(np.clip(np.ceil((cfg.ground_clearance_m - grid.origin[2])
+                                       / grid.resolution), 0, grid.shape[2] - 1))
+            top = int(np.clip(np.ceil((cfg.camera_height_m - grid.origin[2]) / grid.resolution),
+                              bot + 1, grid.shape[2]))
+            p = np.where(grid.known[:, :, bot:top], grid.prob[:, :, bot:top], 0.5)
+            prob2 = p.max(axis=2)
+            known2 = grid.known[:, :, bot:top].all(axis=2) | (prob2 >= 0.5)
+        clear = int(np.ceil(cfg.clearance_m / grid.resolution))
+        pcol = footprint_probability(prob2, known2, clear)
+        return known2 & (pcol < cfg.p_empty), pcol
+
+    def plan(self, grid: OccupancyGrid, camera: CameraState, *, strategy: str | Strategy,
+             rng: np.random.Generator, claimed: np.ndarray | None = None,
+             estimate: np.ndarray | None = None,
+             traversability: tuple[np.ndarray, np.ndarray] | None = None) -> Decision:
+        """Choose one camera's next view. Raises PlanningError when no admissible view exists
+        and ValueError for an unknown strategy."""
+        strat = make_strategy(strategy) if isinstance(strategy, str) else strategy
+        if not grid.known.any():
+            raise MapError('empty map: nothing known, no free candidate')
+        nav, pcol = traversability if traversability is not None else self.traversability(grid)
+        cell = grid.to_index(np.asarray(camera.position, float))[:2]
+        if not (0 <= cell[0] < nav.shape[0] and 0 <= cell[1] < nav.shape[1]):
+            raise PlanningError('camera outside the map')
+        start_nav = nav.copy()
+        start_nav[cell[0], cell[1]] = True     # the rover is where it is, even if hemmed in
+        reach = geodesic_distance(start_nav, (int(cell[0]), int(cell[1])),
+                                  resolution=grid.resolution)
+        reach[cell[0], cell[1]] = np.inf if not nav[cell[0], cell[1]] else 0.0
+        if not np.isfinite(reach[nav]).any():
+            raise PlanningError('no free reachable candidate (P < %.2f)' % self.config.p_empty)
+        est = markov_estimate(grid, iterations=self.config.markov_iterations) \
+            if estimate is None else estimate
+        ctx = PlanContext(grid, est, self.template(grid), self.config, camera, nav, reach, pcol,
+                          claimed, self.k_value(grid), rng)
+        return strat.choose(ctx)
+
+    def expected_cells(self, grid: OccupancyGrid, decision: Decision) -> np.ndarray:
+        """Cells the chosen view is expected to see (bool, grid shape): what a second camera
+        planning on the same map should not count again."""
+        c = decision.candidates
+        i = decision.index
+        casting = cast(grid, c.positions[i:i + 1], c.yaw[i:i + 1],
+                       c.pitch[i:i + 1] if grid.ndim == 3 else None, self.template(grid))
+        out = np.zeros(grid.prob.size, bool)
+        out[casting.flat[casting.visible]] = True
+        return out.reshape(grid.shape)
+
+
+def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: list[CameraState],
+                 *, strategy: str, rng: np.random.Generator) -> list[Decision]:
+    """Several cameras on one shared map: each plans in turn, the cells the earlier cameras are
+    expected to see are claimed so the later ones look elsewhere."""
+    est = markov_estimate(grid, iterations=planner.config.markov_iterations)
+    trav = planner.traversability(grid)
+    claimed = np.zeros(grid.shape, bool)
+    out = []
+    for cam in cameras:
+        d = planner.plan(grid, cam, strategy=strategy, rng=rng, claimed=claimed, estimate=est,
+                         traversability=trav)
+        claimed |= planner.expected_cells(grid, d)
+        out.append(d)
+    return out
+
+
+__all__ = ['STRATEGIES', 'Candidates', 'CameraState', 'Decision', 'NbvConfig',
+           'NextBestViewPlanner', 'PlanningError', 'ViewScores', 'binary_entropy',
+           'configuration_distance', 'expected_information', 'make_strategy',
+           'max_information', 'plan_cameras', 'rating_function', 'score_views']

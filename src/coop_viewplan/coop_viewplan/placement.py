@@ -1,0 +1,422 @@
+"""Task-directed camera placement (thesis ch. 4): RF = DOF^a Res^b TFV^g TAV^d (1 - P), Eq. 4-1.
+
+* DOF: binary, 1 inside [near, far] (§4.2.3.1);
+* Res = 1 / R with R = 2 d tan(fov / 2) / n (Eq. 4-2), plus ST_error for a secondary target
+  (Eq. 4-4);
+* TFV (§4.2.3.3): the target is reduced to a point and every occluder grown by the target's shape
+  (Minkowski sum), replaced by its convex hull, and projected onto the circle/sphere of radius d
+  centred on the target. A camera at distance d in direction u sees the target iff no hull is
+  entered before d along u. TFV is the angular excursion the camera can make on that circle
+  before the target is occluded: in 2-D the contiguous visible arc through u over 2 pi; in 3-D
+  twice the angle from u to the nearest occluded direction, over 2 pi;
+* TAV = cos(beta) for |beta| <= pi/2 else 0 (Eq. 4-3, one-sided target), beta between the camera
+  axis (pointing at the target) and the target normal;
+* P: collision probability of the camera position (max occupancy over the mount's footprint).
+
+Search (§4.3.1): candidates are bounded by the depth of field around each target (distance
+bounding), taken on a coarsened lattice (`stride`), and thinned to a random subset.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import ConvexHull, QhullError
+
+from .grid import OccupancyGrid
+
+
+class PlacementError(ValueError):
+    """The placement request cannot be served (target inside an obstacle, no free candidate)."""
+
+
+@dataclass(frozen=True)
+class Target:
+    """A target: position (ndim,), unit outward normal of the viewed face, radius (m),
+    geometric uncertainty sigma (m, ST_error of Eq. 4-4; 0 for the primary), weight."""
+
+    position: np.ndarray
+    normal: np.ndarray
+    radius: float = 0.1
+    sigma: float = 0.0
+    weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.position, float).reshape(-1)
+        n = np.asarray(self.normal, float).reshape(-1)
+        if p.shape != n.shape or p.shape[0] not in (2, 3):
+            raise PlacementError('target position and normal must both be 2-D or 3-D')
+        if not np.all(np.isfinite(p)) or not np.all(np.isfinite(n)):
+            raise PlacementError('target position and normal must be finite')
+        nn = np.linalg.norm(n)
+        if nn < 1e-9:
+            raise PlacementError('target normal must be non-zero')
+        if not (self.radius >= 0 and self.sigma >= 0 and self.weight > 0):
+            raise PlacementError('radius, sigma must be >= 0 and weight > 0')
+        object.__setattr__(self, 'position', p)
+        object.__setattr__(self, 'normal', n / nn)
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Field of view (deg), pixels along the detector axis, depth of field [near, far] (m)."""
+
+    fov_deg: float = 60.0
+    pixels: int = 640
+    near_m: float = 1.0
+    far_m: float = 30.0
+
+
+@dataclass(frozen=True)
+class Exponents:
+    """alpha, beta, gamma, delta of Eq. 4-1 (unity in the thesis)."""
+
+    dof: float = 1.0
+    res: float = 1.0
+    tfv: float = 1.0
+    tav: float = 1.0
+
+
+# ----------------------------------------------------------------------------- occluders
+
+
+def occluder_hulls(points_sets: list[np.ndarray], target_radius: float, *,
+                   n_vertices: int = 8) -> list[np.ndarray]:
+    """Steps (i) and (ii) of §4.2.3.3: each occluder (an (k, ndim) vertex set) is grown by the
+    target's shape (a disc/ball of `target_radius`, as a circumscribed polygon/polyhedron) by a
+    Minkowski sum and replaced by the convex hull. Returns hull vertex arrays."""
+    out = []
+    for pts in points_sets:
+        pts = np.asarray(pts, float)
+        nd = pts.shape[1]
+        if target_radius > 0:
+            if nd == 2:
+                a = np.arange(n_vertices) * 2 * np.pi / n_vertices
+                shape = np.stack([np.cos(a), np.sin(a)], 1) * target_radius / np.cos(
+                    np.pi / n_vertices)
+            else:
+                shape = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
+                                  for sz in (-1, 1)], float) * target_radius
+            pts = (pts[:, None, :] + shape[None]).reshape(-1, nd)
+        try:
+            hull = ConvexHull(pts)
+            out.append(pts[hull.vertices])
+        except QhullError:
+            out.append(pts)   # degenerate (collinear) set: keep the points as they are
+    return out
+
+
+def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occludes: bool = True,
+                   tile_cells: int = 4) -> list[np.ndarray]:
+    """Occluders of a grid as cell-corner vertex sets: occupied cells (and unknown ones when
+    `unknown_occludes`) cut into tiles of `tile_cells` per side, one set per connected piece of
+    a tile, so the convex hulls stay close to the occluders' true shape."""
+    occ = grid.known & (grid.prob >= threshold)
+    if unknown_occludes:
+        occ = occ | ~grid.known
+    nd = grid.ndim
+    corners = np.array(np.meshgrid(*([[0, 1]] * nd), indexing='ij')).reshape(nd, -1).T
+    tiles = np.zeros(grid.shape, np.int64)
+    mult = 1
+    for ax in range(nd):
+        idx = np.arange(grid.shape[ax]) // tile_cells
+        sh = [1] * nd
+        sh[ax] = -1
+        tiles = tiles + idx.reshape(sh) * mult
+        mult *= int(np.ceil(grid.shape[ax] / tile_cells))
+    lab, n = ndimage.label(occ)
+    key = np.where(occ, lab.astype(np.int64) * mult + tiles, -1)
+    cells = np.argwhere(occ)
+    k = key[occ]
+    order = np.argsort(k, kind='stable')
+    k, cells = k[order], cells[order]
+    splits = np.flatnonzero(np.diff(k)) + 1
+    out = []
+    for group in np.split(cells, splits):
+        if len(group) == 0:
+            continue
+        pts = (group[:, None, :] + corners[None]).reshape(-1, nd)
+        pts = np.unique(pts, axis=0)
+        out.append(grid.origin + pts * grid.resolution)
+    return out
+
+
+def _halfspaces(hulls: list[np.ndarray]) -> list[np.ndarray]:
+    eqs = []
+    for h in hulls:
+        try:
+            eqs.append(ConvexHull(h).equations)
+        except QhullError:
+            continue
+    return eqs
+
+
+def occlusion_distance(target: np.ndarray, hulls: list[np.ndarray],
+                       directions: np.ndarray) -> np.ndarray:
+    """Step (iii) of §4.2.3.3: for each unit direction u (K, ndim) from the reduced target, the
+    distance at which the ray first enters an expanded hull (inf if none). A camera at
+    target + d u sees the whole target iff d < occlusion_distance(u). Raises PlacementError if
+    the target point lies inside a hull (target inside an obstacle)."""
+    u = np.asarray(directions, float)
+    best = np.full(u.shape[0], np.inf)
+    for eq in _halfspaces(hulls):
+        n, c = eq[:, :-1], eq[:, -1] + eq[:, :-1] @ target     # n.x + c <= 0 inside, x rel.
+        if np.all(c <= 1e-12):
+            raise PlacementError('target is inside an (expanded) obstacle')
+        denom = u @ n.T                                           # (K, F)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            t = -c[None, :] / denom
+        t_enter = np.where(denom < 0, t, -np.inf).max(axis=1)
+        t_exit = np.where(denom > 0, t, np.inf).min(axis=1)
+        parallel_out = ((np.abs(denom) < 1e-15) & (c[None, :] > 0)).any(axis=1)
+        hit = (t_enter <= t_exit) & (t_exit >= 0) & ~parallel_out
+        best = np.where(hit, np.minimum(best, np.maximum(t_enter, 0.0)), best)
+    return best
+
+
+def sphere_directions(n: int) -> np.ndarray:
+    """n roughly uniform unit vectors (Fibonacci sphere)."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    th = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)], 1)
+
+
+class VisibilityField:
+    """The projection of the expanded occluders around one target, sampled in `n_dirs`
+    directions, answering TFV and line-of-sight queries for many camera positions at once."""
+
+    def __init__(self, target: np.ndarray, hulls: list[np.ndarray], *, n_dirs: int = 720
+                 ) -> None:
+        self.target = np.asarray(target, float)
+        self.ndim = self.target.shape[0]
+        if self.ndim == 2:
+            self.angles = (np.arange(n_dirs) + 0.5) * 2 * np.pi / n_dirs
+            self.dirs = np.stack([np.cos(self.angles), np.sin(self.angles)], 1)
+        else:
+            self.dirs = sphere_directions(n_dirs)
+        self.occ = occlusion_distance(self.target, hulls, self.dirs)
+
+    def with_occluders(self, hulls: list[np.ndarray]) -> VisibilityField:
+        """A copy with more (already expanded) hulls, e.g. a moving object's (§4.3.1)."""
+        out = object.__new__(VisibilityField)
+        out.__dict__.update(self.__dict__)
+        out.occ = np.minimum(self.occ, occlusion_distance(self.target, hulls, self.dirs))
+        return out
+
+    def _nearest(self, u: np.ndarray) -> np.ndarray:
+        if self.ndim == 2:
+            a = np.mod(np.arctan2(u[:, 1], u[:, 0]), 2 * np.pi)
+            n = len(self.angles)
+            return np.minimum((a / (2 * np.pi) * n).astype(np.int64), n - 1)
+        return np.argmax(u @ self.dirs.T, axis=1)
+
+    def tfv(self, cameras: np.ndarray) -> np.ndarray:
+        """TFV in [0, 1] for camera positions (M, ndim) (0 where the target is occluded)."""
+        rel = np.asarray(cameras, float) - self.target
+        d = np.linalg.norm(rel, axis=1)
+        u = rel / np.maximum(d, 1e-12)[:, None]
+        vis = self.occ[None, :] > d[:, None]                        # (M, K)
+        b = self._nearest(u)
+        own = vis[np.arange(len(b)), b]
+        if self.ndim == 2:
+            n = vis.shape[1]
+            shift = (np.arange(n)[None, :] + b[:, None]) % n
+            fwd = vis[np.arange(len(b))[:, None], shift]            # from b forwards
+            bwd = vis[np.arange(len(b))[:, None], (b[:, None] - np.arange(n)[None, :]) % n]
+            nf = np.where(fwd.all(axis=1), n, np.argmin(fwd, axis=1))
+            nb = np.where(bwd.all(axis=1), n, np.argmin(bwd, axis=1))
+            arc = np.minimum(nf + nb - 1, n) / n
+            return np.where(own, arc, 0.0)
+        cosang = np.clip(u @ self.dirs.T, -1, 1)
+        ang = np.where(vis, np.inf, np.arccos(cosang)).min(axis=1)
+        return np.where(own, np.minimum(2 * ang, 2 * np.pi) / (2 * np.pi), 0.0)
+
+    def visible(self, cameras: np.ndarray) -> np.ndarray:
+        """Line of sight to the whole target (through the expanded-hull test)."""
+        rel = np.asarray(cameras, float) - self.target
+        d = np.linalg.norm(rel, axis=1)
+        b = self._nearest(rel / np.maximum(d, 1e-12)[:, None])
+        return self.occ[b] > d
+
+
+# ----------------------------------------------------------------------------- rating
+
+
+def resolution_term(d: np.ndarray, camera: CameraModel, st_error: float = 0.0) -> np.ndarray:
+    """Eq. 4-2 / 4-4: Res_RF = 1 / (2 d tan(fov / 2) / n + ST_error)."""
+    r = 2 * np.asarray(d, float) * np.tan(np.radians(camera.fov_deg) / 2) / camera.pixels
+    return 1.0 / np.maximum(r + st_error, 1e-12)
+
+
+def angular_visibility(cameras: np.ndarray, target: Target) -> np.ndarray:
+    """Eq. 4-3: cos(beta) for a one-sided target, 0 behind it."""
+    rel = np.asarray(cameras, float) - target.position
+    u = rel / np.maximum(np.linalg.norm(rel, axis=1), 1e-12)[:, None]
+    return np.clip(u @ target.normal, 0.0, 1.0)
+
+
+def depth_of_field(d: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """§4.2.3.1: 1 inside [near, far], else 0."""
+    d = np.asarray(d, float)
+    return ((d >= camera.near_m) & (d <= camera.far_m)).astype(float)
+
+
+@dataclass
+class TaskRating:
+    """Per-candidate terms for one target, and their product RF (Eq. 4-1)."""
+
+    rating: np.ndarray
+    dof: np.ndarray
+    res: np.ndarray
+    tfv: np.ndarray
+    tav: np.ndarray
+    collision_p: np.ndarray
+
+
+def rate(cameras: np.ndarray, target: Target, field_: VisibilityField, camera: CameraModel,
+         collision_p: np.ndarray, *, exponents: Exponents = Exponents()) -> TaskRating:
+    """Eq. 4-1 for every camera position, looking at `target` (secondary targets add their
+    geometric uncertainty to R, Eq. 4-4, and are weighted by `target.weight`)."""
+    cams = np.asarray(cameras, float)
+    d = np.linalg.norm(cams - target.position, axis=1)
+    dof = depth_of_field(d, camera)
+    res = resolution_term(d, camera, target.sigma)
+    tfv = field_.tfv(cams)
+    tav = angular_visibility(cams, target)
+    e = exponents
+    p = np.asarray(collision_p, float)
+    with np.errstate(invalid='ignore', over='ignore'):
+        rf = dof ** e.dof * res ** e.res * tfv ** e.tfv * tav ** e.tav * (1 - p) * target.weight
+    rf = np.where((dof > 0) & (tfv > 0) & (tav > 0), rf, 0.0)
+    return TaskRating(rf, dof, res, tfv, tav, p)
+
+
+@dataclass
+class Placement:
+    """The best camera position, the target it watches (0 = primary), its terms, and the full
+    candidate set with ratings (for Fig. 4-8b-like maps)."""
+
+    position: np.ndarray
+    target_index: int
+    terms: dict
+    candidates: np.ndarray
+    ratings: np.ndarray
+    extras: dict = field(default_factory=dict)
+
+
+class TaskPlacer:
+    """Optimum camera placement for watching a primary target, with optional secondary targets
+    (§4.2.3), on an occupancy grid. The camera axis always points at the watched target."""
+
+    def __init__(self, camera: CameraModel | None = None, *, exponents: Exponents = Exponents(),
+                 p_empty: float = 0.05, clearance_m: float = 0.5, stride: int = 1,
+                 max_candidates: int = 4000, n_dirs: int = 720, camera_height_m: float = 1.0,
+                 unknown_occludes: bool = True) -> None:
+        self.camera = camera or CameraModel()
+        self.exponents = exponents
+        self.p_empty = p_empty
+        self.clearance_m = clearance_m
+        self.stride = max(1, int(stride))
+        self.max_candidates = int(max_candidates)
+        self.n_dirs = int(n_dirs)
+        self.camera_height_m = camera_height_m
+        self.unknown_occludes = unknown_occludes
+
+    def collision_probability(self, grid: OccupancyGrid) -> np.ndarray:
+        """P per cell: the largest occupancy within the clearance (unknown = 0.5)."""
+        r = int(np.ceil(self.clearance_m / grid.resolution))
+        p = np.where(grid.known, grid.prob, 0.5)
+        ax = np.arange(-r, r + 1)
+        g = np.meshgrid(*([ax] * grid.ndim), indexing='ij')
+        fp = sum(x ** 2 for x in g) <= r * r
+        return ndimage.maximum_filter(p, footprint=fp, mode='constant', cval=1.0)
+
+    def candidates(self, grid: OccupancyGrid, targets: list[Target], rng: np.random.Generator,
+                   pcol: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Free cells (P < P_empty) on a lattice of `stride`, within the depth of field of some
+        target (distance bounding), thinned to a random subset of `max_candidates`."""
+        pcol = self.collision_probability(grid) if pcol is None else pcol
+        sl = tuple(slice(0, None, self.stride) for _ in range(grid.ndim))
+        idx = np.argwhere(np.ones(grid.shape, bool)[sl]) * self.stride
+        p = pcol[tuple(idx.T)]
+        ok = p < self.p_empty
+        pos = grid.to_world(idx)
+        near = np.zeros(len(idx), bool)
+        for t in targets:
+            d = np.linalg.norm(pos - t.position, axis=1)
+            near |= (d >= self.camera.near_m) & (d <= self.camera.far_m)
+        keep = np.flatnonzero(ok & near)
+        if len(keep) == 0:
+            raise PlacementError('no free candidate within the depth of field of any target')
+        if len(keep) > self.max_candidates:
+            keep = rng.choice(keep, self.max_candidates, replace=False)
+        return pos[keep], p[keep]
+
+    def place(self, grid: OccupancyGrid, primary: Target, secondary: list[Target] = (), *,
+              rng: np.random.Generator, hulls: list[np.ndarray] | None = None,
+              fields: list[VisibilityField] | None = None) -> Placement:
+        """Maximise Eq. 4-1 over the candidates, for the primary and every secondary target;
+        raises PlacementError on bad input (target inside an obstacle, no free candidate)."""
+        targets = [primary, *secondary]
+        for t in targets:
+            if t.position.shape[0] != grid.ndim:
+                raise PlacementError(f'target is {t.position.shape[0]}-D, map {grid.ndim}-D')
+            cell = grid.to_index(t.position)
+            if not grid.in_bounds(cell):
+                raise PlacementError('target outside the map')
+            if grid.known[tuple(cell)] and grid.prob[tuple(cell)] >= 0.5:
+                raise PlacementError('target is inside an obstacle')
+        pcol = self.collision_probability(grid)
+        cams, p = self.candidates(grid, targets, rng, pcol)
+        raw = None
+        if fields is None:
+            raw = grid_occluders(grid, unknown_occludes=self.unknown_occludes) \
+                if hulls is None else hulls
+        best_rf = np.full(len(cams), -np.inf)
+        best_t = np.zeros(len(cams), np.int64)
+        terms = []
+        for k, t in enumerate(targets):
+            if fields is not None:
+                field_ = fields[k]
+            elif hulls is not None:
+                field_ = VisibilityField(t.position, hulls, n_dirs=self.n_dirs)
+            else:
+                # Distance bounding: occluders beyond the depth of field cannot hide the target
+                # from any admissible camera.
+                reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
+                near = [h for h in raw
+                        if np.min(np.linalg.norm(h - t.position, axis=1)) <= reach]
+                field_ = VisibilityField(t.position, occluder_hulls(near, t.radius),
+                                         n_dirs=self.n_dirs)
+            r = rate(cams, t, field_, self.camera, p, exponents=self.exponents)
+            terms.append(r)
+            better = r.rating > best_rf
+            best_rf = np.where(better, r.rating, best_rf)
+            best_t = np.where(better, k, best_t)
+        i = int(np.argmax(best_rf))
+        if not best_rf[i] > 0:
+            raise PlacementError('no candidate sees any target (all ratings are 0)')
+        tr = terms[best_t[i]]
+        return Placement(cams[i], int(best_t[i]),
+                         {'rating': float(best_rf[i]), 'dof': float(tr.dof[i]),
+                          'res': float(tr.res[i]), 'tfv': float(tr.tfv[i]),
+                          'tav': float(tr.tav[i]), 'collision_p': float(tr.collision_p[i])},
+                         cams, best_rf)
+
+
+def move_known_object(grid: OccupancyGrid, old_cells: np.ndarray, model_cells: np.ndarray,
+                      offset_cells: np.ndarray) -> np.ndarray:
+    """§4.3.1 steps 1-4 for a moving object with a known model: its old cells become measured
+    empty space, the model is inserted at its newly identified pose (integer cell offset).
+    Returns the object's new cells."""
+    old = np.asarray(old_cells, np.int64).reshape(-1, grid.ndim)
+    ok = grid.in_bounds(old)
+    grid.prob[tuple(old[ok].T)] = 0.0
+    grid.known[tuple(old[ok].T)] = True
+    new = np.asarray(model_cells, np.int64).reshape(-1, grid.ndim) + np.asarray(offset_cells)
+    new = new[grid.in_bounds(new)]
+    grid.prob[tuple(new.T)] = 1.0
+    grid.known[tuple(new.T)] = True
+    return new

@@ -1,0 +1,226 @@
+"""Node `view_planner`: next-best-view (Eq. 3-15) and task-directed placement (Eq. 4-1) services
+on the shared map.
+
+Subscribes `/map/voxels` (coop_msgs/VoxelMap, latched). Services `/viewplan/next_best_view`
+(coop_msgs/srv/NextBestView) and `/viewplan/task_view` (coop_msgs/srv/TaskView). Bad requests
+(unknown strategy, empty map, no free candidate, target inside an obstacle) answer
+success=false with the reason.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from coop_msgs.msg import ViewRating, VoxelMap
+from coop_msgs.srv import NextBestView, TaskView
+from rclpy.node import Node
+
+from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.qos import LATCHED_QOS
+
+from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
+from .grid import MapError, OccupancyGrid
+from .nbv import STRATEGIES, CameraState, NbvConfig, NextBestViewPlanner, PlanningError
+from .placement import CameraModel, PlacementError, TaskPlacer, Target
+
+PARAMS = {
+    'map_topic': ParamSpec('/map/voxels', 'shared map topic (coop_msgs/VoxelMap, latched)',
+                           read_only=True),
+    'frame_id': ParamSpec('map', 'frame of the returned poses', read_only=True),
+    'pad_m': ParamSpec(5.0, 'unknown margin added around the known map (m)', lo=0.0, hi=100.0),
+    'fov_deg': ParamSpec(75.0, 'camera horizontal field of view (deg)', lo=5.0, hi=170.0),
+    'depth_m': ParamSpec(10.0, 'camera depth of field for mapping (m)', lo=0.5, hi=100.0),
+    'rays_az': ParamSpec(24, 'NI rays across the field of view', lo=2, hi=512),
+    'rays_el': ParamSpec(18, 'NI rays up the field of view', lo=2, hi=512),
+    'k_rel': ParamSpec(0.15, 'K of Eq. 3-15 relative to the NI of an unknown view per depth',
+                       lo=0.0, hi=100.0),
+    'n_exp': ParamSpec(1.0, 'n of Eq. 3-15', lo=0.1, hi=4.0),
+    'candidates': ParamSpec(40, 'default candidate positions per decision (x headings)',
+                            lo=1, hi=5000),
+    'headings': ParamSpec(8, 'candidate headings per position', lo=1, hi=64),
+    'camera_height_m': ParamSpec(1.0, 'mast camera height above the map origin (m)',
+                                 lo=-100.0, hi=100.0),
+    'clearance_m': ParamSpec(0.5, 'rover clearance for P (m)', lo=0.0, hi=10.0),
+    'max_ranked': ParamSpec(10, 'ranked views returned', lo=1, hi=1000),
+    'task_fov_deg': ParamSpec(60.0, 'task camera field of view (deg), Eq. 4-2', lo=5.0,
+                              hi=170.0),
+    'task_pixels': ParamSpec(640, 'task camera pixels along the axis, Eq. 4-2', lo=1,
+                             hi=100000),
+    'task_near_m': ParamSpec(0.3, 'task depth of field near limit (m)', lo=0.0, hi=100.0),
+    'task_far_m': ParamSpec(5.0, 'task depth of field far limit (m)', lo=0.1, hi=1000.0),
+    'task_candidates': ParamSpec(3000, 'random candidate subset for placement', lo=10,
+                                 hi=100000),
+    'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
+}
+
+
+class ViewPlannerNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('view_planner', **kwargs)
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
+        self.bad = BadInputCounter(self)
+        self.rng = np.random.default_rng(int(self.p['seed']))
+        self.grid: OccupancyGrid | None = None
+        self.sequence = -1
+        self.cameras: dict[str, CameraState] = {}
+        self.expected: dict[str, tuple[int, np.ndarray]] = {}
+        self._build()
+        self.create_subscription(VoxelMap, self.p['map_topic'], self._on_map, LATCHED_QOS)
+        self.create_service(NextBestView, '/viewplan/next_best_view', self._on_nbv)
+        self.create_service(TaskView, '/viewplan/task_view', self._on_task)
+        self.get_logger().info('view_planner ready')
+
+    def _on_params(self, changed: dict) -> None:
+        self.p.update(changed)
+        self._build()
+
+    def _build(self) -> None:
+        p = self.p
+        self.planner = NextBestViewPlanner(NbvConfig(
+            fov_deg=p['fov_deg'], depth_m=p['depth_m'], n_az=p['rays_az'], n_el=p['rays_el'],
+            step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
+            n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
+            clearance_m=p['clearance_m']))
+        self.placer = TaskPlacer(CameraModel(fov_deg=p['task_fov_deg'], pixels=p['task_pixels'],
+                                             near_m=p['task_near_m'], far_m=p['task_far_m']),
+                                 clearance_m=p['clearance_m'],
+                                 max_candidates=p['task_candidates'])
+
+    def _on_map(self, msg: VoxelMap) -> None:
+        keys = np.asarray(msg.voxels.keys, dtype=np.int64)
+        occ = np.asarray(msg.voxels.occupancy, dtype=np.float32)
+        if not (msg.resolution_m > 0 and math.isfinite(msg.resolution_m)):
+            self.bad.reject('bad resolution', f'{msg.resolution_m}')
+            return
+        if keys.size % 3 or keys.size // 3 != occ.size:
+            self.bad.reject('malformed voxel set', f'{keys.size} keys, {occ.size} occupancies')
+            return
+        if occ.size == 0:
+            self.grid = None
+            self.sequence = int(msg.sequence)
+            return
+        try:
+            pad = int(math.ceil(self.p['pad_m'] / msg.resolution_m))
+            self.grid = OccupancyGrid.from_sparse(keys.reshape(-1, 3), occ,
+                                                  resolution=msg.resolution_m, pad_cells=pad)
+        except MapError as exc:
+            self.bad.reject('bad map', str(exc))
+            return
+        self.sequence = int(msg.sequence)
+        self.get_logger().debug(f'map {self.sequence}: {occ.size} voxels')
+
+    def _rating_msg(self, frame: str, pos: np.ndarray, quat: np.ndarray) -> ViewRating:
+        r = ViewRating()
+        r.pose.header.frame_id = frame
+        r.pose.header.stamp = self.get_clock().now().to_msg()
+        r.pose.pose.position.x, r.pose.pose.position.y, r.pose.pose.position.z = (
+            float(v) for v in pos)
+        (r.pose.pose.orientation.x, r.pose.pose.orientation.y, r.pose.pose.orientation.z,
+         r.pose.pose.orientation.w) = (float(v) for v in quat)
+        for k in ('new_information_bits', 'distance', 'depth_of_field', 'resolution',
+                  'field_visibility', 'angular_visibility'):
+            setattr(r, k, math.nan)
+        return r
+
+    def _on_nbv(self, req: NextBestView.Request, resp: NextBestView.Response):
+        resp.success = False
+        if req.strategy not in STRATEGIES:
+            resp.message = f'unknown strategy {req.strategy!r}; one of {list(STRATEGIES)}'
+            return resp
+        if self.grid is None:
+            resp.message = 'empty map: nothing received on the map topic yet'
+            return resp
+        g = self.grid
+        pos = req.current_pose.pose.position
+        q = req.current_pose.pose.orientation
+        position = np.array([pos.x, pos.y, pos.z])
+        try:
+            if not np.all(np.isfinite(position)):
+                raise ValueError('current pose position must be finite')
+            yaw, pitch = yaw_pitch_from_optical(np.array([q.x, q.y, q.z, q.w]))
+        except ValueError as exc:
+            resp.message = str(exc)
+            return resp
+        robot = req.robot or 'default'
+        cam = self.cameras.setdefault(robot, CameraState(position))
+        cam.position, cam.yaw, cam.pitch = position, yaw, pitch
+        cam.visited.append(g.to_index(position)[:2])
+        claimed = np.zeros(g.shape, bool)
+        for other, (seq, mask) in self.expected.items():
+            if other != robot and seq == self.sequence and mask.shape == g.shape:
+                claimed |= mask
+        planner = self.planner
+        if req.max_candidates:
+            from dataclasses import replace
+            planner = NextBestViewPlanner(replace(planner.config,
+                                                  n_positions=int(req.max_candidates)))
+        try:
+            d = planner.plan(g, cam, strategy=req.strategy, rng=self.rng, claimed=claimed)
+        except (MapError, PlanningError, ValueError) as exc:
+            resp.message = str(exc)
+            return resp
+        self.expected[robot] = (self.sequence, planner.expected_cells(g, d))
+        frame = req.current_pose.header.frame_id or self.p['frame_id']
+        order = d.ranked()[: int(self.p['max_ranked'])]
+        c = d.candidates
+        for i in order:
+            r = self._rating_msg(frame, c.positions[i], optical_quaternion(c.yaw[i], c.pitch[i]))
+            r.rating = float(d.rating[i])
+            r.new_information_bits = float(d.scores.ni[i])
+            r.distance = float(c.distance[i])
+            r.collision_probability = float(c.collision_p[i])
+            resp.ranked.append(r)
+        best = self._rating_msg(frame, d.position, optical_quaternion(d.yaw, d.pitch))
+        best.rating = float(d.rating[d.index])
+        best.new_information_bits = float(d.scores.ni[d.index])
+        best.distance = float(c.distance[d.index])
+        best.collision_probability = float(c.collision_p[d.index])
+        resp.best = best
+        resp.success = True
+        resp.message = (f'{req.strategy}: {len(c)} candidates, NI {best.new_information_bits:.3f}'
+                        f' bits, d {best.distance:.2f} m')
+        return resp
+
+    @staticmethod
+    def _target(msg, *, primary: bool) -> Target:
+        pos = np.array([msg.position.x, msg.position.y, msg.position.z])
+        nrm = np.array([msg.normal.x, msg.normal.y, msg.normal.z])
+        weight = 1.0 if primary or msg.weight <= 0 else float(msg.weight)
+        return Target(pos, nrm, radius=max(0.0, float(msg.radius_m)),
+                      sigma=0.0 if primary else max(0.0, float(msg.position_sigma_m)),
+                      weight=weight)
+
+    def _on_task(self, req: TaskView.Request, resp: TaskView.Response):
+        resp.success = False
+        if self.grid is None:
+            resp.message = 'empty map: nothing received on the map topic yet'
+            return resp
+        try:
+            prim = self._target(req.primary, primary=True)
+            sec = [self._target(s, primary=False) for s in req.secondary]
+            pl = self.placer.place(self.grid, prim, sec, rng=self.rng)
+        except PlacementError as exc:
+            resp.message = str(exc)
+            return resp
+        watched = ([prim] + sec)[pl.target_index]
+        frame = req.primary.header.frame_id or self.p['frame_id']
+        r = self._rating_msg(frame, pl.position, look_at_quaternion(pl.position,
+                                                                    watched.position))
+        t = pl.terms
+        r.rating, r.depth_of_field, r.resolution = t['rating'], t['dof'], t['res']
+        r.field_visibility, r.angular_visibility = t['tfv'], t['tav']
+        r.collision_probability = t['collision_p']
+        resp.best = r
+        resp.success = True
+        which = 'primary' if pl.target_index == 0 else f'secondary {pl.target_index - 1}'
+        dist = float(np.linalg.norm(pl.position - watched.position))
+        resp.message = f'watching the {which} target at {dist:.2f} m'
+        return resp
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(ViewPlannerNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

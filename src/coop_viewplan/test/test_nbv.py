@@ -1,0 +1,201 @@
+"""Unit tests of the next-best-view core (Eq. 3-11..3-15, §3.3.1 strategies)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from coop_viewplan.grid import MapError, OccupancyGrid, markov_estimate
+from coop_viewplan.nbv import (STRATEGIES, CameraState, NbvConfig, NextBestViewPlanner,
+                               PlanningError, binary_entropy, configuration_distance,
+                               make_strategy, plan_cameras, rating_function, score_views)
+from coop_viewplan.raycast import cast, make_template
+
+
+def _known_free_grid(n: int = 40) -> OccupancyGrid:
+    g = OccupancyGrid.empty((n, n), resolution=1.0)
+    g.known[:] = True
+    g.prob[:] = 0.0
+    return g
+
+
+def test_configuration_distance_eq_3_11():
+    d = configuration_distance(np.array([0, 0, 0, 0, 0.0]), np.array([[3, 4, 0, 0, 0.0]]),
+                               (1, 1, 1, 0, 0))
+    assert d[0] == pytest.approx(5.0)
+    # angles wrap: yaw 350 deg vs 10 deg is 20 deg apart, weight 1
+    d = configuration_distance(np.array([0, 0, 0, np.radians(10), 0]),
+                               np.array([[0, 0, 0, np.radians(350), 0]]),
+                               (0, 0, 0, 1, 0))
+    assert d[0] == pytest.approx(np.radians(20))
+
+
+def test_rating_function_eq_3_15():
+    rf = rating_function(np.array([10.0]), np.array([2.0]), np.array([0.5]), k=1.5, n=2)
+    assert rf[0] == pytest.approx((10 - 1.5 * 4) * 0.5)
+
+
+def test_binary_entropy_limits():
+    assert binary_entropy(np.array([0.0, 1.0, 0.5])).tolist() == pytest.approx([0, 0, 1])
+
+
+def test_template_counts_frustum_cells():
+    # 90 deg, 10 m quarter disc: pi r^2 / 4 = 78.5 cells of 1 m^2
+    t = make_template(ndim=2, fov_deg=90, depth_m=10, resolution=1.0)
+    assert t.frustum_cells == pytest.approx(np.pi * 100 / 4, rel=0.02)
+    t3 = make_template(ndim=3, fov_deg=60, depth_m=5, resolution=0.5, n_az=20, n_el=15,
+                       vfov_deg=45)
+    a, e = np.radians(60), np.radians(45)
+    solid = a * 2 * np.sin(e / 2)
+    assert t3.frustum_cells == pytest.approx(solid * 5 ** 3 / 3 / 0.125, rel=0.03)
+
+
+def test_known_obstacle_occludes_and_first_hit_visible():
+    g = _known_free_grid()
+    g.prob[20, :] = 1.0            # a wall across x = 20
+    t = make_template(ndim=2, fov_deg=10, depth_m=15, resolution=1.0)
+    c = cast(g, np.array([[10.5, 20.5]]), np.array([0.0]), None, t)
+    seen = np.zeros(g.prob.size, bool)
+    seen[c.flat[c.visible]] = True
+    seen = seen.reshape(g.shape)
+    assert seen[20, 20] and seen[15, 20]
+    assert not seen[21:, :].any()
+
+
+def test_ni_zero_when_all_known_and_grows_with_unknown():
+    g = _known_free_grid()
+    est = markov_estimate(g)
+    t = make_template(ndim=2, fov_deg=90, depth_m=10, resolution=1.0)
+    pos = np.array([[20.5, 20.5]])
+    s0 = score_views(g, est, pos, np.array([0.0]), None, t)
+    assert s0.ni[0] == pytest.approx(0.0, abs=1e-12)
+    nis = []
+    for edge in (28, 25, 22):   # more and more unknown ahead of the camera
+        h = _known_free_grid()
+        h.known[edge:, :] = False
+        s = score_views(h, markov_estimate(h), pos, np.array([0.0]), None, t)
+        nis.append(s.ni[0])
+    assert 0 < nis[0] < nis[1] < nis[2]
+    # occluding the unknown region with a known wall lowers NI (§3.2.4)
+    h = _known_free_grid()
+    h.known[22:, :] = False
+    h.known[21, :] = True
+    h.prob[21, 15:26] = 1.0
+    s = score_views(h, markov_estimate(h), pos, np.array([0.0]), None, t)
+    assert s.ni[0] < nis[2]
+
+
+def test_markov_estimate_leans_towards_neighbours():
+    g = OccupancyGrid.empty((30, 30), resolution=1.0)
+    g.known[:10] = True
+    g.prob[:10] = 0.0
+    g.known[20:] = True
+    g.prob[20:] = 1.0
+    est = markov_estimate(g, iterations=20)
+    assert est[10, 5] < 0.5 < est[19, 5]
+    assert est[0, 0] == 0.0 and est[29, 0] == 1.0
+
+
+def test_from_sparse_and_empty_map():
+    keys = np.array([[0, 0, 0], [2, 1, 0], [-1, 0, 1]])
+    g = OccupancyGrid.from_sparse(keys, np.array([0.1, 0.9, 0.0]), resolution=0.5)
+    assert g.shape == (4, 2, 2)
+    assert g.known.sum() == 3 and g.prob[3, 1, 0] == pytest.approx(0.9)
+    assert np.allclose(g.origin, [-0.5, 0.0, 0.0])
+    with pytest.raises(MapError):
+        OccupancyGrid.from_sparse(np.zeros((0, 3)), np.zeros(0), resolution=0.1)
+    planner = NextBestViewPlanner()
+    with pytest.raises(MapError):
+        planner.plan(OccupancyGrid.empty((10, 10), resolution=1.0),
+                     CameraState(np.array([5.0, 5.0])), strategy='random',
+                     rng=np.random.default_rng(0))
+
+
+def test_unknown_strategy_rejected():
+    with pytest.raises(ValueError, match='unknown strategy'):
+        make_strategy('teleport')
+
+
+def _half_known_world():
+    g = OccupancyGrid.empty((60, 60), resolution=1.0)
+    g.known[:, :30] = True
+    g.prob[:, :30] = 0.0
+    g.prob[25:35, 10:12] = 1.0          # a known obstacle
+    return g
+
+
+@pytest.mark.parametrize('name', STRATEGIES)
+def test_every_strategy_returns_free_reachable_view(name):
+    g = _half_known_world()
+    planner = NextBestViewPlanner(NbvConfig(fov_deg=90, depth_m=15, n_positions=40))
+    d = planner.plan(g, CameraState(np.array([5.5, 5.5])), strategy=name,
+                     rng=np.random.default_rng(1))
+    cell = g.to_index(d.position)
+    assert g.known[tuple(cell)] and g.prob[tuple(cell)] < 0.05
+    assert np.isfinite(d.path_length)
+    assert d.candidates.collision_p[d.index] < 0.05
+
+
+def test_max_information_looks_at_the_unknown():
+    g = _half_known_world()
+    planner = NextBestViewPlanner(NbvConfig(fov_deg=90, depth_m=15, n_positions=60))
+    d = planner.plan(g, CameraState(np.array([30.5, 20.5])), strategy='max_information',
+                     rng=np.random.default_rng(2))
+    # unknown is at +y: the chosen heading points there (within the 90 deg FOV)
+    assert abs(((d.yaw - np.pi / 2) + np.pi) % (2 * np.pi) - np.pi) <= np.radians(45) + 1e-9
+    assert d.rating[d.index] == pytest.approx(d.rating.max())
+
+
+def test_no_free_candidate_raises():
+    g = OccupancyGrid.empty((20, 20), resolution=1.0)
+    g.known[:] = True
+    g.prob[:] = 1.0
+    with pytest.raises(PlanningError):
+        NextBestViewPlanner().plan(g, CameraState(np.array([10.5, 10.5])),
+                                   strategy='max_information', rng=np.random.default_rng(0))
+
+
+def test_two_cameras_on_one_map_look_at_different_regions():
+    g = OccupancyGrid.empty((80, 40), resolution=1.0)
+    g.known[30:50, :] = True
+    g.prob[30:50, :] = 0.0
+    planner = NextBestViewPlanner(NbvConfig(fov_deg=75, depth_m=10, n_positions=80))
+    cams = [CameraState(np.array([40.5, 20.5])), CameraState(np.array([40.5, 22.5]))]
+    d1, d2 = plan_cameras(planner, g, cams, strategy='max_information',
+                          rng=np.random.default_rng(3))
+    e1, e2 = planner.expected_cells(g, d1), planner.expected_cells(g, d2)
+    overlap = (e1 & e2 & ~g.known).sum() / max(1, (e1 & ~g.known).sum())
+    assert overlap < 0.2
+
+
+def test_3d_scoring_sees_unknown_above_known_floor():
+    g = OccupancyGrid.empty((40, 40, 20), resolution=0.25)
+    g.known[:, :, :4] = True
+    g.prob[:, :, :4] = 0.0
+    g.prob[:, :, 0] = 1.0               # the ground
+    est = markov_estimate(g)
+    t = make_template(ndim=3, fov_deg=75, depth_m=4, resolution=0.25, n_az=16, n_el=12)
+    pos = np.array([[5.0, 5.0, 0.6], [5.0, 5.0, 0.6]])
+    s = score_views(g, est, pos, np.array([0.0, 0.0]), np.array([0.6, -0.6]), t)
+    # looking down (positive pitch) sees the known floor, looking up sees the unknown
+    assert s.ni[1] > s.ni[0]
+    assert s.unknown_cells[0] < 0.5 * s.unknown_cells[1]
+
+
+def test_path_distance_exceeds_straight_line_around_a_wall():
+    g = _known_free_grid(40)
+    g.known[:, 36:] = False
+    g.prob[20, 0:33] = 1.0               # a wall with a gap at the top
+    cam = CameraState(np.array([15.5, 5.5]))
+    res = {}
+    for metric in ('configuration', 'path'):
+        planner = NextBestViewPlanner(NbvConfig(n_positions=400, distance_metric=metric))
+        d = planner.plan(g, cam, strategy='max_unmapped', rng=np.random.default_rng(5))
+        res[metric] = d.candidates
+    c, p = res['configuration'], res['path']
+    assert np.array_equal(c.positions, p.positions)      # same seeded candidate set
+    straight = np.hypot(*(c.positions - cam.position).T)
+    assert c.distance == pytest.approx(straight)
+    assert p.distance == pytest.approx(p.path_length)
+    behind = c.positions[:, 0] > 21
+    assert behind.sum() > 10
+    assert np.all(p.distance[behind] > c.distance[behind] + 1.0)

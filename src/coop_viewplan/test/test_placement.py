@@ -1,0 +1,133 @@
+"""Task-directed placement terms (Eq. 4-1..4-4) against hand-computed geometry."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from coop_viewplan.grid import OccupancyGrid
+from coop_viewplan.placement import (CameraModel, PlacementError, TaskPlacer, Target,
+                                     VisibilityField, angular_visibility, depth_of_field,
+                                     move_known_object, occluder_hulls, occlusion_distance,
+                                     resolution_term)
+
+SQUARE = np.array([[2.0, -0.5], [3.0, -0.5], [3.0, 0.5], [2.0, 0.5]])
+
+
+def test_occluder_hull_point_target():
+    # A point target: the hull is the square itself; the ray along +x enters at x = 2.
+    hull = occluder_hulls([SQUARE], 0.0)[0]
+    assert len(hull) == 4
+    d = occlusion_distance(np.zeros(2), [hull], np.array([[1.0, 0.0], [0.0, 1.0], [-1, 0.0]]))
+    assert d[0] == pytest.approx(2.0)
+    assert np.isinf(d[1]) and np.isinf(d[2])
+    # Edge of the shadow: the near corners (2, +-0.5) at atan(0.25) = 14.04 deg.
+    a_in, a_out = np.radians(13.9), np.radians(14.2)
+    d = occlusion_distance(np.zeros(2), [hull], np.array([[np.cos(a_in), np.sin(a_in)],
+                                                           [np.cos(a_out), np.sin(a_out)]]))
+    assert np.isfinite(d[0]) and np.isinf(d[1])
+
+
+def test_minkowski_expansion_grows_the_shadow():
+    r = 0.5
+    hull = occluder_hulls([SQUARE], r, n_vertices=4)[0]
+    # A square target circumscribing the disc (n_vertices = 4, rotated 0): half-width r/cos45
+    # along the diagonals -> vertices at (+-0.707, 0), (0, +-0.707) added to the square.
+    h = r / np.cos(np.pi / 4)
+    assert hull[:, 0].min() == pytest.approx(2.0 - h)
+    assert hull[:, 1].max() == pytest.approx(0.5 + h)
+    d = occlusion_distance(np.zeros(2), [hull], np.array([[1.0, 0.0]]))
+    assert d[0] == pytest.approx(2.0 - h)
+
+
+def test_tfv_arc_around_known_occluder():
+    f = VisibilityField(np.zeros(2), occluder_hulls([SQUARE], 0.0), n_dirs=3600)
+    # Inside the occluder's distance: the whole circle of radius 1 is free.
+    assert f.tfv(np.array([[1.0, 0.0]]))[0] == pytest.approx(1.0)
+    # Behind it: occluded.
+    assert f.tfv(np.array([[5.0, 0.0]]))[0] == 0.0
+    # Far away elsewhere: the circle minus the 2 x 14.04 deg shadow.
+    expect = 1 - 2 * np.degrees(np.arctan(0.25)) / 360
+    assert f.tfv(np.array([[0.0, 5.0]]))[0] == pytest.approx(expect, abs=2e-3)
+    assert f.visible(np.array([[0.0, 5.0], [5.0, 0.0]])).tolist() == [True, False]
+
+
+def test_tfv_3d_cap():
+    cube = np.array([[x, y, z] for x in (2.0, 3.0) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    f = VisibilityField(np.zeros(3), occluder_hulls([cube], 0.0), n_dirs=4000)
+    assert f.tfv(np.array([[5.0, 0, 0]]))[0] == 0.0
+    # Looking from -x: nearest occluded direction is ~180 - 14 deg away -> (2 * 166) / 360.
+    assert f.tfv(np.array([[-5.0, 0, 0]]))[0] == pytest.approx(2 * (180 - 14.04) / 360,
+                                                               abs=0.03)
+
+
+def test_angular_visibility_edge_on_and_behind():
+    t = Target(np.zeros(2), np.array([0.0, 1.0]))
+    cams = np.array([[5.0, 0.0], [0.0, 5.0], [3.0, 3.0], [0.0, -5.0]])
+    tav = angular_visibility(cams, t)
+    assert tav == pytest.approx([0.0, 1.0, np.cos(np.pi / 4), 0.0])
+
+
+def test_resolution_and_depth_of_field():
+    cam = CameraModel(fov_deg=60, pixels=640, near_m=1, far_m=20)
+    r = 2 * 10 * np.tan(np.radians(30)) / 640
+    assert resolution_term(np.array([10.0]), cam)[0] == pytest.approx(1 / r)
+    assert resolution_term(np.array([10.0]), cam, 0.01)[0] == pytest.approx(1 / (r + 0.01))
+    assert depth_of_field(np.array([0.5, 1.0, 20.0, 20.5]), cam).tolist() == [0, 1, 1, 0]
+
+
+def _room(n=60):
+    g = OccupancyGrid.empty((n, n), resolution=1.0)
+    g.known[:] = True
+    g.prob[:] = 0.0
+    return g
+
+
+def test_placement_faces_the_target_and_avoids_the_occluder():
+    g = _room()
+    g.prob[28:33, 36:38] = 1.0      # a wall right in front of the target's face
+    t = Target(np.array([30.5, 30.5]), np.array([0.0, 1.0]), radius=0.25)
+    placer = TaskPlacer(CameraModel(near_m=2, far_m=20), max_candidates=5000, n_dirs=720)
+    pl = placer.place(g, t, rng=np.random.default_rng(0))
+    rel = pl.position - t.position
+    assert rel[1] > 0                                # on the visible side
+    assert pl.terms['tav'] > 0.5 and pl.terms['tfv'] > 0 and pl.terms['dof'] == 1
+    # the line of sight does not cross the wall
+    s = np.linspace(0, 1, 200)[:, None] * rel + t.position
+    assert not g.prob[tuple(np.floor(s).astype(int).T)].any()
+
+
+def test_secondary_target_wins_when_primary_is_boxed_in():
+    g = _room()
+    g.prob[27:35, 32:34] = 1.0      # the primary's face is walled off at 2 m
+    prim = Target(np.array([30.5, 30.5]), np.array([0.0, 1.0]), radius=0.25)
+    sec = Target(np.array([45.5, 30.5]), np.array([0.0, 1.0]), radius=0.25, sigma=0.001)
+    placer = TaskPlacer(CameraModel(near_m=2, far_m=20), max_candidates=5000)
+    pl = placer.place(g, prim, [sec], rng=np.random.default_rng(0))
+    assert pl.target_index == 1
+
+
+def test_bad_input():
+    g = _room()
+    g.prob[10, 10] = 1.0
+    placer = TaskPlacer()
+    with pytest.raises(PlacementError, match='inside an obstacle'):
+        placer.place(g, Target(np.array([10.5, 10.5]), np.array([1.0, 0])),
+                     rng=np.random.default_rng(0))
+    with pytest.raises(PlacementError):
+        Target(np.zeros(2), np.zeros(2))
+    full = _room()
+    full.prob[:] = 1.0
+    full.prob[30, 30] = 0.0
+    with pytest.raises(PlacementError):
+        placer.place(full, Target(np.array([30.5, 30.5]), np.array([1.0, 0])),
+                     rng=np.random.default_rng(0))
+
+
+def test_moving_object_updates_map():
+    g = _room(20)
+    model = np.array([[0, 0], [0, 1], [1, 0], [1, 1]])
+    cells = move_known_object(g, np.zeros((0, 2)), model, np.array([5, 5]))
+    assert g.prob[5, 5] == 1.0
+    cells = move_known_object(g, cells, model, np.array([8, 5]))
+    assert g.prob[5, 5] == 0.0 and g.known[5, 5] and g.prob[9, 6] == 1.0
+    assert len(cells) == 4

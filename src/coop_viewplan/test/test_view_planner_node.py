@@ -1,0 +1,121 @@
+"""The view_planner node in-process, with a private context and domain."""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+import rclpy
+from coop_msgs.msg import TaskTarget, VoxelMap
+from coop_msgs.srv import NextBestView, TaskView
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from coop_common.qos import LATCHED_QOS
+from coop_common.testing import wait_for
+from coop_viewplan.frames import optical_quaternion
+from coop_viewplan.view_planner_node import ViewPlannerNode
+
+
+def _voxel_map() -> VoxelMap:
+    """A 10 m x 10 m x 2 m room at 0.25 m: floor, the west half known free, a box."""
+    res = 0.25
+    keys, occ = [], []
+    for i in range(40):
+        for j in range(40):
+            keys.append((i, j, 0))
+            occ.append(1.0)
+            if i < 20:
+                for k in range(1, 8):
+                    box = 8 <= i < 12 and 20 <= j < 24
+                    keys.append((i, j, k))
+                    occ.append(1.0 if box else 0.0)
+    m = VoxelMap()
+    m.header.frame_id = 'map'
+    m.resolution_m = res
+    m.sequence = 1
+    m.voxels.keys = [int(v) for k in keys for v in k]
+    m.voxels.occupancy = [float(o) for o in occ]
+    return m
+
+
+@pytest.fixture
+def graph():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '0')))
+    node = ViewPlannerNode(context=ctx, parameter_overrides=[
+        Parameter('candidates', value=20), Parameter('pad_m', value=1.0),
+        Parameter('camera_height_m', value=1.0), Parameter('task_far_m', value=4.0)])
+    client = Node('vp_test_client', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(client)
+    yield node, client, ex
+    ex.shutdown()
+    client.destroy_node()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def _call(client, ex, srv_type, name, req):
+    cli = client.create_client(srv_type, name)
+    wait_for(cli.service_is_ready, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+             what=f'{name} ready')
+    fut = cli.call_async(req)
+    wait_for(fut.done, 60.0, spin=lambda t: ex.spin_once(timeout_sec=t), what=f'{name} reply')
+    return fut.result()
+
+
+def _nbv_req(strategy='max_information'):
+    req = NextBestView.Request()
+    req.robot = 'rover1'
+    req.strategy = strategy
+    req.current_pose.header.frame_id = 'map'
+    req.current_pose.pose.position.x, req.current_pose.pose.position.y = 1.1, 2.1
+    req.current_pose.pose.position.z = 1.0
+    q = optical_quaternion(0.0, 0.0)
+    o = req.current_pose.pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in q)
+    return req
+
+
+def test_services_fail_cleanly_then_plan(graph):
+    node, client, ex = graph
+    # No map yet: a clear failure, not a crash.
+    r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req())
+    assert not r.success and 'empty map' in r.message
+    pub = client.create_publisher(VoxelMap, '/map/voxels', LATCHED_QOS)
+    pub.publish(_voxel_map())
+    wait_for(lambda: node.grid is not None, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+             what='map received')
+    r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req('teleport'))
+    assert not r.success and 'unknown strategy' in r.message
+    r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req())
+    assert r.success, r.message
+    p = r.best.pose.pose.position
+    assert 0 <= p.x < 5.0 and 0 <= p.y < 10.0            # on the known free half
+    assert not (1.5 <= p.x < 3.5 and 4.5 <= p.y < 6.5)    # clear of the box + clearance
+    assert r.best.new_information_bits > 0 and len(r.ranked) >= 1
+    assert r.ranked[0].rating == pytest.approx(r.best.rating)
+    assert math.isnan(r.best.field_visibility)
+
+    req = TaskView.Request()
+    req.robot = 'rover1'
+    req.primary = TaskTarget()
+    req.primary.header.frame_id = 'map'
+    req.primary.position.x, req.primary.position.y, req.primary.position.z = 1.9, 5.5, 1.1
+    req.primary.normal.x = -1.0
+    req.primary.radius_m = 0.05
+    req.tolerance = 0.1
+    r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+    assert r.success, r.message
+    p = r.best.pose.pose.position
+    assert p.x < 1.9                                     # in front of the one-sided target
+    assert r.best.angular_visibility > 0 and r.best.depth_of_field == 1.0
+    # A target inside the box: refused with the reason.
+    req.primary.position.x, req.primary.position.y, req.primary.position.z = 2.5, 5.5, 1.1
+    r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+    assert not r.success and 'inside' in r.message
+    assert np.isfinite(node.sequence)
