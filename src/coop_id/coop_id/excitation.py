@@ -254,3 +254,86 @@ def optimise(strategy: str, current: Excitation, predictor: WindowPredictor, ctx
         return current, best_v
     return replace(current, amplitude_rad=float(d[0]), frequency_rad_s=float(d[1]),
                    offset_rad=float(d[2])), best_v
+
+
+class ArmReference:
+    """The arm base joints' reference (arm_joint_1, arm_joint_2) over time for the rotation modes
+    of §2.2, without steps.
+
+    modes: per mode (joint driven, joint-1 hold angle, unused), the driven joint following the
+    excitation f(t - t0). A new mode or excitation never steps the command: the reference blends
+    from the trajectory it follows into the new one with a quintic smoothstep (position, speed
+    and acceleration continuous) no faster than `speed_rad_s`. A step makes an effort-limited
+    joint controller whip the arm at tens of rad/s: base loads of ~100 N for a few ms, far
+    outside the small-motion model of Eq. 2-1 (and outside what a simulated or real F/T sensor
+    resolves)."""
+
+    def __init__(self, modes, *, speed_rad_s: float = 1.5, min_blend_s: float = 0.2) -> None:
+        self.modes = modes
+        self.speed, self.min_blend = speed_rad_s, min_blend_s
+        self._key = None
+        self._old = None
+        self._new = None
+        self._t0 = 0.0
+        self._dur = 1.0
+        self._depth = 0
+
+    def _target(self, mode: int, exc: Excitation, t0: float):
+        joint, hold1, _ = self.modes[mode]
+
+        def ref(t: float) -> tuple[np.ndarray, np.ndarray]:
+            f, fd, _ = exc(t - t0)
+            if joint == 'arm_joint_1':
+                return np.array([float(f), 0.0]), np.array([float(fd), 0.0])
+            return np.array([hold1, float(f)]), np.array([0.0, float(fd)])
+        return ref
+
+    def update(self, now: float, mode: int, exc: Excitation, exc_t0: float,
+               here: np.ndarray, horizon_s: float) -> None:
+        """Follow mode / excitation from `now` on; `here`: joint positions for the first call."""
+        key = (mode, exc, exc_t0)
+        if key == self._key:
+            if self._old is not None and now >= self._t0 + self._dur:
+                self._old, self._depth = None, 0    # blend over: forget the old trajectory
+            return
+        new = self._target(mode, exc, exc_t0)
+        if self._new is None:
+            here = np.asarray(here, dtype=float)
+            zero = np.zeros(2)
+
+            def old(_t: float) -> tuple[np.ndarray, np.ndarray]:
+                return here, zero
+        elif self._depth >= 4:       # blends keep overlapping: cut the chain
+            old, self._depth = self._new, 0
+        else:
+            old = self._freeze()
+            self._depth += self._old is not None
+        span = np.linspace(now, now + horizon_s, 25)
+        gap = max(float(np.max(np.abs(old(t)[0] - new(t)[0]))) for t in span)
+        self._old, self._new = old, new
+        self._t0, self._dur = now, max(self.min_blend, 1.875 * gap / self.speed)
+        self._key = key
+
+    def _freeze(self):
+        """The current reference as a stand-alone function (the old side of a new blend)."""
+        old, new, t0, dur = self._old, self._new, self._t0, self._dur
+
+        def ref(t: float) -> tuple[np.ndarray, np.ndarray]:
+            return _blend(old, new, t0, dur, t)
+        return ref
+
+    def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(position, speed) of (arm_joint_1, arm_joint_2) at t."""
+        return _blend(self._old, self._new, self._t0, self._dur, t)
+
+
+def _blend(old, new, t0: float, dur: float, t: float) -> tuple[np.ndarray, np.ndarray]:
+    qn, vn = new(t)
+    u = (t - t0) / dur
+    if old is None or u >= 1.0:
+        return qn, vn
+    qo, vo = old(t)
+    u = max(u, 0.0)
+    s = u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
+    ds = 30.0 * u * u * (1.0 - u) ** 2 / dur
+    return qo + s * (qn - qo), vo + s * (vn - vo) + ds * (qn - qo)

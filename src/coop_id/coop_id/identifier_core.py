@@ -15,12 +15,30 @@ import numpy as np
 
 from .consistency import ChangeDetector, Report, make_report, project_physical
 from .estimators import RecursiveEstimator
-from .excitation import (STRATEGIES, CostContext, Excitation, ExcitationBounds,
-                         WindowPredictor, constant_excitation, optimise)
+from .excitation import (
+    STRATEGIES,
+    CostContext,
+    Excitation,
+    ExcitationBounds,
+    WindowPredictor,
+    constant_excitation,
+    optimise,
+)
 from .information import mutual_information_bits
-from .model import (IDX, N_PARAMS, TRANSLATIONAL, ArmModel, FilterBank, SensorNoise,
-                    filtered_rows, load_prior_ranges, noise_gram, raw_channels,
-                    regressor_noise)
+from .model import (
+    IDX,
+    N_PARAMS,
+    TRANSLATIONAL,
+    ArmModel,
+    FilterBank,
+    SensorNoise,
+    TiltTracker,
+    filtered_rows,
+    load_prior_ranges,
+    noise_gram,
+    raw_channels,
+    regressor_noise,
+)
 
 
 class IdentifierError(ValueError):
@@ -41,6 +59,9 @@ class IdentifierConfig:
     extra_starts: int = 1
     literal_eq_2_13: bool = False
     prior_path: str | None = None
+    #: share of the inclinometer in the roll/pitch angle (rest: integrated gyro); 0 when the
+    #: inclinometer cannot resolve the dynamic tilt (10 bits over +-20 deg on the thesis rover)
+    incl_weight: float = 0.5
 
 
 class Identifier:
@@ -57,6 +78,8 @@ class Identifier:
             raise IdentifierError(f'strategy must be one of {STRATEGIES}, got {cfg.strategy!r}')
         if cfg.decimation < 1 or cfg.window_s <= 0 or cfg.rate_hz <= 0:
             raise IdentifierError('decimation >= 1, window_s > 0 and rate_hz > 0 required')
+        if not 0.0 <= cfg.incl_weight <= 1.0:
+            raise IdentifierError('incl_weight must be in [0, 1]')
         self.cfg = cfg
         self.arm = arm or ArmModel()
         self.ranges = load_prior_ranges(cfg.prior_path)
@@ -66,6 +89,7 @@ class Identifier:
         self.kf = RecursiveEstimator(x0=x0, std0=self.prior_std, scale=self.scale, n_rows=6,
                                      drift_per_s=cfg.drift_per_s)
         self.banks: dict[int, FilterBank] = {}
+        self.tilts: dict[int, TiltTracker] = {}
         self.row_var = np.full(6, np.nan)
         self._win_rows: list[np.ndarray] = []
         self._win_y: list[np.ndarray] = []
@@ -88,7 +112,8 @@ class Identifier:
         self._eiv = None
         if sensor_noise:
             gram = noise_gram(FilterBank(rate_hz=cfg.rate_hz), rate_hz=cfg.rate_hz)
-            self._eiv = {m: regressor_noise(sn, gram, accelerometer=cfg.accelerometer)
+            self._eiv = {m: regressor_noise(sn, gram, accelerometer=cfg.accelerometer,
+                                            incl_weight=cfg.incl_weight)
                          for m, sn in sensor_noise.items()}
         self._s_acc = np.zeros((N_PARAMS, N_PARAMS))   # sum Sigma_row / R (scaled)
         self._c_acc = np.zeros(N_PARAMS)
@@ -105,9 +130,10 @@ class Identifier:
         if mode not in (0, 1, 2):
             raise IdentifierError('mode must be 0, 1 or 2')
         ch = raw_channels(specific_force=specific_force, gyro=gyro, incl_roll_pitch=incl,
-                          force=force, torque=torque)
+                          force=force, torque=torque, tilt=self._tilt(mode, gyro, incl))
         bank = self.banks.setdefault(mode, FilterBank(rate_hz=self.cfg.rate_hz))
-        a, y = filtered_rows(bank, ch, accelerometer=self.cfg.accelerometer)
+        a, y = filtered_rows(bank, ch, accelerometer=self.cfg.accelerometer,
+                             incl_weight=self.cfg.incl_weight)
         n = a.shape[0]
         take = (np.arange(n) + self._counter_for(mode)) % self.cfg.decimation == 0
         self._advance(mode, n)
@@ -131,9 +157,11 @@ class Identifier:
         per_mode = []
         for m in range(3):
             ch = raw_channels(specific_force=specific_force[:, m], gyro=gyro[:, m],
-                              incl_roll_pitch=incl[:, m], force=force[:, m], torque=torque[:, m])
+                              incl_roll_pitch=incl[:, m], force=force[:, m], torque=torque[:, m],
+                              tilt=self._tilt(m, gyro[:, m], incl[:, m]))
             bank = self.banks.setdefault(m, FilterBank(rate_hz=self.cfg.rate_hz))
-            per_mode.append(filtered_rows(bank, ch, accelerometer=self.cfg.accelerometer))
+            per_mode.append(filtered_rows(bank, ch, accelerometer=self.cfg.accelerometer,
+                                          incl_weight=self.cfg.incl_weight))
         a = np.stack([p[0] for p in per_mode], axis=1)        # (n, 3, 6, 22)
         y = np.stack([p[1] for p in per_mode], axis=1)        # (n, 3, 6)
         n = a.shape[0]
@@ -153,6 +181,14 @@ class Identifier:
             updates += 1
         self.samples += n
         return updates
+
+    def _tilt(self, mode: int, gyro: np.ndarray, incl: np.ndarray) -> np.ndarray | None:
+        """Roll/pitch for the pre-filter products: the inclinometer, or with incl_weight 0 the
+        integrated gyro (TiltTracker)."""
+        if self.cfg.incl_weight > 0:
+            return None
+        tracker = self.tilts.setdefault(mode, TiltTracker(rate_hz=self.cfg.rate_hz))
+        return tracker.update(gyro, incl)
 
     def _accumulate_eiv(self, modes, n_updates: int, r: np.ndarray) -> None:
         if self._eiv is None or n_updates == 0:

@@ -15,21 +15,22 @@ from collections import deque
 
 import numpy as np
 from builtin_interfaces.msg import Duration
-from coop_msgs.action import Identify
-from coop_msgs.msg import DynamicParameters, Inclinometer
 from geometry_msgs.msg import WrenchStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import QoSProfile
 from sensor_msgs.msg import Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_msgs.action import Identify
+from coop_msgs.msg import DynamicParameters, Inclinometer
 
-from .excitation import STRATEGIES, Excitation
+from .excitation import STRATEGIES, ArmReference, Excitation
 from .identifier_core import Identifier, IdentifierConfig
 from .model import SensorNoise
 
@@ -62,6 +63,10 @@ SPECS = {
     'ft_torque_limit_nm': ParamSpec(50.0, 'F/T torque saturation', lo=0.1, hi=1e4),
     'ft_force_noise_std_n': ParamSpec(0.0, 'F/T force noise 1-sigma (datasheet; WrenchStamped '
                                       'has no covariance); 0 = unknown', lo=0.0, hi=100.0),
+    'inclinometer_weight': ParamSpec(0.0, 'share of the inclinometer in the roll/pitch angle '
+                                     '(rest: integrated gyro); 0: its step is coarser than the '
+                                     'dynamic tilt (10 bits over +-20 deg, app. D)',
+                                     lo=0.0, hi=1.0, read_only=True),
     'bias_compensation': ParamSpec(True, 'remove the errors-in-variables bias using the sensor '
                                    'noise covariances of the messages', read_only=True),
 }
@@ -74,12 +79,13 @@ class IdentifierNode(Node):
         self.bad = BadInputCounter(self)
         self._lock = threading.Lock()
         self._sensors = MutuallyExclusiveCallbackGroup()
-        self._imu: deque[tuple[float, Imu]] = deque(maxlen=50)
-        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=50)
-        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=50)
+        self._imu: deque[tuple[float, Imu]] = deque(maxlen=100)
+        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=100)
+        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=100)
         self._last_stamp = {'imu': -math.inf, 'inclinometer': -math.inf, 'wrench': -math.inf}
         self._last_sample_t = -math.inf
         self._buffer: list[tuple[float, np.ndarray]] = []
+        self._last_sample: tuple[float, np.ndarray] | None = None
         self.ident: Identifier | None = None
         self._current_exc: Excitation | None = None
         self._active = threading.Event()
@@ -88,11 +94,14 @@ class IdentifierNode(Node):
         self._t_now = 0.0
         self._windows = 0
         self._exc_t0 = 0.0
-        self.create_subscription(Imu, 'imu', self._on_imu, SENSOR_QOS,
+        self._ref = ArmReference(MODES)
+        # best effort as the publishers, but a 2 s queue: a window's processing (the excitation
+        # optimisation) must not drop the samples that arrive meanwhile
+        deep = QoSProfile(**{**_qos_kwargs(SENSOR_QOS), 'depth': 400})
+        self.create_subscription(Imu, 'imu', self._on_imu, deep, callback_group=self._sensors)
+        self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, deep,
                                  callback_group=self._sensors)
-        self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, SENSOR_QOS,
-                                 callback_group=self._sensors)
-        self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, SENSOR_QOS,
+        self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep,
                                  callback_group=self._sensors)
         self.create_subscription(JointState, 'joint_states', self._on_joints, SENSOR_QOS,
                                  callback_group=self._sensors)
@@ -191,8 +200,19 @@ class IdentifierNode(Node):
     def _on_sample(self, t: float, row: np.ndarray) -> None:
         if not self._active.is_set() or self.ident is None:
             return
-        if self._buffer and t - self._buffer[-1][0] > self.p['stale_timeout_s']:
-            self.bad.reject('gap in sample stream', f'{t - self._buffer[-1][0]:.3f} s')
+        last = self._last_sample
+        if last is not None and t - last[0] > self.p['stale_timeout_s']:
+            self.bad.reject('gap in sample stream', f'{t - last[0]:.3f} s')
+        elif last is not None:
+            # The filter bank assumes a uniform sample stream (its integrators would lose the
+            # missing samples' area): fill a short gap of lost (best-effort) samples linearly.
+            missing = int(round((t - last[0]) * self.p['rate_hz'])) - 1
+            for j in range(1, missing + 1):
+                u = j / (missing + 1)
+                self._buffer.append((last[0] + u * (t - last[0]), (1 - u) * last[1] + u * row))
+            if missing > 0:
+                self.bad.reject('lost samples filled', f'{missing}')
+        self._last_sample = (t, row)
         self._buffer.append((t, row))
         self._t_now = t
         if self._t0 is None:   # first sample of a goal: the rover is at rest, start the arm
@@ -247,23 +267,34 @@ class IdentifierNode(Node):
         self.pub_params.publish(self._estimate_msg())
 
     def _command_arm(self) -> None:
-        """Send the next window (+ margin) of f(t) for the current rotation mode."""
-        mode = int((self._t_now - self._t0) // self.p['mode_period_s']) % 3
-        joint, hold1, _ = MODES[mode]
+        """Send the next window (+ margin) of f(t) for the current rotation mode.
+
+        A new mode or excitation never steps the command: the arm blends from the trajectory
+        it follows into the new one with a quintic smoothstep, slow enough for the joint speed
+        limit. (A step makes the effort-limited PD whip the arm at tens of rad/s: base loads of
+        ~100 N for a few ms, far outside the small-motion model of Eq. 2-1.)"""
+        now = self._t_now
+        mode = int((now - self._t0) // self.p['mode_period_s']) % 3
         exc: Excitation = self._current_exc
+        horizon = 3.0 * self.p['window_s']     # margin for a late next window
+        here = np.array([self.joint_positions.get('arm_joint_1', 0.0),
+                         self.joint_positions.get('arm_joint_2', 0.0)])
+        self._ref.update(now, mode, exc, self._exc_t0, here, horizon)
         traj = JointTrajectory()
+        # stamped with the sample time the points refer to: the command reaches the arm a
+        # processing + transport delay later, and a `0 = now` start would shift the reference
+        # back by that delay (a step the effort-limited joints answer with a whip)
+        traj.header.stamp.sec = int(now)
+        traj.header.stamp.nanosec = int(round((now - int(now)) * 1e9)) % 1_000_000_000
         traj.joint_names = ['arm_joint_1', 'arm_joint_2']
-        horizon = 1.5 * self.p['window_s']
         # resolve the sinusoid: >= 20 points per period (the controller interpolates linearly)
         step = min(0.05, 2 * math.pi / exc.frequency_rad_s / 20)
         for k in range(int(horizon / step) + 1):
             tk = k * step
-            f, fd, _ = exc(self._t_now - self._exc_t0 + tk)
+            q, qd = self._ref(now + tk)
             pt = JointTrajectoryPoint()
-            if joint == 'arm_joint_1':
-                pt.positions, pt.velocities = [float(f), 0.0], [float(fd), 0.0]
-            else:
-                pt.positions, pt.velocities = [hold1, float(f)], [0.0, float(fd)]
+            pt.positions = [float(v) for v in q]
+            pt.velocities = [float(v) for v in qd]
             pt.time_from_start = Duration(sec=int(tk), nanosec=int((tk % 1) * 1e9))
             traj.points.append(pt)
         self.pub_cmd.publish(traj)
@@ -296,14 +327,16 @@ class IdentifierNode(Node):
             strategy=goal.strategy or self.p['strategy'], rate_hz=self.p['rate_hz'],
             window_s=self.p['window_s'], decimation=self.p['decimation'],
             bits=self.p['information_bits'], accelerometer=self.p['use_accelerometer'],
-            drift_per_s=self.p['drift_per_s'])
+            drift_per_s=self.p['drift_per_s'], incl_weight=self.p['inclinometer_weight'])
         noise = self._sensor_noise()
         with self._lock:
             self.ident = Identifier(cfg, sensor_noise=noise)
             self._current_exc = self.ident.excitation
             self._buffer.clear()
+            self._last_sample = None
             self._t0 = None
             self._windows = 0
+            self._ref = ArmReference(MODES)
         self.get_logger().info(f'identifying with {cfg.strategy} for {goal.duration_s} s')
         self._active.set()
         result = Identify.Result()
@@ -336,6 +369,11 @@ class IdentifierNode(Node):
         result.estimate = self._estimate_msg()
         self.get_logger().info(f'identification done: {result.message}')
         return result
+
+
+def _qos_kwargs(q: QoSProfile) -> dict:
+    return {'history': q.history, 'depth': q.depth, 'reliability': q.reliability,
+            'durability': q.durability}
 
 
 def _nearest(buf: deque, t: float, tol: float):

@@ -101,12 +101,15 @@ _EI = inertia_basis()
 
 
 def raw_channels(*, specific_force: np.ndarray, gyro: np.ndarray, incl_roll_pitch: np.ndarray,
-                 force: np.ndarray, torque: np.ndarray) -> dict[str, np.ndarray]:
+                 force: np.ndarray, torque: np.ndarray,
+                 tilt: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per-sample products of Eq. 2-1 formed before filtering ((n, 3) inputs, one arm mode).
 
     Returns the channels the filter bank consumes: kinematic acceleration a (Eq. 2-1
     d(R_0^-1 g) term), gyro, inclinometer roll/pitch, gyroscopic regressor
-    th_d x (E_j th_d), force F, theta x F and torque N.
+    th_d x (E_j th_d), force F, theta x F and torque N. `tilt` (n, 2): the base roll/pitch to
+    use in the two products (default: the inclinometer), e.g. from TiltTracker when the
+    inclinometer's resolution is coarser than the tilt the excitation produces.
     """
     arrays = [np.asarray(a, dtype=float) for a in
               (specific_force, gyro, incl_roll_pitch, force, torque)]
@@ -117,8 +120,11 @@ def raw_channels(*, specific_force: np.ndarray, gyro: np.ndarray, incl_roll_pitc
         if a.shape != shp:
             raise ModelError(f'{name}: expected shape {shp}, got {a.shape}')
     f_sp, w, incl, force, torque = arrays
-    theta_tilt = np.column_stack([incl, np.zeros(n)])
-    tilt_x_z = np.column_stack([incl[:, 1], -incl[:, 0], np.zeros(n)])  # theta x z_hat
+    tl = incl if tilt is None else np.asarray(tilt, dtype=float)
+    if tl.shape != (n, 2):
+        raise ModelError(f'tilt: expected shape {(n, 2)}, got {tl.shape}')
+    theta_tilt = np.column_stack([tl, np.zeros(n)])
+    tilt_x_z = np.column_stack([tl[:, 1], -tl[:, 0], np.zeros(n)])  # theta x z_hat
     acc = f_sp + GRAVITY * tilt_x_z
     acc[:, 2] -= GRAVITY
     gyro_reg = cross(w[:, None, :], np.einsum('jab,nb->nja', _EI, w))  # (n, 6, 3)
@@ -164,7 +170,7 @@ def assemble_rows(*, acc: np.ndarray, vel: np.ndarray, pos: np.ndarray, th: np.n
 
 
 class FilterBank:
-    """Streaming band-pass W(s) = s^3 l2^2 / ((s + l1)^3 (s + l2)^2) and its s^-2 .. s^1 siblings.
+    """Streaming band-pass W(s) = s^3 l2^2 / ((s + l1)^3 (s + l2)^2) and its s^-2 .. s^2 siblings.
 
     The same W is applied to every column and the right-hand side so the filtered equation is
     exact (x constant). Three zeros at s = 0 so even W/s^2 (position from acceleration) blocks
@@ -182,7 +188,7 @@ class FilterBank:
         # numerically useless
         self._sos = {p: signal.zpk2sos(*signal.bilinear_zpk([0.0] * (3 + p), poles, l2 ** 2,
                                                              fs=rate_hz))
-                     for p in (-2, -1, 0, 1)}
+                     for p in (-2, -1, 0, 1, 2)}
         self._state: dict[tuple[str, int], np.ndarray] = {}
 
     def apply(self, name: str, power: int, x: np.ndarray) -> np.ndarray:
@@ -201,13 +207,18 @@ class FilterBank:
 
 
 def filtered_rows(bank: FilterBank, ch: dict[str, np.ndarray], *, accelerometer: bool = True,
-                  tag: str = '') -> tuple[np.ndarray, np.ndarray]:
-    """Filter the raw channels of one arm mode and assemble Eq. 2-1 rows (see module doc)."""
+                  tag: str = '', incl_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Filter the raw channels of one arm mode and assemble Eq. 2-1 rows (see module doc).
+
+    incl_weight: share of the inclinometer in the roll/pitch angle columns (the rest: the
+    integrated gyro). 0 when the inclinometer cannot resolve the dynamic tilt."""
     f = bank.apply
     gyro_int = f(tag + 'gyro', -1, ch['gyro'])
     th = gyro_int.copy()
-    # roll/pitch seen twice (inclinometer and integrated gyro): average the two
-    th[:, 0:2] = 0.5 * (gyro_int[:, 0:2] + f(tag + 'incl', 0, ch['incl']))
+    if incl_weight > 0:
+        # roll/pitch seen twice (inclinometer and integrated gyro): weigh the two
+        th[:, 0:2] = ((1.0 - incl_weight) * gyro_int[:, 0:2]
+                      + incl_weight * f(tag + 'incl', 0, ch['incl']))
     return assemble_rows(
         acc=f(tag + 'acc', 0, ch['acc']), vel=f(tag + 'acc', -1, ch['acc']),
         pos=f(tag + 'acc', -2, ch['acc']), th=th, th_d=f(tag + 'gyro', 0, ch['gyro']),
@@ -242,8 +253,8 @@ class SensorNoise:
     force: np.ndarray            # (3,) N
 
 
-def regressor_noise(noise: SensorNoise, gram: np.ndarray, *, accelerometer: bool = True
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def regressor_noise(noise: SensorNoise, gram: np.ndarray, *, accelerometer: bool = True,
+                    incl_weight: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Errors-in-variables statistics of the filtered rows (see filtered_rows):
     (6, 22, 22) covariance of the noise in each row's regressors and (6, 22) covariance between
     that noise and the row's right-hand-side noise. Used to remove the attenuation bias of
@@ -253,6 +264,8 @@ def regressor_noise(noise: SensorNoise, gram: np.ndarray, *, accelerometer: bool
     cxy = np.zeros((6, N_PARAMS))
     s_f, s_w, s_i, s_fo = (np.asarray(v, dtype=float) for v in
                            (noise.specific_force, noise.gyro, noise.incl, noise.force))
+    if incl_weight == 0:
+        s_i = np.zeros(2)        # tilt from the integrated gyro (TiltTracker): no incl noise
     if accelerometer:
         # acc_kin = f + g theta x z: x row sees pitch, y row sees roll
         tilt = (s_i[1], s_i[0], 0.0)
@@ -275,16 +288,44 @@ def regressor_noise(noise: SensorNoise, gram: np.ndarray, *, accelerometer: bool
         # theta_dd_j (gyro_j through W s) in the inertia column coupling row i with axis j
         for j in range(3):
             cov[r, IDX[inert[i][j]], IDX[inert[i][j]]] += s_w[j] ** 2 * g[3, 3]
-        # gyro_i also drives b_th (W) and, half of it, k_th (W/s); inclinometer the other half
+        # gyro_i also drives b_th (W) and, its share, k_th (W/s); inclinometer the rest
         c_dd, c_b, c_k = IDX[inert[i][i]], IDX[B_TH[i]], IDX[K_TH[i]]
-        wk = 0.5 if i < 2 else 1.0
+        wk = 1.0 - incl_weight if i < 2 else 1.0
         for a_, pa, ca in ((c_dd, 3, 1.0), (c_b, 2, 1.0), (c_k, 1, wk)):
             for b_, pb, cb in ((c_dd, 3, 1.0), (c_b, 2, 1.0), (c_k, 1, wk)):
                 if a_ == c_dd and b_ == c_dd:
                     continue
                 cov[r, a_, b_] += ca * cb * s_w[i] ** 2 * g[pa, pb]
         if i < 2:
-            cov[r, c_k, c_k] += 0.25 * s_i[i] ** 2 * g[2, 2]
+            cov[r, c_k, c_k] += incl_weight ** 2 * s_i[i] ** 2 * g[2, 2]
         for name, comp in cg_cols[i]:
             cov[r, IDX[name], IDX[name]] += s_fo[comp] ** 2 * g[2, 2]
     return cov, cxy
+
+
+class TiltTracker:
+    """Base roll/pitch at the sample rate from the gyro, integrated from rest (trapezoid), held
+    to the inclinometer only at very low frequency (complementary filter, crossover
+    `crossover_rad_s`). For the products theta x F and g theta x z, which need the angle before
+    filtering, when the inclinometer's step is coarser than the dynamic tilt."""
+
+    def __init__(self, *, rate_hz: float = 200.0, crossover_rad_s: float = 0.2) -> None:
+        self.dt, self.c = 1.0 / rate_hz, crossover_rad_s
+        self._theta: np.ndarray | None = None
+        self._w_prev = np.zeros(2)
+
+    def update(self, gyro: np.ndarray, incl: np.ndarray) -> np.ndarray:
+        """(n, 2) roll/pitch for (n, 3) gyro and (n, 2) inclinometer samples."""
+        gyro, incl = np.asarray(gyro, dtype=float), np.asarray(incl, dtype=float)
+        out = np.empty((gyro.shape[0], 2))
+        th = self._theta
+        for k in range(gyro.shape[0]):
+            w = gyro[k, :2]
+            if th is None:       # at rest: start from the inclinometer
+                th, self._w_prev = incl[k].copy(), w
+            else:
+                th = th + 0.5 * self.dt * (w + self._w_prev) + self.c * self.dt * (incl[k] - th)
+                self._w_prev = w
+            out[k] = th
+        self._theta = th
+        return out

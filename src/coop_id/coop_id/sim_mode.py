@@ -17,14 +17,14 @@ import numpy as np
 def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
                            settle_s: float = 3.0, timeout_s: float = 600.0) -> dict:
     import rclpy  # noqa: PLC0415 - only this mode needs ROS
-    from coop_msgs.action import Identify  # noqa: PLC0415
-    from coop_msgs.msg import DynamicParameters  # noqa: PLC0415
     from rclpy.action import ActionClient  # noqa: PLC0415
     from rclpy.node import Node  # noqa: PLC0415
 
     from coop_common.dynparams import PARAM_NAMES  # noqa: PLC0415
     from coop_common.qos import LATCHED_QOS  # noqa: PLC0415
     from coop_common.testing import NodeProcess, isolate_ros_environment  # noqa: PLC0415
+    from coop_msgs.action import Identify  # noqa: PLC0415
+    from coop_msgs.msg import DynamicParameters  # noqa: PLC0415
 
     isolate_ros_environment(int(os.environ.get('COOP_SIM_DOMAIN_ID', '0')) or None)
     logs = Path(tempfile.mkdtemp(prefix='coop_id_sim_'))

@@ -3,8 +3,12 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from coop_id.estimators import (EstimationError, RankDeficientError, RecursiveEstimator,
-                                batch_estimate)
+from coop_id.estimators import (
+    EstimationError,
+    RankDeficientError,
+    RecursiveEstimator,
+    batch_estimate,
+)
 
 
 def _problem(seed=0, m=600, n=5, noise=0.01):

@@ -3,8 +3,15 @@ import numpy as np
 import pytest
 
 from coop_common.dynparams import load_truth
-from coop_id.excitation import (CostContext, ExcitationBounds, ExcitationError,
-                                WindowPredictor, constant_excitation, optimise, residuals)
+from coop_id.excitation import (
+    CostContext,
+    ExcitationBounds,
+    ExcitationError,
+    WindowPredictor,
+    constant_excitation,
+    optimise,
+    residuals,
+)
 from coop_id.model import ArmModel, load_prior_ranges
 
 

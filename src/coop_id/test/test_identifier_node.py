@@ -5,8 +5,6 @@ import threading
 import numpy as np
 import pytest
 import rclpy
-from coop_msgs.action import Identify
-from coop_msgs.msg import DynamicParameters, Inclinometer
 from geometry_msgs.msg import WrenchStamped
 from rclpy.action import ActionClient
 from rclpy.context import Context
@@ -22,6 +20,8 @@ from coop_common.testing import pick_domain_id, wait_for
 from coop_id.excitation import constant_excitation
 from coop_id.identifier_node import IdentifierNode
 from coop_id.modelsim import ThesisRover, stack_frames
+from coop_msgs.action import Identify
+from coop_msgs.msg import DynamicParameters, Inclinometer
 
 MODE = 2  # the arm rotating about z
 

@@ -2,8 +2,12 @@
 import numpy as np
 import pytest
 
-from coop_id.information import (InformationError, mutual_information_bits,
-                                 observability_matrix, rank_test)
+from coop_id.information import (
+    InformationError,
+    mutual_information_bits,
+    observability_matrix,
+    rank_test,
+)
 
 
 def test_information_limits_for_a_10_bit_sensor():

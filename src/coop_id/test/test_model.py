@@ -4,8 +4,16 @@ import pytest
 
 from coop_common.dynparams import PARAM_NAMES, load_truth
 from coop_id.estimators import batch_estimate
-from coop_id.model import (GRAVITY, IDX, FilterBank, ModelError, assemble_rows, filtered_rows,
-                           load_prior_ranges, raw_channels)
+from coop_id.model import (
+    GRAVITY,
+    IDX,
+    FilterBank,
+    ModelError,
+    assemble_rows,
+    filtered_rows,
+    load_prior_ranges,
+    raw_channels,
+)
 from coop_id.modelsim import ThesisRover, stack_frames
 
 
