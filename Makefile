@@ -8,7 +8,7 @@ ENV := . $(ROOT)/tools/env.sh
 BUILD_INPUTS := $(shell find msg src -type f -not -path '*/__pycache__/*' -not -name '*.pyc' 2>/dev/null)
 PYTEST_ARGS ?=
 
-.PHONY: all venv build demo test test-unit test-graph bench lock clean distclean
+.PHONY: all venv build demo test lint bench lock clean distclean
 
 all: build
 
@@ -28,6 +28,9 @@ demo: build
 
 test: build
 	$(ENV) && python -m pytest $(PYTEST_ARGS)
+
+lint: venv
+	$(ENV) && ruff check .
 
 bench: build
 	$(ENV) && for b in bench/*.py; do python $$b --json out/bench/$$(basename $$b .py).json; done

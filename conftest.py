@@ -1,4 +1,4 @@
-"""Every test run gets its own ROS domain and single-threaded BLAS before anything imports rclpy."""
+"""Every test run gets its own ROS domain and single-threaded BLAS before rclpy is imported."""
 import os
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')

@@ -22,7 +22,6 @@ import json
 import os
 import re
 import shutil
-import statistics
 import sys
 import tempfile
 import threading
@@ -49,10 +48,11 @@ SENSOR = [make_qos(reliable=False, transient_local=False, depth=5)]
 def sim_mix(ts, n: int, seed: int = 0) -> list[tuple[str, str, int, bytes]]:
     """n messages of the sim's 200 Hz topics (2 rovers x imu, inclinometer, wrench, joints)."""
     rng = np.random.default_rng(seed)
-    from rclpy.serialization import serialize_message
-    from coop_msgs.msg import Inclinometer
     from geometry_msgs.msg import WrenchStamped
+    from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Imu, JointState
+
+    from coop_msgs.msg import Inclinometer
     kinds = []
     for r in ('rover1', 'rover2'):
         imu = Imu()
@@ -143,14 +143,15 @@ def _ros():
 
 
 def bench_live_record(seconds: float, tmp: Path) -> dict:
-    from coop_common.qos import CLOCK_QOS, SENSOR_QOS
-    from coop_common.testing import NodeProcess, wait_for
-    from coop_msgs.msg import Inclinometer
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import Image, Imu, JointState
     from std_msgs.msg import String
+
+    from coop_common.qos import CLOCK_QOS, SENSOR_QOS
+    from coop_common.testing import NodeProcess, wait_for
+    from coop_msgs.msg import Inclinometer
 
     ctx, node, ex = _ros()
     pubs = {}
@@ -251,10 +252,11 @@ def _count_flushed(path: Path, topic: str) -> int:
 
 
 def bench_play_jitter(seconds: float, tmp: Path) -> dict:
-    from coop_common.testing import NodeProcess, wait_for
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Imu
+
+    from coop_common.testing import NodeProcess, wait_for
 
     n = int(seconds * 200)
     path = tmp / 'play200'

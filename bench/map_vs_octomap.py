@@ -38,9 +38,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
 from coop_mapping.stereo import StereoCamera, StereoRanger  # noqa: E402
-from coop_mapping.voxelmap import (FREE, OCCUPIED, UNKNOWN, VoxelMap, pack_keys,  # noqa: E402
-                                   unpack_keys)
-
+from coop_mapping.voxelmap import FREE, OCCUPIED, UNKNOWN, VoxelMap, pack_keys, unpack_keys  # noqa: E402
 
 PLANE_Z = 0.013
 #: Eq. 3-6/3-7 range-noise constant of the VGA camera (0.5 px, f = 851 px, b = 38 mm)

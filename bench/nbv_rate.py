@@ -16,9 +16,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'coop_viewp
 import numpy as np  # noqa: E402
 
 from coop_viewplan.grid import OccupancyGrid, markov_estimate  # noqa: E402
-from coop_viewplan.nbv import (CameraState, InfoLookup, NbvConfig,  # noqa: E402
-                               NextBestViewPlanner, score_views)
-from coop_viewplan.placement import CameraModel, TaskPlacer, Target  # noqa: E402
+from coop_viewplan.nbv import CameraState, InfoLookup, NbvConfig, NextBestViewPlanner, score_views  # noqa: E402
+from coop_viewplan.placement import CameraModel, Target, TaskPlacer  # noqa: E402
 from coop_viewplan.task_study import StudyConfig, make_scenario  # noqa: E402
 
 

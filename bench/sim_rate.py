@@ -18,6 +18,7 @@ from pathlib import Path
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import pybullet as pb  # noqa: E402
+
 from coop_common.dynparams import load_truth  # noqa: E402
 from rover_sim.config import SimConfig  # noqa: E402
 from rover_sim.world import World  # noqa: E402
@@ -58,9 +59,10 @@ def node_rtf(seconds: float) -> float | None:
     """The installed node at real_time_factor 0, stereo 4 Hz 320x240, measured from /clock."""
     try:
         import rclpy
-        from coop_common.testing import NodeProcess, isolate_ros_environment
         from rclpy.node import Node
         from rosgraph_msgs.msg import Clock
+
+        from coop_common.testing import NodeProcess, isolate_ros_environment
     except ImportError:
         return None
     isolate_ros_environment()

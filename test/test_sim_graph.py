@@ -11,10 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
-from coop_common.qos import LATCHED_QOS, SENSOR_QOS
-from coop_common.testing import NodeProcess, executable_path, wait_for
-from coop_msgs.msg import DynamicParameters, Inclinometer
-from coop_msgs.srv import SimScenario
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -25,6 +21,11 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
+
+from coop_common.qos import LATCHED_QOS, SENSOR_QOS
+from coop_common.testing import NodeProcess, executable_path, wait_for
+from coop_msgs.msg import DynamicParameters, Inclinometer
+from coop_msgs.srv import SimScenario
 
 pytestmark = pytest.mark.graph
 
@@ -74,6 +75,7 @@ def sim_process(tmp_path: Path, *ros_args: str, name: str = 'sim') -> NodeProces
 def soft_truth(tmp_path_factory) -> Path:
     """A rover with a soft roll/pitch suspension, so the tilt is far above the 10-bit step."""
     import yaml
+
     from coop_common.dynparams import load_truth
     d = load_truth().to_dict()
     d.update(k_roll=250.0, k_pitch=200.0)

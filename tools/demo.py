@@ -11,23 +11,23 @@ import argparse
 import contextlib
 import sys
 import threading
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import rclpy
-from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
-from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
-from coop_msgs.msg import Inclinometer, VoxelMap
-from coop_msgs.srv import MapFile
-from nav_msgs.msg import OccupancyGrid
 from geometry_msgs.msg import Twist, WrenchStamped
+from nav_msgs.msg import OccupancyGrid
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
+from coop_msgs.msg import Inclinometer, VoxelMap
+from coop_msgs.srv import MapFile
 
 ROVERS = ('rover1', 'rover2')
 
@@ -114,7 +114,8 @@ class DemoNode(Node):
         a = imu.linear_acceleration
         return (f'{r}: tilt roll {np.degrees(inc.roll):+6.2f} pitch {np.degrees(inc.pitch):+6.2f} '
                 f'deg | accel ({a.x:+5.2f} {a.y:+5.2f} {a.z:+5.2f}) m/s^2 | F ({w.force.x:+5.2f} '
-                f'{w.force.y:+5.2f} {w.force.z:+5.2f}) N  T ({w.torque.x:+5.2f} {w.torque.y:+5.2f} '
+                f'{w.force.y:+5.2f} {w.force.z:+5.2f}) N  '
+                f'T ({w.torque.x:+5.2f} {w.torque.y:+5.2f} '
                 f'{w.torque.z:+5.2f}) N m | arm j2 {pos["arm_joint_2"]:+5.2f} rad | mast pan '
                 f'{pos["mast_pan"]:+5.2f} rad | wheel fl {vel["wheel_fl"]:+5.2f} rad/s')
 

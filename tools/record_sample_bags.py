@@ -286,7 +286,7 @@ def write_readme(out: Path, lines) -> None:
         f'{size:.1f} | `python tools/record_sample_bags.py --only {run.name}` (sim '
         f'`{" ".join(a for a in run.sim_args if a != "-p")}`, {run.seconds:g} sim-s) |'
         for run, info, size in lines)
-    (out / 'README.md').write_text(f'''# Sample bags
+    (out / 'README.md').write_text(f"""# Sample bags
 
 rosbag2 bags (metadata version 9, MCAP storage, zstd chunks) recorded from `rover_sim` by
 `rover_bag record` with `use_sim_time` (bag time = sim time). Regenerate all of them with
@@ -300,7 +300,7 @@ Replay one into the graph: `ros2 run rover_bag play bags/<name> --ros-args -p ra
 | bag | what | sim-s | messages | MB | how it was recorded |
 |---|---|---|---|---|---|
 {rows}
-''')
+""")
 
 
 if __name__ == '__main__':

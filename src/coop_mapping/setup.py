@@ -14,7 +14,7 @@ setup(
     zip_safe=True,
     maintainer='Coop Field Robots maintainers',
     maintainer_email='maintainers@coop-field-robots.org',
-    description='Shared probabilistic 3-D voxel map from all rovers\' stereo (Sujan 2002 ch. 3.2).',
+    description="Shared probabilistic 3-D voxel map from all rovers' stereo (Sujan 2002 ch. 3.2).",
     license='Apache-2.0',
     entry_points={'console_scripts': [
         'fig_3_24 = coop_mapping.fig_3_24:main',

@@ -63,8 +63,8 @@ class BaseParameters:
         return cls(
             mass=d['mass'], inertia=inertia,
             cg_to_arm=np.array([d['cg_x'], d['cg_y'], d['cg_z']]),
-            damping=np.array([d['b_x'], d['b_y'], d['b_z'], d['b_roll'], d['b_pitch'], d['b_yaw']]),
-            stiffness=np.array([d['k_x'], d['k_y'], d['k_z'], d['k_roll'], d['k_pitch'], d['k_yaw']]),
+            damping=np.array([d[f'b_{a}'] for a in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]),
+            stiffness=np.array([d[f'k_{a}'] for a in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')]),
         )
 
     def to_vector(self) -> np.ndarray:

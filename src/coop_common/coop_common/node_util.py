@@ -8,8 +8,12 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -95,8 +99,9 @@ class BadInputCounter:
 
     def reject(self, reason: str, detail: str = '') -> None:
         self.counts[reason] += 1
+        suffix = f': {detail}' if detail else ''
         self._node.get_logger().warn(
-            f'skipped input ({reason}, {self.counts[reason]} so far){": " + detail if detail else ""}',
+            f'skipped input ({reason}, {self.counts[reason]} so far){suffix}',
             throttle_duration_sec=self._period)
 
     @property

@@ -1,8 +1,13 @@
 """QoS profiles of the graph (house style: sensor streams, latched state, commands)."""
 from __future__ import annotations
 
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
+from rclpy.qos import (
+                       DurabilityPolicy,
+                       HistoryPolicy,
+                       QoSProfile,
+                       ReliabilityPolicy,
+                       qos_profile_sensor_data,
+)
 
 #: Sensor streams: best effort, keep last 5 (publishers and subscribers alike).
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data

@@ -1,5 +1,5 @@
 """Test isolation for node and whole-graph tests: a private ROS domain per test run, starting the
-installed executables the way `ros2 run` finds them, and waiting on conditions instead of sleeping."""
+installed executables the way `ros2 run` finds them, and waiting on conditions, not sleeping."""
 from __future__ import annotations
 
 import os

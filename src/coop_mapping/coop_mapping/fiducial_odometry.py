@@ -14,8 +14,17 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .motion import (FiducialWeights, MotionError, RecursivePoseStats, certainty_term,
-                     ekf_point_update, fiducial_scores, robust_g01, select_fiducials, track)
+from .motion import (
+    FiducialWeights,
+    MotionError,
+    RecursivePoseStats,
+    certainty_term,
+    ekf_point_update,
+    fiducial_scores,
+    robust_g01,
+    select_fiducials,
+    track,
+)
 from .stereo import ErrorModel, StereoCamera, disparity_to_points
 from .voxelmap import VoxelMap
 

@@ -17,9 +17,6 @@ import time
 from collections import OrderedDict
 
 import numpy as np
-from coop_msgs.msg import VoxelMap as VoxelMapMsg
-from coop_msgs.msg import VoxelMapUpdate
-from coop_msgs.srv import MapFile, QueryMap
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
@@ -29,6 +26,9 @@ from std_srvs.srv import Trigger
 
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_msgs.msg import VoxelMap as VoxelMapMsg
+from coop_msgs.msg import VoxelMapUpdate
+from coop_msgs.srv import MapFile, QueryMap
 
 from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, voxelset
 from .voxelmap import MapFileError, MapInputError, VoxelMap
@@ -263,7 +263,7 @@ class MapperNode(Node):
             m = VoxelMap.load(path)
             if m.resolution != self.map.resolution:
                 raise MapFileError(f'{path}: resolution {m.resolution} differs from the '
-                                   f'node\'s {self.map.resolution}')
+                                   f"node's {self.map.resolution}")
         except MapFileError as exc:
             resp.success, resp.message = False, f'{exc} (current map kept)'
             resp.voxels, resp.sequence = len(self.map), self.map.sequence

@@ -9,9 +9,10 @@ from __future__ import annotations
 import array
 
 import numpy as np
-from coop_msgs.msg import VoxelSet
 from geometry_msgs.msg import Pose
 from sensor_msgs.msg import PointCloud2, PointField
+
+from coop_msgs.msg import VoxelSet
 
 from .gauss import sym6_from_cholesky
 from .voxelmap import LOGODDS_SCALE, VoxelMap, unpack_keys

@@ -47,8 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .gauss import (NotPositiveDefinite, sym6_cholesky, sym6_from_cholesky, sym6_inv,
-                    sym6_matvec)
+from .gauss import NotPositiveDefinite, sym6_cholesky, sym6_from_cholesky, sym6_inv, sym6_matvec
 
 __all__ = ['OccupancyModel', 'VoxelMap', 'InsertResult', 'MapFileError', 'MapInputError',
            'pack_keys', 'unpack_keys', 'ray_voxel_keys', 'FREE', 'OCCUPIED', 'UNKNOWN']

@@ -5,12 +5,12 @@ import math
 import numpy as np
 import pytest
 import rclpy
-from coop_msgs.msg import VoxelMap as VoxelMapMsg
 from rclpy.executors import SingleThreadedExecutor
 from visualization_msgs.msg import Marker, MarkerArray
 
 from coop_common.qos import LATCHED_QOS
 from coop_common.testing import NodeProcess, executable_path, wait_for
+from coop_msgs.msg import VoxelMap as VoxelMapMsg
 
 pytestmark = pytest.mark.graph
 

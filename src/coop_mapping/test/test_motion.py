@@ -3,10 +3,19 @@ import cv2
 import numpy as np
 import pytest
 
-from coop_mapping.motion import (FiducialWeights, MotionError, RecursivePoseStats,
-                                 certainty_term, ekf_point_update, robust_g01,
-                                 select_fiducials, solve_g01, solve_rigid, track,
-                                 visual_contrast)
+from coop_mapping.motion import (
+    FiducialWeights,
+    MotionError,
+    RecursivePoseStats,
+    certainty_term,
+    ekf_point_update,
+    robust_g01,
+    select_fiducials,
+    solve_g01,
+    solve_rigid,
+    track,
+    visual_contrast,
+)
 
 
 def _pose(seed=0):

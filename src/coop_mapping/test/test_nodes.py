@@ -2,9 +2,6 @@
 import numpy as np
 import pytest
 import rclpy
-from coop_msgs.msg import VoxelMap as VoxelMapMsg
-from coop_msgs.msg import VoxelMapUpdate
-from coop_msgs.srv import MapFile, QueryMap
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -19,6 +16,9 @@ from coop_common.testing import wait_for
 from coop_mapping.mapper_node import MapperNode
 from coop_mapping.ros_conv import cloud_to_msg, msg_to_cloud
 from coop_mapping.stereo_node import StereoNode
+from coop_msgs.msg import VoxelMap as VoxelMapMsg
+from coop_msgs.msg import VoxelMapUpdate
+from coop_msgs.srv import MapFile, QueryMap
 
 
 @pytest.fixture

@@ -5,9 +5,16 @@ import numpy as np
 import pytest
 
 from coop_mapping.gauss import mat_from_sym6
-from coop_mapping.stereo import (ErrorModel, StereoCamera, StereoError, StereoRanger,
-                                 compute_disparity, disparity_to_points, disparity_to_range,
-                                 range_sigma)
+from coop_mapping.stereo import (
+    ErrorModel,
+    StereoCamera,
+    StereoError,
+    StereoRanger,
+    compute_disparity,
+    disparity_to_points,
+    disparity_to_range,
+    range_sigma,
+)
 
 
 def test_disparity_to_range_and_sigma_hand_computed():

@@ -2,11 +2,27 @@
 import numpy as np
 import pytest
 
-from coop_mapping.gauss import (mat_from_sym6, merge_two, rotate_sym6, sym6_cholesky,
-                                sym6_from_cholesky, sym6_from_mat, sym6_inv)
-from coop_mapping.voxelmap import (FREE, OCCUPIED, UNKNOWN, MapFileError, MapInputError,
-                                   OccupancyModel, VoxelMap, pack_keys, ray_voxel_keys,
-                                   unpack_keys)
+from coop_mapping.gauss import (
+    mat_from_sym6,
+    merge_two,
+    rotate_sym6,
+    sym6_cholesky,
+    sym6_from_cholesky,
+    sym6_from_mat,
+    sym6_inv,
+)
+from coop_mapping.voxelmap import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    MapFileError,
+    MapInputError,
+    OccupancyModel,
+    VoxelMap,
+    pack_keys,
+    ray_voxel_keys,
+    unpack_keys,
+)
 
 
 def test_two_gaussians_merge_hand_computed():

@@ -12,8 +12,7 @@ import numpy as np
 from scipy import ndimage
 
 from .grid import OccupancyGrid
-from .nbv import (CameraState, NbvConfig, NextBestViewPlanner, PlanningError, _disk,
-                  plan_cameras)
+from .nbv import CameraState, NbvConfig, NextBestViewPlanner, PlanningError, _disk, plan_cameras
 from .raycast import cast
 
 

@@ -13,8 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .task_study import (DENSITIES, METHODS, THESIS_TABLE_4_1, TOLERANCES, rating_maps,
-                         run_study)
+from .task_study import DENSITIES, METHODS, THESIS_TABLE_4_1, TOLERANCES, rating_maps, run_study
 
 LABEL = {'optimal_replacement': 'Optimal camera re-placement',
          'random_replacement': 'Random camera re-placement',

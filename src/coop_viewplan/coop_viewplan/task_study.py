@@ -28,9 +28,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from .grid import OccupancyGrid
-from .placement import (CameraModel, PlacementError, TaskPlacer, Target, VisibilityField,
-                        angular_visibility, depth_of_field, grid_occluders, move_known_object,
-                        occluder_hulls)
+from .placement import (
+    CameraModel,
+    PlacementError,
+    Target,
+    TaskPlacer,
+    VisibilityField,
+    angular_visibility,
+    depth_of_field,
+    grid_occluders,
+    move_known_object,
+    occluder_hulls,
+)
 
 METHODS = ('optimal_replacement', 'random_replacement', 'random_fixed')
 DENSITIES = (0.05, 0.20, 0.35)

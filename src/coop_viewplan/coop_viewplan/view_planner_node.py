@@ -11,17 +11,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from coop_msgs.msg import ViewRating, VoxelMap
-from coop_msgs.srv import NextBestView, TaskView
 from rclpy.node import Node
 
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import LATCHED_QOS
+from coop_msgs.msg import ViewRating, VoxelMap
+from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
 from .grid import MapError, OccupancyGrid
 from .nbv import STRATEGIES, CameraState, NbvConfig, NextBestViewPlanner, PlanningError
-from .placement import CameraModel, PlacementError, TaskPlacer, Target
+from .placement import CameraModel, PlacementError, Target, TaskPlacer
 
 PARAMS = {
     'map_topic': ParamSpec('/map/voxels', 'shared map topic (coop_msgs/VoxelMap, latched)',

@@ -4,8 +4,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from coop_viewplan.imageinfo import (compression_ratio, huffman_length, information_bits,
-                                     residual, shannon_bits)
+from coop_viewplan.imageinfo import (
+    compression_ratio,
+    huffman_length,
+    information_bits,
+    residual,
+    shannon_bits,
+)
 
 
 def test_entropy_and_huffman_on_known_distribution():

@@ -5,9 +5,19 @@ import numpy as np
 import pytest
 
 from coop_viewplan.grid import MapError, OccupancyGrid, markov_estimate
-from coop_viewplan.nbv import (STRATEGIES, CameraState, NbvConfig, NextBestViewPlanner,
-                               PlanningError, binary_entropy, configuration_distance,
-                               make_strategy, plan_cameras, rating_function, score_views)
+from coop_viewplan.nbv import (
+    STRATEGIES,
+    CameraState,
+    NbvConfig,
+    NextBestViewPlanner,
+    PlanningError,
+    binary_entropy,
+    configuration_distance,
+    make_strategy,
+    plan_cameras,
+    rating_function,
+    score_views,
+)
 from coop_viewplan.raycast import cast, make_template
 
 

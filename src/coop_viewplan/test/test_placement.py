@@ -5,10 +5,19 @@ import numpy as np
 import pytest
 
 from coop_viewplan.grid import OccupancyGrid
-from coop_viewplan.placement import (CameraModel, PlacementError, TaskPlacer, Target,
-                                     VisibilityField, angular_visibility, depth_of_field,
-                                     move_known_object, occluder_hulls, occlusion_distance,
-                                     resolution_term)
+from coop_viewplan.placement import (
+    CameraModel,
+    PlacementError,
+    Target,
+    TaskPlacer,
+    VisibilityField,
+    angular_visibility,
+    depth_of_field,
+    move_known_object,
+    occluder_hulls,
+    occlusion_distance,
+    resolution_term,
+)
 
 SQUARE = np.array([[2.0, -0.5], [3.0, -0.5], [3.0, 0.5], [2.0, 0.5]])
 

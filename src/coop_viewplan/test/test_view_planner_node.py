@@ -7,14 +7,14 @@ import os
 import numpy as np
 import pytest
 import rclpy
-from coop_msgs.msg import TaskTarget, VoxelMap
-from coop_msgs.srv import NextBestView, TaskView
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from coop_common.qos import LATCHED_QOS
 from coop_common.testing import wait_for
+from coop_msgs.msg import TaskTarget, VoxelMap
+from coop_msgs.srv import NextBestView, TaskView
 from coop_viewplan.frames import optical_quaternion
 from coop_viewplan.view_planner_node import ViewPlannerNode
 

@@ -16,8 +16,14 @@ from importlib.metadata import version as _dist_version
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
-                                QosTime)
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.errors import ReaderError, WriterError
 from rosbags.rosbag2.storage_mcap import McapWriter, decompress, get_qos, write_record
@@ -66,8 +72,7 @@ class DamagedBagWarning(UserWarning):
 
 def _share_dir(package: str) -> Path | None:
     try:
-        from ament_index_python.packages import (  # noqa: PLC0415 - optional dependency
-            PackageNotFoundError, get_package_share_directory)
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory  # noqa: PLC0415 - optional dependency
     except ImportError:  # pragma: no cover - ament_index_python is in the venv
         return None
     try:

@@ -23,8 +23,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from coop_common.node_util import ParamSpec, declare_parameters
 
-from .bagio import (COMPRESSIONS, BagWriter, UnknownTypeError, make_qos,
-                    make_typestore)
+from .bagio import COMPRESSIONS, BagWriter, UnknownTypeError, make_qos, make_typestore
 from .cli import spin_until_stopped
 from .playback import select_topics, subscription_qos
 

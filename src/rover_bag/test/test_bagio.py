@@ -14,9 +14,18 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as Time
 from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
 
-from rover_bag.bagio import (BagError, BagNotFoundError, BagWriter, DamagedBagError,
-                             DamagedBagWarning, UnknownTypeError, bag_info, make_qos,
-                             make_typestore, read_messages)
+from rover_bag.bagio import (
+    BagError,
+    BagNotFoundError,
+    BagWriter,
+    DamagedBagError,
+    DamagedBagWarning,
+    UnknownTypeError,
+    bag_info,
+    make_qos,
+    make_typestore,
+    read_messages,
+)
 
 INC = 'coop_msgs/msg/Inclinometer'
 IMU = 'sensor_msgs/msg/Imu'

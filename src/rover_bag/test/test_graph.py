@@ -14,16 +14,22 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
-from rosgraph_msgs.msg import Clock
 from rosbags.interfaces import QosDurability, QosReliability
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu
 from std_msgs.msg import String
 
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import NodeProcess, wait_for
 from coop_msgs.msg import Inclinometer
-from rover_bag.bagio import (BagWriter, DamagedBagWarning, bag_info, make_qos, make_typestore,
-                             read_messages)
+from rover_bag.bagio import (
+    BagWriter,
+    DamagedBagWarning,
+    bag_info,
+    make_qos,
+    make_typestore,
+    read_messages,
+)
 
 pytestmark = pytest.mark.graph
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)

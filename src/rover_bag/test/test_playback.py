@@ -6,8 +6,17 @@ import random
 import pytest
 
 from rover_bag.bagio import make_qos
-from rover_bag.playback import (QosChoice, RemapError, parse_remaps, publisher_qos, remap_topic,
-                                schedule, select_topics, subscription_qos, summarize_lateness)
+from rover_bag.playback import (
+    QosChoice,
+    RemapError,
+    parse_remaps,
+    publisher_qos,
+    remap_topic,
+    schedule,
+    select_topics,
+    subscription_qos,
+    summarize_lateness,
+)
 
 BE = make_qos(reliable=False, transient_local=False, depth=5)
 REL = make_qos(reliable=True, transient_local=False, depth=10)

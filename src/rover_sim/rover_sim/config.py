@@ -130,7 +130,8 @@ def config_from_mapping(data: dict[str, Any], base: SimConfig | None = None) -> 
             nchanges = {}
             for nk, nv in value.items():
                 if nk not in nf:
-                    raise ConfigError(f'noise.{nk}: unknown field (known: {", ".join(sorted(nf))})')
+                    known = ', '.join(sorted(nf))
+                    raise ConfigError(f'noise.{nk}: unknown field (known: {known})')
                 nchanges[nk] = _coerce(f'noise.{nk}', nv, getattr(base.noise, nk))
             changes['noise'] = dataclasses.replace(base.noise, **nchanges)
         else:

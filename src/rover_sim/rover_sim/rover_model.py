@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from coop_common.dynparams import BaseParameters
 
 ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
@@ -69,7 +70,7 @@ def base_link_inertial(params: BaseParameters) -> tuple[float, np.ndarray, np.nd
         inertia = inertia - np.diag(i) - _shift(m, np.asarray(c))
     eig = np.linalg.eigvalsh(inertia)
     if np.any(eig <= 0) or eig[0] + eig[1] < eig[2]:
-        raise ValueError('the true inertia less the mast\'s is not a physical body '
+        raise ValueError("the true inertia less the mast's is not a physical body "
                          f'(principal moments {np.round(eig, 5).tolist()})')
     return m_b, c_b, inertia
 
@@ -138,7 +139,8 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
     cx, cy, cz = CAMERA_OFFSET
     tilt_inertial = _inertial(MAST_TILT[0], (0.02, 0, 0.06), MAST_TILT[2])
     parts.append(f'<link name="mast_tilt_link">{tilt_inertial}'
-                 f'{_box((0.04, 0.08, 0.04), (cx - 0.02, -STEREO_BASELINE_M / 2, cz), (0.1, 0.1, 0.1, 1))}'
+                 + _box((0.04, 0.08, 0.04), (cx - 0.02, -STEREO_BASELINE_M / 2, cz),
+                        (0.1, 0.1, 0.1, 1)) +
                  '</link>')
     parts.append('<joint name="mast_tilt" type="revolute"><parent link="mast_pan_link"/>'
                  '<child link="mast_tilt_link"/><origin xyz="0 0 0.04"/><axis xyz="0 1 0"/>'

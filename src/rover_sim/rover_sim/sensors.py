@@ -78,7 +78,7 @@ class InclinometerModel:
 
 
 def wheel_speeds(v: float, w: float, *, track_m: float, radius_m: float) -> np.ndarray:
-    """Skid-steer wheel angular speeds (fl, fr, rl, rr) in rad/s for body speed v and yaw rate w."""
+    """Skid-steer wheel speeds (fl, fr, rl, rr) in rad/s for body speed v and yaw rate w."""
     left = (v - 0.5 * track_m * w) / radius_m
     right = (v + 0.5 * track_m * w) / radius_m
     return np.array([left, right, left, right])

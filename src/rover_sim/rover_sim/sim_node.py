@@ -10,16 +10,10 @@ import math
 import threading
 import time
 from collections import deque
-from pathlib import Path
 
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
-from coop_common.dynparams import PARAM_NAMES, TruthFileError, load_truth
-from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
-from coop_msgs.msg import DynamicParameters, Inclinometer
-from coop_msgs.srv import SimScenario
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Twist, WrenchStamped
 from nav_msgs.msg import Odometry
 from rclpy.executors import MultiThreadedExecutor
@@ -28,6 +22,12 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
+
+from coop_common.dynparams import PARAM_NAMES, TruthFileError, load_truth
+from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_msgs.msg import DynamicParameters, Inclinometer
+from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat
 from .config import ConfigError, NoiseConfig, SimConfig, load_config
@@ -69,7 +69,7 @@ PARAMS = {
                               hi=200.0, read_only=True),
     'image_width': ParamSpec(320, 'Image width (px)', lo=32, hi=1920, read_only=True),
     'image_height': ParamSpec(240, 'Image height (px)', lo=24, hi=1440, read_only=True),
-    'noise_fraction': ParamSpec(0.10, 'White noise bound as a fraction of each sensor\'s maximum '
+    'noise_fraction': ParamSpec(0.10, "White noise bound as a fraction of each sensor's maximum "
                                 'sensed value (thesis 2.6.1)', lo=0.0, hi=1.0, read_only=True),
     'real_time_factor': ParamSpec(1.0, 'Sim seconds per wall second; 0 = as fast as possible',
                                   lo=0.0, hi=100.0),
@@ -102,7 +102,8 @@ class SimNode(Node):
         self._thread = threading.Thread(target=self._run, name='sim', daemon=True)
         self.get_logger().info(
             f'{self.config.rovers} rovers, seed {self.config.seed}, '
-            f'{len(self.world.layout.obstacles)} obstacles, physics {self.config.physics_rate_hz:g} '
+            f'{len(self.world.layout.obstacles)} obstacles, '
+            f'physics {self.config.physics_rate_hz:g} '
             f'Hz x {self.world.substeps} sub-steps, stereo {self.config.stereo_rate_hz:g} Hz '
             f'{self.config.image_width}x{self.config.image_height}, rtf {self._rtf:g}')
         self._thread.start()
@@ -172,7 +173,8 @@ class SimNode(Node):
         rover = self.world.rovers[index].name
         known = ARM_JOINTS if group == 'arm' else MAST_JOINTS
         if msg.header.frame_id not in ('', f'{rover}/base_link'):
-            self.bad.reject('trajectory frame', f'{msg.header.frame_id!r} is not {rover}/base_link')
+            self.bad.reject('trajectory frame',
+                            f'{msg.header.frame_id!r} is not {rover}/base_link')
             return
         names = list(msg.joint_names)
         if not names or any(n not in known for n in names) or len(set(names)) != len(names):

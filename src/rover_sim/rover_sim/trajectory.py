@@ -24,8 +24,8 @@ class JointTrajectoryFollower:
         self._points: np.ndarray | None = None
         self._index: np.ndarray | None = None
 
-    def set(self, names: Sequence[str], times_s: Sequence[float], positions: Sequence[Sequence[float]],
-            start_s: float, current: np.ndarray) -> None:
+    def set(self, names: Sequence[str], times_s: Sequence[float],
+            positions: Sequence[Sequence[float]], start_s: float, current: np.ndarray) -> None:
         """Install a trajectory: names a subset of the group; times relative to start_s."""
         if len(names) == 0 or len(set(names)) != len(names):
             raise TrajectoryError('joint names empty or repeated')

@@ -3,25 +3,43 @@ the card and the insertion site. No rclpy: `World` steps, senses and renders; th
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 import tempfile
 from collections.abc import Sequence
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pybullet as pb
+
 from coop_common.dynparams import BaseParameters
 
-from .compliance import (FastCompliance, deflection, matrix_to_quat, matrix_to_rpy,
-                         quat_to_matrix, rotation_vector, rpy_to_matrix, static_preload)
+from .compliance import (
+    FastCompliance,
+    deflection,
+    matrix_to_quat,
+    matrix_to_rpy,
+    quat_to_matrix,
+    rotation_vector,
+    rpy_to_matrix,
+    static_preload,
+)
 from .config import SimConfig
-from .rover_model import (ARM_EFFORT_NM, ARM_JOINTS, CAMERA_OFFSET, MAST_JOINTS, OPTICAL_IN_TILT,
-                          STEREO_BASELINE_M, WHEELS, arm_joint_inertias, base_link_inertial,
-                          rover_urdf)
+from .rover_model import (
+    ARM_EFFORT_NM,
+    ARM_JOINTS,
+    CAMERA_OFFSET,
+    MAST_JOINTS,
+    OPTICAL_IN_TILT,
+    STEREO_BASELINE_M,
+    WHEELS,
+    arm_joint_inertias,
+    base_link_inertial,
+    rover_urdf,
+)
 from .sensors import DEG, InclinometerModel, WhiteNoise, specific_force, wheel_speeds
 from .trajectory import JointTrajectoryFollower
 from .worldgen import WorldLayout, generate_world
@@ -140,7 +158,8 @@ class World:
         self._textures = self._make_textures()
         self._build_static()
         noise = config.noise
-        self.incl_model = InclinometerModel(noise=WhiteNoise(noise.fraction, noise.inclinometer_rad))
+        self.incl_model = InclinometerModel(
+            noise=WhiteNoise(noise.fraction, noise.inclinometer_rad))
         self._noise = {
             'accel': WhiteNoise(noise.fraction, noise.accel_m_s2),
             'gyro': WhiteNoise(noise.fraction, noise.gyro_rad_s),

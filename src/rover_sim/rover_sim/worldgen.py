@@ -52,7 +52,7 @@ def generate_world(*, seed: int, occlusion_density: float, extent_m: float = 10.
                    keep_clear: tuple[tuple[float, float, float], ...] = (),
                    slot_width_m: float = 0.004, site_position: tuple[float, float] = (3.0, 0.0)
                    ) -> WorldLayout:
-    """Obstacles covering `occlusion_density` of the extent_m x extent_m square (by footprint area),
+    """Obstacles covering `occlusion_density` of the extent_m x extent_m square (footprint area),
     none overlapping another, the site, or any keep-clear disc (x, y, radius)."""
     if not (0.0 <= occlusion_density <= 0.5):
         raise ValueError(f'occlusion_density must be in [0, 0.5], got {occlusion_density}')

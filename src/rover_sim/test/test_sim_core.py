@@ -4,9 +4,19 @@ import math
 
 import numpy as np
 import pytest
-from rover_sim.compliance import (Deflection, FastCompliance, compliance_wrench, deflection,
-                                  matrix_to_quat, matrix_to_rpy, quat_to_matrix,
-                                  rotation_vector, rpy_to_matrix, static_preload)
+
+from rover_sim.compliance import (
+    Deflection,
+    FastCompliance,
+    compliance_wrench,
+    deflection,
+    matrix_to_quat,
+    matrix_to_rpy,
+    quat_to_matrix,
+    rotation_vector,
+    rpy_to_matrix,
+    static_preload,
+)
 from rover_sim.config import ConfigError, SimConfig, config_from_mapping, load_config
 from rover_sim.sensors import DEG, InclinometerModel, WhiteNoise, specific_force, wheel_speeds
 from rover_sim.trajectory import JointTrajectoryFollower, TrajectoryError

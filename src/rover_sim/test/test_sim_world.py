@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pybullet as pb
 import pytest
+
 from coop_common.dynparams import BaseParameters, load_truth
 from rover_sim.compliance import matrix_to_rpy
 from rover_sim.config import NoiseConfig, SimConfig
@@ -202,8 +203,8 @@ def test_sprung_body_has_exactly_the_true_mass_cg_and_inertia():
         parts = []
         com, orn = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
         info = pb.getDynamicsInfo(r.body, -1, physicsClientId=c)
-        parts.append((info[0], np.array(com), np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3),
-                      np.array(info[2])))
+        rot_com = np.array(pb.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        parts.append((info[0], np.array(com), rot_com, np.array(info[2])))
         for name in ('mast_pan', 'mast_tilt'):
             j = r.joint_index[name]
             st = pb.getLinkState(r.body, j, computeForwardKinematics=1, physicsClientId=c)
