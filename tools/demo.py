@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import rclpy
-from geometry_msgs.msg import Twist, WrenchStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Twist, WrenchStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -27,7 +27,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
 from coop_msgs.msg import Inclinometer, VoxelMap
-from coop_msgs.srv import MapFile
+from coop_msgs.srv import MapFile, NextBestView
 
 ROVERS = ('rover1', 'rover2')
 
@@ -67,6 +67,8 @@ class DemoNode(Node):
                                      SENSOR_QOS)
             self.create_subscription(JointState, f'/{r}/joint_states',
                                      lambda m, r=r: self._keep(r, 'joints', m), SENSOR_QOS)
+            self.create_subscription(PoseWithCovarianceStamped, f'/{r}/stereo/pose',
+                                     lambda m, r=r: self._cam_pose(r, m), SENSOR_QOS)
             for side in ('left', 'right'):
                 self.create_subscription(Image, f'/{r}/stereo/{side}/image_raw',
                                          lambda m, r=r, s=side: self._image(r, s, m), SENSOR_QOS)
@@ -79,6 +81,9 @@ class DemoNode(Node):
 
     def _on_clock(self, m: Clock) -> None:
         self.sim_time = m.clock.sec + m.clock.nanosec * 1e-9
+
+    def _cam_pose(self, r: str, m: PoseWithCovarianceStamped) -> None:
+        self.last[r]['cam_pose'] = PoseStamped(header=m.header, pose=m.pose.pose)
 
     def _keep(self, r: str, key: str, m) -> None:
         self.last[r][key] = m
@@ -144,6 +149,30 @@ def map_summary(node: DemoNode) -> str:
     per = ', '.join(f'{r} {n} scans' for r, n in zip(m.contributors, m.contributions))
     return (f'shared map: {occ.size} known voxels at {m.resolution_m:g} m, '
             f'{int((occ > 0.5).sum())} occupied, {int((occ < 0.5).sum())} free ({per})')
+
+
+def next_views(node: DemoNode, spin) -> None:
+    """Ask the view planner where each rover's camera should look next on the shared map
+    (Eq. 3-15, maximum information) and print its answer."""
+    client = node.create_client(NextBestView, '/viewplan/next_best_view')
+    if not client.wait_for_service(timeout_sec=10.0):
+        print('demo: no view planner')
+        return
+    for r in ROVERS:
+        req = NextBestView.Request(robot=r, strategy='max_information', max_candidates=0)
+        est = node.last[r].get('cam_pose')
+        req.current_pose = est if est is not None else PoseStamped()
+        future = client.call_async(req)
+        wait_for(future.done, 60.0, spin=spin, what='the next best view')
+        res = future.result()
+        if not res.success:
+            print(f'demo: next best view for {r}: none ({res.message})')
+            continue
+        b = res.best
+        p = b.pose.pose.position
+        print(f'demo: next best view for {r} (max information, Eq. 3-15): camera at '
+              f'({p.x:+.2f}, {p.y:+.2f}, {p.z:+.2f}) m, NI {b.new_information_bits:.0f} bits, '
+              f'distance {b.distance:.2f}, RF {b.rating:.1f}')
 
 
 def save_grid(grid: OccupancyGrid, path: Path) -> None:
@@ -217,6 +246,11 @@ def main() -> int:
             stack.enter_context(NodeProcess('coop_mapping', 'stereo',
                                             ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'],
                                             log_path=args.out / f'stereo_{r}.log'))
+        # the rovers' cameras sit 0.78 m up (rover_sim): plan in the slab they sweep
+        stack.enter_context(NodeProcess('coop_viewplan', 'view_planner',
+                                        ['-p', 'use_sim_time:=true',
+                                         '-p', 'camera_height_m:=0.75'],
+                                        log_path=args.out / 'view_planner.log'))
         stack.enter_context(NodeProcess('coop_mapping', 'mapper',
                                         ['-p', 'use_sim_time:=true', '-p', f'map_file:={map_file}',
                                          '-p', 'autosave_period_s:=0.0'],
@@ -259,6 +293,7 @@ def main() -> int:
                 res = future.result()
                 print(f'demo: /map/save -> {res.message} ({res.voxels} voxels)')
             print('demo: ' + map_summary(node))
+            next_views(node, spin)
             for path in save_outputs(node, args.out):
                 print(f'demo: wrote {path}')
         finally:

@@ -600,12 +600,30 @@ class NextBestViewPlanner:
         pcol = footprint_probability(prob2, known2, clear)
         return known2 & (pcol < cfg.p_empty), pcol
 
+    def _footprint_freed(self, grid: OccupancyGrid, cell: np.ndarray) -> OccupancyGrid:
+        """The grid with the unknown cells within one rover length (twice the clearance) of
+        the camera's ground cell, all heights, set to known free: the rover stands there and got
+        there; its outward-looking cameras cannot see it. Known obstacles stay."""
+        r = int(np.ceil(2.0 * self.config.clearance_m / grid.resolution))
+        ii, jj = np.ogrid[:grid.shape[0], :grid.shape[1]]
+        disk = (ii - int(cell[0])) ** 2 + (jj - int(cell[1])) ** 2 <= r * r
+        if grid.ndim == 3:
+            disk = np.broadcast_to(disk[:, :, None], grid.shape)
+        free = disk & ~grid.known
+        return OccupancyGrid(np.where(free, 0.0, grid.prob), grid.known | free,
+                             resolution=grid.resolution, origin=grid.origin)
+
     def plan(self, grid: OccupancyGrid, camera: CameraState, *, strategy: str | Strategy,
              rng: np.random.Generator, claimed: np.ndarray | None = None,
              estimate: np.ndarray | None = None,
-             traversability: tuple[np.ndarray, np.ndarray] | None = None) -> Decision:
+             traversability: tuple[np.ndarray, np.ndarray] | None = None,
+             free_footprint: bool = False) -> Decision:
         """Choose one camera's next view. Raises PlanningError when no admissible view exists
-        and ValueError for an unknown strategy."""
+        and ValueError for an unknown strategy.
+
+        free_footprint: the unseen ground within one rover length of the camera counts as free
+        for reaching candidates (`_footprint_freed`): a live rover stands there. Off in the
+        experiments, on in the node."""
         strat = make_strategy(strategy) if isinstance(strategy, str) else strategy
         if not grid.known.any():
             raise MapError('empty map: nothing known, no free candidate')
@@ -613,6 +631,8 @@ class NextBestViewPlanner:
         cell = grid.to_index(np.asarray(camera.position, float))[:2]
         if not (0 <= cell[0] < nav.shape[0] and 0 <= cell[1] < nav.shape[1]):
             raise PlanningError('camera outside the map')
+        if free_footprint and traversability is None:
+            nav, pcol = self.traversability(self._footprint_freed(grid, cell))
         start_nav = nav.copy()
         start_nav[cell[0], cell[1]] = True     # the rover is where it is, even if hemmed in
         reach = geodesic_distance(start_nav, (int(cell[0]), int(cell[1])),

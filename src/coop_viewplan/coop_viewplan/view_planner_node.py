@@ -41,6 +41,11 @@ PARAMS = {
     'camera_height_m': ParamSpec(1.0, 'mast camera height above the map origin (m)',
                                  lo=-100.0, hi=100.0),
     'clearance_m': ParamSpec(0.5, 'rover clearance for P (m)', lo=0.0, hi=10.0),
+    # The shared map clamps free voxels at P = 0.12 and one free observation gives 0.4
+    # (OctoMap's hit/miss/clamp model), so the thesis's P < 0.05 is never met on it;
+    # 0.2 = seen free about four times.
+    'p_empty': ParamSpec(0.2, 'collision-free threshold on P (Eq. 3-15 constraint (i))',
+                         lo=0.0, hi=0.5),
     'max_ranked': ParamSpec(10, 'ranked views returned', lo=1, hi=1000),
     'task_fov_deg': ParamSpec(60.0, 'task camera field of view (deg), Eq. 4-2', lo=5.0,
                               hi=170.0),
@@ -80,7 +85,7 @@ class ViewPlannerNode(Node):
             fov_deg=p['fov_deg'], depth_m=p['depth_m'], n_az=p['rays_az'], n_el=p['rays_el'],
             step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
             n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
-            clearance_m=p['clearance_m']))
+            clearance_m=p['clearance_m'], p_empty=p['p_empty']))
         self.placer = TaskPlacer(CameraModel(fov_deg=p['task_fov_deg'], pixels=p['task_pixels'],
                                              near_m=p['task_near_m'], far_m=p['task_far_m']),
                                  clearance_m=p['clearance_m'],
@@ -155,7 +160,8 @@ class ViewPlannerNode(Node):
             planner = NextBestViewPlanner(replace(planner.config,
                                                   n_positions=int(req.max_candidates)))
         try:
-            d = planner.plan(g, cam, strategy=req.strategy, rng=self.rng, claimed=claimed)
+            d = planner.plan(g, cam, strategy=req.strategy, rng=self.rng, claimed=claimed,
+                             free_footprint=True)
         except (MapError, PlanningError, ValueError) as exc:
             resp.message = str(exc)
             return resp

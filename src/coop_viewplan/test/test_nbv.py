@@ -209,3 +209,22 @@ def test_path_distance_exceeds_straight_line_around_a_wall():
     behind = c.positions[:, 0] > 21
     assert behind.sum() > 10
     assert np.all(p.distance[behind] > c.distance[behind] + 1.0)
+
+
+def test_free_footprint_lets_a_rover_leave_its_unseen_footprint():
+    """A rover whose cameras never saw the ground it stands on: without free_footprint no
+    candidate is reachable; with it, the known free space ahead is."""
+    res = 0.1
+    prob = np.full((60, 60), 0.5)
+    known = np.zeros((60, 60), bool)
+    prob[:, 20:] = 0.01          # seen free ahead (+y), from 0.5 m beyond the rover
+    known[:, 20:] = True
+    grid = OccupancyGrid(prob, known, resolution=res, origin=np.zeros(2))
+    planner = NextBestViewPlanner(NbvConfig(fov_deg=75.0, depth_m=3.0, clearance_m=0.5))
+    cam = CameraState(position=np.array([3.0, 1.5]), yaw=np.pi / 2)
+    with pytest.raises(PlanningError):
+        planner.plan(grid, cam, strategy='max_information', rng=np.random.default_rng(0))
+    d = planner.plan(grid, cam, strategy='max_information', rng=np.random.default_rng(0),
+                     free_footprint=True)
+    assert np.isfinite(d.candidates.path_length[d.index])
+    assert d.candidates.collision_p[d.index] < planner.config.p_empty
