@@ -45,6 +45,7 @@ class SimConfig:
     slot_width_m: float = 0.004
     truth_yaml: str = ''                 # '' : Table 2-1 for every rover
     physics_rate_hz: float = 200.0
+    physics_substeps: int = 0            # 0: the stability minimum (world.substeps_for)
     sensor_rate_hz: float = 200.0
     stereo_rate_hz: float = 4.0
     image_width: int = 320
@@ -62,6 +63,7 @@ class SimConfig:
             ('extent_m', 2.0 <= self.extent_m <= 200.0, 'must be in [2, 200]'),
             ('slot_width_m', 0.0 < self.slot_width_m < 0.05, 'must be in (0, 0.05)'),
             ('physics_rate_hz', 50.0 <= self.physics_rate_hz <= 2000.0, 'must be in [50, 2000]'),
+            ('physics_substeps', 0 <= self.physics_substeps <= 200, 'must be in [0, 200]'),
             ('sensor_rate_hz', 0.0 < self.sensor_rate_hz <= self.physics_rate_hz,
              'must be in (0, physics_rate_hz]'),
             ('stereo_rate_hz', 0.0 <= self.stereo_rate_hz <= 30.0, 'must be in [0, 30]'),

@@ -61,6 +61,9 @@ PARAMS = {
                                    hi=0.5, read_only=True),
     'slot_width_m': ParamSpec(0.004, 'Insertion slot width (m)', lo=0.0005, hi=0.049,
                               read_only=True),
+    'physics_substeps': ParamSpec(0, 'Physics sub-steps per 5 ms step; 0 = the stability minimum '
+                                  '(more: closer to the continuous Eq. B-3 dynamics, slower)',
+                                  lo=0, hi=200, read_only=True),
     'sensor_rate_hz': ParamSpec(200.0, 'IMU, inclinometer, F/T and joint state rate (Hz)',
                                 lo=1.0, hi=200.0, read_only=True),
     'stereo_rate_hz': ParamSpec(4.0, 'Stereo pair rate (Hz); 0 disables rendering', lo=0.0,
@@ -110,8 +113,8 @@ class SimNode(Node):
 
     # ------------------------------------------------------------------ set-up
     #: node parameter -> SimConfig field
-    _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_width_m', 'sensor_rate_hz',
-                      'stereo_rate_hz', 'image_width', 'image_height')
+    _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_width_m', 'physics_substeps',
+                      'sensor_rate_hz', 'stereo_rate_hz', 'image_width', 'image_height')
 
     def _make_config(self) -> SimConfig:
         """Defaults <- world_yaml <- every parameter set away from its default."""

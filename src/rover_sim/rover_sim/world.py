@@ -138,7 +138,8 @@ class World:
             raise ValueError(f'expected {config.rovers} truth parameter sets, got {len(truths)}')
         self.config = config
         self.dt = 1.0 / config.physics_rate_hz
-        self.substeps = substeps_for(truths, self.dt)
+        # never below the stability minimum; more buys accuracy (README: sub-steps vs fidelity)
+        self.substeps = max(substeps_for(truths, self.dt), config.physics_substeps)
         self.time_s = 0.0
         self.steps = 0
         self.rng = np.random.default_rng(config.seed)

@@ -171,3 +171,15 @@ def test_config_errors_name_the_field(tmp_path):
     cfg = load_config(good)
     assert cfg.occlusion_density == 0.2 and cfg.noise.fraction == 0.05
     assert cfg.rovers == SimConfig().rovers
+
+
+def test_substeps_respect_the_stability_minimum():
+    from coop_common.dynparams import load_truth
+    from rover_sim.world import substeps_for
+    t = load_truth()
+    n = substeps_for([t], 0.005)
+    assert n == 10                               # b / I = 2000 1/s on every rotational axis
+    stiff = SimConfig(physics_substeps=25)
+    assert stiff.physics_substeps == 25
+    with pytest.raises(ConfigError, match='physics_substeps'):
+        SimConfig(physics_substeps=-1)
