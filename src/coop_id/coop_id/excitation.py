@@ -276,7 +276,6 @@ class ArmReference:
         self._new = None
         self._t0 = 0.0
         self._dur = 1.0
-        self._depth = 0
 
     def _target(self, mode: int, exc: Excitation, t0: float):
         joint, hold1, _ = self.modes[mode]
@@ -289,38 +288,41 @@ class ArmReference:
         return ref
 
     def update(self, now: float, mode: int, exc: Excitation, exc_t0: float,
-               here: np.ndarray, horizon_s: float) -> None:
-        """Follow mode / excitation from `now` on; `here`: joint positions for the first call."""
+               here: np.ndarray, horizon_s: float, lead_s: float = 0.0) -> None:
+        """Follow mode / excitation, blending in from `now + lead_s` on (until then the old
+        reference holds: a command that reaches the arm up to lead_s late finds it on the same
+        path); `here`: joint positions for the first call."""
         key = (mode, exc, exc_t0)
         if key == self._key:
             if self._old is not None and now >= self._t0 + self._dur:
-                self._old, self._depth = None, 0    # blend over: forget the old trajectory
+                self._old = None            # blend over: forget the old trajectory
             return
         new = self._target(mode, exc, exc_t0)
         if self._new is None:
             here = np.asarray(here, dtype=float)
             zero = np.zeros(2)
 
-            def old(_t: float) -> tuple[np.ndarray, np.ndarray]:
+            def live(_t: float) -> tuple[np.ndarray, np.ndarray]:
                 return here, zero
-        elif self._depth >= 4:       # blends keep overlapping: cut the chain
-            old, self._depth = self._new, 0
         else:
-            old = self._freeze()
-            self._depth += self._old is not None
-        span = np.linspace(now, now + horizon_s, 25)
-        gap = max(float(np.max(np.abs(old(t)[0] - new(t)[0]))) for t in span)
+            live = self.__call__
+        start = now + lead_s
+        span = np.linspace(start, start + horizon_s, 25)
+        gap = max(float(np.max(np.abs(live(t)[0] - new(t)[0]))) for t in span)
+        dur = max(self.min_blend, 1.875 * gap / self.speed)
+        # the old side, tabulated from a little before `now` (a command may restate the last
+        # moments before it) to the blend's end (1 ms, linear interpolation): blends that
+        # overlap never nest
+        t_a = now - 0.05
+        grid = np.linspace(t_a, start + dur, int(np.ceil((start + dur - t_a) / 1e-3)) + 1)
+        pos, vel = (np.array(v) for v in zip(*(live(t) for t in grid)))
+
+        def old(t: float) -> tuple[np.ndarray, np.ndarray]:
+            return (np.array([np.interp(t, grid, pos[:, j]) for j in range(2)]),
+                    np.array([np.interp(t, grid, vel[:, j]) for j in range(2)]))
         self._old, self._new = old, new
-        self._t0, self._dur = now, max(self.min_blend, 1.875 * gap / self.speed)
+        self._t0, self._dur = start, dur
         self._key = key
-
-    def _freeze(self):
-        """The current reference as a stand-alone function (the old side of a new blend)."""
-        old, new, t0, dur = self._old, self._new, self._t0, self._dur
-
-        def ref(t: float) -> tuple[np.ndarray, np.ndarray]:
-            return _blend(old, new, t0, dur, t)
-        return ref
 
     def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(position, speed) of (arm_joint_1, arm_joint_2) at t."""

@@ -38,6 +38,9 @@ from .model import SensorNoise
 MODES = (('arm_joint_1', 0.0, None), ('arm_joint_2', 0.0, None),
          ('arm_joint_2', math.pi / 2, None))   # about z, about y, about x (joint 1 = pi/2)
 
+#: Spacing of the arm trajectory points (>= 20 points per period up to 30 rad/s).
+TRAJECTORY_STEP_S = 0.01
+
 SPECS = {
     'strategy': ParamSpec('information', 'default excitation strategy (goal may override)',
                           choices=STRATEGIES),
@@ -54,7 +57,11 @@ SPECS = {
                              lo=0.0, hi=1.0, read_only=True),
     'mode_period_s': ParamSpec(2.0, 'seconds per arm rotation mode (z, y, x cycle)',
                                lo=0.4, hi=60.0),
-    'sync_tolerance_s': ParamSpec(0.006, 'max stamp difference when pairing sensors',
+    'command_lead_s': ParamSpec(0.3, 'a new arm trajectory departs from the old one this long '
+                                'after the last sample (covers processing + transport delay)',
+                                lo=0.0, hi=2.0),
+    'sync_tolerance_s': ParamSpec(0.002, 'max stamp difference when pairing sensors (below '
+                                  'half the sample period)',
                                   lo=0.0005, hi=0.1),
     'stale_timeout_s': ParamSpec(0.1, 'a sensor silent this long stops the sample stream',
                                  lo=0.01, hi=10.0),
@@ -79,9 +86,9 @@ class IdentifierNode(Node):
         self.bad = BadInputCounter(self)
         self._lock = threading.Lock()
         self._sensors = MutuallyExclusiveCallbackGroup()
-        self._imu: deque[tuple[float, Imu]] = deque(maxlen=100)
-        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=100)
-        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=100)
+        self._imu: deque[tuple[float, Imu]] = deque(maxlen=500)
+        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=500)
+        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=500)
         self._last_stamp = {'imu': -math.inf, 'inclinometer': -math.inf, 'wrench': -math.inf}
         self._last_sample_t = -math.inf
         self._buffer: list[tuple[float, np.ndarray]] = []
@@ -177,19 +184,23 @@ class IdentifierNode(Node):
         tol = self.p['sync_tolerance_s']
         while self._imu:
             t, imu = self._imu[0]
-            incl = _nearest(self._incl, t, tol)
-            wr = _nearest(self._wrench, t, tol)
             newest_other = min(self._last_stamp['inclinometer'], self._last_stamp['wrench'])
-            if incl is None or wr is None:
-                if newest_other > t + tol:        # the partner will never come: drop it
-                    self._imu.popleft()
-                    self.bad.reject('unpaired sample', f'imu {t:.4f}')
-                    continue
-                if t - newest_other > self.p['stale_timeout_s']:
+            if newest_other < t - 1e-9:
+                # The partners of this instant may still come (the simulator publishes the IMU
+                # first; their messages may be queued behind a window's processing): wait. Pairing
+                # now would take the previous sample's F/T, one period off. Drop only when a
+                # partner never spoke or the wait filled the buffer.
+                if newest_other == -math.inf or len(self._imu) >= self._imu.maxlen:
                     self._imu.popleft()
                     self.bad.reject('silent sensor', 'inclinometer or wrench')
                     continue
                 return
+            incl = _nearest(self._incl, t, tol)
+            wr = _nearest(self._wrench, t, tol)
+            if incl is None or wr is None:        # the partner will never come: drop it
+                self._imu.popleft()
+                self.bad.reject('unpaired sample', f'imu {t:.4f}')
+                continue
             self._imu.popleft()
             a, w = imu.linear_acceleration, imu.angular_velocity
             f, n = wr.wrench.force, wr.wrench.torque
@@ -279,23 +290,29 @@ class IdentifierNode(Node):
         horizon = 3.0 * self.p['window_s']     # margin for a late next window
         here = np.array([self.joint_positions.get('arm_joint_1', 0.0),
                          self.joint_positions.get('arm_joint_2', 0.0)])
-        self._ref.update(now, mode, exc, self._exc_t0, here, horizon)
+        self._ref.update(now, mode, exc, self._exc_t0, here, horizon,
+                         lead_s=self.p['command_lead_s'])
         traj = JointTrajectory()
-        # stamped with the sample time the points refer to: the command reaches the arm a
-        # processing + transport delay later, and a `0 = now` start would shift the reference
-        # back by that delay (a step the effort-limited joints answer with a whip)
-        traj.header.stamp.sec = int(now)
-        traj.header.stamp.nanosec = int(round((now - int(now)) * 1e9)) % 1_000_000_000
+        # The controller interpolates the points linearly and takes the segment slopes as speed
+        # references. Points on one global time grid (every trajectory starts at the grid point
+        # at or before the last sample, stamped with that sim time) make a new trajectory
+        # repeat the segment the arm is on: no speed step when it replaces the old one, however
+        # late it arrives (processing + transport delay), and no shift of the reference in time.
+        # The grid sits half a sample period off the sample instants: the controller reads its
+        # target at its control instants, which must never fall on a point (where rounding
+        # picks either segment).
+        step, off = TRAJECTORY_STEP_S, 0.5 / self.p['rate_hz']
+        g0 = math.floor((now - off) / step) * step + off
+        traj.header.stamp.sec, traj.header.stamp.nanosec = divmod(int(round(g0 * 1e9)), 10**9)
         traj.joint_names = ['arm_joint_1', 'arm_joint_2']
-        # resolve the sinusoid: >= 20 points per period (the controller interpolates linearly)
-        step = min(0.05, 2 * math.pi / exc.frequency_rad_s / 20)
-        for k in range(int(horizon / step) + 1):
+        for k in range(int(horizon / step) + 2):
             tk = k * step
-            q, qd = self._ref(now + tk)
+            q, qd = self._ref(g0 + tk)
             pt = JointTrajectoryPoint()
             pt.positions = [float(v) for v in q]
             pt.velocities = [float(v) for v in qd]
-            pt.time_from_start = Duration(sec=int(tk), nanosec=int((tk % 1) * 1e9))
+            sec, nsec = divmod(int(round(tk * 1e9)), 10**9)
+            pt.time_from_start = Duration(sec=sec, nanosec=nsec)
             traj.points.append(pt)
         self.pub_cmd.publish(traj)
 
@@ -377,8 +394,11 @@ def _qos_kwargs(q: QoSProfile) -> dict:
 
 
 def _nearest(buf: deque, t: float, tol: float):
+    """The message of `buf` (stamp-ordered) nearest to t within tol, searched from the newest."""
     best, best_dt = None, tol
-    for tb, msg in buf:
+    for tb, msg in reversed(buf):
+        if tb < t - tol:
+            break
         dt = abs(tb - t)
         if dt <= best_dt:
             best, best_dt = msg, dt

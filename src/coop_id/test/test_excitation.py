@@ -65,3 +65,35 @@ def test_unknown_strategy_rejected():
     pred = WindowPredictor(arm=ArmModel(), times=np.arange(4) * 0.02)
     with pytest.raises(ExcitationError):
         residuals('random', np.array([0.3, 2.0, 0.0]), pred, _ctx())
+
+
+def test_arm_reference_never_steps_and_respects_the_blend_speed():
+    from coop_id.excitation import ArmReference, Excitation
+    from coop_id.identifier_node import MODES
+    ref = ArmReference(MODES, speed_rad_s=1.5)
+    here = np.array([0.0, -0.6])                        # the arm's home pose
+    a = Excitation(0.5, 8.0, 0.4)
+    b = Excitation(1.0, 2.0, -0.5)
+    events = [(0.0, 0, a, 0.0), (0.4, 0, a, 0.0), (0.8, 0, b, 0.8), (1.2, 1, b, 0.8),
+              (1.6, 2, b, 0.8), (2.0, 2, a, 2.0)]
+    ts = np.arange(0.0, 5.0, 0.001)
+    q, qd = [], []
+    k = 0
+    for t in ts:
+        while k < len(events) and events[k][0] <= t + 1e-12:
+            t_ev, mode, exc, t0 = events[k]
+            ref.update(t_ev, mode, exc, t0, here, 1.2)
+            k += 1
+        p, v = ref(t)
+        q.append(p)
+        qd.append(v)
+    q, qd = np.array(q), np.array(qd)
+    np.testing.assert_allclose(q[0], here, atol=1e-12)            # starts where the arm is
+    dq = np.abs(np.diff(q, axis=0)).max()
+    assert dq < 0.01, dq                                          # no position step (1 ms)
+    assert np.abs(np.diff(qd, axis=0)).max() < 0.1                # nor a speed step
+    # the speeds it reports are the derivative of the positions
+    np.testing.assert_allclose(qd[1:-1], (q[2:] - q[:-2]) / 0.002, atol=2e-3)
+    # once a blend is over, the driven joint follows f(t) exactly (mode 2: joint 2, j1 = pi/2)
+    t = 4.95
+    np.testing.assert_allclose(ref(t)[0], [np.pi / 2, a(t - 2.0)[0]], atol=1e-12)

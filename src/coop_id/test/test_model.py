@@ -135,3 +135,19 @@ def test_regressor_noise_structure():
     assert cov[0, IDX['mass'], IDX['mass']] > 0 and cov[3, IDX['mass'], IDX['mass']] == 0
     cov2, _ = regressor_noise(sn, g, accelerometer=False)
     assert np.all(cov2[:3] == 0)
+
+
+def test_tilt_tracker_integrates_the_gyro_and_ignores_a_coarse_inclinometer():
+    from coop_id.model import TiltTracker
+    dt = 0.005
+    t = np.arange(2000) * dt
+    roll = 4e-4 * np.sin(6.0 * t) + 2e-4 * (1 - np.cos(1.0 * t))
+    pitch = -3e-4 * np.sin(15.0 * t)
+    gyro = np.column_stack([np.gradient(roll, dt), np.gradient(pitch, dt), np.zeros_like(t)])
+    step = 6.8e-4                                  # 10 bits over +-20 deg
+    incl = np.round(np.column_stack([roll, pitch]) / step) * step
+    tr = TiltTracker(rate_hz=1 / dt)
+    est = np.vstack([tr.update(gyro[i:i + 100], incl[i:i + 100]) for i in range(0, t.size, 100)])
+    err = est - np.column_stack([roll, pitch])
+    assert np.abs(err).max() < 0.25 * step          # the quantised reading alone: 0.5 step
+    assert np.sqrt((err ** 2).mean()) < 0.1 * step

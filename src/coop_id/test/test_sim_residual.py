@@ -15,8 +15,15 @@ import pytest
 from coop_common.dynparams import load_truth
 from coop_id.excitation import ArmReference, Excitation
 from coop_id.identifier_node import MODES
-from coop_id.model import (FilterBank, TiltTracker, assemble_rows, cross, filtered_rows,
-                           inertia_basis, raw_channels)
+from coop_id.model import (
+    FilterBank,
+    TiltTracker,
+    assemble_rows,
+    cross,
+    filtered_rows,
+    inertia_basis,
+    raw_channels,
+)
 
 world_mod = pytest.importorskip('rover_sim.world')
 config_mod = pytest.importorskip('rover_sim.config')
@@ -46,9 +53,11 @@ def run():
                 mode = int((now - t0) // MODE_S) % 3
                 ref.update(now, mode, exc, t0,
                            w.joint_positions(0, ['arm_joint_1', 'arm_joint_2']), 1.2)
-                ts = np.arange(25) * 0.05
+                # as the node: points on a 10 ms grid half a sample off the control instants
+                g0 = np.floor((now - 0.5 * w.dt) / 0.01) * 0.01 + 0.5 * w.dt
+                ts = np.arange(122) * 0.01
                 w.command_arm(0, ['arm_joint_1', 'arm_joint_2'], ts,
-                              [ref(now + tk)[0] for tk in ts], start_s=now)
+                              [ref(g0 + tk)[0] for tk in ts], start_s=g0)
             w.step()
             if k < n_settle - 1:
                 continue
