@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Simulator fidelity vs physics sub-steps: relative RMS deviation of the sensed signals from a
-40-sub-step reference after a 20 Hz low-pass (the band the identification uses), one rover under
-the Eq. 2-21 excitation plus a 3 Hz component, noise off; CPU real-time factor beside it.
+fine-step reference (default 200 sub-steps) after a 20 Hz low-pass (the band the identification
+uses), one rover under the Eq. 2-21 excitation plus a 3 Hz component, noise off; CPU real-time
+factor beside it.
 
 Usage: bench/sim_substeps.py --json OUT [--substeps 6,8,10,20]
 """
@@ -54,11 +55,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--json', type=Path, required=True)
     ap.add_argument('--substeps', default='10,20')
+    ap.add_argument('--reference', type=int, default=200, help='sub-steps of the reference')
     args = ap.parse_args()
     b, a = butter(4, 20.0 / 100.0)
-    ref, _ = run(40)
+    ref, _ = run(args.reference)
     ref = filtfilt(b, a, ref, axis=0)
-    result = {'reference_substeps': 40, 'lowpass_hz': 20.0, 'rows': {}}
+    result = {'reference_substeps': args.reference, 'lowpass_hz': 20.0, 'rows': {}}
     header = ' '.join(f'{n:>12}' for n in SIGNALS)
     print(f'{"sub-steps":>9} {header} {"CPU RTF 1 rover":>16}')
     for n in (int(v) for v in args.substeps.split(',')):
