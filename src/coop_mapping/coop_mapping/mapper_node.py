@@ -19,6 +19,7 @@ from collections import OrderedDict
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -87,7 +88,11 @@ class MapperNode(Node):
         self._last_pub = -np.inf
         self._dirty = True
         self._saved_seq = self.map.sequence
-        self.create_timer(0.1, self.on_timer)
+        # wall-clock timer: publishing, pose timeouts and autosave are wall-time duties (their
+        # periods are measured with time.monotonic); with use_sim_time a timer on the ROS clock
+        # stops when /clock does (a paused sim, the end of a replayed bag) and the last clouds
+        # fused would never be published
+        self.create_timer(0.1, self.on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._last_save = time.monotonic()
         self.fused = 0
         self.last_latency_s = float('nan')

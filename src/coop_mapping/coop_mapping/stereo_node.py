@@ -88,6 +88,7 @@ class StereoNode(Node):
         self.create_subscription(PoseWithCovarianceStamped, 'stereo/pose',
                                  lambda m: self._put('pose', m), SENSOR_QOS)
         self.frames = 0
+        self._waiting: list[dict] = []     # complete frames that came before any camera_info
         self.odometry: FiducialOdometry | None = None
         self._prev_dr: np.ndarray | None = None
 
@@ -100,6 +101,10 @@ class StereoNode(Node):
         if old is None or list(old.p) != list(msg.p) or old.width != msg.width:
             self.ranger = None
         self.info[side] = msg
+        if 'left' in self.info and 'right' in self.info:
+            waiting, self._waiting = self._waiting, []
+            for m in waiting:
+                self._process(m)
 
     def _make_ranger(self) -> StereoRanger:
         li, ri = self.info['left'], self.info['right']
@@ -125,7 +130,12 @@ class StereoNode(Node):
 
     def _process(self, m: dict) -> None:
         if 'left' not in self.info or 'right' not in self.info:
-            self.bad.reject('no_camera_info')
+            # the first frame may complete before its camera_info (other topics, no order
+            # between them): hold it until the calibration arrives, as the offline path does
+            self._waiting.append(m)
+            if len(self._waiting) > 10:
+                self._waiting.pop(0)
+                self.bad.reject('no_camera_info')
             return
         pose: PoseWithCovarianceStamped = m['pose']
         if pose.header.frame_id != self.p['map_frame']:

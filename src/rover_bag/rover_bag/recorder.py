@@ -17,6 +17,7 @@ from collections import Counter
 from typing import Any
 
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -93,8 +94,13 @@ class Recorder(Node):
         self.get_logger().info(f'recording to {self.bag.path} '
                                f'(topics: {self._include or "all"})')
         self.discover()
-        self.create_timer(p['discovery_period_s'], self.discover)
-        self.create_timer(p['flush_period_s'], self.bag.flush)
+        # wall-clock timers: with use_sim_time a ROS-clock timer waits for /clock, so a recorder
+        # started before the time source (e.g. before `play -p wait_for_subscribers_s:=...`,
+        # which publishes no /clock until it has subscribers) would never subscribe, and a
+        # paused sim would stop the flushes
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(p['discovery_period_s'], self.discover, clock=steady)
+        self.create_timer(p['flush_period_s'], self.bag.flush, clock=steady)
 
     def discover(self) -> None:
         """Subscribe to every new matching topic that has a publisher."""

@@ -1,0 +1,228 @@
+"""Maps from recorded data without DDS: what the `stereo` nodes and the `mapper` compute, run on
+a bag's messages with the same cores and the same defaults (no rclpy).
+
+    from coop_mapping.offline import map_from_bag
+    result = map_from_bag('bags/mapping_two_rovers')       # rovers found in the bag
+    result.map, result.scans                               # VoxelMap, scans fused per rover
+
+`build_map` takes any time-ordered (topic, message) stream (rosbags-deserialized or rclpy
+messages alike). Frames are assembled as the stereo node does (left image, right image and
+`stereo/pose` of one stamp, the latest camera_info of each side), each cloud goes through the
+float32 PointCloud2 layout the node publishes, and scans are fused in stamp order with the
+mapper's checks. `test/test_bag_replay.py` checks the nodes fed by `rover_bag play` give this map.
+"""
+from __future__ import annotations
+
+import re
+from collections import Counter, OrderedDict
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .stereo import ErrorModel, StereoCamera, StereoError, StereoRanger
+from .voxelmap import MapInputError, VoxelMap
+
+__all__ = ['StereoSettings', 'MapSettings', 'StereoFrame', 'OfflineMap', 'image_array',
+           'stereo_frames', 'frame_scan', 'build_map', 'map_from_bag', 'stereo_topics']
+
+_SIDES = ('left', 'right')
+_TOPIC = re.compile(r'^/(?P<rover>[^/]+)/stereo/(?P<what>left/image_raw|right/image_raw|'
+                    r'left/camera_info|right/camera_info|pose)$')
+
+
+@dataclass(frozen=True)
+class StereoSettings:
+    """The `stereo` node's ranging parameters (same names and defaults as its PARAMS)."""
+
+    num_disparities: int = 64
+    block_size: int = 5
+    stride: int = 1
+    min_range_m: float = 0.2
+    max_range_m: float = 10.0
+    sigma_disparity_px: float = 0.5
+    error_T_lateral: float = 0.1
+    error_n: float = 2.0
+
+    def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
+               height: int) -> StereoRanger:
+        """The StereoRanger the node builds from a camera_info pair."""
+        cam = StereoCamera.from_projection(np.asarray(left_p, float), np.asarray(right_p, float),
+                                           int(width), int(height))
+        em = ErrorModel.from_stereo(cam, sigma_d_px=self.sigma_disparity_px,
+                                    lateral=self.error_T_lateral, n=self.error_n)
+        return StereoRanger(cam, error_model=em, num_disparities=self.num_disparities,
+                            block_size=self.block_size | 1, stride=self.stride,
+                            min_range=self.min_range_m, max_range=self.max_range_m)
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """The `mapper` node's fusion parameters (same names and defaults as its PARAMS)."""
+
+    resolution_m: float = 0.1
+    max_points: int = 1_000_000
+    max_range_m: float = 30.0
+    ray_subdivision: int = 4
+
+    def new_map(self) -> VoxelMap:
+        return VoxelMap(self.resolution_m, max_points=self.max_points,
+                        ray_subdivision=self.ray_subdivision)
+
+
+@dataclass
+class StereoFrame:
+    """One complete stereo frame of one rover: images, the pose message, the camera infos."""
+
+    rover: str
+    stamp_ns: int
+    left: Any
+    right: Any
+    pose: Any
+    left_info: Any
+    right_info: Any
+
+
+@dataclass
+class OfflineMap:
+    """The map and what went into it."""
+
+    map: VoxelMap
+    scans: Counter = field(default_factory=Counter)      # fused scans per rover
+    rejected: Counter = field(default_factory=Counter)   # reason -> count
+    frames: list[tuple[str, int]] = field(default_factory=list)   # (rover, stamp) fused
+
+
+def stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def image_array(msg) -> np.ndarray:
+    """mono8 Image (rclpy or rosbags message) -> (height, width) uint8."""
+    if msg.encoding not in ('mono8', '8UC1'):
+        raise StereoError(f'encoding {msg.encoding!r}, need mono8')
+    data = np.frombuffer(bytes(msg.data), np.uint8) if not isinstance(msg.data, np.ndarray) \
+        else np.asarray(msg.data, np.uint8).reshape(-1)
+    if msg.step < msg.width or data.size < msg.step * msg.height:
+        raise StereoError('image data shorter than step * height')
+    return data[:msg.step * msg.height].reshape(msg.height, msg.step)[:, :msg.width].copy()
+
+
+def stereo_topics(rovers: Iterable[str]) -> list[str]:
+    """The bag topics the stereo nodes of `rovers` subscribe to."""
+    return [f'/{r}/stereo/{w}' for r in rovers for w in (
+        'left/image_raw', 'right/image_raw', 'left/camera_info', 'right/camera_info', 'pose')]
+
+
+def stereo_frames(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None = None,
+                  *, buffer: int = 10) -> Iterator[StereoFrame]:
+    """Complete frames from a time-ordered (topic, message) stream, as the stereo node pairs
+    them: left, right and pose of one stamp; a completed frame drops older unmatched parts;
+    each side's latest camera_info. A frame completed before any camera_info waits for it."""
+    wanted = None if rovers is None else set(rovers)
+    bufs: dict[str, dict[str, OrderedDict[int, Any]]] = {}
+    infos: dict[str, dict[str, Any]] = {}
+    waiting: dict[str, list[tuple[int, dict[str, Any]]]] = {}
+    for topic, msg in messages:
+        m = _TOPIC.match(topic)
+        if m is None or (wanted is not None and m['rover'] not in wanted):
+            continue
+        rover, what = m['rover'], m['what']
+        info = infos.setdefault(rover, {})
+        if what.endswith('camera_info'):
+            info[what.split('/')[0]] = msg
+            if len(info) == 2 and waiting.get(rover):
+                for st, parts in waiting.pop(rover):
+                    yield StereoFrame(rover, st, parts['left'], parts['right'], parts['pose'],
+                                      info['left'], info['right'])
+            continue
+        kind = 'pose' if what == 'pose' else what.split('/')[0]
+        b = bufs.setdefault(rover, {'left': OrderedDict(), 'right': OrderedDict(),
+                                    'pose': OrderedDict()})
+        st = stamp_ns(msg.header.stamp)
+        b[kind][st] = msg
+        while len(b[kind]) > buffer:
+            b[kind].popitem(last=False)
+        if all(st in b[k] for k in b):
+            parts = {k: b[k].pop(st) for k in b}
+            for k in b:
+                for s in [s for s in b[k] if s < st]:
+                    del b[k][s]
+            if len(info) == 2:
+                yield StereoFrame(rover, st, parts['left'], parts['right'], parts['pose'],
+                                  info['left'], info['right'])
+            else:
+                waiting.setdefault(rover, []).append((st, parts))
+
+
+def frame_scan(frame: StereoFrame, settings: StereoSettings = StereoSettings(), *,
+               ranger: StereoRanger | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame -> (points (N, 3), covariances (N, 6), camera origin (3,)) in the map frame,
+    points and covariances rounded through float32 as in the node's PointCloud2."""
+    from .ros_conv import pose_to_rt  # noqa: PLC0415 - message types only, not needed above
+
+    li, ri = frame.left_info, frame.right_info
+    if ranger is None:
+        ranger = settings.ranger(li.p, ri.p, li.width, li.height)
+    R, t = pose_to_rt(frame.pose.pose.pose)
+    scan = ranger.process(image_array(frame.left), image_array(frame.right), R, t)
+    pts = scan.points.astype(np.float32).astype(np.float64)
+    cov = scan.covariances.astype(np.float32).astype(np.float64)
+    return pts, cov, np.asarray(t, float)
+
+
+def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None = None, *,
+              stereo: StereoSettings = StereoSettings(), mapping: MapSettings = MapSettings(),
+              map_frame: str = 'map') -> OfflineMap:
+    """Fuse every complete stereo frame of `rovers` (None: all found) into one VoxelMap, in
+    stamp order (ties: rover name), with the mapper's rejections (empty cloud, absurd range,
+    too many points, bad input)."""
+    frames = sorted(stereo_frames(messages, rovers), key=lambda f: (f.stamp_ns, f.rover))
+    out = OfflineMap(mapping.new_map())
+    rangers: dict[tuple, StereoRanger] = {}
+    for fr in frames:
+        if fr.pose.header.frame_id != map_frame:
+            out.rejected['pose_frame'] += 1
+            continue
+        key = (tuple(np.asarray(fr.left_info.p, float)), tuple(np.asarray(fr.right_info.p, float)),
+               int(fr.left_info.width), int(fr.left_info.height))
+        try:
+            if key not in rangers:
+                rangers[key] = stereo.ranger(*key)
+            pts, cov, origin = frame_scan(fr, stereo, ranger=rangers[key])
+        except (StereoError, ValueError):
+            out.rejected['stereo'] += 1
+            continue
+        if len(pts) == 0:
+            out.rejected['empty'] += 1
+            continue
+        if len(pts) > mapping.max_points:
+            out.rejected['too_large'] += 1
+            continue
+        if np.max(np.linalg.norm(pts - origin, axis=1)) > mapping.max_range_m:
+            out.rejected['absurd_range'] += 1
+            continue
+        try:
+            out.map.insert_scan(pts, origin, covariances=cov, source=fr.rover)
+        except MapInputError:
+            out.rejected['map_input'] += 1
+            continue
+        out.scans[fr.rover] += 1
+        out.frames.append((fr.rover, fr.stamp_ns))
+    return out
+
+
+def map_from_bag(bag: str | Path, rovers: Iterable[str] | None = None, *,
+                 stereo: StereoSettings = StereoSettings(),
+                 mapping: MapSettings = MapSettings()) -> OfflineMap:
+    """`build_map` on a rosbag2 bag (read with rover_bag.bagio, no DDS)."""
+    from rover_bag.bagio import bag_info, read_messages  # noqa: PLC0415 - optional dependency
+
+    names = list(rovers) if rovers is not None else sorted(
+        {m['rover'] for t in bag_info(bag).topics if (m := _TOPIC.match(t))})
+    topics = [t for t in stereo_topics(names) if t in bag_info(bag).topics]
+    msgs = ((m.topic, m.msg) for m in read_messages(bag, topics))
+    return build_map(msgs, names, stereo=stereo, mapping=mapping)
