@@ -14,8 +14,10 @@ GRAVITY = np.array([0.0, 0.0, -9.81])
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    """Rotation matrix of a unit quaternion (x, y, z, w) (scalar math: called at 200 Hz)."""
+    x, y, z, w = (float(v) for v in q)
+    n = 1.0 / math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x * n, y * n, z * n, w * n
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
@@ -66,9 +68,9 @@ def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 def matrix_to_rpy(r: np.ndarray) -> np.ndarray:
     """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    pitch = -np.arcsin(np.clip(r[2, 0], -1.0, 1.0))
-    roll = np.arctan2(r[2, 1], r[2, 2])
-    yaw = np.arctan2(r[1, 0], r[0, 0])
+    pitch = -math.asin(min(1.0, max(-1.0, float(r[2, 0]))))
+    roll = math.atan2(float(r[2, 1]), float(r[2, 2]))
+    yaw = math.atan2(float(r[1, 0]), float(r[0, 0]))
     return np.array([roll, pitch, yaw])
 
 

@@ -59,17 +59,20 @@ class InclinometerModel:
     def read(self, roll: float, pitch: float, rng: np.random.Generator
              ) -> tuple[np.ndarray, np.ndarray, bool]:
         """(angles_rad (roll, pitch), raw volts, saturated) for true base roll and pitch."""
-        truth = np.array([roll, pitch]) + self.noise.sample(rng, 2)
-        deg = truth / DEG
-        saturated = bool(np.any(np.abs(deg) > self.linear_range_deg))
-        deg = np.clip(deg, -self.linear_range_deg, self.linear_range_deg)
-        v0 = np.asarray(self.zero_volts)
-        s = np.asarray(self.sensitivity_v_per_deg)
-        volts = v0 + s * deg
-        lsb = 2.0 * self.linear_range_deg * s / (2 ** self.bits)
-        volts = v0 + np.round((volts - v0) / lsb) * lsb
-        angles = (volts - v0) / s * DEG              # Eq. D-1
-        return angles, volts, saturated
+        noise = self.noise.sample(rng, 2)
+        angles, volts, saturated = [], [], False
+        lim = self.linear_range_deg
+        for k, truth in enumerate((roll, pitch)):       # scalar math: called at 200 Hz
+            deg = (truth + float(noise[k])) / DEG
+            if abs(deg) > lim:
+                saturated = True
+                deg = max(-lim, min(lim, deg))
+            v0, sens = self.zero_volts[k], self.sensitivity_v_per_deg[k]
+            lsb = 2.0 * lim * sens / (2 ** self.bits)
+            v = v0 + round(sens * deg / lsb) * lsb
+            volts.append(v)
+            angles.append((v - v0) / sens * DEG)         # Eq. D-1
+        return np.array(angles), np.array(volts), saturated
 
     def variance(self) -> float:
         """Per-axis variance (rad^2): white noise plus quantisation (lsb^2 / 12)."""

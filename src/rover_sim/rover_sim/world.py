@@ -282,9 +282,12 @@ class World:
         com, orn = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
         vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
         rot = quat_to_matrix(orn) @ r.inertial_rot.T
-        off = rot @ r.com_offset
-        ang = np.array(ang)
-        return np.array(com) - off, rot, np.array(vel) - np.cross(ang, off), ang
+        ox, oy, oz = rot @ r.com_offset
+        wx, wy, wz = ang
+        # v_origin = v_com - w x off (np.cross costs ~50 us on 3-vectors)
+        v = (vel[0] - (wy * oz - wz * oy), vel[1] - (wz * ox - wx * oz),
+             vel[2] - (wx * oy - wy * ox))
+        return np.array((com[0] - ox, com[1] - oy, com[2] - oz)), rot, np.array(v), np.array(ang)
 
     def _set_base_pose(self, r: _Rover, pos: np.ndarray, rot: np.ndarray) -> None:
         q = matrix_to_quat(rot @ r.inertial_rot)
@@ -454,7 +457,8 @@ class World:
         r = self.rovers[index]
         c = self.client
         rng = self.rng
-        _, rot, _, _ = self._base_state(r)
+        _, orn = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+        rot = quat_to_matrix(orn) @ r.inertial_rot.T
         # one draw for every channel (uniform on [-1, 1], scaled per channel): numpy's per-call
         # cost dominates at 200 Hz x rovers
         noise = rng.uniform(-1.0, 1.0, size=self._noise_bounds.size) * self._noise_bounds
