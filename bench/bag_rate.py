@@ -40,6 +40,7 @@ import numpy as np  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 
+from coop_common.files import write_json  # noqa: E402
 from rover_bag.bagio import BagWriter, bag_info, make_qos, make_typestore, read_messages  # noqa
 
 SENSOR = [make_qos(reliable=False, transient_local=False, depth=5)]
@@ -331,7 +332,7 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix='bag_rate_'))
     try:
         if args.live_only:
-            args.live_only.write_text(json.dumps(bench_live_record(args.seconds, tmp)))
+            write_json(args.live_only, bench_live_record(args.seconds, tmp))
             return 0
         res = bench_core(args.messages, args.repeats, tmp)
         if not args.skip_live:
@@ -379,8 +380,7 @@ def main() -> int:
               f'; player lateness median {res["player_lateness_median_ms"]} ms, p99 '
               f'{res["player_lateness_p99_ms"]} ms')
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(res, indent=2))
+        write_json(args.json, res, indent=2)
     return 0
 
 

@@ -17,7 +17,6 @@ rovers' maps fused vs every scan in one map.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -36,6 +35,7 @@ except ImportError:  # run from a source checkout before the package is built
 import octomap  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
+from coop_common.files import write_json  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
 from coop_mapping.stereo import StereoCamera, StereoRanger  # noqa: E402
 from coop_mapping.voxelmap import FREE, OCCUPIED, UNKNOWN, VoxelMap, pack_keys, unpack_keys  # noqa: E402
@@ -265,8 +265,7 @@ def main(argv: list[str] | None = None) -> int:
                                                        'state_agreement': agree}
             print(f'{res:>6g} {sub:>15d} {rate / 1e6:10.3f} {agree:7.4f}')
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2))
+        write_json(args.json, out, indent=2)
     return 0
 
 

@@ -4,7 +4,6 @@ peer) in the same run. Usage: bench/nbv_rate.py --json OUT"""
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -15,6 +14,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'coop_viewp
 
 import numpy as np  # noqa: E402
 
+from coop_common.files import write_json  # noqa: E402
 from coop_viewplan.grid import OccupancyGrid, markov_estimate  # noqa: E402
 from coop_viewplan.nbv import CameraState, InfoLookup, NbvConfig, NextBestViewPlanner, score_views  # noqa: E402
 from coop_viewplan.placement import CameraModel, Target, TaskPlacer  # noqa: E402
@@ -100,8 +100,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r.get('peer_one_at_a_time_poses_per_s', float('nan')):8.0f} "
               f"{r.get('speedup', float('nan')):6.1f} {r.get('seconds', float('nan')):8.3f}")
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({'rows': rows}, indent=1))
+        write_json(args.json, {'rows': rows}, indent=1)
     return 0
 
 

@@ -8,7 +8,6 @@ Usage: bench/sim_rate.py --json OUT [--seconds S]
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -20,6 +19,7 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 import pybullet as pb  # noqa: E402
 
 from coop_common.dynparams import load_truth  # noqa: E402
+from coop_common.files import write_json  # noqa: E402
 from rover_sim.config import SimConfig  # noqa: E402
 from rover_sim.world import World  # noqa: E402
 
@@ -124,10 +124,7 @@ def main() -> int:
         'clock': 'rtf_* are sim seconds per CPU second of this process; wall.* per wall second',
         'targets': {'rtf_no_render': 5.0, 'rtf_stereo_4hz_320x240': 1.0},
     }
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_suffix('.tmp')
-    tmp.write_text(json.dumps(result, indent=2))
-    tmp.replace(args.json)
+    write_json(args.json, result, indent=2)
     return 0
 
 

@@ -9,7 +9,6 @@ Usage: bench/sim_substeps.py --json OUT [--substeps 6,8,10,20]
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -21,6 +20,7 @@ import numpy as np  # noqa: E402
 from scipy.signal import butter, filtfilt  # noqa: E402
 
 from coop_common.dynparams import load_truth  # noqa: E402
+from coop_common.files import write_json  # noqa: E402
 from rover_sim.config import NoiseConfig, SimConfig  # noqa: E402
 from rover_sim.world import World  # noqa: E402
 
@@ -70,10 +70,7 @@ def main() -> int:
         per = [float(err[3 * k:3 * k + 3].max()) for k in range(len(SIGNALS))]
         print(f'{n:>9} ' + ' '.join(f'{100 * e:>11.1f}%' for e in per) + f' {rtf:>15.1f}x')
         result['rows'][str(n)] = {'rel_rms_error': dict(zip(SIGNALS, per)), 'cpu_rtf': rtf}
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_suffix('.tmp')
-    tmp.write_text(json.dumps(result, indent=2))
-    tmp.replace(args.json)
+    write_json(args.json, result, indent=2)
     return 0
 
 

@@ -8,7 +8,6 @@ Usage: bench/sim_topic_rates.py --json OUT [--seconds S]
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, Imu, JointState
 
+from coop_common.files import write_json
 from coop_common.testing import NodeProcess, isolate_ros_environment
 from coop_msgs.msg import Inclinometer
 
@@ -77,10 +77,7 @@ def main() -> int:
     finally:
         node.destroy_node()
         rclpy.shutdown()
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_suffix('.tmp')
-    tmp.write_text(json.dumps({'seconds': args.seconds, 'topics': rows}, indent=2))
-    tmp.replace(args.json)
+    write_json(args.json, {'seconds': args.seconds, 'topics': rows}, indent=2)
     return 0
 
 

@@ -10,13 +10,13 @@ time to 20 % mean error, 95 % interval coverage and physical consistency, and wr
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from coop_common.dynparams import PARAM_LABELS, PARAM_NAMES, TruthFileError, load_truth
+from coop_common.files import write_json
 
 from .excitation import STRATEGIES
 from .experiment import RunResult, reference_noise_scales, run_identification
@@ -219,14 +219,13 @@ def _main_sim(args: argparse.Namespace) -> int:
     print(f'% Avg. Error {100 * r["mean_abs_rel_error"]:.1f} ({r["message"]}; '
           f'{r["samples"]} samples, {r["rejected"]} rejected; logs {r["logs"]})')
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({
+        write_json(args.json, {
             'mode': 'sim', 'strategy': strategy, 'duration_s': args.duration,
             'noise': args.noise, 'success': r['success'],
             'mean_abs_rel_error': r['mean_abs_rel_error'],
             'per_parameter': {p: {'estimate': float(r['estimate'][i]), 'std': float(r['std'][i]),
                                   'truth': float(r['truth'][i])}
-                              for i, p in enumerate(PARAM_NAMES)}}, indent=1))
+                              for i, p in enumerate(PARAM_NAMES)}}, indent=1)
     return 0
 
 
@@ -265,8 +264,7 @@ def main(argv: list[str] | None = None) -> int:
                           'variable': dict(zip(PARAM_NAMES, THESIS_VARIABLE)),
                           'avg_error_pct': THESIS_AVG_ERROR},
                'strategies': summary}
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=1))
+        write_json(args.json, doc, indent=1)
         print(f'wrote {args.json}')
     return 0
 

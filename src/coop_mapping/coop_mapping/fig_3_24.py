@@ -18,13 +18,14 @@ score the result.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from coop_common.files import write_json
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .render import Box, TexturedScene, look_at
@@ -170,8 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                   f'{100 * r["final_reduction"]:.1f}%, mean over steps '
                   f'{100 * r["mean_reduction"]:.1f}%, fallback steps {r["fallback_steps"]}')
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2))
+        write_json(args.json, out, indent=2)
     if args.plots:
         import matplotlib  # noqa: PLC0415
         matplotlib.use('Agg')
