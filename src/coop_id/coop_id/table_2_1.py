@@ -192,6 +192,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument('--plots', type=Path, default=None)
     ap.add_argument('--sim', action='store_true',
                     help='one identification end to end through rover_sim + identifier')
+    ap.add_argument('--bag', type=Path, default=None,
+                    help='identify from a recorded bag instead (no DDS; the core as the node)')
+    ap.add_argument('--rover', default='rover1', help='rover namespace in --bag')
     args = ap.parse_args(argv)
     bad = [s for s in args.strategies.split(',') if s not in STRATEGIES]
     if bad:
@@ -229,10 +232,45 @@ def _main_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _main_bag(args: argparse.Namespace) -> int:
+    from . import offline  # noqa: PLC0415
+
+    try:
+        _, rows = offline.bag_samples(args.bag, rover=args.rover)
+        report = offline.identify_rows(rows, IdentifierConfig(
+            accelerometer=not args.no_accelerometer))
+        truth = offline.bag_truth(args.bag, rover=args.rover)
+    except (offline.BagError, OSError, ValueError) as exc:
+        print(f'table_2_1 --bag: {exc}', file=sys.stderr)
+        return 1
+    print(f'identification from {args.bag} ({args.rover}): {len(rows)} samples')
+    print(f'{"Parameter":16s}{"True":>10s}{"estimate":>11s}{"std":>10s}  observable')
+    for i, p in enumerate(PARAM_NAMES):
+        t = f'{truth[i]:10.4g}' if truth is not None else f'{"-":>10s}'
+        print(f'{PARAM_LABELS[p]:16s}{t}{report.values[i]:11.4g}{report.std[i]:10.3g}  '
+              f'{bool(report.observable[i])}')
+    err = None
+    if truth is not None:
+        nz = truth != 0
+        err = float(np.mean(np.abs(report.values[nz] - truth[nz]) / np.abs(truth[nz])))
+        print(f'% Avg. Error {100 * err:.1f} (over the {int(nz.sum())} non-zero parameters)')
+    if args.json is not None:
+        write_json(args.json, {
+            'mode': 'bag', 'bag': str(args.bag), 'rover': args.rover, 'samples': len(rows),
+            'mean_abs_rel_error': err,
+            'per_parameter': {p: {'estimate': float(report.values[i]),
+                                  'std': float(report.std[i]),
+                                  'observable': bool(report.observable[i])}
+                              for i, p in enumerate(PARAM_NAMES)}}, indent=1)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv if argv is not None else sys.argv[1:])
     if args.sim:
         return _main_sim(args)
+    if args.bag is not None:
+        return _main_bag(args)
     try:
         truth_p = load_truth(args.truth)
     except TruthFileError as exc:

@@ -1,0 +1,85 @@
+"""Identification from a recorded bag, without DDS: the identifier's sample stream (IMU,
+inclinometer and F/T of the same stamp, as the node pairs them) read with rover_bag's batch
+reader and fed to the same core (`identifier_core.Identifier`) in the node's windows."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from coop_common.dynparams import PARAM_NAMES
+
+from .consistency import Report
+from .identifier_core import Identifier, IdentifierConfig
+
+
+class BagError(ValueError):
+    """The bag holds no identification stream for the rover."""
+
+
+def ident_topics(rover: str) -> tuple[str, str, str]:
+    return (f'/{rover}/imu', f'/{rover}/inclinometer', f'/{rover}/arm/wrench')
+
+
+def bag_samples(bag: str | Path, *, rover: str = 'rover1') -> tuple[np.ndarray, np.ndarray]:
+    """(stamps_ns, rows) of the samples whose IMU, inclinometer and F/T share a stamp; rows are
+    specific force (3), gyro (3), roll, pitch, force (3), torque (3)."""
+    from rover_bag.bagio import BagError as RawBagError  # noqa: PLC0415 - optional at import
+    from rover_bag.bagio import read_messages  # noqa: PLC0415
+
+    topics = ident_topics(rover)
+    by: dict[str, dict[int, list[float]]] = {t: {} for t in topics}
+    try:
+        messages = list(read_messages(bag, list(topics)))
+    except RawBagError as exc:
+        raise BagError(str(exc)) from exc
+    for m in messages:
+        msg = m.msg
+        st = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        if m.topic == topics[0]:
+            a, w = msg.linear_acceleration, msg.angular_velocity
+            by[m.topic][st] = [a.x, a.y, a.z, w.x, w.y, w.z]
+        elif m.topic == topics[1]:
+            by[m.topic][st] = [msg.roll, msg.pitch]
+        else:
+            f, n = msg.wrench.force, msg.wrench.torque
+            by[m.topic][st] = [f.x, f.y, f.z, n.x, n.y, n.z]
+    stamps = sorted(set.intersection(*(set(d) for d in by.values())))
+    if not stamps:
+        counts = {t: len(d) for t, d in by.items()}
+        raise BagError(f'{bag}: no instant with all of {list(topics)} ({counts})')
+    rows = np.array([by[topics[0]][s] + by[topics[1]][s] + by[topics[2]][s] for s in stamps])
+    return np.array(stamps), rows
+
+
+def identify_rows(rows: np.ndarray, config: IdentifierConfig | None = None, *,
+                  n_samples: int | None = None) -> Report:
+    """The core fed `rows` in the node's windows (the first window_s * rate_hz + 1 samples,
+    then window_s * rate_hz each) up to `n_samples` (default: every whole window)."""
+    cfg = config or IdentifierConfig()
+    ident = Identifier(cfg, sensor_noise=None)
+    per = int(round(cfg.window_s * cfg.rate_hz))
+    if n_samples is None:
+        n_samples = 1 + per * ((len(rows) - 1) // per) if len(rows) > per else 0
+    if n_samples < per + 1 or n_samples > len(rows):
+        raise BagError(f'need at least {per + 1} samples (one window), have {len(rows)}')
+    start, first = 0, True
+    while start < n_samples:
+        n = per + (1 if first else 0)
+        d = rows[start:start + n]
+        ident.add_samples(0, specific_force=d[:, 0:3], gyro=d[:, 3:6], incl=d[:, 6:8],
+                          force=d[:, 8:11], torque=d[:, 11:14])
+        ident.end_window()
+        start += n
+        first = False
+    return ident.report
+
+
+def bag_truth(bag: str | Path, *, rover: str = 'rover1') -> np.ndarray | None:
+    """The true parameters the simulator latched under /sim/<rover>/parameters, if recorded."""
+    from rover_bag.bagio import read_messages  # noqa: PLC0415
+
+    for m in read_messages(bag, [f'/sim/{rover}/parameters']):
+        d = dict(zip(m.msg.names, m.msg.values))
+        return np.array([d[n] for n in PARAM_NAMES])
+    return None
