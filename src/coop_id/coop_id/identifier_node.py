@@ -38,6 +38,9 @@ from .model import SensorNoise
 MODES = (('arm_joint_1', 0.0, None), ('arm_joint_2', 0.0, None),
          ('arm_joint_2', math.pi / 2, None))   # about z, about y, about x (joint 1 = pi/2)
 
+#: Sensor seconds an IMU sample may wait for its inclinometer / F/T partners (pairing queues).
+QUEUE_S = 5.0
+
 #: Spacing of the arm trajectory points (>= 20 points per period up to 30 rad/s).
 TRAJECTORY_STEP_S = 0.01
 
@@ -86,9 +89,15 @@ class IdentifierNode(Node):
         self.bad = BadInputCounter(self)
         self._lock = threading.Lock()
         self._sensors = MutuallyExclusiveCallbackGroup()
-        self._imu: deque[tuple[float, Imu]] = deque(maxlen=500)
-        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=500)
-        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=500)
+        # Pairing queues, stamp-ordered. An IMU sample waits for its partners however the three
+        # streams interleave (a replay's burst, DDS or callback latency): up to QUEUE_S of
+        # samples, the bound only a silent partner reaches. The partner queues are trimmed to
+        # the IMU sample waiting (older entries can never pair), so they never evict a partner
+        # that a lagging IMU stream still needs.
+        cap = int(QUEUE_S * self.p['rate_hz'])
+        self._imu: deque[tuple[float, Imu]] = deque(maxlen=cap)
+        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=cap)
+        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=cap)
         self._last_stamp = {'imu': -math.inf, 'inclinometer': -math.inf, 'wrench': -math.inf}
         self._last_sample_t = -math.inf
         self._buffer: list[tuple[float, np.ndarray]] = []
@@ -154,13 +163,14 @@ class IdentifierNode(Node):
 
     def _on_incl(self, msg: Inclinometer) -> None:
         t = self._stamp(msg)
-        if msg.saturated:
-            self.bad.reject('saturated inclinometer')
+        if not self._accept('inclinometer', t, [msg.roll, msg.pitch]):
             return
-        if self._accept('inclinometer', t, [msg.roll, msg.pitch]):
+        if msg.saturated:      # after _accept: its stamp tells the waiting IMU sample it is lost
+            self.bad.reject('saturated inclinometer')
+        else:
             self._noise_var['incl'] = np.array([msg.roll_variance, msg.pitch_variance])
             self._incl.append((t, msg))
-            self._assemble()
+        self._assemble()
 
     def _on_wrench(self, msg: WrenchStamped) -> None:
         f, n = msg.wrench.force, msg.wrench.torque
@@ -170,8 +180,8 @@ class IdentifierNode(Node):
         if (max(abs(f.x), abs(f.y), abs(f.z)) > self.p['ft_force_limit_n']
                 or max(abs(n.x), abs(n.y), abs(n.z)) > self.p['ft_torque_limit_nm']):
             self.bad.reject('saturated F/T')
-            return
-        self._wrench.append((t, msg))
+        else:
+            self._wrench.append((t, msg))
         self._assemble()
 
     def _on_joints(self, msg: JointState) -> None:
@@ -180,28 +190,35 @@ class IdentifierNode(Node):
                 self.joint_positions[name] = pos
 
     def _assemble(self) -> None:
-        """Pair the newest IMU sample with inclinometer and wrench samples of the same instant."""
+        """Pair each IMU sample, in stamp order, with the inclinometer and F/T samples of its
+        instant (the nearest within sync_tolerance_s).
+
+        Each stream's stamps increase (_accept), so the partners of instant t may still come
+        until both partner streams have reached t: until then the IMU sample waits, whatever
+        the order or latency in which the three topics arrive, a partner that has not spoken
+        yet included (the first samples of a replay come in one burst, in any order). Once both
+        have reached t, a missing partner is lost for good (dropped by DDS, saturated, bad
+        stamp) and the sample is dropped. Only a full IMU queue (QUEUE_S of samples) means a
+        silent partner: then the oldest sample goes."""
         tol = self.p['sync_tolerance_s']
         while self._imu:
             t, imu = self._imu[0]
-            newest_other = min(self._last_stamp['inclinometer'], self._last_stamp['wrench'])
-            if newest_other < t - 1e-9:
-                # The partners of this instant may still come (the simulator publishes the IMU
-                # first; their messages may be queued behind a window's processing): wait. Pairing
-                # now would take the previous sample's F/T, one period off. Drop only when a
-                # partner never spoke or the wait filled the buffer.
-                if newest_other == -math.inf or len(self._imu) >= self._imu.maxlen:
-                    self._imu.popleft()
-                    self.bad.reject('silent sensor', 'inclinometer or wrench')
-                    continue
-                return
+            # partners older than the waiting sample can never pair: trimming them (not the
+            # queue's bound) keeps every partner a lagging IMU stream still needs
+            _trim(self._incl, t - tol)
+            _trim(self._wrench, t - tol)
+            if min(self._last_stamp['inclinometer'], self._last_stamp['wrench']) < t - 1e-9:
+                if len(self._imu) < self._imu.maxlen:
+                    return        # the partners of this instant may still come: wait
+                self._imu.popleft()
+                self.bad.reject('silent sensor', 'inclinometer or wrench')
+                continue
             incl = _nearest(self._incl, t, tol)
             wr = _nearest(self._wrench, t, tol)
+            self._imu.popleft()
             if incl is None or wr is None:        # the partner will never come: drop it
-                self._imu.popleft()
                 self.bad.reject('unpaired sample', f'imu {t:.4f}')
                 continue
-            self._imu.popleft()
             a, w = imu.linear_acceleration, imu.angular_velocity
             f, n = wr.wrench.force, wr.wrench.torque
             row = np.array([a.x, a.y, a.z, w.x, w.y, w.z, incl.roll, incl.pitch,
@@ -391,6 +408,12 @@ class IdentifierNode(Node):
 def _qos_kwargs(q: QoSProfile) -> dict:
     return {'history': q.history, 'depth': q.depth, 'reliability': q.reliability,
             'durability': q.durability}
+
+
+def _trim(buf: deque, t_min: float) -> None:
+    """Drop the entries of `buf` (stamp-ordered) stamped before t_min."""
+    while buf and buf[0][0] < t_min:
+        buf.popleft()
 
 
 def _nearest(buf: deque, t: float, tol: float):
