@@ -220,7 +220,12 @@ def offline_identification(rows: np.ndarray, cfg, n_samples: int):
     return ident.report
 
 
+@pytest.mark.known_issue  # open bug, see the README's Status section
 def test_ident_bag_replays_into_the_identifier_as_its_core(tmp_path, probe):
+    """Open bug: the identifier process loses bursts of messages (0.1-5 s of all three sensor
+    topics) before any callback sees them, live and on replay (400-640 of 1603 samples), while a
+    plain subscriber receives all 1603 from the same player; not the window processing (moved
+    off the callbacks: no change) nor the executor's thread count (3 or 6: no change)."""
     from rclpy.action import ActionClient
 
     from coop_id.identifier_core import IdentifierConfig
