@@ -179,45 +179,15 @@ MAX_SKIP = 20      # leading samples the identifier may drop at start-up (100 ms
 
 
 def bag_samples(bag: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps, rows) of the identifier's sample stream from a bag: IMU, inclinometer and F/T of
-    the same stamp joined (rows: specific force, gyro, roll, pitch, force, torque), as the node
-    pairs them with `sync_tolerance_s` below half the 5 ms sample period."""
-    from rover_bag.bagio import read_messages
-    by: dict[str, dict[int, list[float]]] = {t: {} for t in IDENT_TOPICS}
-    for m in read_messages(bag, list(IDENT_TOPICS)):
-        st = m.msg.header.stamp.sec * 10**9 + m.msg.header.stamp.nanosec
-        msg = m.msg
-        if m.topic.endswith('imu'):
-            a, w = msg.linear_acceleration, msg.angular_velocity
-            by[m.topic][st] = [a.x, a.y, a.z, w.x, w.y, w.z]
-        elif m.topic.endswith('inclinometer'):
-            by[m.topic][st] = [msg.roll, msg.pitch]
-        else:
-            f, n = msg.wrench.force, msg.wrench.torque
-            by[m.topic][st] = [f.x, f.y, f.z, n.x, n.y, n.z]
-    stamps = sorted(set.intersection(*(set(d) for d in by.values())))
-    rows = np.array([by[IDENT_TOPICS[0]][s] + by[IDENT_TOPICS[1]][s] + by[IDENT_TOPICS[2]][s]
-                     for s in stamps])
-    return np.array(stamps), rows
+    """(stamps, rows) of the identifier's sample stream from a bag (coop_id.offline)."""
+    from coop_id.offline import bag_samples as samples
+    return samples(bag)
 
 
 def offline_identification(rows: np.ndarray, cfg, n_samples: int):
-    """The identifier core fed `rows` in the node's windows (the first window_s * rate + 1
-    samples, then window_s * rate each) up to `n_samples`; returns its report."""
-    from coop_id.identifier_core import Identifier
-    ident = Identifier(cfg, sensor_noise=None)
-    per = int(round(cfg.window_s * cfg.rate_hz))
-    start, first = 0, True
-    while start < n_samples:
-        n = per + (1 if first else 0)
-        d = rows[start:start + n]
-        ident.add_samples(0, specific_force=d[:, 0:3], gyro=d[:, 3:6], incl=d[:, 6:8],
-                          force=d[:, 8:11], torque=d[:, 11:14])
-        ident.end_window()
-        start += n
-        first = False
-    assert start == n_samples
-    return ident.report
+    """The identifier core fed `rows` in the node's windows up to `n_samples`."""
+    from coop_id.offline import identify_rows
+    return identify_rows(rows, cfg, n_samples=n_samples)
 
 
 @pytest.mark.known_issue  # open bug, see the README's Status section
