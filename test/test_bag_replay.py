@@ -190,12 +190,9 @@ def offline_identification(rows: np.ndarray, cfg, n_samples: int):
     return identify_rows(rows, cfg, n_samples=n_samples)
 
 
-@pytest.mark.known_issue  # open bug, see the README's Status section
 def test_ident_bag_replays_into_the_identifier_as_its_core(tmp_path, probe):
-    """Open bug: the identifier process loses bursts of messages (0.1-5 s of all three sensor
-    topics) before any callback sees them, live and on replay (400-640 of 1603 samples), while a
-    plain subscriber receives all 1603 from the same player; not the window processing (moved
-    off the callbacks: no change) nor the executor's thread count (3 or 6: no change)."""
+    """The identification bag played at its recorded rate into the identifier node: every
+    sample reaches the estimator, and the estimate equals its core's fed the bag directly."""
     from rclpy.action import ActionClient
 
     from coop_id.identifier_core import IdentifierConfig
@@ -210,11 +207,9 @@ def test_ident_bag_replays_into_the_identifier_as_its_core(tmp_path, probe):
                         ['-r', '__ns:=/rover1', '-p', 'use_sim_time:=true',
                          '-p', 'sync_tolerance_s:=0.0005'],
                         log_path=tmp_path / 'identifier.log')
-    # the three streams the estimate uses, at half speed: 600 callbacks per wall-second keep
-    # the node's queues short on a busy machine (its 'silent sensor' rule drops IMU samples
-    # once one stream's callbacks run 0.1 s behind another's)
+    # the three streams the estimate uses, at the recorded rate (600 messages/s)
     topics = "['" + "','".join(IDENT_TOPICS) + "']"
-    player = NodeProcess('rover_bag', 'play', ['-p', f'topics:={topics}', '-p', 'rate:=0.5',
+    player = NodeProcess('rover_bag', 'play', ['-p', f'topics:={topics}', '-p', 'rate:=1.0',
                                                '-p', 'wait_for_subscribers_s:=30.0'],
                          args=[str(bag)], log_path=tmp_path / 'play.log')
     msgs = probe.msgs['/rover1/dynamic_parameters']

@@ -9,7 +9,6 @@ Time base: the sensor stamps (sim time, wall time or a replayed bag alike).
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections import deque
 
@@ -17,10 +16,10 @@ import numpy as np
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import WrenchStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
+from rclpy.task import Future
 from sensor_msgs.msg import Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -87,8 +86,6 @@ class IdentifierNode(Node):
         super().__init__('identifier', **kwargs)
         self.p = declare_parameters(self, SPECS, on_change=self._on_change)
         self.bad = BadInputCounter(self)
-        self._lock = threading.Lock()
-        self._sensors = MutuallyExclusiveCallbackGroup()
         # Pairing queues, stamp-ordered. An IMU sample waits for its partners however the three
         # streams interleave (a replay's burst, DDS or callback latency): up to QUEUE_S of
         # samples, the bound only a silent partner reaches. The partner queues are trimmed to
@@ -104,8 +101,8 @@ class IdentifierNode(Node):
         self._last_sample: tuple[float, np.ndarray] | None = None
         self.ident: Identifier | None = None
         self._current_exc: Excitation | None = None
-        self._active = threading.Event()
-        self._window_done = threading.Condition(self._lock)
+        self._active = False
+        self._wake: Future | None = None    # the running goal awaits it (window done, poke)
         self._t0 = None
         self._t_now = 0.0
         self._windows = 0
@@ -114,20 +111,20 @@ class IdentifierNode(Node):
         # best effort as the publishers, but a 2 s queue: a window's processing (the excitation
         # optimisation) must not drop the samples that arrive meanwhile
         deep = QoSProfile(**{**_qos_kwargs(SENSOR_QOS), 'depth': 400})
-        self.create_subscription(Imu, 'imu', self._on_imu, deep, callback_group=self._sensors)
-        self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, deep,
-                                 callback_group=self._sensors)
-        self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep,
-                                 callback_group=self._sensors)
-        self.create_subscription(JointState, 'joint_states', self._on_joints, SENSOR_QOS,
-                                 callback_group=self._sensors)
+        self.create_subscription(Imu, 'imu', self._on_imu, deep)
+        self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, deep)
+        self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep)
+        self.create_subscription(JointState, 'joint_states', self._on_joints, SENSOR_QOS)
         self.pub_params = self.create_publisher(DynamicParameters, 'dynamic_parameters',
                                                 LATCHED_QOS)
         self.pub_cmd = self.create_publisher(JointTrajectory, 'arm/joint_command', COMMAND_QOS)
+        # One thread runs every callback, in arrival order (the pairing needs each stream in
+        # stamp order): the goal is a coroutine that awaits windows; a steady-clock timer wakes
+        # it to see a cancel or a silent stream when no window comes (sim time may stand still).
         self._action = ActionServer(
             self, Identify, '~/identify', execute_callback=self._execute,
-            goal_callback=self._on_goal, cancel_callback=lambda _g: CancelResponse.ACCEPT,
-            callback_group=ReentrantCallbackGroup())
+            goal_callback=self._on_goal, cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        self.create_timer(0.5, self._poke, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.joint_positions: dict[str, float] = {}
         self._noise_var = {'acc': np.zeros(3), 'gyro': np.zeros(3), 'incl': np.zeros(2)}
         self.get_logger().info('identifier ready (action ~/identify)')
@@ -226,7 +223,7 @@ class IdentifierNode(Node):
             self._on_sample(t, row)
 
     def _on_sample(self, t: float, row: np.ndarray) -> None:
-        if not self._active.is_set() or self.ident is None:
+        if not self._active or self.ident is None:
             return
         last = self._last_sample
         if last is not None and t - last[0] > self.p['stale_timeout_s']:
@@ -264,8 +261,15 @@ class IdentifierNode(Node):
             self._current_exc = ident.excitation
             self._exc_t0 = self._t_now
         self._command_arm()
-        with self._window_done:
-            self._window_done.notify_all()
+        self._poke()
+
+    def _poke(self) -> None:
+        """Resume the goal coroutine awaiting the next window (if one runs)."""
+        wake = self._wake
+        if wake is not None and not wake.done():
+            wake.set_result(None)
+            if self.executor is not None:
+                self.executor.wake()    # resume it now, not at the next message
 
     # -- outputs -------------------------------------------------------------------------------
     def _estimate_msg(self) -> DynamicParameters:
@@ -340,7 +344,7 @@ class IdentifierNode(Node):
             self.get_logger().warn(f'rejected goal: strategy {goal.strategy!r}, '
                                    f'duration {goal.duration_s}')
             return GoalResponse.REJECT
-        if self._active.is_set():
+        if self._active:
             self.get_logger().warn('rejected goal: an identification is running')
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
@@ -355,30 +359,28 @@ class IdentifierNode(Node):
         f = np.full(3, self.p['ft_force_noise_std_n'])
         return {0: SensorNoise(np.sqrt(v['acc']), np.sqrt(v['gyro']), np.sqrt(v['incl']), f)}
 
-    def _execute(self, handle) -> Identify.Result:
+    async def _execute(self, handle) -> Identify.Result:
         goal = handle.request
         cfg = IdentifierConfig(
             strategy=goal.strategy or self.p['strategy'], rate_hz=self.p['rate_hz'],
             window_s=self.p['window_s'], decimation=self.p['decimation'],
             bits=self.p['information_bits'], accelerometer=self.p['use_accelerometer'],
             drift_per_s=self.p['drift_per_s'], incl_weight=self.p['inclinometer_weight'])
-        noise = self._sensor_noise()
-        with self._lock:
-            self.ident = Identifier(cfg, sensor_noise=noise)
-            self._current_exc = self.ident.excitation
-            self._buffer.clear()
-            self._last_sample = None
-            self._t0 = None
-            self._windows = 0
-            self._ref = ArmReference(MODES)
+        self.ident = Identifier(cfg, sensor_noise=self._sensor_noise())
+        self._current_exc = self.ident.excitation
+        self._buffer.clear()
+        self._last_sample = None
+        self._t0 = None
+        self._windows = 0
+        self._ref = ArmReference(MODES)
         self.get_logger().info(f'identifying with {cfg.strategy} for {goal.duration_s} s')
-        self._active.set()
+        self._active = True
         result = Identify.Result()
         last_t, last_wall = None, time.monotonic()
         try:
             while True:
-                with self._window_done:
-                    self._window_done.wait(timeout=0.5)
+                self._wake = Future()
+                await self._wake
                 if self._t_now != last_t:
                     last_t, last_wall = self._t_now, time.monotonic()
                 elif time.monotonic() - last_wall > max(1.0, 10 * self.p['stale_timeout_s']):
@@ -399,7 +401,8 @@ class IdentifierNode(Node):
                                       f'{self.bad.total} rejected samples')
                     break
         finally:
-            self._active.clear()
+            self._active = False
+            self._wake = None
         result.estimate = self._estimate_msg()
         self.get_logger().info(f'identification done: {result.message}')
         return result
@@ -429,8 +432,7 @@ def _nearest(buf: deque, t: float, tol: float):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(IdentifierNode, args,
-                    executor_factory=lambda: MultiThreadedExecutor(num_threads=3))
+    return run_node(IdentifierNode, args)
 
 
 if __name__ == '__main__':

@@ -8,7 +8,7 @@ import rclpy
 from geometry_msgs.msg import WrenchStamped
 from rclpy.action import ActionClient
 from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu
@@ -47,7 +47,7 @@ def graph():
     node = IdentifierNode(context=ctx, namespace='rover1', parameter_overrides=[
         Parameter('window_s', value=0.4), Parameter('mode_period_s', value=1.0)])
     peer = Node('peer', context=ctx, namespace='rover1')
-    ex = MultiThreadedExecutor(num_threads=4, context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     ex.add_node(peer)
     th = threading.Thread(target=ex.spin, daemon=True)
