@@ -19,6 +19,7 @@ import shutil
 import sys
 import tempfile
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -105,15 +106,25 @@ class Driver:
 # --------------------------------------------------------------------------------------------
 
 def drive_ident(d: Driver, seconds: float) -> None:
-    """Arm excitation f(t) = a0 + a sin(w t) (Eq. B-1), one arm base joint after the other
-    (rotation about z, then about y: the modes of thesis §2.2), as one trajectory each."""
-    half = seconds / 2
-    for joint, a0, amp, w in (('arm_joint_1', 0.0, 0.8, 2 * math.pi * 0.8),
-                              ('arm_joint_2', 0.3, 0.5, 2 * math.pi * 1.1)):
-        ts = [0.05 * k for k in range(1, int(half / 0.05) + 1)]
-        d.trajectory('/rover1/arm/joint_command', [joint], ts,
-                     [[a0 + amp * math.sin(w * t)] for t in ts])
-        d.spin_for(half)
+    """A live identification: the `identifier` node (strategy information) shakes rover1's arm
+    with its re-optimised excitation for `seconds` of sim time; the bag keeps the sensors, the
+    arm commands and every estimate the node published."""
+    from rclpy.action import ActionClient  # noqa: PLC0415
+
+    from coop_msgs.action import Identify  # noqa: PLC0415
+    client = ActionClient(d.node, Identify, '/rover1/identifier/identify')
+    spin = lambda dt: d.ex.spin_once(timeout_sec=dt)  # noqa: E731
+    wait_for(client.server_is_ready, 60.0, spin=spin, what='the identify action')
+    d.spin_for(0.5)          # at rest first: the node takes the sensor variances from messages
+    fut = client.send_goal_async(Identify.Goal(strategy='information', duration_s=seconds))
+    wait_for(fut.done, 30.0, spin=spin, what='the goal response')
+    handle = fut.result()
+    if not handle.accepted:
+        raise RuntimeError('identify goal rejected')
+    result = handle.get_result_async()
+    wait_for(result.done, 600.0, spin=spin, what='the identification result')
+    print(f'identifier: {result.result().result.message}')
+    d.spin_for(0.3)          # the last estimate reaches the recorder
 
 
 def _aim_mast(d: Driver, rover: str, target: tuple[float, float, float]) -> None:
@@ -196,14 +207,18 @@ class Run:
     drive: Callable[[Driver, float], None]
     notes: str = ''
     extra: dict = field(default_factory=dict)
+    nodes: list[tuple[str, str, list[str]]] = field(default_factory=list)   # also started
 
 
 RUNS = [
-    Run('ident_rover1', 'identification: rover1 arm excited by Eq. B-1 sinusoids, joint 1 then '
-        'joint 2; 200 Hz IMU, inclinometer, F/T, joint states; Table 2-1 truth latched',
+    Run('ident_rover1', 'a live identification: the `identifier` node (information strategy) '
+        'shakes rover1\'s arm for 10 sim-s; 200 Hz IMU, inclinometer, F/T, joint states, the '
+        'arm commands, every published estimate; Table 2-1 truth latched',
         ['-p', 'rovers:=1', '-p', 'seed:=1', '-p', 'stereo_rate_hz:=0.0'],
-        ['/clock', '/sim/rover1/parameters', '/rover1/arm/joint_command']
-        + [f'/rover1/{t}' for t in PER_ROVER_SENSORS], 8.0, drive_ident),
+        ['/clock', '/sim/rover1/parameters', '/rover1/arm/joint_command',
+         '/rover1/dynamic_parameters'] + [f'/rover1/{t}' for t in PER_ROVER_SENSORS], 10.0,
+        drive_ident, nodes=[('coop_id', 'identifier',
+                             ['-r', '__ns:=/rover1', '-p', 'use_sim_time:=true'])]),
     Run('mapping_two_rovers', 'two-rover stereo mapping: both rovers creep forward, masts '
         'sweeping; 320x240 stereo pairs at 4 Hz + camera_info, stereo/pose, odom, true poses',
         ['-p', 'rovers:=2', '-p', 'seed:=1', '-p', 'stereo_rate_hz:=4.0'],
@@ -230,7 +245,10 @@ def record_run(run: Run, out_dir: Path, tmp: Path) -> Path:
     driver = Driver()
     try:
         with NodeProcess('rover_sim', 'sim', run.sim_args,
-                         log_path=tmp / f'{run.name}.sim.log') as sim:
+                         log_path=tmp / f'{run.name}.sim.log') as sim, ExitStack() as nodes:
+            for pkg, exe, args in run.nodes:
+                nodes.enter_context(NodeProcess(pkg, exe, args,
+                                                log_path=tmp / f'{run.name}.{exe}.log'))
             rec_args = ['-p', f'output:={out}', '-p', 'use_sim_time:=true',
                         '-p', 'discovery_period_s:=0.2', '-p', 'compression:=zstd',
                         '-p', f'topics:={topics}']
@@ -284,7 +302,10 @@ def write_readme(out: Path, lines) -> None:
     rows = '\n'.join(
         f'| `{run.name}/` | {run.what} | {info.duration_s:.1f} | {info.message_count} | '
         f'{size:.1f} | `python tools/record_sample_bags.py --only {run.name}` (sim '
-        f'`{" ".join(a for a in run.sim_args if a != "-p")}`, {run.seconds:g} sim-s) |'
+        f'`{" ".join(a for a in run.sim_args if a != "-p")}`'
+        + ''.join(f', with `{p} {e} {" ".join(a for a in ar if a != "-p")}`'
+                  for p, e, ar in run.nodes)
+        + f', {run.seconds:g} sim-s) |'
         for run, info, size in lines)
     (out / 'README.md').write_text(f"""# Sample bags
 

@@ -31,7 +31,7 @@ from coop_msgs.msg import DynamicParameters, Inclinometer
 
 from .excitation import STRATEGIES, ArmReference, Excitation
 from .identifier_core import Identifier, IdentifierConfig
-from .model import SensorNoise
+from .offline import sensor_noise
 
 #: Arm base joints and the three rotation modes of §2.2: (joint driven, (joint1, joint2) hold).
 MODES = (('arm_joint_1', 0.0, None), ('arm_joint_2', 0.0, None),
@@ -105,6 +105,7 @@ class IdentifierNode(Node):
         self._wake: Future | None = None    # the running goal awaits it (window done, poke)
         self._t0 = None
         self._t_now = 0.0
+        self._t_estimate = 0.0     # stamp of the last sample in the estimate
         self._windows = 0
         self._exc_t0 = 0.0
         self._ref = ArmReference(MODES)
@@ -250,6 +251,7 @@ class IdentifierNode(Node):
 
     def _process_window(self) -> None:
         data = np.stack([r for _, r in self._buffer])
+        self._t_estimate = self._buffer[-1][0]
         self._buffer.clear()
         ident = self.ident
         ident.add_samples(0, specific_force=data[:, 0:3], gyro=data[:, 3:6], incl=data[:, 6:8],
@@ -275,7 +277,13 @@ class IdentifierNode(Node):
     def _estimate_msg(self) -> DynamicParameters:
         rep = self.ident.report
         msg = DynamicParameters()
-        msg.header.stamp = self.get_clock().now().to_msg()
+        # stamped with the data instant it holds for (the last sample absorbed: sensor time,
+        # the same live, on sim time and on a replayed bag), the clock only before any window
+        if self._windows:
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(
+                int(round(self._t_estimate * 1e9)), 10**9)
+        else:
+            msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = 'base_link'
         msg.names = list(PARAM_NAMES)
         msg.values = rep.values.tolist()
@@ -349,23 +357,17 @@ class IdentifierNode(Node):
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
-    def _sensor_noise(self) -> dict[int, SensorNoise] | None:
+    def _sensor_noise(self) -> dict | None:
         """Sensor noise sigmas from the message covariances (datasheet values), for the
         errors-in-variables correction; None when not enabled or not published."""
-        v = self._noise_var
-        if not self.p['bias_compensation'] or not all(
-                np.all(np.isfinite(a)) and np.all(a > 0) for a in v.values()):
+        if not self.p['bias_compensation']:
             return None
-        f = np.full(3, self.p['ft_force_noise_std_n'])
-        return {0: SensorNoise(np.sqrt(v['acc']), np.sqrt(v['gyro']), np.sqrt(v['incl']), f)}
+        v = self._noise_var
+        return sensor_noise(v['acc'], v['gyro'], v['incl'], self.p['ft_force_noise_std_n'])
 
     async def _execute(self, handle) -> Identify.Result:
         goal = handle.request
-        cfg = IdentifierConfig(
-            strategy=goal.strategy or self.p['strategy'], rate_hz=self.p['rate_hz'],
-            window_s=self.p['window_s'], decimation=self.p['decimation'],
-            bits=self.p['information_bits'], accelerometer=self.p['use_accelerometer'],
-            drift_per_s=self.p['drift_per_s'], incl_weight=self.p['inclinometer_weight'])
+        cfg = identifier_config(self.p, goal.strategy or self.p['strategy'])
         self.ident = Identifier(cfg, sensor_noise=self._sensor_noise())
         self._current_exc = self.ident.excitation
         self._buffer.clear()
@@ -406,6 +408,16 @@ class IdentifierNode(Node):
         result.estimate = self._estimate_msg()
         self.get_logger().info(f'identification done: {result.message}')
         return result
+
+
+def identifier_config(p: dict, strategy: str) -> IdentifierConfig:
+    """The core's configuration from the node's parameters (`SPECS` names) and a strategy;
+    `{k: s.default for k, s in SPECS.items()}` gives the node's defaults (offline replays)."""
+    return IdentifierConfig(
+        strategy=strategy, rate_hz=p['rate_hz'], window_s=p['window_s'],
+        decimation=p['decimation'], bits=p['information_bits'],
+        accelerometer=p['use_accelerometer'], drift_per_s=p['drift_per_s'],
+        incl_weight=p['inclinometer_weight'])
 
 
 def _qos_kwargs(q: QoSProfile) -> dict:

@@ -11,6 +11,7 @@ from coop_common.dynparams import PARAM_NAMES
 
 from .consistency import Report
 from .identifier_core import Identifier, IdentifierConfig
+from .model import SensorNoise
 
 
 class BagError(ValueError):
@@ -52,12 +53,46 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1') -> tuple[np.ndarray, 
     return np.array(stamps), rows
 
 
+def sensor_noise(acc_var, gyro_var, incl_var, force_std: float = 0.0,
+                 ) -> dict[int, SensorNoise] | None:
+    """The errors-in-variables noise model from the sensors' published variances (IMU
+    covariance diagonals, inclinometer roll/pitch variances) and the F/T force sigma; None
+    when a variance is missing (zero, negative or not finite): then no bias correction."""
+    v = [np.asarray(a, dtype=float) for a in (acc_var, gyro_var, incl_var)]
+    if not all(np.all(np.isfinite(a)) and np.all(a > 0) for a in v):
+        return None
+    return {0: SensorNoise(np.sqrt(v[0]), np.sqrt(v[1]), np.sqrt(v[2]), np.full(3, force_std))}
+
+
+def bag_sensor_noise(bag: str | Path, *, rover: str = 'rover1',
+                     force_std: float = 0.0) -> dict[int, SensorNoise] | None:
+    """sensor_noise() from the first IMU and inclinometer messages of the bag (as the node
+    takes them from the messages before a goal)."""
+    from rover_bag.bagio import read_messages  # noqa: PLC0415
+
+    imu = incl = None
+    for m in read_messages(bag, list(ident_topics(rover)[:2])):
+        if m.topic.endswith('/imu') and imu is None:
+            imu = m.msg
+        elif m.topic.endswith('/inclinometer') and incl is None:
+            incl = m.msg
+        if imu is not None and incl is not None:
+            break
+    if imu is None or incl is None:
+        return None
+    return sensor_noise(np.asarray(imu.linear_acceleration_covariance)[[0, 4, 8]],
+                        np.asarray(imu.angular_velocity_covariance)[[0, 4, 8]],
+                        [incl.roll_variance, incl.pitch_variance], force_std)
+
+
 def identify_rows(rows: np.ndarray, config: IdentifierConfig | None = None, *,
-                  n_samples: int | None = None) -> Report:
+                  n_samples: int | None = None,
+                  noise: dict[int, SensorNoise] | None = None) -> Report:
     """The core fed `rows` in the node's windows (the first window_s * rate_hz + 1 samples,
-    then window_s * rate_hz each) up to `n_samples` (default: every whole window)."""
+    then window_s * rate_hz each) up to `n_samples` (default: every whole window); `noise`
+    the errors-in-variables model (sensor_noise(); None: no bias correction)."""
     cfg = config or IdentifierConfig()
-    ident = Identifier(cfg, sensor_noise=None)
+    ident = Identifier(cfg, sensor_noise=noise)
     per = int(round(cfg.window_s * cfg.rate_hz))
     if n_samples is None:
         n_samples = 1 + per * ((len(rows) - 1) // per) if len(rows) > per else 0

@@ -238,7 +238,8 @@ def _main_bag(args: argparse.Namespace) -> int:
     try:
         _, rows = offline.bag_samples(args.bag, rover=args.rover)
         report = offline.identify_rows(rows, IdentifierConfig(
-            accelerometer=not args.no_accelerometer))
+            accelerometer=not args.no_accelerometer), noise=offline.bag_sensor_noise(
+                args.bag, rover=args.rover))
         truth = offline.bag_truth(args.bag, rover=args.rover)
     except (offline.BagError, OSError, ValueError) as exc:
         print(f'table_2_1 --bag: {exc}', file=sys.stderr)
