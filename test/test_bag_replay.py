@@ -198,7 +198,7 @@ def _node_config(strategy: str):
 
 def test_ident_bag_holds_the_live_estimates_of_its_own_samples():
     """The sample bag is a live identification (sim + identifier node over DDS, strategy
-    information): every estimate the node published equals, to the bit, its core fed the
+    information): every estimate the node published equals (to rounding) its core fed the
     bag's samples up to the estimate's stamp (no sample lost or reordered between the sim, the
     node and the recorder), and the last one is within the issue's 20 % of the sim's truth."""
     from coop_id.offline import bag_sensor_noise, bag_truth, identify_rows
@@ -216,8 +216,11 @@ def test_ident_bag_holds_the_live_estimates_of_its_own_samples():
         n = est.samples
         assert np.all(np.diff(stamps[i - n + 1:i + 1]) == 5_000_000), 'a sample is missing'
         rep = identify_rows(rows[i - n + 1:i + 1], cfg, n_samples=n, noise=noise)
-        np.testing.assert_array_equal(np.asarray(est.values), rep.values)
-        np.testing.assert_array_equal(np.asarray(est.std_devs), rep.std)
+        # equal to rounding (one sample more, less or out of place moves it by >1e-3 std);
+        # an estimator change since the recording fails here: re-record the bag
+        z = np.abs(np.asarray(est.values) - rep.values) / rep.std
+        assert z.max() < 1e-6, f'estimate at {n} samples off by {z.max():.3g} std'
+        np.testing.assert_allclose(np.asarray(est.std_devs), rep.std, rtol=1e-6)
     truth = bag_truth(bag)
     v, nz = np.asarray(live[-1].values), truth != 0
     err = float(np.mean(np.abs(v[nz] - truth[nz]) / np.abs(truth[nz])))
