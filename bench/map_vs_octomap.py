@@ -8,9 +8,11 @@ Same hit/miss/clamp model (OctoMap's defaults), same end points, same origins. T
 Per resolution (0.1 m, 0.05 m): points/s of both (best of --repeats, interleaved), speedup,
 state agreement (fraction of the union of known voxels with the same free/occupied/unknown
 state), bytes per known voxel (ours: every per-voxel array; OctoMap's memoryUsage() per leaf for
-reference), frame latency (VGA stereo frame insert), RMS surface error of occupied voxels against
-the true depth (ours: the voxel's merged Gaussian mean; OctoMap: the leaf centre), and two
-rovers' maps fused vs every scan in one map.
+reference), frame latency (VGA stereo frame insert), RMS surface error (distance to the true
+surface of each map's surface estimate, ours the voxel's merged Gaussian mean, OctoMap's the leaf
+centre, over the same voxels for both: every voxel occupied in both maps, the ones of those the
+true surface passes through, and those of the latter where the predicted stereo sigma is below
+the voxel size; see surface_errors), and two rovers' maps fused vs every scan in one map.
 
     bench/map_vs_octomap.py --json out/bench/map_vs_octomap.json
 """
@@ -159,15 +161,45 @@ def compare(scans, res, repeats, with_cov):
     }, vm, tree
 
 
-def surface_rms(vm: VoxelMap, tree, res: float, dist) -> tuple[float, float]:
-    """RMS distance to the true surface of every occupied voxel's surface estimate: ours the
-    merged Gaussian mean, OctoMap's the leaf centre."""
+def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
+                   literal: VoxelMap) -> dict:
+    """RMS distance to the true surface of each map's surface estimate: ours the voxel's merged
+    Gaussian mean, OctoMap's the leaf centre (all it stores), over the same voxels for both:
+      all:     every voxel occupied in both maps (noise voxels off the surface included);
+      surface: the occupied-in-both voxels that the true surface passes through
+               (`surface_keys`), where an estimate inside the voxel can be right or wrong;
+      near:    those surface voxels whose predicted stereo sigma (Eq. 3-7, S L^2 with L the
+               distance to the nearest scan origin) is below the voxel size.
+    `literal`: the same scans merged with Eq. 3-10 on the raw point covariances only
+    (voxel_prior=False), for the effect of the voxel-extent model."""
     keys, mean, _, _ = vm.gaussians()
-    occ = vm.state_of_keys(keys) == OCCUPIED
-    d_ours = dist(mean[occ])
     ok, oocc = octomap_state(tree, res)
-    d_oct = dist((unpack_keys(ok[oocc]) + 0.5) * res)
-    return float(np.sqrt(np.mean(d_ours ** 2))), float(np.sqrt(np.mean(d_oct ** 2)))
+    both = (vm.state_of_keys(keys) == OCCUPIED) & np.isin(keys, ok[oocc])
+    keys, mean = keys[both], mean[both]
+    _, mean_lit, _, _ = literal.gaussians(keys)
+    centre = (unpack_keys(keys) + 0.5) * res
+    e_ours, e_oct, e_lit = dist(mean), dist(centre), dist(mean_lit)
+    surf = np.isin(keys, surface_keys)
+    L = np.min(np.linalg.norm(centre[:, None, :] - np.asarray(origins)[None], axis=2), axis=1)
+    near = surf & (S_VGA * L * L < res)
+    out = {}
+    for name, m in (('all', slice(None)), ('surface', surf), ('near', near)):
+        n = int(np.count_nonzero(np.ones(len(keys), bool)[m]))
+        rms = [float(np.sqrt(np.mean(e[m] ** 2))) if n else float('nan')
+               for e in (e_ours, e_oct, e_lit)]
+        out[name] = {'voxels': n, 'rms_ours_m': rms[0], 'rms_octomap_m': rms[1],
+                     'rms_ours_literal_eq_3_10_m': rms[2], 'ratio': rms[0] / rms[1]}
+    # how much of the all-voxel squared error the voxels off the surface carry (same for both)
+    out['all']['off_surface_share_of_octomap_mse'] = float(
+        np.sum(e_oct[~surf] ** 2) / max(np.sum(e_oct ** 2), 1e-300))
+    return out
+
+
+def literal_map(scans, res) -> VoxelMap:
+    vm = VoxelMap(res, voxel_prior=False)
+    for sc in scans:
+        vm.insert_scan(sc[0], sc[1], source=sc[2], covariances=sc[3])
+    return vm
 
 
 def fused_vs_single(scans, res) -> float:
@@ -204,11 +236,20 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for res in args.resolutions:
         r_syn, vm_s, tree_s = compare(syn, res, args.repeats, with_cov=True)
-        r_syn['rms_surface_error_m'], r_syn['octomap_rms_surface_error_m'] = surface_rms(
-            vm_s, tree_s, res, lambda p: np.abs(p[:, 2] - PLANE_Z))
+        ks = unpack_keys(vm_s.keys)
+        plane_layer = vm_s.keys[ks[:, 2] == int(np.floor(PLANE_Z / res))]
+        r_syn['surface_error'] = surface_errors(
+            vm_s, tree_s, res, lambda p: np.abs(p[:, 2] - PLANE_Z), plane_layer,
+            [sc[1] for sc in syn], literal_map(syn, res))
         r_st, vm, tree = compare(st, res, args.repeats, with_cov=True)
-        rms_ours, rms_oct = surface_rms(vm, tree, res, lambda p: truth_tree.query(p)[0])
-        r_st['rms_surface_error_m'], r_st['octomap_rms_surface_error_m'] = rms_ours, rms_oct
+        truth_keys = np.unique(pack_keys(np.floor(truth / res).astype(np.int64)))
+        r_st['surface_error'] = surface_errors(
+            vm, tree, res, lambda p: truth_tree.query(p)[0], truth_keys,
+            [sc[1] for sc in st], literal_map(st, res))
+        for r in (r_syn, r_st):
+            r['rms_surface_error_m'] = r['surface_error']['surface']['rms_ours_m']
+            r['octomap_rms_surface_error_m'] = r['surface_error']['surface']['rms_octomap_m']
+        rms_ours, rms_oct = r_st['rms_surface_error_m'], r_st['octomap_rms_surface_error_m']
         n = r_syn['points'] + r_st['points']
         t_ours = r_syn['points'] / r_syn['ours_points_per_s'] + \
             r_st['points'] / r_st['ours_points_per_s']
@@ -239,14 +280,25 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         print(f'{r[0]:>6} {r[1]:>9} {r[2]:10.3f} {r[3]:10.3f} {r[4]:7.2f} {r[5]:7.4f} '
               f'{r[6]:7.1f} {r[7]:8.1f}')
-    print(f'{"res m":>6} {"data":>9} {"RMS ours mm":>11} {"RMS octo mm":>11} {"ratio":>6} '
+    print('surface error: RMS distance to the true surface of the estimate of each map (ours: '
+          'merged Gaussian mean; octo: voxel centre; lit: ours with Eq. 3-10 on raw point '
+          'covariances), same voxels for both')
+    print(f'{"res m":>6} {"data":>9} {"voxels":>8} {"n":>7} {"ours mm":>8} {"octo mm":>8} '
+          f'{"ratio":>6} {"lit mm":>7} {"lit ratio":>9}')
+    for k, r in out['resolutions'].items():
+        for name in ('synthetic', 'stereo'):
+            for vs, q in r[name]['surface_error'].items():
+                print(f'{k:>6} {name:>9} {vs:>8} {q["voxels"]:7d} {1e3 * q["rms_ours_m"]:8.1f} '
+                      f'{1e3 * q["rms_octomap_m"]:8.1f} {q["ratio"]:6.2f} '
+                      f'{1e3 * q["rms_ours_literal_eq_3_10_m"]:7.1f} '
+                      f'{q["rms_ours_literal_eq_3_10_m"] / q["rms_octomap_m"]:9.2f}')
+    print(f'{"res m":>6} {"data":>9} {"off-surface share of all-voxel MSE":>36} '
           f'{"fused!=single":>13} {"octo B/leaf":>11}')
     for k, r in out['resolutions'].items():
         for name in ('synthetic', 'stereo'):
             q = r[name]
-            print(f'{k:>6} {name:>9} {1e3 * q["rms_surface_error_m"]:11.1f} '
-                  f'{1e3 * q["octomap_rms_surface_error_m"]:11.1f} '
-                  f'{q["rms_surface_error_m"] / q["octomap_rms_surface_error_m"]:6.2f} '
+            print(f'{k:>6} {name:>9} '
+                  f'{100 * q["surface_error"]["all"]["off_surface_share_of_octomap_mse"]:35.1f}% '
                   f'{100 * r["fused_vs_single_differ"]:12.3f}% '
                   f'{q["octomap_bytes_per_leaf"]:11.1f}')
     # the ray_subdivision trade-off on the stereo frames (one run each)

@@ -28,7 +28,7 @@ from .motion import (
 from .stereo import ErrorModel, StereoCamera, disparity_to_points
 from .voxelmap import VoxelMap
 
-METHODS = ('linear', 'rigid', 'pnp')
+METHODS = ('linear', 'linear_so3', 'rigid', 'pnp')
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ class TrialConfig:
     height: int = 240
     n_fiducials: int = 40
     num_disparities: int = 64
-    method: str = 'linear'         # g01 by Eq. 3-18 ('linear'), rigid weighted fit, or 'pnp'
+    method: str = 'linear'         # g01 by Eq. 3-18 ('linear', 'linear_so3'), rigid, or 'pnp'
                                    # (reprojection of the mapped fiducials, no range in the fit)
 
 
@@ -146,10 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--steps', type=int, default=20)
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--distances', type=float, nargs='+', default=[1.1, 0.35])
-    ap.add_argument('--methods', nargs='+', choices=['linear', 'rigid', 'pnp'],
-                    default=['linear', 'rigid', 'pnp'],
-                    help='g01 by Eq. 3-18 as printed (12 independent entries), the weighted '
-                    'rigid fit, or reprojection of the mapped fiducials (pnp)')
+    ap.add_argument('--methods', nargs='+', choices=['linear', 'linear_so3', 'rigid', 'pnp'],
+                    default=['linear', 'linear_so3', 'rigid', 'pnp'],
+                    help='g01 by Eq. 3-18 as printed (12 independent entries), the same with R '
+                    'projected onto SO(3) and X re-solved (linear_so3), the weighted rigid fit, '
+                    'or reprojection of the mapped fiducials (pnp)')
     ap.add_argument('--width', type=int, default=320)
     ap.add_argument('--height', type=int, default=240)
     args = ap.parse_args(argv)

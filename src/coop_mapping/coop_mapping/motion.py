@@ -19,8 +19,8 @@ import numpy as np
 
 __all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_contrast',
            'depth_contrast', 'certainty_term', 'track', 'solve_g01', 'robust_g01',
-           'project_to_so3', 'solve_rigid', 'RecursivePoseStats', 'ekf_point_update',
-           'MotionError']
+           'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'RecursivePoseStats',
+           'ekf_point_update', 'MotionError']
 
 
 class MotionError(ValueError):
@@ -203,6 +203,19 @@ def solve_g01(r_common: np.ndarray, p_camera: np.ndarray) -> np.ndarray:
     return g
 
 
+def solve_g01_so3(r_common: np.ndarray, p_camera: np.ndarray) -> np.ndarray:
+    """Eq. 3-18 (solve_g01), its R projected onto SO(3), and X re-solved for that R at the
+    centroids, X = mean(p) - R mean(r). Taking X from the 12-entry solution as it stands gives
+    the camera position -R^T X = mean(r) - R^T mean(p) + (R^T A - I) mean(r), A the affine
+    3x3 the noise made non-rigid: an error proportional to the fiducials' distance from the
+    common frame's origin, which is arbitrary (the first camera pose in fig_3_24)."""
+    g = solve_g01(r_common, p_camera)
+    R = project_to_so3(g[:3, :3])
+    g[:3, :3] = R
+    g[:3, 3] = np.mean(p_camera, 0) - R @ np.mean(r_common, 0)
+    return g
+
+
 def project_to_so3(R: np.ndarray) -> np.ndarray:
     """Nearest rotation (SVD) to a 3x3 matrix with independently estimated entries."""
     U, _, Vt = np.linalg.svd(R)
@@ -239,16 +252,21 @@ def solve_rigid(r_common: np.ndarray, p_camera: np.ndarray,
 def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 3,
                gate: float = 3.0, min_points: int = 6, method: str = 'linear',
                weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """g01 (method 'linear': Eq. 3-18 as printed; 'rigid': solve_rigid) with iterative
-    rejection of tracking outliers (residual > gate x median). Returns (g01, inlier mask)."""
+    """g01 (method 'linear': Eq. 3-18 as printed; 'linear_so3': solve_g01_so3; 'rigid':
+    solve_rigid) with iterative rejection of tracking outliers (residual > gate x median).
+    Returns (g01, inlier mask)."""
     r = np.asarray(r_common, float)
     p = np.asarray(p_camera, float)
-    if method not in ('linear', 'rigid'):
-        raise ValueError(f'method must be linear or rigid, got {method!r}')
+    if method not in ('linear', 'linear_so3', 'rigid'):
+        raise ValueError(f'method must be linear, linear_so3 or rigid, got {method!r}')
     w = np.ones(len(r)) if weights is None else np.asarray(weights, float)
 
     def fit(m):
-        return solve_g01(r[m], p[m]) if method == 'linear' else solve_rigid(r[m], p[m], w[m])
+        if method == 'linear':
+            return solve_g01(r[m], p[m])
+        if method == 'linear_so3':
+            return solve_g01_so3(r[m], p[m])
+        return solve_rigid(r[m], p[m], w[m])
 
     keep = np.ones(len(r), bool)
     g = fit(keep)

@@ -7,11 +7,12 @@ in `map`, stamped with the image stamp). Publishes `stereo/points` (PointCloud2 
 covariance fields, see ros_conv) and `camera_pose` (the pose the cloud was computed with, same
 stamp; the mapper takes its position as the ray origin).
 
-With `fiducial_correction` set to a g01 method (`pnp`, `rigid`, `linear`), the pose is corrected
-by scene fiducials (§3.2.5, fiducial_odometry): the first frame's `stereo/pose` is taken as
-known (§3.2.2), later frames are predicted with the dead-reckoned increment between successive
-`stereo/pose` messages and corrected by the fiducials; `camera_pose` then carries the corrected
-pose with the Eq. 3-19 translation covariance. `none` passes `stereo/pose` through.
+With `fiducial_correction` set to a g01 method (`pnp`, `rigid`, `linear`, `linear_so3`), the
+pose is corrected by scene fiducials (§3.2.5, fiducial_odometry): the first frame's
+`stereo/pose` is taken as known (§3.2.2), later frames are predicted with the dead-reckoned
+increment between successive `stereo/pose` messages and corrected by the fiducials;
+`camera_pose` then carries the corrected pose with the Eq. 3-19 translation covariance. `none`
+passes `stereo/pose` through.
 """
 from __future__ import annotations
 
@@ -44,7 +45,8 @@ PARAMS = {
     'map_frame': ParamSpec('map', 'frame of stereo/pose and of the published cloud',
                            read_only=True),
     'fiducial_correction': ParamSpec('none', 'camera pose correction by scene fiducials: g01 '
-                                     'method or none', choices=['none', 'pnp', 'rigid', 'linear'],
+                                     'method or none',
+                                     choices=['none', 'pnp', 'rigid', 'linear', 'linear_so3'],
                                      read_only=True),
     'n_fiducials': ParamSpec(40, 'fiducials kept in view', lo=4, hi=500, read_only=True),
     'scene_distance_m': ParamSpec(1.1, 'typical scene distance (sets the fiducial map voxel)',

@@ -7,6 +7,16 @@ Every known voxel holds
   * the Gaussian (mean, covariance) merged from every range point that fell into it (Eq. 3-8,
     Eq. 3-10, done in information form so a whole scan merges in one batched pass);
   * the number of points merged into it.
+The points that fall into one voxel are different points of a surface patch, not repeated
+measurements of one point. Fusing their raw covariances (Eq. 3-10 read literally) treats them as
+the latter: stereo covariances are long and thin along the rays, so the fused mean is the
+least-squares intersection of nearly parallel rays, slides along them, and ends up farther from
+the surface than the voxel centre (1.0-1.4x its error on the voxels the true surface crosses,
+bench/map_vs_octomap.py). So by default (voxel_prior=True) each point measures the voxel's
+surface point with covariance C_i + V, and the voxel starts from N(centre, V), V = res^2/12 I
+(the moment-matched uniform distribution over the voxel); both are Eq. 3-10 factors, so the
+merge stays one information-form sum. Far points (C_i >> V) then barely move the estimate off
+the centre, near points (C_i << V) put it on the surface.
 Voxels in the field of view that a ray crosses are carved free and tabulated as known; they
 carry no Gaussian (hits == 0), as in the thesis. Unknown voxels are simply absent.
 
@@ -266,7 +276,7 @@ class VoxelMap:
 
     def __init__(self, resolution: float, *, model: OccupancyModel | None = None,
                  default_sigma: float | None = None, max_points: int = 5_000_000,
-                 ray_subdivision: int = 4) -> None:
+                 ray_subdivision: int = 4, voxel_prior: bool = True) -> None:
         if not (np.isfinite(resolution) and 1e-4 <= resolution <= 100.0):
             raise ValueError(f'resolution must be in [1e-4, 100] m, got {resolution}')
         self.resolution = float(resolution)
@@ -282,6 +292,9 @@ class VoxelMap:
         #: rays are cast once per end cell of size resolution / ray_subdivision (to the mean of
         #: its points); 0 casts one ray per point, exactly as OctoMap's insertPointCloud
         self.ray_subdivision = int(ray_subdivision)
+        #: the voxel-extent model of the per-voxel Gaussian (module docstring); False merges the
+        #: raw point covariances only (Eq. 3-10 read literally)
+        self.voxel_prior = bool(voxel_prior)
         self.sequence = 0
         self.contributions: Counter[str] = Counter()
         self._init_arrays(0)
@@ -457,21 +470,34 @@ class VoxelMap:
         free = np.unique(np.concatenate(parts))
         return free[~np.isin(free, end_keys, assume_unique=True)]
 
+    @property
+    def extent_variance(self) -> float:
+        """res^2 / 12: per-axis variance of a point uniform over the voxel (0 without the
+        voxel prior)."""
+        return self.resolution ** 2 / 12.0 if self.voxel_prior else 0.0
+
     def _merge_points(self, pk_s: np.ndarray, pts_s: np.ndarray, cov_s: np.ndarray | None
                       ) -> None:
         """Eq. 3-8/3-10: product of the voxel's Gaussian and every new point's Gaussian.
 
         In information form, Lambda = sum C_i^-1, eta = sum C_i^-1 x_i, which equals repeated
-        pairwise application of Eq. 3-10 in any order (the product is associative)."""
+        pairwise application of Eq. 3-10 in any order (the product is associative). With the
+        voxel prior, C_i + V and a first factor N(centre, V), V = res^2/12 I (module docstring).
+        cov_s is modified (insert_scan passes a temporary)."""
         bounds = np.flatnonzero(np.r_[True, pk_s[1:] != pk_s[:-1]])
         keys = pk_s[bounds]
         cnt = np.diff(np.r_[bounds, len(pk_s)])
+        v = self.extent_variance
         if cov_s is None:
-            w = 1.0 / self.default_sigma ** 2
+            w = 1.0 / (self.default_sigma ** 2 + v)
             lam = np.zeros((len(keys), 6))
             lam[:, [0, 3, 5]] = (w * cnt)[:, None]
             eta = np.add.reduceat(pts_s, bounds, axis=0) * w
         else:
+            if v:  # cov_s is the caller's fancy-indexed copy: add V in place
+                cov_s[:, 0] += v
+                cov_s[:, 3] += v
+                cov_s[:, 5] += v
             info = sym6_inv(cov_s)
             lam = np.add.reduceat(info, bounds, axis=0)
             eta = np.add.reduceat(sym6_matvec(info, pts_s), bounds, axis=0)
@@ -487,6 +513,11 @@ class VoxelMap:
             m_old = centre[old] + self.mean_off[pos[old]].astype(np.float64) * res
             lam[old] += l_old
             eta[old] += sym6_matvec(l_old, m_old)
+        if v and not old.all():  # first points of a voxel: the prior factor, once
+            lam[~old, 0] += 1.0 / v
+            lam[~old, 3] += 1.0 / v
+            lam[~old, 5] += 1.0 / v
+            eta[~old] += centre[~old] / v
         c_new = sym6_inv(lam)
         m_new = sym6_matvec(c_new, eta)
         self.mean_off[pos] = ((m_new - centre) / res).astype(np.float16)
@@ -506,8 +537,9 @@ class VoxelMap:
     def merge_map(self, other: VoxelMap) -> None:
         """Fuse another map of the same resolution and model (e.g. one rover's map into the
         team's): log-odds add with clamping, Gaussians multiply (Eq. 3-10)."""
-        if other.resolution != self.resolution or other.model != self.model:
-            raise ValueError('maps differ in resolution or occupancy model')
+        if (other.resolution != self.resolution or other.model != self.model
+                or other.voxel_prior != self.voxel_prior):
+            raise ValueError('maps differ in resolution, occupancy model or voxel prior')
         m = self.model
         pos, found = self._find(other.keys)
         lo = self.logodds[pos[found]].astype(np.int32) + other.logodds[found]
@@ -529,6 +561,12 @@ class VoxelMap:
                 lam[mine] += l1
                 eta[mine] += sym6_matvec(l1, centre[mine]
                                          + self.mean_off[p[mine]].astype(np.float64) * res)
+                v = self.extent_variance
+                if v:  # both Gaussians hold the voxel prior: count it once
+                    lam[mine, 0] -= 1.0 / v
+                    lam[mine, 3] -= 1.0 / v
+                    lam[mine, 5] -= 1.0 / v
+                    eta[mine] -= centre[mine] / v
             c = sym6_inv(lam)
             self.mean_off[p] = ((sym6_matvec(c, eta) - centre) / res).astype(np.float16)
             self.chol[p] = sym6_cholesky(c / (res * res)).astype(np.float16)
@@ -687,7 +725,7 @@ class VoxelMap:
         path.parent.mkdir(parents=True, exist_ok=True)
         header = {'format': FILE_FORMAT, 'version': FILE_VERSION,
                   'resolution': self.resolution, 'sequence': self.sequence,
-                  'default_sigma': self.default_sigma,
+                  'default_sigma': self.default_sigma, 'voxel_prior': self.voxel_prior,
                   'model': self.model.__dict__, 'contributions': dict(self.contributions),
                   'voxels': len(self)}
         fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
@@ -741,7 +779,9 @@ class VoxelMap:
             raise MapFileError(f'{path}: keys not strictly sorted')
         try:
             m = cls(header['resolution'], model=OccupancyModel(**header['model']),
-                    default_sigma=header['default_sigma'])
+                    default_sigma=header['default_sigma'],
+                    # files written before the voxel prior existed merged raw points only
+                    voxel_prior=bool(header.get('voxel_prior', False)))
         except (TypeError, ValueError) as exc:
             raise MapFileError(f'{path}: bad header ({exc})') from exc
         for name, arr in arrs.items():

@@ -9,9 +9,11 @@ from coop_mapping.motion import (
     RecursivePoseStats,
     certainty_term,
     ekf_point_update,
+    project_to_so3,
     robust_g01,
     select_fiducials,
     solve_g01,
+    solve_g01_so3,
     solve_rigid,
     track,
     visual_contrast,
@@ -36,6 +38,24 @@ def test_g01_recovers_transform_eq_3_18():
     flat[:, 2] = 3.0                      # coplanar: the 12-unknown system is singular
     with pytest.raises(MotionError):
         solve_g01(flat, flat @ R.T + t)
+
+
+def test_g01_so3_camera_position_does_not_depend_on_the_common_origin():
+    """Noisy camera-frame points (5 cm along z): the camera position from Eq. 3-18's X as it
+    stands moves when the common frame's origin is moved 10 m away from the scene; with R
+    projected onto SO(3) and X re-solved it moves by exactly the origin shift."""
+    R, t = _pose(5)
+    rng = np.random.default_rng(6)
+    r = rng.uniform(-0.5, 0.5, (40, 3)) + [0, 0, 1.1]
+    p = r @ R.T + t + rng.normal(0, 1.0, (40, 3)) * [0.005, 0.005, 0.05]
+    shift = np.array([10.0, -4.0, 3.0])
+
+    def cam(g):  # as the odometry uses it: R projected (Eq. 3-19 mean), X as solved
+        return -project_to_so3(g[:3, :3]).T @ g[:3, 3]
+
+    for solve, moves in ((solve_g01, True), (solve_g01_so3, False)):
+        d = np.linalg.norm(cam(solve(r + shift, p)) - cam(solve(r, p)) - shift)
+        assert (d > 0.05) if moves else (d < 1e-9), d
 
 
 def test_robust_g01_rejects_outliers():

@@ -1,0 +1,358 @@
+"""Algorithm initialisation (Sujan 2002, §3.2.2): each rover finds the known target and puts
+itself, and through it its map data, into the target's (common) frame.
+
+The known target geometry is its markers' centres in the target frame (the insertion site's two
+white discs in rover_sim; any number of markers works). A rover's stereo pair gives each marker
+as a 3-D point with the Eq. 3-7 covariance in its camera frame (`triangulate_markers`); the
+camera's pose in the target frame is the maximum-likelihood rigid transform
+
+    min over (R, t) of  sum_i s_i^T C_i^-1 s_i,   s_i = p_i - R^T (m_i - t)
+
+(p_i observed in the camera frame with covariance C_i, m_i the marker in the target frame), plus,
+when the rover knows which way is up in its camera frame (inclinometer + mast encoders), the
+term |(I - g g^T)(g - R^T u)|^2 / sigma_g^2 with u the target's up. It starts from a weighted
+Horn/Kabsch fit (scalar weights 1 / mean variance; the up vector enters as one more direction)
+and is refined by Gauss-Newton; the 6x6 covariance of the result is the inverse normal matrix.
+Two markers fix only five degrees of freedom (the rotation about the line through them is
+free): with the up vector they fix all six. The marker-to-observation assignment is found by
+trying every pairing whose pairwise distances match the target's (distances are the same in
+every frame), keeping the camera on the side the marker face looks to; extra observations
+(bright blobs that are not markers) are left out.
+
+No rclpy here.
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .gauss import mat_from_sym6, sym6_from_mat
+from .stereo import ErrorModel, StereoCamera
+
+__all__ = ['TargetFrameError', 'TargetGeometry', 'PoseFix', 'solve_pose', 'locate_in_target',
+           'transform_to_target', 'frame_alignment', 'detect_markers', 'triangulate_markers']
+
+
+class TargetFrameError(ValueError):
+    """Too few or degenerate marker observations, bad shapes, no consistent assignment."""
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """[v]_x for (3,) or (N, 3)."""
+    v = np.asarray(v, float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    K = _skew(w)
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
+
+
+@dataclass(frozen=True)
+class TargetGeometry:
+    """The known target: marker centres (M, 3) in the target frame, their labels, the target's
+    up direction and (optional) the outward normal of the face the markers are on."""
+
+    markers: np.ndarray
+    labels: tuple[str, ...] = ()
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    facing: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        m = np.asarray(self.markers, float)
+        if m.ndim != 2 or m.shape[1] != 3 or len(m) < 2 or not np.all(np.isfinite(m)):
+            raise TargetFrameError('markers must be a finite (M >= 2, 3) array')
+        object.__setattr__(self, 'markers', m)
+        if self.labels and len(self.labels) != len(m):
+            raise TargetFrameError('one label per marker')
+        u = np.asarray(self.up, float)
+        object.__setattr__(self, 'up', u / np.linalg.norm(u))
+        if self.facing is not None:
+            f = np.asarray(self.facing, float)
+            object.__setattr__(self, 'facing', f / np.linalg.norm(f))
+
+
+@dataclass(frozen=True)
+class PoseFix:
+    """The observer (camera) frame in the target frame: x_target = R x_camera + t.
+
+    covariance: 6x6 of (theta, dt) with R_true = exp([theta]_x) R, t_true = t + dt (theta in
+    the target frame). chi2 with dof degrees of freedom measures the fit (about dof when the
+    observation covariances are right). assignment[i]: the marker observation i is of."""
+
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray
+    chi2: float
+    dof: int
+    assignment: tuple[int, ...]
+
+    def inverse(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t) of the target frame in the observer frame."""
+        return self.R.T, -self.R.T @ self.t
+
+
+def _weighted_kabsch(m: np.ndarray, p: np.ndarray, w: np.ndarray, up_pair=None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """R, t minimising sum w_i |R p_i + t - m_i|^2 (+ w_g |R g - u|^2)."""
+    W = w / w.sum()
+    mc, pc = W @ m, W @ p
+    H = (w[:, None] * (p - pc)).T @ (m - mc)
+    if up_pair is not None:
+        g, u, wg = up_pair
+        H = H + wg * np.outer(g, u)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
+    R = Vt.T @ D @ U.T
+    return R, mc - R @ pc
+
+
+def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarray, *,
+               up_observed: np.ndarray | None = None, up_sigma_rad: float | None = None,
+               up_target: np.ndarray = np.array([0.0, 0.0, 1.0]), iterations: int = 30
+               ) -> PoseFix:
+    """Maximum-likelihood camera pose in the target frame from marker i observed at
+    observed[i] (camera frame, covariance covariances[i] as (6,) sym6 or (3, 3)) of the known
+    markers[i] (target frame); optional up direction in the camera frame with its angular sigma.
+    See the module docstring."""
+    m = np.asarray(markers, float)
+    p = np.asarray(observed, float)
+    C = np.asarray(covariances, float)
+    if C.ndim == 2 and C.shape[1] == 6:
+        C = mat_from_sym6(C)
+    n = len(m)
+    if m.shape != (n, 3) or p.shape != (n, 3) or C.shape != (n, 3, 3):
+        raise TargetFrameError('markers, observed (N, 3) and covariances (N, 6 | 3x3) differ')
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(C))):
+        raise TargetFrameError('observations contain NaN or inf')
+    try:
+        Winv = np.linalg.inv(C)
+    except np.linalg.LinAlgError as exc:
+        raise TargetFrameError('singular observation covariance') from exc
+    up_pair = None
+    if up_observed is not None:
+        if not (up_sigma_rad and up_sigma_rad > 0):
+            raise TargetFrameError('up_observed needs up_sigma_rad > 0')
+        g = np.asarray(up_observed, float)
+        g = g / np.linalg.norm(g)
+        u = np.asarray(up_target, float)
+        u = u / np.linalg.norm(u)
+        Wg = (np.eye(3) - np.outer(g, g)) / up_sigma_rad ** 2
+        up_pair = (g, u, 1.0 / up_sigma_rad ** 2)
+    n_obs = 3 * n + (2 if up_pair is not None else 0)
+    if n_obs < 6:
+        raise TargetFrameError(f'{n} markers{" and the up vector" if up_pair else ""} cannot '
+                               'fix 6 degrees of freedom')
+    w = 3.0 / np.trace(C, axis1=1, axis2=2)
+    R, t = _weighted_kabsch(m, p, w, up_pair)
+
+    def normal_eq(R, t):
+        q = (m - t) @ R              # R^T (m_i - t), camera frame
+        s = p - q
+        J = np.concatenate([-_skew(q), np.broadcast_to(R.T, (n, 3, 3))], axis=2)  # (n, 3, 6)
+        JW = np.einsum('nki,nkl->nil', J, Winv)
+        A = np.einsum('nil,nlj->ij', JW, J)
+        b = np.einsum('nil,nl->i', JW, s)
+        chi2 = float(np.einsum('ni,nij,nj->', s, Winv, s))
+        if up_pair is not None:
+            a = R.T @ u
+            sg = g - a
+            Jg = np.concatenate([-_skew(a), np.zeros((3, 3))], axis=1)
+            A = A + Jg.T @ Wg @ Jg
+            b = b + Jg.T @ Wg @ sg
+            chi2 += float(sg @ Wg @ sg)
+        return A, b, chi2
+
+    for _ in range(iterations):
+        A, b, chi2 = normal_eq(R, t)
+        ev = np.linalg.eigvalsh(A)
+        if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
+            raise TargetFrameError('degenerate marker geometry (collinear markers need the up '
+                                   'vector, and it must not lie along their line)')
+        # s(delta) ~ s + J delta; minimise |s + J delta|_W: delta = -(J^T W J)^-1 J^T W s
+        d = -np.linalg.solve(A, b)
+        R = R @ _exp_so3(d[:3])
+        t = t + d[3:]
+        if np.linalg.norm(d[:3]) < 1e-12 and np.linalg.norm(d[3:]) < 1e-12:
+            break
+    U, _, Vt = np.linalg.svd(R)
+    R = U @ Vt
+    A, _, chi2 = normal_eq(R, t)
+    P = np.linalg.inv(A)               # of (delta right-perturbation in camera frame, dt)
+    G = np.zeros((6, 6))
+    G[:3, :3] = R                      # theta = R delta (left perturbation, target frame)
+    G[3:, 3:] = np.eye(3)
+    cov = G @ P @ G.T
+    return PoseFix(R, t, 0.5 * (cov + cov.T), chi2, n_obs - 6, tuple(range(n)))
+
+
+def _assignments(M: np.ndarray, p: np.ndarray, C: np.ndarray, gate: float):
+    """Every injective pairing of k = min(#obs, #markers) observations with markers whose
+    pairwise distances all agree with the markers' within `gate` sigma (the distance between
+    two points is frame-free): yields (observation indices, marker indices)."""
+    k = min(len(p), len(M))
+    dM = np.linalg.norm(M[:, None] - M[None], axis=2)
+    diff = p[:, None] - p[None]
+    dP = np.linalg.norm(diff, axis=2)
+    u = diff / np.maximum(dP, 1e-12)[..., None]
+    var = np.einsum('ijk,ikl,ijl->ij', u, C, u) + np.einsum('ijk,jkl,ijl->ij', u, C, u)
+    tol = gate * np.sqrt(var) + 1e-9
+
+    def extend(mk, obs):
+        if len(obs) == k:
+            yield tuple(obs), mk
+            return
+        a = mk[len(obs)]
+        for o in range(len(p)):
+            if o in obs:
+                continue
+            if all(abs(dP[o, obs[i]] - dM[a, mk[i]]) <= tol[o, obs[i]]
+                   for i in range(len(obs))):
+                yield from extend(mk, obs + [o])
+
+    for mk in itertools.combinations(range(len(M)), k):
+        yield from extend(mk, [])
+
+
+def locate_in_target(geometry: TargetGeometry, observed: np.ndarray, covariances: np.ndarray,
+                     *, labels: tuple[str, ...] | None = None,
+                     up_observed: np.ndarray | None = None, up_sigma_rad: float | None = None,
+                     gate: float = 4.0, max_candidates: int = 5000) -> PoseFix:
+    """The camera's pose in the target frame from unlabelled (or labelled) marker observations.
+
+    Unlabelled: every pairing of observations with markers whose pairwise distances agree with
+    the target's (within `gate` sigma) is solved and the one with the least chi2 whose camera
+    lies in front of the marker face (when geometry.facing is given) is kept. With more
+    observations than markers the extra ones are left out (assignment -1): bright blobs that
+    are not markers."""
+    p = np.asarray(observed, float)
+    C = np.asarray(covariances, float)
+    if C.ndim == 2 and C.shape[1] == 6:
+        C = mat_from_sym6(C)
+    M = geometry.markers
+    if p.ndim != 2 or p.shape[1] != 3 or C.shape != (len(p), 3, 3) or len(p) < 2:
+        raise TargetFrameError('need (N >= 2, 3) observations with (N, 6 | 3x3) covariances')
+    if labels is not None:
+        if not geometry.labels:
+            raise TargetFrameError('labelled observations need a labelled geometry')
+        try:
+            candidates = [(tuple(range(len(p))), tuple(geometry.labels.index(x)
+                                                       for x in labels))]
+        except ValueError as exc:
+            raise TargetFrameError(f'unknown marker label ({exc})') from exc
+    else:
+        candidates = itertools.islice(_assignments(M, p, C, gate), max_candidates)
+    best = None
+    for o, mk in candidates:
+        try:
+            fix = solve_pose(M[list(mk)], p[list(o)], C[list(o)], up_observed=up_observed,
+                             up_sigma_rad=up_sigma_rad, up_target=geometry.up)
+        except TargetFrameError:
+            continue
+        if geometry.facing is not None and \
+                float((fix.t - M[list(mk)].mean(0)) @ geometry.facing) <= 0:
+            continue
+        if best is None or fix.chi2 < best.chi2:
+            a = [-1] * len(p)
+            for i, j in zip(o, mk):
+                a[i] = j
+            best = PoseFix(fix.R, fix.t, fix.covariance, fix.chi2, fix.dof, tuple(a))
+    if best is None:
+        raise TargetFrameError('no assignment of the observations to the target markers gives '
+                               'a pose (too few, inconsistent, degenerate, or the camera '
+                               'behind the face)')
+    return best
+
+
+def transform_to_target(points: np.ndarray, covariances: np.ndarray, fix: PoseFix, *,
+                        with_pose_covariance: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points and (N, 6) covariances -> the target frame: x = R p + t, C' = R C R^T
+    (Eq. 3-9), plus the pose's own uncertainty A P A^T with A = [-[R p]_x, I]."""
+    p = np.asarray(points, float)
+    y = p @ fix.R.T
+    C = fix.R @ mat_from_sym6(covariances) @ fix.R.T
+    if with_pose_covariance:
+        A = np.concatenate([-_skew(y), np.broadcast_to(np.eye(3), (len(y), 3, 3))], axis=2)
+        C = C + A @ fix.covariance @ np.swapaxes(A, 1, 2)
+    return y + fix.t, sym6_from_mat(C)
+
+
+def frame_alignment(fix: PoseFix, R_oc: np.ndarray, t_oc: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation and translation taking the rover's own frame (in which its camera was at
+    R_oc, t_oc when it saw the target) into the target frame: x_target = R x_own + t."""
+    R = fix.R @ np.asarray(R_oc, float).T
+    return R, fix.t - R @ np.asarray(t_oc, float)
+
+
+# ---------------------------------------------------------------- marker detection
+def detect_markers(image: np.ndarray, *, min_radius_px: float = 1.5, max_radius_px: float = 30.0,
+                   min_contrast: float = 40.0, min_fill: float = 0.6
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Bright circular markers on a darker background in a mono8 image: white top-hat (a disc
+    twice max_radius_px), components above min_contrast grey levels, kept if their area is that
+    of a disc of min..max radius and they fill at least min_fill of their bounding circle.
+    Returns (K, 2) sub-pixel centres (u, v) weighted by the top-hat response, (K,) radii."""
+    if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8:
+        raise TargetFrameError('image must be 2-D uint8 (mono8)')
+    k = int(2 * np.ceil(2 * max_radius_px) + 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    top = cv2.morphologyEx(image, cv2.MORPH_TOPHAT, kernel).astype(np.float64)
+    mask = (top >= min_contrast).astype(np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    centres, radii = [], []
+    for i in range(1, n):
+        area = stats[i, cv2.CC_STAT_AREA]
+        r = np.sqrt(area / np.pi)
+        if not (min_radius_px <= r <= max_radius_px):
+            continue
+        x0, y0, w, h = (stats[i, j] for j in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP,
+                                              cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+        if area < min_fill * np.pi * (max(w, h) / 2.0) ** 2:
+            continue
+        sub = lab[y0:y0 + h, x0:x0 + w] == i
+        wgt = top[y0:y0 + h, x0:x0 + w] * sub
+        vv, uu = np.mgrid[y0:y0 + h, x0:x0 + w]
+        s = wgt.sum()
+        centres.append([(wgt * uu).sum() / s, (wgt * vv).sum() / s])
+        radii.append(r)
+    return np.array(centres).reshape(-1, 2), np.array(radii)
+
+
+def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamera, *,
+                        error_model: ErrorModel | None = None, max_row_diff_px: float = 1.5,
+                        max_disparity_px: float = 256.0, **detect_kw
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Markers seen in both images of a rectified pair -> (K, 2) left uv, (K, 3) points in the
+    left optical frame (Eq. 3-1..3-3), (K, 6) covariances (Eq. 3-7, default error model of the
+    camera). A left marker is paired with the right one on the same row (within
+    max_row_diff_px) at the smallest positive disparity, similar size; unpaired ones dropped."""
+    em = error_model or ErrorModel.from_stereo(camera)
+    ul, rl = detect_markers(left, **detect_kw)
+    ur, rr = detect_markers(right, **detect_kw)
+    uv, pts = [], []
+    used = set()
+    for (u, v), r in zip(ul, rl):
+        d = u - ur[:, 0] if len(ur) else np.empty(0)
+        ok = (np.abs(ur[:, 1] - v) <= max_row_diff_px) & (d > 0) & (d <= max_disparity_px) & \
+            (np.abs(rr - r) <= 0.5 * r + 1.0) if len(ur) else np.zeros(0, bool)
+        cand = [j for j in np.flatnonzero(ok) if j not in used]
+        if not cand:
+            continue
+        j = min(cand, key=lambda j: d[j])
+        used.add(j)
+        z = camera.fx * camera.baseline / d[j]
+        uv.append([u, v])
+        pts.append([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z])
+    uv = np.array(uv).reshape(-1, 2)
+    pts = np.array(pts).reshape(-1, 3)
+    return uv, pts, em.covariances(pts)
