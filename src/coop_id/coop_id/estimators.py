@@ -121,6 +121,40 @@ class RecursiveEstimator:
     def update(self, a_rows: np.ndarray, y: np.ndarray, r_diag: np.ndarray) -> np.ndarray:
         """Absorb one set of rows (k, n) of A x = F (any k >= 1; `n_rows` is the usual k);
         returns the innovation (k,)."""
+        a_rows, y, r_diag = self._checked(a_rows, y, r_diag)
+        h = a_rows * self.scale
+        self.kf.update(y.reshape(-1, 1), R=np.diag(r_diag), H=h)
+        self.kf.P = 0.5 * (self.kf.P + self.kf.P.T)
+        self.updates += 1
+        return self.kf.y[:, 0].copy()
+
+    def update_batch(self, a_rows: np.ndarray, y: np.ndarray, r_diag: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Absorb many rows (k, n) of A x = F with one filterpy update; returns the innovations
+        of the rows against the state BEFORE the update (k,) and their predicted variances (k,).
+
+        Equivalent to updating the rows one block after the other (no prediction between
+        them): the rows' likelihood exp(-1/2 |R^-1/2 (F - A x)|^2) equals, up to a factor free
+        of x, exp(-1/2 |z' - U x|^2) with R^-1/2 A = Q U (thin QR, U at most n x n) and
+        z' = Q^T R^-1/2 F.
+        So the filter takes the <= n compressed rows U with unit noise: one Joseph-form update
+        of <= 22 rows instead of k / 18 updates of 18 rows, same posterior mean and covariance
+        (test_estimators checks it against sequential filterpy updates)."""
+        a_rows, y, r_diag = self._checked(a_rows, y, r_diag)
+        h = a_rows * self.scale
+        p = self.kf.P
+        s_diag = np.einsum('ij,ij->i', h @ p, h) + r_diag
+        innov = y - h @ self.kf.x[:, 0]
+        w = 1.0 / np.sqrt(r_diag)
+        q, u = np.linalg.qr(h * w[:, None])
+        z = q.T @ (y * w)
+        self.kf.update(z.reshape(-1, 1), R=np.eye(u.shape[0]), H=u)
+        self.kf.P = 0.5 * (self.kf.P + self.kf.P.T)
+        self.updates += 1
+        return innov, s_diag
+
+    def _checked(self, a_rows: np.ndarray, y: np.ndarray, r_diag: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a_rows = np.asarray(a_rows, dtype=float)
         y = np.asarray(y, dtype=float)
         r_diag = np.asarray(r_diag, dtype=float)
@@ -132,11 +166,7 @@ class RecursiveEstimator:
             raise EstimationError('R diagonal must be positive, one per row')
         if not (np.all(np.isfinite(a_rows)) and np.all(np.isfinite(y))):
             raise EstimationError('rows must be finite')
-        h = a_rows * self.scale
-        self.kf.update(y.reshape(-1, 1), R=np.diag(r_diag), H=h)
-        self.kf.P = 0.5 * (self.kf.P + self.kf.P.T)
-        self.updates += 1
-        return self.kf.y[:, 0].copy()
+        return a_rows, y, r_diag
 
     def inflate(self, factor: float) -> None:
         """Forget: multiply the covariance (a detected parameter change)."""

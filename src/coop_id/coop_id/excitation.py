@@ -12,7 +12,9 @@ posterior covariance, hence each strategy's cost:
   smallest at u = 1/2, i.e. it would penalise a fully known parameter as much as an unknown one;
   we use the information deficit r_i = 1 - u (monotone; parameters with less information weigh
   more through the square), see README. `literal_eq_2_13=True` gives the printed form.
-- condition: log10 condition number of the scaled accumulated information matrix (A^T A).
+- condition: log10 condition number of A, the stacked rows (sqrt of that of A^T A): all rows so
+  far and the predicted window, columns scaled by the prior ranges (CostContext.condition_matrix
+  for the window-only and SI-unit readings).
 - d_optimal: det(J)^(-1/(2n)) (maximises log det of the information matrix J).
 - a_optimal: sqrt(trace(J^-1)).
 - constant: Eq. 2-21, never changed.
@@ -25,7 +27,7 @@ import numpy as np
 
 from .information import mutual_information_bits
 from .model import GRAVITY, ArmModel, assemble_rows, cross, skew
-from .modelsim import Z_HAT, JointLimits, arm_kinematics
+from .modelsim import MODE_AXES, Z_HAT, ArmKinematics, JointLimits, mode_geometry
 
 STRATEGIES = ('constant', 'information', 'condition', 'd_optimal', 'a_optimal')
 
@@ -76,6 +78,15 @@ class ExcitationBounds:
         a = min(a, lim.position_rad - abs(a0), lim.speed_rad_s / w, lim.accel_rad_s2 / w ** 2)
         return np.array([max(a, 1e-3), w, a0])
 
+    def feasible_batch(self, d: np.ndarray) -> np.ndarray:
+        """feasible() for K candidates (K, 3)."""
+        lo, hi = self._box()
+        a, w, a0 = np.clip(np.asarray(d, dtype=float), lo, hi).T
+        lim = self.limits
+        a = np.minimum.reduce([a, lim.position_rad - np.abs(a0), lim.speed_rad_s / w,
+                               lim.accel_rad_s2 / w ** 2])
+        return np.stack([np.maximum(a, 1e-3), w, a0], axis=1)
+
     def to_unit(self, d: np.ndarray) -> np.ndarray:
         lo, hi = self._box()
         return (np.asarray(d) - lo) / (hi - lo)
@@ -89,6 +100,43 @@ class ExcitationBounds:
         return b[:, 0], b[:, 1]
 
 
+class _ModeKinematics:
+    """modelsim.arm_kinematics in closed form for the predictor (numpy-call overhead, not
+    arithmetic, is its cost): the arm turns about the fixed axis e of each mode, so with
+    rot(q) = e e^T + cos q (1 - e e^T) + sin q [e]x every quantity is a fixed combination of
+    (1, cos q, sin q) or, for the inertia, of their pairwise products."""
+
+    def __init__(self, arm: ArmModel) -> None:
+        rho0, r0 = mode_geometry(arm)
+        e = MODE_AXES
+        pe = np.einsum('ma,mb->mab', e, e)
+        qe = np.eye(3) - pe
+        k = skew(e)
+        along = np.einsum('mab,mb->ma', pe, rho0)
+        self.rho_c = rho0 - along                       # rho = along + cos C + sin S
+        self.rho_s = np.einsum('mab,mb->ma', k, rho0)
+        self.rho_1 = along
+        i0 = r0 @ arm.inertia @ np.swapaxes(r0, -1, -2)
+        kt = np.swapaxes(k, -1, -2)
+        # inertia = sum_j coef_j(q) T_j, coef = (1, c, s, c^2, s^2, c s)
+        self.t_inertia = np.stack([
+            pe @ i0 @ pe, pe @ i0 @ qe + qe @ i0 @ pe, pe @ i0 @ kt + k @ i0 @ pe,
+            qe @ i0 @ qe, k @ i0 @ kt, qe @ i0 @ kt + k @ i0 @ qe],
+            axis=1).reshape(3, 6, 9)                                    # (3 modes, 6, 3 x 3)
+
+    def __call__(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> ArmKinematics:
+        """(..., 3 modes) joint angle, speed, acceleration -> ArmKinematics (..., 3, .)."""
+        c, s = np.cos(q)[..., None], np.sin(q)[..., None]
+        qd_, qdd_ = np.asarray(qd)[..., None], np.asarray(qdd)[..., None]
+        rho = self.rho_1 + c * self.rho_c + s * self.rho_s
+        rho_dd = (qdd_ * (c * self.rho_s - s * self.rho_c)
+                  - qd_ * qd_ * (c * self.rho_c + s * self.rho_s))
+        c, s = c[..., 0], s[..., 0]
+        coef = np.stack([np.ones_like(c), c, s, c * c, s * s, c * s], axis=-1)[..., None, :]
+        inertia = (coef @ self.t_inertia).reshape(c.shape + (3, 3))
+        return ArmKinematics(rho, rho_dd, MODE_AXES * qd_, MODE_AXES * qdd_, inertia)
+
+
 class WindowPredictor:
     """Predicted rows of A x = F for the next window under excitation d (harmonic steady state
     of the base model linearised at the mean arm pose, with the current estimate)."""
@@ -99,40 +147,52 @@ class WindowPredictor:
         self.arm, self.times = arm, np.asarray(times, dtype=float)
         self.weight = float(weight)
         self.harmonics, self.points, self.accel = harmonics, points, accelerometer
+        self._kin = _ModeKinematics(arm)
 
     def rows(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
         """(len(times) * 3 modes, 6, 22) predicted rows for consistent estimate x."""
-        a, w, a0 = d
+        return self.rows_batch(x, np.asarray(d, dtype=float)[None])[0]
+
+    def rows_batch(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """(K, len(times) * 3 modes, 6, 22) predicted rows for K candidates d (K, 3) at once
+        (one set of numpy calls for every candidate of an LM step: the cost of a call is
+        mostly numpy's per-call overhead, not arithmetic)."""
+        d = np.atleast_2d(np.asarray(d, dtype=float))
+        a, w, a0 = d[:, 0, None], d[:, 1, None], d[:, 2, None]               # (K, 1)
         arm, m2 = self.arm, self.arm.mass
-        tau = np.arange(self.points) * (2 * np.pi / w) / self.points
-        q, qd, qdd = (np.repeat(v[:, None], 3, 1) for v in _sine(a, w, a0, tau))
-        kin = arm_kinematics(arm, q, qd, qdd)
+        ncand = d.shape[0]
+        # one period of the arm motion, P points: its wrench on the base, the harmonics of it
+        tau = np.arange(self.points) * (2 * np.pi / self.points) / w          # (K, P)
+        kin = self._kin(*(np.repeat(v[..., None], 3, -1)
+                          for v in _sine(a, w, a0, tau)))                     # (K, P, 3, .)
         r2 = x[7:10]
         c = r2 + kin.rho
-        iw = np.einsum('...ab,...b->...a', kin.inertia, kin.omega)
+        iw = _mv(kin.inertia, kin.omega)
         u = np.concatenate([-m2 * kin.rho_dd,
                             -m2 * cross(c, kin.rho_dd + GRAVITY * Z_HAT)
-                            - np.einsum('...ab,...b->...a', kin.inertia, kin.alpha)
-                            - cross(kin.omega, iw)], axis=-1)      # (P, 3, 6)
-        uk = np.fft.rfft(u, axis=0)[1:self.harmonics + 1]               # (H, 3, 6)
-        kin0 = arm_kinematics(arm, np.full(3, a0), np.zeros(3), np.zeros(3))
-        mm, kk, bb = _matrices(x, arm, kin0)
-        kw = w * np.arange(1, uk.shape[0] + 1)
-        z = (-(kw ** 2)[:, None, None, None] * mm + 1j * kw[:, None, None, None] * bb + kk)
-        qk = np.linalg.solve(z, uk[..., None])[..., 0] * (2.0 / self.points)  # (H, 3, 6)
-        ph = np.exp(1j * np.outer(self.times, kw))                      # (T, H)
-        pos = np.real(np.einsum('th,hmc->tmc', ph, qk))
-        vel = np.real(np.einsum('th,hmc->tmc', ph * 1j * kw, qk))
-        acc = np.real(np.einsum('th,hmc->tmc', ph * -(kw ** 2), qk))
-        qt, qdt, qddt = (np.repeat(v[:, None], 3, 1) for v in _sine(a, w, a0, self.times))
-        kt = arm_kinematics(arm, qt, qdt, qddt)
+                            - _mv(kin.inertia, kin.alpha) - cross(kin.omega, iw)],
+                           axis=-1)                                    # (K, P, 3, 6)
+        uk = np.fft.rfft(u, axis=1)[:, 1:self.harmonics + 1]            # (K, H, 3, 6)
+        kin0 = self._kin(np.repeat(a0, 3, -1), np.zeros((ncand, 3)), np.zeros((ncand, 3)))
+        mm, kk, bb = _matrices(x, arm, kin0)                            # (K, 3, 6, 6)
+        kw = w * np.arange(1, uk.shape[1] + 1)                          # (K, H)
+        kw5 = kw[:, :, None, None, None]
+        z = -(kw5 ** 2) * mm[:, None] + 1j * kw5 * bb + kk[:, None]     # (K, H, 3, 6, 6)
+        qk = np.linalg.solve(z, uk[..., None])[..., 0] * (2.0 / self.points)  # (K, H, 3, 6)
+        ph = np.exp(1j * self.times[None, :, None] * kw[:, None, :])    # (K, T, H)
+        kw_ = kw[:, None, None, :]
+        ph3 = ph[:, None] * np.concatenate([np.ones_like(kw_), 1j * kw_, -kw_ * kw_], axis=1)
+        motion = np.real(ph3 @ qk.reshape(ncand, 1, qk.shape[1], 18))   # (K, 3, T, 18)
+        pos, vel, acc = (motion[:, i].reshape(ncand, -1, 3, 6) for i in range(3))
+        kt = self._kin(*(np.repeat(v[..., None], 3, -1)
+                         for v in _sine(a, w, a0, self.times[None, :])))
         ct = r2 + kt.rho
         force = m2 * (acc[..., :3] + cross(acc[..., 3:], ct) + kt.rho_dd
                       - GRAVITY * cross(pos[..., 3:], Z_HAT))
         torque = (cross(kt.rho, force + m2 * GRAVITY * Z_HAT)
-                  + np.einsum('...ab,...b->...a', kt.inertia, kt.alpha + acc[..., 3:]))
-        torque = torque - torque.mean(axis=0)
-        n = force.shape[0] * 3
+                  + _mv(kt.inertia, kt.alpha + acc[..., 3:]))
+        torque = torque - torque.mean(axis=1, keepdims=True)
+        n = force.shape[0] * force.shape[1] * 3
         z3 = np.zeros((n, 3))
         rows, _ = assemble_rows(
             acc=acc[..., :3].reshape(n, 3), vel=vel[..., :3].reshape(n, 3),
@@ -140,28 +200,35 @@ class WindowPredictor:
             th_d=vel[..., 3:].reshape(n, 3), th_dd=acc[..., 3:].reshape(n, 3),
             gyro_reg=np.zeros((n, 18)), force=force.reshape(n, 3), tilt_x_force=z3,
             torque=torque.reshape(n, 3), accelerometer=self.accel)
-        return rows
+        return rows.reshape(ncand, -1, 6, rows.shape[-1])
 
 
-def _sine(a: float, w: float, a0: float, t: np.ndarray) -> tuple:
+def _mv(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Matrix (..., 3, 3) times vector (..., 3)."""
+    return (m @ v[..., None])[..., 0]
+
+
+def _sine(a, w, a0, t) -> tuple:
     return a0 + a * np.sin(w * t), a * w * np.cos(w * t), -a * w * w * np.sin(w * t)
 
 
 def _matrices(x: np.ndarray, arm: ArmModel, kin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mass, stiffness (with the arm's gravity term) and damping of the coupled base, per mode."""
+    """Mass, stiffness (with the arm's gravity term) and damping of the coupled base, per mode
+    (kin with leading axes (..., 3 modes)): (..., 3, 6, 6) each, damping (6, 6)."""
     m2 = arm.mass
     mass = x[0]
     inertia = np.array([[x[1], x[6], x[4]], [x[6], x[2], x[5]], [x[4], x[5], x[3]]])
     c = x[7:10] + kin.rho
     sc = skew(c)
-    mm = np.zeros((3, 6, 6))
-    mm[:, :3, :3] = (mass + m2) * np.eye(3)
-    mm[:, :3, 3:] = -m2 * sc
-    mm[:, 3:, :3] = m2 * sc
-    mm[:, 3:, 3:] = inertia + kin.inertia - m2 * sc @ sc
-    kk = np.zeros((3, 6, 6))
+    lead = c.shape[:-1]
+    mm = np.zeros(lead + (6, 6))
+    mm[..., :3, :3] = (mass + m2) * np.eye(3)
+    mm[..., :3, 3:] = -m2 * sc
+    mm[..., 3:, :3] = m2 * sc
+    mm[..., 3:, 3:] = inertia + kin.inertia - m2 * sc @ sc
+    kk = np.zeros(lead + (6, 6))
     kk[:] = np.diag(np.concatenate([x[16:19], [x[20], x[19], x[21]]]))
-    kk[:, 3:, 3:] += m2 * GRAVITY * sc @ skew(Z_HAT)
+    kk[..., 3:, 3:] += m2 * GRAVITY * sc @ skew(Z_HAT)
     bb = np.diag(np.concatenate([x[10:13], [x[14], x[13], x[15]]]))
     return mm, kk, bb
 
@@ -178,34 +245,55 @@ class CostContext:
     bits: int = 10
     active: np.ndarray | None = None   # parameters that count (observable subset)
     literal_eq_2_13: bool = False
+    #: the matrix whose condition number the 'condition' strategy lowers (§2.6.1: "matrix A"):
+    #: 'accumulated' = all rows so far + the predicted window, columns scaled by the prior
+    #: ranges (default); 'window' = the predicted window's rows alone; 'unscaled' = accumulated
+    #: in SI units (columns 0.01 .. 3000 apart)
+    condition_matrix: str = 'accumulated'
 
 
 def residuals(strategy: str, d: np.ndarray, predictor: WindowPredictor,
               ctx: CostContext) -> np.ndarray:
     """R(d) of Eq. 2-14 for a strategy (V = 1/2 R^T R, Eq. 2-15)."""
-    rows = predictor.rows(ctx.x, d)                          # (n, 6, 22)
-    h = (rows * ctx.scale / np.sqrt(ctx.row_var)[None, :, None]).reshape(-1, rows.shape[-1])
-    j_new = ctx.info_scaled + predictor.weight * (h.T @ h)
-    act = np.arange(len(ctx.scale)) if ctx.active is None else np.flatnonzero(ctx.active)
-    j_act = j_new[np.ix_(act, act)]
+    return residuals_batch(strategy, np.asarray(d, dtype=float)[None], predictor, ctx)[0]
+
+
+def residuals_batch(strategy: str, d: np.ndarray, predictor: WindowPredictor,
+                    ctx: CostContext) -> np.ndarray:
+    """R(d) of Eq. 2-14 for K candidates d (K, 3) at once: (K, len(R))."""
+    if strategy not in STRATEGIES or strategy == 'constant':
+        raise ExcitationError(f'unknown strategy {strategy!r} (one of {STRATEGIES[1:]})')
+    rows = predictor.rows_batch(ctx.x, d)                    # (K, n, 6, 22)
+    ncand, npar = rows.shape[0], rows.shape[-1]
+    h = (rows * (ctx.scale / np.sqrt(ctx.row_var)[:, None])).reshape(ncand, -1, npar)
+    j_new = ctx.info_scaled + predictor.weight * np.matmul(h.transpose(0, 2, 1), h)
+    act = np.arange(npar) if ctx.active is None else np.flatnonzero(ctx.active)
     if strategy == 'information':
-        cov = np.linalg.inv(j_new)
-        std = np.sqrt(np.clip(np.diag(cov), 0, None)) * ctx.scale
-        info = mutual_information_bits(ctx.x, std, ctx.ranges[:, 0], ctx.ranges[:, 1],
-                                       bits=ctx.bits)[act]
+        var = np.diagonal(np.linalg.inv(j_new), axis1=1, axis2=2)
+        std = np.sqrt(np.clip(var, 0, None)) * ctx.scale
+        shape = std.shape
+        info = mutual_information_bits(np.broadcast_to(ctx.x, shape), std,
+                                       np.broadcast_to(ctx.ranges[:, 0], shape),
+                                       np.broadcast_to(ctx.ranges[:, 1], shape),
+                                       bits=ctx.bits)[:, act]
         u = info / ctx.bits
         if ctx.literal_eq_2_13:
             return np.sqrt(1.0 - u + u * u)
         return 1.0 - u
+    j_act = j_new[:, act[:, None], act[None, :]]
     if strategy == 'condition':
-        ev = np.linalg.eigvalsh(j_act)
-        return np.array([0.5 * np.log10(max(ev[-1], 1e-300) / max(ev[0], 1e-300))])
+        if ctx.condition_matrix == 'window':
+            j_act = np.matmul(h.transpose(0, 2, 1), h)[:, act[:, None], act[None, :]]
+        elif ctx.condition_matrix == 'unscaled':
+            j_act = j_act / np.outer(ctx.scale[act], ctx.scale[act])
+        elif ctx.condition_matrix != 'accumulated':
+            raise ExcitationError(f'unknown condition_matrix {ctx.condition_matrix!r}')
+        ev = np.maximum(np.linalg.eigvalsh(j_act), 1e-300)
+        return 0.5 * np.log10(ev[:, -1:] / ev[:, :1])
     if strategy == 'd_optimal':
         sign, logdet = np.linalg.slogdet(j_act)
-        return np.array([np.exp(-logdet / (2 * len(act)))]) if sign > 0 else np.array([1e6])
-    if strategy == 'a_optimal':
-        return np.array([np.sqrt(np.trace(np.linalg.inv(j_act)))])
-    raise ExcitationError(f'unknown strategy {strategy!r} (one of {STRATEGIES})')
+        return np.where(sign > 0, np.exp(-logdet / (2 * len(act))), 1e6)[:, None]
+    return np.sqrt(np.trace(np.linalg.inv(j_act), axis1=1, axis2=2))[:, None]   # a_optimal
 
 
 def optimise(strategy: str, current: Excitation, predictor: WindowPredictor, ctx: CostContext,
@@ -213,47 +301,64 @@ def optimise(strategy: str, current: Excitation, predictor: WindowPredictor, ctx
              starts: tuple[np.ndarray, ...] = (), fd_step: float = 0.02
              ) -> tuple[Excitation, float]:
     """Levenberg-Marquardt (Eq. 2-16 .. 2-20) over d in unit box coordinates, from the best of
-    the current d and optional extra starts; returns the feasible excitation and its V(d)."""
+    the current d (warm start: last window's optimum) and optional extra starts; returns the
+    feasible excitation and its V(d).
+
+    The candidates of a step are costed together (residuals_batch): the starts with the
+    forward-difference neighbours of the current d (J of Eq. 2-16), then per iteration the
+    line-search points alpha = 1, 1/2, 1/4 (Eq. 2-19) with the neighbours of the full step
+    (the next iteration's Jacobian when the full step is taken, as it mostly is). The iterates
+    are exactly those of the one-at-a-time algorithm; only the evaluations are grouped (3 numpy
+    passes instead of ~14 for 2 iterations)."""
     if strategy == 'constant':
         return current, float('nan')
     bounds = bounds or ExcitationBounds()
 
-    def cost_of(u: np.ndarray) -> tuple[float, np.ndarray]:
-        r = residuals(strategy, bounds.feasible(bounds.from_unit(u)), predictor, ctx)
-        return 0.5 * float(r @ r), r
+    def costs(us: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        r = residuals_batch(strategy, bounds.feasible_batch(bounds.from_unit(np.stack(us))),
+                            predictor, ctx)
+        return 0.5 * np.einsum('kr,kr->k', r, r), r
 
-    # pick the best start by its cost, then refine it (LM from every start costs 2x more)
-    best_u, best_v, best_r = None, np.inf, None
-    for d0 in (current.d, *starts):
-        u0 = bounds.to_unit(bounds.feasible(np.asarray(d0, dtype=float)))
-        v0, r0 = cost_of(u0)
-        if v0 < best_v:
-            best_u, best_v, best_r = u0, v0, r0
-    u, v, r = best_u, best_v, best_r
+    def neighbours(u: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        du = np.where(u + fd_step <= 1, fd_step, -fd_step)
+        return [u + du[k] * np.eye(3)[k] for k in range(3)], du
+
+    u_starts = [bounds.to_unit(bounds.feasible(np.asarray(d0, dtype=float)))
+                for d0 in (current.d, *starts)]
+    ns = len(u_starts)
+    nb, du = neighbours(u_starts[0])
+    v_all, r_all = costs(u_starts + nb)
+    best = int(np.argmin(v_all[:ns]))       # first of equal costs, as a sequential scan
+    u, v, r = u_starts[best], float(v_all[best]), r_all[best]
+    fd = (r_all[ns:], du) if best == 0 else None
     mu = 1e-3
-    for _ in range(iterations):
-        jac = np.empty((r.size, 3))
-        for k in range(3):  # forward differences: J of Eq. 2-16
-            du = np.zeros(3)
-            du[k] = fd_step if u[k] + fd_step <= 1 else -fd_step
-            jac[:, k] = (cost_of(u + du)[1] - r) / du[k]
+    alphas = (1.0, 0.5, 0.25)
+    for it in range(iterations):
+        if fd is None:
+            nb, du = neighbours(u)
+            fd = (costs(nb)[1], du)
+        jac = ((fd[0] - r) / fd[1][:, None]).T                 # (len(R), 3): J of Eq. 2-16
         g = jac.T @ r                                         # Eq. 2-16
         jtj = jac.T @ jac                                     # Eq. 2-17 without S(d)
         step = -np.linalg.solve(jtj + mu * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(3)), g)
+        trial = [np.clip(u + a * step, 0.0, 1.0) for a in alphas]
+        last = it == iterations - 1
+        nb, du = neighbours(trial[0]) if not last else ([], None)
+        v_all, r_all = costs(trial + nb)
+        fd = None
         moved = False
-        for alpha in (1.0, 0.5, 0.25):                         # Eq. 2-19 line search
-            u_new = np.clip(u + alpha * step, 0.0, 1.0)
-            v_new, r_new = cost_of(u_new)
-            if v_new < v:
-                u, v, r, moved = u_new, v_new, r_new, True
+        for i in range(len(alphas)):                           # Eq. 2-19 line search
+            if v_all[i] < v:
+                u, v, r, moved = trial[i], float(v_all[i]), r_all[i], True
+                if i == 0 and not last:
+                    fd = (r_all[len(alphas):], du)
                 break
         mu = mu * 0.3 if moved else mu * 10.0
-    best_u, best_v = u, v
-    d = bounds.feasible(bounds.from_unit(best_u))
+    d = bounds.feasible(bounds.from_unit(u))
     if np.allclose(d, current.d, rtol=1e-6, atol=1e-9):
-        return current, best_v
+        return current, v
     return replace(current, amplitude_rad=float(d[0]), frequency_rad_s=float(d[1]),
-                   offset_rad=float(d[2])), best_v
+                   offset_rad=float(d[2])), v
 
 
 class ArmReference:

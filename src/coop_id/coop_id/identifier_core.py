@@ -1,11 +1,12 @@
 """The on-line identifier (no rclpy): sensor samples in, consistent estimates + information out.
 
 Pipeline per arm mode: raw channels (Eq. 2-1 products) -> band-pass filter bank (model.FilterBank)
--> rows of A x = F, decimated -> recursive Kalman filter (estimators.RecursiveEstimator).
-Every window (0.4 s, §2.6.1) the row noise R is re-estimated from the window residuals (with an
-inflation for their serial correlation), a change detector may forget, the per-parameter
-information (Eq. 2-12) and a consistent report are computed, and the excitation is re-optimised.
-The same class serves the model-level experiment and the ROS node.
+-> rows of A x = F, decimated -> recursive Kalman filter (estimators.RecursiveEstimator; one
+compressed update per call). Every window (0.4 s, §2.6.1) the row noise R is re-estimated from
+the window residuals (with an inflation for their serial correlation), a change detector may
+forget, the window's scores enter the sandwich covariance (see Identifier.estimate), the
+per-parameter information (Eq. 2-12) and a consistent report are computed, and the excitation is
+re-optimised. The same class serves the model-level experiment and the ROS node.
 """
 from __future__ import annotations
 
@@ -58,10 +59,19 @@ class IdentifierConfig:
     lm_iterations: int = 2
     extra_starts: int = 1
     literal_eq_2_13: bool = False
+    #: see excitation.CostContext.condition_matrix ('condition' strategy only)
+    condition_matrix: str = 'accumulated'
     prior_path: str | None = None
     #: share of the inclinometer in the roll/pitch angle (rest: integrated gyro); 0 when the
     #: inclinometer cannot resolve the dynamic tilt (10 bits over +-20 deg on the thesis rover)
     incl_weight: float = 0.5
+    #: lags (decimated instants) of the Bartlett window of the score covariance (sandwich);
+    #: None: those within 0.23 s (12 at 200 Hz / 4), after which the correlation the low-pass
+    #: of W(s) (double pole at 40 rad/s: (1 + 40 t) e^(-40 t)) leaves in the rows is < 1e-3
+    hac_lags: int | None = None
+    #: windows a window's scores wait (re-scored with each newer estimate) before they are
+    #: frozen: 2 s, so the large errors of the first windows do not pass for noise
+    hac_delay_windows: int = 5
 
 
 class Identifier:
@@ -80,6 +90,10 @@ class Identifier:
             raise IdentifierError('decimation >= 1, window_s > 0 and rate_hz > 0 required')
         if not 0.0 <= cfg.incl_weight <= 1.0:
             raise IdentifierError('incl_weight must be in [0, 1]')
+        if (cfg.hac_lags is not None and cfg.hac_lags < 0) or cfg.hac_delay_windows < 0:
+            raise IdentifierError('hac_lags and hac_delay_windows must be >= 0')
+        self.hac_lags = (int(np.ceil(0.23 * cfg.rate_hz / cfg.decimation))
+                         if cfg.hac_lags is None else int(cfg.hac_lags))
         self.cfg = cfg
         self.arm = arm or ArmModel()
         self.ranges = load_prior_ranges(cfg.prior_path)
@@ -91,10 +105,8 @@ class Identifier:
         self.banks: dict[int, FilterBank] = {}
         self.tilts: dict[int, TiltTracker] = {}
         self.row_var = np.full(6, np.nan)
-        self._win_rows: list[np.ndarray] = []
-        self._win_y: list[np.ndarray] = []
-
-        self._win_nis: list[float] = []
+        self._win_calls: list[_Call] = []
+        self._win_nis: list[tuple[float, int]] = []   # (sum innov^2 / S, rows) per call
         self._counter = 0
         self.samples = 0
         self.detector = ChangeDetector() if cfg.detect_changes else None
@@ -117,6 +129,12 @@ class Identifier:
                          for m, sn in sensor_noise.items()}
         self._s_acc = np.zeros((N_PARAMS, N_PARAMS))   # sum Sigma_row / R (scaled)
         self._c_acc = np.zeros(N_PARAMS)
+        # sandwich covariance (see estimate): M = prior information + the covariance of the
+        # summed scores, frozen part + windows still pending (scored with the latest estimate)
+        self._m_frozen = np.diag(1.0 / (self.prior_std / self.scale) ** 2)
+        self._pending: list[tuple[list[_Call], float]] = []     # (calls, weight)
+        self._score_tail = np.zeros((0, N_PARAMS))
+        self._cache = None
         self.report: Report = self._make_report()
 
     # -- data in -----------------------------------------------------------------------------
@@ -131,24 +149,16 @@ class Identifier:
             raise IdentifierError('mode must be 0, 1 or 2')
         ch = raw_channels(specific_force=specific_force, gyro=gyro, incl_roll_pitch=incl,
                           force=force, torque=torque, tilt=self._tilt(mode, gyro, incl))
-        bank = self.banks.setdefault(mode, FilterBank(rate_hz=self.cfg.rate_hz))
-        a, y = filtered_rows(bank, ch, accelerometer=self.cfg.accelerometer,
+        a, y = filtered_rows(self._bank(mode), ch, accelerometer=self.cfg.accelerometer,
                              incl_weight=self.cfg.incl_weight)
         n = a.shape[0]
-        take = (np.arange(n) + self._counter_for(mode)) % self.cfg.decimation == 0
+        take = np.flatnonzero((np.arange(n) + self._counter_for(mode)) % self.cfg.decimation
+                              == 0)
         self._advance(mode, n)
-        updates = 0
-        r = self._r_now()
-        self._accumulate_eiv((mode,), int(take.sum()), r)
-        for k in np.flatnonzero(take):
-            innov = self.kf.update(a[k], y[k], r)
-            s = np.diag(self.kf.kf.S)
-            self._win_nis.append(float(np.mean(innov ** 2 / s)))
-            self._win_rows.append(a[k])
-            self._win_y.append(y[k])
-            updates += 1
         self.samples += n
-        return updates
+        if take.size:
+            self._absorb(a[take][:, None], y[take][:, None], self._r_now(), (mode,))
+        return int(take.size)
 
     def add_samples_all(self, *, specific_force: np.ndarray, gyro: np.ndarray,
                         incl: np.ndarray, force: np.ndarray, torque: np.ndarray) -> int:
@@ -159,28 +169,46 @@ class Identifier:
             ch = raw_channels(specific_force=specific_force[:, m], gyro=gyro[:, m],
                               incl_roll_pitch=incl[:, m], force=force[:, m], torque=torque[:, m],
                               tilt=self._tilt(m, gyro[:, m], incl[:, m]))
-            bank = self.banks.setdefault(m, FilterBank(rate_hz=self.cfg.rate_hz))
-            per_mode.append(filtered_rows(bank, ch, accelerometer=self.cfg.accelerometer,
+            per_mode.append(filtered_rows(self._bank(m), ch,
+                                          accelerometer=self.cfg.accelerometer,
                                           incl_weight=self.cfg.incl_weight))
         a = np.stack([p[0] for p in per_mode], axis=1)        # (n, 3, 6, 22)
         y = np.stack([p[1] for p in per_mode], axis=1)        # (n, 3, 6)
         n = a.shape[0]
-        take = (np.arange(n) + self._counter_for(0)) % self.cfg.decimation == 0
+        take = np.flatnonzero((np.arange(n) + self._counter_for(0)) % self.cfg.decimation
+                              == 0)
         for m in range(3):
             self._advance(m, n)
-        r = np.tile(self._r_now(), 3)
-        updates = 0
-        take_idx = np.flatnonzero(take)
-        self._accumulate_eiv(range(3), len(take_idx), self._r_now())
-        for k in take_idx:
-            innov = self.kf.update(a[k].reshape(18, -1), y[k].ravel(), r)
-            s = np.diag(self.kf.kf.S)
-            self._win_nis.append(float(np.mean(innov ** 2 / s)))
-            self._win_rows.extend(a[k])
-            self._win_y.extend(y[k])
-            updates += 1
         self.samples += n
-        return updates
+        if take.size:
+            self._absorb(a[take], y[take], self._r_now(), (0, 1, 2))
+        return int(take.size)
+
+    def _bank(self, mode: int) -> FilterBank:
+        bank = self.banks.get(mode)
+        if bank is None:      # (not setdefault: building a bank designs 5 filters, ~1 ms)
+            bank = self.banks[mode] = FilterBank(rate_hz=self.cfg.rate_hz)
+        return bank
+
+    def _absorb(self, a: np.ndarray, y: np.ndarray, r: np.ndarray, modes: tuple[int, ...]
+                ) -> None:
+        """One Kalman update with every decimated instant of a call: a (k, modes, 6, 22),
+        y (k, modes, 6), r (6,) per row type. No prediction happens inside a call and R is fixed
+        within it, so this equals the k updates one instant after the other (see
+        RecursiveEstimator.update_batch)."""
+        k = a.shape[0]
+        h = a.reshape(k, -1, N_PARAMS) * self.scale          # scaled rows per instant
+        rhs = y.reshape(k, -1)
+        r_rows = np.tile(r, len(modes))
+        innov, s = self.kf.update_batch(a.reshape(-1, N_PARAMS), rhs.ravel(),
+                                        np.tile(r_rows, k))
+        # normalised innovation squared against the state before the call (expectation 1)
+        self._win_nis.append((float(np.sum(innov ** 2 / s)), innov.size))
+        s_inst, c_inst = self._eiv_per_instant(modes, r)
+        self._s_acc += k * s_inst
+        self._c_acc += k * c_inst
+        self._win_calls.append(_Call(h, rhs, 1.0 / r_rows, s_inst, c_inst))
+        self._cache = None
 
     def _tilt(self, mode: int, gyro: np.ndarray, incl: np.ndarray) -> np.ndarray | None:
         """Roll/pitch for the pre-filter products: the inclinometer, or with incl_weight 0 the
@@ -190,34 +218,127 @@ class Identifier:
         tracker = self.tilts.setdefault(mode, TiltTracker(rate_hz=self.cfg.rate_hz))
         return tracker.update(gyro, incl)
 
-    def _accumulate_eiv(self, modes, n_updates: int, r: np.ndarray) -> None:
-        if self._eiv is None or n_updates == 0:
-            return
+    def _eiv_per_instant(self, modes, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per decimated instant, sum over its rows of Sigma_A / R and cov(e_A, e_y) / R
+        (scaled): the expected attenuation of the information and the score."""
+        s_inst, c_inst = np.zeros((N_PARAMS, N_PARAMS)), np.zeros(N_PARAMS)
+        if self._eiv is None:
+            return s_inst, c_inst
         sc = self.scale
         for m in modes:
             cov, cxy = self._eiv[m]
-            self._s_acc += n_updates * np.einsum('rij,r->ij', cov, 1.0 / r) * np.outer(sc, sc)
-            self._c_acc += n_updates * np.einsum('ri,r->i', cxy, 1.0 / r) * sc
+            s_inst += np.einsum('rij,r->ij', cov, 1.0 / r) * np.outer(sc, sc)
+            c_inst += np.einsum('ri,r->i', cxy, 1.0 / r) * sc
+        return s_inst, c_inst
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
-        """Current estimate and covariance (SI); bias-compensated when noise is known:
-        x = (P^-1 - S)^-1 (P^-1 x_kf - c), S = sum Sigma_A / R, c = sum cov(e_A, e_y) / R."""
-        if self._eiv is None or not np.any(self._s_acc):
-            return self.kf.x, self.kf.cov
-        info = np.linalg.inv(self.kf.cov_scaled)
-        info = 0.5 * (info + info.T)
-        corrected = info - self._s_acc
-        # never subtract more information than the data brought: keep >= 10 % of each direction
-        lam, vec = np.linalg.eigh(np.linalg.solve(np.linalg.cholesky(info), np.linalg.solve(
-            np.linalg.cholesky(info), corrected).T).T)
-        if lam.min() < 0.1:
-            lam_c = np.maximum(lam, 0.1)
-            ch = np.linalg.cholesky(info)
-            corrected = ch @ (vec * lam_c) @ vec.T @ ch.T
-        xs = np.linalg.solve(corrected, info @ self.kf.kf.x[:, 0] - self._c_acc)
-        cov_s = np.linalg.inv(corrected)
+        """Current estimate and covariance (SI).
+
+        Estimate: the KF state, bias-compensated when the sensor noise is known (errors in
+        variables): x = (J - S)^-1 (J x_kf - c), J = P^-1, S = sum Sigma_A / R,
+        c = sum cov(e_A, e_y) / R.
+
+        Covariance: the sandwich B^-1 M B^-1 with B = J - S (J without compensation) and
+        M = P0^-1 + Var(sum of the scores g_t = sum_rows h (F - h x) / R - E[.]) estimated from
+        the residuals with a Bartlett window over `hac_lags` decimated instants (Newey-West).
+        The filter's own P = J^-1 is the covariance only if the rows' noise is white with
+        variance R; here it is not: every column and the right-hand side are band-pass filtered
+        (the noise is coloured, correlated over tens of ms), the noisy regressors put the
+        parameters into the residual (errors in variables), and R is estimated per row type.
+        The sandwich holds whatever the weights (R) and the noise colour; with white noise of
+        variance R it is J^-1 again (or B^-1 J B^-1 with the compensation, which also widens
+        the compensated estimate's covariance by what subtracting S costs)."""
+        if self._cache is None:
+            self._cache = self._estimate()
+        return self._cache[0].copy(), self._cache[1].copy()
+
+    def _estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        _, bread, xs = self._solve()
+        meat = self._m_frozen.copy()
+        tail = self._score_tail
+        for calls, weight in self._pending:
+            g = self._scores(calls, xs)
+            meat += weight * self._hac(g, tail)
+            tail = g
+        b_inv = np.linalg.inv(bread)
+        cov_s = b_inv @ meat @ b_inv
         cov_s = 0.5 * (cov_s + cov_s.T)
         return xs * self.scale, cov_s * np.outer(self.scale, self.scale)
+
+    def _solve(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(J, B, x) in scaled coordinates: the filter's information, the bread (J - S, kept
+        >= 10 % of J in every direction, or J without compensation) and the estimate."""
+        info = np.linalg.inv(self.kf.cov_scaled)
+        info = 0.5 * (info + info.T)
+        xkf = self.kf.kf.x[:, 0]
+        if self._eiv is None or not np.any(self._s_acc):
+            return info, info, xkf
+        corrected = info - self._s_acc
+        # never subtract more information than the data brought: keep >= 10 % of each direction
+        ch = np.linalg.cholesky(info)
+        lam, vec = np.linalg.eigh(np.linalg.solve(ch, np.linalg.solve(ch, corrected).T).T)
+        if lam.min() < 0.1:
+            corrected = ch @ (vec * np.maximum(lam, 0.1)) @ vec.T @ ch.T
+        bread = 0.5 * (corrected + corrected.T)
+        return info, bread, np.linalg.solve(bread, info @ xkf - self._c_acc)
+
+    def _predict(self) -> None:
+        """Random-walk prediction over a window (drift_per_s > 0): P -> P + Q in the filter.
+        The compensated estimate and its sandwich covariance C = B^-1 M B^-1 get the same Q,
+        their means do not move: B' = (B^-1 + Q)^-1, S' = J' - B', c' = J' x_kf - B' x,
+        M' = B' (C + Q) B' (pending windows are frozen first: the map is not linear in M's
+        parts)."""
+        self._freeze(self.estimate()[0] / self.scale, keep=0)
+        _, bread, xs = self._solve()
+        b_inv = np.linalg.inv(bread)
+        cov = b_inv @ self._m_frozen @ b_inv
+        p_old = self.kf.cov_scaled.copy()
+        self.kf.predict(self.cfg.window_s)
+        q = self.kf.cov_scaled - p_old
+        j_new = np.linalg.inv(self.kf.cov_scaled)
+        j_new = 0.5 * (j_new + j_new.T)
+        b_new = np.linalg.inv(b_inv + q)
+        b_new = 0.5 * (b_new + b_new.T)
+        if self._eiv is not None and np.any(self._s_acc):
+            self._s_acc = j_new - b_new
+            self._c_acc = j_new @ self.kf.kf.x[:, 0] - b_new @ xs
+        m = b_new @ (cov + q) @ b_new
+        self._m_frozen = 0.5 * (m + m.T)
+        self._cache = None
+
+    @staticmethod
+    def _scores(calls: list[_Call], xs: np.ndarray) -> np.ndarray:
+        """(instants, 22) centred scores h^T R^-1 (F - h x) - (c - S x) of a window's calls."""
+        out = []
+        for c in calls:
+            e = (c.y - c.h @ xs) * c.r_inv                                   # (k, rows)
+            out.append(np.einsum('kri,kr->ki', c.h, e) - (c.c_inst - c.s_inst @ xs))
+        return np.concatenate(out) if out else np.zeros((0, N_PARAMS))
+
+    def _hac(self, g: np.ndarray, before: np.ndarray) -> np.ndarray:
+        """Bartlett-weighted sum of g_t g_(t-k)^T + transpose over k <= hac_lags, for the
+        instants of g (t - k may reach back into `before`, the previous window's scores)."""
+        lags = self.hac_lags
+        full = np.concatenate([before[-lags:] if lags else before[:0], g])
+        n0 = full.shape[0] - g.shape[0]
+        m = g.T @ g
+        for k in range(1, lags + 1):
+            lo = max(k - n0, 0)                  # first instant of g with a partner k back
+            if lo >= g.shape[0]:
+                break
+            gk = g[lo:].T @ full[n0 + lo - k:full.shape[0] - k]
+            m += (1.0 - k / (lags + 1.0)) * (gk + gk.T)
+        return m
+
+    def _freeze(self, xs: np.ndarray, keep: int | None = None) -> None:
+        """Score the pending windows but the last `keep` (default hac_delay_windows) with
+        estimate xs, for good."""
+        keep = self.cfg.hac_delay_windows if keep is None else keep
+        while len(self._pending) > keep:
+            calls, weight = self._pending.pop(0)
+            g = self._scores(calls, xs)
+            self._m_frozen += weight * self._hac(g, self._score_tail)
+            self._score_tail = g[-self.hac_lags:] if self.hac_lags else g[:0]
 
     def _counter_for(self, mode: int) -> int:
         return getattr(self, f'_count_{mode}', 0)
@@ -234,25 +355,36 @@ class Identifier:
     # -- once per window ---------------------------------------------------------------------
     def end_window(self, *, optimise_excitation: bool = True) -> Report:
         """Re-estimate R, detect changes, drift-predict, report, re-optimise the excitation."""
-        if self._win_rows:
-            a = np.stack(self._win_rows)
-            y = np.stack(self._win_y)
-            res = y - a @ self.kf.x                                  # (n, 6)
+        if self._win_calls:
+            self._pending.append((list(self._win_calls), 1.0))
+            self._cache = None
+            self._freeze(self.estimate()[0] / self.scale)
+            a = np.concatenate([c.h.reshape(-1, 6, N_PARAMS) for c in self._win_calls])
+            y = np.concatenate([c.y.reshape(-1, 6) for c in self._win_calls])
+            res = y - a @ self.kf.kf.x[:, 0]                         # (n, 6)
             var = np.mean(res ** 2, axis=0)
+            # (the published covariance is the sandwich, whatever R; inflating R for the rows'
+            # serial correlation keeps the filter's P, which the excitation design uses, near it)
             infl = np.array([_correlation_inflation(res[:, j]) for j in range(6)])
             new = np.maximum(var * infl, 1e-12)
             if not self.cfg.accelerometer:
                 new[:3] = 1.0
             first = not np.all(np.isfinite(self.row_var))
             self.row_var = new if first else 0.5 * self.row_var + 0.5 * new
-            if self.detector is not None and self.detector.check(float(np.mean(self._win_nis))):
-                self.kf.inflate(self.detector.inflation)
-                self._s_acc /= self.detector.inflation
-                self._c_acc /= self.detector.inflation
-        self._win_rows.clear()
-        self._win_y.clear()
+            nis = sum(v for v, _ in self._win_nis) / max(sum(c for _, c in self._win_nis), 1)
+            if self.detector is not None and self.detector.check(nis):
+                f = self.detector.inflation
+                self.kf.inflate(f)
+                self._s_acc /= f
+                self._c_acc /= f
+                # P -> f P: the sandwich follows (B^-1 M B^-1 -> f B^-1 M B^-1)
+                self._m_frozen /= f
+                self._pending = [(calls, w / f) for calls, w in self._pending]
+        self._win_calls.clear()
         self._win_nis.clear()
-        self.kf.predict(self.cfg.window_s)
+        self._cache = None
+        if self.cfg.drift_per_s > 0:
+            self._predict()
         self.report = self._make_report()
         if optimise_excitation and self.cfg.strategy != 'constant' and \
                 np.all(np.isfinite(self.row_var)):
@@ -273,12 +405,25 @@ class Identifier:
         x = project_physical(self.estimate()[0])
         ctx = CostContext(x=x, info_scaled=np.linalg.inv(self.kf.cov_scaled), scale=self.scale,
                           ranges=self.ranges, row_var=self.row_var, bits=self.cfg.bits,
-                          active=self.active, literal_eq_2_13=self.cfg.literal_eq_2_13)
+                          active=self.active, literal_eq_2_13=self.cfg.literal_eq_2_13,
+                          condition_matrix=self.cfg.condition_matrix)
         self._start_k += 1
         starts = tuple(_start_grid(self._start_k + i) for i in range(self.cfg.extra_starts))
         exc, _ = optimise(self.cfg.strategy, self.excitation, self.predictor, ctx,
                           bounds=self.bounds, iterations=self.cfg.lm_iterations, starts=starts)
         return exc
+
+
+@dataclass(frozen=True)
+class _Call:
+    """The rows one call absorbed, kept for the sandwich covariance: h (k instants, rows, 22)
+    scaled, y (k, rows), 1 / R per row, the per-instant errors-in-variables terms."""
+
+    h: np.ndarray
+    y: np.ndarray
+    r_inv: np.ndarray
+    s_inst: np.ndarray
+    c_inst: np.ndarray
 
 
 def _start_grid(k: int) -> np.ndarray:

@@ -78,3 +78,52 @@ def test_drift_lets_the_filter_follow_a_step():
         kf.predict(0.01)
         kf.update(h, h[:, 0] * truth + 0.01 * rng.normal(size=1), np.array([1e-4]))
     assert abs(kf.x[0] - 1.2) < 0.02
+
+
+def test_batched_update_equals_sequential_filterpy_updates():
+    """One compressed update of a window's rows = the 18-row filterpy updates one after the
+    other (the identifier's window: 20 instants x 18 rows, R per row, ill-scaled columns)."""
+    rng = np.random.default_rng(7)
+    n, per, k = 22, 18, 20
+    scale = np.exp(rng.uniform(np.log(0.01), np.log(3000.0), size=n))
+    x_true = rng.uniform(0.2, 1.0, size=n) * scale
+    a = rng.normal(size=(k * per, n)) / scale * np.exp(rng.uniform(-3, 3, size=n))
+    r = np.tile(np.exp(rng.uniform(-4, 1, size=6)), k * per // 6)
+    y = a @ x_true + np.sqrt(r) * rng.normal(size=k * per)
+    kw = dict(x0=0.5 * scale, std0=scale / np.sqrt(12.0), scale=scale, n_rows=per)
+    seq, bat = RecursiveEstimator(**kw), RecursiveEstimator(**kw)
+    # a filterpy filter driven by hand, row blocks in sequence (the reference)
+    ref = KalmanFilter(dim_x=n, dim_z=per)
+    ref.x, ref.P = (0.5 * np.ones(n)).reshape(n, 1), np.eye(n) / 12.0
+    for _ in range(2):                       # two windows: the second starts from a posterior
+        for i in range(0, k * per, per):
+            seq.update(a[i:i + per], y[i:i + per], r[i:i + per])
+            ref.update(y[i:i + per].reshape(-1, 1), R=np.diag(r[i:i + per]),
+                       H=a[i:i + per] * scale)
+        x_before, p_before = bat.kf.x[:, 0].copy(), bat.kf.P.copy()
+        innov, s_diag = bat.update_batch(a, y, r)
+        h = a * scale
+        np.testing.assert_allclose(innov, y - h @ x_before, rtol=1e-12)
+        np.testing.assert_allclose(s_diag, np.diag(h @ p_before @ h.T) + r, rtol=1e-10)
+        np.testing.assert_allclose(bat.kf.x[:, 0], ref.x[:, 0], rtol=1e-7, atol=1e-10)
+        np.testing.assert_allclose(bat.x, seq.x, rtol=1e-7, atol=1e-10 * scale.max())
+        np.testing.assert_allclose(bat.cov_scaled, ref.P, rtol=1e-6, atol=1e-14)
+        np.testing.assert_allclose(bat.cov_scaled, seq.cov_scaled, rtol=1e-6, atol=1e-14)
+    assert np.allclose(bat.cov_scaled, bat.cov_scaled.T, rtol=0, atol=0)
+    assert bat.updates == 2 and seq.updates == 2 * k
+
+
+def test_batched_update_with_fewer_rows_than_states():
+    """k < n rows (a short call): the QR keeps k compressed rows, still exact."""
+    rng = np.random.default_rng(8)
+    n = 5
+    scale = np.ones(n)
+    a, y, r = rng.normal(size=(3, n)), rng.normal(size=3), np.array([0.1, 0.2, 0.3])
+    seq = RecursiveEstimator(x0=np.zeros(n), std0=np.ones(n), scale=scale, n_rows=3)
+    bat = RecursiveEstimator(x0=np.zeros(n), std0=np.ones(n), scale=scale, n_rows=3)
+    seq.update(a, y, r)
+    bat.update_batch(a, y, r)
+    np.testing.assert_allclose(bat.x, seq.x, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(bat.cov, seq.cov, rtol=1e-10, atol=1e-12)
+    with pytest.raises(EstimationError):
+        bat.update_batch(a, y, np.array([0.1, 0.0, 0.3]))

@@ -97,3 +97,97 @@ def test_arm_reference_never_steps_and_respects_the_blend_speed():
     # once a blend is over, the driven joint follows f(t) exactly (mode 2: joint 2, j1 = pi/2)
     t = 4.95
     np.testing.assert_allclose(ref(t)[0], [np.pi / 2, a(t - 2.0)[0]], atol=1e-12)
+
+
+def test_closed_form_arm_kinematics_is_modelsim_s():
+    from coop_id.excitation import _ModeKinematics
+    from coop_id.modelsim import arm_kinematics
+    arm = ArmModel()
+    q, qd, qdd = np.random.default_rng(0).normal(size=(3, 5, 7, 3))
+    ref, fast = arm_kinematics(arm, q, qd, qdd), _ModeKinematics(arm)(q, qd, qdd)
+    for f in ('rho', 'rho_dd', 'omega', 'alpha', 'inertia'):
+        np.testing.assert_allclose(getattr(fast, f), getattr(ref, f), atol=1e-14)
+
+
+def test_batched_prediction_equals_one_candidate_at_a_time():
+    from coop_id.excitation import residuals_batch
+    pred = WindowPredictor(arm=ArmModel(), times=np.arange(10) * 0.04, weight=2.0)
+    x = load_truth().to_vector()
+    d = np.array([[0.1, 30.0, 0.3], [0.5, 2.0, -0.5], [0.066, 30.0, 1.0]])
+    batch = pred.rows_batch(x, d)
+    ctx = _ctx()
+    for k in range(3):
+        np.testing.assert_array_equal(batch[k], pred.rows(x, d[k]))
+        for s in ('information', 'condition', 'd_optimal', 'a_optimal'):
+            np.testing.assert_allclose(residuals_batch(s, d, pred, ctx)[k],
+                                       residuals(s, d[k], pred, ctx), rtol=1e-12)
+
+
+def _lm_one_at_a_time(strategy, current, pred, ctx, iterations, starts, fd_step=0.02):
+    """Eq. 2-16 .. 2-20 as written: one cost evaluation after the other (the reference)."""
+    b = ExcitationBounds()
+
+    def cost(u):
+        r = residuals(strategy, b.feasible(b.from_unit(u)), pred, ctx)
+        return 0.5 * float(r @ r), r
+    best = None
+    for d0 in (current.d, *starts):
+        u0 = b.to_unit(b.feasible(np.asarray(d0, dtype=float)))
+        v0, r0 = cost(u0)
+        if best is None or v0 < best[1]:
+            best = (u0, v0, r0)
+    u, v, r = best
+    mu = 1e-3
+    for _ in range(iterations):
+        jac = np.empty((r.size, 3))
+        for k in range(3):
+            du = np.zeros(3)
+            du[k] = fd_step if u[k] + fd_step <= 1 else -fd_step
+            jac[:, k] = (cost(u + du)[1] - r) / du[k]
+        g, jtj = jac.T @ r, jac.T @ jac
+        step = -np.linalg.solve(jtj + mu * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(3)), g)
+        moved = False
+        for alpha in (1.0, 0.5, 0.25):
+            u_new = np.clip(u + alpha * step, 0.0, 1.0)
+            v_new, r_new = cost(u_new)
+            if v_new < v:
+                u, v, r, moved = u_new, v_new, r_new, True
+                break
+        mu = mu * 0.3 if moved else mu * 10.0
+    return b.feasible(b.from_unit(u)), v
+
+
+@pytest.mark.parametrize('strategy', ['information', 'condition', 'd_optimal', 'a_optimal'])
+def test_grouped_lm_takes_the_one_at_a_time_iterates(strategy):
+    from coop_id.excitation import Excitation
+    pred = WindowPredictor(arm=ArmModel(), times=np.arange(10) * 0.04, weight=2.0)
+    rng = np.random.default_rng(3)
+    for trial in range(3):
+        ctx = _ctx()
+        a = rng.normal(size=(200, 22))
+        ctx.info_scaled = a.T @ a * 10 ** rng.uniform(0, 3) + 12.0 * np.eye(22)
+        ctx.row_var = np.array([1, 1, 1, 0.1, 0.1, 0.1]) * 10.0 ** (trial - 1)
+        cur = (constant_excitation(), Excitation(0.3, 5.0, 0.2), Excitation(0.1, 25.0, 0.5))[trial]
+        starts = (np.array([0.6, 16.0, 0.5]),)
+        exc, v = optimise(strategy, cur, pred, ctx, iterations=3, starts=starts)
+        d_ref, v_ref = _lm_one_at_a_time(strategy, cur, pred, ctx, 3, starts)
+        np.testing.assert_allclose(exc.d, d_ref, rtol=1e-9)
+        assert v == pytest.approx(v_ref, rel=1e-9)
+
+
+def test_condition_matrix_readings():
+    from coop_id.excitation import residuals_batch
+    pred = WindowPredictor(arm=ArmModel(), times=np.arange(10) * 0.04, weight=2.0)
+    d = np.array([[0.1, 30.0, 0.3], [0.5, 2.0, -0.5]])
+    out = {}
+    for m in ('accumulated', 'window', 'unscaled'):
+        ctx = _ctx()
+        ctx.condition_matrix = m
+        out[m] = residuals_batch('condition', d, pred, ctx)[:, 0]
+    # SI columns span 0.01 .. 3000: the unscaled matrix is orders of magnitude worse
+    assert np.all(out['unscaled'] > out['accumulated'] + 2)
+    assert np.all(np.isfinite(out['window']))
+    ctx = _ctx()
+    ctx.condition_matrix = 'eigen'
+    with pytest.raises(ExcitationError):
+        residuals_batch('condition', d, pred, ctx)
