@@ -212,7 +212,7 @@ class Run:
 
 RUNS = [
     Run('ident_rover1', 'a live identification: the `identifier` node (information strategy) '
-        'shakes rover1\'s arm for 10 sim-s; 200 Hz IMU, inclinometer, F/T, joint states, the '
+        "shakes rover1's arm for 10 sim-s; 200 Hz IMU, inclinometer, F/T, joint states, the "
         'arm commands, every published estimate; Table 2-1 truth latched',
         ['-p', 'rovers:=1', '-p', 'seed:=1', '-p', 'stereo_rate_hz:=0.0'],
         ['/clock', '/sim/rover1/parameters', '/rover1/arm/joint_command',

@@ -15,9 +15,15 @@ import numpy as np
 
 
 def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
-                           settle_s: float = 3.0, timeout_s: float = 600.0) -> dict:
+                           settle_s: float = 3.0, timeout_s: float = 600.0,
+                           domain_id: int | None = None, log_dir: Path | None = None) -> dict:
+    """domain_id: the ROS domain of the run (default: $COOP_SIM_DOMAIN_ID, else one from the
+    pid); the processes started inherit it. log_dir: where the nodes' logs go (default: a new
+    temporary directory)."""
     import rclpy  # noqa: PLC0415 - only this mode needs ROS
     from rclpy.action import ActionClient  # noqa: PLC0415
+    from rclpy.context import Context  # noqa: PLC0415
+    from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
     from rclpy.node import Node  # noqa: PLC0415
 
     from coop_common.dynparams import PARAM_NAMES  # noqa: PLC0415
@@ -26,14 +32,21 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
     from coop_msgs.action import Identify  # noqa: PLC0415
     from coop_msgs.msg import DynamicParameters  # noqa: PLC0415
 
-    isolate_ros_environment(int(os.environ.get('COOP_SIM_DOMAIN_ID', '0')) or None)
-    logs = Path(tempfile.mkdtemp(prefix='coop_id_sim_'))
+    if domain_id is None:
+        domain_id = int(os.environ.get('COOP_SIM_DOMAIN_ID', '0')) or None
+    isolate_ros_environment(domain_id)
+    logs = Path(log_dir) if log_dir is not None else Path(
+        tempfile.mkdtemp(prefix='coop_id_sim_'))
+    logs.mkdir(parents=True, exist_ok=True)
     sim_args = ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=0.0', '-p', f'noise_fraction:={noise}']
     with NodeProcess('rover_sim', 'sim', sim_args, log_path=logs / 'sim.log'), \
             NodeProcess('coop_id', 'identifier', ['-r', '__ns:=/rover1'],
                         log_path=logs / 'identifier.log'):
-        rclpy.init()
-        node = Node('table_2_1_sim')
+        ctx = Context()
+        rclpy.init(context=ctx)
+        node = Node('table_2_1_sim', context=ctx)
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
         truth: list[DynamicParameters] = []
         node.create_subscription(DynamicParameters, '/sim/rover1/parameters', truth.append,
                                  LATCHED_QOS)
@@ -43,22 +56,23 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
                 raise RuntimeError(f'identifier action server not found (logs in {logs})')
             t0 = time.monotonic()
             while time.monotonic() - t0 < settle_s or not truth:   # rest before the goal
-                rclpy.spin_once(node, timeout_sec=0.05)
+                ex.spin_once(timeout_sec=0.05)
                 if time.monotonic() - t0 > 60:
                     raise RuntimeError(f'no /sim/rover1/parameters (logs in {logs})')
             fut = client.send_goal_async(Identify.Goal(strategy=strategy, duration_s=duration_s))
-            rclpy.spin_until_future_complete(node, fut, timeout_sec=30)
+            ex.spin_until_future_complete(fut, timeout_sec=30)
             handle = fut.result()
             if handle is None or not handle.accepted:
                 raise RuntimeError('goal rejected')
             res_fut = handle.get_result_async()
-            rclpy.spin_until_future_complete(node, res_fut, timeout_sec=timeout_s)
+            ex.spin_until_future_complete(res_fut, timeout_sec=timeout_s)
             if not res_fut.done():
                 raise RuntimeError('identification did not finish in time')
             res = res_fut.result().result
         finally:
+            ex.shutdown()
             node.destroy_node()
-            rclpy.try_shutdown()
+            rclpy.try_shutdown(context=ctx)
     t = dict(zip(truth[-1].names, truth[-1].values))
     x = np.array([t[n] for n in PARAM_NAMES])
     est = dict(zip(res.estimate.names, res.estimate.values))

@@ -191,7 +191,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument('--json', type=Path, default=None)
     ap.add_argument('--plots', type=Path, default=None)
     ap.add_argument('--sim', action='store_true',
-                    help='one identification end to end through rover_sim + identifier')
+                    help='identification end to end through rover_sim + identifier, one run '
+                         'per listed strategy')
     ap.add_argument('--bag', type=Path, default=None,
                     help='identify from a recorded bag instead (no DDS; the core as the node)')
     ap.add_argument('--rover', default='rover1', help='rover namespace in --bag')
@@ -205,30 +206,49 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def _main_sim(args: argparse.Namespace) -> int:
+    """Every listed strategy end to end, each in its own fresh sim + identifier (the same seed,
+    so the same noise draws where the commands agree): one table, estimates side by side."""
     from .sim_mode import run_sim_identification  # noqa: PLC0415
 
-    strategy = args.strategies.split(',')[-1]
-    try:
-        r = run_sim_identification(duration_s=args.duration, strategy=strategy, noise=args.noise)
-    except (RuntimeError, FileNotFoundError) as exc:
-        print(f'table_2_1 --sim: {exc}', file=sys.stderr)
-        return 1
-    print(f'end to end through rover_sim + identifier: {strategy}, {args.duration} s, '
-          f'noise {args.noise}')
-    print(f'{"Parameter":16s}{"True":>10s}{"estimate":>11s}{"std":>10s}  observable')
+    strategies = args.strategies.split(',')
+    results = {}
+    for strategy in strategies:
+        try:
+            results[strategy] = run_sim_identification(duration_s=args.duration,
+                                                       strategy=strategy, noise=args.noise)
+        except (RuntimeError, FileNotFoundError) as exc:
+            print(f'table_2_1 --sim ({strategy}): {exc}', file=sys.stderr)
+            return 1
+    truth = next(iter(results.values()))['truth']
+    print(f'end to end through rover_sim + identifier: {args.duration} s, noise {args.noise}; '
+          'estimate (std), * = flagged unobservable')
+    print(f'{"Parameter":16s}{"True":>9s}' + ''.join(f'{s:>22s}' for s in strategies))
+    print('-' * (25 + 22 * len(strategies)))
     for i, p in enumerate(PARAM_NAMES):
-        print(f'{PARAM_LABELS[p]:16s}{r["truth"][i]:10.4g}{r["estimate"][i]:11.4g}'
-              f'{r["std"][i]:10.3g}  {r["observable"][i]}')
-    print(f'% Avg. Error {100 * r["mean_abs_rel_error"]:.1f} ({r["message"]}; '
-          f'{r["samples"]} samples, {r["rejected"]} rejected; logs {r["logs"]})')
+        cells = ''
+        for s in strategies:
+            r = results[s]
+            mark = ' ' if r['observable'][i] else '*'
+            cells += f'{r["estimate"][i]:>11.4g} ({r["std"][i]:7.2g}){mark}'
+        print(f'{PARAM_LABELS[p]:16s}{truth[i]:9.4g}{cells}')
+    print('-' * (25 + 22 * len(strategies)))
+    print(f'{"% Avg. Error":25s}' + ''.join(
+        f'{100 * results[s]["mean_abs_rel_error"]:>22.1f}' for s in strategies))
+    for s in strategies:
+        r = results[s]
+        print(f'{s}: {r["message"]}; {r["samples"]} samples; logs {r["logs"]}')
     if args.json is not None:
         write_json(args.json, {
-            'mode': 'sim', 'strategy': strategy, 'duration_s': args.duration,
-            'noise': args.noise, 'success': r['success'],
-            'mean_abs_rel_error': r['mean_abs_rel_error'],
-            'per_parameter': {p: {'estimate': float(r['estimate'][i]), 'std': float(r['std'][i]),
-                                  'truth': float(r['truth'][i])}
-                              for i, p in enumerate(PARAM_NAMES)}}, indent=1)
+            'mode': 'sim', 'duration_s': args.duration, 'noise': args.noise,
+            'strategies': {s: {
+                'success': r['success'], 'mean_abs_rel_error': r['mean_abs_rel_error'],
+                'samples': r['samples'], 'rejected': r['rejected'],
+                'per_parameter': {p: {'estimate': float(r['estimate'][i]),
+                                      'std': float(r['std'][i]),
+                                      'observable': bool(r['observable'][i]),
+                                      'truth': float(r['truth'][i])}
+                                  for i, p in enumerate(PARAM_NAMES)}}
+                for s, r in results.items()}}, indent=1)
     return 0
 
 

@@ -136,6 +136,31 @@ def _qmul(a: tuple[float, float, float, float], b: tuple[float, float, float, fl
             aw * bw - ax * bx - ay * by - az * bz)
 
 
+def relative_rotation_vector(qa: tuple[float, float, float, float],
+                             qb: tuple[float, float, float, float]) -> np.ndarray:
+    """Rotation vector (log map) of R_a^T R_b for unit quaternions (x, y, z, w): the rotation
+    from pose a to pose b in a's axes. Scalar math (the gyro model, every control step)."""
+    x, y, z, w = _qmul((-qa[0], -qa[1], -qa[2], qa[3]), tuple(qb))
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    n = math.sqrt(x * x + y * y + z * z)
+    scale = 2.0 if n < 1e-12 else 2.0 * math.atan2(n, w) / n
+    return np.array([scale * x, scale * y, scale * z])
+
+
+def quat_rotate(q: tuple[float, float, float, float], v: tuple[float, float, float]
+                ) -> tuple[float, float, float]:
+    """v rotated by unit quaternion q (x, y, z, w); scalar math for per-sub-step use."""
+    return _rotate(q, v)
+
+
+def quat_rotate_inverse(q: tuple[float, float, float, float], v: tuple[float, float, float]
+                        ) -> tuple[float, float, float]:
+    """v rotated by the inverse of unit quaternion q (x, y, z, w)."""
+    x, y, z, w = q
+    return _rotate((-x, -y, -z, w), v)
+
+
 def _rotate(q: tuple[float, float, float, float], v: tuple[float, float, float]
             ) -> tuple[float, float, float]:
     """v rotated by unit quaternion q (x, y, z, w)."""
@@ -148,16 +173,34 @@ def _rotate(q: tuple[float, float, float, float], v: tuple[float, float, float]
 class FastCompliance:
     """Eq. B-3 for one rover in scalar Python, for the physics sub-step loop (numpy's per-call
     overhead on 3-vectors dominates there). Same result as `deflection` + `compliance_wrench`
-    for an anchor that only yaws (flat ground); checked against them in the tests."""
+    for an anchor that only yaws (flat ground); checked against them in the tests.
+
+    midpoint_damper: evaluate the translational damper at the sub-step's start instant. The
+    engine integrates semi-implicitly (v += h a(x_n, v_n); x += h v): the velocity it reports is
+    the one of the interval before, half a sub-step older than the position, so -B v_n lags
+    the -B v(t_n) of Eq. B-3 by h/2 and acts, at the identification's frequencies (w h << 1),
+    as an extra mass -B h/2 on each axis (b_z h / 2 = 2.5 % of the mass at 10 sub-steps of
+    Table 2-1). With it the velocity is extrapolated half a sub-step from the last two calls
+    (Adams-Bashforth, error O(h^2); stable while b h / m < 1, here ~0.05). The rotational
+    damper lags the same way; there b h / I reaches 1 and the extrapolation would be unstable,
+    so its h/2 lag is compensated implicitly in the base link's inertia instead
+    (rover_model.base_link_inertial, damper_lag_s)."""
 
     def __init__(self, stiffness: np.ndarray, damping: np.ndarray, preload: np.ndarray,
-                 inertial_quat: np.ndarray, com_offset: np.ndarray = np.zeros(3)) -> None:
+                 inertial_quat: np.ndarray, com_offset: np.ndarray = np.zeros(3), *,
+                 midpoint_damper: bool = False) -> None:
         self.com_offset = tuple(float(v) for v in com_offset)
         self.k = tuple(float(v) for v in stiffness)
         self.b = tuple(float(v) for v in damping)
         self.pre = tuple(float(v) for v in preload)
         x, y, z, w = (float(v) for v in inertial_quat)
         self.q_in_inv = (-x, -y, -z, w)
+        self.midpoint_damper = midpoint_damper
+        self._dv_prev: tuple[float, float, float] | None = None
+
+    def reset(self) -> None:
+        """Forget the velocity history (after the base is placed by hand)."""
+        self._dv_prev = None
 
     def wrench(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
                anchor_w: float) -> tuple[list[float], list[float], list[float]]:
@@ -187,6 +230,10 @@ class FastCompliance:
         scale = 2.0 if n < 1e-9 else 2.0 * math.atan2(n, qw) / n
         dth = (scale * qx, scale * qy, scale * qz)
         k, b, pre = self.k, self.b, self.pre
+        if self.midpoint_damper:
+            prev = self._dv_prev if self._dv_prev is not None else dv
+            self._dv_prev = dv
+            dv = tuple(1.5 * dv[i] - 0.5 * prev[i] for i in range(3))
         f = [-k[i] * dr[i] - b[i] * dv[i] + pre[i] for i in range(3)]
         t = [-k[i + 3] * dth[i] - b[i + 3] * dw[i] + pre[i + 3] for i in range(3)]
         # anchor -> world

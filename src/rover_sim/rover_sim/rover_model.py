@@ -55,17 +55,29 @@ def _shift(mass: float, c: np.ndarray) -> np.ndarray:
     return mass * (float(c @ c) * np.eye(3) - np.outer(c, c))
 
 
-def base_link_inertial(params: BaseParameters) -> tuple[float, np.ndarray, np.ndarray]:
+def base_link_inertial(params: BaseParameters, *, damper_lag_s: float = 0.0
+                       ) -> tuple[float, np.ndarray, np.ndarray]:
     """(mass, c.o.m. offset, inertia about that c.o.m.) of the base link alone such that the
     sprung body the compliance holds, base link + mast at home, has exactly the true mass, c.g.
     (the link origin) and inertia tensor of `params`: the mast rides on the base, and Eq. 2-1's
-    m_1, I_1 are those of everything sprung except the arm beyond the F/T sensor."""
+    m_1, I_1 are those of everything sprung except the arm beyond the F/T sensor.
+
+    damper_lag_s: how much older than the pose the angular velocity is that the rotational
+    damper of Eq. B-3 sees (half a physics sub-step, see compliance.FastCompliance). A damper
+    torque -B w(t - d) = -B w(t) + B d w_dot(t) + O(d^2) is, at the identification's
+    frequencies, an inertia -B d about the damper's axes: the engine's inertia carries +B d so
+    that the simulated body's effective inertia is the true one (B_roll h/2 = 0.075 kg m^2,
+    half of I_x, at the 10 sub-steps of Table 2-1). This is the implicit (midpoint) treatment
+    of the damper; an explicit extrapolation would be unstable at b h / I ~ 1."""
     mast = (MAST_PAN, MAST_TILT)
     m_b = params.mass - sum(m for m, _, _ in mast)
     if m_b <= 0:
         raise ValueError(f'base mass {params.mass} kg does not exceed the mast mass')
+    if damper_lag_s < 0:
+        raise ValueError(f'damper_lag_s must be >= 0, got {damper_lag_s}')
     c_b = -sum(m * np.asarray(c) for m, c, _ in mast) / m_b
-    inertia = params.inertia - _shift(m_b, c_b)
+    inertia = (params.inertia + damper_lag_s * np.diag(params.damping[3:])
+               - _shift(m_b, c_b))
     for m, c, i in mast:
         inertia = inertia - np.diag(i) - _shift(m, np.asarray(c))
     eig = np.linalg.eigvalsh(inertia)
@@ -88,9 +100,10 @@ def _box(size, xyz=(0, 0, 0), rgba=(0.6, 0.6, 0.6, 1.0)) -> str:
 
 
 def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
-               shade: float = 0.55) -> str:
-    """URDF text of a rover whose base has the given true parameters."""
-    m_b, c_b, i = base_link_inertial(params)
+               shade: float = 0.55, damper_lag_s: float = 0.0) -> str:
+    """URDF text of a rover whose base has the given true parameters (damper_lag_s: see
+    base_link_inertial)."""
+    m_b, c_b, i = base_link_inertial(params, damper_lag_s=damper_lag_s)
     r2 = params.cg_to_arm
     c = (shade, shade * 0.95, shade * 0.85, 1.0)
     parts = [f'<robot name="{name}">',

@@ -194,12 +194,17 @@ class SimNode(Node):
                 return
             times.append(p.time_from_start.sec + p.time_from_start.nanosec * 1e-9)
             positions.append(list(p.positions))
-        if not (np.all(np.isfinite(positions)) and np.all(np.isfinite(times))):
+        # cubic when every point carries velocities (joint_trajectory_controller semantics)
+        velocities = ([list(p.velocities) for p in msg.points]
+                      if all(len(p.velocities) == len(names) for p in msg.points) else None)
+        if not (np.all(np.isfinite(positions)) and np.all(np.isfinite(times))
+                and (velocities is None or np.all(np.isfinite(velocities)))):
             self.bad.reject('trajectory NaN')
             return
         start = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         with self._lock:
-            self._pending.append(('traj', index, group, names, times, positions, start))
+            self._pending.append(('traj', index, group, names, times, positions, velocities,
+                                  start))
 
     def _on_twist(self, index: int, msg: Twist) -> None:
         v, w = msg.linear.x, msg.angular.z
@@ -242,10 +247,13 @@ class SimNode(Node):
         for item in items:
             kind = item[0]
             if kind == 'traj':
-                _, i, group, names, times, positions, start = item
+                _, i, group, names, times, positions, velocities, start = item
                 try:
-                    fn = self.world.command_arm if group == 'arm' else self.world.command_mast
-                    fn(i, names, times, positions, start_s=start)
+                    if group == 'arm':
+                        self.world.command_arm(i, names, times, positions, start_s=start,
+                                               velocities=velocities)
+                    else:
+                        self.world.command_mast(i, names, times, positions, start_s=start)
                 except TrajectoryError as exc:
                     self.bad.reject('trajectory', str(exc))
             elif kind == 'twist':

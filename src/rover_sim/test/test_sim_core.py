@@ -133,6 +133,73 @@ def test_trajectory_follower_interpolates_and_holds():
         f.set(['a'], [1.0], [[float('nan')]], 0.0, np.zeros(2))
 
 
+def test_trajectory_follower_cubic_with_velocities():
+    """Points with velocities: a cubic through every point with its velocity (speed continuous
+    at the points, unlike the linear segments whose slope steps there)."""
+    f = JointTrajectoryFollower(('a', 'b'), np.zeros(2))
+    w = 30.0
+    ts = np.arange(0.0, 0.2, 0.01)
+    f.set(['a'], ts, np.sin(w * ts)[:, None], start_s=1.0, current=np.zeros(2),
+          velocities=(w * np.cos(w * ts))[:, None])
+    for t in ts[1:-1]:
+        pos, vel = f.target(1.0 + t)
+        assert pos[0] == pytest.approx(math.sin(w * t), abs=1e-12)
+        assert vel[0] == pytest.approx(w * math.cos(w * t), abs=1e-9)
+        before, after = f.target(1.0 + t - 1e-9)[1][0], f.target(1.0 + t + 1e-9)[1][0]
+        assert after == pytest.approx(before, abs=1e-5)
+    # between the points: the cubic follows the sine far closer than the chords
+    mid = ts[:-1] + 0.005
+    cubic = np.array([f.target(1.0 + t)[0][0] for t in mid])
+    assert np.abs(cubic - np.sin(w * mid)).max() < 2e-4
+    linear = JointTrajectoryFollower(('a', 'b'), np.zeros(2))
+    linear.set(['a'], ts, np.sin(w * ts)[:, None], start_s=1.0, current=np.zeros(2))
+    chords = np.array([linear.target(1.0 + t)[0][0] for t in mid])
+    assert np.abs(chords - np.sin(w * mid)).max() > 10 * np.abs(cubic - np.sin(w * mid)).max()
+    with pytest.raises(TrajectoryError):
+        f.set(['a'], [0.0, 0.1], [[0.0], [1.0]], 0.0, np.zeros(2), velocities=[[0.0]])
+    with pytest.raises(TrajectoryError):
+        f.set(['a'], [0.0], [[0.0]], 0.0, np.zeros(2), velocities=[[float('inf')]])
+
+
+def test_cubic_to_a_later_first_point_starts_from_the_old_target_speed():
+    f = JointTrajectoryFollower(('a',), np.zeros(1))
+    f.set(['a'], [0.1], [[0.2]], start_s=0.0, current=np.zeros(1), velocities=[[1.0]],
+          current_velocity=np.array([2.0]))
+    assert f.target(1e-9)[1][0] == pytest.approx(2.0, abs=1e-6)
+    assert f.target(0.1 - 1e-9)[1][0] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_fast_compliance_midpoint_damper_reads_the_velocity_half_a_substep_on():
+    """The engine's velocity is half a sub-step older than its position: with midpoint_damper
+    the translational damper extrapolates it (1.5 v_n - 0.5 v_n-1); the rest is unchanged."""
+    q_in = np.array([0.0, 0.0, 0.0, 1.0])
+    fast = FastCompliance(K, B, np.zeros(6), q_in, midpoint_damper=True)
+    p, pa = np.array([0.0, 0.0, 0.3]), np.array([0.0, 0.0, 0.3])
+    v1, v2 = np.array([0.1, -0.2, 0.3]), np.array([0.2, 0.1, -0.1])
+    w = np.array([0.5, 0.0, -0.5])
+    f1, t1, _ = fast.wrench(p, q_in, v1, w, pa, 0.0, np.zeros(3), 0.0)
+    np.testing.assert_allclose(f1, -B[:3] * v1)            # no history yet: as measured
+    f2, t2, _ = fast.wrench(p, q_in, v2, w, pa, 0.0, np.zeros(3), 0.0)
+    np.testing.assert_allclose(f2, -B[:3] * (1.5 * v2 - 0.5 * v1))
+    np.testing.assert_allclose(t2, -B[3:] * w)              # rotation: see base_link_inertial
+    fast.reset()
+    np.testing.assert_allclose(fast.wrench(p, q_in, v2, w, pa, 0.0, np.zeros(3), 0.0)[0],
+                               -B[:3] * v2)
+
+
+def test_base_link_carries_the_rotational_damper_lag():
+    from coop_common.dynparams import load_truth
+    from rover_sim.rover_model import base_link_inertial
+    truth = load_truth()
+    m0, c0, i0 = base_link_inertial(truth)
+    m1, c1, i1 = base_link_inertial(truth, damper_lag_s=2.5e-4)
+    assert m1 == m0
+    np.testing.assert_allclose(c1, c0)
+    np.testing.assert_allclose(i1 - i0, 2.5e-4 * np.diag(truth.damping[3:]), atol=1e-15)
+    with pytest.raises(ValueError, match='damper_lag_s'):
+        base_link_inertial(truth, damper_lag_s=-1.0)
+
+
 def test_world_generator_density_determinism_and_clearance():
     a = generate_world(seed=4, occlusion_density=0.2, keep_clear=((-2.0, 0.0, 1.0),))
     b = generate_world(seed=4, occlusion_density=0.2, keep_clear=((-2.0, 0.0, 1.0),))

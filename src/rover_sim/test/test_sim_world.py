@@ -196,7 +196,10 @@ def test_truth_vector_round_trip():
 
 def test_sprung_body_has_exactly_the_true_mass_cg_and_inertia():
     """Base link + mast (everything the compliance holds, the arm excluded) = the truth YAML:
-    mass, c.g. at the base frame origin, inertia tensor about it (Eq. 2-1's m_1, I_1)."""
+    mass, c.g. at the base frame origin, inertia tensor about it (Eq. 2-1's m_1, I_1), plus,
+    in the engine, the h/2 lag term of its explicit rotational damper, B_rot h/2 (rover_model.
+    base_link_inertial): the simulated body's effective inertia is the truth, which
+    coop_id's test_sim_residual checks on the sensors."""
     truth = load_truth()
     with one_rover(truth=truth) as w:
         r, c = w.rovers[0], w.client
@@ -222,4 +225,5 @@ def test_sprung_body_has_exactly_the_true_mass_cg_and_inertia():
             inertia += rr @ np.diag(diag) @ rr.T + m * (d @ d * np.eye(3) - np.outer(d, d))
         assert mass == pytest.approx(truth.mass, rel=1e-9)
         np.testing.assert_allclose(cg, origin, atol=1e-9)
-        np.testing.assert_allclose(rot.T @ inertia @ rot, truth.inertia, atol=1e-6)
+        lag = 0.5 * w.substep_s * np.diag(truth.damping[3:])
+        np.testing.assert_allclose(rot.T @ inertia @ rot, truth.inertia + lag, atol=1e-6)
