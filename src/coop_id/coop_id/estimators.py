@@ -74,23 +74,27 @@ class RecursiveEstimator:
     """Recursive least squares as a Kalman filter (Fig. 2-3) on filterpy, scaled states.
 
     State x_s (22,) random walk with process noise `drift_per_s` (fraction of the scale per
-    sqrt(s): lets a drifting parameter, e.g. a +20% mass step, be followed); measurements are
-    rows of A x = F with a diagonal R. Joseph-form update (filterpy) plus explicit symmetrisation.
+    sqrt(s), one value or one per parameter, 0 = constant: lets a drifting parameter, e.g. a
+    +20% mass step, be followed); measurements are rows of A x = F with a diagonal R.
+    Joseph-form update (filterpy) plus explicit symmetrisation.
     filterpy 2.0 pitfall: `update(z, H=H)` with a 1-D z broadcasts z - H x into a matrix and
     silently corrupts the state, so z is always passed as a column vector here.
     """
 
     def __init__(self, *, x0: np.ndarray, std0: np.ndarray, scale: np.ndarray, n_rows: int,
-                 drift_per_s: float = 0.0) -> None:
+                 drift_per_s: float | np.ndarray = 0.0) -> None:
         x0, std0, scale = (np.asarray(v, dtype=float) for v in (x0, std0, scale))
         n = x0.size
         if std0.shape != (n,) or scale.shape != (n,) or not np.all(scale > 0):
             raise EstimationError('x0, std0 and scale must have the same shape, scale > 0')
-        if not np.all(std0 > 0) or drift_per_s < 0 or n_rows < 1:
-            raise EstimationError('std0 > 0, drift_per_s >= 0 and n_rows >= 1 required')
+        drift = np.broadcast_to(np.asarray(drift_per_s, dtype=float), (n,)).copy() \
+            if np.ndim(drift_per_s) == 0 or np.shape(drift_per_s) == (n,) else None
+        if drift is None or not np.all(std0 > 0) or not np.all(drift >= 0) or n_rows < 1:
+            raise EstimationError('std0 > 0, drift_per_s >= 0 (one value or one per state) and '
+                                  'n_rows >= 1 required')
         self.scale = scale
         self.n_rows = n_rows
-        self.drift_per_s = float(drift_per_s)
+        self.drift_per_s = drift
         self.kf = KalmanFilter(dim_x=n, dim_z=n_rows)
         self.kf.x = (x0 / scale).reshape(n, 1)
         self.kf.P = np.diag((std0 / scale) ** 2)
@@ -110,13 +114,27 @@ class RecursiveEstimator:
     def cov_scaled(self) -> np.ndarray:
         return self.kf.P
 
-    def predict(self, dt: float) -> None:
-        """Random-walk prediction over dt seconds (Q = drift^2 dt per scaled state)."""
+    def process_noise(self, dt: float) -> np.ndarray:
+        """Q of a random walk over dt seconds, scaled states: diag(drift^2 dt)."""
         if dt < 0:
             raise EstimationError('dt must be >= 0')
-        if self.drift_per_s > 0 and dt > 0:
-            self.kf.Q = np.eye(self.kf.dim_x) * (self.drift_per_s ** 2 * dt)
+        return np.diag(self.drift_per_s ** 2 * dt)
+
+    def predict(self, dt: float, q: np.ndarray | None = None) -> None:
+        """Random-walk prediction over dt seconds: P -> P + Q, Q = `process_noise(dt)` or the
+        given q (scaled states, symmetric positive semi-definite, e.g. that Q restricted to
+        the directions the data can follow)."""
+        if dt < 0:
+            raise EstimationError('dt must be >= 0')
+        q = self.process_noise(dt) if q is None else np.asarray(q, dtype=float)
+        n = self.kf.dim_x
+        if q.shape != (n, n) or not np.all(np.isfinite(q)) or not np.allclose(q, q.T) or \
+                np.linalg.eigvalsh(0.5 * (q + q.T)).min() < -1e-12 * max(np.abs(q).max(), 1.0):
+            raise EstimationError('Q must be a finite symmetric PSD (n, n) matrix')
+        if np.any(q):
+            self.kf.Q = 0.5 * (q + q.T)
             self.kf.predict()
+            self.kf.P = 0.5 * (self.kf.P + self.kf.P.T)
 
     def update(self, a_rows: np.ndarray, y: np.ndarray, r_diag: np.ndarray) -> np.ndarray:
         """Absorb one set of rows (k, n) of A x = F (any k >= 1; `n_rows` is the usual k);

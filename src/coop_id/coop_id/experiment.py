@@ -1,15 +1,20 @@
-"""The thesis scenario end to end on the model-level simulation (§2.6.1; no rclpy)."""
+"""The thesis scenario end to end on the model-level simulation (§2.6.1; no rclpy).
+
+    python -m coop_id.experiment --seeds 20          # the +20 % mass step scenario (drift)
+"""
 from __future__ import annotations
 
+import argparse
+import sys
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from coop_common.dynparams import BaseParameters
+from coop_common.dynparams import BaseParameters, load_truth
 
 from .excitation import Excitation, constant_excitation
 from .identifier_core import Identifier, IdentifierConfig
-from .model import SensorNoise
+from .model import IDX, SensorNoise
 from .modelsim import ThesisRover, add_noise, noise_scales, stack_frames
 
 
@@ -90,3 +95,128 @@ def run_identification(truth: BaseParameters, *, strategy: str, seed: int, durat
     out.final_low, out.final_high = rep.ci_low, rep.ci_high
     out.observable = rep.observable
     return out
+
+
+@dataclass
+class StepTracking:
+    """One run of the mass-step scenario: how the mass estimate follows the step."""
+
+    seed: int
+    times: np.ndarray            # window ends, s
+    mass: np.ndarray             # published mass estimate per window, kg
+    mean_error: np.ndarray       # mean abs. rel. error (non-zero truths) vs the truth in force
+    mass_before: float           # true mass before / after the step
+    mass_after: float
+    step_s: float
+
+    def mass_error(self) -> np.ndarray:
+        """|m / m_true - 1| per window (the truth in force at the window's end)."""
+        true = np.where(self._after(), self.mass_after, self.mass_before)
+        return np.abs(self.mass / true - 1.0)
+
+    def _after(self) -> np.ndarray:
+        # (a window ending at the step holds at most one sample of the new mass: before)
+        return self.times > self.step_s + 1e-6
+
+    def settle_time(self, tol: float) -> float | None:
+        """Seconds after the step from which the mass estimate stays within tol of the new
+        mass (None: not by the end)."""
+        after = self._after()
+        bad = np.flatnonzero(after & (self.mass_error() > tol))
+        if bad.size == 0:
+            return float(self.times[after][0] - self.step_s)
+        if bad[-1] == self.times.size - 1:
+            return None
+        return float(self.times[bad[-1] + 1] - self.step_s)
+
+    def worst_after(self, delay_s: float) -> tuple[float, float]:
+        """(max mass error, max mean error) over the windows from delay_s after the step."""
+        sel = self.times >= self.step_s + delay_s - 1e-9
+        return float(self.mass_error()[sel].max()), float(self.mean_error[sel].max())
+
+
+def mass_step_tracking(truth: BaseParameters, *, seeds: list[int], config_factory,
+                       step_s: float = 8.0, duration_s: float = 14.0, fraction: float = 0.2,
+                       noise: float = 0.1, strategy: str = 'information',
+                       scales: dict[str, np.ndarray] | None = None) -> list[StepTracking]:
+    """The drift scenario of issue #3 item 5: the rover identifies itself, then at step_s
+    (after convergence, so that an estimator that does not track visibly lags) picks up a rock
+    of `fraction` x its mass. config_factory() gives a fresh IdentifierConfig per run."""
+    scales = scales if scales is not None else reference_noise_scales(truth, 4.0)
+    x = truth.to_vector()
+    m0 = float(x[IDX['mass']])
+    dm = fraction * m0
+    x_new = x.copy()
+    x_new[IDX['mass']] += dm
+    nz = x != 0
+    out = []
+    for seed in seeds:
+        r = run_identification(truth, strategy=strategy, seed=seed, duration_s=duration_s,
+                               noise=noise, scales=scales, config=config_factory(),
+                               mass_step=(step_s, dm))
+        est = np.stack(r.estimates)
+        ref = np.where((r.times > step_s + 1e-6)[:, None], x_new, x)
+        err = (np.abs(est - ref)[:, nz] / np.abs(ref[:, nz])).mean(axis=1)
+        out.append(StepTracking(seed, r.times, est[:, IDX['mass']], err, m0, m0 + dm, step_s))
+    return out
+
+
+def format_tracking(runs: list[StepTracking], *, tol: float = 0.05, delay_s: float = 2.0
+                    ) -> str:
+    step = runs[0].step_s
+    lines = [f'mass step {runs[0].mass_before:g} -> {runs[0].mass_after:g} kg at {step:g} s, '
+             f'{len(runs)} seed(s)',
+             f'{"seed":>4s}{"m@step":>8s}{"+1 s":>7s}{"+2 s":>7s}{"+4 s":>7s}{"end":>7s}'
+             f'{"t5% s":>7s}{"m err":>9s}{"all err":>9s}  (max from {delay_s:g} s after)']
+    for r in runs:
+        def at(t: float) -> float:
+            return float(r.mass[np.argmin(np.abs(r.times - t))])
+        settle = r.settle_time(tol)
+        wm, we = r.worst_after(delay_s)
+        lines.append(f'{r.seed:4d}{at(step):8.3f}{at(step + 1):7.3f}{at(step + 2):7.3f}'
+                     f'{at(step + 4):7.3f}{r.mass[-1]:7.3f}'
+                     f'{"never" if settle is None else f"{settle:.1f}":>7s}'
+                     f'{100 * wm:8.1f}%{100 * we:8.1f}%')
+    worst = np.array([r.worst_after(delay_s) for r in runs])
+    settles = [r.settle_time(tol) for r in runs]
+    n_never = sum(v is None for v in settles)
+    med = float(np.median([np.inf if v is None else v for v in settles]))
+    lines.append(f'mass within {100 * tol:g} % of the new mass from {delay_s:g} s after the '
+                 f'step: {int(np.sum(worst[:, 0] <= tol))}/{len(runs)} seeds; worst '
+                 f'{100 * worst[:, 0].max():.1f} %, median {100 * np.median(worst[:, 0]):.1f} %')
+    med_s = 'never' if not np.isfinite(med) else f'{med:.1f} s'
+    lines.append(f'time to stay within {100 * tol:g} %: median {med_s}, never {n_never}; '
+                 f'mean error of all parameters from {delay_s:g} s after: worst '
+                 f'{100 * worst[:, 1].max():.1f} %')
+    return '\n'.join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='coop_id.experiment',
+                                 description='the +20 % mass step (drift) scenario')
+    ap.add_argument('--seeds', type=int, default=20)
+    ap.add_argument('--first-seed', type=int, default=0)
+    ap.add_argument('--drift', type=float, default=0.01, help='drift_per_s')
+    ap.add_argument('--drift-parameters', default='mass')
+    ap.add_argument('--step', type=float, default=8.0, help='step time, s')
+    ap.add_argument('--duration', type=float, default=14.0)
+    ap.add_argument('--fraction', type=float, default=0.2)
+    ap.add_argument('--strategy', default='information')
+    args = ap.parse_args(argv)
+    names = tuple(n for n in args.drift_parameters.split(',') if n)
+
+    def factory() -> IdentifierConfig:
+        return IdentifierConfig(drift_per_s=args.drift, drift_parameters=names)
+    runs = mass_step_tracking(load_truth(), seeds=list(range(args.first_seed,
+                                                             args.first_seed + args.seeds)),
+                              config_factory=factory, step_s=args.step,
+                              duration_s=args.duration, fraction=args.fraction,
+                              strategy=args.strategy)
+    print(f'drift_per_s {args.drift:g} on {",".join(names) or "nothing"}, strategy '
+          f'{args.strategy}')
+    print(format_tracking(runs))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

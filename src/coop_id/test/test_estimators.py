@@ -127,3 +127,22 @@ def test_batched_update_with_fewer_rows_than_states():
     np.testing.assert_allclose(bat.cov, seq.cov, rtol=1e-10, atol=1e-12)
     with pytest.raises(EstimationError):
         bat.update_batch(a, y, np.array([0.1, 0.0, 0.3]))
+
+
+def test_per_state_drift_and_explicit_process_noise():
+    kf = RecursiveEstimator(x0=np.zeros(3), std0=np.ones(3), scale=np.ones(3), n_rows=1,
+                            drift_per_s=np.array([0.1, 0.0, 0.2]))
+    np.testing.assert_allclose(np.diag(kf.process_noise(4.0)), [0.04, 0.0, 0.16])
+    kf.predict(4.0)
+    np.testing.assert_allclose(np.diag(kf.cov), [1.04, 1.0, 1.16])
+    q = np.zeros((3, 3))
+    q[0, 0] = q[2, 2] = q[0, 2] = q[2, 0] = 0.5            # one direction only
+    kf.predict(1.0, q)
+    np.testing.assert_allclose(kf.cov[[0, 2], [0, 2]], [1.54, 1.66])
+    assert kf.cov[0, 2] == 0.5 and kf.cov[1, 1] == 1.0
+    for bad in (np.eye(2), -np.eye(3), np.triu(np.ones((3, 3)))):
+        with pytest.raises(EstimationError):
+            kf.predict(1.0, bad)
+    with pytest.raises(EstimationError):
+        RecursiveEstimator(x0=np.zeros(3), std0=np.ones(3), scale=np.ones(3), n_rows=1,
+                           drift_per_s=np.array([0.1, -0.1, 0.0]))

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from coop_common.dynparams import PARAM_NAMES, load_truth
-from coop_id.experiment import reference_noise_scales, run_identification
+from coop_id.experiment import mass_step_tracking, reference_noise_scales, run_identification
 from coop_id.identifier_core import Identifier, IdentifierConfig, IdentifierError
 from coop_id.model import IDX, TRANSLATIONAL
 from coop_id.table_2_1 import rel_errors
@@ -41,17 +41,25 @@ def test_without_accelerometer_reports_translational_unobservable(scenario):
 
 
 def test_mass_step_is_followed(scenario):
+    """Issue #3 item 5: after the estimate has converged (8 s) the rover picks up a rock of
+    +20 % of its mass. With the mass drifting (random walk 1 % of its range per sqrt(s)) every
+    published mass from 2 s after the step on is within 5 % of the new mass, in every seed, and
+    nothing else wanders (mean error of all parameters <= 10 % there). Without drift the mass
+    stays 7-19 % low; with every parameter walking (the code before) it ran away."""
     truth, scales = scenario
-    cfg = IdentifierConfig(drift_per_s=0.02)
-    r = run_identification(truth, strategy='information', seed=4, duration_s=10.0, noise=0.1,
-                           scales=scales, config=cfg, mass_step=(4.0, 0.6))
-    m = np.stack(r.estimates)[:, IDX['mass']]
-    t = r.times
-    before = m[(t > 2.0) & (t <= 4.0)].mean()
-    after = m[t > 8.0].mean()
-    # the estimate moves towards the new mass (3.6 kg); how far it gets in 6 s is reported
-    # honestly in the README (mass is the weakest-observed parameter at 10 % noise)
-    assert after - before > 0.15
+    runs = mass_step_tracking(truth, seeds=[0, 1, 2, 3, 4], scales=scales,
+                              config_factory=lambda: IdentifierConfig(drift_per_s=0.01))
+    for r in runs:
+        mass_err, mean_err = r.worst_after(2.0)
+        assert mass_err <= 0.05, (r.seed, mass_err)
+        assert mean_err <= 0.10, (r.seed, mean_err)
+
+
+def test_drift_config_validated():
+    for bad in (dict(drift_per_s=-0.1), dict(drift_per_s=float('nan')),
+                dict(drift_parameters=('mass', 'rock')), dict(drift_horizon_s=0.4)):
+        with pytest.raises(IdentifierError):
+            Identifier(IdentifierConfig(**bad))
 
 
 def test_bad_config_rejected():

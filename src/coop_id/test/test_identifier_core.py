@@ -60,3 +60,33 @@ def test_sandwich_covers_under_coloured_row_noise():
 def test_without_the_lags_the_sandwich_is_too_narrow():
     err, std, _ = map(np.array, zip(*(_coloured_run(s, 0) for s in range(10))))
     assert np.sqrt(np.mean((err / std) ** 2)) > 1.25
+
+
+def test_random_walk_follows_informed_drift_and_spares_unseen_directions():
+    """drift_per_s walks the drifting parameters only where the data can follow (the guard
+    against windup, Identifier._walk): a mass step in the rows is followed, while a drifting
+    parameter the rows never inform (column zero) keeps its variance instead of winding up."""
+    rng = np.random.default_rng(1)
+    cfg = IdentifierConfig(strategy='constant', drift_per_s=0.02,
+                           drift_parameters=('mass', 'Ixx', 'k_z'))
+    ident = Identifier(cfg)
+    x = load_truth().to_vector()
+    i_m, i_ixx = 0, 1
+    var0 = np.diag(ident.kf.cov).copy()
+    masses = []
+    for w in range(40):
+        xt = x.copy()
+        if w >= 20:
+            xt[i_m] *= 1.2
+        a = rng.normal(size=(20, 3, 6, 22)) / ident.scale
+        a[..., i_ixx] = 0.0
+        y = a @ xt + 0.05 * rng.normal(size=(20, 3, 6))
+        ident._absorb(a, y, ident._r_now(), (0, 1, 2))
+        ident.end_window(optimise_excitation=False)
+        masses.append(ident.estimate()[0][i_m])
+    # within 3 % from 2 windows after the step (without the walk: ~10 % low at the end)
+    assert np.all(np.abs(np.array(masses[22:]) / (1.2 * x[i_m]) - 1) < 0.03)
+    assert np.all(np.abs(np.array(masses[10:20]) / x[i_m] - 1) < 0.03)
+    # never informed: no walk (isotropic, as before, it would be var0 + 40 windows of q)
+    assert np.diag(ident.kf.cov)[i_ixx] <= var0[i_ixx] * (1 + 1e-9)
+    assert ident.walked.shape[1] == 2             # mass and k_z
