@@ -19,6 +19,7 @@ setup(
     license='Apache-2.0',
     entry_points={'console_scripts': [
         'fig_3_13 = coop_viewplan.fig_3_13:main',
+        'fig_3_25 = coop_viewplan.fig_3_25:main',
         'table_4_1 = coop_viewplan.table_4_1:main',
         'table_c_1 = coop_viewplan.table_c_1:main',
         'view_planner = coop_viewplan.view_planner_node:main',

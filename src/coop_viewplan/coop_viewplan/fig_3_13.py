@@ -49,9 +49,10 @@ def _summary(values: list[float | None]) -> dict:
 
 def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int, scans: int,
         resolution_m: float, strategies: list[str], k_rel: float, n_positions: int,
-        distance_metric: str = 'configuration', level: float = 0.9) -> dict:
+        distance_metric: str = 'configuration', level: float = 0.9,
+        near_fraction: float = 0.0) -> dict:
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
-                    distance_metric=distance_metric)
+                    distance_metric=distance_metric, near_fraction=near_fraction)
     res: dict = {}
     for name in strategies:
         fr, di, s90, d90 = [], [], [], []
@@ -170,6 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
                         'with the translation measured along the collision-free path')
     p.add_argument('--candidates', type=int, default=NbvConfig.n_positions,
                    help='candidate positions per decision (x 8 headings)')
+    p.add_argument('--near-fraction', type=float, default=NbvConfig.near_fraction,
+                   help='share of the candidate positions taken nearest to the camera (path '
+                        'length), the rest at random (thesis: "random, closest to current '
+                        'pose, etc."); default: all random')
     p.add_argument('--compare-one-camera', action='store_true',
                    help='with --cameras 2: also run max_information with one camera, same '
                         'sensor, and report the scans ratio')
@@ -196,12 +201,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     common = dict(world=args.world, fov_deg=fov, depth_m=depth, seeds=args.seeds,
                   scans=args.scans, resolution_m=args.resolution_m, k_rel=args.k_rel,
-                  n_positions=args.candidates, distance_metric=args.distance)
+                  n_positions=args.candidates, distance_metric=args.distance,
+                  near_fraction=args.near_fraction)
     strat = run(cameras=args.cameras, strategies=strategies, **common)
     result = {'figure': THESIS_FIGURE.get((args.world, args.cameras), 'Fig. 3-13 analogue'),
               'world': args.world, 'cameras': args.cameras, 'fov_deg': fov, 'depth_m': depth,
               'seeds': args.seeds, 'scans': args.scans, 'resolution_m': args.resolution_m,
-              'k_rel': args.k_rel, 'distance': args.distance, 'strategies': strat,
+              'k_rel': args.k_rel, 'distance': args.distance,
+              'near_fraction': args.near_fraction, 'strategies': strat,
               'verdict': verdict(strat)}
     if args.compare_one_camera and args.cameras == 2:
         one = run(cameras=1, strategies=['max_information'], **common)['max_information']

@@ -18,6 +18,17 @@ Reading of Eq. 3-12b..3-14 used here (the thesis leaves the details open):
 * each -q_k log2 q_k is premultiplied by the mean occupancy entropy of the cells in level k
   (binary -p log2 p - (1-p) log2 (1-p), which is largest at p = 0.5 as the text intends), so a
   field of view that is entirely known (p = 0 or 1) gives NI = 0.
+
+Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
+* 'known' (the planar experiments): a cell is navigable, and a candidate, when it is known and
+  the largest occupancy within the rover's clearance is below P_empty (unknown counts 0.5; in
+  3-D the whole slab column the rover sweeps must be known). P is that footprint maximum.
+* 'evidence' (the node on the live stereo map): (ii) a rover may pass wherever its clearance
+  disk holds no column with evidence of an obstacle - at least `occupied_voxels` occupied slab
+  voxels, or one at the occupancy clamp (a lone stereo speckle does not block, a real surface
+  does); unobserved space is not an obstacle for the path. (i) is the thesis's test on the goal
+  pose itself: the voxel at the camera's height is known with P < P_empty, and P of Eq. 3-15 is
+  its occupancy (1 where an obstacle column is within the clearance).
 """
 from __future__ import annotations
 
@@ -63,6 +74,7 @@ class NbvConfig:
     n_exp: float = 1.0
     alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 0.0, 0.0)   # x, y, z, yaw, pitch (Eq. 3-11)
     n_positions: int = 80
+    near_fraction: float = 0.0    # share of the candidate positions taken nearest (path) first
     n_yaw: int = 8
     pitches_deg: tuple[float, ...] = (0.0,)
     camera_height_m: float = 1.0
@@ -71,8 +83,12 @@ class NbvConfig:
     clearance_m: float = 1.0
     markov_iterations: int = 6
     raster_spacing_m: float | None = None
+    raster_headings: int = 0      # > 0: raster sweeps this many headings at each location
     distance_metric: str = 'configuration'     # 'configuration' (Eq. 3-11) or 'path'
     chunk_samples: int = 400_000
+    reach_model: str = 'known'                 # 'known' or 'evidence' (module docstring)
+    occupied_voxels: int = 2                   # 'evidence': occupied slab voxels that block
+    occupied_clamp: float = 0.97               # 'evidence': one voxel this sure blocks alone
 
     def template(self, *, ndim: int, resolution: float) -> RayTemplate:
         return make_template(ndim=ndim, fov_deg=self.fov_deg, depth_m=self.depth_m,
@@ -150,6 +166,7 @@ class CameraState:
     pitch: float = 0.0
     visited: list = field(default_factory=list)
     raster_cursor: int = 0
+    raster_sweep_left: int = 0
 
 
 # ----------------------------------------------------------------------------- information
@@ -291,20 +308,11 @@ def footprint_probability(grid2d_prob: np.ndarray, known2d: np.ndarray,
                                   cval=1.0)
 
 
-def geodesic_distance(navigable: np.ndarray, start: tuple[int, int], *,
-                      resolution: float) -> np.ndarray:
-    """Path length (m) through 8-connected navigable cells from `start`; inf if unreachable
-    (constraint (ii): the goal is reached by a collision free path)."""
-    nav = np.asarray(navigable, bool)
-    if nav.ndim != 2:
-        raise ValueError('navigable must be 2-D')
+def _grid_graph(nav: np.ndarray, resolution: float):
+    """8-connected graph of the navigable cells: (CSR matrix of step lengths, cell ids)."""
     h, w = nav.shape
     ids = np.full(nav.shape, -1, np.int64)
     ids[nav] = np.arange(int(nav.sum()))
-    si, sj = start
-    if not (0 <= si < h and 0 <= sj < w) or not nav[si, sj]:
-        out = np.full(nav.shape, np.inf)
-        return out
     rows, cols, vals = [], [], []
     for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
         a = nav[max(0, -di):h - max(0, di), max(0, -dj):w - max(0, dj)]
@@ -318,10 +326,88 @@ def geodesic_distance(navigable: np.ndarray, start: tuple[int, int], *,
     n = int(nav.sum())
     mat = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                      shape=(n, n)).tocsr()
-    d = dijkstra(mat, directed=False, indices=int(ids[si, sj]))
+    return mat, ids
+
+
+def _check_start(nav: np.ndarray, start) -> bool:
+    if nav.ndim != 2:
+        raise ValueError('navigable must be 2-D')
+    si, sj = (int(v) for v in start)
+    return 0 <= si < nav.shape[0] and 0 <= sj < nav.shape[1] and bool(nav[si, sj])
+
+
+def geodesic_distance(navigable: np.ndarray, start: tuple[int, int], *,
+                      resolution: float) -> np.ndarray:
+    """Path length (m) through 8-connected navigable cells from `start`; inf if unreachable
+    (constraint (ii): the goal is reached by a collision free path)."""
+    nav = np.asarray(navigable, bool)
+    if not _check_start(nav, start):
+        return np.full(nav.shape, np.inf)
+    mat, ids = _grid_graph(nav, resolution)
+    d = dijkstra(mat, directed=False, indices=int(ids[start[0], start[1]]))
     out = np.full(nav.shape, np.inf)
     out[nav] = d
     return out
+
+
+def geodesic_path(navigable: np.ndarray, start: tuple[int, int], goal: tuple[int, int], *,
+                  resolution: float) -> np.ndarray:
+    """The shortest 8-connected path of navigable cells from `start` to `goal` as (K, 2) cell
+    indices, start and goal included; PlanningError if the goal cannot be reached."""
+    nav = np.asarray(navigable, bool)
+    if not (_check_start(nav, start) and _check_start(nav, goal)):
+        raise PlanningError('start or goal not navigable')
+    mat, ids = _grid_graph(nav, resolution)
+    _, pred = dijkstra(mat, directed=False, indices=int(ids[start[0], start[1]]),
+                       return_predecessors=True)
+    cells = np.argwhere(nav)          # row-major, the order of ids
+    node, s = int(ids[goal[0], goal[1]]), int(ids[start[0], start[1]])
+    path = [node]
+    while node != s:
+        node = int(pred[node])
+        if node < 0:
+            raise PlanningError('goal not reachable')
+        path.append(node)
+    return cells[np.array(path[::-1])]
+
+
+@dataclass
+class Traversal:
+    """Constraints (i) and (ii) on the 2-D ground plane of one map: `navigable` cells a rover
+    may pass through on its way (ii), `candidate` cells a camera may be placed over (i), and
+    `collision_p` the P of Eq. 3-15 of a camera placed over each cell."""
+
+    navigable: np.ndarray
+    collision_p: np.ndarray
+    candidate: np.ndarray
+    blocked: np.ndarray | None = None     # 'evidence': obstacle columns before the clearance
+    clearance_cells: int = 0
+
+    def _disk(self, cell: np.ndarray, radius_cells: int) -> np.ndarray:
+        ii, jj = np.ogrid[:self.navigable.shape[0], :self.navigable.shape[1]]
+        return (ii - int(cell[0])) ** 2 + (jj - int(cell[1])) ** 2 <= radius_cells ** 2
+
+    def with_free_disk(self, cell: np.ndarray, radius_cells: int) -> Traversal:
+        """The rover's own footprint is free: it stands there. The disk becomes passable and,
+        where the obstacle columns are known ('evidence'), any column inside it is taken for
+        a ghost (the rover itself seen by a teammate, speckle) and no longer blocks the ring
+        of clearance around it either. Only the path mask changes."""
+        disk = self._disk(cell, radius_cells)
+        nav = self.navigable | disk
+        if self.blocked is not None and (self.blocked & disk).any():
+            from scipy import ndimage
+            st = _disk(self.clearance_cells, 2)
+            near_all = ndimage.binary_dilation(self.blocked, structure=st)
+            near_rest = ndimage.binary_dilation(self.blocked & ~disk, structure=st)
+            nav |= near_all & ~near_rest
+        return Traversal(nav, self.collision_p, self.candidate, self.blocked,
+                         self.clearance_cells)
+
+    def with_blocked_disk(self, cell: np.ndarray, radius_cells: int) -> Traversal:
+        """Another rover stands (or will stand) there: neither path nor goal."""
+        disk = self._disk(cell, radius_cells)
+        return Traversal(self.navigable & ~disk, np.where(disk, 1.0, self.collision_p),
+                         self.candidate & ~disk, self.blocked, self.clearance_cells)
 
 
 @dataclass
@@ -339,6 +425,11 @@ class PlanContext:
     claimed: np.ndarray | None
     k: float
     rng: np.random.Generator
+    candidate: np.ndarray | None = None   # 2-D goal cells (constraint (i)); None: navigable
+
+    @property
+    def placeable(self) -> np.ndarray:
+        return self.navigable if self.candidate is None else self.candidate
 
     def position_of(self, cells2d: np.ndarray) -> np.ndarray:
         """Camera positions above 2-D cells (z = camera height in 3-D)."""
@@ -379,7 +470,7 @@ class PlanContext:
                           self.collision_p[c[:, 0], c[:, 1]])
 
     def reachable_cells(self) -> np.ndarray:
-        return np.argwhere(np.isfinite(self.reach) & self.navigable)
+        return np.argwhere(np.isfinite(self.reach) & self.placeable)
 
     def score(self, cands: Candidates) -> ViewScores:
         cfg = self.config
@@ -398,11 +489,20 @@ class Strategy(Protocol):
 
 
 def _sample_cells(ctx: PlanContext) -> np.ndarray:
+    """The finite candidate set of §3.3.1: n_positions reachable goal cells, "selected in
+    several ways (random, closest to current pose, etc.)": the `near_fraction` nearest by path
+    length, the rest at random (default: all at random)."""
     cells = ctx.reachable_cells()
     n = ctx.config.n_positions
-    if len(cells) > n:
-        cells = cells[ctx.rng.choice(len(cells), n, replace=False)]
-    return cells
+    if len(cells) <= n:
+        return cells
+    n_near = int(round(np.clip(ctx.config.near_fraction, 0.0, 1.0) * n))
+    if n_near == 0:
+        return cells[ctx.rng.choice(len(cells), n, replace=False)]
+    order = np.argsort(ctx.reach[cells[:, 0], cells[:, 1]], kind='stable')
+    near, rest = order[:n_near], order[n_near:]
+    pick = ctx.rng.choice(rest, n - n_near, replace=False) if n > n_near else rest[:0]
+    return cells[np.r_[near, pick]]
 
 
 def _decide(ctx: PlanContext, name: str, cands: Candidates, key: np.ndarray,
@@ -430,11 +530,27 @@ class RandomStrategy:
 
 class RasterStrategy:
     """(ii) sequential/raster: the next free location of a boustrophedon lattice (spacing half
-    the depth of field) from which no measurement has been made, looking along the raster."""
+    the depth of field) from which no measurement has been made, looking along the raster.
+
+    With `raster_headings` = n > 0 (a pan/tilt camera) the raster runs over poses: at each
+    location the camera first sweeps n headings 2 pi / n apart (starting along the raster),
+    one per scan, then moves on."""
 
     name = 'raster'
 
     def choose(self, ctx: PlanContext) -> Decision:
+        n_h = int(ctx.config.raster_headings)
+        cam = ctx.camera
+        if n_h > 0 and cam.raster_sweep_left > 0:
+            cam.raster_sweep_left -= 1
+            here = ctx.grid.to_index(cam.position)[:2]
+            cands = ctx.candidates_at(here[None], np.array([cam.yaw + 2 * np.pi / n_h]))
+            return _decide(ctx, self.name, cands, np.zeros(len(cands)))
+        if n_h > 0:
+            cam.raster_sweep_left = n_h - 1
+        return self._next_location(ctx)
+
+    def _next_location(self, ctx: PlanContext) -> Decision:
         g = ctx.grid
         spacing = ctx.config.raster_spacing_m or ctx.config.depth_m / 2
         step = max(1, int(round(spacing / g.resolution)))
@@ -451,7 +567,7 @@ class RasterStrategy:
         for t in range(n):
             j = (ctx.camera.raster_cursor + t) % n
             cell = order[j]
-            if not (np.isfinite(ctx.reach[cell[0], cell[1]]) and ctx.navigable[tuple(cell)]):
+            if not (np.isfinite(ctx.reach[cell[0], cell[1]]) and ctx.placeable[tuple(cell)]):
                 continue
             if visited is not None and np.min(np.abs(visited - cell).max(axis=1)) < step / 2:
                 continue
@@ -581,24 +697,68 @@ class NextBestViewPlanner:
         ni_max = max_information(self.template(grid), n_gray=cfg.n_gray, n_shells=cfg.n_shells)
         return cfg.k_rel * ni_max / cfg.depth_m ** cfg.n_exp
 
-    def traversability(self, grid: OccupancyGrid) -> tuple[np.ndarray, np.ndarray]:
-        """(navigable, P) on the 2-D ground plane: in 3-D a column is as occupied as its
-        most occupied cell up to the camera height."""
+    def _slab(self, grid: OccupancyGrid) -> tuple[int, int]:
+        """Layers [bot, top) the rover and mast sweep: above the ground clearance, up to the
+        camera (a small tolerance so 0.2 m on a 0.1 m grid is layer 2, not 3)."""
         cfg = self.config
+        eps = 1e-6
+        bot = int(np.clip(np.ceil((cfg.ground_clearance_m - grid.origin[2]) / grid.resolution
+                                  - eps), 0, grid.shape[2] - 1))
+        top = int(np.clip(np.ceil((cfg.camera_height_m - grid.origin[2]) / grid.resolution
+                                  - eps), bot + 1, grid.shape[2]))
+        return bot, top
+
+    def traversability(self, grid: OccupancyGrid) -> Traversal:
+        """Constraints (i) and (ii) on the ground plane, per `config.reach_model` (see the
+        module docstring)."""
+        cfg = self.config
+        if cfg.reach_model == 'evidence':
+            return self._evidence_traversability(grid)
+        if cfg.reach_model != 'known':
+            raise ValueError(f"reach_model must be 'known' or 'evidence', got "
+                             f'{cfg.reach_model!r}')
         if grid.ndim == 2:
             prob2, known2 = grid.prob, grid.known
         else:
-            # The slab the rover and mast sweep: above the ground, up to the camera.
-            bot = int(np.clip(np.ceil((cfg.ground_clearance_m - grid.origin[2])
-                                       / grid.resolution), 0, grid.shape[2] - 1))
-            top = int(np.clip(np.ceil((cfg.camera_height_m - grid.origin[2]) / grid.resolution),
-                              bot + 1, grid.shape[2]))
+            # in 3-D a column is as occupied as its most occupied cell in the slab
+            bot, top = self._slab(grid)
             p = np.where(grid.known[:, :, bot:top], grid.prob[:, :, bot:top], 0.5)
             prob2 = p.max(axis=2)
             known2 = grid.known[:, :, bot:top].all(axis=2) | (prob2 >= 0.5)
         clear = int(np.ceil(cfg.clearance_m / grid.resolution))
         pcol = footprint_probability(prob2, known2, clear)
-        return known2 & (pcol < cfg.p_empty), pcol
+        nav = known2 & (pcol < cfg.p_empty)
+        return Traversal(nav, pcol, nav)
+
+    def _evidence_traversability(self, grid: OccupancyGrid) -> Traversal:
+        """'evidence' model: obstacle columns block the path, unknown does not; the goal's
+        camera voxel must be known free (P < P_empty)."""
+        from scipy import ndimage
+        cfg = self.config
+        if cfg.occupied_voxels < 1:
+            raise ValueError('occupied_voxels must be >= 1')
+        if grid.ndim == 2:
+            blocked = grid.occupied()
+            cam_known, cam_p = grid.known, grid.prob
+        else:
+            bot, top = self._slab(grid)
+            kn = grid.known[:, :, bot:top]
+            pr = grid.prob[:, :, bot:top]
+            occ = kn & (pr >= 0.5)
+            blocked = ((occ.sum(axis=2) >= cfg.occupied_voxels)
+                       | (kn & (pr >= cfg.occupied_clamp)).any(axis=2))
+            kc = int(np.floor((cfg.camera_height_m - grid.origin[2]) / grid.resolution + 1e-6))
+            if 0 <= kc < grid.shape[2]:
+                cam_known, cam_p = grid.known[:, :, kc], grid.prob[:, :, kc]
+            else:       # the camera's layer is outside the map: nothing known there
+                cam_known = np.zeros(grid.shape[:2], bool)
+                cam_p = np.full(grid.shape[:2], 0.5, np.float32)
+        clear = int(np.ceil(cfg.clearance_m / grid.resolution))
+        near = ndimage.binary_dilation(blocked, structure=_disk(clear, 2)) if clear else blocked
+        nav = ~near
+        p_cam = np.where(cam_known, cam_p, 0.5)
+        candidate = nav & cam_known & (p_cam < cfg.p_empty)
+        return Traversal(nav, np.where(near, 1.0, p_cam), candidate, blocked, clear)
 
     def _footprint_freed(self, grid: OccupancyGrid, cell: np.ndarray) -> OccupancyGrid:
         """The grid with the unknown cells within one rover length (twice the clearance) of
@@ -616,34 +776,43 @@ class NextBestViewPlanner:
     def plan(self, grid: OccupancyGrid, camera: CameraState, *, strategy: str | Strategy,
              rng: np.random.Generator, claimed: np.ndarray | None = None,
              estimate: np.ndarray | None = None,
-             traversability: tuple[np.ndarray, np.ndarray] | None = None,
+             traversability: Traversal | None = None,
              free_footprint: bool = False) -> Decision:
         """Choose one camera's next view. Raises PlanningError when no admissible view exists
         and ValueError for an unknown strategy.
 
-        free_footprint: the unseen ground within one rover length of the camera counts as free
-        for reaching candidates (`_footprint_freed`): a live rover stands there. Off in the
-        experiments, on in the node."""
+        free_footprint: the rover stands where the camera is, so its own footprint is free. With
+        reach_model 'known' the unseen ground within one rover length of the camera counts as
+        known free (`_footprint_freed`); with 'evidence' (where unseen ground is passable
+        anyway) the cells within the clearance of the rover are passable whatever the map says
+        there. Off in the experiments, on in the node."""
         strat = make_strategy(strategy) if isinstance(strategy, str) else strategy
         if not grid.known.any():
             raise MapError('empty map: nothing known, no free candidate')
-        nav, pcol = traversability if traversability is not None else self.traversability(grid)
+        trav = traversability if traversability is not None else self.traversability(grid)
         cell = grid.to_index(np.asarray(camera.position, float))[:2]
-        if not (0 <= cell[0] < nav.shape[0] and 0 <= cell[1] < nav.shape[1]):
+        if not np.all((cell >= 0) & (cell < np.array(trav.navigable.shape))):
             raise PlanningError('camera outside the map')
-        if free_footprint and traversability is None:
-            nav, pcol = self.traversability(self._footprint_freed(grid, cell))
+        if free_footprint:
+            if self.config.reach_model == 'known':
+                if traversability is None:
+                    trav = self.traversability(self._footprint_freed(grid, cell))
+            else:
+                trav = trav.with_free_disk(cell, int(np.ceil(self.config.clearance_m
+                                                             / grid.resolution)))
+        nav = trav.navigable
         start_nav = nav.copy()
         start_nav[cell[0], cell[1]] = True     # the rover is where it is, even if hemmed in
         reach = geodesic_distance(start_nav, (int(cell[0]), int(cell[1])),
                                   resolution=grid.resolution)
         reach[cell[0], cell[1]] = np.inf if not nav[cell[0], cell[1]] else 0.0
-        if not np.isfinite(reach[nav]).any():
+        if not (np.isfinite(reach) & trav.candidate).any():
             raise PlanningError('no free reachable candidate (P < %.2f)' % self.config.p_empty)
         est = markov_estimate(grid, iterations=self.config.markov_iterations) \
             if estimate is None else estimate
-        ctx = PlanContext(grid, est, self.template(grid), self.config, camera, nav, reach, pcol,
-                          claimed, self.k_value(grid), rng)
+        ctx = PlanContext(grid, est, self.template(grid), self.config, camera, nav, reach,
+                          trav.collision_p, claimed, self.k_value(grid), rng,
+                          candidate=trav.candidate)
         return strat.choose(ctx)
 
     def expected_cells(self, grid: OccupancyGrid, decision: Decision) -> np.ndarray:
@@ -675,6 +844,7 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
 
 
 __all__ = ['STRATEGIES', 'Candidates', 'CameraState', 'Decision', 'NbvConfig',
-           'NextBestViewPlanner', 'PlanningError', 'ViewScores', 'binary_entropy',
-           'configuration_distance', 'expected_information', 'make_strategy',
+           'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores', 'binary_entropy',
+           'configuration_distance', 'expected_information', 'geodesic_distance',
+           'geodesic_path', 'make_strategy',
            'max_information', 'plan_cameras', 'rating_function', 'score_views']

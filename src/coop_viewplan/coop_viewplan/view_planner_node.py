@@ -20,7 +20,8 @@ from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
 from .grid import MapError, OccupancyGrid
-from .nbv import STRATEGIES, CameraState, NbvConfig, NextBestViewPlanner, PlanningError
+from .nbv import STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
+from .offline import nbv_config
 from .placement import CameraModel, PlacementError, Target, TaskPlacer
 
 PARAMS = {
@@ -38,9 +39,16 @@ PARAMS = {
     'candidates': ParamSpec(40, 'default candidate positions per decision (x headings)',
                             lo=1, hi=5000),
     'headings': ParamSpec(8, 'candidate headings per position', lo=1, hi=64),
-    'camera_height_m': ParamSpec(1.0, 'mast camera height above the map origin (m)',
+    # rover_sim's mast: c.g. 0.30 m + pan joint 0.40 + tilt 0.04 + camera 0.06 = 0.80 m
+    'camera_height_m': ParamSpec(0.8, 'mast camera height above the map origin (m)',
                                  lo=-100.0, hi=100.0),
     'clearance_m': ParamSpec(0.5, 'rover clearance for P (m)', lo=0.0, hi=10.0),
+    # A lone occupied voxel in a column is mostly stereo speckle; a real surface gives several
+    # or is seen often enough to reach the map's clamp (0.971 in coop_mapping).
+    'occupied_voxels': ParamSpec(2, 'occupied voxels of a column (ground clearance up to the '
+                                 'camera) that block the rover', lo=1, hi=100),
+    'occupied_clamp': ParamSpec(0.97, 'occupancy at which a single voxel blocks its column',
+                                lo=0.5, hi=1.0),
     # The shared map clamps free voxels at P = 0.12 and one free observation gives 0.4
     # (OctoMap's hit/miss/clamp model), so the thesis's P < 0.05 is never met on it;
     # 0.2 = seen free about four times.
@@ -81,11 +89,7 @@ class ViewPlannerNode(Node):
 
     def _build(self) -> None:
         p = self.p
-        self.planner = NextBestViewPlanner(NbvConfig(
-            fov_deg=p['fov_deg'], depth_m=p['depth_m'], n_az=p['rays_az'], n_el=p['rays_el'],
-            step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
-            n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
-            clearance_m=p['clearance_m'], p_empty=p['p_empty']))
+        self.planner = NextBestViewPlanner(nbv_config(p))
         self.placer = TaskPlacer(CameraModel(fov_deg=p['task_fov_deg'], pixels=p['task_pixels'],
                                              near_m=p['task_near_m'], far_m=p['task_far_m']),
                                  clearance_m=p['clearance_m'],

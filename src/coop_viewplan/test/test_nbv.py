@@ -228,3 +228,34 @@ def test_free_footprint_lets_a_rover_leave_its_unseen_footprint():
                      free_footprint=True)
     assert np.isfinite(d.candidates.path_length[d.index])
     assert d.candidates.collision_p[d.index] < planner.config.p_empty
+
+
+def test_raster_sweeps_headings_then_moves_on():
+    g = _known_free_grid(40)
+    planner = NextBestViewPlanner(NbvConfig(fov_deg=90, depth_m=10, raster_headings=4))
+    cam = CameraState(np.array([2.5, 2.5]))
+    rng = np.random.default_rng(0)
+    cells, yaws = [], []
+    for _ in range(6):
+        d = planner.plan(g, cam, strategy='raster', rng=rng)
+        cam.position, cam.yaw = d.position.copy(), d.yaw
+        cam.visited.append(g.to_index(cam.position))
+        cells.append(tuple(g.to_index(d.position)))
+        yaws.append(d.yaw)
+    # a move, three more headings 90 deg apart at the same place, then the next location
+    assert cells[0] == cells[1] == cells[2] == cells[3] != cells[4]
+    steps = np.diff(np.unwrap(yaws[:4]))
+    assert steps == pytest.approx([np.pi / 2] * 3)
+    assert cells[4] == cells[5]
+
+
+def test_near_fraction_takes_the_closest_candidates_first():
+    g = _known_free_grid(40)
+    cam = CameraState(np.array([20.5, 20.5]))
+    far = NextBestViewPlanner(NbvConfig(n_positions=20)).plan(
+        g, cam, strategy='max_unmapped', rng=np.random.default_rng(4))
+    near = NextBestViewPlanner(NbvConfig(n_positions=20, near_fraction=0.5)).plan(
+        g, cam, strategy='max_unmapped', rng=np.random.default_rng(4))
+    pl = near.candidates.path_length.reshape(20, -1)[:, 0]     # one row per position
+    assert np.all(pl[:10] <= 2.9)                 # the 10 nearest cells: within 2 cells
+    assert np.median(far.candidates.path_length) > 5.0

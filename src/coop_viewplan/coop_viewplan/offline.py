@@ -1,0 +1,132 @@
+"""Next best views from recorded data without DDS: what the `view_planner` node answers, run on a
+saved map or on the map `coop_mapping.offline.map_from_bag` fuses from a bag (no rclpy).
+
+    python -m coop_viewplan.offline bags/mapping_two_rovers      # the map fused from the bag
+    python -m coop_viewplan.offline bags/mapping_two_rovers --map out/team.cmap \
+        -p camera_height_m=0.75                                  # a saved map, the bag's poses
+
+The cameras are each rover's last `stereo/pose` in the bag; the rovers ask in name order, each
+claiming the cells its view is expected to see for the next (as the node does on one map).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .frames import yaw_pitch_from_optical
+from .grid import MapError, OccupancyGrid
+from .nbv import CameraState, Decision, NbvConfig, NextBestViewPlanner, PlanningError
+
+#: the node's parameter defaults that matter here (view_planner_node.PARAMS; checked by a test)
+NODE_DEFAULTS = {'fov_deg': 75.0, 'depth_m': 10.0, 'rays_az': 24, 'rays_el': 18, 'k_rel': 0.15,
+                 'n_exp': 1.0, 'candidates': 40, 'headings': 8, 'camera_height_m': 0.8,
+                 'clearance_m': 0.5, 'p_empty': 0.2, 'occupied_voxels': 2,
+                 'occupied_clamp': 0.97, 'pad_m': 5.0, 'seed': 0}
+
+
+def nbv_config(p: dict) -> NbvConfig:
+    """The planner settings the node uses, from its parameter values. On the live stereo map
+    constraints (i)/(ii) follow the 'evidence' model (nbv module docstring)."""
+    return NbvConfig(
+        fov_deg=p['fov_deg'], depth_m=p['depth_m'], n_az=p['rays_az'], n_el=p['rays_el'],
+        step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
+        n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
+        clearance_m=p['clearance_m'], p_empty=p['p_empty'], reach_model='evidence',
+        occupied_voxels=p['occupied_voxels'], occupied_clamp=p['occupied_clamp'])
+
+
+def grid_from_voxelmap(vm, *, pad_m: float) -> OccupancyGrid:
+    """coop_mapping VoxelMap -> dense grid padded by pad_m, as the node converts /map/voxels."""
+    from coop_mapping.voxelmap import unpack_keys
+    return OccupancyGrid.from_sparse(unpack_keys(vm.keys), vm.probability(),
+                                     resolution=vm.resolution,
+                                     pad_cells=int(math.ceil(pad_m / vm.resolution)))
+
+
+def last_camera_poses(bag: str | Path) -> dict[str, CameraState]:
+    """Each rover's last `<rover>/stereo/pose` in a bag as a CameraState."""
+    from rover_bag.bagio import bag_info, read_messages
+    topics = sorted(t for t in bag_info(bag).topics if t.endswith('/stereo/pose'))
+    last = {}
+    for rec in read_messages(bag, topics):
+        last[rec.topic.split('/')[1]] = rec.msg.pose.pose
+    out = {}
+    for rover, pose in sorted(last.items()):
+        q = pose.orientation
+        yaw, pitch = yaw_pitch_from_optical(np.array([q.x, q.y, q.z, q.w]))
+        out[rover] = CameraState(np.array([pose.position.x, pose.position.y,
+                                           pose.position.z]), yaw, pitch)
+    return out
+
+
+@dataclass
+class Answer:
+    rover: str
+    decision: Decision | None
+    message: str
+
+
+def plan_team(grid: OccupancyGrid, cameras: dict[str, CameraState], params: dict, *,
+              strategy: str = 'max_information') -> list[Answer]:
+    """The node's answers to each rover in turn on one map (later rovers see earlier claims)."""
+    planner = NextBestViewPlanner(nbv_config(params))
+    rng = np.random.default_rng(int(params['seed']))
+    claimed = np.zeros(grid.shape, bool)
+    out = []
+    for rover, cam in cameras.items():
+        try:
+            d = planner.plan(grid, cam, strategy=strategy, rng=rng, claimed=claimed,
+                             free_footprint=True)
+        except (MapError, PlanningError) as exc:
+            out.append(Answer(rover, None, str(exc)))
+            continue
+        claimed |= planner.expected_cells(grid, d)
+        out.append(Answer(rover, d, f'{strategy}: {len(d.candidates)} candidates'))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="next best views on a bag's map, without DDS")
+    ap.add_argument('bag', type=Path, help='bag with <rover>/stereo/* (poses, and the map '
+                                           'unless --map)')
+    ap.add_argument('--map', type=Path, default=None, help='a saved coop_mapping map instead')
+    ap.add_argument('--strategy', default='max_information')
+    ap.add_argument('-p', action='append', default=[], metavar='NAME=VALUE',
+                    help='node parameter override, e.g. -p camera_height_m=0.75')
+    a = ap.parse_args(argv)
+    params = dict(NODE_DEFAULTS)
+    for kv in a.p:
+        k, _, v = kv.partition('=')
+        if k not in params:
+            ap.error(f'unknown parameter {k!r}; one of {sorted(params)}')
+        params[k] = type(params[k])(float(v)) if not isinstance(params[k], str) else v
+    if a.map is not None:
+        from coop_mapping.voxelmap import VoxelMap
+        vm = VoxelMap.load(a.map)
+        src = str(a.map)
+    else:
+        from coop_mapping.offline import map_from_bag
+        vm = map_from_bag(a.bag).map
+        src = f'map_from_bag({a.bag})'
+    grid = grid_from_voxelmap(vm, pad_m=params['pad_m'])
+    print(f'{src}: {len(vm)} voxels at {vm.resolution} m; poses: last stereo/pose in {a.bag}')
+    for ans in plan_team(grid, last_camera_poses(a.bag), params, strategy=a.strategy):
+        d = ans.decision
+        if d is None:
+            print(f'{ans.rover}: none ({ans.message})')
+            continue
+        c = d.candidates
+        p = d.position
+        print(f'{ans.rover}: {ans.message}, camera at ({p[0]:+.2f}, {p[1]:+.2f}, {p[2]:+.2f}) m '
+              f'yaw {math.degrees(d.yaw):+.0f} deg, NI {d.scores.ni[d.index]:.3f} bits, '
+              f'd {c.distance[d.index]:.2f} m, path {d.path_length:.2f} m, '
+              f'P {c.collision_p[d.index]:.3f}, RF {d.rating[d.index]:.3f}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,150 @@
+"""Constraints (i)/(ii) of §3.2.4 on a live-style stereo map ('evidence' reach model): hand-built
+3-D maps, and the map fused from the sample bag with the node's settings."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from coop_viewplan.grid import OccupancyGrid
+from coop_viewplan.nbv import (
+    CameraState,
+    NbvConfig,
+    NextBestViewPlanner,
+    PlanningError,
+    geodesic_distance,
+)
+
+RES = 0.1
+FREE, WEAK, HIT, CLAMP = 0.12, 0.4, 0.7, 0.971     # coop_mapping's OctoMap-model levels
+
+
+def _room(nx: int = 60, ny: int = 40, nz: int = 12) -> OccupancyGrid:
+    """6 m x 4 m x 1.2 m at 0.1 m: the ground layer occupied, everything above seen free."""
+    prob = np.full((nx, ny, nz), FREE, np.float32)
+    prob[:, :, 0] = CLAMP
+    return OccupancyGrid(prob, np.ones(prob.shape, bool), resolution=RES, origin=np.zeros(3))
+
+
+def _planner(**kw) -> NextBestViewPlanner:
+    cfg = dict(fov_deg=75.0, depth_m=4.0, n_az=12, n_el=9, step_cells=1.0, n_positions=200,
+               camera_height_m=0.8, clearance_m=0.5, p_empty=0.2, reach_model='evidence')
+    cfg.update(kw)
+    return NextBestViewPlanner(NbvConfig(**cfg))
+
+
+def _reach(planner: NextBestViewPlanner, grid: OccupancyGrid, start=(5, 20)) -> np.ndarray:
+    return geodesic_distance(planner.traversability(grid).navigable, start, resolution=RES)
+
+
+def test_speckle_does_not_block_a_real_wall_does():
+    planner = _planner()
+    g = _room()
+    g.prob[:, :, 9:] = 0.5
+    g.known[:, :, 9:] = False                 # above the camera: never seen
+    g.prob[30, :, 4] = HIT                     # a line of lone speckle voxels across x = 3 m
+    t = planner.traversability(g)
+    assert t.navigable.all()
+    assert np.isfinite(_reach(planner, g)[50, 20])
+    g.prob[30, :, 2:8] = HIT                   # a real wall: the whole slab seen occupied
+    t = planner.traversability(g)
+    assert not t.navigable[25:36].any()       # the wall and the clearance either side
+    assert np.isinf(_reach(planner, g)[50, 20])
+    d = planner.plan(g, CameraState(np.array([0.55, 2.05, 0.8])), strategy='max_information',
+                     rng=np.random.default_rng(0))
+    assert np.all(d.candidates.positions[:, 0] < 2.5)     # nothing behind the wall offered
+    # two occupied voxels in a column block it; so does a single one at the occupancy clamp
+    for column in ((HIT, HIT), (CLAMP,)):
+        h = _room()
+        h.prob[30, 20, 3:3 + len(column)] = column
+        assert not planner.traversability(h).navigable[30, 20]
+        # with 3 votes needed, two hits pass; the clamp still blocks
+        assert _planner(occupied_voxels=3).traversability(h).navigable[30, 20] == (
+            len(column) == 2)
+
+
+def test_candidate_inside_an_obstacle_is_rejected():
+    planner = _planner()
+    g = _room()
+    g.prob[25:35, 15:25, 1:10] = CLAMP        # a 1 m x 1 m box, 0.9 m tall
+    g.prob[45, 30, 8] = CLAMP                 # something hanging at the camera's height
+    t = planner.traversability(g)
+    assert not t.candidate[22:38, 12:28].any()            # box + clearance (a disk)
+    assert t.candidate[18, 20] and not t.candidate[21, 20]
+    assert np.all(t.collision_p[25:35, 15:25] == 1.0)
+    assert not t.candidate[45, 30] and t.collision_p[45, 30] >= 0.9
+    assert t.candidate[10, 5] and t.collision_p[10, 5] == pytest.approx(FREE)
+    d = planner.plan(g, CameraState(np.array([0.55, 2.05, 0.8])), strategy='max_unmapped',
+                     rng=np.random.default_rng(1))
+    cells = g.to_index(d.candidates.positions)[:, :2]
+    assert not np.any((cells[:, 0] >= 22) & (cells[:, 0] < 38)
+                      & (cells[:, 1] >= 12) & (cells[:, 1] < 28))
+    assert np.all(d.candidates.collision_p < planner.config.p_empty)
+    # weakly seen (P 0.4 > P_empty) camera voxels are no candidates, but do not block the path
+    g.prob[:, :, 8] = WEAK
+    g.prob[50:, :, 8] = FREE
+    t = planner.traversability(g)
+    assert not t.candidate[:50].any() and t.candidate[52:, 5:35].any()
+    assert t.navigable[:20].all()
+
+
+def test_unseen_ground_around_the_rover_is_passable():
+    """The mast camera never sees the ground within ~1.2 m of the rover: only what it saw
+    further out is known. Unknown is no obstacle for the path; the goal must be seen free."""
+    planner = _planner()
+    g = _room()
+    ii, jj = np.indices(g.shape[:2])
+    near = (ii - 5) ** 2 + (jj - 20) ** 2 <= 12 ** 2
+    g.known[near] = False
+    g.prob[near] = 0.5
+    d = planner.plan(g, CameraState(np.array([0.55, 2.05, 0.8])), strategy='max_information',
+                     rng=np.random.default_rng(2), free_footprint=True)
+    assert np.isfinite(d.path_length) and d.path_length > 1.0
+    assert d.scores.ni[d.index] > 0
+    assert g.known[tuple(g.to_index(d.position))]
+    # the old rule (the whole column known, unknown = 0.5) finds nothing here
+    with pytest.raises(PlanningError):
+        NextBestViewPlanner(NbvConfig(**{**planner.config.__dict__, 'reach_model': 'known'})
+                            ).plan(g, CameraState(np.array([0.55, 2.05, 0.8])),
+                                   strategy='max_information', rng=np.random.default_rng(2))
+
+
+def test_unknown_reach_model_rejected():
+    with pytest.raises(ValueError, match='reach_model'):
+        _planner(reach_model='teleport').traversability(_room())
+
+
+BAG = Path(__file__).resolve().parents[3] / 'bags' / 'mapping_two_rovers'
+
+
+def test_offline_defaults_are_the_nodes():
+    from coop_viewplan.offline import NODE_DEFAULTS
+    from coop_viewplan.view_planner_node import PARAMS
+    assert {k: PARAMS[k].default for k in NODE_DEFAULTS} == NODE_DEFAULTS
+
+
+@pytest.mark.skipif(not BAG.is_dir(), reason='sample bag not present')
+def test_sample_bag_map_gives_every_rover_a_view():
+    """The map the `stereo` + `mapper` nodes make from bags/mapping_two_rovers, planned on with
+    the node's default settings from each rover's last camera pose: a view with NI > 0."""
+    pytest.importorskip('rover_bag.bagio')
+    offline_map = pytest.importorskip('coop_mapping.offline')
+    from coop_viewplan import offline
+
+    res = offline_map.map_from_bag(BAG)
+    assert set(res.scans) == {'rover1', 'rover2'}
+    params = dict(offline.NODE_DEFAULTS)
+    grid = offline.grid_from_voxelmap(res.map, pad_m=params['pad_m'])
+    cams = offline.last_camera_poses(BAG)
+    assert set(cams) == {'rover1', 'rover2'}
+    answers = offline.plan_team(grid, cams, params)
+    assert [a.rover for a in answers] == ['rover1', 'rover2']
+    for a in answers:
+        d = a.decision
+        assert d is not None, f'{a.rover}: {a.message}'
+        assert d.scores.ni[d.index] > 0, a.rover
+        assert np.isfinite(d.path_length) and d.path_length < 10.0, a.rover
+        assert d.candidates.collision_p[d.index] < params['p_empty'], a.rover
+        cell = tuple(grid.to_index(d.position))
+        assert grid.known[cell] and grid.prob[cell] < params['p_empty'], a.rover
