@@ -284,9 +284,15 @@ class Identifier:
         meat = self._m_frozen.copy()
         tail = self._score_tail
         for calls, weight in self._pending:
-            g = self._scores(calls, xs)
-            meat += weight * self._hac(g, tail)
+            g = np.sqrt(weight) * self._scores(calls, xs)
+            meat += self._hac(g, tail)
             tail = g
+        # The Bartlett sum over one (weighted) score sequence is positive semi-definite by
+        # construction; the drift prediction's transform of the frozen part (not of the
+        # score tail) can leave it slightly indefinite: clip, a variance is never negative.
+        lam, vec = np.linalg.eigh(0.5 * (meat + meat.T))
+        if lam.min() < 0.0:
+            meat = (vec * np.maximum(lam, 0.0)) @ vec.T
         b_inv = np.linalg.inv(bread)
         cov_s = b_inv @ meat @ b_inv
         cov_s = 0.5 * (cov_s + cov_s.T)
@@ -400,8 +406,8 @@ class Identifier:
         keep = self.cfg.hac_delay_windows if keep is None else keep
         while len(self._pending) > keep:
             calls, weight = self._pending.pop(0)
-            g = self._scores(calls, xs)
-            self._m_frozen += weight * self._hac(g, self._score_tail)
+            g = np.sqrt(weight) * self._scores(calls, xs)
+            self._m_frozen += self._hac(g, self._score_tail)
             self._score_tail = g[-self.hac_lags:] if self.hac_lags else g[:0]
 
     def _counter_for(self, mode: int) -> int:
@@ -442,7 +448,11 @@ class Identifier:
                 self._s_acc /= f
                 self._c_acc /= f
                 # P -> f P: the sandwich follows (B^-1 M B^-1 -> f B^-1 M B^-1)
+                # every score weighted by 1/f, the tail's too: the cross terms between
+                # windows before and after stay those of one weighted sequence (weighting
+                # only the new windows' sums made the meat indefinite: negative variances)
                 self._m_frozen /= f
+                self._score_tail = self._score_tail / np.sqrt(f)
                 self._bread_start /= f
                 self._pending = [(calls, w / f) for calls, w in self._pending]
         self._win_calls.clear()

@@ -90,3 +90,28 @@ def test_random_walk_follows_informed_drift_and_spares_unseen_directions():
     # never informed: no walk (isotropic, as before, it would be var0 + 40 windows of q)
     assert np.diag(ident.kf.cov)[i_ixx] <= var0[i_ixx] * (1 + 1e-9)
     assert ident.walked.shape[1] == 2             # mass and k_z
+
+
+def test_covariance_stays_positive_when_the_change_detector_fires():
+    """The detector's inflation (P -> f P) re-weights every score by 1/f, the tail reaching into
+    the next window included: weighting only the window sums left the meat indefinite and
+    published negative variances (std 0) a few windows after a firing (seen on rover_sim)."""
+    rng = np.random.default_rng(3)
+    ident = Identifier(IdentifierConfig(strategy='constant', hac_lags=12))
+    assert ident.detector is not None
+    x = load_truth().to_vector()
+    amp = rng.uniform(0.5, 1.5, size=(3, 6, 22)) / ident.scale
+    phase = rng.uniform(0, 2 * np.pi, size=(3, 6, 22))
+    fire = {6}
+    real_check = ident.detector.check
+    for w in range(14):
+        a = np.empty((20, 3, 6, 22))
+        for k in range(20):
+            a[k] = amp * np.sin(0.3 * (20 * w + k) + phase) + 0.3 * amp * rng.normal(
+                size=amp.shape)
+        y = a @ x + 0.5 * rng.normal(size=(20, 3, 6))
+        ident.detector.check = (lambda nis: True) if w in fire else real_check
+        ident._absorb(a, y, ident._r_now(), (0, 1, 2))
+        ident.end_window(optimise_excitation=False)
+        _, cov = ident.estimate()
+        assert np.linalg.eigvalsh(cov).min() > 0, f'window {w}'
