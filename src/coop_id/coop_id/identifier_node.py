@@ -55,7 +55,8 @@ SPECS = {
                                   lo=2, hi=16, read_only=True),
     'use_accelerometer': ParamSpec(True, 'false: rotational subset only (§2.6.2)',
                                    read_only=True),
-    'drift_per_s': ParamSpec(0.0, 'parameter random walk, fraction of range per sqrt(s)',
+    'drift_per_s': ParamSpec(0.0, 'random walk of the drifting parameters (the mass: a rock '
+                             'picked up), fraction of range per sqrt(s); 0 = fixed',
                              lo=0.0, hi=1.0, read_only=True),
     'mode_period_s': ParamSpec(2.0, 'seconds per arm rotation mode (z, y, x cycle)',
                                lo=0.4, hi=60.0),
