@@ -13,6 +13,16 @@ pose is corrected by scene fiducials (§3.2.5, fiducial_odometry): the first fra
 increment between successive `stereo/pose` messages and corrected by the fiducials;
 `camera_pose` then carries the corrected pose with the Eq. 3-19 translation covariance. `none`
 passes `stereo/pose` through.
+
+With `initialise` (§3.2.2, off by default), `stereo/pose` is the rover's own dead-reckoned
+frame (whatever its frame_id), not yet the common one: each pair is searched for the known
+target's markers (`target_markers` in the target frame, which sits at `target_pose` in
+`map_frame`) and the camera located from them (target_frame.Initialiser); every fix is
+published on `~/target_pose` (camera in `map_frame`, 6x6 covariance). Until a fix's largest
+predicted position sigma is below `init_max_position_sigma_m` nothing else is published; then
+the own -> common transform is fixed (`~/alignment`: the own frame's origin in `map_frame`,
+latched), logged, and every later pose and cloud is expressed in `map_frame` with the
+alignment's uncertainty added to `camera_pose`.
 """
 from __future__ import annotations
 
@@ -30,6 +40,12 @@ from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .ros_conv import cloud_to_msg, pose_to_rt
 from .stereo import ErrorModel, StereoCamera, StereoError, StereoRanger, compute_disparity
+from .target_frame import Initialiser, TargetFrameError, TargetGeometry
+
+# rover_sim's insertion site (worldgen, slot 4 mm): its frame has the origin at the block's
+# centre, x out of the marker face, z up; the block sits at (3, 0, 0.2) with yaw pi in `map`
+SIM_SITE_MARKERS = [0.1, 0.062, 0.05, 0.1, -0.062, 0.05]
+SIM_SITE_POSE = [3.0, 0.0, 0.2, float(np.pi)]
 
 PARAMS = {
     'num_disparities': ParamSpec(64, 'StereoSGBM disparity range (multiple of 16)', lo=16,
@@ -51,6 +67,26 @@ PARAMS = {
     'n_fiducials': ParamSpec(40, 'fiducials kept in view', lo=4, hi=500, read_only=True),
     'scene_distance_m': ParamSpec(1.1, 'typical scene distance (sets the fiducial map voxel)',
                                   lo=0.05, hi=100.0, read_only=True),
+    'initialise': ParamSpec(False, '§3.2.2: stereo/pose is the own dead-reckoned frame; find '
+                            'the target to put it into map_frame first', read_only=True),
+    'init_max_position_sigma_m': ParamSpec(0.1, 'accept the first target fix whose largest '
+                                           'predicted position sigma is below this (m)',
+                                           lo=1e-4, hi=10.0, read_only=True),
+    'init_up_sigma_rad': ParamSpec(0.01, 'sigma of the up direction taken from the '
+                                   'dead-reckoned camera orientation (0: not used)', lo=0.0,
+                                   hi=1.0, read_only=True),
+    'target_markers': ParamSpec(SIM_SITE_MARKERS, 'marker centres x1 y1 z1 x2 ... in the '
+                                'target frame (m)', read_only=True),
+    'target_facing': ParamSpec([1.0, 0.0, 0.0], 'outward normal of the marker face, target '
+                               'frame (0 0 0: none)', read_only=True),
+    'target_up': ParamSpec([0.0, 0.0, 1.0], 'up direction in the target frame',
+                           read_only=True),
+    'target_pose': ParamSpec(SIM_SITE_POSE, 'x y z yaw of the target frame in map_frame',
+                             read_only=True),
+    'marker_min_radius_px': ParamSpec(1.0, 'smallest marker disc radius detected (px)',
+                                      lo=0.5, hi=100.0, read_only=True),
+    'marker_max_radius_px': ParamSpec(25.0, 'largest marker disc radius detected (px)',
+                                      lo=1.0, hi=200.0, read_only=True),
 }
 
 
@@ -93,6 +129,30 @@ class StereoNode(Node):
         self._waiting: list[dict] = []     # complete frames that came before any camera_info
         self.odometry: FiducialOdometry | None = None
         self._prev_dr: np.ndarray | None = None
+        self.initialiser: Initialiser | None = None
+        if self.p['initialise']:
+            self.initialiser = self._make_initialiser()
+            self.pub_target = self.create_publisher(PoseWithCovarianceStamped, '~/target_pose',
+                                                    LATCHED_QOS)
+            self.pub_alignment = self.create_publisher(PoseWithCovarianceStamped,
+                                                       '~/alignment', LATCHED_QOS)
+
+    def _make_initialiser(self) -> Initialiser:
+        m = np.asarray(self.p['target_markers'], float)
+        facing = np.asarray(self.p['target_facing'], float)
+        x, y, z, yaw = (float(v) for v in self.p['target_pose'])
+        c, s = np.cos(yaw), np.sin(yaw)
+        if m.size < 6 or m.size % 3 or len(self.p['target_pose']) != 4:
+            raise ValueError('target_markers needs x y z per marker (>= 2 markers), '
+                             'target_pose x y z yaw')
+        geom = TargetGeometry(m.reshape(-1, 3), up=np.asarray(self.p['target_up'], float),
+                              facing=facing if facing.size == 3 and np.any(facing) else None)
+        return Initialiser(geom, R_ct=np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]),
+                           t_ct=np.array([x, y, z]),
+                           max_position_sigma_m=self.p['init_max_position_sigma_m'],
+                           up_sigma_rad=self.p['init_up_sigma_rad'],
+                           min_radius_px=self.p['marker_min_radius_px'],
+                           max_radius_px=self.p['marker_max_radius_px'])
 
     def _changed(self, changed: dict) -> None:
         self.p.update(changed)
@@ -140,6 +200,10 @@ class StereoNode(Node):
                 self.bad.reject('no_camera_info')
             return
         pose: PoseWithCovarianceStamped = m['pose']
+        if self.initialiser is not None:
+            pose = self._initialise(m, pose)
+            if pose is None:
+                return
         if pose.header.frame_id != self.p['map_frame']:
             self.bad.reject('pose_frame', pose.header.frame_id)
             return
@@ -161,6 +225,49 @@ class StereoNode(Node):
         self.pub_pose.publish(pose)
         self.pub_cloud.publish(cloud_to_msg(scan.points, scan.covariances, hdr))
         self.frames += 1
+
+    def _initialise(self, m: dict, pose: PoseWithCovarianceStamped
+                    ) -> PoseWithCovarianceStamped | None:
+        """§3.2.2: before the alignment is fixed, look for the target (None: publish nothing);
+        after, the own-frame pose in map_frame with the alignment's covariance added."""
+        init = self.initialiser
+        R_oc, t_oc = pose_to_rt(pose.pose.pose)
+        if init.initialised:
+            R, t, cov = init.to_common(R_oc, t_oc, np.array(pose.pose.covariance, float))
+            return _pose_msg(pose.header.stamp, self.p['map_frame'], R, t, cov)
+        try:
+            if self.ranger is None:
+                self.ranger = self._make_ranger()
+            left, right = image_to_array(m['left']), image_to_array(m['right'])
+            step = init.observe(left, right, self.ranger.camera, R_oc, t_oc,
+                                error_model=self.ranger.error_model)
+        except (StereoError, TargetFrameError, ValueError) as exc:
+            self.bad.reject('stereo', str(exc))
+            return None
+        if step.R is None:
+            self.get_logger().info(f'initialisation: target not found ({step.n_markers} '
+                                   f'marker candidates: {step.reason})',
+                                   throttle_duration_sec=5.0)
+            return None
+        self.pub_target.publish(_pose_msg(pose.header.stamp, self.p['map_frame'], step.R,
+                                          step.t, _ros_cov(step.covariance)))
+        if not step.accepted:
+            self.get_logger().info(f'initialisation: target found, position sigma '
+                                   f'{step.position_sigma_m:.3f} m > '
+                                   f'{init.max_position_sigma_m:.3f} m, waiting for a '
+                                   'closer view', throttle_duration_sec=5.0)
+            return None
+        R_a, t_a = init.alignment
+        self.pub_alignment.publish(_pose_msg(pose.header.stamp, self.p['map_frame'], R_a, t_a,
+                                             _ros_cov(init.alignment_covariance)))
+        self.get_logger().info(
+            f'initialised after {init.attempts} pair(s): camera at '
+            f'{np.array2string(step.t, precision=3)} in {self.p["map_frame"]} (position sigma '
+            f'{step.position_sigma_m:.3f} m); own frame ({pose.header.frame_id}) -> '
+            f'{self.p["map_frame"]}: yaw {np.degrees(np.arctan2(R_a[1, 0], R_a[0, 0])):.2f} '
+            f'deg, t {np.array2string(t_a, precision=3)}')
+        R, t, cov = init.to_common(R_oc, t_oc, np.array(pose.pose.covariance, float))
+        return _pose_msg(pose.header.stamp, self.p['map_frame'], R, t, cov)
 
     def _correct(self, left, disp, R, t, pose: PoseWithCovarianceStamped):
         """§3.2.5 on the live stream: dead-reckoned increment as prediction, fiducials as
@@ -191,6 +298,24 @@ class StereoNode(Node):
         cov[:3, :3] = self.odometry.C_X
         out.pose.covariance = cov.reshape(-1).tolist()
         return T[:3, :3], T[:3, 3], out
+
+
+def _ros_cov(c: np.ndarray) -> np.ndarray:
+    """(theta, dt) 6x6 -> ROS order (position, rotation)."""
+    P = np.zeros((6, 6))
+    P[:3, 3:] = P[3:, :3] = np.eye(3)
+    return P @ c @ P.T
+
+
+def _pose_msg(stamp, frame: str, R: np.ndarray, t: np.ndarray, cov: np.ndarray
+              ) -> PoseWithCovarianceStamped:
+    out = PoseWithCovarianceStamped()
+    out.header = Header(stamp=stamp, frame_id=frame)
+    p = out.pose.pose
+    p.position.x, p.position.y, p.position.z = (float(v) for v in t)
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = _quat(R)
+    out.pose.covariance = [float(v) for v in np.asarray(cov, float).reshape(-1)]
+    return out
 
 
 def _quat(R: np.ndarray) -> tuple[float, float, float, float]:

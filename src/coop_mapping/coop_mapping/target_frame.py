@@ -33,7 +33,8 @@ from .gauss import mat_from_sym6, sym6_from_mat
 from .stereo import ErrorModel, StereoCamera
 
 __all__ = ['TargetFrameError', 'TargetGeometry', 'PoseFix', 'solve_pose', 'locate_in_target',
-           'transform_to_target', 'frame_alignment', 'detect_markers', 'triangulate_markers']
+           'transform_to_target', 'frame_alignment', 'detect_markers', 'triangulate_markers',
+           'InitialisationStep', 'Initialiser']
 
 
 class TargetFrameError(ValueError):
@@ -356,3 +357,101 @@ def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamer
     uv = np.array(uv).reshape(-1, 2)
     pts = np.array(pts).reshape(-1, 3)
     return uv, pts, em.covariances(pts)
+
+
+# ---------------------------------------------------------------- the initialisation loop
+@dataclass(frozen=True)
+class InitialisationStep:
+    """One stereo pair's attempt: the camera pose in the common frame from the target (None if
+    the target was not found), its 6x6 (theta, dt) covariance there, the largest predicted
+    position sigma, how many markers were seen, and whether this attempt fixed the alignment."""
+
+    R: np.ndarray | None
+    t: np.ndarray | None
+    covariance: np.ndarray | None
+    position_sigma_m: float
+    n_markers: int
+    accepted: bool
+    reason: str = ''
+
+
+class Initialiser:
+    """§3.2.2 for one rover: until initialised, each stereo pair is searched for the target's
+    markers and the camera located in the target frame (`triangulate_markers`,
+    `locate_in_target`; the up direction is taken from the dead-reckoned camera orientation,
+    whose own frame has z up from the inclinometer, so only its yaw and position may be wrong);
+    the first fix whose largest predicted position sigma is below `max_position_sigma_m` fixes
+    the transform from the rover's own (dead-reckoned) frame to the common frame, in which the
+    target frame sits at (R_ct, t_ct). `to_common` then maps own-frame camera poses there, with
+    the alignment's uncertainty added. No rclpy here."""
+
+    def __init__(self, geometry: TargetGeometry, *, R_ct: np.ndarray = np.eye(3),
+                 t_ct: np.ndarray = np.zeros(3), max_position_sigma_m: float = 0.1,
+                 up_sigma_rad: float | None = 0.01, **detect_kw) -> None:
+        self.geometry = geometry
+        self.R_ct = np.asarray(R_ct, float)
+        self.t_ct = np.asarray(t_ct, float)
+        self.max_position_sigma_m = float(max_position_sigma_m)
+        self.up_sigma_rad = up_sigma_rad if up_sigma_rad and up_sigma_rad > 0 else None
+        self.detect_kw = detect_kw
+        self.alignment: tuple[np.ndarray, np.ndarray] | None = None  # own -> common (R, t)
+        self.alignment_covariance: np.ndarray | None = None   # (theta, dt) at the fix camera
+        self.fix_origin: np.ndarray | None = None   # camera position (common) at the fix
+        self.attempts = 0
+
+    @property
+    def initialised(self) -> bool:
+        return self.alignment is not None
+
+    def observe(self, left: np.ndarray, right: np.ndarray, camera: StereoCamera,
+                R_oc: np.ndarray, t_oc: np.ndarray, *, error_model: ErrorModel | None = None
+                ) -> InitialisationStep:
+        """One rectified pair with the dead-reckoned camera pose (own frame) it was taken at."""
+        self.attempts += 1
+        R_oc = np.asarray(R_oc, float)
+        _, pts, cov = triangulate_markers(left, right, camera, error_model=error_model,
+                                          **self.detect_kw)
+        up = R_oc.T @ np.array([0.0, 0.0, 1.0]) if self.up_sigma_rad else None
+        try:
+            fix = locate_in_target(self.geometry, pts, cov, up_observed=up,
+                                   up_sigma_rad=self.up_sigma_rad)
+        except TargetFrameError as exc:
+            return InitialisationStep(None, None, None, float('inf'), len(pts), False, str(exc))
+        B = np.zeros((6, 6))
+        B[:3, :3] = B[3:, 3:] = self.R_ct
+        c = B @ fix.covariance @ B.T
+        c = 0.5 * (c + c.T)
+        R = self.R_ct @ fix.R
+        t = self.R_ct @ fix.t + self.t_ct
+        sigma = float(np.sqrt(max(np.linalg.eigvalsh(c[3:, 3:])[-1], 0.0)))
+        accepted = not self.initialised and sigma <= self.max_position_sigma_m
+        if accepted:
+            R_a = R @ R_oc.T
+            self.alignment = (R_a, t - R_a @ np.asarray(t_oc, float))
+            self.alignment_covariance = c
+            self.fix_origin = t
+        return InitialisationStep(R, t, c, sigma, len(pts), accepted,
+                                  '' if accepted else 'position sigma above the threshold')
+
+    def to_common(self, R_oc: np.ndarray, t_oc: np.ndarray,
+                  covariance_own: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """An own-frame camera pose -> (R, t, 6x6 covariance) in the common frame. Covariances
+        in ROS order (x, y, z, rot x, rot y, rot z): the own one rotated into the common frame
+        plus the alignment's, carried to this camera: a rotation error theta of the alignment
+        moves a camera d = t - (camera position at the fix) away by -[d]_x theta."""
+        if self.alignment is None:
+            raise TargetFrameError('not initialised')
+        R_a, t_a = self.alignment
+        R = R_a @ np.asarray(R_oc, float)
+        t = R_a @ np.asarray(t_oc, float) + t_a
+        J = np.zeros((6, 6))          # (theta, dt) at the fix -> ROS (dp, dtheta) here
+        J[:3, :3] = -_skew(t - self.fix_origin)
+        J[:3, 3:] = np.eye(3)
+        J[3:, :3] = np.eye(3)
+        cov = J @ self.alignment_covariance @ J.T
+        if covariance_own is not None:
+            B = np.zeros((6, 6))
+            B[:3, :3] = B[3:, 3:] = R_a
+            cov = cov + B @ np.asarray(covariance_own, float).reshape(6, 6) @ B.T
+        return R, t, 0.5 * (cov + cov.T)

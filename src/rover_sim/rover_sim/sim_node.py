@@ -459,7 +459,7 @@ class SimNode(Node):
             m.ns, m.id, m.type = 'site_marker', k, Marker.CYLINDER
             m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, z
             m.pose.orientation.y = m.pose.orientation.w = math.sqrt(0.5)
-            m.scale.x = m.scale.y = 0.04
+            m.scale.x = m.scale.y = 2 * site.marker_radius_m
             m.scale.z = 0.002
             m.color.r = m.color.g = m.color.b = m.color.a = 1.0
             arr.markers.append(m)

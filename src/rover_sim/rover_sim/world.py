@@ -254,7 +254,8 @@ class World:
                                        rgbaColor=[0.25, 0.25, 0.3, 1], physicsClientId=c)
             self._static_body(vis, [sx, sy + side * (0.15 + gap / 2), sz])
         for m in site.markers:
-            vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=0.02, length=0.002,
+            vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=site.marker_radius_m,
+                                       length=0.002,
                                        rgbaColor=[1, 1, 1, 1], physicsClientId=c)
             self._static_body(vis, m, pb.getQuaternionFromEuler([0, math.pi / 2, 0]))
 

@@ -18,6 +18,9 @@ class Obstacle:
     shade: float               # grey level 0..1 of its texture
 
 
+SITE_MARKER_RADIUS_M = 0.02
+
+
 @dataclass(frozen=True)
 class Site:
     """The insertion site: a block with a vertical slot, two white markers either side of it."""
@@ -89,7 +92,8 @@ def generate_world(*, seed: int, occlusion_density: float, extent_m: float = 10.
     # markers either side of the slot on the site's face towards -x (the rovers' side)
     face_x = sx - 0.1
     markers = ((face_x, sy - off, marker_h), (face_x, sy + off, marker_h))
-    site = Site((sx, sy, 0.2), yaw, slot_width_m, markers, 0.25 * INCH)
+    # the discs world.py draws (and the sim's /sim/world markers show) are 0.02 m in radius
+    site = Site((sx, sy, 0.2), yaw, slot_width_m, markers, SITE_MARKER_RADIUS_M)
     return WorldLayout(tuple(obstacles), site, Card(), extent_m)
 
 
