@@ -45,7 +45,7 @@ def _rot_err(R_true, R):
 
 
 def test_stereo_node_initialises_on_the_sim_site_from_a_wrong_dead_reckoned_frame(ctx):
-    pb = pytest.importorskip('pybullet')
+    pytest.importorskip('pybullet')
     from coop_common.dynparams import load_truth
     from rover_sim.config import SimConfig
     from rover_sim.world import World
@@ -55,22 +55,10 @@ def test_stereo_node_initialises_on_the_sim_site_from_a_wrong_dead_reckoned_fram
     with World(cfg, [load_truth()]) as world:
         K = world.intrinsics()
         cam = StereoCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 0.038, W, H)
-        proj = pb.computeProjectionMatrixFOV(
-            math.degrees(2 * math.atan(H / 2 / K[1, 1])), W / H, 0.05, 60.0)
         M = np.asarray(world.layout.site.markers)
 
         def render(R, eye):
-            out = []
-            for off in (0.0, cam.baseline):
-                e = eye + R[:, 0] * off
-                view = pb.computeViewMatrix(e.tolist(), (e + R[:, 2]).tolist(),
-                                            (-R[:, 1]).tolist())
-                rgba = pb.getCameraImage(W, H, view, proj, renderer=pb.ER_TINY_RENDERER,
-                                         flags=pb.ER_NO_SEGMENTATION_MASK,
-                                         physicsClientId=world.client)[2]
-                rgb = np.reshape(np.asarray(rgba, np.uint8), (H, W, 4))[:, :, :3]
-                out.append(np.ascontiguousarray(rgb.mean(2).round().astype(np.uint8)))
-            return out
+            return world.render_stereo_at(eye, R)
 
         # true camera poses in map: 1.6 m from the markers (too far to accept), 1.0 m (fixes
         # the alignment), then a look past the site (markers out of view) after a move

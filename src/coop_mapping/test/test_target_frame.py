@@ -164,7 +164,7 @@ def test_sim_site_markers_locate_the_camera():
     """rover_sim's insertion site with its two white markers, rendered by the sim's own
     PyBullet scene from cameras 1.0-1.6 m in front of it: markers detected in both images,
     triangulated (Eq. 3-1..3-7), camera located in the site frame with the up direction."""
-    pb = pytest.importorskip('pybullet')
+    pytest.importorskip('pybullet')
     from coop_common.dynparams import load_truth
     from rover_sim.config import SimConfig
     from rover_sim.world import World
@@ -175,21 +175,9 @@ def test_sim_site_markers_locate_the_camera():
         site = world.layout.site
         K = world.intrinsics()
         cam = StereoCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], 0.038, W, H)
-        proj = pb.computeProjectionMatrixFOV(
-            math.degrees(2 * math.atan(H / 2 / K[1, 1])), W / H, 0.05, 60.0)
 
         def render(R, eye):
-            out = []
-            for off in (0.0, 0.038):
-                e = eye + R[:, 0] * off
-                view = pb.computeViewMatrix(e.tolist(), (e + R[:, 2]).tolist(),
-                                            (-R[:, 1]).tolist())
-                rgba = pb.getCameraImage(W, H, view, proj, renderer=pb.ER_TINY_RENDERER,
-                                         flags=pb.ER_NO_SEGMENTATION_MASK,
-                                         physicsClientId=world.client)[2]
-                rgb = np.reshape(np.asarray(rgba, np.uint8), (H, W, 4))[:, :, :3]
-                out.append(np.ascontiguousarray(rgb.mean(2).round().astype(np.uint8)))
-            return out
+            return world.render_stereo_at(eye, R)
 
         # the site frame: origin at its centre, x out of the marker face, z up (yaw = pi)
         c, s = math.cos(site.yaw), math.sin(site.yaw)

@@ -642,11 +642,16 @@ class World:
 
     def render_stereo(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """Left and right mono8 images of rover `index`'s stereo pair (TinyRenderer)."""
+        return self.render_stereo_at(*self.camera_pose(index))
+
+    def render_stereo_at(self, pos: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Left and right mono8 images of a stereo pair whose left optical frame is at `pos`
+        with orientation `rot` (columns: optical x right, y down, z forward) in the world."""
         w, h = self.config.image_width, self.config.image_height
         k = self.intrinsics()
         vfov = math.degrees(2.0 * math.atan((h / 2.0) / k[1, 1]))
         proj = pb.computeProjectionMatrixFOV(vfov, w / h, 0.05, 60.0)
-        pos, rot = self.camera_pose(index)
+        pos, rot = np.asarray(pos, dtype=float), np.asarray(rot, dtype=float)
         images = []
         for offset in (0.0, STEREO_BASELINE_M):
             eye = pos + rot[:, 0] * offset
