@@ -1,13 +1,11 @@
 """mapper and stereo nodes in-process with a private context: fusion, services, bad input."""
 import numpy as np
 import pytest
-import rclpy
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
-from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
@@ -15,18 +13,9 @@ from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import wait_for
 from coop_mapping.mapper_node import MapperNode
 from coop_mapping.ros_conv import cloud_to_msg, msg_to_cloud
-from coop_mapping.stereo_node import StereoNode
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
 from coop_msgs.msg import VoxelMapUpdate
 from coop_msgs.srv import MapFile, QueryMap
-
-
-@pytest.fixture
-def ctx():
-    c = Context()
-    rclpy.init(context=c)
-    yield c
-    rclpy.try_shutdown(context=c)
 
 
 def _pose(stamp, xyz, frame='map'):
@@ -148,17 +137,7 @@ def test_mapper_loads_last_save_on_restart(ctx, tmp_path):
         node.destroy_node()
 
 
-def _image(a, stamp, frame):
-    m = Image()
-    m.header = Header(stamp=stamp, frame_id=frame)
-    m.height, m.width = a.shape
-    m.encoding = 'mono8'
-    m.step = a.shape[1]
-    m.data = a.tobytes()
-    return m
-
-
-def test_stereo_node_publishes_cloud_with_covariance(ctx):
+def test_stereo_node_publishes_cloud_with_covariance(stereo_rig):
     pytest.importorskip('pybullet')
     from coop_mapping.render import TexturedScene, look_at
     from coop_mapping.stereo import StereoCamera
@@ -167,65 +146,20 @@ def test_stereo_node_publishes_cloud_with_covariance(ctx):
     R = look_at(eye, np.array([2.5, 0.0, 0.2]))
     with TexturedScene(cam, seed=2) as scene:
         left, right, depth = scene.render(R, eye)
-    node = StereoNode(context=ctx, namespace='rover1',
-                      parameter_overrides=[Parameter('num_disparities', value=32)])
-    peer = Node('peer', context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    ex.add_node(peer)
-    try:
-        pubs = {k: peer.create_publisher(t, f'/rover1/{n}', SENSOR_QOS) for k, t, n in [
-            ('l', Image, 'stereo/left/image_raw'), ('r', Image, 'stereo/right/image_raw'),
-            ('li', CameraInfo, 'stereo/left/camera_info'),
-            ('ri', CameraInfo, 'stereo/right/camera_info'),
-            ('pose', PoseWithCovarianceStamped, 'stereo/pose')]}
-        clouds = []
-        peer.create_subscription(PointCloud2, '/rover1/stereo/points', clouds.append, SENSOR_QOS)
-        wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values())
-                 and peer.count_publishers('/rover1/stereo/points') > 0, 10.0,
-                 spin=lambda t: ex.spin_once(timeout_sec=t), what='discovery')
-        for side, frame in (('li', 'left'), ('ri', 'right')):
-            info = CameraInfo()
-            info.width, info.height = cam.width, cam.height
-            tx = 0.0 if side == 'li' else -cam.fx * cam.baseline
-            info.p = [cam.fx, 0.0, cam.cx, tx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
-            info.header.frame_id = f'rover1/{frame}_camera_optical_frame'
-            pubs[side].publish(info)
-        wait_for(lambda: len(node.info) == 2, 10.0,
-                 spin=lambda t: ex.spin_once(timeout_sec=t), what='camera_info')
-        stamp = peer.get_clock().now().to_msg()
-        q = np.zeros(4)
-        # rotation matrix -> quaternion (x, y, z, w)
-        w = np.sqrt(max(0.0, 1 + np.trace(R))) / 2
-        q[:3] = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
-        q[3] = w
-        pose = _pose(stamp, eye)
-        o = pose.pose.pose.orientation
-        o.x, o.y, o.z, o.w = map(float, q)
-        pubs['pose'].publish(pose)
-        pubs['l'].publish(_image(left, stamp, 'rover1/left_camera_optical_frame'))
-        pubs['r'].publish(_image(right, stamp, 'rover1/right_camera_optical_frame'))
-        wait_for(lambda: clouds, 20.0, spin=lambda t: ex.spin_once(timeout_sec=t),
-                 what='stereo/points')
-        pts, cov = msg_to_cloud(clouds[0])
-        assert clouds[0].header.frame_id == 'map' and cov is not None
-        assert len(pts) > 0.4 * cam.width * cam.height
-        # the map-frame points lie on the true surfaces: most are at or above the ground
-        assert np.median(pts[:, 2]) > -0.05 and np.percentile(pts[:, 2], 5) > -0.3
-        assert np.all(cov[:, 0] > 0) and np.all(cov[:, 5] > 0)
-    finally:
-        ex.shutdown()
-        node.destroy_node()
-        peer.destroy_node()
+    rig = stereo_rig(cam, num_disparities=32)
+    clouds = rig.listen(PointCloud2, 'stereo/points', SENSOR_QOS)
+    rig.start()
+    rig.send(left, right, rig.peer.get_clock().now().to_msg(), R, eye)
+    wait_for(lambda: clouds, 20.0, spin=rig.spin, what='stereo/points')
+    pts, cov = msg_to_cloud(clouds[0])
+    assert clouds[0].header.frame_id == 'map' and cov is not None
+    assert len(pts) > 0.4 * cam.width * cam.height
+    # the map-frame points lie on the true surfaces: most are at or above the ground
+    assert np.median(pts[:, 2]) > -0.05 and np.percentile(pts[:, 2], 5) > -0.3
+    assert np.all(cov[:, 0] > 0) and np.all(cov[:, 5] > 0)
 
 
-def _quat_of(R):
-    w = np.sqrt(max(0.0, 1 + np.trace(R))) / 2
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
-    return float(v[0]), float(v[1]), float(v[2]), float(w)
-
-
-def test_stereo_node_corrects_dead_reckoning_with_fiducials(ctx):
+def test_stereo_node_corrects_dead_reckoning_with_fiducials(stereo_rig):
     pytest.importorskip('pybullet')
     from coop_mapping.render import TexturedScene, look_at
     from coop_mapping.stereo import StereoCamera
@@ -236,50 +170,18 @@ def test_stereo_node_corrects_dead_reckoning_with_fiducials(ctx):
     dr_eyes = [true_eyes[0], true_eyes[1] + np.array([0.02, 0.024, 0.0])]
     with TexturedScene(cam, seed=4) as scene:
         pairs = [scene.render(R, e)[:2] for e in true_eyes]
-    node = StereoNode(context=ctx, namespace='rover1', parameter_overrides=[
-        Parameter('num_disparities', value=32), Parameter('fiducial_correction', value='pnp'),
-        Parameter('scene_distance_m', value=2.0)])
-    peer = Node('peer', context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    ex.add_node(peer)
-    spin = lambda t: ex.spin_once(timeout_sec=t)  # noqa: E731
-    try:
-        pubs = {k: peer.create_publisher(t, f'/rover1/{n}', SENSOR_QOS) for k, t, n in [
-            ('l', Image, 'stereo/left/image_raw'), ('r', Image, 'stereo/right/image_raw'),
-            ('li', CameraInfo, 'stereo/left/camera_info'),
-            ('ri', CameraInfo, 'stereo/right/camera_info'),
-            ('pose', PoseWithCovarianceStamped, 'stereo/pose')]}
-        poses = []
-        peer.create_subscription(PoseWithCovarianceStamped, '/rover1/camera_pose',
-                                 poses.append, LATCHED_QOS)
-        wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 10.0,
-                 spin=spin, what='discovery')
-        for side in ('li', 'ri'):
-            info = CameraInfo()
-            info.width, info.height = cam.width, cam.height
-            tx = 0.0 if side == 'li' else -cam.fx * cam.baseline
-            info.p = [cam.fx, 0.0, cam.cx, tx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
-            pubs[side].publish(info)
-        wait_for(lambda: len(node.info) == 2, 10.0, spin=spin, what='camera_info')
-        for i, ((left, right), eye) in enumerate(zip(pairs, dr_eyes)):
-            stamp = peer.get_clock().now().to_msg()
-            stamp.sec += i
-            pose = _pose(stamp, eye)
-            o = pose.pose.pose.orientation
-            o.x, o.y, o.z, o.w = _quat_of(R)
-            pubs['pose'].publish(pose)
-            pubs['l'].publish(_image(left, stamp, 'l'))
-            pubs['r'].publish(_image(right, stamp, 'r'))
-            wait_for(lambda: len(poses) == i + 1, 20.0, spin=spin, what=f'camera_pose {i}')
-        p = poses[-1].pose.pose.position
-        corrected = np.array([p.x, p.y, p.z])
-        err_dr = np.linalg.norm(dr_eyes[1] - true_eyes[1])
-        err_fc = np.linalg.norm(corrected - true_eyes[1])
-        print(f'dead-reckoned error {err_dr:.4f} m, corrected {err_fc:.4f} m')
-        assert err_fc < 0.5 * err_dr
-        assert poses[-1].pose.covariance[0] >= 0.0
-    finally:
-        ex.shutdown()
-        node.destroy_node()
-        peer.destroy_node()
+    rig = stereo_rig(cam, num_disparities=32, fiducial_correction='pnp', scene_distance_m=2.0)
+    poses = rig.listen(PoseWithCovarianceStamped, 'camera_pose', LATCHED_QOS)
+    rig.start()
+    for i, ((left, right), eye) in enumerate(zip(pairs, dr_eyes)):
+        stamp = rig.peer.get_clock().now().to_msg()
+        stamp.sec += i
+        rig.send(left, right, stamp, R, eye)
+        wait_for(lambda: len(poses) == i + 1, 20.0, spin=rig.spin, what=f'camera_pose {i}')
+    p = poses[-1].pose.pose.position
+    corrected = np.array([p.x, p.y, p.z])
+    err_dr = np.linalg.norm(dr_eyes[1] - true_eyes[1])
+    err_fc = np.linalg.norm(corrected - true_eyes[1])
+    print(f'dead-reckoned error {err_dr:.4f} m, corrected {err_fc:.4f} m')
+    assert err_fc < 0.5 * err_dr
+    assert poses[-1].pose.covariance[0] >= 0.0
