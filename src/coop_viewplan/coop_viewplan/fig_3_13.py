@@ -16,7 +16,7 @@ import numpy as np
 from scipy import stats
 
 from .explore import explore, make_world
-from .nbv import STRATEGIES, NbvConfig
+from .nbv import ENTROPY_WEIGHTS, STRATEGIES, NbvConfig
 
 THESIS_FIGURE = {('unstructured', 1): 'Fig. 3-13', ('unstructured', 2): 'Fig. 3-16',
                  ('rooms', 1): 'Fig. 3-20'}
@@ -50,9 +50,12 @@ def _summary(values: list[float | None]) -> dict:
 def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int, scans: int,
         resolution_m: float, strategies: list[str], k_rel: float, n_positions: int,
         distance_metric: str = 'configuration', level: float = 0.9,
-        near_fraction: float = 0.0) -> dict:
+        near_fraction: float = 0.0, angle_weight: float = 1.0,
+        entropy_weight: str = 'plogp') -> dict:
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
-                    distance_metric=distance_metric, near_fraction=near_fraction)
+                    distance_metric=distance_metric, near_fraction=near_fraction,
+                    alpha=(1.0, 1.0, 1.0, angle_weight, angle_weight),
+                    entropy_weight=entropy_weight)
     res: dict = {}
     for name in strategies:
         fr, di, s90, d90 = [], [], [], []
@@ -175,6 +178,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help='share of the candidate positions taken nearest to the camera (path '
                         'length), the rest at random (thesis: "random, closest to current '
                         'pose, etc."); default: all random')
+    p.add_argument('--angle-weight', type=float, default=NbvConfig.alpha[3],
+                   help='alpha of yaw and pitch in Eq. 3-11 (m per rad); thesis: "alpha_i = 1 '
+                        'for this thesis" (default); 0 = the pre-2026-11-22 runs')
+    p.add_argument('--entropy-weight', choices=ENTROPY_WEIGHTS, default=NbvConfig.entropy_weight,
+                   help='premultiplier of q_k log2 q_k in NI: -p_k log2 p_k as the thesis writes '
+                        'it (plogp, default) or the binary occupancy entropy (the pre-2026-11-22 '
+                        'runs)')
     p.add_argument('--compare-one-camera', action='store_true',
                    help='with --cameras 2: also run max_information with one camera, same '
                         'sensor, and report the scans ratio')
@@ -202,13 +212,15 @@ def main(argv: list[str] | None = None) -> int:
     common = dict(world=args.world, fov_deg=fov, depth_m=depth, seeds=args.seeds,
                   scans=args.scans, resolution_m=args.resolution_m, k_rel=args.k_rel,
                   n_positions=args.candidates, distance_metric=args.distance,
-                  near_fraction=args.near_fraction)
+                  near_fraction=args.near_fraction, angle_weight=args.angle_weight,
+                  entropy_weight=args.entropy_weight)
     strat = run(cameras=args.cameras, strategies=strategies, **common)
     result = {'figure': THESIS_FIGURE.get((args.world, args.cameras), 'Fig. 3-13 analogue'),
               'world': args.world, 'cameras': args.cameras, 'fov_deg': fov, 'depth_m': depth,
               'seeds': args.seeds, 'scans': args.scans, 'resolution_m': args.resolution_m,
               'k_rel': args.k_rel, 'distance': args.distance,
-              'near_fraction': args.near_fraction, 'strategies': strat,
+              'near_fraction': args.near_fraction, 'angle_weight': args.angle_weight,
+              'entropy_weight': args.entropy_weight, 'strategies': strat,
               'verdict': verdict(strat)}
     if args.compare_one_camera and args.cameras == 2:
         one = run(cameras=1, strategies=['max_information'], **common)['max_information']

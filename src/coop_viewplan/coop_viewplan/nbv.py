@@ -15,9 +15,11 @@ Reading of Eq. 3-12b..3-14 used here (the thesis leaves the details open):
   q_k = f_k / N <= 1/e so NI grows with every extra unknown cell in view (as §3.2.4 requires);
 * N is the number of cells in the unobstructed frustum (Eq. 3-13's "maximum number of voxels
   visible");
-* each -q_k log2 q_k is premultiplied by the mean occupancy entropy of the cells in level k
-  (binary -p log2 p - (1-p) log2 (1-p), which is largest at p = 0.5 as the text intends), so a
-  field of view that is entirely known (p = 0 or 1) gives NI = 0.
+* each -q_k log2 q_k is premultiplied by -p_k log2 p_k, as §3.2.4 writes it, with p_k the mean
+  over the cells in level k of -p log2 p (`entropy_weight='plogp'`, the default since
+  2026-11-22); `entropy_weight='binary'` (the earlier reading, -p log2 p - (1-p) log2 (1-p),
+  largest at p = 0.5) remains as an option. Either way a field of view that is entirely known
+  (p = 0 or 1) gives NI = 0.
 
 Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
 * 'known' (the planar experiments): a cell is navigable, and a candidate, when it is known and
@@ -49,6 +51,27 @@ class PlanningError(RuntimeError):
     """No admissible view (no free reachable candidate, camera outside the map, ...)."""
 
 
+def plogp(p: np.ndarray) -> np.ndarray:
+    """-p log2 p (the §3.2.4 premultiplier of q_k log2 q_k), 0 at p = 0 and 1."""
+    p = np.clip(np.asarray(p, dtype=np.float64), 0.0, 1.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        h = -p * np.log2(p)
+    return np.nan_to_num(h, nan=0.0)
+
+
+ENTROPY_WEIGHTS = ('plogp', 'binary')
+
+
+def occupancy_weight(p: np.ndarray, kind: str = 'plogp') -> np.ndarray:
+    """The weight of a cell of occupancy p in NI: 'plogp' (-p log2 p, §3.2.4 as written) or
+    'binary' (the binary occupancy entropy)."""
+    if kind == 'plogp':
+        return plogp(p)
+    if kind == 'binary':
+        return binary_entropy(p)
+    raise ValueError(f'entropy_weight must be one of {ENTROPY_WEIGHTS}, got {kind!r}')
+
+
 def binary_entropy(p: np.ndarray) -> np.ndarray:
     """-p log2 p - (1 - p) log2 (1 - p), 0 at p = 0 and 1."""
     p = np.clip(np.asarray(p, dtype=np.float64), 0.0, 1.0)
@@ -72,7 +95,10 @@ class NbvConfig:
     n_shells: int = 8
     k_rel: float = 0.15
     n_exp: float = 1.0
-    alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 0.0, 0.0)   # x, y, z, yaw, pitch (Eq. 3-11)
+    # Eq. 3-11 weights over (x, y, z, yaw, pitch): "alpha_i = 1 for this thesis" (§3.2.4 (iii));
+    # metres and radians. Until 2026-11-22 the angles had weight 0.
+    alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
+    entropy_weight: str = 'plogp'  # NI premultiplier: 'plogp' (§3.2.4 as written) or 'binary'
     n_positions: int = 80
     near_fraction: float = 0.0    # share of the candidate positions taken nearest (path) first
     n_yaw: int = 8
@@ -183,14 +209,14 @@ class InfoLookup:
 
     @classmethod
     def build(cls, grid: OccupancyGrid, estimate: np.ndarray, *, n_gray: int = 10,
-              claimed: np.ndarray | None = None) -> InfoLookup:
+              claimed: np.ndarray | None = None, weight: str = 'plogp') -> InfoLookup:
         if n_gray < 1:
             raise ValueError('n_gray must be >= 1')
         p = np.clip(estimate.reshape(-1).astype(np.float32), 0.0, 1.0)
         level = np.minimum((p * n_gray).astype(np.int16), n_gray - 1)
         unknown = ~grid.known.reshape(-1)
-        # Entropy by table over 1024 levels: exact to 1e-3 bits, 10x cheaper than logs.
-        table = binary_entropy(np.linspace(0, 1, 1025)).astype(np.float32)
+        # Weight by table over 1024 levels: exact to 1e-3 bits, 10x cheaper than logs.
+        table = occupancy_weight(np.linspace(0, 1, 1025), weight).astype(np.float32)
         h = table[np.rint(p * 1024).astype(np.int32)]
         if claimed is not None:
             h[np.asarray(claimed, bool).reshape(-1) & unknown] = 0.0
@@ -200,14 +226,15 @@ class InfoLookup:
 def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cast, *,
                          n_gray: int = 10, n_shells: int = 8,
                          claimed: np.ndarray | None = None,
-                         lookup: InfoLookup | None = None) -> ViewScores:
+                         lookup: InfoLookup | None = None,
+                         weight: str = 'plogp') -> ViewScores:
     """NI of every cast pose (Eq. 3-12b with Eq. 3-13 q_k = f_k / N and the entropy weighting;
     see the module docstring for the reading of Eq. 3-14). `claimed` cells (bool, grid shape)
     are about to be measured by another camera and count as known-certain (weight 0)."""
     if n_shells < 1:
         raise ValueError('n_shells must be >= 1')
     lk = lookup if lookup is not None else InfoLookup.build(grid, estimate, n_gray=n_gray,
-                                                            claimed=claimed)
+                                                            claimed=claimed, weight=weight)
     tpl = casting.template
     m = casting.flat.shape[0]
     mi, ri, si = np.nonzero(casting.visible)
@@ -231,20 +258,22 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
     return ViewScores(ni, unk, kn)
 
 
-def max_information(template: RayTemplate, *, n_gray: int = 10, n_shells: int = 8) -> float:
+def max_information(template: RayTemplate, *, n_gray: int = 10, n_shells: int = 8,
+                    weight: str = 'plogp') -> float:
     """NI of a fully unknown, unobstructed view (p = 0.5 everywhere): the scale of K."""
     shell = np.minimum((template.ranges / template.depth_m * n_shells).astype(int), n_shells - 1)
     f = np.bincount(shell, weights=template.weights.sum(axis=0), minlength=n_shells)
     q = f / template.frustum_cells
     with np.errstate(divide='ignore', invalid='ignore'):
-        return float(np.where(q > 0, -q * np.log2(q), 0.0).sum())
+        h = float(np.where(q > 0, -q * np.log2(q), 0.0).sum())
+    return h * float(occupancy_weight(np.array([0.5]), weight)[0])
 
 
 def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray,
                 yaw: np.ndarray, pitch: np.ndarray | None, template: RayTemplate, *,
                 n_gray: int = 10, n_shells: int = 8, claimed: np.ndarray | None = None,
-                chunk_samples: int = 400_000, lookup: InfoLookup | None = None
-                ) -> ViewScores:
+                chunk_samples: int = 400_000, lookup: InfoLookup | None = None,
+                weight: str = 'plogp') -> ViewScores:
     """Cast and score many poses in chunks of at most `chunk_samples` ray samples
     (`lookup` reuses the per-map tables across calls)."""
     positions = np.asarray(positions, dtype=float).reshape(-1, grid.ndim)
@@ -256,7 +285,7 @@ def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray
     step = max(1, chunk_samples // per)
     parts = []
     lk = lookup if lookup is not None else InfoLookup.build(grid, estimate, n_gray=n_gray,
-                                                            claimed=claimed)
+                                                            claimed=claimed, weight=weight)
     block = grid.occupied()
     for s in range(0, m, step):
         c = cast(grid, positions[s:s + step], yaw[s:s + step],
@@ -477,7 +506,7 @@ class PlanContext:
         return score_views(self.grid, self.estimate, cands.positions, cands.yaw,
                            cands.pitch if self.grid.ndim == 3 else None, self.template,
                            n_gray=cfg.n_gray, n_shells=cfg.n_shells, claimed=self.claimed,
-                           chunk_samples=cfg.chunk_samples)
+                           chunk_samples=cfg.chunk_samples, weight=cfg.entropy_weight)
 
 
 class Strategy(Protocol):
@@ -694,7 +723,8 @@ class NextBestViewPlanner:
     def k_value(self, grid: OccupancyGrid) -> float:
         """K of Eq. 3-15 from k_rel (see NbvConfig)."""
         cfg = self.config
-        ni_max = max_information(self.template(grid), n_gray=cfg.n_gray, n_shells=cfg.n_shells)
+        ni_max = max_information(self.template(grid), n_gray=cfg.n_gray, n_shells=cfg.n_shells,
+                                 weight=cfg.entropy_weight)
         return cfg.k_rel * ni_max / cfg.depth_m ** cfg.n_exp
 
     def _slab(self, grid: OccupancyGrid) -> tuple[int, int]:
@@ -845,6 +875,7 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
 
 __all__ = ['STRATEGIES', 'Candidates', 'CameraState', 'Decision', 'NbvConfig',
            'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores', 'binary_entropy',
+           'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
            'configuration_distance', 'expected_information', 'geodesic_distance',
            'geodesic_path', 'make_strategy',
            'max_information', 'plan_cameras', 'rating_function', 'score_views']

@@ -14,6 +14,8 @@ from coop_viewplan.nbv import (
     binary_entropy,
     configuration_distance,
     make_strategy,
+    max_information,
+    occupancy_weight,
     plan_cameras,
     rating_function,
     score_views,
@@ -42,6 +44,38 @@ def test_configuration_distance_eq_3_11():
 def test_rating_function_eq_3_15():
     rf = rating_function(np.array([10.0]), np.array([2.0]), np.array([0.5]), k=1.5, n=2)
     assert rf[0] == pytest.approx((10 - 1.5 * 4) * 0.5)
+
+
+def test_eq_3_11_weights_are_one_by_default():
+    """§3.2.4 (iii): "alpha_i = 1 for this thesis" - the camera's angles count too (m, rad)."""
+    assert NbvConfig().alpha == (1.0, 1.0, 1.0, 1.0, 1.0)
+    d = configuration_distance(np.array([0, 0, 0, 0, 0.0]),
+                               np.array([[3, 4, 0, np.pi / 2, 0.0]]), NbvConfig().alpha)
+    assert d[0] == pytest.approx(np.sqrt(25 + (np.pi / 2) ** 2))
+
+
+def test_ni_premultiplier_is_minus_p_log_p_as_written():
+    """§3.2.4: q_k log2 q_k "is premultiplied by -p_k log2 p_k"; 'binary' stays an option."""
+    assert NbvConfig().entropy_weight == 'plogp'
+    w = occupancy_weight(np.array([0.0, 1.0, 0.5, 0.25]))
+    assert w.tolist() == pytest.approx([0, 0, 0.5, 0.5])
+    assert occupancy_weight(np.array([0.5]), 'binary')[0] == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        occupancy_weight(np.array([0.5]), 'shannon')
+
+
+@pytest.mark.parametrize('weight', ['plogp', 'binary'])
+def test_k_scale_is_the_ni_of_a_fully_unknown_view(weight):
+    """K's reference (k_rel x NI of an unknown view per depth) uses the same premultiplier."""
+    g = OccupancyGrid.empty((60, 60), resolution=1.0)
+    g.known[0, 0] = True           # an all-unknown map cannot be planned on; far from the view
+    g.prob[0, 0] = 0.0
+    t = make_template(ndim=2, fov_deg=90, depth_m=10, resolution=1.0)
+    s = score_views(g, np.full(g.shape, 0.5), np.array([[30.5, 30.5]]), np.array([0.0]), None,
+                    t, weight=weight)
+    assert s.ni[0] == pytest.approx(max_information(t, weight=weight), rel=1e-3)
+    assert max_information(t, weight='plogp') == pytest.approx(
+        0.5 * max_information(t, weight='binary'))
 
 
 def test_binary_entropy_limits():
@@ -204,8 +238,9 @@ def test_path_distance_exceeds_straight_line_around_a_wall():
     c, p = res['configuration'], res['path']
     assert np.array_equal(c.positions, p.positions)      # same seeded candidate set
     straight = np.hypot(*(c.positions - cam.position).T)
-    assert c.distance == pytest.approx(straight)
-    assert p.distance == pytest.approx(p.path_length)
+    turn = (c.yaw - cam.yaw + np.pi) % (2 * np.pi) - np.pi     # alpha_i = 1 for yaw too
+    assert c.distance == pytest.approx(np.hypot(straight, turn))
+    assert p.distance == pytest.approx(np.hypot(p.path_length, turn))
     behind = c.positions[:, 0] > 21
     assert behind.sum() > 10
     assert np.all(p.distance[behind] > c.distance[behind] + 1.0)
