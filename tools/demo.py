@@ -171,7 +171,7 @@ def next_views(node: DemoNode, spin) -> None:
         b = res.best
         p = b.pose.pose.position
         print(f'demo: next best view for {r} (max information, Eq. 3-15): camera at '
-              f'({p.x:+.2f}, {p.y:+.2f}, {p.z:+.2f}) m, NI {b.new_information_bits:.0f} bits, '
+              f'({p.x:+.2f}, {p.y:+.2f}, {p.z:+.2f}) m, NI {b.new_information_bits:.2f} bits, '
               f'distance {b.distance:.2f}, RF {b.rating:.1f}')
 
 
