@@ -33,22 +33,33 @@ def mat_from_sym6(s: np.ndarray) -> np.ndarray:
 
 
 def sym6_inv(s: np.ndarray) -> np.ndarray:
-    """Inverse of symmetric 3x3 matrices given as (N, 6), by the adjugate."""
+    """Inverse of symmetric 3x3 matrices given as (N, 6), by the adjugate.
+
+    Computed on contiguous (6, N) rows with preallocated temporaries (the strided columns of
+    an (N, 6) array cost more than the copy); same operations, so the same bits as the
+    column-wise form."""
     s = np.asarray(s, dtype=np.float64)
-    a, b, c, d, e, f = (s[..., i] for i in range(6))
-    out = np.empty(s.shape, np.float64)
+    shape = s.shape
+    r = np.ascontiguousarray(np.moveaxis(s, -1, 0).reshape(6, -1))
+    a, b, c, d, e, f = r
+    o = np.empty_like(r)
+    t = np.empty(r.shape[1])
     # cofactors of [[a b c] [b d e] [c e f]]
-    out[..., 0] = d * f - e * e
-    out[..., 1] = c * e - b * f
-    out[..., 2] = b * e - c * d
-    out[..., 3] = a * f - c * c
-    out[..., 4] = b * c - a * e
-    out[..., 5] = a * d - b * b
-    det = a * out[..., 0] + b * out[..., 1] + c * out[..., 2]
+    for out, (p, q), (u, w) in ((o[0], (d, f), (e, e)), (o[1], (c, e), (b, f)),
+                                (o[2], (b, e), (c, d)), (o[3], (a, f), (c, c)),
+                                (o[4], (b, c), (a, e)), (o[5], (a, d), (b, b))):
+        np.multiply(p, q, out=out)
+        np.multiply(u, w, out=t)
+        out -= t
+    det = a * o[0]
+    np.multiply(b, o[1], out=t)
+    det += t
+    np.multiply(c, o[2], out=t)
+    det += t
     if np.any(~(det > 0)):
         raise NotPositiveDefinite('covariance/information matrix with det <= 0 or NaN')
-    out /= det[..., None]
-    return out
+    o /= det
+    return np.moveaxis(o.reshape(6, *shape[:-1]), 0, -1).copy()
 
 
 def sym6_matvec(s: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -192,56 +192,121 @@ def _ray_visits(origins: np.ndarray, ends: np.ndarray, resolution: float, *,
 
 
 def _ray_lin(origin: np.ndarray, ends: np.ndarray, resolution: float, k0: np.ndarray,
-             strides: tuple[int, int, int]) -> Iterator[np.ndarray]:
+             strides: tuple[int, int, int], batch_visits: int = 1 << 17
+             ) -> Iterator[np.ndarray]:
     """As _ray_visits for one origin, but yield linear indices sum_c (key_c - k0_c) stride_c
     into a dense box: the index is linear in the per-axis crossing counts, so each visit costs
-    one multiply-add per axis instead of three keys to build and pack."""
+    one multiply-add per axis instead of three keys to build and pack.
+
+    The crossings of b before the k-th crossing of a are ceil(alpha + k beta) in float32. To
+    keep the per-visit work small:
+      * rays are grouped by octant (sign of the step on each axis, 0 counted as +), so the
+        per-axis index steps are scalars, not per-visit arrays;
+      * fl(fl(beta k) + alpha) is non-decreasing in k (beta >= 0, rounding is monotone), so the
+        clip of the count to [0, n_b] can only bite on a ray whose first or last count is out of
+        range: those few rays are found per ray and corrected afterwards, the others skip it;
+      * rays are processed in batches of about `batch_visits` visits, so the temporaries stay
+        in the L2 cache.
+    The yielded set is bit-identical to the plain per-visit evaluation with clipping."""
     inv_res = 1.0 / resolution
     s = np.floor(origin * inv_res).astype(np.int64)
-    e = np.floor(ends * inv_res).astype(np.int64)
-    diff = e - s
-    n = np.abs(diff)
-    step = np.sign(diff)
-    d = ends - origin
-    moving = n > 0
-    with np.errstate(divide='ignore', invalid='ignore'):
-        t0 = np.where(moving, ((s + (step > 0)) * resolution - origin) / d, np.inf)
-        dt = np.where(moving, resolution / np.abs(d), 1.0)
     st = np.asarray(strides, np.int64)
     lin_s = int(((s - k0) * st).sum())
+    yield np.array([lin_s], np.int64)
+    if len(ends) == 0:
+        return
+    diff = np.floor(ends * inv_res).astype(np.int64)
+    diff -= s
+    # octant of every ray (sign of the step per axis, 0 counted as +); rays sorted by it and
+    # held per axis as contiguous rows
+    neg = diff < 0
+    octant = neg[:, 0] * 4 + neg[:, 1] * 2 + neg[:, 2]
+    order = np.argsort(octant, kind='stable')
+    octant = octant[order]
+    diff = diff[order].T.copy()
+    d = (ends[order] - origin).T.copy()
+    n = np.abs(diff)
     # int32 indices and float32 crossing counts halve the memory traffic, which is what a
     # visit costs in numpy; float32 is exact enough for counts up to ~10^4 crossings per ray
     ity = np.int32 if lin_s + int(np.abs(st).sum() * (n.max(initial=0) + 1)) < 2 ** 31 \
         else np.int64
-    sstep = (step * st).astype(ity)
-    yield np.array([lin_s], np.int64)
+    n_i = n.astype(ity)
+    nf = n_i.astype(np.float32)
+    mov = n_i > 0
+    t0 = np.empty(d.shape)
+    dt = np.empty(d.shape)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        for a in range(3):  # the arithmetic of _ray_visits, per axis
+            t0[a] = ((s[a] + (diff[a] > 0)) * resolution - origin[a]) / d[a]
+            t0[a, ~mov[a]] = np.inf
+            dt[a] = resolution / np.abs(d[a])
+            dt[a, ~mov[a]] = 1.0
+    alpha, beta, dirty = {}, {}, {}
     for a in range(3):
-        reps = n[:, a]
-        total = int(reps.sum())
-        if total == 0:
-            continue
-        first = (np.cumsum(reps) - reps).astype(ity)
-        k = np.arange(total, dtype=ity) - np.repeat(first, reps)
-        lin = np.repeat(sstep[:, a], reps) * (k + 1)
-        lin += ity(lin_s)
-        kf = k.astype(np.float32)
+        kl = np.maximum(n_i[a] - 1, 0).astype(np.float32)  # last k of every ray on axis a
         for b in range(3):
             if b == a:
                 continue
-            # crossings of b before the k-th crossing of a: ceil(alpha + k beta)
             with np.errstate(invalid='ignore'):
-                alpha = (t0[:, a] - t0[:, b]) / dt[:, b]
-                beta = dt[:, a] / dt[:, b]
-                alpha = np.where(moving[:, b], alpha, 0.0).astype(np.float32)
-                beta = np.where(moving[:, b], beta, 0.0).astype(np.float32)
-            cnt = np.repeat(beta, reps)
-            cnt *= kf
-            cnt += np.repeat(alpha, reps)
-            np.ceil(cnt, out=cnt)
-            np.maximum(cnt, 0, out=cnt)
-            np.minimum(cnt, np.repeat(n[:, b].astype(np.float32), reps), out=cnt)
-            lin += np.repeat(sstep[:, b], reps) * cnt.astype(ity)
-        yield lin
+                al = ((t0[a] - t0[b]) / dt[b]).astype(np.float32)
+                be = (dt[a] / dt[b]).astype(np.float32)
+            al[~mov[b]] = 0.0
+            be[~mov[b]] = 0.0
+            hi = be * kl
+            hi += al
+            bad = np.ceil(al) < 0
+            bad |= np.ceil(hi) > nf[b]
+            bad &= mov[a]
+            alpha[a, b], beta[a, b], dirty[a, b] = al, be, bad
+    cum = np.cumsum(n_i[0].astype(np.int64) + n_i[1] + n_i[2])
+    gb = np.flatnonzero(np.r_[True, octant[1:] != octant[:-1], True])
+    for g0, g1 in zip(gb[:-1], gb[1:]):
+        oc = int(octant[g0])
+        sg = np.array([-1 if oc & 4 else 1, -1 if oc & 2 else 1, -1 if oc & 1 else 1])
+        ss = [int(v) for v in sg * st]
+        base = int(cum[g0 - 1]) if g0 else 0
+        # batches of about batch_visits visits (at least one ray each)
+        lc = (cum[g0:g1] - base) // batch_visits
+        edges = np.r_[0, np.flatnonzero(lc[1:] != lc[:-1]) + 1, g1 - g0] + g0
+        for i, j in zip(edges[:-1], edges[1:]):
+            for a in range(3):
+                reps = n_i[a, i:j]
+                csum = np.cumsum(reps, dtype=ity)
+                total = int(csum[-1])
+                if total == 0:
+                    continue
+                first = csum - reps
+                k = np.arange(total, dtype=ity)
+                k -= np.repeat(first, reps)
+                kf = k.astype(np.float32)
+                # the index in intp: numpy converts any other index type before a scatter
+                lin = k.astype(np.intp)
+                lin *= ss[a]
+                lin += lin_s + ss[a]
+                for b in range(3):
+                    if b == a:
+                        continue
+                    cnt = np.repeat(beta[a, b][i:j], reps)
+                    cnt *= kf
+                    cnt += np.repeat(alpha[a, b][i:j], reps)
+                    ci = np.ceil(cnt, out=np.empty(total, ity), casting='unsafe')
+                    if ss[b] != 1:
+                        ci *= ss[b]
+                    lin += ci
+                    bad = np.flatnonzero(dirty[a, b][i:j])
+                    if bad.size:  # rare: redo the clipped counts of these rays
+                        rb = reps[bad]
+                        idx = (np.arange(int(rb.sum()), dtype=np.int64)
+                               - np.repeat(np.cumsum(rb) - rb, rb) + np.repeat(first[bad], rb))
+                        c = np.repeat(beta[a, b][i:j][bad], rb)
+                        c *= kf[idx]
+                        c += np.repeat(alpha[a, b][i:j][bad], rb)
+                        np.ceil(c, out=c)
+                        un = c.astype(ity)
+                        np.maximum(c, 0, out=c)
+                        np.minimum(c, np.repeat(nf[b, i:j][bad], rb), out=c)
+                        lin[idx] += (c.astype(ity) - un) * ity(ss[b])
+                yield lin
 
 
 def ray_voxel_keys(origins: np.ndarray, ends: np.ndarray, resolution: float) -> np.ndarray:
@@ -447,21 +512,20 @@ class VoxelMap:
         k0 = np.minimum(e_key.min(0), s_key)
         dims = np.maximum(e_key.max(0), s_key) - k0 + 1
         box = int(np.prod(dims))
-        # bounded batches keep the per-visit temporaries under ~100 MB
-        per_ray = max(1, n_visits // len(ray_end))
-        batch = max(1, 2_000_000 // per_ray)
         if box <= max(4 * n_visits, 1 << 20) and box <= 1 << 26:
             bitmap = np.zeros(box, bool)
             dy, dz = int(dims[1]), int(dims[2])
-            for i in range(0, len(ray_end), batch):
-                for lin in _ray_lin(org, ray_end[i:i + batch], res, k0, (dy * dz, dz, 1)):
-                    bitmap[lin] = True
+            mark = bitmap.view(np.uint8)  # an integer scatter is cheaper than a bool one
+            for lin in _ray_lin(org, ray_end, res, k0, (dy * dz, dz, 1)):
+                mark[lin] = 1
             el = e_key - k0
             bitmap[(el[:, 0] * dy + el[:, 1]) * dz + el[:, 2]] = False
             lin = np.flatnonzero(bitmap)
             kz = lin % dz
             rest = lin // dz
             return _pack_unchecked(rest // dy + k0[0], rest % dy + k0[1], kz + k0[2])
+        # bounded batches keep the per-visit temporaries under ~100 MB (_ray_lin batches itself)
+        batch = max(1, 2_000_000 // max(1, n_visits // len(ray_end)))
         parts = []
         for i in range(0, len(ray_end), batch):
             parts.append(np.unique(np.concatenate(
