@@ -102,7 +102,8 @@ class IdentifierNode(Node):
         self._last_sample: tuple[float, np.ndarray] | None = None
         self.ident: Identifier | None = None
         self._current_exc: Excitation | None = None
-        self._active = False
+        self._active = False       # samples go to the running goal's estimator
+        self._busy = False         # a goal is accepted or running
         self._wake: Future | None = None    # the running goal awaits it (window done, poke)
         self._t0 = None
         self._t_now = 0.0
@@ -353,9 +354,10 @@ class IdentifierNode(Node):
             self.get_logger().warn(f'rejected goal: strategy {goal.strategy!r}, '
                                    f'duration {goal.duration_s}')
             return GoalResponse.REJECT
-        if self._active:
+        if self._busy:
             self.get_logger().warn('rejected goal: an identification is running')
             return GoalResponse.REJECT
+        self._busy = True      # from acceptance on: a second goal cannot slip in before it runs
         return GoalResponse.ACCEPT
 
     def _sensor_noise(self) -> dict | None:
@@ -367,6 +369,14 @@ class IdentifierNode(Node):
         return sensor_noise(v['acc'], v['gyro'], v['incl'], self.p['ft_force_noise_std_n'])
 
     async def _execute(self, handle) -> Identify.Result:
+        try:
+            return await self._identify(handle)
+        finally:
+            self._active = False
+            self._busy = False
+            self._wake = None
+
+    async def _identify(self, handle) -> Identify.Result:
         goal = handle.request
         cfg = identifier_config(self.p, goal.strategy or self.p['strategy'])
         self.ident = Identifier(cfg, sensor_noise=self._sensor_noise())
@@ -380,32 +390,29 @@ class IdentifierNode(Node):
         self._active = True
         result = Identify.Result()
         last_t, last_wall = None, time.monotonic()
-        try:
-            while True:
-                self._wake = Future()
-                await self._wake
-                if self._t_now != last_t:
-                    last_t, last_wall = self._t_now, time.monotonic()
-                elif time.monotonic() - last_wall > max(1.0, 10 * self.p['stale_timeout_s']):
-                    self.bad.reject('silent sensor', 'no paired samples arrive')
-                if handle.is_cancel_requested:
-                    handle.canceled()
-                    result.success, result.message = False, 'canceled'
-                    break
-                elapsed = 0.0 if self._t0 is None else self._t_now - self._t0
-                if self._windows:
-                    fb = Identify.Feedback(estimate=self._estimate_msg(), elapsed_s=elapsed)
-                    handle.publish_feedback(fb)
-                if elapsed >= goal.duration_s:
-                    handle.succeed()
-                    rep = self.ident.report
-                    result.success = True
-                    result.message = (f'{int(rep.observable.sum())}/22 observable, '
-                                      f'{self.bad.total} rejected samples')
-                    break
-        finally:
-            self._active = False
-            self._wake = None
+        while True:
+            self._wake = Future()
+            await self._wake
+            if self._t_now != last_t:
+                last_t, last_wall = self._t_now, time.monotonic()
+            elif time.monotonic() - last_wall > max(1.0, 10 * self.p['stale_timeout_s']):
+                self.bad.reject('silent sensor', 'no paired samples arrive')
+            if handle.is_cancel_requested:
+                handle.canceled()
+                result.success, result.message = False, 'canceled'
+                break
+            elapsed = 0.0 if self._t0 is None else self._t_now - self._t0
+            if self._windows:
+                fb = Identify.Feedback(estimate=self._estimate_msg(), elapsed_s=elapsed)
+                handle.publish_feedback(fb)
+            if elapsed >= goal.duration_s:
+                handle.succeed()
+                rep = self.ident.report
+                result.success = True
+                result.message = (f'{int(rep.observable.sum())}/22 observable, '
+                                  f'{self.bad.total} rejected samples')
+                break
+        self._active = False
         result.estimate = self._estimate_msg()
         self.get_logger().info(f'identification done: {result.message}')
         return result

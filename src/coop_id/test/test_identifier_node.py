@@ -81,6 +81,10 @@ def test_identify_action_over_dds(graph):
     wait_for(fut.done, 10, what='goal accepted')
     handle = fut.result()
     assert handle.accepted
+    # one identification at a time: a second goal, sent at once, is turned down
+    second = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=1.0))
+    wait_for(second.done, 10, what='second goal answer')
+    assert not second.result().accepted
     res_fut = handle.get_result_async()
     d = _data(2.6)
     t0 = 100.0
