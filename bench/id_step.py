@@ -15,7 +15,6 @@ single-threaded, so the time on one core, which other jobs on the machine do not
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -25,6 +24,7 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 import numpy as np  # noqa: E402
 
 from coop_common.dynparams import load_truth  # noqa: E402
+from coop_common.files import write_json  # noqa: E402
 from coop_id.excitation import constant_excitation  # noqa: E402
 from coop_id.experiment import reference_noise_scales  # noqa: E402
 from coop_id.identifier_core import Identifier, IdentifierConfig  # noqa: E402
@@ -113,10 +113,9 @@ def main() -> int:
     print(f'{"target":28s}{20.0:10.2f}')
     ratio = med['full_step_ms'] / med['peer_batch_lstsq_ms']
     print(f'ratio full step / peer batch lstsq = {ratio:.1f}')
-    with open(args.json, 'w') as fh:
-        json.dump({'strategy': args.strategy, 'steps': steps, 'median_ms': med,
-                   'median_cpu_ms': med_cpu, 'thesis_ms': 75.0, 'target_ms': 20.0,
-                   'ratio_full_over_peer': ratio}, fh, indent=1)
+    write_json(args.json, {'strategy': args.strategy, 'steps': steps, 'median_ms': med,
+                           'median_cpu_ms': med_cpu, 'thesis_ms': 75.0, 'target_ms': 20.0,
+                           'ratio_full_over_peer': ratio}, indent=1)
     return 0
 
 

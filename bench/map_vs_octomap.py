@@ -38,9 +38,16 @@ import octomap  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from coop_common.files import write_json  # noqa: E402
+from coop_mapping.octomap_peer import leaf_states  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
 from coop_mapping.stereo import StereoCamera, StereoRanger  # noqa: E402
-from coop_mapping.voxelmap import FREE, OCCUPIED, UNKNOWN, VoxelMap, pack_keys, unpack_keys  # noqa: E402
+from coop_mapping.voxelmap import (  # noqa: E402
+    OCCUPIED,
+    VoxelMap,
+    pack_keys,
+    state_agreement,
+    unpack_keys,
+)
 
 PLANE_Z = 0.013
 #: Eq. 3-6/3-7 range-noise constant of the VGA camera (0.5 px, f = 851 px, b = 38 mm)
@@ -93,29 +100,8 @@ def stereo_scans(width: int, height: int, seed: int = 0):
     return scans, np.concatenate(truth)
 
 
-def octomap_state(tree, res: float) -> tuple[np.ndarray, np.ndarray]:
-    keys, occ = [], []
-    for leaf in tree.begin_leafs():
-        c = np.array(leaf.getCoordinate())
-        s = leaf.getSize()
-        n = int(round(s / res))
-        lo = np.round((c - s / 2) / res).astype(np.int64)
-        g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing='ij'), -1).reshape(-1, 3) + lo
-        keys.append(g)
-        occ.append(np.full(len(g), tree.isNodeOccupied(leaf)))
-    k = pack_keys(np.concatenate(keys))
-    o = np.concatenate(occ)
-    i = np.argsort(k)
-    return k[i], o[i]
-
-
 def agreement(vm: VoxelMap, tree, res: float) -> float:
-    ok, oocc = octomap_state(tree, res)
-    keys = np.union1d(vm.keys, ok)
-    ours = vm.state_of_keys(keys)
-    theirs = np.full(len(keys), UNKNOWN)
-    theirs[np.searchsorted(keys, ok)] = np.where(oocc, OCCUPIED, FREE)
-    return float(np.mean(ours == theirs))
+    return state_agreement(vm.keys, vm.states(), *leaf_states(tree, res))
 
 
 def run_ours(scans, res, with_cov, ray_subdivision=4):
@@ -173,8 +159,8 @@ def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
     `literal`: the same scans merged with Eq. 3-10 on the raw point covariances only
     (voxel_prior=False), for the effect of the voxel-extent model."""
     keys, mean, _, _ = vm.gaussians()
-    ok, oocc = octomap_state(tree, res)
-    both = (vm.state_of_keys(keys) == OCCUPIED) & np.isin(keys, ok[oocc])
+    ok, ostate = leaf_states(tree, res)
+    both = (vm.state_of_keys(keys) == OCCUPIED) & np.isin(keys, ok[ostate == OCCUPIED])
     keys, mean = keys[both], mean[both]
     _, mean_lit, _, _ = literal.gaussians(keys)
     centre = (unpack_keys(keys) + 0.5) * res

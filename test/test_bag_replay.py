@@ -18,7 +18,7 @@ from rclpy.node import Node
 from coop_common.qos import LATCHED_QOS
 from coop_common.testing import NodeProcess, wait_for
 from coop_mapping.offline import MapSettings, StereoSettings, map_from_bag, stereo_topics
-from coop_mapping.voxelmap import FREE, OCCUPIED, UNKNOWN, pack_keys
+from coop_mapping.voxelmap import FREE, OCCUPIED, pack_keys, state_agreement
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
 
 pytestmark = pytest.mark.graph
@@ -99,17 +99,6 @@ def _msg_states(msg: VoxelMapMsg) -> tuple[np.ndarray, np.ndarray]:
     keys = pack_keys(np.asarray(msg.voxels.keys, np.int64).reshape(-1, 3))
     occ = np.asarray(msg.voxels.occupancy, np.float32)
     return keys, np.where(occ >= 0.5, OCCUPIED, FREE).astype(np.int8)
-
-
-def state_agreement(keys_a, states_a, keys_b, states_b) -> float:
-    """Share of the voxels known in either map whose state (free/occupied/unknown) agrees."""
-    union = np.union1d(keys_a, keys_b)
-
-    def on_union(keys, states):
-        out = np.full(len(union), UNKNOWN, np.int8)
-        out[np.searchsorted(union, keys)] = states
-        return out
-    return float(np.mean(on_union(keys_a, states_a) == on_union(keys_b, states_b)))
 
 
 @pytest.fixture(scope='module')

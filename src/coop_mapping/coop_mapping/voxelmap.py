@@ -60,6 +60,7 @@ import numpy as np
 from .gauss import NotPositiveDefinite, sym6_cholesky, sym6_from_cholesky, sym6_inv, sym6_matvec
 
 __all__ = ['OccupancyModel', 'VoxelMap', 'InsertResult', 'MapFileError', 'MapInputError',
+           'state_agreement',
            'pack_keys', 'unpack_keys', 'ray_voxel_keys', 'FREE', 'OCCUPIED', 'UNKNOWN']
 
 FILE_FORMAT = 'coop_mapping.voxelmap'
@@ -140,6 +141,19 @@ def unpack_keys(p: np.ndarray) -> np.ndarray:
     """(N,) packed int64 -> (N, 3) int64 keys."""
     p = np.asarray(p, dtype=np.int64)
     return np.stack([(p >> (2 * _BITS)) & _MASK, (p >> _BITS) & _MASK, p & _MASK], -1) - _OFFSET
+
+
+def state_agreement(keys_a: np.ndarray, states_a: np.ndarray, keys_b: np.ndarray,
+                    states_b: np.ndarray) -> float:
+    """Share of the voxels known in either of two maps (packed keys, FREE/OCCUPIED states)
+    whose state (free / occupied / unknown) agrees."""
+    union = np.union1d(keys_a, keys_b)
+
+    def on_union(keys: np.ndarray, states: np.ndarray) -> np.ndarray:
+        out = np.full(len(union), UNKNOWN, np.int8)
+        out[np.searchsorted(union, keys)] = states
+        return out
+    return float(np.mean(on_union(keys_a, states_a) == on_union(keys_b, states_b)))
 
 
 def _pack_unchecked(kx: np.ndarray, ky: np.ndarray, kz: np.ndarray) -> np.ndarray:

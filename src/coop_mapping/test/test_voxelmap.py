@@ -12,6 +12,7 @@ from coop_mapping.gauss import (
     sym6_from_mat,
     sym6_inv,
 )
+from coop_mapping.octomap_peer import leaf_states
 from coop_mapping.voxelmap import (
     FREE,
     OCCUPIED,
@@ -22,6 +23,7 @@ from coop_mapping.voxelmap import (
     VoxelMap,
     pack_keys,
     ray_voxel_keys,
+    state_agreement,
     unpack_keys,
 )
 
@@ -205,28 +207,7 @@ def test_occupied_preference_and_octomap_agreement():
         pts = pts[np.linalg.norm(pts - origin, axis=1) < 4]
         vm.insert_scan(pts, origin)
         tree.insertPointCloud(pts, origin)
-    keys = np.union1d(vm.keys, _octomap_keys(tree, res)[0])
-    ours = vm.state_of_keys(keys)
-    ok, oocc = _octomap_keys(tree, res)
-    theirs = np.full(len(keys), UNKNOWN)
-    theirs[np.searchsorted(keys, ok)] = np.where(oocc, OCCUPIED, FREE)
-    assert np.mean(ours == theirs) >= 0.995
-
-
-def _octomap_keys(tree, res):
-    keys, occ = [], []
-    for leaf in tree.begin_leafs():
-        c = np.array(leaf.getCoordinate())
-        s = leaf.getSize()
-        n = int(round(s / res))
-        lo = np.round((c - s / 2) / res).astype(int)
-        g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing='ij'), -1).reshape(-1, 3) + lo
-        keys.append(g)
-        occ.append(np.full(len(g), tree.isNodeOccupied(leaf)))
-    k = pack_keys(np.concatenate(keys))
-    o = np.concatenate(occ)
-    i = np.argsort(k)
-    return k[i], o[i]
+    assert state_agreement(vm.keys, vm.states(), *leaf_states(tree, res)) >= 0.995
 
 
 def test_bad_input_rejected():

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from coop_common.files import write_json
+
 from .explore import explore, make_world
 from .nbv import ENTROPY_WEIGHTS, STRATEGIES, NbvConfig
 
@@ -250,8 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         for p in plot(result, args.plots):
             print(f'plot: {p}')
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1))
+        write_json(args.json, result, indent=1)
         print(f'json: {args.json}')
     return 0
 

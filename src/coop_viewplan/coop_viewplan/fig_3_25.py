@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from coop_common.files import write_json
+
 from .grid import MapError, OccupancyGrid, markov_estimate
 from .nbv import (
     CameraState,
@@ -557,8 +559,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.plots is not None:
         print(f'plot: {plot(res, a.plots)}')
     if a.json is not None:
-        a.json.parent.mkdir(parents=True, exist_ok=True)
-        a.json.write_text(json.dumps(res, indent=1))
+        write_json(a.json, res, indent=1)
     return 0
 
 

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from coop_common.files import write_json
+
 from .task_study import DENSITIES, METHODS, THESIS_TABLE_4_1, TOLERANCES, rating_maps, run_study
 
 LABEL = {'optimal_replacement': 'Optimal camera re-placement',
@@ -134,8 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.plots is not None:
         print(f'plot: {plot_rating_maps(args.plots)}')
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1))
+        write_json(args.json, result, indent=1)
         print(f'json: {args.json}')
     return 0
 

@@ -7,11 +7,12 @@ and on pure-noise images, next to the thesis's numbers.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from coop_common.files import write_json
 
 from .imageinfo import compression_ratio
 
@@ -112,9 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     best = max(range(2, 10), key=lambda m: res['scenes'][m][-1][0])
     print(f'best predictor at 256^2 on scenes: method {best} (thesis: method 5)')
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({'results': res, 'thesis': THESIS,
-                                         'best_predictor_256': best}, indent=1))
+        write_json(args.json, {'results': res, 'thesis': THESIS, 'best_predictor_256': best},
+                   indent=1)
         print(f'json: {args.json}')
     return 0
 

@@ -20,7 +20,6 @@ from typing import Any
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from coop_common.node_util import ParamSpec, declare_parameters
@@ -29,7 +28,7 @@ from coop_common.qos import CLOCK_QOS
 from .bagio import bag_info, read_messages
 from .cli import spin_until_stopped
 from .playback import parse_remaps, publisher_qos, remap_topic, schedule, summarize_lateness
-from .recorder import message_class
+from .recorder import message_class, qos_profile
 
 PARAMS = {
     'bag': ParamSpec('', 'bag directory or .mcap file to play', read_only=True),
@@ -78,12 +77,7 @@ class Player(Node):
             if name == '/clock' and self.clock_pub is not None:
                 continue
             choice = publisher_qos(topic.offered_qos)
-            qos = QoSProfile(
-                depth=choice.depth, history=HistoryPolicy.KEEP_LAST,
-                reliability=(ReliabilityPolicy.RELIABLE if choice.reliable
-                             else ReliabilityPolicy.BEST_EFFORT),
-                durability=(DurabilityPolicy.TRANSIENT_LOCAL if choice.transient_local
-                            else DurabilityPolicy.VOLATILE))
+            qos = qos_profile(choice)
             if choice.transient_local:
                 self.latched.add(name)
             self.pubs[name] = self.create_publisher(message_class(topic.msgtype),

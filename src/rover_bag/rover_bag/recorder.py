@@ -26,7 +26,7 @@ from coop_common.node_util import ParamSpec, declare_parameters
 
 from .bagio import COMPRESSIONS, BagWriter, UnknownTypeError, make_qos, make_typestore
 from .cli import spin_until_stopped
-from .playback import select_topics, subscription_qos
+from .playback import QosChoice, select_topics, subscription_qos
 
 PARAMS = {
     'output': ParamSpec('', 'bag directory to create (must not exist); empty: '
@@ -58,6 +58,16 @@ def message_class(msgtype: str) -> Any:
         return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
     except (ImportError, AttributeError) as exc:
         raise UnknownTypeError(f'no Python message class for {msgtype!r}: {exc}') from None
+
+
+def qos_profile(choice: QosChoice) -> QoSProfile:
+    """The rclpy profile of a QosChoice (KEEP_LAST of its depth)."""
+    return QoSProfile(
+        depth=choice.depth, history=HistoryPolicy.KEEP_LAST,
+        reliability=(ReliabilityPolicy.RELIABLE if choice.reliable
+                     else ReliabilityPolicy.BEST_EFFORT),
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if choice.transient_local
+                    else DurabilityPolicy.VOLATILE))
 
 
 def _rosbags_qos(profile: QoSProfile):
@@ -124,12 +134,7 @@ class Recorder(Node):
                 self._skip(topic, str(exc))
                 continue
             choice = subscription_qos(offered, depth=self._queue_depth)
-            qos = QoSProfile(
-                depth=choice.depth, history=HistoryPolicy.KEEP_LAST,
-                reliability=(ReliabilityPolicy.RELIABLE if choice.reliable
-                             else ReliabilityPolicy.BEST_EFFORT),
-                durability=(DurabilityPolicy.TRANSIENT_LOCAL if choice.transient_local
-                            else DurabilityPolicy.VOLATILE))
+            qos = qos_profile(choice)
             events = SubscriptionEventCallbacks(
                 message_lost=lambda info, t=topic: self._on_lost(t, info))
             callback, holder = self._make_callback(topic)
