@@ -12,7 +12,8 @@ reference), frame latency (VGA stereo frame insert), RMS surface error (distance
 surface of each map's surface estimate, ours the voxel's merged Gaussian mean, OctoMap's the leaf
 centre, over the same voxels for both: every voxel occupied in both maps, the ones of those the
 true surface passes through, and those of the latter where the predicted stereo sigma is below
-the voxel size; see surface_errors), and two rovers' maps fused vs every scan in one map.
+the voxel size; see surface_errors; pooled over several placements of the scene in the grid,
+see grid_offsets), and two rovers' maps fused vs every scan in one map.
 
     bench/map_vs_octomap.py --json out/bench/map_vs_octomap.json
 """
@@ -149,7 +150,7 @@ def compare(scans, res, repeats, with_cov):
 
 def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
                    literal: VoxelMap) -> dict:
-    """RMS distance to the true surface of each map's surface estimate: ours the voxel's merged
+    """Distance to the true surface of each map's surface estimate: ours the voxel's merged
     Gaussian mean, OctoMap's the leaf centre (all it stores), over the same voxels for both:
       all:     every voxel occupied in both maps (noise voxels off the surface included);
       surface: the occupied-in-both voxels that the true surface passes through
@@ -157,27 +158,74 @@ def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
       near:    those surface voxels whose predicted stereo sigma (Eq. 3-7, S L^2 with L the
                distance to the nearest scan origin) is below the voxel size.
     `literal`: the same scans merged with Eq. 3-10 on the raw point covariances only
-    (voxel_prior=False), for the effect of the voxel-extent model."""
+    (voxel_prior=False), for the effect of the voxel-extent model.
+    Returns, per class, the per-voxel errors (m) of ours, OctoMap's and the literal map's."""
     keys, mean, _, _ = vm.gaussians()
     ok, ostate = leaf_states(tree, res)
     both = (vm.state_of_keys(keys) == OCCUPIED) & np.isin(keys, ok[ostate == OCCUPIED])
     keys, mean = keys[both], mean[both]
     _, mean_lit, _, _ = literal.gaussians(keys)
     centre = (unpack_keys(keys) + 0.5) * res
-    e_ours, e_oct, e_lit = dist(mean), dist(centre), dist(mean_lit)
+    e = np.stack([dist(mean), dist(centre), dist(mean_lit)])
     surf = np.isin(keys, surface_keys)
     L = np.min(np.linalg.norm(centre[:, None, :] - np.asarray(origins)[None], axis=2), axis=1)
     near = surf & (S_VGA * L * L < res)
-    out = {}
-    for name, m in (('all', slice(None)), ('surface', surf), ('near', near)):
-        n = int(np.count_nonzero(np.ones(len(keys), bool)[m]))
-        rms = [float(np.sqrt(np.mean(e[m] ** 2))) if n else float('nan')
-               for e in (e_ours, e_oct, e_lit)]
-        out[name] = {'voxels': n, 'rms_ours_m': rms[0], 'rms_octomap_m': rms[1],
-                     'rms_ours_literal_eq_3_10_m': rms[2], 'ratio': rms[0] / rms[1]}
+    return {'all': e, 'surface': e[:, surf], 'near': e[:, near], 'off_surface': e[:, ~surf]}
+
+
+def grid_offsets(res: float, n: int, seed: int = 0) -> np.ndarray:
+    """The grid as given plus n - 1 seeded offsets uniform in [0, res)^3. A map's error depends
+    on where the surfaces fall in their voxels: a plane on voxel faces puts every leaf centre
+    res/2 from it (OctoMap's worst case), one through the centres puts them on it (its best),
+    so the surface error is pooled over several placements of the same scene in the grid."""
+    rng = np.random.default_rng(seed)
+    return np.vstack([np.zeros(3), rng.uniform(0.0, res, (max(n, 1) - 1, 3))])
+
+
+def surface_error_study(scans, res: float, offsets: np.ndarray, truth=None) -> dict:
+    """surface_errors with the scene (points, origins and truth) shifted by each offset, pooled:
+    RMS over the voxels of every placement, and each placement's ratio. truth None: the
+    synthetic plane z = PLANE_Z; else the true surface points (nearest-point distance)."""
+    per: dict[str, list[np.ndarray]] = {}
+    ratios: dict[str, list[float]] = {}
+    for off in offsets:
+        sh = [(sc[0] + off, sc[1] + off, sc[2], sc[3]) for sc in scans]
+        vm = VoxelMap(res)
+        tree = octomap.OcTree(res)
+        for sc in sh:
+            vm.insert_scan(sc[0], sc[1], source=sc[2], covariances=sc[3])
+            tree.insertPointCloud(sc[0], sc[1])
+        if truth is None:
+            z = PLANE_Z + off[2]
+            ks = unpack_keys(vm.keys)
+            skeys = vm.keys[ks[:, 2] == int(np.floor(z / res))]
+            def dist(p, z=z):
+                return np.abs(p[:, 2] - z)
+        else:
+            tt = cKDTree(truth + off)
+            skeys = np.unique(pack_keys(np.floor((truth + off) / res).astype(np.int64)))
+            def dist(p, tt=tt):
+                return tt.query(p)[0]
+        errs = surface_errors(vm, tree, res, dist, skeys, [sc[1] for sc in sh],
+                              literal_map(sh, res))
+        for name, e in errs.items():
+            per.setdefault(name, []).append(e)
+            if e.shape[1]:
+                r = np.sqrt(np.mean(e ** 2, axis=1))
+                ratios.setdefault(name, []).append(float(r[0] / r[1]))
+    out = {'grid_offsets_m': offsets.tolist()}
+    for name in ('all', 'surface', 'near'):
+        e = np.concatenate(per[name], axis=1)
+        n = e.shape[1]
+        rms = np.sqrt(np.mean(e ** 2, axis=1)) if n else np.full(3, np.nan)
+        out[name] = {'voxels': int(n), 'rms_ours_m': float(rms[0]),
+                     'rms_octomap_m': float(rms[1]), 'rms_ours_literal_eq_3_10_m': float(rms[2]),
+                     'ratio': float(rms[0] / rms[1]),
+                     'ratio_per_offset': ratios.get(name, [])}
     # how much of the all-voxel squared error the voxels off the surface carry (same for both)
-    out['all']['off_surface_share_of_octomap_mse'] = float(
-        np.sum(e_oct[~surf] ** 2) / max(np.sum(e_oct ** 2), 1e-300))
+    off_sq = sum(float(np.sum(e[1] ** 2)) for e in per['off_surface'])
+    all_sq = sum(float(np.sum(e[1] ** 2)) for e in per['all'])
+    out['all']['off_surface_share_of_octomap_mse'] = off_sq / max(all_sq, 1e-300)
     return out
 
 
@@ -211,27 +259,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--width', type=int, default=640)
     ap.add_argument('--height', type=int, default=480)
     ap.add_argument('--resolutions', type=float, nargs='+', default=[0.1, 0.05])
+    ap.add_argument('--grid-offsets', type=int, default=4,
+                    help='placements of the scene in the grid the surface error is pooled '
+                    'over: the grid as given + N-1 seeded random offsets')
     args = ap.parse_args(argv)
 
     syn = synthetic_scans(args.points)
     st, truth = stereo_scans(args.width, args.height)
-    truth_tree = cKDTree(truth)
     out = {'octomap_model': {'prob_hit': 0.7, 'prob_miss': 0.4, 'clamp_min': 0.1192,
                              'clamp_max': 0.971},
            'stereo_frames': len(st), 'image': [args.width, args.height], 'resolutions': {}}
     rows = []
     for res in args.resolutions:
-        r_syn, vm_s, tree_s = compare(syn, res, args.repeats, with_cov=True)
-        ks = unpack_keys(vm_s.keys)
-        plane_layer = vm_s.keys[ks[:, 2] == int(np.floor(PLANE_Z / res))]
-        r_syn['surface_error'] = surface_errors(
-            vm_s, tree_s, res, lambda p: np.abs(p[:, 2] - PLANE_Z), plane_layer,
-            [sc[1] for sc in syn], literal_map(syn, res))
+        r_syn, _, _ = compare(syn, res, args.repeats, with_cov=True)
+        offsets = grid_offsets(res, args.grid_offsets)
+        r_syn['surface_error'] = surface_error_study(syn, res, offsets)
         r_st, vm, tree = compare(st, res, args.repeats, with_cov=True)
-        truth_keys = np.unique(pack_keys(np.floor(truth / res).astype(np.int64)))
-        r_st['surface_error'] = surface_errors(
-            vm, tree, res, lambda p: truth_tree.query(p)[0], truth_keys,
-            [sc[1] for sc in st], literal_map(st, res))
+        r_st['surface_error'] = surface_error_study(st, res, offsets, truth)
         for r in (r_syn, r_st):
             r['rms_surface_error_m'] = r['surface_error']['surface']['rms_ours_m']
             r['octomap_rms_surface_error_m'] = r['surface_error']['surface']['rms_octomap_m']
@@ -268,14 +312,18 @@ def main(argv: list[str] | None = None) -> int:
               f'{r[6]:7.1f} {r[7]:8.1f}')
     print('surface error: RMS distance to the true surface of the estimate of each map (ours: '
           'merged Gaussian mean; octo: voxel centre; lit: ours with Eq. 3-10 on raw point '
-          'covariances), same voxels for both')
+          f'covariances), same voxels for both, pooled over {args.grid_offsets} placements of '
+          'the scene in the grid (as given + seeded offsets); ratio range: per placement')
     print(f'{"res m":>6} {"data":>9} {"voxels":>8} {"n":>7} {"ours mm":>8} {"octo mm":>8} '
-          f'{"ratio":>6} {"lit mm":>7} {"lit ratio":>9}')
+          f'{"ratio":>6} {"ratio range":>11} {"lit mm":>7} {"lit ratio":>9}')
     for k, r in out['resolutions'].items():
         for name in ('synthetic', 'stereo'):
-            for vs, q in r[name]['surface_error'].items():
+            for vs in ('all', 'surface', 'near'):
+                q = r[name]['surface_error'][vs]
+                rr = q['ratio_per_offset']
+                rng_s = f'{min(rr):.2f}-{max(rr):.2f}' if rr else '-'
                 print(f'{k:>6} {name:>9} {vs:>8} {q["voxels"]:7d} {1e3 * q["rms_ours_m"]:8.1f} '
-                      f'{1e3 * q["rms_octomap_m"]:8.1f} {q["ratio"]:6.2f} '
+                      f'{1e3 * q["rms_octomap_m"]:8.1f} {q["ratio"]:6.2f} {rng_s:>11} '
                       f'{1e3 * q["rms_ours_literal_eq_3_10_m"]:7.1f} '
                       f'{q["rms_ours_literal_eq_3_10_m"] / q["rms_octomap_m"]:9.2f}')
     print(f'{"res m":>6} {"data":>9} {"off-surface share of all-voxel MSE":>36} '
