@@ -74,6 +74,13 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({'what': f'NI scoring 3-D, {label}', 'samples_per_pose': int(tpl.weights.size),
                      'poses_per_s': args.poses / t_batch, 'peer_one_at_a_time_poses_per_s':
                      k / t_one, 'speedup': (args.poses / t_batch) / (k / t_one)})
+        if step == 1.0:   # App. C's predictor-5 NI on the same poses (NbvConfig.ni_measure)
+            t_p5 = timed(lambda: score_views(g, est, pos, yaw, pitch, tpl, lookup=lk,
+                                             measure='predictor5'))
+            rows.append({'what': f'NI scoring 3-D, {label}, predictor-5 NI (App. C)',
+                         'samples_per_pose': int(tpl.weights.size),
+                         'poses_per_s': args.poses / t_p5,
+                         'ratio_to_histogram_ni': t_batch / t_p5})
     t_map = timed(lambda: InfoLookup.build(g, markov_estimate(g)))
     rows.append({'what': f'per-map preparation (Markov estimate + tables, {g.prob.size} cells)',
                  'seconds': t_map})

@@ -18,7 +18,7 @@ from scipy import stats
 from coop_common.files import write_json
 
 from .explore import explore, make_world
-from .nbv import ENTROPY_WEIGHTS, STRATEGIES, NbvConfig
+from .nbv import ENTROPY_WEIGHTS, NI_MEASURES, STRATEGIES, NbvConfig
 
 THESIS_FIGURE = {('unstructured', 1): 'Fig. 3-13', ('unstructured', 2): 'Fig. 3-16',
                  ('rooms', 1): 'Fig. 3-20'}
@@ -53,11 +53,11 @@ def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
         resolution_m: float, strategies: list[str], k_rel: float, n_positions: int,
         distance_metric: str = 'configuration', level: float = 0.9,
         near_fraction: float = 0.0, angle_weight: float = 1.0,
-        entropy_weight: str = 'plogp') -> dict:
+        entropy_weight: str = 'plogp', ni_measure: str = 'histogram') -> dict:
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
                     distance_metric=distance_metric, near_fraction=near_fraction,
                     alpha=(1.0, 1.0, 1.0, angle_weight, angle_weight),
-                    entropy_weight=entropy_weight)
+                    entropy_weight=entropy_weight, ni_measure=ni_measure)
     res: dict = {}
     for name in strategies:
         fr, di, s90, d90 = [], [], [], []
@@ -187,6 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='premultiplier of q_k log2 q_k in NI: -p_k log2 p_k as the thesis writes '
                         'it (plogp, default) or the binary occupancy entropy (the pre-2026-11-22 '
                         'runs)')
+    p.add_argument('--ni-measure', choices=NI_MEASURES, default=NbvConfig.ni_measure,
+                   help='NI binning: gray levels of the cells in view (Eq. 3-13, default) or the '
+                        "App. C predictor-5 residual of the view's gray image")
     p.add_argument('--compare-one-camera', action='store_true',
                    help='with --cameras 2: also run max_information with one camera, same '
                         'sensor, and report the scans ratio')
@@ -215,14 +218,15 @@ def main(argv: list[str] | None = None) -> int:
                   scans=args.scans, resolution_m=args.resolution_m, k_rel=args.k_rel,
                   n_positions=args.candidates, distance_metric=args.distance,
                   near_fraction=args.near_fraction, angle_weight=args.angle_weight,
-                  entropy_weight=args.entropy_weight)
+                  entropy_weight=args.entropy_weight, ni_measure=args.ni_measure)
     strat = run(cameras=args.cameras, strategies=strategies, **common)
     result = {'figure': THESIS_FIGURE.get((args.world, args.cameras), 'Fig. 3-13 analogue'),
               'world': args.world, 'cameras': args.cameras, 'fov_deg': fov, 'depth_m': depth,
               'seeds': args.seeds, 'scans': args.scans, 'resolution_m': args.resolution_m,
               'k_rel': args.k_rel, 'distance': args.distance,
               'near_fraction': args.near_fraction, 'angle_weight': args.angle_weight,
-              'entropy_weight': args.entropy_weight, 'strategies': strat,
+              'entropy_weight': args.entropy_weight, 'ni_measure': args.ni_measure,
+              'strategies': strat,
               'verdict': verdict(strat)}
     if args.compare_one_camera and args.cameras == 2:
         one = run(cameras=1, strategies=['max_information'], **common)['max_information']

@@ -22,10 +22,22 @@ def shannon_bits(symbols: np.ndarray) -> float:
     return float(-(q * np.log2(q)).sum())
 
 
+def prediction(i: np.ndarray, method: int) -> np.ndarray:
+    """Table C-1 predictor of method 2..9 for every pixel with all three neighbours, over the
+    last two axes (..., rows u, columns v) of an integer array: W = I(u, v-1), N = I(u-1, v),
+    NW = I(u-1, v-1). Returns the prediction of i[..., 1:, 1:]."""
+    if method not in range(2, 10):
+        raise ValueError(f'method must be 2..9 for a predictor, got {method}')
+    w, n, nw = i[..., 1:, :-1], i[..., :-1, 1:], i[..., :-1, :-1]
+    return {2: lambda: w, 3: lambda: n, 4: lambda: nw, 5: lambda: w + n - nw,
+            6: lambda: w + (n - nw) // 2, 7: lambda: n + (w - nw) // 2,
+            8: lambda: (n + w) // 2, 9: lambda: (n + nw + w) // 3}[method]()
+
+
 def residual(image: np.ndarray, method: int) -> np.ndarray:
     """Prediction residual of Table C-1 method 2..9 (method 1: the image). u indexes rows,
-    v columns: W = I(u, v-1), N = I(u-1, v), NW = I(u-1, v-1). The first row and column, which
-    lack neighbours, keep their values (as lossless JPEG does)."""
+    v columns (see `prediction`). The first row and column, which lack neighbours, keep their
+    values (as lossless JPEG does)."""
     img = np.asarray(image)
     if img.ndim != 2:
         raise ValueError('image must be 2-D (mono)')
@@ -34,12 +46,8 @@ def residual(image: np.ndarray, method: int) -> np.ndarray:
         return i
     if method not in range(2, 10):
         raise ValueError(f'method must be 1..9 for a residual, got {method}')
-    x = i[1:, 1:]
-    w, n, nw = i[1:, :-1], i[:-1, 1:], i[:-1, :-1]
-    pred = {2: w, 3: n, 4: nw, 5: w + n - nw, 6: w + (n - nw) // 2, 7: n + (w - nw) // 2,
-            8: (n + w) // 2, 9: (n + nw + w) // 3}[method]
     out = i.copy()
-    out[1:, 1:] = x - pred
+    out[1:, 1:] = i[1:, 1:] - prediction(i, method)
     return out
 
 

@@ -20,6 +20,9 @@ Reading of Eq. 3-12b..3-14 used here (the thesis leaves the details open):
   2026-11-22); `entropy_weight='binary'` (the earlier reading, -p log2 p - (1-p) log2 (1-p),
   largest at p = 0.5) remains as an option. Either way a field of view that is entirely known
   (p = 0 or 1) gives NI = 0.
+* `ni_measure='predictor5'` (App. C: predictor 5 "is extended to the information theoretic
+  vision planning algorithm in chapter 3") bins the cells by the predictor-5 residual of the
+  view's gray image instead of by level (`predictor5_codes`); the default is the histogram.
 
 Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
 * 'known' (the planar experiments): a cell is navigable, and a candidate, when it is known and
@@ -42,6 +45,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from .grid import MapError, OccupancyGrid, markov_estimate
+from .imageinfo import prediction
 from .raycast import Cast, RayTemplate, cast, make_template
 
 STRATEGIES = ('random', 'raster', 'max_unmapped', 'min_mapped', 'max_information', 'frontier')
@@ -99,6 +103,7 @@ class NbvConfig:
     # metres and radians. Until 2026-11-22 the angles had weight 0.
     alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
     entropy_weight: str = 'plogp'  # NI premultiplier: 'plogp' (§3.2.4 as written) or 'binary'
+    ni_measure: str = 'histogram'  # Eq. 3-13 on gray levels, or 'predictor5' (App. C)
     n_positions: int = 80
     near_fraction: float = 0.0    # share of the candidate positions taken nearest (path) first
     n_yaw: int = 8
@@ -223,27 +228,62 @@ class InfoLookup:
         return cls((unknown * np.int16(n_gray) + level).astype(np.int16), h, n_gray)
 
 
+NI_MEASURES = ('histogram', 'predictor5')
+
+
+def predictor5_codes(code: np.ndarray, visible: np.ndarray, n_gray: int) -> tuple[np.ndarray,
+                                                                                  int]:
+    """App. C's lossless-JPEG predictor 5 on the view's gray image (Table C-1 method 5, which
+    App. C says "is extended to the information theoretic vision planning algorithm in chapter
+    3"): the gray levels along each ray (range sample s, the image's "W" neighbour s - 1) and
+    across rays (template ray r, "N" neighbour r - 1; in 3-D the ray order is azimuth-major, so
+    r - 1 is the elevation neighbour) are replaced by the residual
+    I(r, s) - (I(r, s-1) + I(r-1, s) - I(r-1, s-1)). Where a neighbour is not visible the
+    sample keeps its own level, as lossless JPEG keeps the first row and column.
+    `code` (M, R, S): unknown * n_gray + level, any value where not visible. Returns the codes
+    unknown * n_res + (residual + 2 (n_gray - 1)) and n_res = 4 n_gray - 3."""
+    level = (code % n_gray).astype(np.int64)
+    unknown = code >= n_gray
+    pred = np.zeros_like(level)
+    has = np.zeros(level.shape, bool)
+    has[:, 1:, 1:] = visible[:, 1:, :-1] & visible[:, :-1, 1:] & visible[:, :-1, :-1]
+    pred[:, 1:, 1:] = prediction(level, 5)
+    resid = np.where(has, level - pred, level) + 2 * (n_gray - 1)
+    n_res = 4 * n_gray - 3
+    return unknown * n_res + resid, n_res
+
+
 def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cast, *,
                          n_gray: int = 10, n_shells: int = 8,
                          claimed: np.ndarray | None = None,
                          lookup: InfoLookup | None = None,
-                         weight: str = 'plogp') -> ViewScores:
+                         weight: str = 'plogp', measure: str = 'histogram') -> ViewScores:
     """NI of every cast pose (Eq. 3-12b with Eq. 3-13 q_k = f_k / N and the entropy weighting;
     see the module docstring for the reading of Eq. 3-14). `claimed` cells (bool, grid shape)
-    are about to be measured by another camera and count as known-certain (weight 0)."""
+    are about to be measured by another camera and count as known-certain (weight 0).
+    `measure`: 'histogram' bins the cells by gray level; 'predictor5' by the App. C predictor-5
+    residual of the view's gray image (`predictor5_codes`), known and unknown still apart."""
     if n_shells < 1:
         raise ValueError('n_shells must be >= 1')
+    if measure not in NI_MEASURES:
+        raise ValueError(f'measure must be one of {NI_MEASURES}, got {measure!r}')
     lk = lookup if lookup is not None else InfoLookup.build(grid, estimate, n_gray=n_gray,
                                                             claimed=claimed, weight=weight)
     tpl = casting.template
     m = casting.flat.shape[0]
     mi, ri, si = np.nonzero(casting.visible)
     cellv = casting.flat[mi, ri, si]
-    code = lk.code[cellv].astype(np.int64)
+    if measure == 'predictor5':
+        full = lk.code[np.maximum(casting.flat, 0)]
+        codes, n_levels = predictor5_codes(full, casting.visible, lk.n_gray)
+        code = codes[mi, ri, si]
+    else:
+        code = lk.code[cellv].astype(np.int64)
+        n_levels = lk.n_gray
     h = lk.entropy[cellv]
     w = tpl.weights[ri, si]
     shell = np.minimum((tpl.ranges / tpl.depth_m * n_shells).astype(np.int64), n_shells - 1)
-    bins = 2 * lk.n_gray * n_shells
+    bins = 2 * n_levels * n_shells
     key = mi * bins + code * n_shells + shell[si]
     f = np.bincount(key, weights=w, minlength=m * bins).reshape(m, bins)
     hs = np.bincount(key, weights=w * h, minlength=m * bins).reshape(m, bins)
@@ -252,7 +292,7 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
         mean_h = np.where(f > 0, hs / f, 0.0)
         term = np.where(q > 0, -q * np.log2(q), 0.0)
     ni = (mean_h * term).sum(axis=1)
-    half = lk.n_gray * n_shells
+    half = n_levels * n_shells
     kn = f[:, :half].sum(axis=1)
     unk = f[:, half:].sum(axis=1)
     return ViewScores(ni, unk, kn)
@@ -273,7 +313,7 @@ def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray
                 yaw: np.ndarray, pitch: np.ndarray | None, template: RayTemplate, *,
                 n_gray: int = 10, n_shells: int = 8, claimed: np.ndarray | None = None,
                 chunk_samples: int = 400_000, lookup: InfoLookup | None = None,
-                weight: str = 'plogp') -> ViewScores:
+                weight: str = 'plogp', measure: str = 'histogram') -> ViewScores:
     """Cast and score many poses in chunks of at most `chunk_samples` ray samples
     (`lookup` reuses the per-map tables across calls)."""
     positions = np.asarray(positions, dtype=float).reshape(-1, grid.ndim)
@@ -290,7 +330,8 @@ def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray
     for s in range(0, m, step):
         c = cast(grid, positions[s:s + step], yaw[s:s + step],
                  None if pitch_a is None else pitch_a[s:s + step], template, blocking=block)
-        parts.append(expected_information(grid, estimate, c, n_shells=n_shells, lookup=lk))
+        parts.append(expected_information(grid, estimate, c, n_shells=n_shells, lookup=lk,
+                                          measure=measure))
     if not parts:
         z = np.zeros(0)
         return ViewScores(z, z, z)
@@ -506,7 +547,8 @@ class PlanContext:
         return score_views(self.grid, self.estimate, cands.positions, cands.yaw,
                            cands.pitch if self.grid.ndim == 3 else None, self.template,
                            n_gray=cfg.n_gray, n_shells=cfg.n_shells, claimed=self.claimed,
-                           chunk_samples=cfg.chunk_samples, weight=cfg.entropy_weight)
+                           chunk_samples=cfg.chunk_samples, weight=cfg.entropy_weight,
+                           measure=cfg.ni_measure)
 
 
 class Strategy(Protocol):

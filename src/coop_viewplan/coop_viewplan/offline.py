@@ -25,7 +25,8 @@ from .nbv import CameraState, Decision, NbvConfig, NextBestViewPlanner, Planning
 NODE_DEFAULTS = {'fov_deg': 75.0, 'depth_m': 10.0, 'rays_az': 24, 'rays_el': 18, 'k_rel': 0.15,
                  'n_exp': 1.0, 'candidates': 40, 'headings': 8, 'camera_height_m': 0.8,
                  'clearance_m': 0.5, 'p_empty': 0.2, 'occupied_voxels': 2,
-                 'occupied_clamp': 0.97, 'pad_m': 5.0, 'seed': 0}
+                 'occupied_clamp': 0.97, 'pad_m': 5.0, 'seed': 0,
+                 'ni_measure': 'histogram'}
 
 
 def nbv_config(p: dict) -> NbvConfig:
@@ -36,7 +37,8 @@ def nbv_config(p: dict) -> NbvConfig:
         step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
         n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
         clearance_m=p['clearance_m'], p_empty=p['p_empty'], reach_model='evidence',
-        occupied_voxels=p['occupied_voxels'], occupied_clamp=p['occupied_clamp'])
+        occupied_voxels=p['occupied_voxels'], occupied_clamp=p['occupied_clamp'],
+        ni_measure=p['ni_measure'])
 
 
 def grid_from_voxelmap(vm, *, pad_m: float) -> OccupancyGrid:

@@ -20,7 +20,7 @@ from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
 from .grid import MapError, OccupancyGrid
-from .nbv import STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
+from .nbv import NI_MEASURES, STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
 from .offline import nbv_config
 from .placement import CameraModel, PlacementError, Target, TaskPlacer
 
@@ -36,6 +36,8 @@ PARAMS = {
     'k_rel': ParamSpec(0.15, 'K of Eq. 3-15 relative to the NI of an unknown view per depth',
                        lo=0.0, hi=100.0),
     'n_exp': ParamSpec(1.0, 'n of Eq. 3-15', lo=0.1, hi=4.0),
+    'ni_measure': ParamSpec('histogram', 'NI binning: gray levels (Eq. 3-13) or the App. C '
+                            'predictor-5 residual', choices=NI_MEASURES),
     'candidates': ParamSpec(40, 'default candidate positions per decision (x headings)',
                             lo=1, hi=5000),
     'headings': ParamSpec(8, 'candidate headings per position', lo=1, hi=64),
