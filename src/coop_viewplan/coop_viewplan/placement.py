@@ -13,8 +13,14 @@
   axis (pointing at the target) and the target normal;
 * P: collision probability of the camera position (max occupancy over the mount's footprint).
 
-Search (§4.3.1): candidates are bounded by the depth of field around each target (distance
-bounding), taken on a coarsened lattice (`stride`), and thinned to a random subset.
+Search (§4.3.1: "(i) increasing the environment grid coarseness, (ii) bounding the evaluation of
+RF by distance to the target, (iii) employ a finite random selection of goal configurations"):
+candidates are the free cells on a coarsened lattice (`stride`) within the depth of field of some
+target. `search='bounded'` (default) then bounds the evaluation by distance: TFV, TAV and DOF are
+at most 1, so RF <= weight (1 - P) Res(d)^beta, a bound that falls with the distance d to the
+target; candidates are rated best bound first and the search stops once no bound is above the best
+rating found, which is then the maximum over the whole candidate set (at most `max_candidates`
+evaluations). `search='random'` rates a random subset of `max_candidates` candidates instead.
 """
 from __future__ import annotations
 
@@ -295,8 +301,11 @@ def rate(cameras: np.ndarray, target: Target, field_: VisibilityField, camera: C
 
 @dataclass
 class Placement:
-    """The best camera position, the target it watches (0 = primary), its terms, and the full
-    candidate set with ratings (for Fig. 4-8b-like maps)."""
+    """The best camera position, the target it watches (0 = primary), its terms, and the rated
+    candidates with their best rating over the targets (for Fig. 4-8b-like maps: every
+    candidate with `search='random'` and max_candidates >= their number; the bounded search
+    returns only those it had to rate). extras: search, candidates, evaluated (candidate-target
+    ratings computed) and exact (the pick is the maximum over every candidate)."""
 
     position: np.ndarray
     target_index: int
@@ -306,6 +315,9 @@ class Placement:
     extras: dict = field(default_factory=dict)
 
 
+SEARCHES = ('bounded', 'random')
+
+
 class TaskPlacer:
     """Optimum camera placement for watching a primary target, with optional secondary targets
     (§4.2.3), on an occupancy grid. The camera axis always points at the watched target."""
@@ -313,7 +325,10 @@ class TaskPlacer:
     def __init__(self, camera: CameraModel | None = None, *, exponents: Exponents = Exponents(),
                  p_empty: float = 0.05, clearance_m: float = 0.5, stride: int = 1,
                  max_candidates: int = 4000, n_dirs: int = 720, camera_height_m: float = 1.0,
-                 unknown_occludes: bool = True) -> None:
+                 unknown_occludes: bool = True, search: str = 'bounded') -> None:
+        if search not in SEARCHES:
+            raise PlacementError(f'search must be one of {SEARCHES}, got {search!r}')
+        self.search = search
         self.camera = camera or CameraModel()
         self.exponents = exponents
         self.p_empty = p_empty
@@ -337,6 +352,16 @@ class TaskPlacer:
                    pcol: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Free cells (P < P_empty) on a lattice of `stride`, within the depth of field of some
         target (distance bounding), thinned to a random subset of `max_candidates`."""
+        pos, p = self.all_candidates(grid, targets, pcol)
+        if len(pos) > self.max_candidates:
+            keep = rng.choice(len(pos), self.max_candidates, replace=False)
+            return pos[keep], p[keep]
+        return pos, p
+
+    def all_candidates(self, grid: OccupancyGrid, targets: list[Target],
+                       pcol: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every free cell (P < P_empty) on a lattice of `stride` within the depth of field of
+        some target, and its P."""
         pcol = self.collision_probability(grid) if pcol is None else pcol
         sl = tuple(slice(0, None, self.stride) for _ in range(grid.ndim))
         idx = np.argwhere(np.ones(grid.shape, bool)[sl]) * self.stride
@@ -350,60 +375,119 @@ class TaskPlacer:
         keep = np.flatnonzero(ok & near)
         if len(keep) == 0:
             raise PlacementError('no free candidate within the depth of field of any target')
-        if len(keep) > self.max_candidates:
-            keep = rng.choice(keep, self.max_candidates, replace=False)
         return pos[keep], p[keep]
+
+    def rating_bound(self, cameras: np.ndarray, target: Target, collision_p: np.ndarray
+                     ) -> np.ndarray:
+        """An upper bound of Eq. 4-1 per candidate that needs no visibility test: TFV and TAV
+        lie in [0, 1], so with gamma, delta >= 0, RF <= DOF^a Res^b (1 - P) weight (0 outside
+        the depth of field). inf inside the depth of field if gamma or delta < 0."""
+        d = np.linalg.norm(np.asarray(cameras, float) - target.position, axis=1)
+        dof = depth_of_field(d, self.camera)
+        e = self.exponents
+        if e.tfv < 0 or e.tav < 0:
+            return np.where(dof > 0, np.inf, 0.0)
+        res = resolution_term(d, self.camera, target.sigma)
+        p = np.asarray(collision_p, float)
+        with np.errstate(invalid='ignore', over='ignore'):
+            ub = dof ** e.dof * res ** e.res * (1 - p) * target.weight
+        return np.where(dof > 0, ub, 0.0)
 
     def place(self, grid: OccupancyGrid, primary: Target, secondary: list[Target] = (), *,
               rng: np.random.Generator, hulls: list[np.ndarray] | None = None,
               fields: list[VisibilityField] | None = None) -> Placement:
         """Maximise Eq. 4-1 over the candidates, for the primary and every secondary target;
-        raises PlacementError on bad input (target inside an obstacle, no free candidate)."""
+        raises PlacementError on bad input (target inside an obstacle, no free candidate). A
+        secondary target inside an obstacle (e.g. covered by a moving object) is not rated: it
+        cannot be seen, and the primary or another secondary may still be."""
         targets = [primary, *secondary]
-        for t in targets:
+        active = []
+        for k, t in enumerate(targets):
             if t.position.shape[0] != grid.ndim:
                 raise PlacementError(f'target is {t.position.shape[0]}-D, map {grid.ndim}-D')
             cell = grid.to_index(t.position)
             if not grid.in_bounds(cell):
                 raise PlacementError('target outside the map')
             if grid.known[tuple(cell)] and grid.prob[tuple(cell)] >= 0.5:
-                raise PlacementError('target is inside an obstacle')
+                if k == 0:
+                    raise PlacementError('target is inside an obstacle')
+                continue
+            active.append(k)
         pcol = self.collision_probability(grid)
-        cams, p = self.candidates(grid, targets, rng, pcol)
-        raw = None
-        if fields is None:
-            raw = grid_occluders(grid, unknown_occludes=self.unknown_occludes) \
-                if hulls is None else hulls
-        best_rf = np.full(len(cams), -np.inf)
-        best_t = np.zeros(len(cams), np.int64)
-        terms = []
-        for k, t in enumerate(targets):
+        act = [targets[k] for k in active]
+        if self.search == 'random':
+            cams, p = self.candidates(grid, act, rng, pcol)
+        else:
+            cams, p = self.all_candidates(grid, act, pcol)
+        cache: dict[int, VisibilityField] = {}
+        raw: list = []
+
+        def field_for(k: int) -> VisibilityField:
+            if k in cache:
+                return cache[k]
+            t = targets[k]
             if fields is not None:
-                field_ = fields[k]
+                f = fields[k]
             elif hulls is not None:
-                field_ = VisibilityField(t.position, hulls, n_dirs=self.n_dirs)
+                f = VisibilityField(t.position, hulls, n_dirs=self.n_dirs)
             else:
+                if not raw:
+                    raw.append(grid_occluders(grid, unknown_occludes=self.unknown_occludes))
                 # Distance bounding: occluders beyond the depth of field cannot hide the target
                 # from any admissible camera.
                 reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
-                near = [h for h in raw
+                near = [h for h in raw[0]
                         if np.min(np.linalg.norm(h - t.position, axis=1)) <= reach]
-                field_ = VisibilityField(t.position, occluder_hulls(near, t.radius),
-                                         n_dirs=self.n_dirs)
-            r = rate(cams, t, field_, self.camera, p, exponents=self.exponents)
-            terms.append(r)
-            better = r.rating > best_rf
-            best_rf = np.where(better, r.rating, best_rf)
-            best_t = np.where(better, k, best_t)
-        i = int(np.argmax(best_rf))
-        if not best_rf[i] > 0:
+                f = VisibilityField(t.position, occluder_hulls(near, t.radius),
+                                    n_dirs=self.n_dirs)
+            cache[k] = f
+            return f
+
+        m = len(cams)
+        ratings = np.full((len(targets), m), np.nan)       # nan: not evaluated
+        extras = {'search': self.search, 'candidates': m}
+        if self.search == 'random':
+            for k in active:
+                ratings[k] = rate(cams, targets[k], field_for(k), self.camera, p,
+                                  exponents=self.exponents).rating
+            extras.update(evaluated=m * len(active), exact=True)
+        else:
+            ub = np.zeros((len(targets), m))
+            for k in active:
+                ub[k] = self.rating_bound(cams, targets[k], p)
+            flat = ub.ravel()
+            order = np.argsort(-flat, kind='stable')
+            order = order[flat[order] > 0]
+            best, pos, batch = 0.0, 0, 64
+            cap = min(len(order), self.max_candidates)
+            while pos < cap and flat[order[pos]] > best:
+                chunk = order[pos:min(pos + batch, cap)]
+                ks, ii = np.divmod(chunk, m)
+                for k in np.unique(ks):
+                    sel = ii[ks == k]
+                    r = rate(cams[sel], targets[k], field_for(int(k)), self.camera, p[sel],
+                             exponents=self.exponents).rating
+                    ratings[k, sel] = r
+                    best = max(best, float(r.max()))
+                pos += len(chunk)
+                batch *= 2
+            extras.update(evaluated=pos, pairs=len(order),
+                          exact=bool(pos >= len(order) or flat[order[pos]] <= best))
+        seen = ~np.all(np.isnan(ratings), axis=0)
+        r_all = np.where(np.isnan(ratings), -np.inf, ratings)
+        best_t = np.argmax(r_all, axis=0)                   # ties: the lowest index (primary)
+        best_rf = r_all[best_t, np.arange(m)]
+        if not np.any(best_rf > 0):
             raise PlacementError('no candidate sees any target (all ratings are 0)')
-        tr = terms[best_t[i]]
-        return Placement(cams[i], int(best_t[i]),
-                         {'rating': float(best_rf[i]), 'dof': float(tr.dof[i]),
-                          'res': float(tr.res[i]), 'tfv': float(tr.tfv[i]),
-                          'tav': float(tr.tav[i]), 'collision_p': float(tr.collision_p[i])},
-                         cams, best_rf)
+        i = int(np.argmax(best_rf))
+        k = int(best_t[i])
+        tr = rate(cams[i:i + 1], targets[k], field_for(k), self.camera, p[i:i + 1],
+                  exponents=self.exponents)
+        return Placement(cams[i], k,
+                         {'rating': float(best_rf[i]), 'dof': float(tr.dof[0]),
+                          'res': float(tr.res[0]), 'tfv': float(tr.tfv[0]),
+                          'tav': float(tr.tav[0]), 'collision_p': float(tr.collision_p[0])},
+                         cams[seen], best_rf[seen], extras)
 
 
 def move_known_object(grid: OccupancyGrid, old_cells: np.ndarray, model_cells: np.ndarray,

@@ -17,7 +17,9 @@ once, a priori, and documented (they are not fitted to the table):
 * final error ~ N(0, (kappa R / TAV)^2) with R of Eq. 4-2 and kappa = 1 pixel, plus the
   secondary target's relation error when guiding by the secondary; tolerance is a fraction of
   the 0.5 m insertion scale.
-Methods: optimal re-placement (Eq. 4-1 maximised at every step over primary and secondary);
+Methods: optimal re-placement (Eq. 4-1 maximised at every step over primary and secondary, by
+the distance-bounded search of `TaskPlacer`: the maximum over every free cell in the depth of
+field, not over a random subset of them);
 biased random re-placement (a random free spot in the depth of field with a clear line of sight,
 re-drawn when the target is lost); biased random fixed placement (drawn once).
 """
@@ -75,6 +77,7 @@ class StudyConfig:
     task_scale_m: float = 0.5
     max_candidates: int = 1500
     n_dirs: int = 360
+    search: str = 'bounded'
 
 
 @dataclass
@@ -179,7 +182,7 @@ def run_trial(seed: int, density: float, *, use_secondary: bool,
     sc = make_scenario(rng, density, cfg)
     targets = [sc.primary] + ([sc.secondary] if use_secondary else [])
     placer = TaskPlacer(cfg.camera, clearance_m=cfg.clearance_m,
-                        max_candidates=cfg.max_candidates, n_dirs=cfg.n_dirs)
+                        max_candidates=cfg.max_candidates, n_dirs=cfg.n_dirs, search=cfg.search)
     static_fields = [_static_field(sc.grid, t, cfg) for t in targets]
     # One noise draw per trial, shared by the methods (common random numbers).
     z_meas = rng.standard_normal()
@@ -283,8 +286,9 @@ def rating_maps(seed: int, density: float, *, cfg: StudyConfig = StudyConfig()
     scenario, with the moving object far from and close to the primary target."""
     sc = make_scenario(np.random.default_rng(seed), density, cfg)
     targets = [sc.primary, sc.secondary]
+    # every candidate rated (an exhaustive search) for the map
     placer = TaskPlacer(cfg.camera, clearance_m=cfg.clearance_m, max_candidates=10 ** 9,
-                        n_dirs=720)
+                        n_dirs=720, search='random')
     static = [_static_field(sc.grid, t, cfg) for t in targets]
     out = []
     for k in (0, cfg.steps - 1):

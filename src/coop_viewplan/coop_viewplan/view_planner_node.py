@@ -63,7 +63,7 @@ PARAMS = {
                              hi=100000),
     'task_near_m': ParamSpec(0.3, 'task depth of field near limit (m)', lo=0.0, hi=100.0),
     'task_far_m': ParamSpec(5.0, 'task depth of field far limit (m)', lo=0.1, hi=1000.0),
-    'task_candidates': ParamSpec(3000, 'random candidate subset for placement', lo=10,
+    'task_candidates': ParamSpec(3000, 'cap on the ratings of the placement search', lo=10,
                                  hi=100000),
     'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
 }

@@ -45,3 +45,13 @@ def test_cli_reduced(tmp_path, capsys):
 
 def test_cli_rejects_bad_density():
     assert table_4_1.main(['--densities', '0.9']) == 2
+
+
+def test_object_covering_the_secondary_does_not_end_guidance():
+    # Seed 25: the object's path runs over the secondary target (step 3). The primary stays in
+    # view, so optimal re-placement must keep tracking (it used to fail: 'target is inside an
+    # obstacle' for the covered secondary aborted the whole placement).
+    sc = make_scenario(np.random.default_rng(25), 0.05, StudyConfig())
+    assert np.min(np.linalg.norm(sc.path - sc.secondary.position, axis=1)) < 0.5
+    r = run_trial(25, 0.05, use_secondary=True)
+    assert r['optimal_replacement']['tracked']
