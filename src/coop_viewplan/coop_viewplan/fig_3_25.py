@@ -12,9 +12,10 @@ on that map by the next-best-view core with the node's constraint model ('eviden
 columns block, unknown does not, the camera voxel must be seen free): (a) the raster strategy
 (§3.3.1 (ii): the next unvisited free location of a boustrophedon lattice, where the mast then
 sweeps `raster_headings` pan angles, one per scan; 0 = one heading along the raster, as in
-fig_3_13), (b) maximum information (argmax RF of Eq. 3-15). The rover drives there along the
-planned collision-free path (its skid steer at <= 0.25 m/s, the world's physics stepping), pans
-and tilts its mast, and scans.
+fig_3_13), (b) maximum information (argmax RF of Eq. 3-15; the NI's gray value of a voxel the
+map holds free is 0, empty space as the thesis tabulates it, `grid.gray_estimate`). The rover
+drives there along the planned collision-free path (its skid steer at <= 0.25 m/s, the world's
+physics stepping), pans and tilts its mast, and scans.
 "Mapped" is the number of known voxels (free + occupied) of the shared map inside the site (the
 planning volume: the rocks-and-drums square + 1 m, ground to 1 m); all known voxels (out to the
 stereo range) and the occupied ones (voxels holding measured points, the thesis's "mapped
@@ -34,7 +35,7 @@ import numpy as np
 
 from coop_common.files import write_json
 
-from .grid import MapError, OccupancyGrid, markov_estimate
+from .grid import FREE_GRAYS, MapError, OccupancyGrid, gray_estimate
 from .nbv import (
     CameraState,
     NbvConfig,
@@ -70,6 +71,12 @@ class Fig325Config:
     p_empty: float = 0.45
     k_rel: float = 0.15
     pose_source: str = 'truth'            # camera pose of each cloud: 'truth' or 'odometry'
+    # gray value of a known free voxel in NI: 'empty' 0 (§3.2.3/§3.3.2: empty space in the field
+    # of view is tabulated as known with no contribution to the uncertainty model; "if every
+    # point in the field of view is known and is empty then NI = 0"); 'occupancy' the map's
+    # log-odds probability (0.40 after one miss, -p log2 p = 0.53: more than an unknown voxel's
+    # 0.5; the earlier runs)
+    free_gray: str = 'empty'
     max_speed_m_s: float = 0.25
 
 
@@ -259,7 +266,7 @@ def planner_config(cfg: Fig325Config, mapper: SimMapper, camera_height_m: float)
                      pitches_deg=tuple(cfg.pitches_deg), camera_height_m=camera_height_m,
                      clearance_m=cfg.clearance_m, p_empty=cfg.p_empty, reach_model='evidence',
                      raster_spacing_m=cfg.raster_spacing_m,
-                     raster_headings=cfg.raster_headings)
+                     raster_headings=cfg.raster_headings, free_gray=cfg.free_gray)
 
 
 def _waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
@@ -306,7 +313,8 @@ def run_strategy(strategy: str, cfg: Fig325Config, *, seed: int,
             grid = sm.grid()
             for r in runs:
                 r.camera.visited.append(grid.to_index(r.camera.position)[:2])
-            est = markov_estimate(grid, iterations=planner.config.markov_iterations)
+            est = gray_estimate(grid, free_gray=planner.config.free_gray,
+                                iterations=planner.config.markov_iterations)
             base = planner.traversability(grid)
             claimed = np.zeros(grid.shape, bool)
             clear = int(math.ceil(cfg.clearance_m / grid.resolution)) + 2
@@ -445,7 +453,8 @@ def format_table(res: dict) -> str:
              f"{' (mean)' if res['seeds'] > 1 else ''}, {cfg['rovers']} rover(s), occlusion "
              f"{cfg['occlusion_density']:.0%}, stereo 320x240 41.2 deg, map "
              f"{cfg['resolution_m']} m, raster sweeps {cfg['raster_headings']} heading(s), poses "
-             f"from {cfg['pose_source']}",
+             f"from {cfg['pose_source']}, NI gray of known free voxels: "
+             f"{cfg.get('free_gray', 'occupancy')}",
              'mapped = known voxels (free + occupied) of the shared map in the site (the '
              f"planning volume, {s[names[0]]['top_view'].get('site', '')}); all = out to the "
              'stereo range; occupied = voxels holding range points, in the site']
@@ -525,6 +534,9 @@ def main(argv: list[str] | None = None) -> int:
                         'raster, as in fig_3_13)')
     p.add_argument('--p-empty', type=float, default=d.p_empty)
     p.add_argument('--pose', choices=('truth', 'odometry'), default=d.pose_source)
+    p.add_argument('--free-gray', choices=FREE_GRAYS, default=d.free_gray,
+                   help="NI gray value of known free voxels: 'empty' 0 (the thesis's known "
+                        "empty space); 'occupancy' the map's log-odds probability (earlier)")
     p.add_argument('--strategies', default='raster,max_information')
     p.add_argument('--json', type=Path, default=None)
     p.add_argument('--plots', type=Path, default=None)
@@ -549,7 +561,7 @@ def main(argv: list[str] | None = None) -> int:
                        occlusion_density=a.occlusion_density, depth_m=a.depth_m,
                        n_positions=a.candidates, raster_spacing_m=a.raster_spacing_m,
                        raster_headings=a.raster_headings,
-                       p_empty=a.p_empty, pose_source=a.pose)
+                       p_empty=a.p_empty, pose_source=a.pose, free_gray=a.free_gray)
     log = None if a.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     res = run(cfg, strategies=names, seeds=a.seeds, log=log)

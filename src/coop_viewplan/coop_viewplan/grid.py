@@ -128,3 +128,25 @@ def markov_estimate(grid: OccupancyGrid, *, iterations: int = 6) -> np.ndarray:
         avg = ndimage.uniform_filter(est, size=3, mode='nearest')
         est[unknown] = avg[unknown]
     return est
+
+
+FREE_GRAYS = ('empty', 'occupancy')
+
+
+def gray_estimate(grid: OccupancyGrid, *, free_gray: str = 'empty',
+                  iterations: int = 6) -> np.ndarray:
+    """Gray values of NI (§3.2.4): known cells their occupancy, unknown ones the Markov-chain
+    average of their neighbours (`markov_estimate`). free_gray 'empty': a known cell the map holds
+    free (p < 0.5: crossed by rays, no range point kept it occupied) is empty space, gray 0 - the
+    thesis tabulates empty space in the field of view "as known, but with no contribution to the
+    uncertainty model" (§3.3.2), and "if every point in the field of view is known and is empty
+    then NI = 0" (§3.2.4); 'occupancy': the map's own probability (a log-odds map leaves 0.40
+    after one miss, whose -p log2 p = 0.53 outweighs an unknown cell's 0.5)."""
+    if free_gray == 'occupancy':
+        return markov_estimate(grid, iterations=iterations)
+    if free_gray != 'empty':
+        raise ValueError(f'free_gray must be one of {FREE_GRAYS}, got {free_gray!r}')
+    empty = grid.known & (grid.prob < 0.5)
+    gray = OccupancyGrid(np.where(empty, np.float32(0.0), grid.prob), grid.known,
+                         resolution=grid.resolution, origin=grid.origin)
+    return markov_estimate(gray, iterations=iterations)

@@ -6,8 +6,9 @@ geodesic distance on the grid), rated by RF = (NI - K d^n)(1 - P) (Eq. 3-15) wit
 configuration distance (Eq. 3-11) and NI the expected new information (Eq. 3-12b..3-14).
 
 Reading of Eq. 3-12b..3-14 used here (the thesis leaves the details open):
-* gray value of a cell: its occupancy p if known, else the Markov-chain estimate (neighbour
-  average, `grid.markov_estimate`);
+* gray value of a cell: its occupancy p if known (0 if the map holds it free, p < 0.5: known
+  empty space, `NbvConfig.free_gray`), else the Markov-chain estimate (neighbour average,
+  `grid.gray_estimate` / `grid.markov_estimate`);
 * the scene distribution is a uniform discretisation of p (the thesis's "alternatively (better)")
   into `n_gray` levels, evaluated separately for known and unknown cells (Eq. 3-12b); Eq. 3-14's
   stretching divides by the cell's distance d_voxel, making the level distance dependent - we
@@ -44,7 +45,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from .grid import MapError, OccupancyGrid, markov_estimate
+from .grid import MapError, OccupancyGrid, gray_estimate
 from .imageinfo import prediction
 from .raycast import Cast, RayTemplate, cast, make_template
 
@@ -104,6 +105,7 @@ class NbvConfig:
     alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
     entropy_weight: str = 'plogp'  # NI premultiplier: 'plogp' (§3.2.4 as written) or 'binary'
     ni_measure: str = 'histogram'  # Eq. 3-13 on gray levels, or 'predictor5' (App. C)
+    free_gray: str = 'empty'       # known free cells' gray: 0 or 'occupancy' (grid.gray_estimate)
     n_positions: int = 80
     near_fraction: float = 0.0    # share of the candidate positions taken nearest (path) first
     n_yaw: int = 8
@@ -880,7 +882,8 @@ class NextBestViewPlanner:
         reach[cell[0], cell[1]] = np.inf if not nav[cell[0], cell[1]] else 0.0
         if not (np.isfinite(reach) & trav.candidate).any():
             raise PlanningError('no free reachable candidate (P < %.2f)' % self.config.p_empty)
-        est = markov_estimate(grid, iterations=self.config.markov_iterations) \
+        est = gray_estimate(grid, free_gray=self.config.free_gray,
+                            iterations=self.config.markov_iterations) \
             if estimate is None else estimate
         ctx = PlanContext(grid, est, self.template(grid), self.config, camera, nav, reach,
                           trav.collision_p, claimed, self.k_value(grid), rng,
@@ -903,7 +906,8 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
                  *, strategy: str, rng: np.random.Generator) -> list[Decision]:
     """Several cameras on one shared map: each plans in turn, the cells the earlier cameras are
     expected to see are claimed so the later ones look elsewhere."""
-    est = markov_estimate(grid, iterations=planner.config.markov_iterations)
+    est = gray_estimate(grid, free_gray=planner.config.free_gray,
+                        iterations=planner.config.markov_iterations)
     trav = planner.traversability(grid)
     claimed = np.zeros(grid.shape, bool)
     out = []

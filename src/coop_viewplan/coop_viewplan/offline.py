@@ -26,7 +26,7 @@ NODE_DEFAULTS = {'fov_deg': 75.0, 'depth_m': 10.0, 'rays_az': 24, 'rays_el': 18,
                  'n_exp': 1.0, 'candidates': 40, 'headings': 8, 'camera_height_m': 0.8,
                  'clearance_m': 0.5, 'p_empty': 0.2, 'occupied_voxels': 2,
                  'occupied_clamp': 0.97, 'pad_m': 5.0, 'seed': 0,
-                 'ni_measure': 'histogram'}
+                 'ni_measure': 'histogram', 'free_gray': 'empty'}
 
 
 def nbv_config(p: dict) -> NbvConfig:
@@ -38,7 +38,7 @@ def nbv_config(p: dict) -> NbvConfig:
         n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
         clearance_m=p['clearance_m'], p_empty=p['p_empty'], reach_model='evidence',
         occupied_voxels=p['occupied_voxels'], occupied_clamp=p['occupied_clamp'],
-        ni_measure=p['ni_measure'])
+        ni_measure=p['ni_measure'], free_gray=p['free_gray'])
 
 
 def grid_from_voxelmap(vm, *, pad_m: float) -> OccupancyGrid:

@@ -19,7 +19,7 @@ from coop_msgs.msg import ViewRating, VoxelMap
 from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
-from .grid import MapError, OccupancyGrid
+from .grid import FREE_GRAYS, MapError, OccupancyGrid
 from .nbv import NI_MEASURES, STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
 from .offline import nbv_config
 from .placement import CameraModel, PlacementError, Target, TaskPlacer
@@ -38,6 +38,8 @@ PARAMS = {
     'n_exp': ParamSpec(1.0, 'n of Eq. 3-15', lo=0.1, hi=4.0),
     'ni_measure': ParamSpec('histogram', 'NI binning: gray levels (Eq. 3-13) or the App. C '
                             'predictor-5 residual', choices=NI_MEASURES),
+    'free_gray': ParamSpec('empty', 'NI gray of known free voxels: 0 (known empty space) or '
+                           'their occupancy', choices=FREE_GRAYS),
     'candidates': ParamSpec(40, 'default candidate positions per decision (x headings)',
                             lo=1, hi=5000),
     'headings': ParamSpec(8, 'candidate headings per position', lo=1, hi=64),
