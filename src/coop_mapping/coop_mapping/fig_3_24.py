@@ -6,12 +6,17 @@ scene at an average distance of 1100 mm and of 350 mm (the thesis's two cases; t
 scaled with the distance). Every step's true motion is the commanded one composed with a random
 error (mast vibration / base compliance: translation and rotation, fixed per-step sigmas, the same
 at both distances), so the dead-reckoned pose (commanded chain, what `stereo/pose` carries)
-drifts like a random walk. The corrected pose comes from fiducials only: chosen in the images by
-the fiducial evaluation function (Eq. 3-21/3-22, with the map certainty term from a VoxelMap of
-the first scan), tracked by Lucas-Kanade, ranged by StereoSGBM, g01 by least squares
-(Eq. 3-16..3-18), averaged over the frames taken at each step (Eq. 3-19), and the fiducials'
-positions refined by the EKF of Eq. 3-20. The true pose is used only to render the images and to
-score the result.
+drifts like a random walk. The corrected pose is the commanded step from the previous corrected
+pose, fused by covariance (Kalman update, the per-step sigmas known) with the pose measured from
+the fiducials; with --no-fusion it is the fiducial measurement alone. Fiducials are chosen in the
+images by the fiducial evaluation function (Eq. 3-21/3-22, with the map certainty term from a
+VoxelMap of the first scan), tracked by Lucas-Kanade, ranged by StereoSGBM, g01 by least squares
+(Eq. 3-16..3-18, or the rigid / reprojection alternatives), averaged over the frames taken at
+each step (Eq. 3-19), and the fiducials' positions refined by the EKF of Eq. 3-20; a fiducial is
+replaced only when the tracker loses it or the fit rejects it. The SGBM disparity search range
+is set, like a rig's working range, from the nearest depth in the first view (search_range). The
+true pose and depth are used only to render the images, to set that range, and to score the
+result.
 
     fig_3_24 --json out/fig_3_24.json --plots out/fig_3_24.png
 """
@@ -44,9 +49,12 @@ class TrialConfig:
     width: int = 320
     height: int = 240
     n_fiducials: int = 40
-    num_disparities: int = 64
+    num_disparities: int | None = None   # SGBM search range; None: from the camera and the
+                                         # nearest depth in the first view (search_range)
     method: str = 'linear'         # g01 by Eq. 3-18 ('linear', 'linear_so3'), rigid, or 'pnp'
                                    # (reprojection of the mapped fiducials, no range in the fit)
+    fuse_prediction: bool = True   # Kalman-fuse the commanded motion (known per-step sigmas)
+                                   # with the fiducial measurement; False: fiducials only
 
 
 def _scene_boxes(s: float) -> list[Box]:
@@ -71,7 +79,15 @@ def _small_rot(w: np.ndarray) -> np.ndarray:
     return R
 
 
-def run_trial(cfg: TrialConfig, seed: int) -> dict[str, list[float]]:
+def search_range(cam: StereoCamera, z_near: float) -> int:
+    """SGBM disparity search range covering every depth >= z_near: f b / z_near pixels,
+    rounded up to the multiple of 16 SGBM needs. A fixed range does not follow the camera and
+    the scene: at 640x480 the 350 mm scene's ground is at 53-117 px of disparity, and with 64
+    SGBM returned wrong matches (median error 19 px) over most of the image."""
+    return int(16 * np.ceil(cam.fx * cam.baseline / z_near / 16))
+
+
+def run_trial(cfg: TrialConfig, seed: int) -> dict:
     """One trajectory: translation error per step of the dead-reckoned and corrected poses."""
     rng = np.random.default_rng(seed)
     s = cfg.distance / 1.1
@@ -85,18 +101,25 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict[str, list[float]]:
     err_dr, err_fc = [0.0], [0.0]
     with TexturedScene(cam, boxes=_scene_boxes(s), seed=seed, tile_m=0.8 * s,
                        near=0.05 * s) as scene:
+        # the rig is set up for its working range: the nearest depth in the first view
+        nd = cfg.num_disparities or search_range(
+            cam, float(np.nanmin(scene.render(T0[:3, :3], T0[:3, 3])[2])))
+        d_max = [0.0]                    # largest true disparity met, to check the range
+
         def frames(T):
             out = []
             for _ in range(cfg.frames_per_step):
-                left, right, _ = scene.render(T[:3, :3], T[:3, 3], noise_sigma=cfg.image_noise,
-                                              rng=rng)
-                out.append((left, compute_disparity(left, right,
-                                                    num_disparities=cfg.num_disparities)))
+                left, right, depth = scene.render(T[:3, :3], T[:3, 3],
+                                                  noise_sigma=cfg.image_noise, rng=rng)
+                d_max[0] = max(d_max[0], cam.fx * cam.baseline / float(np.nanmin(depth)))
+                out.append((left, compute_disparity(left, right, num_disparities=nd)))
             return out
 
+        sig = ({'sigma_t_m': cfg.sigma_t_m, 'sigma_rot_rad': np.radians(cfg.sigma_rot_deg)}
+               if cfg.fuse_prediction else {})
         fo = FiducialOdometry(cam, OdometryConfig(n_fiducials=cfg.n_fiducials,
                                                   method=cfg.method, scene_distance=cfg.distance,
-                                                  spacing_px=cfg.width / 16), T0)
+                                                  spacing_px=cfg.width / 16, **sig), T0)
         f0 = frames(T_true)
         fo.first(*f0[0])
         for _ in range(cfg.steps):
@@ -110,16 +133,19 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict[str, list[float]]:
             T_est = fo.step(frames(T_true), delta)
             err_dr.append(float(np.linalg.norm(T_cmd[:3, 3] - T_true[:3, 3])))
             err_fc.append(float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])))
-    return {'dead_reckoned': err_dr, 'corrected': err_fc, 'fallbacks': fo.fallbacks}
+    return {'dead_reckoned': err_dr, 'corrected': err_fc, 'fallbacks': fo.fallbacks,
+            'num_disparities': nd, 'max_true_disparity_px': d_max[0], 'kept': fo.kept}
 
 
 def run(distances: list[float], trials: int, steps: int, seed: int = 0,
-        width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',)) -> dict:
-    out = {'distances_m': distances, 'trials': trials, 'steps': steps, 'results': {}}
+        width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',),
+        fuse_prediction: bool = True) -> dict:
+    out = {'distances_m': distances, 'trials': trials, 'steps': steps,
+           'fuse_prediction': fuse_prediction, 'results': {}}
     for method in methods:
         for D in distances:
             cfg = TrialConfig(distance=D, steps=steps, width=width, height=height,
-                              method=method)
+                              method=method, fuse_prediction=fuse_prediction)
             # same seeds for every method: the same true trajectories and images
             runs = [run_trial(cfg, seed + 1000 * i) for i in range(trials)]
             dr = np.array([r['dead_reckoned'] for r in runs])
@@ -133,6 +159,10 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
                 'final_reduction': float(1 - rms_fc[-1] / rms_dr[-1]),
                 'mean_reduction': float(1 - rms_fc[1:].mean() / rms_dr[1:].mean()),
                 'fallback_steps': int(sum(r['fallbacks'] for r in runs)),
+                'num_disparities': [r['num_disparities'] for r in runs],
+                'max_true_disparity_px': [r['max_true_disparity_px'] for r in runs],
+                # fiducials carried over from the previous step (of n_fiducials), mean per step
+                'fiducials_kept_per_step': float(np.mean([r['kept'] for r in runs])),
             }
     return out
 
@@ -149,16 +179,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--methods', nargs='+', choices=['linear', 'linear_so3', 'rigid', 'pnp'],
                     default=['linear', 'linear_so3', 'rigid', 'pnp'],
                     help='g01 by Eq. 3-18 as printed (12 independent entries), the same with R '
-                    'projected onto SO(3) and X re-solved (linear_so3), the weighted rigid fit, '
-                    'or reprojection of the mapped fiducials (pnp)')
+                    'projected onto SO(3) and X re-solved (linear_so3), the covariance-weighted '
+                    'rigid fit, or reprojection of the mapped fiducials (pnp)')
+    ap.add_argument('--no-fusion', action='store_true',
+                    help='corrected pose from the fiducial measurement alone, the commanded '
+                    'motion only as its starting point (no Kalman update with the prediction)')
     ap.add_argument('--width', type=int, default=320)
     ap.add_argument('--height', type=int, default=240)
     args = ap.parse_args(argv)
     out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
-              tuple(args.methods))
+              tuple(args.methods), fuse_prediction=not args.no_fusion)
     print(f'images {args.width}x{args.height}, {args.trials} trials, {args.steps} steps; '
           f'per-step motion error sigma {TrialConfig.sigma_t_m * 1e3:g} mm, '
-          f'{TrialConfig.sigma_rot_deg:g} deg per axis')
+          f'{TrialConfig.sigma_rot_deg:g} deg per axis; corrected pose: '
+          + ('fiducial measurement alone' if args.no_fusion else
+             'commanded motion and fiducial measurement fused by covariance'))
     print(f'{"method":>6} {"dist m":>6} {"step":>4} {"RMS dead-reckoned mm":>21} '
           f'{"RMS corrected mm":>17}')
     for method, per in out['results'].items():
@@ -170,7 +205,10 @@ def main(argv: list[str] | None = None) -> int:
         for D, r in per.items():
             print(f'{method:>6} distance {D} m: final error reduction '
                   f'{100 * r["final_reduction"]:.1f}%, mean over steps '
-                  f'{100 * r["mean_reduction"]:.1f}%, fallback steps {r["fallback_steps"]}')
+                  f'{100 * r["mean_reduction"]:.1f}%, fallback steps {r["fallback_steps"]}, '
+                  f'fiducials kept/step {r["fiducials_kept_per_step"]:.1f} of '
+                  f'{r["config"]["n_fiducials"]}, disparity range {max(r["num_disparities"])} '
+                  f'(true max {max(r["max_true_disparity_px"]):.1f}) px')
     if args.json:
         write_json(args.json, out, indent=2)
     if args.plots:

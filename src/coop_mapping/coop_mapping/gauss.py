@@ -16,6 +16,15 @@ class NotPositiveDefinite(ValueError):
     """A covariance that should be positive definite is not."""
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices [v]x of (..., 3) vectors: skew(a) @ b = a x b."""
+    v = np.asarray(v, float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
 def sym6_from_mat(c: np.ndarray) -> np.ndarray:
     """(N, 3, 3) -> (N, 6) xx, xy, xz, yy, yz, zz."""
     c = np.asarray(c, dtype=np.float64)

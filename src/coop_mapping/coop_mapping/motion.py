@@ -4,7 +4,8 @@
   contrast h(H), and a spacing penalty, over candidate pixels of a rectified left image;
 * tracking between frames (pyramidal Lucas-Kanade with a forward-backward check);
 * the least-squares transform g01 (Eq. 3-16..3-18) between fiducials' positions in the common
-  frame and in the camera frame;
+  frame and in the camera frame, rigid alternatives (scalar- and covariance-weighted), and the
+  first-order covariance of the camera pose any of these solvers returns;
 * the recursive mean / covariance of the translation and of every rotation entry (Eq. 3-19);
 * the EKF update of a fiducial's position from a new camera-frame measurement (Eq. 3-20).
 No rclpy here.
@@ -17,10 +18,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .gauss import skew
+
 __all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_contrast',
            'depth_contrast', 'certainty_term', 'track', 'solve_g01', 'robust_g01',
-           'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'RecursivePoseStats',
-           'ekf_point_update', 'MotionError']
+           'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'solve_rigid_cov',
+           'camera_pose_covariance', 'RecursivePoseStats', 'ekf_point_update', 'MotionError']
 
 
 class MotionError(ValueError):
@@ -249,35 +252,119 @@ def solve_rigid(r_common: np.ndarray, p_camera: np.ndarray,
     return g
 
 
+def solve_rigid_cov(r_common: np.ndarray, p_camera: np.ndarray, cov: np.ndarray, *,
+                    iterations: int = 10) -> np.ndarray:
+    """Rigid g01 minimising the Mahalanobis residuals sum_i e_i^T S_i^-1 e_i, e_i = R r_i + X -
+    p_i, with S_i (N, 3, 3) the covariance of e_i (the camera-frame measurement's, Eq. 3-7, plus
+    the fiducial's map covariance rotated into the camera frame). Stereo points are ~10x better
+    across the line of sight than along it (Eq. 3-7, T = (0.1, 0.1, 1)); a scalar weight per
+    point (solve_rigid) cannot use that. Gauss-Newton from the scalar-weighted Kabsch solution
+    (weights 1 / trace S_i)."""
+    r = np.asarray(r_common, float)
+    p = np.asarray(p_camera, float)
+    S = np.asarray(cov, float)
+    W = np.linalg.inv(S)
+    g = solve_rigid(r, p, 1.0 / np.trace(S, axis1=1, axis2=2))
+    R, X = g[:3, :3], g[:3, 3]
+    for _ in range(iterations):
+        q = r @ R.T
+        e = q + X - p
+        # e(dw, dX) = Exp(dw) R r + X + dX - p: de/dw = -[R r]x, de/dX = I
+        J = np.concatenate([-skew(q), np.broadcast_to(np.eye(3), (len(r), 3, 3))], 2)
+        H = np.einsum('nji,njk,nkl->il', J, W, J)
+        b = np.einsum('nji,njk,nk->i', J, W, e)
+        try:
+            d = -np.linalg.solve(H, b)
+        except np.linalg.LinAlgError as exc:
+            raise MotionError('degenerate fiducial geometry') from exc
+        R = cv2.Rodrigues(d[:3].reshape(3, 1))[0] @ R
+        X = X + d[3:]
+        if np.linalg.norm(d) < 1e-12:
+            break
+    g = np.eye(4)
+    g[:3, :3] = project_to_so3(R)
+    g[:3, 3] = X
+    return g
+
+
 def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 3,
                gate: float = 3.0, min_points: int = 6, method: str = 'linear',
-               weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               weights: np.ndarray | None = None, covariances: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """g01 (method 'linear': Eq. 3-18 as printed; 'linear_so3': solve_g01_so3; 'rigid':
-    solve_rigid) with iterative rejection of tracking outliers (residual > gate x median).
-    Returns (g01, inlier mask)."""
+    solve_rigid, or solve_rigid_cov when `covariances` are given) with iterative rejection of
+    tracking outliers (residual > gate x median). With `covariances` (N, 3, 3) of the residuals
+    the gate is on the Mahalanobis length of each residual: range noise grows as L^2 (Eq. 3-7),
+    so a gate on the raw length rejects the far fiducials for being far. Returns (g01, inlier
+    mask)."""
     r = np.asarray(r_common, float)
     p = np.asarray(p_camera, float)
     if method not in ('linear', 'linear_so3', 'rigid'):
         raise ValueError(f'method must be linear, linear_so3 or rigid, got {method!r}')
     w = np.ones(len(r)) if weights is None else np.asarray(weights, float)
+    Winv = None if covariances is None else np.linalg.inv(np.asarray(covariances, float))
 
     def fit(m):
         if method == 'linear':
             return solve_g01(r[m], p[m])
         if method == 'linear_so3':
             return solve_g01_so3(r[m], p[m])
+        if covariances is not None:
+            return solve_rigid_cov(r[m], p[m], np.asarray(covariances, float)[m])
         return solve_rigid(r[m], p[m], w[m])
+
+    def residual(g):
+        e = r @ g[:3, :3].T + g[:3, 3] - p
+        if Winv is None:
+            return np.linalg.norm(e, axis=1)
+        return np.sqrt(np.einsum('ni,nij,nj->n', e, Winv, e))
 
     keep = np.ones(len(r), bool)
     g = fit(keep)
     for _ in range(iterations):
-        res = np.linalg.norm(r @ g[:3, :3].T + g[:3, 3] - p, axis=1)
+        res = residual(g)
         new = res <= gate * max(np.median(res[keep]), 1e-9)
         if new.sum() < min_points or np.array_equal(new, keep):
             break
         keep = new
         g = fit(keep)
     return g, keep
+
+
+def camera_pose_covariance(fit: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                           r_common: np.ndarray, p_meas: np.ndarray, cov_r: np.ndarray,
+                           cov_p: np.ndarray, *, eps: float = 1e-6) -> np.ndarray:
+    """First-order covariance of the camera pose T = g01^-1 that `fit(r, p) -> g01` returns,
+    from independent input covariances: cov_r (N, 3, 3) of the fiducials' common-frame positions
+    and cov_p (N, k, k) of their measurements (camera-frame points, k = 3, or pixels, k = 2).
+    Numerical Jacobian of the solver itself (forward differences of size eps), so it holds for
+    the 12-entry Eq. 3-18 solution (its rotation projected onto SO(3), X as solved, as
+    RecursivePoseStats.g01 uses it) as well as for the rigid fits. Returned in the parameters
+    (theta, c): T's rotation perturbed as Exp(theta) R in the common frame, its position c
+    shifted by c; 6x6, theta first."""
+    r = np.asarray(r_common, float)
+    p = np.asarray(p_meas, float)
+
+    def params(g):                    # as RecursivePoseStats.g01: R projected onto SO(3)
+        R = project_to_so3(g[:3, :3])
+        return R.T, -R.T @ g[:3, 3]
+
+    R0, c0 = params(fit(r, p))
+    cov = np.zeros((6, 6))
+    for arr, C in ((r, np.asarray(cov_r, float)), (p, np.asarray(cov_p, float))):
+        k = arr.shape[1]
+        J = np.zeros((len(arr), 6, k))
+        for i in range(len(arr)):
+            for j in range(k):
+                a = arr.copy()
+                a[i, j] += eps
+                R, c = params(fit(a, p) if arr is r else fit(r, a))
+                dR = R @ R0.T                    # Exp(theta) to first order: I + [theta]x
+                J[i, :3, j] = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0],
+                                              dR[1, 0] - dR[0, 1]]) / eps
+                J[i, 3:, j] = (c - c0) / eps
+        cov += np.einsum('nik,nkl,njl->ij', J, C, J)
+    return 0.5 * (cov + cov.T)
 
 
 # ---------------------------------------------------------------- Eq. 3-19

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .gauss import mat_from_sym6, sym6_from_mat
+from .gauss import mat_from_sym6, skew, sym6_from_mat
 from .stereo import ErrorModel, StereoCamera
 
 __all__ = ['TargetFrameError', 'TargetGeometry', 'PoseFix', 'solve_pose', 'locate_in_target',
@@ -41,18 +41,9 @@ class TargetFrameError(ValueError):
     """Too few or degenerate marker observations, bad shapes, no consistent assignment."""
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """[v]_x for (3,) or (N, 3)."""
-    v = np.asarray(v, float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
 def _exp_so3(w: np.ndarray) -> np.ndarray:
     th = float(np.linalg.norm(w))
-    K = _skew(w)
+    K = skew(w)
     if th < 1e-12:
         return np.eye(3) + K
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
@@ -159,7 +150,7 @@ def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarra
     def normal_eq(R, t):
         q = (m - t) @ R              # R^T (m_i - t), camera frame
         s = p - q
-        J = np.concatenate([-_skew(q), np.broadcast_to(R.T, (n, 3, 3))], axis=2)  # (n, 3, 6)
+        J = np.concatenate([-skew(q), np.broadcast_to(R.T, (n, 3, 3))], axis=2)  # (n, 3, 6)
         JW = np.einsum('nki,nkl->nil', J, Winv)
         A = np.einsum('nil,nlj->ij', JW, J)
         b = np.einsum('nil,nl->i', JW, s)
@@ -167,7 +158,7 @@ def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarra
         if up_pair is not None:
             a = R.T @ u
             sg = g - a
-            Jg = np.concatenate([-_skew(a), np.zeros((3, 3))], axis=1)
+            Jg = np.concatenate([-skew(a), np.zeros((3, 3))], axis=1)
             A = A + Jg.T @ Wg @ Jg
             b = b + Jg.T @ Wg @ sg
             chi2 += float(sg @ Wg @ sg)
@@ -282,7 +273,7 @@ def transform_to_target(points: np.ndarray, covariances: np.ndarray, fix: PoseFi
     y = p @ fix.R.T
     C = fix.R @ mat_from_sym6(covariances) @ fix.R.T
     if with_pose_covariance:
-        A = np.concatenate([-_skew(y), np.broadcast_to(np.eye(3), (len(y), 3, 3))], axis=2)
+        A = np.concatenate([-skew(y), np.broadcast_to(np.eye(3), (len(y), 3, 3))], axis=2)
         C = C + A @ fix.covariance @ np.swapaxes(A, 1, 2)
     return y + fix.t, sym6_from_mat(C)
 
@@ -446,7 +437,7 @@ class Initialiser:
         R = R_a @ np.asarray(R_oc, float)
         t = R_a @ np.asarray(t_oc, float) + t_a
         J = np.zeros((6, 6))          # (theta, dt) at the fix -> ROS (dp, dtheta) here
-        J[:3, :3] = -_skew(t - self.fix_origin)
+        J[:3, :3] = -skew(t - self.fix_origin)
         J[:3, 3:] = np.eye(3)
         J[3:, :3] = np.eye(3)
         cov = J @ self.alignment_covariance @ J.T
