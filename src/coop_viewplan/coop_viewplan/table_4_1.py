@@ -15,7 +15,17 @@ import numpy as np
 
 from coop_common.files import write_json
 
-from .task_study import DENSITIES, METHODS, THESIS_TABLE_4_1, TOLERANCES, rating_maps, run_study
+from .task_study import (
+    DENSITIES,
+    METHODS,
+    THESIS_TABLE_4_1,
+    TOLERANCES,
+    StudyConfig,
+    rating_maps,
+    run_study,
+)
+
+DEFAULT_CLEAR_ZONE_M = StudyConfig().clear_zone_m
 
 LABEL = {'optimal_replacement': 'Optimal camera re-placement',
          'random_replacement': 'Random camera re-placement',
@@ -26,11 +36,14 @@ def _thesis(v: float) -> str:
     return '<<1' if v < 1 else f'{v:.0f}'
 
 
-def format_table(cells: list[dict], trials: int) -> str:
+def format_table(cells: list[dict], trials: int, *,
+                 clear_zone_m: float = DEFAULT_CLEAR_ZONE_M) -> str:
     idx = {(c['tolerance'], c['method'], c['density'], c['secondary']): c for c in cells}
     dens = sorted({c['density'] for c in cells})
     tols = sorted({c['tolerance'] for c in cells}, reverse=True)
-    lines = [f'{trials} tests per scenario; each cell: ours (thesis), success %']
+    extra = '' if clear_zone_m == DEFAULT_CLEAR_ZONE_M else \
+        f'; target clear zone {clear_zone_m:g} m (default {DEFAULT_CLEAR_ZONE_M:g} m)'
+    lines = [f'{trials} tests per scenario{extra}; each cell: ours (thesis), success %']
     head = f"{'':44s}" + ''.join(f"{f'density {d * 100:.0f}%':^24s}" for d in dens)
     sub = f"{'':44s}" + ''.join(f"{'no sec.':>12s}{'with sec.':>12s}" for _ in dens)
     lines += [head, sub]
@@ -114,6 +127,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--tolerances', default=','.join(str(t) for t in TOLERANCES))
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--json', type=Path, default=None)
+    p.add_argument('--clear-zone-m', type=float, default=DEFAULT_CLEAR_ZONE_M,
+                   help='obstacle-free radius around each target, m (sensitivity study; '
+                        f'default {DEFAULT_CLEAR_ZONE_M:g}; widened per scenario only where a '
+                        'target would lie inside an expanded occluder)')
     p.add_argument('--plots', type=Path, default=None,
                    help='directory for the Fig. 4-8b analogue (RF map)')
     args = p.parse_args(argv)
@@ -126,12 +143,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.trials < 1 or not all(0 <= d < 0.6 for d in dens) or not all(0 < t < 1 for t in tols):
         print('trials >= 1, densities in [0, 0.6), tolerances in (0, 1)', file=sys.stderr)
         return 2
+    if not 0 <= args.clear_zone_m < 30:
+        print('clear-zone-m in [0, 30)', file=sys.stderr)
+        return 2
+    cfg = StudyConfig(clear_zone_m=args.clear_zone_m)
     t0 = time.perf_counter()
-    cells = run_study(trials=args.trials, densities=dens, tolerances=tols, seed0=args.seed)
-    result = {'trials_per_cell': args.trials, 'cells': cells, 'check': check(cells),
-              'seconds': time.perf_counter() - t0}
+    cells = run_study(trials=args.trials, densities=dens, tolerances=tols, seed0=args.seed,
+                      cfg=cfg)
+    result = {'trials_per_cell': args.trials, 'clear_zone_m': args.clear_zone_m, 'cells': cells,
+              'check': check(cells), 'seconds': time.perf_counter() - t0}
     print('Table 4-1 (reproduction)')
-    print(format_table(cells, args.trials))
+    print(format_table(cells, args.trials, clear_zone_m=args.clear_zone_m))
     print('check:', json.dumps(result['check']))
     if args.plots is not None:
         print(f'plot: {plot_rating_maps(args.plots)}')

@@ -5,7 +5,10 @@ object-goal distance is within tolerance.
 The thesis gives the outcome table but not the scenario's numbers; the ones below are chosen
 once, a priori, and documented (they are not fitted to the table):
 * 60 m x 60 m planar world at 0.5 m, random discs and boxes to the occlusion density, a 2 m clear
-  zone around each target and a clear corridor for the object's path;
+  zone around each target (`StudyConfig.clear_zone_m`, cells whose centre lies within it are kept
+  free) and a clear corridor for the object's path; whatever the clear zone, a target never lies
+  inside an (expanded) occluder hull: where one would, that target's clear zone is widened in
+  half-cell steps until it does not (never needed at the default 2 m);
 * primary target (the insertion site) at the centre, one-sided with a random normal, radius
   0.25 m; a secondary target 8..15 m away with its own normal and a 5 mm (1 sigma) uncertainty of
   its geometric relation to the primary (ST_error, Eq. 4-4);
@@ -41,6 +44,7 @@ from .placement import (
     grid_occluders,
     move_known_object,
     occluder_hulls,
+    occlusion_distance,
 )
 
 METHODS = ('optimal_replacement', 'random_replacement', 'random_fixed')
@@ -78,6 +82,7 @@ class StudyConfig:
     max_candidates: int = 1500
     n_dirs: int = 360
     search: str = 'bounded'
+    clear_zone_m: float = 2.0    # obstacle-free radius around each target (cell centres)
 
 
 @dataclass
@@ -87,9 +92,24 @@ class Scenario:
     secondary: Target
     path: np.ndarray             # (steps, 2) object centre per step
     object_cells: np.ndarray     # model cells relative to the centre cell
+    clear_radii: tuple[float, float] = (2.0, 2.0)   # effective clear zone (primary, secondary)
+
+
+def _inside_hull(grid: OccupancyGrid, t: Target, reach_m: float = 4.0) -> bool:
+    """Whether the target point lies inside an expanded occluder hull (as `_static_field` builds
+    them), i.e. the scenario would be invalid for that target."""
+    raw = grid_occluders(grid, unknown_occludes=False)
+    near = [h for h in raw if np.min(np.linalg.norm(h - t.position, axis=1)) <= reach_m]
+    try:
+        occlusion_distance(t.position, occluder_hulls(near, t.radius), np.array([[1.0, 0.0]]))
+    except PlacementError:
+        return True
+    return False
 
 
 def make_scenario(rng: np.random.Generator, density: float, cfg: StudyConfig) -> Scenario:
+    if not cfg.clear_zone_m >= 0:
+        raise ValueError('clear_zone_m must be >= 0')
     n = int(round(cfg.size_m / cfg.resolution_m))
     res = cfg.resolution_m
     xx, yy = np.meshgrid((np.arange(n) + 0.5) * res, (np.arange(n) + 0.5) * res, indexing='ij')
@@ -107,7 +127,8 @@ def make_scenario(rng: np.random.Generator, density: float, cfg: StudyConfig) ->
     path = centre + s[:, None] * u
     keep_clear = np.zeros((n, n), bool)
     for t in (primary, secondary):
-        keep_clear |= (xx - t.position[0]) ** 2 + (yy - t.position[1]) ** 2 <= 2.0 ** 2
+        d2 = (xx - t.position[0]) ** 2 + (yy - t.position[1]) ** 2
+        keep_clear |= d2 <= cfg.clear_zone_m ** 2
     # corridor of the object's approach
     rel_x, rel_y = xx - centre[0], yy - centre[1]
     along = rel_x * u[0] + rel_y * u[1]
@@ -131,11 +152,22 @@ def make_scenario(rng: np.random.Generator, density: float, cfg: StudyConfig) ->
             blob = (np.abs(uu) <= w / 2) & (np.abs(vv) <= h / 2)
         occ |= blob & ~keep_clear
     grid = OccupancyGrid(occ.astype(np.float32), np.ones((n, n), bool), res, np.zeros(2))
+    # Validity: no target inside an obstacle or an expanded occluder hull. Widen that target's
+    # clear zone in half-cell steps where needed (a no-op at the default 2 m). Uses no random
+    # numbers, so the draws after this point are the same for every clear zone.
+    radii = []
+    for t in (primary, secondary):
+        r = cfg.clear_zone_m
+        while _inside_hull(grid, t):
+            r += res / 2
+            d2 = (xx - t.position[0]) ** 2 + (yy - t.position[1]) ** 2
+            grid.prob[d2 <= r * r] = 0.0
+        radii.append(float(r))
     rc = int(np.ceil(cfg.object_radius_m / res))
     ax = np.arange(-rc, rc + 1)
     gi, gj = np.meshgrid(ax, ax, indexing='ij')
     disc = (gi ** 2 + gj ** 2) * res * res <= cfg.object_radius_m ** 2
-    return Scenario(grid, primary, secondary, path, np.argwhere(disc) - rc)
+    return Scenario(grid, primary, secondary, path, np.argwhere(disc) - rc, tuple(radii))
 
 
 def _static_field(grid: OccupancyGrid, t: Target, cfg: StudyConfig) -> VisibilityField:

@@ -55,3 +55,63 @@ def test_object_covering_the_secondary_does_not_end_guidance():
     assert np.min(np.linalg.norm(sc.path - sc.secondary.position, axis=1)) < 0.5
     r = run_trial(25, 0.05, use_secondary=True)
     assert r['optimal_replacement']['tracked']
+
+
+def _min_obstacle_distance(sc, t):
+    g = sc.grid
+    centres = (np.argwhere(g.prob >= 0.5) + 0.5) * g.resolution + g.origin
+    assert len(centres) > 0
+    return float(np.min(np.linalg.norm(centres - t.position, axis=1)))
+
+
+def test_clear_zone_default_unchanged():
+    assert StudyConfig().clear_zone_m == 2.0
+    for seed in (0, 4, 25):
+        a = make_scenario(np.random.default_rng(seed), 0.35, StudyConfig())
+        b = make_scenario(np.random.default_rng(seed), 0.35, StudyConfig(clear_zone_m=2.0))
+        assert np.array_equal(a.grid.prob, b.grid.prob)
+        assert np.array_equal(a.path, b.path)
+        assert a.clear_radii == (2.0, 2.0)
+
+
+@pytest.mark.parametrize('radius', [2.0, 1.0, 0.5, 0.0])
+def test_clear_zone_honoured_and_targets_valid(radius):
+    from coop_viewplan.task_study import _static_field
+    cfg = StudyConfig(clear_zone_m=radius)
+    for seed in range(6):
+        sc = make_scenario(np.random.default_rng(seed), 0.35, cfg)
+        for t, r in zip((sc.primary, sc.secondary), sc.clear_radii):
+            assert r >= radius                      # widened only, never narrowed
+            assert _min_obstacle_distance(sc, t) > r   # no obstacle cell centre within it
+            assert sc.grid.prob[tuple(sc.grid.to_index(t.position))] == 0.0
+            _static_field(sc.grid, t, cfg)          # target outside every expanded hull
+        # the object's corridor stays clear
+        for p in sc.path:
+            assert sc.grid.prob[tuple(sc.grid.to_index(p))] == 0.0
+
+
+def test_smaller_clear_zone_allows_closer_obstacles():
+    near = {}
+    for radius in (2.0, 0.5):
+        cfg = StudyConfig(clear_zone_m=radius)
+        scs = [make_scenario(np.random.default_rng(s), 0.35, cfg) for s in range(6)]
+        near[radius] = min(_min_obstacle_distance(sc, sc.primary) for sc in scs)
+    assert near[2.0] > 2.0
+    assert near[0.5] < 1.5
+
+
+def test_clear_zone_rejected_when_negative():
+    with pytest.raises(ValueError):
+        make_scenario(np.random.default_rng(0), 0.2, StudyConfig(clear_zone_m=-1.0))
+    assert table_4_1.main(['--clear-zone-m', '-1']) == 2
+
+
+def test_cli_clear_zone_in_header_and_json(tmp_path, capsys):
+    out = tmp_path / 't.json'
+    assert table_4_1.main(['--trials', '2', '--densities', '0.05', '--tolerances', '0.2',
+                           '--clear-zone-m', '0.5', '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    assert 'clear zone 0.5 m' in text
+    assert json.loads(out.read_text())['clear_zone_m'] == 0.5
+    assert table_4_1.main(['--trials', '1', '--densities', '0.05', '--tolerances', '0.2']) == 0
+    assert 'clear zone' not in capsys.readouterr().out
