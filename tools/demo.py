@@ -24,6 +24,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from coop_common.files import save_figure
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
 from coop_msgs.msg import Inclinometer, VoxelMap
@@ -216,10 +217,7 @@ def save_outputs(node: DemoNode, out: Path) -> list[Path]:
             axes[1, col].set_title(f'{r}: arm-base force F_12 (N, mean removed)')
             axes[1, col].set_xlabel('sim time (s)')
             axes[1, col].legend(loc='upper right')
-    fig.tight_layout()
-    path = out / 'tilt_and_force.png'
-    fig.savefig(path, dpi=90)
-    written.append(path)
+    written.append(save_figure(fig, out / 'tilt_and_force.png', dpi=90))
     if node.grid is not None:
         path = out / 'map_grid.png'
         save_grid(node.grid, path)

@@ -2,7 +2,7 @@ import json
 
 import pytest
 
-from coop_common.files import write_json, write_text_atomic
+from coop_common.files import save_figure, write_json, write_text_atomic
 
 
 def test_write_json_creates_parents_and_replaces(tmp_path):
@@ -20,3 +20,16 @@ def test_a_failed_write_keeps_the_old_file(tmp_path):
         write_json(path, {'x': object()})
     assert path.read_text() == 'old'
     assert [p.name for p in tmp_path.iterdir()] == ['r.json']
+
+
+def test_save_figure_writes_atomically_and_closes(tmp_path):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0, 1])
+    path = save_figure(fig, tmp_path / 'sub' / 'f.png', dpi=50)
+    assert path.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    assert not plt.fignum_exists(fig.number)
+    assert [p.name for p in path.parent.iterdir()] == ['f.png']     # no temporary left

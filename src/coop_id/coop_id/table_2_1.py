@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from coop_common.dynparams import PARAM_LABELS, PARAM_NAMES, TruthFileError, load_truth
-from coop_common.files import write_json
+from coop_common.files import save_figure, write_json
 
 from .excitation import STRATEGIES
 from .experiment import RunResult, reference_noise_scales, run_identification
@@ -139,7 +139,6 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     k = PARAM_NAMES.index('k_pitch')
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -151,10 +150,7 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
     ax.set_title('Fig. 2-6: information in stiffness theta_p (mean over seeds)')
     ax.set_ylim(0, 10.5)
     ax.legend()
-    fig.tight_layout()
-    paths.append(out_dir / 'fig_2_6_information_k_pitch.png')
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+    paths.append(save_figure(fig, out_dir / 'fig_2_6_information_k_pitch.png'))
     params = ('cg_y', 'cg_z', 'mass', 'Ixx', 'b_y', 'k_pitch', 'k_y')
     fig, axes = plt.subplots(2, 4, figsize=(14, 6))
     for ax, p in zip(axes.ravel(), params):
@@ -167,10 +163,7 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
     axes.ravel()[-1].axis('off')
     axes.ravel()[0].legend(fontsize=7)
     fig.suptitle('Fig. 2-7: convergence (seed of the first run; dashed: true value)')
-    fig.tight_layout()
-    paths.append(out_dir / 'fig_2_7_convergence.png')
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+    paths.append(save_figure(fig, out_dir / 'fig_2_7_convergence.png'))
     return paths
 
 

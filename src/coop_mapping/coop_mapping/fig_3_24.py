@@ -30,7 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from coop_common.files import write_json
+from coop_common.files import save_figure, write_json
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .render import Box, TexturedScene, look_at
@@ -229,9 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_ylabel('accumulated r.m.s. translation error (mm)')
         ax.legend()
         ax.grid(alpha=0.3)
-        args.plots.parent.mkdir(parents=True, exist_ok=True)
-        fig.tight_layout()
-        fig.savefig(args.plots, dpi=120)
+        save_figure(fig, args.plots, dpi=120)
     return 0
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from coop_common.files import write_json
+from coop_common.files import save_figure, write_json
 
 from .explore import explore, make_world
 from .nbv import ENTROPY_WEIGHTS, NI_MEASURES, STRATEGIES, NbvConfig
@@ -130,7 +130,6 @@ def plot(result: dict, out_dir: Path) -> list[Path]:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    out_dir.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     for name, r in result['strategies'].items():
         c = r['curve']
@@ -148,12 +147,8 @@ def plot(result: dict, out_dir: Path) -> list[Path]:
     fig.suptitle(f"{result['figure']}: {result['world']}, {result['cameras']} camera(s), "
                  f"{result['fov_deg']:.0f} deg / {result['depth_m']:.0f} m, "
                  f"{result['seeds']} seeds (mean, 95% CI)")
-    fig.tight_layout()
     stem = f"fig_3_13_{Path(result['world']).stem}_{result['cameras']}cam"
-    path = out_dir / f'{stem}.png'
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return [path]
+    return [save_figure(fig, out_dir / f'{stem}.png', dpi=110)]
 
 
 def build_parser() -> argparse.ArgumentParser:

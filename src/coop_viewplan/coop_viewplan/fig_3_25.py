@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from coop_common.files import write_json
+from coop_common.files import save_figure, write_json
 
 from .grid import FREE_GRAYS, MapError, OccupancyGrid, gray_estimate
 from .nbv import (
@@ -508,12 +508,7 @@ def plot(res: dict, out_dir: Path) -> Path:
                 a.plot(p[:, 0], p[:, 1], '.-', lw=0.8)
         a.set(title=f'map after the last scan: {STRATEGY_NAMES.get(name, name)}',
               xlabel='x (m)', ylabel='y (m)')
-    fig.tight_layout()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / 'fig_3_25.png'
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out_dir / 'fig_3_25.png', dpi=110)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from coop_common.files import write_json
+from coop_common.files import save_figure, write_json
 
 from .task_study import (
     DENSITIES,
@@ -112,12 +112,7 @@ def plot_rating_maps(out_dir: Path, *, seed: int = 7, density: float = 0.20) -> 
         which = 'primary' if m['target_index'] == 0 else 'secondary'
         ax.set_title(f"object at step {m['step']}: best views the {which} target")
         fig.colorbar(im, ax=ax, fraction=0.046, label='log10(RF / max RF) / 2 + 1 (Eq. 4-1)')
-    fig.tight_layout()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / 'fig_4_8b_rating_map.png'
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out_dir / 'fig_4_8b_rating_map.png')
 
 
 def main(argv: list[str] | None = None) -> int:
