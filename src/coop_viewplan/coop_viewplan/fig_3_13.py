@@ -18,7 +18,8 @@ from scipy import stats
 from coop_common.files import save_figure, write_json
 
 from .explore import explore, make_world
-from .nbv import ENTROPY_WEIGHTS, NI_MEASURES, STRATEGIES, NbvConfig
+from .grid import OCCLUSION_PRIORS
+from .nbv import ENTROPY_WEIGHTS, NI_MEASURES, STRATEGIES, UNKNOWN_OCCLUSIONS, NbvConfig
 
 THESIS_FIGURE = {('unstructured', 1): 'Fig. 3-13', ('unstructured', 2): 'Fig. 3-16',
                  ('rooms', 1): 'Fig. 3-20'}
@@ -53,11 +54,13 @@ def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
         resolution_m: float, strategies: list[str], k_rel: float, n_positions: int,
         distance_metric: str = 'configuration', level: float = 0.9,
         near_fraction: float = 0.0, angle_weight: float = 1.0,
-        entropy_weight: str = 'plogp', ni_measure: str = 'histogram') -> dict:
+        entropy_weight: str = 'plogp', ni_measure: str = 'histogram',
+        unknown_occlusion: str = 'none', occlusion_prior: str = 'markov') -> dict:
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
                     distance_metric=distance_metric, near_fraction=near_fraction,
                     alpha=(1.0, 1.0, 1.0, angle_weight, angle_weight),
-                    entropy_weight=entropy_weight, ni_measure=ni_measure)
+                    entropy_weight=entropy_weight, ni_measure=ni_measure,
+                    unknown_occlusion=unknown_occlusion, occlusion_prior=occlusion_prior)
     res: dict = {}
     for name in strategies:
         fr, di, s90, d90 = [], [], [], []
@@ -185,6 +188,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--ni-measure', choices=NI_MEASURES, default=NbvConfig.ni_measure,
                    help='NI binning: gray levels of the cells in view (Eq. 3-13, default) or the '
                         "App. C predictor-5 residual of the view's gray image")
+    p.add_argument('--unknown-occlusion', choices=UNKNOWN_OCCLUSIONS,
+                   default=NbvConfig.unknown_occlusion,
+                   help='none: the expected view is occluded by the known obstacles only '
+                        '(thesis, default); expected: each cell counts with its probability of '
+                        'being seen past the unknown cells before it (beyond the thesis)')
+    p.add_argument('--occlusion-prior', choices=OCCLUSION_PRIORS,
+                   default=NbvConfig.occlusion_prior,
+                   help="with --unknown-occlusion expected: unknown cells' occupancy, the "
+                        "Markov chain started from the known map's obstacle density (density, "
+                        "default) or the planner's Markov-chain estimate as it is (markov, 0.5 "
+                        "far from the map)")
     p.add_argument('--compare-one-camera', action='store_true',
                    help='with --cameras 2: also run max_information with one camera, same '
                         'sensor, and report the scans ratio')
@@ -213,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
                   scans=args.scans, resolution_m=args.resolution_m, k_rel=args.k_rel,
                   n_positions=args.candidates, distance_metric=args.distance,
                   near_fraction=args.near_fraction, angle_weight=args.angle_weight,
-                  entropy_weight=args.entropy_weight, ni_measure=args.ni_measure)
+                  entropy_weight=args.entropy_weight, ni_measure=args.ni_measure,
+                  unknown_occlusion=args.unknown_occlusion, occlusion_prior=args.occlusion_prior)
     strat = run(cameras=args.cameras, strategies=strategies, **common)
     result = {'figure': THESIS_FIGURE.get((args.world, args.cameras), 'Fig. 3-13 analogue'),
               'world': args.world, 'cameras': args.cameras, 'fov_deg': fov, 'depth_m': depth,
@@ -221,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
               'k_rel': args.k_rel, 'distance': args.distance,
               'near_fraction': args.near_fraction, 'angle_weight': args.angle_weight,
               'entropy_weight': args.entropy_weight, 'ni_measure': args.ni_measure,
+              'unknown_occlusion': args.unknown_occlusion,
+              'occlusion_prior': args.occlusion_prior,
               'strategies': strat,
               'verdict': verdict(strat)}
     if args.compare_one_camera and args.cameras == 2:
@@ -234,7 +251,9 @@ def main(argv: list[str] | None = None) -> int:
         result['verdict']['scans_one_over_two_cameras'] = ratio
     print(f"{result['figure']}: world={args.world} cameras={args.cameras} fov={fov:.0f} deg "
           f"depth={depth:.0f} m seeds={args.seeds} scans={args.scans} "
-          f"res={args.resolution_m} m")
+          f"res={args.resolution_m} m"
+          + (f' unknown_occlusion=expected/{args.occlusion_prior}'
+             if args.unknown_occlusion == 'expected' else ''))
     print(f"{'strategy':16s} {'scans to 90% [95% CI]':>24s} {'reached':>8s} "
           f"{'distance to 90% m [95% CI]':>30s} {'final frac':>10s} {'final dist m':>12s}")
     for name, r in strat.items():

@@ -113,16 +113,20 @@ class OccupancyGrid:
         return self.known & (self.prob < p_empty)
 
 
-def markov_estimate(grid: OccupancyGrid, *, iterations: int = 6) -> np.ndarray:
+def markov_estimate(grid: OccupancyGrid, *, iterations: int = 6,
+                    prior: float = 0.5) -> np.ndarray:
     """Occupancy estimate for every cell: known cells keep their probability, unknown ones get the
     Markov-chain estimate of §3.2.4 ("p of a voxel is the average of p of its neighbours"),
     found by Jacobi iteration of the neighbour average with the known cells held fixed.
 
-    Unknown cells far from anything known stay at 0.5; unknown cells next to known free space
-    lean towards free, next to obstacles towards occupied."""
+    Unknown cells far from anything known (beyond `iterations` cells) stay at `prior` (0.5, the
+    thesis's "nothing known"); unknown cells next to known free space lean towards free, next to
+    obstacles towards occupied."""
     if iterations < 0:
         raise ValueError('iterations must be >= 0')
-    est = np.where(grid.known, grid.prob, np.float32(0.5)).astype(np.float32)
+    if not 0.0 <= prior <= 1.0:
+        raise ValueError(f'prior must be within 0..1, got {prior}')
+    est = np.where(grid.known, grid.prob, np.float32(prior)).astype(np.float32)
     unknown = ~grid.known
     for _ in range(iterations):
         avg = ndimage.uniform_filter(est, size=3, mode='nearest')
@@ -134,7 +138,7 @@ FREE_GRAYS = ('empty', 'occupancy')
 
 
 def gray_estimate(grid: OccupancyGrid, *, free_gray: str = 'empty',
-                  iterations: int = 6) -> np.ndarray:
+                  iterations: int = 6, prior: float = 0.5) -> np.ndarray:
     """Gray values of NI (§3.2.4): known cells their occupancy, unknown ones the Markov-chain
     average of their neighbours (`markov_estimate`). free_gray 'empty': a known cell the map holds
     free (p < 0.5: crossed by rays, no range point kept it occupied) is empty space, gray 0 - the
@@ -143,10 +147,40 @@ def gray_estimate(grid: OccupancyGrid, *, free_gray: str = 'empty',
     then NI = 0" (§3.2.4); 'occupancy': the map's own probability (a log-odds map leaves 0.40
     after one miss, whose -p log2 p = 0.53 outweighs an unknown cell's 0.5)."""
     if free_gray == 'occupancy':
-        return markov_estimate(grid, iterations=iterations)
+        return markov_estimate(grid, iterations=iterations, prior=prior)
     if free_gray != 'empty':
         raise ValueError(f'free_gray must be one of {FREE_GRAYS}, got {free_gray!r}')
     empty = grid.known & (grid.prob < 0.5)
     gray = OccupancyGrid(np.where(empty, np.float32(0.0), grid.prob), grid.known,
                          resolution=grid.resolution, origin=grid.origin)
-    return markov_estimate(gray, iterations=iterations)
+    return markov_estimate(gray, iterations=iterations, prior=prior)
+
+
+def obstacle_density(grid: OccupancyGrid, *, threshold: float = 0.5) -> float:
+    """Share of the known cells that are occupied (p >= threshold): an occupancy prior for
+    unknown space from the map itself (0.5 when nothing is known)."""
+    n = int(grid.known.sum())
+    return float(grid.occupied(threshold=threshold).sum() / n) if n else 0.5
+
+
+OCCLUSION_PRIORS = ('markov', 'density')
+
+
+def occlusion_estimate(grid: OccupancyGrid, *, prior: str = 'density', free_gray: str = 'empty',
+                       iterations: int = 6, gray: np.ndarray | None = None) -> np.ndarray:
+    """Per-cell probability that a cell stops a ray, for the occlusion-aware expected view
+    (`NbvConfig.unknown_occlusion = 'expected'`, beyond the thesis): known cells their occupancy
+    (known free 0 under free_gray 'empty', as in NI's gray values), unknown ones the Markov-chain
+    estimate. prior 'markov': the planner's gray estimate as it is (unknown space far from the
+    map at 0.5); 'density': the same Markov chain started from the map's obstacle density
+    (`obstacle_density`) instead of 0.5, so unknown space far from the map is as cluttered as
+    the known map. `gray`: the 'markov' estimate if already computed."""
+    if prior == 'markov':
+        est = gray if gray is not None else gray_estimate(grid, free_gray=free_gray,
+                                                          iterations=iterations)
+    elif prior == 'density':
+        est = gray_estimate(grid, free_gray=free_gray, iterations=iterations,
+                            prior=obstacle_density(grid))
+    else:
+        raise ValueError(f'occlusion prior must be one of {OCCLUSION_PRIORS}, got {prior!r}')
+    return np.asarray(est, np.float32)

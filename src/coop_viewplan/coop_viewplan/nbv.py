@@ -25,6 +25,25 @@ Reading of Eq. 3-12b..3-14 used here (the thesis leaves the details open):
   vision planning algorithm in chapter 3") bins the cells by the predictor-5 residual of the
   view's gray image instead of by level (`predictor5_codes`); the default is the histogram.
 
+Occlusion by unknown space (`NbvConfig.unknown_occlusion`, beyond the thesis):
+* 'none' (default, §3.2.4 (iv) "based on the known obstacles"): only known occupied cells block
+  the expected view; every unknown cell behind other unknown cells counts in full.
+* 'expected': each visible sample is weighted by the probability that it is seen,
+  P(visible) = prod over the distinct cells j before it on its ray of (1 - p_j)
+  (`raycast.expected_visibility`; Isler et al., ICRA 2016; Kriegel et al.), with p_j the
+  occupancy estimate of `grid.occlusion_estimate` (`NbvConfig.occlusion_prior`: 'density'
+  (default), the planner's Markov chain started from the known map's obstacle density - known
+  occupied over known cells, i.e. the rate at which the scans' rays were stopped per cell
+  crossed; 'markov', the planner's gray estimate as it is, 0.5 far from the map, which makes a
+  ray through unknown space die within a few cells and did worse in every Fig. 3-13 run).
+  NI's histogram counts f_k become expected counts sum w P(visible) (the quadrature weights w
+  times the visibility), and the -p log2 p premultiplier the visibility-weighted mean over
+  level k; N (the unobstructed frustum), the per-cell gray values and weights are unchanged.
+  K's reference (`max_information`, a fully unknown unobstructed view) is unchanged too, so the
+  same k_rel weighs distance relatively more. The cell counts of max_unmapped / min_mapped stay
+  the thesis's (known occlusions only); `ViewScores.unknown_expected` holds the expected unknown
+  count. The cells claimed for another camera are those seen with P >= 0.5.
+
 Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
 * 'known' (the planar experiments): a cell is navigable, and a candidate, when it is known and
   the largest occupancy within the rover's clearance is below P_empty (unknown counts 0.5; in
@@ -45,11 +64,20 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from .grid import MapError, OccupancyGrid, gray_estimate
+from .grid import OCCLUSION_PRIORS, MapError, OccupancyGrid, gray_estimate, occlusion_estimate
 from .imageinfo import prediction
-from .raycast import Cast, RayTemplate, cast, make_template
+from .raycast import (
+    Cast,
+    RayTemplate,
+    cast,
+    expected_visibility,
+    make_template,
+    ray_prefix_visibility,
+    transmission_table,
+)
 
 STRATEGIES = ('random', 'raster', 'max_unmapped', 'min_mapped', 'max_information', 'frontier')
+UNKNOWN_OCCLUSIONS = ('none', 'expected')
 
 
 class PlanningError(RuntimeError):
@@ -122,6 +150,16 @@ class NbvConfig:
     reach_model: str = 'known'                 # 'known' or 'evidence' (module docstring)
     occupied_voxels: int = 2                   # 'evidence': occupied slab voxels that block
     occupied_clamp: float = 0.97               # 'evidence': one voxel this sure blocks alone
+    unknown_occlusion: str = 'none'            # 'none' (thesis) or 'expected' (docstring)
+    occlusion_prior: str = 'density'           # 'expected': p of unknown cells, 'density'|'markov'
+
+    def __post_init__(self) -> None:
+        if self.unknown_occlusion not in UNKNOWN_OCCLUSIONS:
+            raise ValueError(f'unknown_occlusion must be one of {UNKNOWN_OCCLUSIONS}, got '
+                             f'{self.unknown_occlusion!r}')
+        if self.occlusion_prior not in OCCLUSION_PRIORS:
+            raise ValueError(f'occlusion_prior must be one of {OCCLUSION_PRIORS}, got '
+                             f'{self.occlusion_prior!r}')
 
     def template(self, *, ndim: int, resolution: float) -> RayTemplate:
         return make_template(ndim=ndim, fov_deg=self.fov_deg, depth_m=self.depth_m,
@@ -152,11 +190,13 @@ class Candidates:
 
 @dataclass
 class ViewScores:
-    """Per candidate: NI (bits), visible unknown and known cell counts."""
+    """Per candidate: NI (bits), visible unknown and known cell counts (known occlusions only),
+    and with unknown_occlusion 'expected' the expected count of unknown cells seen."""
 
     ni: np.ndarray
     unknown_cells: np.ndarray
     known_cells: np.ndarray
+    unknown_expected: np.ndarray | None = None
 
 
 @dataclass
@@ -259,12 +299,18 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
                          n_gray: int = 10, n_shells: int = 8,
                          claimed: np.ndarray | None = None,
                          lookup: InfoLookup | None = None,
-                         weight: str = 'plogp', measure: str = 'histogram') -> ViewScores:
+                         weight: str = 'plogp', measure: str = 'histogram',
+                         visibility: np.ndarray | None = None,
+                         transmission: np.ndarray | None = None) -> ViewScores:
     """NI of every cast pose (Eq. 3-12b with Eq. 3-13 q_k = f_k / N and the entropy weighting;
     see the module docstring for the reading of Eq. 3-14). `claimed` cells (bool, grid shape)
     are about to be measured by another camera and count as known-certain (weight 0).
     `measure`: 'histogram' bins the cells by gray level; 'predictor5' by the App. C predictor-5
-    residual of the view's gray image (`predictor5_codes`), known and unknown still apart."""
+    residual of the view's gray image (`predictor5_codes`), known and unknown still apart.
+    `visibility`: the probability each sample is seen (`expected_visibility`, unknown_occlusion
+    'expected'), (M, R, S) or compact (the visible samples in np.nonzero order), or computed
+    here from `transmission` (`raycast.transmission_table` of the per-cell stop
+    probabilities); the histogram counts become expected counts."""
     if n_shells < 1:
         raise ValueError('n_shells must be >= 1')
     if measure not in NI_MEASURES:
@@ -283,7 +329,14 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
         code = lk.code[cellv].astype(np.int64)
         n_levels = lk.n_gray
     h = lk.entropy[cellv]
-    w = tpl.weights[ri, si]
+    w0 = tpl.weights[ri, si]
+    if visibility is None and transmission is not None:
+        visibility = ray_prefix_visibility(cellv, si, transmission)
+    if visibility is None:
+        w = w0
+    else:
+        v = visibility[casting.visible] if visibility.ndim == 3 else visibility
+        w = w0 * v
     shell = np.minimum((tpl.ranges / tpl.depth_m * n_shells).astype(np.int64), n_shells - 1)
     bins = 2 * n_levels * n_shells
     key = mi * bins + code * n_shells + shell[si]
@@ -295,9 +348,20 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
         term = np.where(q > 0, -q * np.log2(q), 0.0)
     ni = (mean_h * term).sum(axis=1)
     half = n_levels * n_shells
-    kn = f[:, :half].sum(axis=1)
-    unk = f[:, half:].sum(axis=1)
-    return ViewScores(ni, unk, kn)
+    if visibility is None:
+        kn = f[:, :half].sum(axis=1)
+        unk = f[:, half:].sum(axis=1)
+        return ViewScores(ni, unk, kn)
+    # the thesis's counts (known occlusions only): per-pose sums over the samples, which
+    # np.nonzero lists pose by pose
+    unk, kn = np.zeros(m), np.zeros(m)
+    if len(w0):
+        edge = np.searchsorted(mi, np.arange(m + 1))
+        st = np.minimum(edge[:-1], len(w0) - 1)
+        has = edge[1:] > edge[:-1]
+        unk = np.where(has, np.add.reduceat(w0 * (code >= n_levels), st, dtype=np.float64), 0)
+        kn = np.where(has, np.add.reduceat(w0, st, dtype=np.float64), 0) - unk
+    return ViewScores(ni, unk, kn, f[:, half:].sum(axis=1))
 
 
 def max_information(template: RayTemplate, *, n_gray: int = 10, n_shells: int = 8,
@@ -315,9 +379,13 @@ def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray
                 yaw: np.ndarray, pitch: np.ndarray | None, template: RayTemplate, *,
                 n_gray: int = 10, n_shells: int = 8, claimed: np.ndarray | None = None,
                 chunk_samples: int = 400_000, lookup: InfoLookup | None = None,
-                weight: str = 'plogp', measure: str = 'histogram') -> ViewScores:
+                weight: str = 'plogp', measure: str = 'histogram',
+                occlusion: np.ndarray | None = None) -> ViewScores:
     """Cast and score many poses in chunks of at most `chunk_samples` ray samples
-    (`lookup` reuses the per-map tables across calls)."""
+    (`lookup` reuses the per-map tables across calls). `occlusion` (grid shape): per-cell
+    probability that a cell stops a ray (`grid.occlusion_estimate`); given, each sample counts
+    with its probability of being seen (unknown_occlusion 'expected'), else the known obstacles
+    alone occlude (the thesis)."""
     positions = np.asarray(positions, dtype=float).reshape(-1, grid.ndim)
     m = positions.shape[0]
     yaw = np.broadcast_to(np.asarray(yaw, float).reshape(-1), (m,))
@@ -329,16 +397,18 @@ def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray
     lk = lookup if lookup is not None else InfoLookup.build(grid, estimate, n_gray=n_gray,
                                                             claimed=claimed, weight=weight)
     block = grid.occupied()
+    table = None if occlusion is None else transmission_table(occlusion)
     for s in range(0, m, step):
         c = cast(grid, positions[s:s + step], yaw[s:s + step],
                  None if pitch_a is None else pitch_a[s:s + step], template, blocking=block)
         parts.append(expected_information(grid, estimate, c, n_shells=n_shells, lookup=lk,
-                                          measure=measure))
+                                          measure=measure, transmission=table))
     if not parts:
         z = np.zeros(0)
-        return ViewScores(z, z, z)
-    return ViewScores(*(np.concatenate([getattr(p, k) for p in parts])
-                        for k in ('ni', 'unknown_cells', 'known_cells')))
+        return ViewScores(z, z, z, None if occlusion is None else z)
+    keys = ('ni', 'unknown_cells', 'known_cells') + (() if occlusion is None
+                                                     else ('unknown_expected',))
+    return ViewScores(*(np.concatenate([getattr(p, k) for p in parts]) for k in keys))
 
 
 def configuration_distance(current: np.ndarray, new: np.ndarray,
@@ -498,6 +568,7 @@ class PlanContext:
     k: float
     rng: np.random.Generator
     candidate: np.ndarray | None = None   # 2-D goal cells (constraint (i)); None: navigable
+    occlusion: np.ndarray | None = None   # unknown_occlusion 'expected': per-cell stop p
 
     @property
     def placeable(self) -> np.ndarray:
@@ -550,7 +621,7 @@ class PlanContext:
                            cands.pitch if self.grid.ndim == 3 else None, self.template,
                            n_gray=cfg.n_gray, n_shells=cfg.n_shells, claimed=self.claimed,
                            chunk_samples=cfg.chunk_samples, weight=cfg.entropy_weight,
-                           measure=cfg.ni_measure)
+                           measure=cfg.ni_measure, occlusion=self.occlusion)
 
 
 class Strategy(Protocol):
@@ -851,7 +922,8 @@ class NextBestViewPlanner:
              rng: np.random.Generator, claimed: np.ndarray | None = None,
              estimate: np.ndarray | None = None,
              traversability: Traversal | None = None,
-             free_footprint: bool = False) -> Decision:
+             free_footprint: bool = False,
+             occlusion: np.ndarray | None = None) -> Decision:
         """Choose one camera's next view. Raises PlanningError when no admissible view exists
         and ValueError for an unknown strategy.
 
@@ -859,7 +931,10 @@ class NextBestViewPlanner:
         reach_model 'known' the unseen ground within one rover length of the camera counts as
         known free (`_footprint_freed`); with 'evidence' (where unseen ground is passable
         anyway) the cells within the clearance of the rover are passable whatever the map says
-        there. Off in the experiments, on in the node."""
+        there. Off in the experiments, on in the node.
+
+        occlusion: the per-cell stop probability of unknown_occlusion 'expected' if already
+        computed (`occlusion_map`); ignored with 'none'."""
         strat = make_strategy(strategy) if isinstance(strategy, str) else strategy
         if not grid.known.any():
             raise MapError('empty map: nothing known, no free candidate')
@@ -885,20 +960,40 @@ class NextBestViewPlanner:
         est = gray_estimate(grid, free_gray=self.config.free_gray,
                             iterations=self.config.markov_iterations) \
             if estimate is None else estimate
+        occ = None
+        if self.config.unknown_occlusion == 'expected':
+            occ = occlusion if occlusion is not None else self.occlusion_map(grid, gray=est)
         ctx = PlanContext(grid, est, self.template(grid), self.config, camera, nav, reach,
                           trav.collision_p, claimed, self.k_value(grid), rng,
-                          candidate=trav.candidate)
+                          candidate=trav.candidate, occlusion=occ)
         return strat.choose(ctx)
 
-    def expected_cells(self, grid: OccupancyGrid, decision: Decision) -> np.ndarray:
+    def occlusion_map(self, grid: OccupancyGrid, *, gray: np.ndarray | None = None
+                      ) -> np.ndarray | None:
+        """Per-cell stop probability of unknown_occlusion 'expected' (`grid.occlusion_estimate`
+        with `config.occlusion_prior`; `gray`: the planner's gray estimate if at hand); None
+        with 'none'."""
+        cfg = self.config
+        if cfg.unknown_occlusion != 'expected':
+            return None
+        return occlusion_estimate(grid, prior=cfg.occlusion_prior, free_gray=cfg.free_gray,
+                                  iterations=cfg.markov_iterations, gray=gray)
+
+    def expected_cells(self, grid: OccupancyGrid, decision: Decision, *,
+                       occlusion: np.ndarray | None = None) -> np.ndarray:
         """Cells the chosen view is expected to see (bool, grid shape): what a second camera
-        planning on the same map should not count again."""
+        planning on the same map should not count again. With unknown_occlusion 'expected',
+        the cells seen with probability >= 0.5 (`occlusion` as in `plan`)."""
         c = decision.candidates
         i = decision.index
         casting = cast(grid, c.positions[i:i + 1], c.yaw[i:i + 1],
                        c.pitch[i:i + 1] if grid.ndim == 3 else None, self.template(grid))
+        seen = casting.visible
+        if self.config.unknown_occlusion == 'expected':
+            occ = occlusion if occlusion is not None else self.occlusion_map(grid)
+            seen = expected_visibility(casting, occ) >= 0.5
         out = np.zeros(grid.prob.size, bool)
-        out[casting.flat[casting.visible]] = True
+        out[casting.flat[seen]] = True
         return out.reshape(grid.shape)
 
 
@@ -909,17 +1004,19 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
     est = gray_estimate(grid, free_gray=planner.config.free_gray,
                         iterations=planner.config.markov_iterations)
     trav = planner.traversability(grid)
+    occ = planner.occlusion_map(grid, gray=est)
     claimed = np.zeros(grid.shape, bool)
     out = []
     for cam in cameras:
         d = planner.plan(grid, cam, strategy=strategy, rng=rng, claimed=claimed, estimate=est,
-                         traversability=trav)
-        claimed |= planner.expected_cells(grid, d)
+                         traversability=trav, occlusion=occ)
+        claimed |= planner.expected_cells(grid, d, occlusion=occ)
         out.append(d)
     return out
 
 
-__all__ = ['STRATEGIES', 'Candidates', 'CameraState', 'Decision', 'NbvConfig',
+__all__ = ['STRATEGIES', 'UNKNOWN_OCCLUSIONS', 'Candidates', 'CameraState', 'Decision',
+           'NbvConfig',
            'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores', 'binary_entropy',
            'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
            'configuration_distance', 'expected_information', 'geodesic_distance',

@@ -138,3 +138,63 @@ def cast(grid: OccupancyGrid, positions: np.ndarray, yaw: np.ndarray,
     visible = inb.copy()
     visible[:, :, 1:] &= ~seen_block[:, :, :-1]
     return Cast(flat, visible, template)
+
+
+def transmission_table(stop_p: np.ndarray, *, p_max: float = 0.999) -> np.ndarray:
+    """log(1 - p) per flat cell (float32) for `expected_visibility`, with one trailing 0 that
+    the index -1 (outside the grid) picks. Build it once per map: it is as long as the grid. p is
+    capped at `p_max` so the logs stay finite."""
+    p = np.clip(np.asarray(stop_p, np.float32).reshape(-1), 0.0, p_max)
+    out = np.zeros(p.size + 1, np.float32)
+    np.log1p(-p, out=out[:-1])
+    return out
+
+
+def expected_visibility(casting: Cast, stop_p: np.ndarray | None = None, *,
+                        table: np.ndarray | None = None, p_max: float = 0.999,
+                        compact: bool = False) -> np.ndarray:
+    """Probability that each sample of `casting` is seen: 0 where it is not visible past the
+    known obstacles, else prod over the distinct cells j before the sample's cell on its ray of
+    (1 - p_j), with p_j = `stop_p` (per cell, grid shape or flat; or `table`, its
+    `transmission_table`) - the occlusion-aware expected view (Isler et al. 2016; beyond the
+    thesis, whose expected view accounts for the known obstacles only). A straight ray leaves a
+    cell for good, so a cell's factor enters once, at the last sample of its run; the sample's
+    own cell does not occlude it (its surface is what is measured).
+
+    Returns (M, R, S) float32, or with `compact` only the visible samples' values, in the order
+    of np.nonzero(casting.visible)."""
+    if table is None:
+        if stop_p is None:
+            raise ValueError('stop_p or table is required')
+        table = transmission_table(stop_p, p_max=p_max)
+    flat = casting.flat
+    lg = table[flat]                   # -1 (outside) picks the trailing 0
+    # the factor of a cell enters after its last sample: where the next sample is another cell
+    lg[:, :, :-1] *= flat[:, :, :-1] != flat[:, :, 1:]
+    acc = np.empty_like(lg)
+    acc[:, :, 0] = 0.0                 # exclusive: cells strictly before the sample's cell
+    np.cumsum(lg[:, :, :-1], axis=2, out=acc[:, :, 1:])
+    if compact:
+        return np.exp(acc[casting.visible])
+    vis = np.exp(acc, out=acc)
+    vis *= casting.visible
+    return vis
+
+
+def ray_prefix_visibility(cells: np.ndarray, sample: np.ndarray,
+                          table: np.ndarray) -> np.ndarray:
+    """`expected_visibility` on the visible samples only (float32): `cells` their flat cell
+    indices listed ray by ray (np.nonzero order of Cast.visible), `sample` their index s along
+    their ray. The visible samples of a ray are a prefix of it (whatever blocks hides the rest),
+    so the sample s of a ray sits s places after the ray's first one in this list, and one
+    running sum with the ray's start subtracted gives every ray's exclusive product."""
+    cells = np.asarray(cells)
+    n = cells.shape[0]
+    if n == 0:
+        return np.zeros(0, np.float32)
+    lg = table[cells]
+    lg[:-1] *= cells[:-1] != cells[1:]       # a cell's factor enters at its last sample
+    acc = np.cumsum(lg, dtype=np.float64)
+    acc -= lg                                # exclusive
+    acc -= acc[np.arange(n) - np.asarray(sample)]
+    return np.exp(acc.astype(np.float32))
