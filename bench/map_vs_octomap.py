@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_mapping.octomap_peer import leaf_states  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
-from coop_mapping.stereo import StereoCamera, StereoRanger  # noqa: E402
+from coop_mapping.stereo import SUBPIXEL_MODES, StereoCamera, StereoRanger  # noqa: E402
 from coop_mapping.voxelmap import (  # noqa: E402
     OCCUPIED,
     VoxelMap,
@@ -53,6 +53,15 @@ from coop_mapping.voxelmap import (  # noqa: E402
 PLANE_Z = 0.013
 #: Eq. 3-6/3-7 range-noise constant of the VGA camera (0.5 px, f = 851 px, b = 38 mm)
 S_VGA = 0.5 / (851.3 * 0.038)
+
+
+#: the stereo frames' camera poses: (rover, eye, look-at target) in the scene's frame
+STEREO_POSES = (
+    ('rover1', (0.0, -0.6, 1.1), (3.5, -0.4, 0.2)),
+    ('rover2', (0.2, 0.8, 1.2), (3.8, 0.5, 0.3)),
+    ('rover1', (0.5, -0.2, 1.0), (4.0, 0.3, 0.4)),
+    ('rover2', (0.4, 0.4, 1.3), (4.5, -0.5, 0.5)),
+)
 
 
 def synthetic_scans(n_points: int, seed: int = 0):
@@ -80,18 +89,12 @@ def synthetic_scans(n_points: int, seed: int = 0):
     return scans
 
 
-def stereo_scans(width: int, height: int, seed: int = 0):
+def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = 'sgbm'):
     cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
-    ranger = StereoRanger(cam, num_disparities=64, max_range=10.0)
-    poses = [  # (rover, eye, target)
-        ('rover1', [0.0, -0.6, 1.1], [3.5, -0.4, 0.2]),
-        ('rover2', [0.2, 0.8, 1.2], [3.8, 0.5, 0.3]),
-        ('rover1', [0.5, -0.2, 1.0], [4.0, 0.3, 0.4]),
-        ('rover2', [0.4, 0.4, 1.3], [4.5, -0.5, 0.5]),
-    ]
+    ranger = StereoRanger(cam, num_disparities=64, max_range=10.0, subpixel=subpixel)
     scans, truth = [], []
     with TexturedScene(cam, seed=seed) as scene:
-        for rover, eye, target in poses:
+        for rover, eye, target in STEREO_POSES:
             eye = np.asarray(eye, float)
             R = look_at(eye, np.asarray(target, float))
             left, right, depth = scene.render(R, eye)
@@ -262,13 +265,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--grid-offsets', type=int, default=4,
                     help='placements of the scene in the grid the surface error is pooled '
                     'over: the grid as given + N-1 seeded random offsets')
+    ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default='sgbm',
+                    help="stereo sub-pixel disparity: SGBM's own or equalised (pixel-locking "
+                    'correction); bench/stereo_subpixel.py measures the two')
     args = ap.parse_args(argv)
 
     syn = synthetic_scans(args.points)
-    st, truth = stereo_scans(args.width, args.height)
+    st, truth = stereo_scans(args.width, args.height, subpixel=args.subpixel)
     out = {'octomap_model': {'prob_hit': 0.7, 'prob_miss': 0.4, 'clamp_min': 0.1192,
                              'clamp_max': 0.971},
-           'stereo_frames': len(st), 'image': [args.width, args.height], 'resolutions': {}}
+           'stereo_frames': len(st), 'image': [args.width, args.height], 'subpixel': args.subpixel,
+           'resolutions': {}}
     rows = []
     for res in args.resolutions:
         r_syn, _, _ = compare(syn, res, args.repeats, with_cov=True)
@@ -302,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((f'{res:g}', name, r['ours_points_per_s'] / 1e6,
                          r['octomap_points_per_s'] / 1e6, r['speedup'], r['state_agreement'],
                          r['bytes_per_known_voxel'], r['frame_latency_ms']))
-    print(f'stereo: {len(st)} frames {args.width}x{args.height}, '
+    print(f'stereo: {len(st)} frames {args.width}x{args.height} (sub-pixel: {args.subpixel}), '
           f'{sum(len(s[0]) for s in st)} points; synthetic: {len(syn)} scans, '
           f'{sum(len(s[0]) for s in syn)} points; best of {args.repeats}')
     print(f'{"res m":>6} {"data":>9} {"ours Mpt/s":>10} {"octo Mpt/s":>10} {"speedup":>7} '

@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'coop_viewp
 import numpy as np  # noqa: E402
 
 from coop_common.files import write_json  # noqa: E402
-from coop_viewplan.grid import OccupancyGrid, markov_estimate  # noqa: E402
+from coop_viewplan.grid import OccupancyGrid, markov_estimate, occlusion_estimate  # noqa: E402
 from coop_viewplan.nbv import CameraState, InfoLookup, NbvConfig, NextBestViewPlanner, score_views  # noqa: E402
 from coop_viewplan.placement import CameraModel, Target, TaskPlacer  # noqa: E402
 from coop_viewplan.task_study import StudyConfig, make_scenario  # noqa: E402
@@ -74,6 +74,13 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({'what': f'NI scoring 3-D, {label}', 'samples_per_pose': int(tpl.weights.size),
                      'poses_per_s': args.poses / t_batch, 'peer_one_at_a_time_poses_per_s':
                      k / t_one, 'speedup': (args.poses / t_batch) / (k / t_one)})
+        # the opt-in occlusion-aware expected view (NbvConfig.unknown_occlusion='expected')
+        occ = occlusion_estimate(g, prior='density', gray=est)
+        t_occ = timed(lambda: score_views(g, est, pos, yaw, pitch, tpl, lookup=lk, occlusion=occ))
+        rows.append({'what': f'NI scoring 3-D, {label}, unknown space occludes (expected)',
+                     'samples_per_pose': int(tpl.weights.size),
+                     'poses_per_s': args.poses / t_occ,
+                     'ratio_to_histogram_ni': t_batch / t_occ})
         if step == 1.0:   # App. C's predictor-5 NI on the same poses (NbvConfig.ni_measure)
             t_p5 = timed(lambda: score_views(g, est, pos, yaw, pitch, tpl, lookup=lk,
                                              measure='predictor5'))
@@ -84,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     t_map = timed(lambda: InfoLookup.build(g, markov_estimate(g)))
     rows.append({'what': f'per-map preparation (Markov estimate + tables, {g.prob.size} cells)',
                  'seconds': t_map})
+    t_occ_map = timed(lambda: occlusion_estimate(g, prior='density'))
+    rows.append({'what': '  + occlusion estimate (density prior) for unknown_occlusion expected',
+                 'seconds': t_occ_map})
     cfg = NbvConfig(fov_deg=75, depth_m=10, n_az=24, n_el=18, step_cells=1.0, n_positions=40,
                     pitches_deg=(0.0,), camera_height_m=1.0)
     planner = NextBestViewPlanner(cfg)

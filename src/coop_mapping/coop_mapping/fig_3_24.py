@@ -34,7 +34,7 @@ from coop_common.files import save_figure, write_json
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .render import Box, TexturedScene, look_at
-from .stereo import StereoCamera, compute_disparity
+from .stereo import SUBPIXEL_MODES, StereoCamera, compute_disparity, equalize_subpixel
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,7 @@ class TrialConfig:
                                    # (reprojection of the mapped fiducials, no range in the fit)
     fuse_prediction: bool = True   # Kalman-fuse the commanded motion (known per-step sigmas)
                                    # with the fiducial measurement; False: fiducials only
+    subpixel: str = 'sgbm'         # SGBM's sub-pixel disparity, or 'equalise' (stereo.py)
 
 
 def _scene_boxes(s: float) -> list[Box]:
@@ -112,7 +113,8 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
                 left, right, depth = scene.render(T[:3, :3], T[:3, 3],
                                                   noise_sigma=cfg.image_noise, rng=rng)
                 d_max[0] = max(d_max[0], cam.fx * cam.baseline / float(np.nanmin(depth)))
-                out.append((left, compute_disparity(left, right, num_disparities=nd)))
+                d = compute_disparity(left, right, num_disparities=nd)
+                out.append((left, equalize_subpixel(d) if cfg.subpixel == 'equalise' else d))
             return out
 
         sig = ({'sigma_t_m': cfg.sigma_t_m, 'sigma_rot_rad': np.radians(cfg.sigma_rot_deg)}
@@ -139,13 +141,14 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
 
 def run(distances: list[float], trials: int, steps: int, seed: int = 0,
         width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',),
-        fuse_prediction: bool = True) -> dict:
+        fuse_prediction: bool = True, subpixel: str = 'sgbm') -> dict:
     out = {'distances_m': distances, 'trials': trials, 'steps': steps,
-           'fuse_prediction': fuse_prediction, 'results': {}}
+           'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'results': {}}
     for method in methods:
         for D in distances:
             cfg = TrialConfig(distance=D, steps=steps, width=width, height=height,
-                              method=method, fuse_prediction=fuse_prediction)
+                              method=method, fuse_prediction=fuse_prediction,
+                              subpixel=subpixel)
             # same seeds for every method: the same true trajectories and images
             runs = [run_trial(cfg, seed + 1000 * i) for i in range(trials)]
             dr = np.array([r['dead_reckoned'] for r in runs])
@@ -186,9 +189,13 @@ def main(argv: list[str] | None = None) -> int:
                     'motion only as its starting point (no Kalman update with the prediction)')
     ap.add_argument('--width', type=int, default=320)
     ap.add_argument('--height', type=int, default=240)
+    ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default='sgbm',
+                    help="sub-pixel disparity: SGBM's own or equalised (pixel-locking "
+                    'correction, stereo.equalize_subpixel)')
     args = ap.parse_args(argv)
     out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
-              tuple(args.methods), fuse_prediction=not args.no_fusion)
+              tuple(args.methods), fuse_prediction=not args.no_fusion,
+              subpixel=args.subpixel)
     print(f'images {args.width}x{args.height}, {args.trials} trials, {args.steps} steps; '
           f'per-step motion error sigma {TrialConfig.sigma_t_m * 1e3:g} mm, '
           f'{TrialConfig.sigma_rot_deg:g} deg per axis; corrected pose: '

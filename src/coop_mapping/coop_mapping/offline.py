@@ -45,6 +45,7 @@ class StereoSettings:
     sigma_disparity_px: float = 0.5
     error_T_lateral: float = 0.1
     error_n: float = 2.0
+    subpixel: str = 'sgbm'
 
     def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
                height: int) -> StereoRanger:
@@ -55,7 +56,8 @@ class StereoSettings:
                                     lateral=self.error_T_lateral, n=self.error_n)
         return StereoRanger(cam, error_model=em, num_disparities=self.num_disparities,
                             block_size=self.block_size | 1, stride=self.stride,
-                            min_range=self.min_range_m, max_range=self.max_range_m)
+                            min_range=self.min_range_m, max_range=self.max_range_m,
+                            subpixel=self.subpixel)
 
 
 @dataclass(frozen=True)

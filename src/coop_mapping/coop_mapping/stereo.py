@@ -13,8 +13,13 @@ import numpy as np
 
 from .gauss import rotate_sym6
 
-__all__ = ['StereoCamera', 'ErrorModel', 'StereoError', 'compute_disparity', 'disparity_to_range',
+__all__ = ['SUBPIXEL_MODES', 'StereoCamera', 'ErrorModel', 'StereoError', 'compute_disparity',
+           'equalize_subpixel',
+           'disparity_to_range',
            'range_sigma', 'disparity_to_points', 'StereoRanger', 'StereoScan']
+
+
+SUBPIXEL_MODES = ('sgbm', 'equalise')
 
 
 class StereoError(ValueError):
@@ -136,6 +141,31 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
     return d
 
 
+def equalize_subpixel(disp: np.ndarray) -> np.ndarray:
+    """Pixel-locking correction by histogram equalisation of the sub-pixel part.
+
+    SGBM interpolates its matching cost with a parabola, which pulls every disparity towards
+    the nearest integer ("pixel locking"; measured on the sim's frames by
+    bench/stereo_subpixel.py: the mean error swings with the true fractional part by about
+    +-0.2 px, the same sign over a whole surface, so no averaging of neighbours removes it).
+    Over a frame the true offsets from the nearest integer are close to uniform on
+    [-0.5, 0.5), so each valid disparity's offset is replaced by its rank among the frame's
+    offsets (mid-rank, scaled to [-0.5, 0.5)): a monotone map, no model of the scene needed
+    (the histogram-equalisation correction of particle image velocimetry). NaN stays NaN."""
+    d = np.asarray(disp, np.float32)
+    ok = np.isfinite(d)
+    v = d[ok].astype(np.float64)
+    if v.size < 2:
+        return d.copy()
+    i = np.round(v)
+    f = v - i
+    fs = np.sort(f)
+    rank = 0.5 * (np.searchsorted(fs, f, side='left') + np.searchsorted(fs, f, side='right'))
+    out = np.full(d.shape, np.nan, np.float32)
+    out[ok] = i + rank / v.size - 0.5
+    return out
+
+
 def disparity_to_points(disp: np.ndarray, camera: StereoCamera, *, stride: int = 1,
                         min_range: float = 0.0, max_range: float = np.inf
                         ) -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +199,13 @@ class StereoRanger:
 
     def __init__(self, camera: StereoCamera, *, error_model: ErrorModel | None = None,
                  num_disparities: int = 64, block_size: int = 5, stride: int = 1,
-                 min_range: float = 0.2, max_range: float = 20.0) -> None:
+                 min_range: float = 0.2, max_range: float = 20.0, subpixel: str = 'sgbm'
+                 ) -> None:
+        """`subpixel`: 'sgbm' (SGBM's own parabola interpolation) or 'equalise'
+        (`equalize_subpixel` applied to it, the pixel-locking correction)."""
+        if subpixel not in SUBPIXEL_MODES:
+            raise StereoError(f'subpixel must be one of {SUBPIXEL_MODES}, got {subpixel!r}')
+        self.subpixel = subpixel
         self.camera = camera
         self.error_model = error_model or ErrorModel.from_stereo(camera)
         self.num_disparities = num_disparities
@@ -178,9 +214,15 @@ class StereoRanger:
         self.min_range = min_range
         self.max_range = max_range
 
+    def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """The pair's disparity (px, NaN invalid) with this ranger's settings."""
+        d = compute_disparity(left, right, num_disparities=self.num_disparities,
+                              block_size=self.block_size)
+        return equalize_subpixel(d) if self.subpixel == 'equalise' else d
+
     def process(self, left: np.ndarray, right: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
                 *, disparity: np.ndarray | None = None) -> StereoScan:
-        """`disparity`: reuse one already computed for this pair."""
+        """`disparity`: reuse one already computed for this pair (by `disparity`)."""
         R = np.asarray(R_wc, float)
         t = np.asarray(t_wc, float).reshape(3)
         if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
@@ -188,8 +230,7 @@ class StereoRanger:
         if left.shape != (self.camera.height, self.camera.width):
             raise StereoError(f'image {left.shape} does not match camera_info '
                               f'{(self.camera.height, self.camera.width)}')
-        disp = disparity if disparity is not None else compute_disparity(
-            left, right, num_disparities=self.num_disparities, block_size=self.block_size)
+        disp = disparity if disparity is not None else self.disparity(left, right)
         pc, uv = disparity_to_points(disp, self.camera, stride=self.stride,
                                      min_range=self.min_range, max_range=self.max_range)
         return StereoScan(points=pc @ R.T + t, covariances=self.error_model.covariances(pc, R),

@@ -39,7 +39,7 @@ from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .ros_conv import cloud_to_msg, pose_to_rt
-from .stereo import ErrorModel, StereoCamera, StereoError, StereoRanger, compute_disparity
+from .stereo import SUBPIXEL_MODES, ErrorModel, StereoCamera, StereoError, StereoRanger
 from .target_frame import Initialiser, TargetFrameError, TargetGeometry
 
 # rover_sim's insertion site (worldgen, slot 4 mm): its frame has the origin at the block's
@@ -52,6 +52,9 @@ PARAMS = {
                                  hi=256),
     'block_size': ParamSpec(5, 'StereoSGBM block size (odd)', lo=1, hi=21),
     'stride': ParamSpec(1, 'use every stride-th pixel in u and v', lo=1, hi=16),
+    'subpixel': ParamSpec('sgbm', "sub-pixel disparity: SGBM's own, or 'equalise' (pixel-"
+                          'locking correction, stereo.equalize_subpixel)',
+                          choices=list(SUBPIXEL_MODES)),
     'min_range_m': ParamSpec(0.2, 'nearest point kept (m)', lo=0.0, hi=100.0),
     'max_range_m': ParamSpec(10.0, 'farthest point kept (m)', lo=0.1, hi=1000.0),
     'sigma_disparity_px': ParamSpec(0.5, 'disparity sigma of Eq. 3-6 (px), gives S', lo=0.01,
@@ -175,7 +178,8 @@ class StereoNode(Node):
                                     lateral=self.p['error_T_lateral'], n=self.p['error_n'])
         return StereoRanger(cam, error_model=em, num_disparities=self.p['num_disparities'],
                             block_size=self.p['block_size'] | 1, stride=self.p['stride'],
-                            min_range=self.p['min_range_m'], max_range=self.p['max_range_m'])
+                            min_range=self.p['min_range_m'], max_range=self.p['max_range_m'],
+                            subpixel=self.p['subpixel'])
 
     def _put(self, kind: str, msg) -> None:
         st = _stamp_ns(msg.header.stamp)
@@ -214,8 +218,7 @@ class StereoNode(Node):
             R, t = pose_to_rt(pose.pose.pose)
             disp = None
             if self.p['fiducial_correction'] != 'none':
-                disp = compute_disparity(left, right, num_disparities=self.p['num_disparities'],
-                                         block_size=self.p['block_size'] | 1)
+                disp = self.ranger.disparity(left, right)
                 R, t, pose = self._correct(left, disp, R, t, pose)
             scan = self.ranger.process(left, right, R, t, disparity=disp)
         except (StereoError, ValueError) as exc:

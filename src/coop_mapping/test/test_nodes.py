@@ -137,7 +137,8 @@ def test_mapper_loads_last_save_on_restart(ctx, tmp_path):
         node.destroy_node()
 
 
-def test_stereo_node_publishes_cloud_with_covariance(stereo_rig):
+@pytest.mark.parametrize('subpixel', ['sgbm', 'equalise'])
+def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel):
     pytest.importorskip('pybullet')
     from coop_mapping.render import TexturedScene, look_at
     from coop_mapping.stereo import StereoCamera
@@ -146,7 +147,7 @@ def test_stereo_node_publishes_cloud_with_covariance(stereo_rig):
     R = look_at(eye, np.array([2.5, 0.0, 0.2]))
     with TexturedScene(cam, seed=2) as scene:
         left, right, depth = scene.render(R, eye)
-    rig = stereo_rig(cam, num_disparities=32)
+    rig = stereo_rig(cam, num_disparities=32, subpixel=subpixel)
     clouds = rig.listen(PointCloud2, 'stereo/points', SENSOR_QOS)
     rig.start()
     rig.send(left, right, rig.peer.get_clock().now().to_msg(), R, eye)

@@ -13,6 +13,7 @@ from coop_mapping.stereo import (
     compute_disparity,
     disparity_to_points,
     disparity_to_range,
+    equalize_subpixel,
     range_sigma,
 )
 
@@ -63,7 +64,9 @@ def test_disparity_to_points_pinhole():
     assert uv.shape == (9, 2)
 
 
-def test_rendered_scene_ranges_against_truth():
+@pytest.fixture(scope='module')
+def rendered():
+    """(camera, left, right, true depth, R, eye): one 320x240 view of a textured sim scene."""
     pytest.importorskip('pybullet')
     from coop_mapping.render import TexturedScene, look_at
     cam = StereoCamera.from_fov(320, 240, np.radians(41.2), 0.038)
@@ -71,7 +74,12 @@ def test_rendered_scene_ranges_against_truth():
         eye = np.array([0.0, 0.0, 1.0])
         R = look_at(eye, np.array([2.5, 0.0, 0.2]))
         left, right, depth = scene.render(R, eye)
-        scan = StereoRanger(cam, num_disparities=32).process(left, right, R, eye)
+    return cam, left, right, depth, R, eye
+
+
+def test_rendered_scene_ranges_against_truth(rendered):
+    cam, left, right, depth, R, eye = rendered
+    scan = StereoRanger(cam, num_disparities=32).process(left, right, R, eye)
     u = scan.uv.astype(int)
     zt = depth[u[:, 1], u[:, 0]]
     ok = np.isfinite(zt)
@@ -82,3 +90,67 @@ def test_rendered_scene_ranges_against_truth():
     model_sigma = np.sqrt(sigma[:, 0] + sigma[:, 3] + sigma[:, 5])
     assert np.median(err / model_sigma) < 1.0
     assert np.median(err) < 0.1
+
+
+def _locked(d_true: np.ndarray, strength: float = 0.6) -> np.ndarray:
+    """A pixel-locking matcher: the offset from the nearest integer pulled towards 0 by a
+    monotone map (derivative 1 - strength cos(2 pi f) > 0)."""
+    n = np.round(d_true)
+    f = d_true - n
+    return n + f - strength / (2 * np.pi) * np.sin(2 * np.pi * f)
+
+
+def test_equalize_subpixel_undoes_pixel_locking():
+    rng = np.random.default_rng(3)
+    d_true = rng.uniform(5.0, 40.0, (120, 160))
+    meas = _locked(d_true)
+    meas[::7, ::5] = np.nan
+    eq = equalize_subpixel(meas)
+    assert eq.shape == meas.shape and eq.dtype == np.float32
+    assert np.array_equal(np.isnan(eq), np.isnan(meas))
+    ok = np.isfinite(meas)
+    err_raw = (meas - d_true)[ok]
+    err_eq = (eq - d_true)[ok]
+    # locking error up to 0.6 / (2 pi) ~ 0.095 px; after equalisation only the sample CDF's
+    assert np.sqrt(np.mean(err_raw ** 2)) > 0.06
+    assert np.sqrt(np.mean(err_eq ** 2)) < 0.01
+    # the bias by true sub-pixel part is flat afterwards
+    b = np.minimum(((d_true[ok] - np.round(d_true[ok]) + 0.5) * 8).astype(int), 7)
+    swing = [np.ptp([e[b == k].mean() for k in range(8)]) for e in (err_raw, err_eq)]
+    assert swing[0] > 0.1 and swing[1] < 0.01
+
+
+def test_equalize_subpixel_is_monotone_and_keeps_ties():
+    d = np.array([[3.0, 3.0, 3.1, 2.9, np.nan, 7.4, 7.6, 3.0]], np.float32)
+    eq = equalize_subpixel(d)
+    ok = np.isfinite(d[0])
+    v, w = d[0][ok], eq[0][ok]
+    order = np.argsort(v, kind='stable')
+    assert np.all(np.diff(w[order]) >= 0)           # order kept
+    assert w[0] == w[1] == w[-1]                      # equal inputs, equal outputs
+    assert np.all(np.abs(w - np.round(v)) <= 0.5)     # each stays within its integer's cell
+    assert np.isnan(eq[0, 4])
+    assert np.array_equal(equalize_subpixel(np.full((2, 2), np.nan)), np.full((2, 2), np.nan),
+                          equal_nan=True)
+
+
+def test_ranger_rejects_unknown_subpixel_mode():
+    cam = StereoCamera(500.0, 500.0, 100.0, 80.0, 0.1, 200, 160)
+    with pytest.raises(StereoError, match='subpixel'):
+        StereoRanger(cam, subpixel='parabola')
+
+
+def test_equalised_subpixel_ranges_the_rendered_scene_better(rendered):
+    """SGBM pixel-locks on the sim's frames; the equalised disparity is closer to the truth."""
+    cam, left, right, depth, R, eye = rendered
+    rms = {}
+    for mode in ('sgbm', 'equalise'):
+        scan = StereoRanger(cam, num_disparities=32, subpixel=mode).process(left, right, R, eye)
+        u = scan.uv.astype(int)
+        zt = depth[u[:, 1], u[:, 0]]
+        ok = np.isfinite(zt)
+        e = cam.fx * cam.baseline * (1.0 / scan.points_cam[ok, 2] - 1.0 / zt[ok])
+        e = e[np.abs(e) < 2.0]                      # gross mismatches are not sub-pixel errors
+        rms[mode] = np.sqrt(np.mean(e ** 2))
+    assert rms['sgbm'] > 0.15                       # the locking is there to correct
+    assert rms['equalise'] < 0.9 * rms['sgbm']

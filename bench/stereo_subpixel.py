@@ -1,0 +1,109 @@
+#!/usr/bin/env python3
+"""Sub-pixel accuracy of the stereo front end: StereoSGBM's pixel locking, and the histogram
+equalisation of the sub-pixel part (coop_mapping.stereo.equalize_subpixel) against SGBM's own
+output in the same run, on the dense VGA frames of bench/map_vs_octomap.py (same scene, same
+poses) with the renderer's true depth.
+
+Per mode ('sgbm': SGBM's own sub-pixel disparity; 'equalise': equalize_subpixel of it): the
+share of disparities within 1/8 px of an integer (25 % if the sub-pixel part were uniform), the
+mean disparity error in 8 bins of the TRUE sub-pixel part and its swing (max - min; a
+locking-free matcher has none), the disparity error's mean and RMS, the range error RMS and its
+ratio to the Eq. 3-7 model's sigma (0.5 px), over pixels with a valid disparity and
+|error| < 2 px (the rest are counted as gross mismatches).
+
+    bench/stereo_subpixel.py --json out/bench/stereo_subpixel.json
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+os.environ.setdefault('OMP_NUM_THREADS', '1')
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np  # noqa: E402
+from map_vs_octomap import STEREO_POSES  # noqa: E402
+
+from coop_common.files import write_json  # noqa: E402
+from coop_mapping.render import TexturedScene, look_at  # noqa: E402
+from coop_mapping.stereo import SUBPIXEL_MODES as MODES  # noqa: E402
+from coop_mapping.stereo import StereoCamera, compute_disparity, equalize_subpixel  # noqa: E402
+
+N_BINS = 8
+GROSS_PX = 2.0
+SIGMA_D_MODEL_PX = 0.5
+
+
+def frames(width: int, height: int, seed: int):
+    """(camera, [(measured disparity, true disparity)]) for every bench pose."""
+    cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
+    out = []
+    with TexturedScene(cam, seed=seed) as scene:
+        for _, eye, target in STEREO_POSES:
+            eye = np.asarray(eye, float)
+            R = look_at(eye, np.asarray(target, float))
+            left, right, depth = scene.render(R, eye)
+            with np.errstate(divide='ignore', invalid='ignore'):
+                d_true = cam.fx * cam.baseline / depth
+            out.append((compute_disparity(left, right, num_disparities=64), d_true))
+    return cam, out
+
+
+def stats(cam: StereoCamera, pairs) -> dict:
+    meas = np.concatenate([m[np.isfinite(m) & np.isfinite(t)] for m, t in pairs])
+    true = np.concatenate([t[np.isfinite(m) & np.isfinite(t)] for m, t in pairs])
+    err = meas - true
+    ok = np.abs(err) < GROSS_PX
+    meas, true, err = meas[ok], true[ok], err[ok]
+    frac_true = true - np.round(true) + 0.5                # in [0, 1)
+    b = np.minimum((frac_true * N_BINS).astype(int), N_BINS - 1)
+    per_bin = [float(np.mean(err[b == k])) for k in range(N_BINS)]
+    z_true = cam.fx * cam.baseline / true
+    z_meas = cam.fx * cam.baseline / meas
+    sigma_model = z_true ** 2 * SIGMA_D_MODEL_PX / (cam.fx * cam.baseline)
+    return {
+        'pixels': int(ok.size), 'gross_share': float(1.0 - ok.mean()),
+        'near_integer_share': float(np.mean(np.abs(meas - np.round(meas)) < 1.0 / 8)),
+        'mean_error_by_true_subpixel_px': per_bin,
+        'bias_swing_px': float(max(per_bin) - min(per_bin)),
+        'mean_error_px': float(err.mean()),
+        'rms_error_px': float(np.sqrt(np.mean(err ** 2))),
+        'range_rms_error_m': float(np.sqrt(np.mean((z_meas - z_true) ** 2))),
+        'range_rms_over_model': float(np.sqrt(np.mean(((z_meas - z_true) / sigma_model) ** 2))),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--width', type=int, default=640)
+    ap.add_argument('--height', type=int, default=480)
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--json', type=Path, default=None)
+    args = ap.parse_args(argv)
+    cam, pairs = frames(args.width, args.height, args.seed)
+    res = {'sgbm': stats(cam, pairs),
+           'equalise': stats(cam, [(equalize_subpixel(m), t) for m, t in pairs])}
+    print(f'stereo sub-pixel accuracy: {len(pairs)} frames {args.width}x{args.height}, '
+          f'{res["sgbm"]["pixels"]} valid pixels, |error| < {GROSS_PX:g} px '
+          f'(gross mismatches {100 * res["sgbm"]["gross_share"]:.1f} %)')
+    print(f'{"mode":>10} {"<1/8 px of int":>14} {"bias swing px":>13} {"mean px":>8} '
+          f'{"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8}')
+    for m in MODES:
+        r = res[m]
+        print(f'{m:>10} {100 * r["near_integer_share"]:13.1f}% {r["bias_swing_px"]:13.3f} '
+              f'{r["mean_error_px"]:+8.3f} {r["rms_error_px"]:7.3f} '
+              f'{r["range_rms_error_m"]:11.3f} {r["range_rms_over_model"]:8.2f}')
+    print('mean error (px) by true sub-pixel part, bins of 1/8 from -0.5:')
+    for m in MODES:
+        bins = res[m]['mean_error_by_true_subpixel_px']
+        print(f'{m:>10} ' + ' '.join(f'{v:+.3f}' for v in bins))
+    if args.json:
+        write_json(args.json, {'config': vars(args) | {'json': str(args.json)}, **res}, indent=2)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
