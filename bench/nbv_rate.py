@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                      'poses_per_s': args.poses / t_batch, 'peer_one_at_a_time_poses_per_s':
                      k / t_one, 'speedup': (args.poses / t_batch) / (k / t_one)})
         # the opt-in occlusion-aware expected view (NbvConfig.unknown_occlusion='expected')
-        occ = occlusion_estimate(g, prior='density', gray=est)
+        occ = occlusion_estimate(g, prior='density')
         t_occ = timed(lambda: score_views(g, est, pos, yaw, pitch, tpl, lookup=lk, occlusion=occ))
         rows.append({'what': f'NI scoring 3-D, {label}, unknown space occludes (expected)',
                      'samples_per_pose': int(tpl.weights.size),

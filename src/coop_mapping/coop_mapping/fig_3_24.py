@@ -57,6 +57,10 @@ class TrialConfig:
                                    # with the fiducial measurement; False: fiducials only
     subpixel: str = 'sgbm'         # SGBM's sub-pixel disparity, or 'equalise' (stereo.py)
 
+    def __post_init__(self) -> None:
+        if self.subpixel not in SUBPIXEL_MODES:
+            raise ValueError(f'subpixel must be one of {SUBPIXEL_MODES}, got {self.subpixel!r}')
+
 
 def _scene_boxes(s: float) -> list[Box]:
     return [Box((0.9 * s, 0.0, -0.05 * s), (1.2 * s, 2.0 * s, 0.05 * s)),      # ground

@@ -14,9 +14,8 @@ import numpy as np
 from .gauss import rotate_sym6
 
 __all__ = ['SUBPIXEL_MODES', 'StereoCamera', 'ErrorModel', 'StereoError', 'compute_disparity',
-           'equalize_subpixel',
-           'disparity_to_range',
-           'range_sigma', 'disparity_to_points', 'StereoRanger', 'StereoScan']
+           'equalize_subpixel', 'disparity_to_range', 'range_sigma', 'disparity_to_points',
+           'StereoRanger', 'StereoScan']
 
 
 SUBPIXEL_MODES = ('sgbm', 'equalise')
@@ -150,8 +149,10 @@ def equalize_subpixel(disp: np.ndarray) -> np.ndarray:
     +-0.2 px, the same sign over a whole surface, so no averaging of neighbours removes it).
     Over a frame the true offsets from the nearest integer are close to uniform on
     [-0.5, 0.5), so each valid disparity's offset is replaced by its rank among the frame's
-    offsets (mid-rank, scaled to [-0.5, 0.5)): a monotone map, no model of the scene needed
-    (the histogram-equalisation correction of particle image velocimetry). NaN stays NaN."""
+    offsets (mid-rank, scaled into (-0.5, 0.5)): a monotone map, no model of the scene needed
+    (the histogram-equalisation correction of particle image velocimetry). NaN stays NaN, and a
+    disparity the map would make <= 0 (input below 0.5 px) becomes NaN, as compute_disparity's
+    invalid ones: the result is NaN or > 0."""
     d = np.asarray(disp, np.float32)
     ok = np.isfinite(d)
     v = d[ok].astype(np.float64)
@@ -161,8 +162,9 @@ def equalize_subpixel(disp: np.ndarray) -> np.ndarray:
     f = v - i
     fs = np.sort(f)
     rank = 0.5 * (np.searchsorted(fs, f, side='left') + np.searchsorted(fs, f, side='right'))
+    eq = i + rank / v.size - 0.5
     out = np.full(d.shape, np.nan, np.float32)
-    out[ok] = i + rank / v.size - 0.5
+    out[ok] = np.where(eq > 0, eq, np.nan)
     return out
 
 

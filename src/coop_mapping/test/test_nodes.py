@@ -152,6 +152,7 @@ def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel):
     rig.start()
     rig.send(left, right, rig.peer.get_clock().now().to_msg(), R, eye)
     wait_for(lambda: clouds, 20.0, spin=rig.spin, what='stereo/points')
+    assert rig.node.ranger.subpixel == subpixel        # the parameter reached the ranger
     pts, cov = msg_to_cloud(clouds[0])
     assert clouds[0].header.frame_id == 'map' and cov is not None
     assert len(pts) > 0.4 * cam.width * cam.height

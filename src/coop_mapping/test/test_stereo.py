@@ -132,6 +132,10 @@ def test_equalize_subpixel_is_monotone_and_keeps_ties():
     assert np.isnan(eq[0, 4])
     assert np.array_equal(equalize_subpixel(np.full((2, 2), np.nan)), np.full((2, 2), np.nan),
                           equal_nan=True)
+    # a valid disparity below 0.5 px could map to <= 0: it becomes invalid, never a negative
+    small = np.r_[np.full(900, 10.25), np.full(10, 0.0625)].astype(np.float32)
+    eq = equalize_subpixel(small)
+    assert np.all(np.isnan(eq) | (eq > 0)) and np.isnan(eq[-10:]).all()
 
 
 def test_ranger_rejects_unknown_subpixel_mode():

@@ -55,7 +55,8 @@ def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
         distance_metric: str = 'configuration', level: float = 0.9,
         near_fraction: float = 0.0, angle_weight: float = 1.0,
         entropy_weight: str = 'plogp', ni_measure: str = 'histogram',
-        unknown_occlusion: str = 'none', occlusion_prior: str = 'markov') -> dict:
+        unknown_occlusion: str = NbvConfig.unknown_occlusion,
+        occlusion_prior: str = NbvConfig.occlusion_prior) -> dict:
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
                     distance_metric=distance_metric, near_fraction=near_fraction,
                     alpha=(1.0, 1.0, 1.0, angle_weight, angle_weight),

@@ -35,7 +35,8 @@ Occlusion by unknown space (`NbvConfig.unknown_occlusion`, beyond the thesis):
   (default), the planner's Markov chain started from the known map's obstacle density - known
   occupied over known cells, i.e. the rate at which the scans' rays were stopped per cell
   crossed; 'markov', the planner's gray estimate as it is, 0.5 far from the map, which makes a
-  ray through unknown space die within a few cells and did worse in every Fig. 3-13 run).
+  ray through unknown space die within a few cells and took more scans in every Fig. 3-13
+  run).
   NI's histogram counts f_k become expected counts sum w P(visible) (the quadrature weights w
   times the visibility), and the -p log2 p premultiplier the visibility-weighted mean over
   level k; N (the unobstructed frustum), the per-cell gray values and weights are unchanged.
@@ -354,13 +355,8 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
         return ViewScores(ni, unk, kn)
     # the thesis's counts (known occlusions only): per-pose sums over the samples, which
     # np.nonzero lists pose by pose
-    unk, kn = np.zeros(m), np.zeros(m)
-    if len(w0):
-        edge = np.searchsorted(mi, np.arange(m + 1))
-        st = np.minimum(edge[:-1], len(w0) - 1)
-        has = edge[1:] > edge[:-1]
-        unk = np.where(has, np.add.reduceat(w0 * (code >= n_levels), st, dtype=np.float64), 0)
-        kn = np.where(has, np.add.reduceat(w0, st, dtype=np.float64), 0) - unk
+    unk = np.bincount(mi, weights=w0 * (code >= n_levels), minlength=m).astype(np.float64)
+    kn = np.bincount(mi, weights=w0, minlength=m) - unk
     return ViewScores(ni, unk, kn, f[:, half:].sum(axis=1))
 
 
@@ -1016,9 +1012,8 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
 
 
 __all__ = ['STRATEGIES', 'UNKNOWN_OCCLUSIONS', 'Candidates', 'CameraState', 'Decision',
-           'NbvConfig',
-           'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores', 'binary_entropy',
-           'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
+           'NbvConfig', 'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores',
+           'binary_entropy', 'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
            'configuration_distance', 'expected_information', 'geodesic_distance',
            'geodesic_path', 'make_strategy',
            'max_information', 'plan_cameras', 'rating_function', 'score_views']

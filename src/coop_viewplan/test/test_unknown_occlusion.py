@@ -70,9 +70,11 @@ def test_zero_occlusion_reproduces_the_thesis_scores():
     g.prob[:, :20] = (rng.random((50, 20)) < 0.1).astype(np.float32)
     est = markov_estimate(g)
     t = make_template(ndim=2, fov_deg=90, depth_m=15, resolution=1.0)
-    pos = np.array([[10.5, 10.5], [25.5, 15.5], [40.5, 5.5]])
-    yaw = np.array([np.pi / 2, np.pi / 3, np.pi / 2])
+    # the last two poses are outside the grid: no samples (they must not eat the others')
+    pos = np.array([[10.5, 10.5], [25.5, 15.5], [40.5, 5.5], [-30.0, 5.5], [80.0, 80.0]])
+    yaw = np.array([np.pi / 2, np.pi / 3, np.pi / 2, 0.0, 0.0])
     a = score_views(g, est, pos, yaw, None, t)
+    assert np.all(a.known_cells[3:] == 0) and np.all(a.known_cells[:3] > 0)
     b = score_views(g, est, pos, yaw, None, t, occlusion=np.zeros(g.shape, np.float32))
     assert a.unknown_expected is None
     assert b.ni == pytest.approx(a.ni, rel=1e-5)
