@@ -113,6 +113,30 @@ class OccupancyGrid:
         return self.known & (self.prob < p_empty)
 
 
+def planning_bounds(keys: np.ndarray, resolution: float, *, pad_m: float,
+                    ceiling_m: float = 0.0, camera_height_m: float = 0.0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Inclusive key bounds (lo, hi) of the planning grid over a 3-D map's keys (N, 3): the
+    keys' box grown by pad_m on every side, except upwards when `ceiling_m` > 0: then the top
+    is the highest of the map's own top, the ceiling (z, map frame) and one voxel above the
+    cameras (`camera_height_m`, so a camera cell is always inside). Stereo on a mast never
+    maps the air above its cameras (no ray ends there, so none crosses it), yet every unknown
+    voxel in a frustum counts as new information, so padding upwards made views that look up
+    pay for air that can never become known."""
+    keys = np.asarray(keys, dtype=np.int64)
+    if keys.ndim != 2 or keys.shape[1] != 3 or keys.shape[0] == 0:
+        raise MapError(f'keys must be (N, 3) with N > 0, got {keys.shape}')
+    if not (resolution > 0 and pad_m >= 0):
+        raise ValueError('resolution must be > 0 and pad_m >= 0')
+    pad = int(np.ceil(pad_m / resolution))
+    lo = keys.min(axis=0) - pad
+    hi = keys.max(axis=0) + pad
+    if ceiling_m > 0:
+        top_m = max(ceiling_m, camera_height_m + resolution)
+        hi[2] = max(int(keys[:, 2].max()), int(np.floor(top_m / resolution)))
+    return lo, hi
+
+
 def markov_estimate(grid: OccupancyGrid, *, iterations: int = 6,
                     prior: float = 0.5) -> np.ndarray:
     """Occupancy estimate for every cell: known cells keep their probability, unknown ones get the

@@ -18,14 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from .frames import yaw_pitch_from_optical
-from .grid import MapError, OccupancyGrid
+from .grid import MapError, OccupancyGrid, planning_bounds
 from .nbv import CameraState, Decision, NbvConfig, NextBestViewPlanner, PlanningError
 
 #: the node's parameter defaults that matter here (view_planner_node.PARAMS; checked by a test)
 NODE_DEFAULTS = {'fov_deg': 75.0, 'depth_m': 10.0, 'rays_az': 24, 'rays_el': 18, 'k_rel': 0.15,
                  'n_exp': 1.0, 'candidates': 40, 'headings': 8, 'camera_height_m': 0.8,
                  'clearance_m': 0.5, 'p_empty': 0.2, 'occupied_voxels': 2,
-                 'occupied_clamp': 0.97, 'pad_m': 5.0, 'seed': 0,
+                 'occupied_clamp': 0.97, 'pad_m': 5.0, 'ceiling_m': 1.0, 'seed': 0,
                  'ni_measure': 'histogram', 'free_gray': 'empty'}
 
 
@@ -41,12 +41,16 @@ def nbv_config(p: dict) -> NbvConfig:
         ni_measure=p['ni_measure'], free_gray=p['free_gray'])
 
 
-def grid_from_voxelmap(vm, *, pad_m: float) -> OccupancyGrid:
-    """coop_mapping VoxelMap -> dense grid padded by pad_m, as the node converts /map/voxels."""
+def grid_from_voxelmap(vm, *, pad_m: float, ceiling_m: float = 0.0,
+                       camera_height_m: float = 0.0) -> OccupancyGrid:
+    """coop_mapping VoxelMap -> dense planning grid (`grid.planning_bounds`), as the node
+    converts /map/voxels."""
     from coop_mapping.voxelmap import unpack_keys
-    return OccupancyGrid.from_sparse(unpack_keys(vm.keys), vm.probability(),
-                                     resolution=vm.resolution,
-                                     pad_cells=int(math.ceil(pad_m / vm.resolution)))
+    keys = unpack_keys(vm.keys)
+    return OccupancyGrid.from_sparse(
+        keys, vm.probability(), resolution=vm.resolution,
+        bounds_keys=planning_bounds(keys, vm.resolution, pad_m=pad_m, ceiling_m=ceiling_m,
+                                    camera_height_m=camera_height_m))
 
 
 def last_camera_poses(bag: str | Path) -> dict[str, CameraState]:
@@ -114,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         from coop_mapping.offline import map_from_bag
         vm = map_from_bag(a.bag).map
         src = f'map_from_bag({a.bag})'
-    grid = grid_from_voxelmap(vm, pad_m=params['pad_m'])
+    grid = grid_from_voxelmap(vm, pad_m=params['pad_m'], ceiling_m=params['ceiling_m'],
+                              camera_height_m=params['camera_height_m'])
     print(f'{src}: {len(vm)} voxels at {vm.resolution} m; poses: last stereo/pose in {a.bag}')
     for ans in plan_team(grid, last_camera_poses(a.bag), params, strategy=a.strategy):
         d = ans.decision

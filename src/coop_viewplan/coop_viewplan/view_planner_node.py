@@ -19,7 +19,7 @@ from coop_msgs.msg import ViewRating, VoxelMap
 from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
-from .grid import FREE_GRAYS, MapError, OccupancyGrid
+from .grid import FREE_GRAYS, MapError, OccupancyGrid, planning_bounds
 from .nbv import NI_MEASURES, STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
 from .offline import nbv_config
 from .placement import CameraModel, PlacementError, Target, TaskPlacer
@@ -29,6 +29,9 @@ PARAMS = {
                            read_only=True),
     'frame_id': ParamSpec('map', 'frame of the returned poses', read_only=True),
     'pad_m': ParamSpec(5.0, 'unknown margin added around the known map (m)', lo=0.0, hi=100.0),
+    'ceiling_m': ParamSpec(1.0, 'top of the planning grid (z in the map frame, m) unless the map '
+                           'reaches higher: no unknown air above it counts as information '
+                           '(0: pad upwards too)', lo=0.0, hi=1000.0),
     'fov_deg': ParamSpec(75.0, 'camera horizontal field of view (deg)', lo=5.0, hi=170.0),
     'depth_m': ParamSpec(10.0, 'camera depth of field for mapping (m)', lo=0.5, hi=100.0),
     'rays_az': ParamSpec(24, 'NI rays across the field of view', lo=2, hi=512),
@@ -113,9 +116,12 @@ class ViewPlannerNode(Node):
             self.sequence = int(msg.sequence)
             return
         try:
-            pad = int(math.ceil(self.p['pad_m'] / msg.resolution_m))
-            self.grid = OccupancyGrid.from_sparse(keys.reshape(-1, 3), occ,
-                                                  resolution=msg.resolution_m, pad_cells=pad)
+            k3 = keys.reshape(-1, 3)
+            bounds = planning_bounds(k3, msg.resolution_m, pad_m=self.p['pad_m'],
+                                     ceiling_m=self.p['ceiling_m'],
+                                     camera_height_m=self.p['camera_height_m'])
+            self.grid = OccupancyGrid.from_sparse(k3, occ, resolution=msg.resolution_m,
+                                                  bounds_keys=bounds)
         except MapError as exc:
             self.bad.reject('bad map', str(exc))
             return

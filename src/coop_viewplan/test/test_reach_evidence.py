@@ -135,7 +135,9 @@ def test_sample_bag_map_gives_every_rover_a_view():
     res = offline_map.map_from_bag(BAG)
     assert set(res.scans) == {'rover1', 'rover2'}
     params = dict(offline.NODE_DEFAULTS)
-    grid = offline.grid_from_voxelmap(res.map, pad_m=params['pad_m'])
+    grid = offline.grid_from_voxelmap(res.map, pad_m=params['pad_m'],
+                                      ceiling_m=params['ceiling_m'],
+                                      camera_height_m=params['camera_height_m'])
     cams = offline.last_camera_poses(BAG)
     assert set(cams) == {'rover1', 'rover2'}
     answers = offline.plan_team(grid, cams, params)
