@@ -56,12 +56,14 @@ def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
         near_fraction: float = 0.0, angle_weight: float = 1.0,
         entropy_weight: str = 'plogp', ni_measure: str = 'histogram',
         unknown_occlusion: str = NbvConfig.unknown_occlusion,
-        occlusion_prior: str = NbvConfig.occlusion_prior) -> dict:
+        occlusion_prior: str = NbvConfig.occlusion_prior,
+        ni_floor: float = NbvConfig.ni_floor) -> dict:
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
                     distance_metric=distance_metric, near_fraction=near_fraction,
                     alpha=(1.0, 1.0, 1.0, angle_weight, angle_weight),
                     entropy_weight=entropy_weight, ni_measure=ni_measure,
-                    unknown_occlusion=unknown_occlusion, occlusion_prior=occlusion_prior)
+                    unknown_occlusion=unknown_occlusion, occlusion_prior=occlusion_prior,
+                    ni_floor=ni_floor)
     res: dict = {}
     for name in strategies:
         fr, di, s90, d90 = [], [], [], []
@@ -200,6 +202,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "Markov chain started from the known map's obstacle density (density, "
                         "default) or the planner's Markov-chain estimate as it is (markov, 0.5 "
                         "far from the map)")
+    p.add_argument('--ni-floor', type=float, default=NbvConfig.ni_floor,
+                   help='max_information: only views with at least this share of the '
+                        "decision's best NI compete (beyond the thesis; 0, default: the plain "
+                        'argmax of Eq. 3-15)')
     p.add_argument('--compare-one-camera', action='store_true',
                    help='with --cameras 2: also run max_information with one camera, same '
                         'sensor, and report the scans ratio')
@@ -215,6 +221,9 @@ def main(argv: list[str] | None = None) -> int:
     depth = args.depth_m if args.depth_m is not None else (15.0 if default_wide else 10.0)
     strategies = [s.strip() for s in args.strategies.split(',') if s.strip()]
     bad = [s for s in strategies if s not in STRATEGIES]
+    if not 0.0 <= args.ni_floor < 1.0:
+        print(f'--ni-floor must be within [0, 1), got {args.ni_floor}', file=sys.stderr)
+        return 2
     if bad or args.seeds < 1 or args.scans < 1:
         print(f'bad arguments: unknown strategies {bad}' if bad else 'seeds, scans must be >= 1',
               file=sys.stderr)
@@ -229,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
                   n_positions=args.candidates, distance_metric=args.distance,
                   near_fraction=args.near_fraction, angle_weight=args.angle_weight,
                   entropy_weight=args.entropy_weight, ni_measure=args.ni_measure,
-                  unknown_occlusion=args.unknown_occlusion, occlusion_prior=args.occlusion_prior)
+                  unknown_occlusion=args.unknown_occlusion, occlusion_prior=args.occlusion_prior,
+                  ni_floor=args.ni_floor)
     strat = run(cameras=args.cameras, strategies=strategies, **common)
     result = {'figure': THESIS_FIGURE.get((args.world, args.cameras), 'Fig. 3-13 analogue'),
               'world': args.world, 'cameras': args.cameras, 'fov_deg': fov, 'depth_m': depth,
@@ -238,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
               'near_fraction': args.near_fraction, 'angle_weight': args.angle_weight,
               'entropy_weight': args.entropy_weight, 'ni_measure': args.ni_measure,
               'unknown_occlusion': args.unknown_occlusion,
-              'occlusion_prior': args.occlusion_prior,
+              'occlusion_prior': args.occlusion_prior, 'ni_floor': args.ni_floor,
               'strategies': strat,
               'verdict': verdict(strat)}
     if args.compare_one_camera and args.cameras == 2:
@@ -254,7 +264,13 @@ def main(argv: list[str] | None = None) -> int:
           f"depth={depth:.0f} m seeds={args.seeds} scans={args.scans} "
           f"res={args.resolution_m} m"
           + (f' unknown_occlusion=expected/{args.occlusion_prior}'
-             if args.unknown_occlusion == 'expected' else ''))
+             if args.unknown_occlusion == 'expected' else '')
+          + (f' ni_floor={args.ni_floor:g}' if args.ni_floor > 0 else '')
+          + (f' near_fraction={args.near_fraction:g}' if args.near_fraction > 0 else '')
+          + (f' distance={args.distance}' if args.distance != 'configuration' else '')
+          + (f' k_rel={args.k_rel:g}' if args.k_rel != NbvConfig.k_rel else '')
+          + (f' candidates={args.candidates}' if args.candidates != NbvConfig.n_positions
+             else ''))
     print(f"{'strategy':16s} {'scans to 90% [95% CI]':>24s} {'reached':>8s} "
           f"{'distance to 90% m [95% CI]':>30s} {'final frac':>10s} {'final dist m':>12s}")
     for name, r in strat.items():

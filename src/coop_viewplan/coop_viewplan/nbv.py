@@ -153,8 +153,12 @@ class NbvConfig:
     occupied_clamp: float = 0.97               # 'evidence': one voxel this sure blocks alone
     unknown_occlusion: str = 'none'            # 'none' (thesis) or 'expected' (docstring)
     occlusion_prior: str = 'density'           # 'expected': p of unknown cells, 'density'|'markov'
+    ni_floor: float = 0.0                      # max_information: skip views below this share
+                                               # of the decision's best NI (0: the thesis)
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.ni_floor < 1.0:
+            raise ValueError(f'ni_floor must be within [0, 1), got {self.ni_floor}')
         if self.unknown_occlusion not in UNKNOWN_OCCLUSIONS:
             raise ValueError(f'unknown_occlusion must be one of {UNKNOWN_OCCLUSIONS}, got '
                              f'{self.unknown_occlusion!r}')
@@ -751,7 +755,14 @@ class MinMappedStrategy:
 
 
 class MaxInformationStrategy:
-    """(v) maximum expected information: argmax RF = (NI - K d^n)(1 - P), Eq. 3-15."""
+    """(v) maximum expected information: argmax RF = (NI - K d^n)(1 - P), Eq. 3-15.
+
+    `NbvConfig.ni_floor` > 0 (beyond the thesis): only the candidates whose NI is at least that
+    share of the best NI among this decision's candidates compete. The additive RF lets a view
+    worth nothing win once NI - K d < 0 for every informative one: with a large K the camera
+    stays where it is (the current cell is a candidate, NI 0, d 0, RF 0) or crawls through
+    views worth hundredths of a bit, and exploration stalls. With no candidate above the floor
+    (nothing informative anywhere) the plain argmax RF decides."""
 
     name = 'max_information'
 
@@ -760,7 +771,12 @@ class MaxInformationStrategy:
         s = ctx.score(cands)
         rf = rating_function(s.ni, cands.distance, cands.collision_p, k=ctx.k,
                              n=ctx.config.n_exp)
-        return _decide(ctx, self.name, cands, rf, s, rf)
+        key = rf
+        floor = ctx.config.ni_floor
+        if floor > 0 and len(s.ni) and np.max(s.ni) > 0:
+            ni = np.asarray(s.ni, float)
+            key = np.where(ni >= floor * ni.max(), rf, -np.inf)
+        return _decide(ctx, self.name, cands, key, s, rf)
 
 
 class FrontierStrategy:

@@ -50,6 +50,17 @@ def test_cli_rejects_bad_world(capsys):
     assert fig_3_13.main(['--world', 'nowhere.png']) == 2
 
 
+def test_cli_ni_floor(tmp_path, capsys):
+    assert fig_3_13.main(['--ni-floor', '1.5']) == 2
+    assert 'ni-floor' in capsys.readouterr().err
+    out = tmp_path / 'f.json'
+    assert fig_3_13.main(['--seeds', '1', '--scans', '6', '--resolution-m', '2.0',
+                          '--strategies', 'max_information', '--ni-floor', '0.25',
+                          '--k-rel', '0.8', '--json', str(out)]) == 0
+    assert 'ni_floor=0.25' in capsys.readouterr().out
+    assert json.loads(out.read_text())['ni_floor'] == 0.25
+
+
 def test_installed_executables_answer_help():
     """`ros2 run coop_viewplan <exe>` finds these (ament index + lib/<pkg>/<exe>)."""
     import subprocess

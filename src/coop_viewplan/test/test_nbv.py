@@ -294,3 +294,26 @@ def test_near_fraction_takes_the_closest_candidates_first():
     pl = near.candidates.path_length.reshape(20, -1)[:, 0]     # one row per position
     assert np.all(pl[:10] <= 2.9)                 # the 10 nearest cells: within 2 cells
     assert np.median(far.candidates.path_length) > 5.0
+
+
+def test_ni_floor_stops_the_zero_information_stay():
+    """With a large K every informative view rates below standing still (NI 0, d 0, RF 0):
+    the plain argmax of Eq. 3-15 stays; with ni_floor only views with at least that share of
+    the decision's best NI compete."""
+    g = OccupancyGrid.empty((80, 80), resolution=1.0)
+    g.known[10:70, 10:70] = True
+    g.prob[10:70, 10:70] = 0.0                  # a known empty square, unknown around it
+    cam = CameraState(g.to_world(np.array([40, 40])))   # 20 cells from unknown, depth 10
+    picks = {}
+    for floor in (0.0, 0.25):
+        cfg = NbvConfig(n_positions=40, depth_m=10, k_rel=5.0, near_fraction=0.5,
+                        ni_floor=floor)
+        d = NextBestViewPlanner(cfg).plan(g, cam, strategy='max_information',
+                                          rng=np.random.default_rng(0))
+        picks[floor] = (d.scores.ni[d.index], d.scores.ni.max(), d.candidates.distance[d.index])
+    ni, best, dist = picks[0.0]
+    assert ni == 0.0 and dist == 0.0 and best > 0    # the thesis's argmax: stay, learn nothing
+    ni, best, dist = picks[0.25]
+    assert ni >= 0.25 * best and dist > 0
+    with pytest.raises(ValueError, match='ni_floor'):
+        NbvConfig(ni_floor=1.0)
