@@ -32,11 +32,9 @@ from .motion import (
     certainty_term,
     ekf_point_update,
     fiducial_scores,
+    fit_g01,
     robust_g01,
     select_fiducials,
-    solve_g01,
-    solve_g01_so3,
-    solve_rigid_cov,
     track,
 )
 from .stereo import ErrorModel, StereoCamera, disparity_to_points
@@ -283,14 +281,6 @@ class FiducialOdometry:
         self._add_fiducials(left, disp)
         self.prev_left = left
 
-    def _fit_3d(self, x: np.ndarray, pc: np.ndarray, S: np.ndarray):
-        """The g01 solver of the configured 3-D method on a fixed set of fiducials."""
-        if self.cfg.method == 'linear':
-            return solve_g01(x, pc)
-        if self.cfg.method == 'linear_so3':
-            return solve_g01_so3(x, pc)
-        return solve_rigid_cov(x, pc, S)
-
     def step(self, frames: list[tuple[np.ndarray, np.ndarray]], delta_cam: np.ndarray
              ) -> np.ndarray:
         """frames: [(left, disparity)] taken at this step; delta_cam: commanded motion."""
@@ -348,8 +338,8 @@ class FiducialOdometry:
                         Ci = self._cam_cov(pc[idx])
                         Si = Sr[keep]
                         S_meas = camera_pose_covariance(
-                            lambda r, p, Si=Si: self._fit_3d(r, p, Si), self.x[idx], pc[idx],
-                            self.P[idx], Ci)
+                            lambda r, p, Si=Si: fit_g01(r, p, self.cfg.method, covariances=Si),
+                            self.x[idx], pc[idx], self.P[idx], Ci)
             except (MotionError, np.linalg.LinAlgError):
                 continue
             stats.update(g)

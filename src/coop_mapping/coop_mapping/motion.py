@@ -22,7 +22,7 @@ from .gauss import skew
 
 __all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_contrast',
            'depth_contrast', 'certainty_term', 'track', 'solve_g01', 'robust_g01',
-           'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'solve_rigid_cov',
+           'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'solve_rigid_cov', 'fit_g01',
            'camera_pose_covariance', 'RecursivePoseStats', 'ekf_point_update', 'MotionError']
 
 
@@ -287,6 +287,27 @@ def solve_rigid_cov(r_common: np.ndarray, p_camera: np.ndarray, cov: np.ndarray,
     return g
 
 
+G01_METHODS = ('linear', 'linear_so3', 'rigid')
+
+
+def fit_g01(r_common: np.ndarray, p_camera: np.ndarray, method: str, *,
+            weights: np.ndarray | None = None, covariances: np.ndarray | None = None
+            ) -> np.ndarray:
+    """g01 by `method`: 'linear' Eq. 3-18 as printed (solve_g01), 'linear_so3'
+    (solve_g01_so3), 'rigid' (solve_rigid_cov with `covariances` (N, 3, 3), else solve_rigid
+    with scalar `weights`)."""
+    if method == 'linear':
+        return solve_g01(r_common, p_camera)
+    if method == 'linear_so3':
+        return solve_g01_so3(r_common, p_camera)
+    if method != 'rigid':
+        raise ValueError(f'method must be one of {G01_METHODS}, got {method!r}')
+    if covariances is not None:
+        return solve_rigid_cov(r_common, p_camera, covariances)
+    w = np.ones(len(r_common)) if weights is None else weights
+    return solve_rigid(r_common, p_camera, w)
+
+
 def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 3,
                gate: float = 3.0, min_points: int = 6, method: str = 'linear',
                weights: np.ndarray | None = None, covariances: np.ndarray | None = None
@@ -299,19 +320,15 @@ def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 
     mask)."""
     r = np.asarray(r_common, float)
     p = np.asarray(p_camera, float)
-    if method not in ('linear', 'linear_so3', 'rigid'):
+    if method not in G01_METHODS:
         raise ValueError(f'method must be linear, linear_so3 or rigid, got {method!r}')
     w = np.ones(len(r)) if weights is None else np.asarray(weights, float)
-    Winv = None if covariances is None else np.linalg.inv(np.asarray(covariances, float))
+    C = None if covariances is None else np.asarray(covariances, float)
+    Winv = None if C is None else np.linalg.inv(C)
 
     def fit(m):
-        if method == 'linear':
-            return solve_g01(r[m], p[m])
-        if method == 'linear_so3':
-            return solve_g01_so3(r[m], p[m])
-        if covariances is not None:
-            return solve_rigid_cov(r[m], p[m], np.asarray(covariances, float)[m])
-        return solve_rigid(r[m], p[m], w[m])
+        return fit_g01(r[m], p[m], method, weights=w[m],
+                       covariances=None if C is None else C[m])
 
     def residual(g):
         e = r @ g[:3, :3].T + g[:3, 3] - p

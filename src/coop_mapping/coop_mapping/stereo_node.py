@@ -27,6 +27,7 @@ alignment's uncertainty added to `camera_pose`.
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import fields
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -38,8 +39,9 @@ from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
+from .offline import StereoSettings
 from .ros_conv import cloud_to_msg, pose_to_rt
-from .stereo import SUBPIXEL_MODES, ErrorModel, StereoCamera, StereoError, StereoRanger
+from .stereo import SUBPIXEL_MODES, StereoError, StereoRanger
 from .target_frame import Initialiser, TargetFrameError, TargetGeometry
 
 # rover_sim's insertion site (worldgen, slot 4 mm): its frame has the origin at the block's
@@ -173,13 +175,8 @@ class StereoNode(Node):
 
     def _make_ranger(self) -> StereoRanger:
         li, ri = self.info['left'], self.info['right']
-        cam = StereoCamera.from_projection(li.p, ri.p, li.width, li.height)
-        em = ErrorModel.from_stereo(cam, sigma_d_px=self.p['sigma_disparity_px'],
-                                    lateral=self.p['error_T_lateral'], n=self.p['error_n'])
-        return StereoRanger(cam, error_model=em, num_disparities=self.p['num_disparities'],
-                            block_size=self.p['block_size'] | 1, stride=self.p['stride'],
-                            min_range=self.p['min_range_m'], max_range=self.p['max_range_m'],
-                            subpixel=self.p['subpixel'])
+        settings = StereoSettings(**{f.name: self.p[f.name] for f in fields(StereoSettings)})
+        return settings.ranger(li.p, ri.p, li.width, li.height)
 
     def _put(self, kind: str, msg) -> None:
         st = _stamp_ns(msg.header.stamp)
