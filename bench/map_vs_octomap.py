@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_mapping.octomap_peer import leaf_states  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
-from coop_mapping.stereo import SUBPIXEL_MODES, StereoCamera, StereoRanger  # noqa: E402
+from coop_mapping.stereo import SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoCamera, StereoRanger  # noqa: E402
 from coop_mapping.voxelmap import (  # noqa: E402
     OCCUPIED,
     VoxelMap,
@@ -89,7 +89,7 @@ def synthetic_scans(n_points: int, seed: int = 0):
     return scans
 
 
-def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = 'sgbm'):
+def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = SUBPIXEL_DEFAULT):
     cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
     ranger = StereoRanger(cam, num_disparities=64, max_range=10.0, subpixel=subpixel)
     scans, truth = [], []
@@ -265,9 +265,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--grid-offsets', type=int, default=4,
                     help='placements of the scene in the grid the surface error is pooled '
                     'over: the grid as given + N-1 seeded random offsets')
-    ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default='sgbm',
-                    help="stereo sub-pixel disparity: SGBM's own or equalised (pixel-locking "
-                    'correction); bench/stereo_subpixel.py measures the two')
+    ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default=SUBPIXEL_DEFAULT,
+                    help="stereo sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
+                    'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image; '
+                    'bench/stereo_subpixel.py measures them')
     args = ap.parse_args(argv)
 
     syn = synthetic_scans(args.points)

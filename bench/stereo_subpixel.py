@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
-"""Sub-pixel accuracy of the stereo front end: StereoSGBM's pixel locking, and the histogram
-equalisation of the sub-pixel part (coop_mapping.stereo.equalize_subpixel) against SGBM's own
-output in the same run, on the dense VGA frames of bench/map_vs_octomap.py (same scene, same
-poses) with the renderer's true depth.
+"""Sub-pixel accuracy of the stereo front end: StereoSGBM's pixel locking and its corrections
+(coop_mapping.stereo.compute_disparity's sub-pixel modes) side by side in one run, on the dense
+VGA frames of bench/map_vs_octomap.py (same scene, same poses) with the renderer's true depth.
 
-Per mode ('sgbm': SGBM's own sub-pixel disparity; 'equalise': equalize_subpixel of it): the
+Per mode ('sgbm': SGBM's own sub-pixel disparity; 'equalise': equalize_subpixel of it;
+'shift2' / 'shift4': phase_averaged_disparity, the mean over 2 / 4 sub-pixel shifts of the
+right image), with the time per frame (one thread; read the ratios) and: the
 share of disparities within 1/8 px of an integer (25 % if the sub-pixel part were uniform), the
 mean disparity error in 8 bins of the TRUE sub-pixel part and its swing (max - min; a
 locking-free matcher has none), the disparity error's mean and RMS, the range error RMS and its
@@ -18,6 +19,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from pathlib import Path
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
@@ -30,7 +32,7 @@ from map_vs_octomap import STEREO_POSES  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
 from coop_mapping.stereo import SUBPIXEL_MODES as MODES  # noqa: E402
-from coop_mapping.stereo import StereoCamera, compute_disparity, equalize_subpixel  # noqa: E402
+from coop_mapping.stereo import StereoCamera, compute_disparity  # noqa: E402
 
 N_BINS = 8
 GROSS_PX = 2.0
@@ -38,7 +40,7 @@ SIGMA_D_MODEL_PX = 0.5
 
 
 def frames(width: int, height: int, seed: int):
-    """(camera, [(measured disparity, true disparity)]) for every bench pose."""
+    """(camera, [(left, right, true disparity)]) for every bench pose."""
     cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
     out = []
     with TexturedScene(cam, seed=seed) as scene:
@@ -48,8 +50,16 @@ def frames(width: int, height: int, seed: int):
             left, right, depth = scene.render(R, eye)
             with np.errstate(divide='ignore', invalid='ignore'):
                 d_true = cam.fx * cam.baseline / depth
-            out.append((compute_disparity(left, right, num_disparities=64), d_true))
+            out.append((left, right, d_true))
     return cam, out
+
+
+def disparities(images, mode: str) -> tuple[list, float]:
+    """[(measured, true disparity)] in `mode` and the mean time per frame (s)."""
+    t0 = time.perf_counter()
+    pairs = [(compute_disparity(left, right, num_disparities=64, subpixel=mode), d_true)
+             for left, right, d_true in images]
+    return pairs, (time.perf_counter() - t0) / len(images)
 
 
 def stats(cam: StereoCamera, pairs) -> dict:
@@ -83,19 +93,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--json', type=Path, default=None)
     args = ap.parse_args(argv)
-    cam, pairs = frames(args.width, args.height, args.seed)
-    res = {'sgbm': stats(cam, pairs),
-           'equalise': stats(cam, [(equalize_subpixel(m), t) for m, t in pairs])}
+    cam, images = frames(args.width, args.height, args.seed)
+    res = {}
+    for m in MODES:
+        pairs, dt = disparities(images, m)
+        res[m] = stats(cam, pairs) | {'ms_per_frame': 1e3 * dt}
     print(f'stereo sub-pixel accuracy: {len(pairs)} frames {args.width}x{args.height}, '
-          f'{res["sgbm"]["pixels"]} valid pixels, |error| < {GROSS_PX:g} px '
-          f'(gross mismatches {100 * res["sgbm"]["gross_share"]:.1f} %)')
-    print(f'{"mode":>10} {"<1/8 px of int":>14} {"bias swing px":>13} {"mean px":>8} '
-          f'{"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8}')
+          f'|error| < {GROSS_PX:g} px (gross mismatches: '
+          + ', '.join(f'{m} {100 * res[m]["gross_share"]:.2f} %' for m in MODES) + ')')
+    print(f'{"mode":>10} {"valid px":>9} {"<1/8 px of int":>14} {"bias swing px":>13} '
+          f'{"mean px":>8} {"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8} {"ms/frame":>8}')
     for m in MODES:
         r = res[m]
-        print(f'{m:>10} {100 * r["near_integer_share"]:13.1f}% {r["bias_swing_px"]:13.3f} '
-              f'{r["mean_error_px"]:+8.3f} {r["rms_error_px"]:7.3f} '
-              f'{r["range_rms_error_m"]:11.3f} {r["range_rms_over_model"]:8.2f}')
+        print(f'{m:>10} {r["pixels"]:9d} {100 * r["near_integer_share"]:13.1f}% '
+              f'{r["bias_swing_px"]:13.3f} {r["mean_error_px"]:+8.3f} {r["rms_error_px"]:7.3f} '
+              f'{r["range_rms_error_m"]:11.3f} {r["range_rms_over_model"]:8.2f} '
+              f'{r["ms_per_frame"]:8.1f}')
     print('mean error (px) by true sub-pixel part, bins of 1/8 from -0.5:')
     for m in MODES:
         bins = res[m]['mean_error_by_true_subpixel_px']

@@ -34,7 +34,7 @@ from coop_common.files import save_figure, write_json
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .render import Box, TexturedScene, look_at
-from .stereo import SUBPIXEL_MODES, StereoCamera, compute_disparity, equalize_subpixel
+from .stereo import SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoCamera, compute_disparity
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,7 @@ class TrialConfig:
                                    # (reprojection of the mapped fiducials, no range in the fit)
     fuse_prediction: bool = True   # Kalman-fuse the commanded motion (known per-step sigmas)
                                    # with the fiducial measurement; False: fiducials only
-    subpixel: str = 'sgbm'         # SGBM's sub-pixel disparity, or 'equalise' (stereo.py)
+    subpixel: str = SUBPIXEL_DEFAULT  # sub-pixel disparity (stereo.compute_disparity)
 
     def __post_init__(self) -> None:
         if self.subpixel not in SUBPIXEL_MODES:
@@ -121,8 +121,8 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
                 left, right, depth = scene.render(T[:3, :3], T[:3, 3],
                                                   noise_sigma=cfg.image_noise, rng=rng)
                 d_max[0] = max(d_max[0], cam.fx * cam.baseline / float(np.nanmin(depth)))
-                d = compute_disparity(left, right, num_disparities=nd)
-                out.append((left, equalize_subpixel(d) if cfg.subpixel == 'equalise' else d))
+                out.append((left, compute_disparity(left, right, num_disparities=nd,
+                                                    subpixel=cfg.subpixel)))
             return out
 
         sig = ({'sigma_t_m': cfg.sigma_t_m, 'sigma_rot_rad': np.radians(cfg.sigma_rot_deg)}
@@ -149,7 +149,7 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
 
 def run(distances: list[float], trials: int, steps: int, seed: int = 0,
         width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',),
-        fuse_prediction: bool = True, subpixel: str = 'sgbm') -> dict:
+        fuse_prediction: bool = True, subpixel: str = SUBPIXEL_DEFAULT) -> dict:
     out = {'distances_m': distances, 'trials': trials, 'steps': steps,
            'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'results': {}}
     for method in methods:
@@ -197,9 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                     'motion only as its starting point (no Kalman update with the prediction)')
     ap.add_argument('--width', type=int, default=320)
     ap.add_argument('--height', type=int, default=240)
-    ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default='sgbm',
-                    help="sub-pixel disparity: SGBM's own or equalised (pixel-locking "
-                    'correction, stereo.equalize_subpixel)')
+    ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default=SUBPIXEL_DEFAULT,
+                    help="sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
+                    'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image')
     args = ap.parse_args(argv)
     out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
               tuple(args.methods), fuse_prediction=not args.no_fusion,

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .stereo import ErrorModel, StereoCamera, StereoError, StereoRanger
+from .stereo import SUBPIXEL_DEFAULT, ErrorModel, StereoCamera, StereoError, StereoRanger
 from .voxelmap import MapInputError, VoxelMap
 
 __all__ = ['StereoSettings', 'MapSettings', 'StereoFrame', 'OfflineMap', 'image_array',
@@ -45,7 +45,7 @@ class StereoSettings:
     sigma_disparity_px: float = 0.5
     error_T_lateral: float = 0.1
     error_n: float = 2.0
-    subpixel: str = 'sgbm'
+    subpixel: str = SUBPIXEL_DEFAULT
 
     def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
                height: int) -> StereoRanger:

@@ -13,12 +13,15 @@ import numpy as np
 
 from .gauss import rotate_sym6
 
-__all__ = ['SUBPIXEL_MODES', 'StereoCamera', 'ErrorModel', 'StereoError', 'compute_disparity',
-           'equalize_subpixel', 'disparity_to_range', 'range_sigma', 'disparity_to_points',
+__all__ = ['SUBPIXEL_MODES', 'SUBPIXEL_DEFAULT', 'StereoCamera', 'ErrorModel', 'StereoError',
+           'compute_disparity', 'equalize_subpixel', 'phase_averaged_disparity', 'shift_columns',
+           'disparity_to_range', 'range_sigma', 'disparity_to_points',
            'StereoRanger', 'StereoScan']
 
 
-SUBPIXEL_MODES = ('sgbm', 'equalise')
+SUBPIXEL_MODES = ('sgbm', 'equalise', 'shift2', 'shift4')
+SUBPIXEL_DEFAULT = 'shift4'
+_PHASES = {'shift2': 2, 'shift4': 4}
 
 
 class StereoError(ValueError):
@@ -121,23 +124,73 @@ def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: int = 64,
                       block_size: int = 5, uniqueness: int = 10, speckle_window: int = 50,
-                      speckle_range: int = 2) -> np.ndarray:
-    """StereoSGBM (3-way) disparity in pixels (float32), NaN where invalid."""
+                      speckle_range: int = 2, subpixel: str = 'sgbm') -> np.ndarray:
+    """StereoSGBM (3-way) disparity in pixels (float32), NaN where invalid.
+
+    `subpixel` (SUBPIXEL_MODES) chooses the sub-pixel estimate: 'sgbm', SGBM's own parabola
+    interpolation, which pulls disparities towards whole pixels (pixel locking, measured by
+    bench/stereo_subpixel.py); 'equalise', `equalize_subpixel` of it; 'shift2' / 'shift4',
+    `phase_averaged_disparity` over 2 / 4 sub-pixel shifts of the right image (2 / 4 SGBM
+    runs), which cancels the locking error instead of remapping it."""
     _check_pair(left, right)
     if num_disparities <= 0 or num_disparities % 16:
         raise StereoError('num_disparities must be a positive multiple of 16')
     if block_size < 1 or block_size % 2 == 0:
         raise StereoError('block_size must be odd and >= 1')
+    if subpixel not in SUBPIXEL_MODES:
+        raise StereoError(f'subpixel must be one of {SUBPIXEL_MODES}, got {subpixel!r}')
     sgbm = cv2.StereoSGBM_create(
         minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
         P1=8 * block_size ** 2, P2=32 * block_size ** 2, disp12MaxDiff=1,
         uniquenessRatio=uniqueness, speckleWindowSize=speckle_window,
         speckleRange=speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-    d = sgbm.compute(left, right).astype(np.float32) / 16.0
-    d[d <= 0] = np.nan
-    # the left num_disparities columns have no full search range
-    d[:, :num_disparities] = np.nan
-    return d
+
+    def run(r: np.ndarray) -> np.ndarray:
+        d = sgbm.compute(left, r).astype(np.float32) / 16.0
+        d[d <= 0] = np.nan
+        # the left num_disparities columns have no full search range
+        d[:, :num_disparities] = np.nan
+        return d
+
+    if subpixel in _PHASES:
+        return phase_averaged_disparity(run, right, _PHASES[subpixel])
+    d = run(right)
+    return equalize_subpixel(d) if subpixel == 'equalise' else d
+
+
+def shift_columns(img: np.ndarray, s: float) -> np.ndarray:
+    """The image resampled at column x + s (bilinear; edges replicated)."""
+    h, w = img.shape
+    mx = np.broadcast_to(np.arange(w, dtype=np.float32) + np.float32(s), (h, w))
+    my = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    return cv2.remap(img, np.ascontiguousarray(mx), np.ascontiguousarray(my),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def phase_averaged_disparity(match, right: np.ndarray, n_phases: int,
+                             max_spread_px: float = 1.0) -> np.ndarray:
+    """Pixel-locking cancellation by sub-pixel shifts (Shimizu and Okutomi's half-pixel shift
+    of the image, ICCV 2001, generalised to n phases).
+
+    `match(right_image)` is the matcher's disparity (px, NaN invalid) against the left image.
+    The right image resampled at x + k/n (k = 0..n-1) moves every true disparity by +k/n px and
+    so the phase of the matcher's periodic sub-pixel error by k/n of its period: the mean of the
+    n disparities, each less its shift, cancels the error's first n-1 harmonics (2 phases: the
+    dominant one; bench/stereo_subpixel.py measures the rest). A pixel is kept only where all n
+    are valid and agree within `max_spread_px` (a disagreement is a mismatch in one of them);
+    the result is NaN or > 0."""
+    if n_phases < 1:
+        raise StereoError('n_phases must be >= 1')
+    shifts = np.arange(n_phases) / n_phases
+    D = np.stack([match(right if s == 0 else shift_columns(right, s)) - np.float32(s)
+                  for s in shifts])
+    with np.errstate(invalid='ignore'):
+        ok = np.all(np.isfinite(D), 0) & (np.ptp(D, axis=0) < max_spread_px)
+        mean = D.mean(0)
+        ok &= mean > 0
+    out = np.full(D.shape[1:], np.nan, np.float32)
+    out[ok] = mean[ok]
+    return out
 
 
 def equalize_subpixel(disp: np.ndarray) -> np.ndarray:
@@ -201,10 +254,10 @@ class StereoRanger:
 
     def __init__(self, camera: StereoCamera, *, error_model: ErrorModel | None = None,
                  num_disparities: int = 64, block_size: int = 5, stride: int = 1,
-                 min_range: float = 0.2, max_range: float = 20.0, subpixel: str = 'sgbm'
-                 ) -> None:
-        """`subpixel`: 'sgbm' (SGBM's own parabola interpolation) or 'equalise'
-        (`equalize_subpixel` applied to it, the pixel-locking correction)."""
+                 min_range: float = 0.2, max_range: float = 20.0,
+                 subpixel: str = SUBPIXEL_DEFAULT) -> None:
+        """`subpixel`: the sub-pixel disparity estimate, one of SUBPIXEL_MODES (see
+        compute_disparity)."""
         if subpixel not in SUBPIXEL_MODES:
             raise StereoError(f'subpixel must be one of {SUBPIXEL_MODES}, got {subpixel!r}')
         self.subpixel = subpixel
@@ -218,9 +271,8 @@ class StereoRanger:
 
     def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """The pair's disparity (px, NaN invalid) with this ranger's settings."""
-        d = compute_disparity(left, right, num_disparities=self.num_disparities,
-                              block_size=self.block_size)
-        return equalize_subpixel(d) if self.subpixel == 'equalise' else d
+        return compute_disparity(left, right, num_disparities=self.num_disparities,
+                                 block_size=self.block_size, subpixel=self.subpixel)
 
     def process(self, left: np.ndarray, right: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
                 *, disparity: np.ndarray | None = None) -> StereoScan:

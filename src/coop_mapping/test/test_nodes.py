@@ -137,7 +137,7 @@ def test_mapper_loads_last_save_on_restart(ctx, tmp_path):
         node.destroy_node()
 
 
-@pytest.mark.parametrize('subpixel', ['sgbm', 'equalise'])
+@pytest.mark.parametrize('subpixel', ['sgbm', 'equalise', 'shift4'])
 def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel):
     pytest.importorskip('pybullet')
     from coop_mapping.render import TexturedScene, look_at
