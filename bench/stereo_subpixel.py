@@ -26,6 +26,7 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from map_vs_octomap import STEREO_POSES  # noqa: E402
 
@@ -93,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--json', type=Path, default=None)
     args = ap.parse_args(argv)
+    cv2.setNumThreads(1)                 # the times are per frame on one thread
     cam, images = frames(args.width, args.height, args.seed)
     res = {}
     for m in MODES:

@@ -124,14 +124,14 @@ def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: int = 64,
                       block_size: int = 5, uniqueness: int = 10, speckle_window: int = 50,
-                      speckle_range: int = 2, subpixel: str = 'sgbm') -> np.ndarray:
+                      speckle_range: int = 2, subpixel: str = SUBPIXEL_DEFAULT) -> np.ndarray:
     """StereoSGBM (3-way) disparity in pixels (float32), NaN where invalid.
 
-    `subpixel` (SUBPIXEL_MODES) chooses the sub-pixel estimate: 'sgbm', SGBM's own parabola
-    interpolation, which pulls disparities towards whole pixels (pixel locking, measured by
-    bench/stereo_subpixel.py); 'equalise', `equalize_subpixel` of it; 'shift2' / 'shift4',
-    `phase_averaged_disparity` over 2 / 4 sub-pixel shifts of the right image (2 / 4 SGBM
-    runs), which cancels the locking error instead of remapping it."""
+    `subpixel` (SUBPIXEL_MODES, default SUBPIXEL_DEFAULT) chooses the sub-pixel estimate:
+    'sgbm', SGBM's own parabola interpolation, which pulls disparities towards whole pixels
+    (pixel locking, measured by bench/stereo_subpixel.py); 'equalise', `equalize_subpixel` of
+    it; 'shift2' / 'shift4', `phase_averaged_disparity` over 2 / 4 sub-pixel shifts of the
+    right image (2 / 4 SGBM runs), which cancels the locking error instead of remapping it."""
     _check_pair(left, right)
     if num_disparities <= 0 or num_disparities % 16:
         raise StereoError('num_disparities must be a positive multiple of 16')

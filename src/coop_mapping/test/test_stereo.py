@@ -220,7 +220,7 @@ def test_subpixel_corrections_range_the_rendered_scene_better(rendered, mode, ra
     """SGBM pixel-locks on the sim's frames; each correction is closer to the truth (measured
     here: equalise 0.79x, shift2 0.58x, shift4 0.52x SGBM's RMS disparity error)."""
     cam, left, right, depth, R, eye = rendered
-    rms = {}
+    rms, valid = {}, {}
     for m in ('sgbm', mode):
         scan = StereoRanger(cam, num_disparities=32, subpixel=m).process(left, right, R, eye)
         u = scan.uv.astype(int)
@@ -229,5 +229,7 @@ def test_subpixel_corrections_range_the_rendered_scene_better(rendered, mode, ra
         e = cam.fx * cam.baseline * (1.0 / scan.points_cam[ok, 2] - 1.0 / zt[ok])
         e = e[np.abs(e) < 2.0]                      # gross mismatches are not sub-pixel errors
         rms[m] = np.sqrt(np.mean(e ** 2))
+        valid[m] = e.size
     assert rms['sgbm'] > 0.15                       # the locking is there to correct
     assert rms[mode] < ratio * rms['sgbm']
+    assert valid[mode] > 0.98 * valid['sgbm']       # not by dropping the hard pixels
