@@ -50,11 +50,13 @@ Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
   the largest occupancy within the rover's clearance is below P_empty (unknown counts 0.5; in
   3-D the whole slab column the rover sweeps must be known). P is that footprint maximum.
 * 'evidence' (the node on the live stereo map): (ii) a rover may pass wherever its clearance
-  disk holds no column with evidence of an obstacle - at least `occupied_voxels` occupied slab
-  voxels, or one at the occupancy clamp (a lone stereo speckle does not block, a real surface
-  does); unobserved space is not an obstacle for the path. (i) is the thesis's test on the goal
-  pose itself: the voxel at the camera's height is known with P < P_empty, and P of Eq. 3-15 is
-  its occupancy (1 where an obstacle column is within the clearance).
+  disk holds no column with evidence of an obstacle - at least `occupied_voxels` slab voxels
+  with P >= `occupied_p`, or one at the occupancy clamp (a lone stereo speckle does not block,
+  a real surface does; 0.7 is one stereo hit that no later ray has crossed: far-range points
+  that a nearer view carves are no obstacle); unobserved space is not an obstacle for the path.
+  (i) is the thesis's test on the goal pose itself: the voxel at the camera's height is known
+  with P < P_empty, and P of Eq. 3-15 is its occupancy (1 where an obstacle column is within the
+  clearance).
 """
 from __future__ import annotations
 
@@ -150,6 +152,7 @@ class NbvConfig:
     chunk_samples: int = 400_000
     reach_model: str = 'known'                 # 'known' or 'evidence' (module docstring)
     occupied_voxels: int = 2                   # 'evidence': occupied slab voxels that block
+    occupied_p: float = 0.7                    # 'evidence': P at which a slab voxel counts
     occupied_clamp: float = 0.97               # 'evidence': one voxel this sure blocks alone
     unknown_occlusion: str = 'none'            # 'none' (thesis) or 'expected' (docstring)
     occlusion_prior: str = 'density'           # 'expected': p of unknown cells, 'density'|'markov'
@@ -157,6 +160,8 @@ class NbvConfig:
                                                # of the decision's best NI (0: the thesis)
 
     def __post_init__(self) -> None:
+        if not 0.5 <= self.occupied_p <= 1.0:
+            raise ValueError(f'occupied_p must be within [0.5, 1], got {self.occupied_p}')
         if not 0.0 <= self.ni_floor < 1.0:
             raise ValueError(f'ni_floor must be within [0, 1), got {self.ni_floor}')
         if self.unknown_occlusion not in UNKNOWN_OCCLUSIONS:
@@ -901,7 +906,7 @@ class NextBestViewPlanner:
             bot, top = self._slab(grid)
             kn = grid.known[:, :, bot:top]
             pr = grid.prob[:, :, bot:top]
-            occ = kn & (pr >= 0.5)
+            occ = kn & (pr >= cfg.occupied_p)
             blocked = ((occ.sum(axis=2) >= cfg.occupied_voxels)
                        | (kn & (pr >= cfg.occupied_clamp)).any(axis=2))
             kc = int(np.floor((cfg.camera_height_m - grid.origin[2]) / grid.resolution + 1e-6))

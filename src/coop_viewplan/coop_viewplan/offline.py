@@ -24,7 +24,7 @@ from .nbv import CameraState, Decision, NbvConfig, NextBestViewPlanner, Planning
 #: the node's parameter defaults that matter here (view_planner_node.PARAMS; checked by a test)
 NODE_DEFAULTS = {'fov_deg': 75.0, 'depth_m': 10.0, 'rays_az': 24, 'rays_el': 18, 'k_rel': 0.15,
                  'n_exp': 1.0, 'candidates': 40, 'headings': 8, 'camera_height_m': 0.8,
-                 'clearance_m': 0.5, 'p_empty': 0.2, 'occupied_voxels': 2,
+                 'clearance_m': 0.5, 'p_empty': 0.2, 'occupied_voxels': 2, 'occupied_p': 0.7,
                  'occupied_clamp': 0.97, 'pad_m': 5.0, 'ceiling_m': 1.0, 'seed': 0,
                  'ni_measure': 'histogram', 'free_gray': 'empty'}
 
@@ -37,7 +37,8 @@ def nbv_config(p: dict) -> NbvConfig:
         step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
         n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
         clearance_m=p['clearance_m'], p_empty=p['p_empty'], reach_model='evidence',
-        occupied_voxels=p['occupied_voxels'], occupied_clamp=p['occupied_clamp'],
+        occupied_voxels=p['occupied_voxels'], occupied_p=p['occupied_p'],
+        occupied_clamp=p['occupied_clamp'],
         ni_measure=p['ni_measure'], free_gray=p['free_gray'])
 
 

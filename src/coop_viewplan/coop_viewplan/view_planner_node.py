@@ -54,6 +54,10 @@ PARAMS = {
     # or is seen often enough to reach the map's clamp (0.971 in coop_mapping).
     'occupied_voxels': ParamSpec(2, 'occupied voxels of a column (ground clearance up to the '
                                  'camera) that block the rover', lo=1, hi=100),
+    # One stereo hit gives P = 0.7 and a later ray through the voxel lowers it to 0.61: far
+    # points mis-ranged in front of the surface are carved by nearer views (fig_3_25).
+    'occupied_p': ParamSpec(0.7, 'occupancy at which a voxel of a column counts for '
+                            'occupied_voxels', lo=0.5, hi=1.0),
     'occupied_clamp': ParamSpec(0.97, 'occupancy at which a single voxel blocks its column',
                                 lo=0.5, hi=1.0),
     # The shared map clamps free voxels at P = 0.12 and one free observation gives 0.4

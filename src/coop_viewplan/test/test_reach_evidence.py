@@ -18,6 +18,7 @@ from coop_viewplan.nbv import (
 
 RES = 0.1
 FREE, WEAK, HIT, CLAMP = 0.12, 0.4, 0.7, 0.971     # coop_mapping's OctoMap-model levels
+CARVED = 0.7 * 0.4 / (0.7 * 0.4 + 0.3 * 0.6)       # one hit, then one ray through: 0.61
 
 
 def _room(nx: int = 60, ny: int = 40, nz: int = 12) -> OccupancyGrid:
@@ -62,6 +63,24 @@ def test_speckle_does_not_block_a_real_wall_does():
         # with 3 votes needed, two hits pass; the clamp still blocks
         assert _planner(occupied_voxels=3).traversability(h).navigable[30, 20] == (
             len(column) == 2)
+
+
+def test_hits_a_later_ray_crossed_do_not_block():
+    """Far stereo points mis-ranged in front of a surface are crossed by nearer rays: a column
+    of such voxels (P 0.61) is no obstacle evidence at the default occupied_p 0.7; uncarved
+    hits (0.7) and a column seen twice (0.84) are; occupied_p 0.5 restores the old rule."""
+    planner = _planner()
+    assert planner.config.occupied_p == 0.7
+    for level, blocks in ((CARVED, False), (HIT, True), (0.84, True)):
+        h = _room()
+        h.prob[30, 20, 2:8] = level
+        assert planner.traversability(h).navigable[30, 20] == (not blocks), level
+    h = _room()
+    h.prob[30, 20, 2:8] = CARVED
+    assert not _planner(occupied_p=0.5).traversability(h).navigable[30, 20]
+    for bad in (0.4, 1.2):
+        with pytest.raises(ValueError, match='occupied_p'):
+            NbvConfig(occupied_p=bad)
 
 
 def test_candidate_inside_an_obstacle_is_rejected():
