@@ -89,9 +89,11 @@ def synthetic_scans(n_points: int, seed: int = 0):
     return scans
 
 
-def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = SUBPIXEL_DEFAULT):
+def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = SUBPIXEL_DEFAULT,
+                 full_width: bool = False):
     cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
-    ranger = StereoRanger(cam, num_disparities=64, max_range=10.0, subpixel=subpixel)
+    ranger = StereoRanger(cam, num_disparities=64, max_range=10.0, subpixel=subpixel,
+                          full_width=full_width)
     scans, truth = [], []
     with TexturedScene(cam, seed=seed) as scene:
         for rover, eye, target in STEREO_POSES:
@@ -269,13 +271,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="stereo sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
                     'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image; '
                     'bench/stereo_subpixel.py measures them')
+    ap.add_argument('--full-width', action='store_true',
+                    help='also range the left 64 columns of each frame (stereo.compute_disparity)')
     args = ap.parse_args(argv)
 
     syn = synthetic_scans(args.points)
-    st, truth = stereo_scans(args.width, args.height, subpixel=args.subpixel)
+    st, truth = stereo_scans(args.width, args.height, subpixel=args.subpixel,
+                             full_width=args.full_width)
     out = {'octomap_model': {'prob_hit': 0.7, 'prob_miss': 0.4, 'clamp_min': 0.1192,
                              'clamp_max': 0.971},
            'stereo_frames': len(st), 'image': [args.width, args.height], 'subpixel': args.subpixel,
+           'full_width': args.full_width,
            'resolutions': {}}
     rows = []
     for res in args.resolutions:
@@ -310,7 +316,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((f'{res:g}', name, r['ours_points_per_s'] / 1e6,
                          r['octomap_points_per_s'] / 1e6, r['speedup'], r['state_agreement'],
                          r['bytes_per_known_voxel'], r['frame_latency_ms']))
-    print(f'stereo: {len(st)} frames {args.width}x{args.height} (sub-pixel: {args.subpixel}), '
+    print(f'stereo: {len(st)} frames {args.width}x{args.height} (sub-pixel: {args.subpixel}'
+          f'{", full width" if args.full_width else ""}), '
           f'{sum(len(s[0]) for s in st)} points; synthetic: {len(syn)} scans, '
           f'{sum(len(s[0]) for s in syn)} points; best of {args.repeats}')
     print(f'{"res m":>6} {"data":>9} {"ours Mpt/s":>10} {"octo Mpt/s":>10} {"speedup":>7} '

@@ -10,7 +10,9 @@ share of disparities within 1/8 px of an integer (25 % if the sub-pixel part wer
 mean disparity error in 8 bins of the TRUE sub-pixel part and its swing (max - min; a
 locking-free matcher has none), the disparity error's mean and RMS, the range error RMS and its
 ratio to the Eq. 3-7 model's sigma (0.5 px), over pixels with a valid disparity and
-|error| < 2 px (the rest are counted as gross mismatches).
+|error| < 2 px (the rest are counted as gross mismatches); and the valid pixels and RMS error in
+the left 64 columns (the search range), which SGBM leaves invalid and compute_disparity's
+opt-in `full_width` recovers by padding (last row: the default mode with it).
 
     bench/stereo_subpixel.py --json out/bench/stereo_subpixel.json
 """
@@ -32,10 +34,11 @@ from map_vs_octomap import STEREO_POSES  # noqa: E402
 
 from coop_common.files import write_json  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
+from coop_mapping.stereo import SUBPIXEL_DEFAULT, StereoCamera, compute_disparity  # noqa: E402
 from coop_mapping.stereo import SUBPIXEL_MODES as MODES  # noqa: E402
-from coop_mapping.stereo import StereoCamera, compute_disparity  # noqa: E402
 
 N_BINS = 8
+SEARCH_PX = 64
 GROSS_PX = 2.0
 SIGMA_D_MODEL_PX = 0.5
 
@@ -55,10 +58,11 @@ def frames(width: int, height: int, seed: int):
     return cam, out
 
 
-def disparities(images, mode: str) -> tuple[list, float]:
+def disparities(images, mode: str, full_width: bool) -> tuple[list, float]:
     """[(measured, true disparity)] in `mode` and the mean time per frame (s)."""
     t0 = time.perf_counter()
-    pairs = [(compute_disparity(left, right, num_disparities=64, subpixel=mode), d_true)
+    pairs = [(compute_disparity(left, right, num_disparities=SEARCH_PX, subpixel=mode,
+                                full_width=full_width), d_true)
              for left, right, d_true in images]
     return pairs, (time.perf_counter() - t0) / len(images)
 
@@ -97,22 +101,31 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)                 # the times are per frame on one thread
     cam, images = frames(args.width, args.height, args.seed)
     res = {}
-    for m in MODES:
-        pairs, dt = disparities(images, m)
-        res[m] = stats(cam, pairs) | {'ms_per_frame': 1e3 * dt}
+    rows = [(m, m, False) for m in MODES] + [(f'{SUBPIXEL_DEFAULT}+fw', SUBPIXEL_DEFAULT, True)]
+    for label, m, fw in rows:
+        pairs, dt = disparities(images, m, fw)
+        edge = (stats(cam, [(d[:, :SEARCH_PX], t[:, :SEARCH_PX]) for d, t in pairs]) if fw
+                else {'pixels': 0, 'rms_error_px': float('nan'), 'gross_share': float('nan')})
+        res[label] = stats(cam, pairs) | {'ms_per_frame': 1e3 * dt, 'full_width': fw,
+                                          'left_columns_valid_px': edge['pixels'],
+                                          'left_columns_rms_error_px': edge['rms_error_px'],
+                                          'left_columns_gross_share': edge['gross_share']}
     print(f'stereo sub-pixel accuracy: {len(pairs)} frames {args.width}x{args.height}, '
           f'|error| < {GROSS_PX:g} px (gross mismatches: '
-          + ', '.join(f'{m} {100 * res[m]["gross_share"]:.2f} %' for m in MODES) + ')')
+          + ', '.join(f'{m} {100 * res[m]["gross_share"]:.2f} %' for m in res) + ')')
     print(f'{"mode":>10} {"valid px":>9} {"<1/8 px of int":>14} {"bias swing px":>13} '
-          f'{"mean px":>8} {"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8} {"ms/frame":>8}')
-    for m in MODES:
+          f'{"mean px":>8} {"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8} {"ms/frame":>8} '
+          f'{"left 64 px":>10} {"rms px":>6} {"gross":>6}')
+    for m in res:
         r = res[m]
         print(f'{m:>10} {r["pixels"]:9d} {100 * r["near_integer_share"]:13.1f}% '
               f'{r["bias_swing_px"]:13.3f} {r["mean_error_px"]:+8.3f} {r["rms_error_px"]:7.3f} '
               f'{r["range_rms_error_m"]:11.3f} {r["range_rms_over_model"]:8.2f} '
-              f'{r["ms_per_frame"]:8.1f}')
+              f'{r["ms_per_frame"]:8.1f} {r["left_columns_valid_px"]:10d} '
+              f'{r["left_columns_rms_error_px"]:6.3f} '
+              f'{100 * r["left_columns_gross_share"]:5.2f}%')
     print('mean error (px) by true sub-pixel part, bins of 1/8 from -0.5:')
-    for m in MODES:
+    for m in res:
         bins = res[m]['mean_error_by_true_subpixel_px']
         print(f'{m:>10} ' + ' '.join(f'{v:+.3f}' for v in bins))
     if args.json:

@@ -56,6 +56,7 @@ class TrialConfig:
     fuse_prediction: bool = True   # Kalman-fuse the commanded motion (known per-step sigmas)
                                    # with the fiducial measurement; False: fiducials only
     subpixel: str = SUBPIXEL_DEFAULT  # sub-pixel disparity (stereo.compute_disparity)
+    full_width: bool = False       # also range the left num_disparities columns (same)
 
     def __post_init__(self) -> None:
         if self.subpixel not in SUBPIXEL_MODES:
@@ -122,7 +123,8 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
                                                   noise_sigma=cfg.image_noise, rng=rng)
                 d_max[0] = max(d_max[0], cam.fx * cam.baseline / float(np.nanmin(depth)))
                 out.append((left, compute_disparity(left, right, num_disparities=nd,
-                                                    subpixel=cfg.subpixel)))
+                                                    subpixel=cfg.subpixel,
+                                                    full_width=cfg.full_width)))
             return out
 
         sig = ({'sigma_t_m': cfg.sigma_t_m, 'sigma_rot_rad': np.radians(cfg.sigma_rot_deg)}
@@ -149,14 +151,16 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
 
 def run(distances: list[float], trials: int, steps: int, seed: int = 0,
         width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',),
-        fuse_prediction: bool = True, subpixel: str = SUBPIXEL_DEFAULT) -> dict:
+        fuse_prediction: bool = True, subpixel: str = SUBPIXEL_DEFAULT,
+        full_width: bool = False) -> dict:
     out = {'distances_m': distances, 'trials': trials, 'steps': steps,
-           'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'results': {}}
+           'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'full_width': full_width,
+           'results': {}}
     for method in methods:
         for D in distances:
             cfg = TrialConfig(distance=D, steps=steps, width=width, height=height,
                               method=method, fuse_prediction=fuse_prediction,
-                              subpixel=subpixel)
+                              subpixel=subpixel, full_width=full_width)
             # same seeds for every method: the same true trajectories and images
             runs = [run_trial(cfg, seed + 1000 * i) for i in range(trials)]
             dr = np.array([r['dead_reckoned'] for r in runs])
@@ -200,15 +204,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default=SUBPIXEL_DEFAULT,
                     help="sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
                     'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image')
+    ap.add_argument('--full-width', action='store_true',
+                    help='also range the left num_disparities columns (stereo.compute_disparity)')
     args = ap.parse_args(argv)
     out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
               tuple(args.methods), fuse_prediction=not args.no_fusion,
-              subpixel=args.subpixel)
+              subpixel=args.subpixel, full_width=args.full_width)
     print(f'images {args.width}x{args.height}, {args.trials} trials, {args.steps} steps; '
           f'per-step motion error sigma {TrialConfig.sigma_t_m * 1e3:g} mm, '
           f'{TrialConfig.sigma_rot_deg:g} deg per axis; corrected pose: '
           + ('fiducial measurement alone' if args.no_fusion else
-             'commanded motion and fiducial measurement fused by covariance'))
+             'commanded motion and fiducial measurement fused by covariance')
+          + f'; sub-pixel disparity {args.subpixel}' + (', full width' if args.full_width else ''))
     print(f'{"method":>6} {"dist m":>6} {"step":>4} {"RMS dead-reckoned mm":>21} '
           f'{"RMS corrected mm":>17}')
     for method, per in out['results'].items():

@@ -46,6 +46,7 @@ class StereoSettings:
     error_T_lateral: float = 0.1
     error_n: float = 2.0
     subpixel: str = SUBPIXEL_DEFAULT
+    full_width: bool = False
 
     def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
                height: int) -> StereoRanger:
@@ -57,7 +58,7 @@ class StereoSettings:
         return StereoRanger(cam, error_model=em, num_disparities=self.num_disparities,
                             block_size=self.block_size | 1, stride=self.stride,
                             min_range=self.min_range_m, max_range=self.max_range_m,
-                            subpixel=self.subpixel)
+                            subpixel=self.subpixel, full_width=self.full_width)
 
 
 @dataclass(frozen=True)

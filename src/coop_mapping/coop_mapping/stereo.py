@@ -124,14 +124,23 @@ def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: int = 64,
                       block_size: int = 5, uniqueness: int = 10, speckle_window: int = 50,
-                      speckle_range: int = 2, subpixel: str = SUBPIXEL_DEFAULT) -> np.ndarray:
+                      speckle_range: int = 2, subpixel: str = SUBPIXEL_DEFAULT,
+                      full_width: bool = False) -> np.ndarray:
     """StereoSGBM (3-way) disparity in pixels (float32), NaN where invalid.
 
     `subpixel` (SUBPIXEL_MODES, default SUBPIXEL_DEFAULT) chooses the sub-pixel estimate:
     'sgbm', SGBM's own parabola interpolation, which pulls disparities towards whole pixels
     (pixel locking, measured by bench/stereo_subpixel.py); 'equalise', `equalize_subpixel` of
     it; 'shift2' / 'shift4', `phase_averaged_disparity` over 2 / 4 sub-pixel shifts of the
-    right image (2 / 4 SGBM runs), which cancels the locking error instead of remapping it."""
+    right image (2 / 4 SGBM runs), which cancels the locking error instead of remapping it.
+
+    SGBM leaves the left `num_disparities` columns invalid (no full search range there), a fifth
+    of a 320-wide image at 64. `full_width` (opt-in): both images are padded on the left by that
+    many replicated columns, so those pixels are searched too, and a disparity is kept only where
+    its match lies inside the right image (u - d >= 0). A pixel there whose true match lies left
+    of the right image can still take a wrong match inside it: bench/stereo_subpixel.py measures
+    the recovered columns (about 2.5x the gross-mismatch share of the rest at VGA), and the
+    unweighted Eq. 3-18 fiducial fit of fig_3_24 broke down on them at 0.35 m."""
     _check_pair(left, right)
     if num_disparities <= 0 or num_disparities % 16:
         raise StereoError('num_disparities must be a positive multiple of 16')
@@ -145,16 +154,25 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
         uniquenessRatio=uniqueness, speckleWindowSize=speckle_window,
         speckleRange=speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
 
+    pad = num_disparities if full_width else 0
+    left_p = cv2.copyMakeBorder(left, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+    right_p = cv2.copyMakeBorder(right, 0, 0, pad, 0, cv2.BORDER_REPLICATE)
+    u = np.arange(left.shape[1], dtype=np.float32)
+
     def run(r: np.ndarray) -> np.ndarray:
-        d = sgbm.compute(left, r).astype(np.float32) / 16.0
-        d[d <= 0] = np.nan
-        # the left num_disparities columns have no full search range
-        d[:, :num_disparities] = np.nan
+        d = sgbm.compute(left_p, r)[:, pad:].astype(np.float32) / 16.0
+        with np.errstate(invalid='ignore'):
+            d[(d <= 0) | (u - d < 0)] = np.nan    # no match, or a match in the padding
+        if not full_width:      # the left num_disparities columns have no full search range
+            d[:, :num_disparities] = np.nan
         return d
 
     if subpixel in _PHASES:
-        return phase_averaged_disparity(run, right, _PHASES[subpixel])
-    d = run(right)
+        d = phase_averaged_disparity(run, right_p, _PHASES[subpixel])
+        with np.errstate(invalid='ignore'):
+            d[u - d < 0] = np.nan                 # the mean too must match inside the image
+        return d
+    d = run(right_p)
     return equalize_subpixel(d) if subpixel == 'equalise' else d
 
 
@@ -255,12 +273,13 @@ class StereoRanger:
     def __init__(self, camera: StereoCamera, *, error_model: ErrorModel | None = None,
                  num_disparities: int = 64, block_size: int = 5, stride: int = 1,
                  min_range: float = 0.2, max_range: float = 20.0,
-                 subpixel: str = SUBPIXEL_DEFAULT) -> None:
-        """`subpixel`: the sub-pixel disparity estimate, one of SUBPIXEL_MODES (see
-        compute_disparity)."""
+                 subpixel: str = SUBPIXEL_DEFAULT, full_width: bool = False) -> None:
+        """`subpixel`: the sub-pixel disparity estimate, one of SUBPIXEL_MODES; `full_width`:
+        also range the left num_disparities columns (both: see compute_disparity)."""
         if subpixel not in SUBPIXEL_MODES:
             raise StereoError(f'subpixel must be one of {SUBPIXEL_MODES}, got {subpixel!r}')
         self.subpixel = subpixel
+        self.full_width = bool(full_width)
         self.camera = camera
         self.error_model = error_model or ErrorModel.from_stereo(camera)
         self.num_disparities = num_disparities
@@ -272,7 +291,8 @@ class StereoRanger:
     def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
         """The pair's disparity (px, NaN invalid) with this ranger's settings."""
         return compute_disparity(left, right, num_disparities=self.num_disparities,
-                                 block_size=self.block_size, subpixel=self.subpixel)
+                                 block_size=self.block_size, subpixel=self.subpixel,
+                                 full_width=self.full_width)
 
     def process(self, left: np.ndarray, right: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
                 *, disparity: np.ndarray | None = None) -> StereoScan:

@@ -57,6 +57,8 @@ PARAMS = {
     'subpixel': ParamSpec(SUBPIXEL_DEFAULT, "sub-pixel disparity: SGBM's own, 'equalise', or "
                           "'shift2' / 'shift4' (mean over 2 / 4 sub-pixel shifts of the right "
                           'image), see stereo.compute_disparity', choices=list(SUBPIXEL_MODES)),
+    'full_width': ParamSpec(False, 'also range the left num_disparities columns (images padded; '
+                            'more points, more gross mismatches there: stereo.compute_disparity)'),
     'min_range_m': ParamSpec(0.2, 'nearest point kept (m)', lo=0.0, hi=100.0),
     'max_range_m': ParamSpec(10.0, 'farthest point kept (m)', lo=0.1, hi=1000.0),
     'sigma_disparity_px': ParamSpec(0.5, 'disparity sigma of Eq. 3-6 (px), gives S', lo=0.01,

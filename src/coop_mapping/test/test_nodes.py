@@ -137,8 +137,9 @@ def test_mapper_loads_last_save_on_restart(ctx, tmp_path):
         node.destroy_node()
 
 
-@pytest.mark.parametrize('subpixel', ['sgbm', 'equalise', 'shift4'])
-def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel):
+@pytest.mark.parametrize('subpixel,full_width', [('sgbm', False), ('equalise', False),
+                                                 ('shift4', False), ('shift4', True)])
+def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel, full_width):
     pytest.importorskip('pybullet')
     from coop_mapping.render import TexturedScene, look_at
     from coop_mapping.stereo import StereoCamera
@@ -147,13 +148,17 @@ def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel):
     R = look_at(eye, np.array([2.5, 0.0, 0.2]))
     with TexturedScene(cam, seed=2) as scene:
         left, right, depth = scene.render(R, eye)
-    rig = stereo_rig(cam, num_disparities=32, subpixel=subpixel)
+    rig = stereo_rig(cam, num_disparities=32, subpixel=subpixel, full_width=full_width)
     clouds = rig.listen(PointCloud2, 'stereo/points', SENSOR_QOS)
     rig.start()
     rig.send(left, right, rig.peer.get_clock().now().to_msg(), R, eye)
     wait_for(lambda: clouds, 20.0, spin=rig.spin, what='stereo/points')
-    assert rig.node.ranger.subpixel == subpixel        # the parameter reached the ranger
+    assert rig.node.ranger.subpixel == subpixel        # the parameters reached the ranger
+    assert rig.node.ranger.full_width == full_width
     pts, cov = msg_to_cloud(clouds[0])
+    # full width ranges the left 32 columns (the search range) too
+    u = np.asarray(rig.node.ranger.disparity(left, right))[:, :32]
+    assert np.isfinite(u).any() == full_width
     assert clouds[0].header.frame_id == 'map' and cov is not None
     assert len(pts) > 0.4 * cam.width * cam.height
     # the map-frame points lie on the true surfaces: most are at or above the ground

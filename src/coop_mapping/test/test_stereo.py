@@ -51,6 +51,17 @@ def test_sgbm_recovers_known_shift():
     d = compute_disparity(left, right, num_disparities=32, block_size=5)
     assert np.nanmedian(d) == pytest.approx(shift, abs=0.1)
     assert np.mean(np.isfinite(d[:, 40:-10])) > 0.9
+    assert not np.isfinite(d[:, :32]).any()            # no full search range there
+    # full width: the left 32 columns are searched too; where the match would lie left of the
+    # right image (u < 12) there is none
+    d = compute_disparity(left, right, num_disparities=32, block_size=5, full_width=True)
+    assert np.mean(np.isfinite(d[:, 16:32])) > 0.9
+    assert np.nanmedian(d[:, 16:32]) == pytest.approx(shift, abs=0.1)
+    assert not np.isfinite(d[:, :shift]).any()
+    for mode in ('sgbm', 'equalise', 'shift2'):
+        dm = compute_disparity(left, right, num_disparities=32, subpixel=mode, full_width=True)
+        u = np.arange(dm.shape[1])
+        assert not np.any(np.isfinite(dm) & (u - np.nan_to_num(dm) < 0)), mode
     with pytest.raises(StereoError):
         compute_disparity(left, right[:, :-1])
     with pytest.raises(StereoError):
