@@ -243,6 +243,18 @@ def test_ident_bag_replays_into_the_identifier_as_its_core(tmp_path, probe):
     with ident:
         client = ActionClient(probe.node, Identify, '/rover1/identifier/identify')
         probe.spin_until(client.server_is_ready, 30.0, 'the identify action', (ident,))
+        # server_is_ready says our requests reach the server, not that its answers reach us: a
+        # goal sent before the server has matched our response reader is accepted, its answer
+        # lost (rmw: "failed to send response (timeout)"), and the server stays busy. Goals the
+        # node rejects (duration 0) are sent until one is answered, then the real one.
+        for _ in range(10):
+            ping = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=0.0))
+            try:
+                probe.spin_until(ping.done, 3.0, "a rejected goal's answer", (ident,))
+                break
+            except TimeoutError:
+                continue
+        assert ping.done() and not ping.result().accepted
         # 'constant': the node does not re-optimise the excitation (nobody moves the arm on a
         # replay); the goal outlasts the bag, so every complete window of the bag is used
         fut = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=3600.0))
