@@ -41,7 +41,13 @@ from scipy.spatial import cKDTree  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_mapping.octomap_peer import leaf_states  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
-from coop_mapping.stereo import SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoCamera, StereoRanger  # noqa: E402
+from coop_mapping.stereo import (  # noqa: E402
+    FULL_WIDTH_DEFAULT,
+    SUBPIXEL_DEFAULT,
+    SUBPIXEL_MODES,
+    StereoCamera,
+    StereoRanger,
+)
 from coop_mapping.voxelmap import (  # noqa: E402
     OCCUPIED,
     VoxelMap,
@@ -90,7 +96,7 @@ def synthetic_scans(n_points: int, seed: int = 0):
 
 
 def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = SUBPIXEL_DEFAULT,
-                 full_width: bool = False):
+                 full_width: bool = FULL_WIDTH_DEFAULT):
     cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
     ranger = StereoRanger(cam, num_disparities=64, max_range=10.0, subpixel=subpixel,
                           full_width=full_width)
@@ -271,8 +277,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="stereo sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
                     'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image; '
                     'bench/stereo_subpixel.py measures them')
-    ap.add_argument('--full-width', action='store_true',
-                    help='also range the left 64 columns of each frame (stereo.compute_disparity)')
+    ap.add_argument('--full-width', action=argparse.BooleanOptionalAction,
+                    default=FULL_WIDTH_DEFAULT,
+                    help='range the left 64 columns of each frame too (stereo.compute_disparity)')
     args = ap.parse_args(argv)
 
     syn = synthetic_scans(args.points)
@@ -317,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
                          r['octomap_points_per_s'] / 1e6, r['speedup'], r['state_agreement'],
                          r['bytes_per_known_voxel'], r['frame_latency_ms']))
     print(f'stereo: {len(st)} frames {args.width}x{args.height} (sub-pixel: {args.subpixel}'
-          f'{", full width" if args.full_width else ""}), '
+          f'{", full width" if args.full_width else ", without the left 64 columns"}), '
           f'{sum(len(s[0]) for s in st)} points; synthetic: {len(syn)} scans, '
           f'{sum(len(s[0]) for s in syn)} points; best of {args.repeats}')
     print(f'{"res m":>6} {"data":>9} {"ours Mpt/s":>10} {"octo Mpt/s":>10} {"speedup":>7} '

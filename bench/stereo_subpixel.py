@@ -12,7 +12,8 @@ locking-free matcher has none), the disparity error's mean and RMS, the range er
 ratio to the Eq. 3-7 model's sigma (0.5 px), over pixels with a valid disparity and
 |error| < 2 px (the rest are counted as gross mismatches); and the valid pixels and RMS error in
 the left 64 columns (the search range), which SGBM leaves invalid and compute_disparity's
-opt-in `full_width` recovers by padding (last row: the default mode with it).
+`full_width` recovers by padding and a left-right check (the rows: every mode without it, and
+the default, shift4 with it).
 
     bench/stereo_subpixel.py --json out/bench/stereo_subpixel.json
 """

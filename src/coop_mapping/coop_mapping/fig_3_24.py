@@ -34,7 +34,13 @@ from coop_common.files import save_figure, write_json
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .render import Box, TexturedScene, look_at
-from .stereo import SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoCamera, compute_disparity
+from .stereo import (
+    FULL_WIDTH_DEFAULT,
+    SUBPIXEL_DEFAULT,
+    SUBPIXEL_MODES,
+    StereoCamera,
+    compute_disparity,
+)
 
 
 @dataclass(frozen=True)
@@ -56,7 +62,7 @@ class TrialConfig:
     fuse_prediction: bool = True   # Kalman-fuse the commanded motion (known per-step sigmas)
                                    # with the fiducial measurement; False: fiducials only
     subpixel: str = SUBPIXEL_DEFAULT  # sub-pixel disparity (stereo.compute_disparity)
-    full_width: bool = False       # also range the left num_disparities columns (same)
+    full_width: bool = FULL_WIDTH_DEFAULT  # range the left num_disparities columns too (same)
 
     def __post_init__(self) -> None:
         if self.subpixel not in SUBPIXEL_MODES:
@@ -152,7 +158,7 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
 def run(distances: list[float], trials: int, steps: int, seed: int = 0,
         width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',),
         fuse_prediction: bool = True, subpixel: str = SUBPIXEL_DEFAULT,
-        full_width: bool = False) -> dict:
+        full_width: bool = FULL_WIDTH_DEFAULT) -> dict:
     out = {'distances_m': distances, 'trials': trials, 'steps': steps,
            'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'full_width': full_width,
            'results': {}}
@@ -204,8 +210,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default=SUBPIXEL_DEFAULT,
                     help="sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
                     'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image')
-    ap.add_argument('--full-width', action='store_true',
-                    help='also range the left num_disparities columns (stereo.compute_disparity)')
+    ap.add_argument('--full-width', action=argparse.BooleanOptionalAction,
+                    default=FULL_WIDTH_DEFAULT,
+                    help='range the left num_disparities columns too (stereo.compute_disparity)')
     args = ap.parse_args(argv)
     out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
               tuple(args.methods), fuse_prediction=not args.no_fusion,
@@ -215,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
           f'{TrialConfig.sigma_rot_deg:g} deg per axis; corrected pose: '
           + ('fiducial measurement alone' if args.no_fusion else
              'commanded motion and fiducial measurement fused by covariance')
-          + f'; sub-pixel disparity {args.subpixel}' + (', full width' if args.full_width else ''))
+          + f'; sub-pixel disparity {args.subpixel}'
+          + (', full width' if args.full_width else ', without the left search-range columns'))
     print(f'{"method":>6} {"dist m":>6} {"step":>4} {"RMS dead-reckoned mm":>21} '
           f'{"RMS corrected mm":>17}')
     for method, per in out['results'].items():

@@ -22,7 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from .stereo import SUBPIXEL_DEFAULT, ErrorModel, StereoCamera, StereoError, StereoRanger
+from .stereo import (
+    FULL_WIDTH_DEFAULT,
+    SUBPIXEL_DEFAULT,
+    ErrorModel,
+    StereoCamera,
+    StereoError,
+    StereoRanger,
+)
 from .voxelmap import MapInputError, VoxelMap
 
 __all__ = ['StereoSettings', 'MapSettings', 'StereoFrame', 'OfflineMap', 'image_array',
@@ -46,7 +53,7 @@ class StereoSettings:
     error_T_lateral: float = 0.1
     error_n: float = 2.0
     subpixel: str = SUBPIXEL_DEFAULT
-    full_width: bool = False
+    full_width: bool = FULL_WIDTH_DEFAULT
 
     def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
                height: int) -> StereoRanger:

@@ -13,7 +13,8 @@ import numpy as np
 
 from .gauss import rotate_sym6
 
-__all__ = ['SUBPIXEL_MODES', 'SUBPIXEL_DEFAULT', 'StereoCamera', 'ErrorModel', 'StereoError',
+__all__ = ['SUBPIXEL_MODES', 'SUBPIXEL_DEFAULT', 'FULL_WIDTH_DEFAULT', 'StereoCamera',
+           'ErrorModel', 'StereoError',
            'compute_disparity', 'equalize_subpixel', 'phase_averaged_disparity', 'shift_columns',
            'disparity_to_range', 'range_sigma', 'disparity_to_points',
            'StereoRanger', 'StereoScan']
@@ -21,6 +22,7 @@ __all__ = ['SUBPIXEL_MODES', 'SUBPIXEL_DEFAULT', 'StereoCamera', 'ErrorModel', '
 
 SUBPIXEL_MODES = ('sgbm', 'equalise', 'shift2', 'shift4')
 SUBPIXEL_DEFAULT = 'shift4'
+FULL_WIDTH_DEFAULT = True
 _PHASES = {'shift2': 2, 'shift4': 4}
 
 
@@ -125,7 +127,7 @@ def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
 def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: int = 64,
                       block_size: int = 5, uniqueness: int = 10, speckle_window: int = 50,
                       speckle_range: int = 2, subpixel: str = SUBPIXEL_DEFAULT,
-                      full_width: bool = False) -> np.ndarray:
+                      full_width: bool = FULL_WIDTH_DEFAULT) -> np.ndarray:
     """StereoSGBM (3-way) disparity in pixels (float32), NaN where invalid.
 
     `subpixel` (SUBPIXEL_MODES, default SUBPIXEL_DEFAULT) chooses the sub-pixel estimate:
@@ -135,12 +137,13 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
     right image (2 / 4 SGBM runs), which cancels the locking error instead of remapping it.
 
     SGBM leaves the left `num_disparities` columns invalid (no full search range there), a fifth
-    of a 320-wide image at 64. `full_width` (opt-in): both images are padded on the left by that
+    of a 320-wide image at 64. `full_width` (default): both images are padded on the left by that
     many replicated columns, so those pixels are searched too, and a disparity is kept only where
-    its match lies inside the right image (u - d >= 0). A pixel there whose true match lies left
-    of the right image can still take a wrong match inside it: bench/stereo_subpixel.py measures
-    the recovered columns (about 2.5x the gross-mismatch share of the rest at VGA), and the
-    unweighted Eq. 3-18 fiducial fit of fig_3_24 broke down on them at 0.35 m."""
+    its match lies inside the right image (u - d >= 0) and agrees within 1 px with that right
+    pixel's own disparity (SGBM on the mirrored pair: one more SGBM run). Without that check a
+    pixel whose true match lies left of the right image takes a wrong match inside it (the
+    unweighted Eq. 3-18 fit of fig_3_24 broke down on them at 0.35 m); bench/stereo_subpixel.py
+    measures the recovered columns."""
     _check_pair(left, right)
     if num_disparities <= 0 or num_disparities % 16:
         raise StereoError('num_disparities must be a positive multiple of 16')
@@ -171,8 +174,20 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
         d = phase_averaged_disparity(run, right_p, _PHASES[subpixel])
         with np.errstate(invalid='ignore'):
             d[u - d < 0] = np.nan                 # the mean too must match inside the image
-        return d
-    d = run(right_p)
+    else:
+        d = run(right_p)
+    if full_width:
+        # left-right check of the recovered columns against the right image's own disparity
+        # (SGBM on the mirrored pair): a pixel whose true match lies left of the right image
+        # takes a wrong one inside it, whose own match points elsewhere
+        d_right = sgbm.compute(np.ascontiguousarray(right[:, ::-1]),
+                               np.ascontiguousarray(left[:, ::-1]))[:, ::-1] / 16.0
+        band = d[:, :num_disparities]
+        rows, cols = np.nonzero(np.isfinite(band))
+        x_r = np.clip(np.rint(cols - band[rows, cols]).astype(np.intp), 0, d.shape[1] - 1)
+        back = d_right[rows, x_r]
+        bad = ~((back > 0) & (np.abs(back - band[rows, cols]) <= 1.0))
+        band[rows[bad], cols[bad]] = np.nan
     return equalize_subpixel(d) if subpixel == 'equalise' else d
 
 
@@ -273,7 +288,8 @@ class StereoRanger:
     def __init__(self, camera: StereoCamera, *, error_model: ErrorModel | None = None,
                  num_disparities: int = 64, block_size: int = 5, stride: int = 1,
                  min_range: float = 0.2, max_range: float = 20.0,
-                 subpixel: str = SUBPIXEL_DEFAULT, full_width: bool = False) -> None:
+                 subpixel: str = SUBPIXEL_DEFAULT, full_width: bool = FULL_WIDTH_DEFAULT
+                 ) -> None:
         """`subpixel`: the sub-pixel disparity estimate, one of SUBPIXEL_MODES; `full_width`:
         also range the left num_disparities columns (both: see compute_disparity)."""
         if subpixel not in SUBPIXEL_MODES:

@@ -41,7 +41,7 @@ from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .offline import StereoSettings
 from .ros_conv import cloud_to_msg, pose_to_rt
-from .stereo import SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoError, StereoRanger
+from .stereo import FULL_WIDTH_DEFAULT, SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoError, StereoRanger
 from .target_frame import Initialiser, TargetFrameError, TargetGeometry
 
 # rover_sim's insertion site (worldgen, slot 4 mm): its frame has the origin at the block's
@@ -57,8 +57,8 @@ PARAMS = {
     'subpixel': ParamSpec(SUBPIXEL_DEFAULT, "sub-pixel disparity: SGBM's own, 'equalise', or "
                           "'shift2' / 'shift4' (mean over 2 / 4 sub-pixel shifts of the right "
                           'image), see stereo.compute_disparity', choices=list(SUBPIXEL_MODES)),
-    'full_width': ParamSpec(False, 'also range the left num_disparities columns (images padded; '
-                            'more points, more gross mismatches there: stereo.compute_disparity)'),
+    'full_width': ParamSpec(FULL_WIDTH_DEFAULT, 'also range the left num_disparities columns '
+                            '(images padded, left-right checked: stereo.compute_disparity)'),
     'min_range_m': ParamSpec(0.2, 'nearest point kept (m)', lo=0.0, hi=100.0),
     'max_range_m': ParamSpec(10.0, 'farthest point kept (m)', lo=0.1, hi=1000.0),
     'sigma_disparity_px': ParamSpec(0.5, 'disparity sigma of Eq. 3-6 (px), gives S', lo=0.01,
