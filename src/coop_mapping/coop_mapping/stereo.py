@@ -166,17 +166,14 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
         d = sgbm.compute(left_p, r)[:, pad:].astype(np.float32) / 16.0
         with np.errstate(invalid='ignore'):
             d[(d <= 0) | (u - d < 0)] = np.nan    # no match, or a match in the padding
-        if not full_width:      # the left num_disparities columns have no full search range
-            d[:, :num_disparities] = np.nan
         return d
 
-    if subpixel in _PHASES:
-        d = phase_averaged_disparity(run, right_p, _PHASES[subpixel])
-        with np.errstate(invalid='ignore'):
-            d[u - d < 0] = np.nan                 # the mean too must match inside the image
+    # (a phase average of disparities each <= u is <= u too)
+    d = (phase_averaged_disparity(run, right_p, _PHASES[subpixel]) if subpixel in _PHASES
+         else run(right_p))
+    if not full_width:          # the left num_disparities columns have no full search range
+        d[:, :num_disparities] = np.nan
     else:
-        d = run(right_p)
-    if full_width:
         # left-right check of the recovered columns against the right image's own disparity
         # (SGBM on the mirrored pair): a pixel whose true match lies left of the right image
         # takes a wrong one inside it, whose own match points elsewhere
