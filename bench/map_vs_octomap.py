@@ -51,12 +51,15 @@ from coop_mapping.stereo import (  # noqa: E402
 from coop_mapping.voxelmap import (  # noqa: E402
     OCCUPIED,
     VoxelMap,
+    kernel_centroids,
     pack_keys,
     state_agreement,
     unpack_keys,
 )
 
 PLANE_Z = 0.013
+#: the kernel surface query's settings (VoxelMap.surface_points' defaults)
+KERNEL_BANDWIDTH, KERNEL_RADIUS = 0.8, 2
 #: Eq. 3-6/3-7 range-noise constant of the VGA camera (0.5 px, f = 851 px, b = 38 mm)
 S_VGA = 0.5 / (851.3 * 0.038)
 
@@ -170,14 +173,21 @@ def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
                distance to the nearest scan origin) is below the voxel size.
     `literal`: the same scans merged with Eq. 3-10 on the raw point covariances only
     (voxel_prior=False), for the effect of the voxel-extent model.
-    Returns, per class, the per-voxel errors (m) of ours, OctoMap's and the literal map's."""
+    Returns, per class, the per-voxel errors (m) of ours, OctoMap's, the literal map's, ours
+    by the kernel surface query (VoxelMap.surface_points) and the same kernel over OctoMap's
+    occupied leaf centres (each weighing 1: what smoothing alone does for a map without
+    means)."""
     keys, mean, _, _ = vm.gaussians()
     ok, ostate = leaf_states(tree, res)
     both = (vm.state_of_keys(keys) == OCCUPIED) & np.isin(keys, ok[ostate == OCCUPIED])
     keys, mean = keys[both], mean[both]
     _, mean_lit, _, _ = literal.gaussians(keys)
+    _, kern = vm.surface_points(keys, bandwidth=KERNEL_BANDWIDTH, radius=KERNEL_RADIUS)
+    occ = np.sort(ok[ostate == OCCUPIED])
+    octo_kern = kernel_centroids(occ, (unpack_keys(occ) + 0.5) * res, np.ones(len(occ)), keys,
+                                 bandwidth=KERNEL_BANDWIDTH, radius=KERNEL_RADIUS)
     centre = (unpack_keys(keys) + 0.5) * res
-    e = np.stack([dist(mean), dist(centre), dist(mean_lit)])
+    e = np.stack([dist(mean), dist(centre), dist(mean_lit), dist(kern), dist(octo_kern)])
     surf = np.isin(keys, surface_keys)
     L = np.min(np.linalg.norm(centre[:, None, :] - np.asarray(origins)[None], axis=2), axis=1)
     near = surf & (S_VGA * L * L < res)
@@ -199,6 +209,7 @@ def surface_error_study(scans, res: float, offsets: np.ndarray, truth=None) -> d
     synthetic plane z = PLANE_Z; else the true surface points (nearest-point distance)."""
     per: dict[str, list[np.ndarray]] = {}
     ratios: dict[str, list[float]] = {}
+    ratios_k: dict[str, list[float]] = {}
     for off in offsets:
         sh = [(sc[0] + off, sc[1] + off, sc[2], sc[3]) for sc in scans]
         vm = VoxelMap(res)
@@ -224,15 +235,19 @@ def surface_error_study(scans, res: float, offsets: np.ndarray, truth=None) -> d
             if e.shape[1]:
                 r = np.sqrt(np.mean(e ** 2, axis=1))
                 ratios.setdefault(name, []).append(float(r[0] / r[1]))
+                ratios_k.setdefault(name, []).append(float(r[3] / r[1]))
     out = {'grid_offsets_m': offsets.tolist()}
     for name in ('all', 'surface', 'near'):
         e = np.concatenate(per[name], axis=1)
         n = e.shape[1]
-        rms = np.sqrt(np.mean(e ** 2, axis=1)) if n else np.full(3, np.nan)
+        rms = np.sqrt(np.mean(e ** 2, axis=1)) if n else np.full(5, np.nan)
         out[name] = {'voxels': int(n), 'rms_ours_m': float(rms[0]),
                      'rms_octomap_m': float(rms[1]), 'rms_ours_literal_eq_3_10_m': float(rms[2]),
                      'ratio': float(rms[0] / rms[1]),
-                     'ratio_per_offset': ratios.get(name, [])}
+                     'ratio_per_offset': ratios.get(name, []),
+                     'rms_ours_kernel_m': float(rms[3]), 'rms_octomap_kernel_m': float(rms[4]),
+                     'kernel_ratio': float(rms[3] / rms[1]),
+                     'kernel_ratio_per_offset': ratios_k.get(name, [])}
     # how much of the all-voxel squared error the voxels off the surface carry (same for both)
     off_sq = sum(float(np.sum(e[1] ** 2)) for e in per['off_surface'])
     all_sq = sum(float(np.sum(e[1] ** 2)) for e in per['all'])
@@ -315,6 +330,9 @@ def main(argv: list[str] | None = None) -> int:
             'frame_latency_ms': r_st['frame_latency_ms'],
             'rms_surface_error_m': rms_ours, 'octomap_rms_surface_error_m': rms_oct,
             'rms_surface_error_ratio': rms_ours / rms_oct,
+            'rms_surface_error_kernel_m': r_st['surface_error']['surface']['rms_ours_kernel_m'],
+            'rms_surface_error_kernel_ratio':
+                r_st['surface_error']['surface']['kernel_ratio'],
             'fused_vs_single_differ': fused_vs_single(st, res),
             'synthetic': r_syn, 'stereo': r_st,
         }
@@ -335,19 +353,27 @@ def main(argv: list[str] | None = None) -> int:
     print('surface error: RMS distance to the true surface of the estimate of each map (ours: '
           'merged Gaussian mean; octo: voxel centre; lit: ours with Eq. 3-10 on raw point '
           f'covariances), same voxels for both, pooled over {args.grid_offsets} placements of '
-          'the scene in the grid (as given + seeded offsets); ratio range: per placement')
+          'the scene in the grid (as given + seeded offsets); ratio range: per placement; '
+          f'kern: the kernel surface query (VoxelMap.surface_points, bandwidth '
+          f'{KERNEL_BANDWIDTH:g} voxel, radius {KERNEL_RADIUS}), its ratio to octo; octo kern: '
+          "the same kernel over OctoMap's occupied leaf centres")
     print(f'{"res m":>6} {"data":>9} {"voxels":>8} {"n":>7} {"ours mm":>8} {"octo mm":>8} '
-          f'{"ratio":>6} {"ratio range":>11} {"lit mm":>7} {"lit ratio":>9}')
+          f'{"ratio":>6} {"ratio range":>11} {"lit mm":>7} {"lit ratio":>9} {"kern mm":>7} '
+          f'{"kern ratio":>10} {"kern range":>10} {"octo kern mm":>12}')
     for k, r in out['resolutions'].items():
         for name in ('synthetic', 'stereo'):
             for vs in ('all', 'surface', 'near'):
                 q = r[name]['surface_error'][vs]
                 rr = q['ratio_per_offset']
                 rng_s = f'{min(rr):.2f}-{max(rr):.2f}' if rr else '-'
+                rk = q['kernel_ratio_per_offset']
+                rng_k = f'{min(rk):.2f}-{max(rk):.2f}' if rk else '-'
                 print(f'{k:>6} {name:>9} {vs:>8} {q["voxels"]:7d} {1e3 * q["rms_ours_m"]:8.1f} '
                       f'{1e3 * q["rms_octomap_m"]:8.1f} {q["ratio"]:6.2f} {rng_s:>11} '
                       f'{1e3 * q["rms_ours_literal_eq_3_10_m"]:7.1f} '
-                      f'{q["rms_ours_literal_eq_3_10_m"] / q["rms_octomap_m"]:9.2f}')
+                      f'{q["rms_ours_literal_eq_3_10_m"] / q["rms_octomap_m"]:9.2f} '
+                      f'{1e3 * q["rms_ours_kernel_m"]:7.1f} {q["kernel_ratio"]:10.2f} '
+                      f'{rng_k:>10} {1e3 * q["rms_octomap_kernel_m"]:12.1f}')
     print(f'{"res m":>6} {"data":>9} {"off-surface share of all-voxel MSE":>36} '
           f'{"fused!=single":>13} {"octo B/leaf":>11}')
     for k, r in out['resolutions'].items():

@@ -60,7 +60,7 @@ import numpy as np
 from .gauss import NotPositiveDefinite, sym6_cholesky, sym6_from_cholesky, sym6_inv, sym6_matvec
 
 __all__ = ['OccupancyModel', 'VoxelMap', 'InsertResult', 'MapFileError', 'MapInputError',
-           'state_agreement',
+           'state_agreement', 'kernel_centroids',
            'pack_keys', 'unpack_keys', 'ray_voxel_keys', 'FREE', 'OCCUPIED', 'UNKNOWN']
 
 FILE_FORMAT = 'coop_mapping.voxelmap'
@@ -336,6 +336,34 @@ def ray_voxel_keys(origins: np.ndarray, ends: np.ndarray, resolution: float) -> 
         pack_keys(np.floor(p * (1.0 / resolution)).astype(np.int64))
     return np.concatenate([_pack_unchecked(*v) for v in
                            _ray_visits(origins, ends, resolution, drop_end=True)])
+
+
+def kernel_centroids(keys: np.ndarray, points: np.ndarray, weights: np.ndarray,
+                     query: np.ndarray, *, bandwidth: float, radius: int) -> np.ndarray:
+    """(M, 3): for each `query` voxel key, the centroid of the `points` of the voxels around it,
+    weighted by `weights` x exp(-|o|^2 / (2 bandwidth^2)), o the integer offset (voxels) within
+    the (2 radius + 1)^3 block. `keys` sorted packed keys with one point and weight each; every
+    query key must be among them (it then weighs itself in)."""
+    if not bandwidth > 0 or radius < 0:
+        raise ValueError('bandwidth must be > 0 and radius >= 0')
+    query = np.asarray(query, np.int64)
+    acc = np.zeros((len(query), 3))
+    if len(query) == 0:
+        return acc
+    kq = unpack_keys(query)
+    wsum = np.zeros(len(query))
+    w_all = np.asarray(weights, np.float64)
+    r = np.arange(-radius, radius + 1)
+    for o in np.stack(np.meshgrid(r, r, r, indexing='ij'), axis=-1).reshape(-1, 3):
+        nb = pack_keys(kq + o)
+        i = np.minimum(np.searchsorted(keys, nb), len(keys) - 1)
+        w = np.where(keys[i] == nb, w_all[i], 0.0) * \
+            np.exp(-float(o @ o) / (2.0 * bandwidth * bandwidth))
+        acc += w[:, None] * points[i]
+        wsum += w
+    if not np.all(wsum > 0):
+        raise ValueError('query keys must be among the keys, with weights > 0')
+    return acc / wsum[:, None]
 
 
 @dataclass
@@ -717,6 +745,27 @@ class VoxelMap:
         mean = centre + self.mean_off[idx].astype(np.float64) * res
         cov = sym6_from_cholesky(self.chol[idx].astype(np.float64)) * res * res
         return keys, mean, cov, self.hits[idx]
+
+    def surface_points(self, packed: np.ndarray | None = None, *, bandwidth: float = 0.8,
+                       radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """(keys, points (N, 3)): a surface point for each voxel with a Gaussian (hits > 0),
+        optionally only those among `packed`.
+
+        Once the range noise exceeds the voxel size, the points of a surface straddle several
+        voxels, and those that land in one voxel are a truncated sample of that spread: its
+        mean is pulled towards the voxel centre (bench/map_vs_octomap.py: at 0.05 m the merged
+        means err 0.8x as much as the leaf centres, where the noise is below the voxel 0.3x).
+        Pooling the neighbours restores the whole spread: the point is the kernel-weighted
+        centroid of the merged means of the voxels around this one, each weighted by the
+        points it holds, hits x exp(-|o|^2 / (2 bandwidth^2)), o the integer offset of the
+        neighbour (voxels) within the (2 radius + 1)^3 block: one mean-shift step from the
+        voxel towards the local mode of the point density. `bandwidth` (voxels): the bench's
+        stereo scene measured 0.6-1.0 alike; wider kernels blur curved surfaces."""
+        keys_all, mean_all, _, hits_all = self.gaussians()
+        keys = keys_all if packed is None else \
+            keys_all[np.isin(keys_all, np.asarray(packed, np.int64))]
+        return keys, kernel_centroids(keys_all, mean_all, hits_all, keys, bandwidth=bandwidth,
+                                      radius=radius)
 
     def occupied_centres(self) -> np.ndarray:
         """(N, 3) centres of the occupied voxels."""

@@ -295,6 +295,55 @@ def test_voxel_prior_puts_the_mean_on_the_surface():
     assert err[False] > 0.005
 
 
+def test_surface_points_hand_computed():
+    """Two adjacent voxels (3 points and 1 point, no covariances) and a lone one 5 voxels
+    away: each surface point is the hits x exp(-|o|^2 / 2 h^2)-weighted centroid of the means
+    within the block; the lone voxel keeps its own mean."""
+    vm = VoxelMap(1.0, voxel_prior=False)
+    a = np.array([[0.2, 0.5, 0.5], [0.4, 0.5, 0.5], [0.3, 0.2, 0.8]])
+    b = np.array([[1.7, 0.5, 0.5]])
+    c = np.array([[6.5, 0.5, 0.5]])
+    for p in (a, b, c):
+        vm.insert_scan(p, p[0] + [0.0, 0.0, 0.2])   # origin inside the voxel: no carving
+    keys, pts = vm.surface_points(bandwidth=1.0, radius=2)
+    _, mean, _, hits = vm.gaussians(keys)
+    assert list(hits) == [3, 1, 1]
+    w = np.exp(-0.5)
+    np.testing.assert_allclose(pts[0], (3 * mean[0] + w * mean[1]) / (3 + w), atol=1e-3)
+    np.testing.assert_allclose(pts[1], (w * 3 * mean[0] + mean[1]) / (3 * w + 1), atol=1e-3)
+    np.testing.assert_allclose(pts[2], mean[2], atol=1e-12)
+    # radius 0: the voxel's own mean; a subset of keys
+    k0, p0 = vm.surface_points(keys[1:2], radius=0)
+    assert list(k0) == [keys[1]]
+    np.testing.assert_allclose(p0[0], mean[1])
+    with pytest.raises(ValueError):
+        vm.surface_points(bandwidth=0.0)
+    assert VoxelMap(0.1).surface_points()[1].shape == (0, 3)
+
+
+def test_surface_points_undo_the_truncation_of_voxel_means():
+    """A horizontal plane 8 mm below a voxel face with vertical noise of half a voxel (25 mm in
+    0.05 m voxels: the points spread over three layers): the merged means of the plane's layer
+    are pulled towards its centre (truncation, 12 mm RMS off the plane), the kernel surface
+    points less than half as far (5 mm)."""
+    rng = np.random.default_rng(7)
+    res, z0, n = 0.05, 0.042, 200_000
+    xy = rng.uniform(0.0, 1.0, (n, 2))
+    pts = np.column_stack([xy, z0 + rng.normal(size=n) * res / 2])
+    cov = np.zeros((n, 6))
+    cov[:, [0, 3, 5]] = [1e-6, 1e-6, res * res / 4]
+    vm = VoxelMap(res)
+    vm.insert_scan(pts, np.array([0.5, 0.5, 3.0]), covariances=cov)
+    keys, mean, _, _ = vm.gaussians()
+    k = unpack_keys(keys)
+    layer = (k[:, 2] == 0) & (k[:, 0] > 2) & (k[:, 0] < 17) & (k[:, 1] > 2) & (k[:, 1] < 17)
+    _, sp = vm.surface_points(keys[layer])
+    e_mean = np.sqrt(np.mean((mean[layer, 2] - z0) ** 2))
+    e_surf = np.sqrt(np.mean((sp[:, 2] - z0) ** 2))
+    assert e_mean > 0.010
+    assert e_surf < 0.5 * e_mean
+
+
 def test_save_load_roundtrip_and_corruption(tmp_path):
     rng = np.random.default_rng(4)
     vm = VoxelMap(0.1)
