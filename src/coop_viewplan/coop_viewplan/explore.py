@@ -18,12 +18,31 @@ from .raycast import cast
 
 @dataclass
 class World:
-    """A planar world: occupied cells (nx, ny), resolution (m), start cell, name."""
+    """A planar world: occupied cells (nx, ny), resolution (m), start cell, name; for the rooms
+    world the start room, (x0, x1, y0, y1) cell bounds inclusive of its walls."""
 
     occupied: np.ndarray
     resolution: float
     start: tuple[int, int]
     name: str
+    start_room: tuple[int, int, int, int] | None = None
+
+    def in_start_room(self, cells: np.ndarray) -> np.ndarray:
+        """(N, 2) cells -> (N,) bool: inside the start room's walls (all True without a room)."""
+        c = np.asarray(cells).reshape(-1, 2)
+        if self.start_room is None:
+            return np.ones(len(c), bool)
+        x0, x1, y0, y1 = self.start_room
+        return (c[:, 0] >= x0) & (c[:, 0] <= x1) & (c[:, 1] >= y0) & (c[:, 1] <= y1)
+
+    def start_room_cells(self) -> np.ndarray | None:
+        """The mappable cells of the start room (its free interior and walls), or None."""
+        if self.start_room is None:
+            return None
+        x0, x1, y0, y1 = self.start_room
+        m = np.zeros_like(self.occupied)
+        m[x0:x1 + 1, y0:y1 + 1] = True
+        return m & self.mappable()
 
     def mappable(self) -> np.ndarray:
         """Cells a perfect explorer could map: the free space connected to the start and the
@@ -122,7 +141,8 @@ def rooms_world(*, seed: int, size_m: float = 100.0, resolution: float = 1.0,
     rx, ry = rooms[int(rng.integers(len(rooms)))]
     start = _free_start(occ, rng, clearance_cells,
                         (slice(rx[0] + 1, rx[1]), slice(ry[0] + 1, ry[1])))
-    return World(occ, resolution, start, 'rooms')
+    return World(occ, resolution, start, 'rooms',
+                 start_room=(int(rx[0]), int(rx[1]), int(ry[0]), int(ry[1])))
 
 
 def png_world(path: str | Path, *, resolution: float = 1.0, seed: int = 0,
@@ -162,11 +182,25 @@ def scan(world: World, grid: OccupancyGrid, planner: NextBestViewPlanner,
 
 @dataclass
 class Trace:
-    """One run: fraction mapped and cumulative distance after scan k = 0..scans, paths."""
+    """One run: fraction mapped and cumulative distance after scan k = 0..scans, paths (every
+    camera's position at each scan), and the fraction of the start room mapped (rooms world)."""
 
     fraction: np.ndarray
     distance: np.ndarray
     paths: list
+    room_fraction: np.ndarray | None = None
+
+    def scans_to_leave_start_room(self, world: World) -> int | None:
+        """The first scan taken by a camera outside the start room, or None."""
+        if world.start_room is None:
+            return None
+        n = min(len(p) for p in self.paths)
+        for k in range(n):
+            cells = np.array([np.floor(p[k] / world.resolution).astype(int)
+                              for p in self.paths])
+            if not world.in_start_room(cells).all():
+                return k
+        return None
 
 
 def explore(world: World, *, strategy: str, n_cameras: int, config: NbvConfig, scans: int,
@@ -178,6 +212,7 @@ def explore(world: World, *, strategy: str, n_cameras: int, config: NbvConfig, s
     grid = OccupancyGrid.empty(world.occupied.shape, resolution=world.resolution)
     mappable = world.mappable()
     total = mappable.sum()
+    room = world.start_room_cells()
     cams = []
     clear = int(np.ceil(config.clearance_m / world.resolution))
     for k in range(n_cameras):
@@ -195,6 +230,7 @@ def explore(world: World, *, strategy: str, n_cameras: int, config: NbvConfig, s
         scan(world, grid, planner, cam.position, cam.yaw)
         cam.visited.append(grid.to_index(cam.position))
     frac = [float((grid.known & mappable).sum() / total)]
+    room_frac = [] if room is None else [float((grid.known & room).sum() / room.sum())]
     dist = [0.0]
     paths = [[c.position.copy()] for c in cams]
     for _ in range(scans):
@@ -213,5 +249,8 @@ def explore(world: World, *, strategy: str, n_cameras: int, config: NbvConfig, s
             for cam in cams:
                 scan(world, grid, planner, cam.position, cam.yaw)
         frac.append(float((grid.known & mappable).sum() / total))
+        if room is not None:
+            room_frac.append(float((grid.known & room).sum() / room.sum()))
         dist.append(dist[-1] + moved)
-    return Trace(np.array(frac), np.array(dist), [np.array(p) for p in paths])
+    return Trace(np.array(frac), np.array(dist), [np.array(p) for p in paths],
+                 None if room is None else np.array(room_frac))

@@ -66,7 +66,7 @@ def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
                     ni_floor=ni_floor)
     res: dict = {}
     for name in strategies:
-        fr, di, s90, d90 = [], [], [], []
+        fr, di, s90, d90, room90, leave, rooms_final = [], [], [], [], [], [], []
         t0 = time.perf_counter()
         for seed in range(seeds):
             w = make_world(world, seed=seed, resolution=resolution_m)
@@ -77,6 +77,10 @@ def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
             k = _first_reach(tr.fraction, level)
             s90.append(k)
             d90.append(None if k is None else float(tr.distance[k]))
+            if w.start_room is not None:
+                room90.append(_first_reach(tr.room_fraction, level))
+                rooms_final.append(float(tr.room_fraction[-1]))
+                leave.append(tr.scans_to_leave_start_room(w))
         fm, flo, fhi = _ci(np.array(fr))
         dm, dlo, dhi = _ci(np.array(di))
         s_sum, d_sum = _summary(s90), _summary(d90)
@@ -90,6 +94,11 @@ def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
                       'fraction_hi': fhi.tolist(), 'distance_mean_m': dm.tolist(),
                       'distance_lo_m': dlo.tolist(), 'distance_hi_m': dhi.tolist()},
         }
+        if room90:
+            # Fig. 3-20's claim: the first to map its room and find its way out into the corridor
+            res[name]['scans_to_map_start_room'] = _summary(room90)
+            res[name]['scans_to_leave_start_room'] = _summary(leave)
+            res[name]['final_start_room_fraction'] = float(np.mean(rooms_final))
     return res
 
 
@@ -120,6 +129,16 @@ def verdict(strategies: dict) -> dict:
             out[f'{what}_order'] = order
         ranked = sorted(five, key=lambda s: -strategies[s]['final_fraction'])
         out['final_fraction_rank_of_max_information'] = ranked.index('max_information') + 1
+        for what in ('scans_to_map_start_room', 'scans_to_leave_start_room'):
+            if what in strategies['max_information']:
+                def room_key(name: str, what: str = what) -> tuple[float, float]:
+                    # censored runs after the others, by the share of the room they mapped
+                    d = strategies[name][what]
+                    return (d['mean'] if d['reached'] == len(d['per_seed']) else float('inf'),
+                            -strategies[name]['final_start_room_fraction'])
+                order = sorted(five, key=room_key)
+                out[f'{what}_rank_of_max_information'] = order.index('max_information') + 1
+                out[f'{what}_order'] = order
         if 'frontier' in strategies:
             a = key('max_information', 'distance_to_90pct')
             b = key('frontier', 'distance_to_90pct')
@@ -278,6 +297,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:16s} {_fmt(s['mean'], s['ci95'], 1):>24s} "
               f"{s['reached']:>4d}/{args.seeds:<3d} {_fmt(d['mean'], d['ci95']):>30s} "
               f"{r['final_fraction']:>10.3f} {r['final_distance_m']:>12.0f}")
+    if any('scans_to_map_start_room' in r for r in strat.values()):
+        print('start room (Fig. 3-20: "the information theoretic vision algorithm is the first to '
+              'map the room and find its way out into the corridor"): scans until 90 % of the '
+              'start room is mapped, and until a camera scans from outside its walls')
+        print(f"{'strategy':16s} {'room 90% [95% CI]':>24s} {'reached':>8s} "
+              f"{'left room [95% CI]':>24s} {'reached':>8s}")
+        for name, r in strat.items():
+            a, b = r['scans_to_map_start_room'], r['scans_to_leave_start_room']
+            print(f"{name:16s} {_fmt(a['mean'], a['ci95'], 1):>24s} "
+                  f"{a['reached']:>4d}/{args.seeds:<3d} {_fmt(b['mean'], b['ci95'], 1):>24s} "
+                  f"{b['reached']:>4d}/{args.seeds:<3d}")
     if 'one_camera_max_information' in result:
         o = result['one_camera_max_information']
         print(f"{'max_info 1 cam':16s} {_fmt(o['scans_to_90pct'], None, 1):>24s} "

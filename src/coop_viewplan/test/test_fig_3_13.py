@@ -6,7 +6,7 @@ import json
 import numpy as np
 
 from coop_viewplan import fig_3_13
-from coop_viewplan.explore import explore, make_world, rooms_world
+from coop_viewplan.explore import Trace, explore, make_world, rooms_world
 from coop_viewplan.nbv import NbvConfig
 
 
@@ -44,6 +44,43 @@ def test_cli_reduced_size(tmp_path, capsys):
     assert s['max_information']['final_fraction'] > s['random']['final_fraction']
     assert (tmp_path / 'plots' / 'fig_3_13_unstructured_1cam.png').stat().st_size > 1000
     assert 'max_information' in capsys.readouterr().out
+
+
+def test_start_room_of_the_rooms_world():
+    w = rooms_world(seed=2)
+    x0, x1, y0, y1 = w.start_room
+    assert x0 < w.start[0] < x1 and y0 < w.start[1] < y1
+    assert w.in_start_room(np.array([w.start, (x0, y0), (x1, y1)])).all()
+    assert not w.in_start_room(np.array([[x0 - 1, y0], [x1, y1 + 1]])).any()
+    room = w.start_room_cells()
+    assert room.sum() > 100 and not (room & ~w.mappable()).any()
+    assert make_world('unstructured', seed=0).start_room is None
+    # the first scan from outside the walls: scan 2 of this trace (1 m cells, origin 0)
+    inside = (np.array(w.start) + 0.5) * w.resolution
+    outside = np.array([x1 + 3.5, y1 + 3.5]) * w.resolution
+    tr = Trace(np.zeros(4), np.zeros(4), [np.array([inside, inside, outside, inside])])
+    assert tr.scans_to_leave_start_room(w) == 2
+    tr2 = Trace(np.zeros(4), np.zeros(4), [np.array([inside] * 4), np.array([inside] * 3
+                                                                          + [outside])])
+    assert tr2.scans_to_leave_start_room(w) == 3
+    assert Trace(np.zeros(1), np.zeros(1), [inside[None]]).scans_to_leave_start_room(w) is None
+
+
+def test_cli_rooms_reports_the_start_room(tmp_path, capsys):
+    out = tmp_path / 'r.json'
+    assert fig_3_13.main(['--world', 'rooms', '--seeds', '1', '--scans', '12',
+                          '--candidates', '30', '--strategies', 'raster,max_information',
+                          '--json', str(out)]) == 0
+    assert 'start room' in capsys.readouterr().out
+    data = json.loads(out.read_text())
+    for name in ('raster', 'max_information'):
+        r = data['strategies'][name]
+        for what in ('scans_to_map_start_room', 'scans_to_leave_start_room'):
+            assert len(r[what]['per_seed']) == 1
+        assert 0 < r['final_start_room_fraction'] <= 1
+        left = r['scans_to_leave_start_room']['per_seed'][0]
+        assert left is None or 1 <= left <= 12
+    assert data['verdict']['scans_to_map_start_room_rank_of_max_information'] in (1, 2)
 
 
 def test_cli_rejects_bad_world(capsys):
