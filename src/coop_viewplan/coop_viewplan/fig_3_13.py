@@ -111,6 +111,12 @@ def _fmt(v: float | None, ci: list | None = None, p: int = 0) -> str:
     return s
 
 
+def _scans_cell(summary: dict, seeds: int) -> str:
+    """'mean [95 % CI]' and 'reached/seeds' of a _summary of scan counts, table-aligned."""
+    return (f"{_fmt(summary['mean'], summary['ci95'], 1):>24s} "
+            f"{summary['reached']:>4d}/{seeds:<3d}")
+
+
 def verdict(strategies: dict) -> dict:
     """Where maximum information stands: rank among the five thesis methods (censored runs
     count as scans + 1), distance ratio against the frontier baseline."""
@@ -293,9 +299,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'strategy':16s} {'scans to 90% [95% CI]':>24s} {'reached':>8s} "
           f"{'distance to 90% m [95% CI]':>30s} {'final frac':>10s} {'final dist m':>12s}")
     for name, r in strat.items():
-        s, d = r['scans_to_90pct_detail'], r['distance_to_90pct_detail']
-        print(f"{name:16s} {_fmt(s['mean'], s['ci95'], 1):>24s} "
-              f"{s['reached']:>4d}/{args.seeds:<3d} {_fmt(d['mean'], d['ci95']):>30s} "
+        d = r['distance_to_90pct_detail']
+        print(f"{name:16s} {_scans_cell(r['scans_to_90pct_detail'], args.seeds)} "
+              f"{_fmt(d['mean'], d['ci95']):>30s} "
               f"{r['final_fraction']:>10.3f} {r['final_distance_m']:>12.0f}")
     if any('scans_to_map_start_room' in r for r in strat.values()):
         print('start room (Fig. 3-20: "the information theoretic vision algorithm is the first to '
@@ -304,10 +310,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'strategy':16s} {'room 90% [95% CI]':>24s} {'reached':>8s} "
               f"{'left room [95% CI]':>24s} {'reached':>8s}")
         for name, r in strat.items():
-            a, b = r['scans_to_map_start_room'], r['scans_to_leave_start_room']
-            print(f"{name:16s} {_fmt(a['mean'], a['ci95'], 1):>24s} "
-                  f"{a['reached']:>4d}/{args.seeds:<3d} {_fmt(b['mean'], b['ci95'], 1):>24s} "
-                  f"{b['reached']:>4d}/{args.seeds:<3d}")
+            print(f"{name:16s} {_scans_cell(r['scans_to_map_start_room'], args.seeds)} "
+                  f"{_scans_cell(r['scans_to_leave_start_room'], args.seeds)}")
     if 'one_camera_max_information' in result:
         o = result['one_camera_max_information']
         print(f"{'max_info 1 cam':16s} {_fmt(o['scans_to_90pct'], None, 1):>24s} "
