@@ -6,9 +6,11 @@ the map frame with the covariance fields, sensor QoS) and `/<r>/camera_pose`
 the ray origin). Publishes `/map/voxels` (coop_msgs/VoxelMap, latched, at most every
 `publish_period_s`), `/map/updates` (coop_msgs/VoxelMapUpdate per fused cloud), `/map/occupied`
 (PointCloud2 of occupied voxel centres, latched) and `/map/grid` (nav_msgs/OccupancyGrid slice at
-`grid_z_m`, latched). Services `/map/save`, `/map/load` (coop_msgs/srv/MapFile), `/map/query`
-(coop_msgs/srv/QueryMap), `/map/reset` (std_srvs/Trigger). Autosaves every `autosave_period_s`
-to `map_file` and loads it at start if it is there.
+`grid_z_m`, latched). Before fusing a cloud it drops the points inside the body volume of its
+own rover and of every teammate whose camera pose it holds (`bodies.BodyFilter`: `body_radius_m`
+about each camera, 0 = off). Services `/map/save`, `/map/load` (coop_msgs/srv/MapFile),
+`/map/query` (coop_msgs/srv/QueryMap), `/map/reset` (std_srvs/Trigger). Autosaves every
+`autosave_period_s` to `map_file` and loads it at start if it is there.
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ from coop_msgs.msg import VoxelMap as VoxelMapMsg
 from coop_msgs.msg import VoxelMapUpdate
 from coop_msgs.srv import MapFile, QueryMap
 
+from .bodies import BodyFilter
 from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, voxelset
 from .voxelmap import MapFileError, MapInputError, VoxelMap
 
@@ -53,6 +56,15 @@ PARAMS = {
     'grid_z_m': ParamSpec(0.2, 'height of the OccupancyGrid slice (m)', lo=-1000.0, hi=1000.0),
     'pose_wait_s': ParamSpec(1.0, 'how long a cloud waits for its camera pose', lo=0.0,
                              hi=60.0),
+    'body_radius_m': ParamSpec(BodyFilter.radius_m, "rover body volume's horizontal radius "
+                               'about each camera; its points are not fused (0 = off)',
+                               lo=0.0, hi=10.0),
+    'body_above_camera_m': ParamSpec(BodyFilter.above_camera_m,
+                                     "the body volume's top over the camera (m)", lo=0.0,
+                                     hi=10.0),
+    'body_pose_tolerance_s': ParamSpec(BodyFilter.pose_tolerance_s, "how old a teammate's "
+                                       'camera pose may be, before the cloud, to filter its '
+                                       'body', lo=0.0, hi=600.0),
 }
 
 
@@ -95,6 +107,7 @@ class MapperNode(Node):
         self.create_timer(0.1, self.on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._last_save = time.monotonic()
         self.fused = 0
+        self.body_points = 0
         self.last_latency_s = float('nan')
         self.get_logger().info(
             f'mapper up: rovers {self.p["rovers"]}, {self.p["resolution_m"]} m voxels, '
@@ -176,6 +189,19 @@ class MapperNode(Node):
         if np.max(np.linalg.norm(pts - origin, axis=1)) > self.p['max_range_m']:
             self.bad.reject('absurd_range', rover)
             return
+        bodies = BodyFilter(self.p['body_radius_m'], self.p['body_above_camera_m'],
+                            self.p['body_pose_tolerance_s'])
+        if bodies.enabled:
+            cams = bodies.cameras_at(_stamp_ns(msg.header.stamp), origin,
+                                     [self.poses[r] for r in self.poses if r != rover])
+            drop = bodies.mask(pts, cams)
+            if drop.all():
+                self.bad.reject('body_only', f'{rover}: every point on a rover body')
+                return
+            if drop.any():
+                pts = pts[~drop]
+                cov = None if cov is None else cov[~drop]
+                self.body_points += int(drop.sum())
         base = self.map.sequence
         try:
             res = self.map.insert_scan(pts, origin, covariances=cov, source=rover)
@@ -247,7 +273,8 @@ class MapperNode(Node):
             self.get_logger().error(f'save to {path} failed: {exc}')
             return str(exc)
         self._saved_seq = self.map.sequence
-        self.get_logger().info(f'saved {len(self.map)} voxels to {path}')
+        self.get_logger().info(f'saved {len(self.map)} voxels to {path} ({self.body_points} '
+                               'points on rover bodies not fused so far)')
         return None
 
     # ---------------------------------------------------------------- services

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from .bodies import BodyFilter
 from .stereo import (
     FULL_WIDTH_DEFAULT,
     SUBPIXEL_DEFAULT,
@@ -76,10 +77,17 @@ class MapSettings:
     max_points: int = 1_000_000
     max_range_m: float = 30.0
     ray_subdivision: int = 4
+    body_radius_m: float = BodyFilter.radius_m
+    body_above_camera_m: float = BodyFilter.above_camera_m
+    body_pose_tolerance_s: float = BodyFilter.pose_tolerance_s
 
     def new_map(self) -> VoxelMap:
         return VoxelMap(self.resolution_m, max_points=self.max_points,
                         ray_subdivision=self.ray_subdivision)
+
+    def body_filter(self) -> BodyFilter:
+        return BodyFilter(self.body_radius_m, self.body_above_camera_m,
+                          self.body_pose_tolerance_s)
 
 
 @dataclass
@@ -103,6 +111,7 @@ class OfflineMap:
     scans: Counter = field(default_factory=Counter)      # fused scans per rover
     rejected: Counter = field(default_factory=Counter)   # reason -> count
     frames: list[tuple[str, int]] = field(default_factory=list)   # (rover, stamp) fused
+    body_points: int = 0                                 # points dropped as rover bodies
 
 
 def stamp_ns(stamp) -> int:
@@ -188,11 +197,21 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
               stereo: StereoSettings = StereoSettings(), mapping: MapSettings = MapSettings(),
               map_frame: str = 'map') -> OfflineMap:
     """Fuse every complete stereo frame of `rovers` (None: all found) into one VoxelMap, in
-    stamp order (ties: rover name), with the mapper's rejections (empty cloud, absurd range,
-    too many points, bad input)."""
+    stamp order (ties: rover name), with the mapper's body filter (every frame's camera pose
+    is a pose the mapper would hold) and rejections (empty cloud, absurd range, too many
+    points, clouds of rover bodies only, bad input)."""
+    from .ros_conv import pose_to_rt  # noqa: PLC0415 - message types only, not needed above
+
     frames = sorted(stereo_frames(messages, rovers), key=lambda f: (f.stamp_ns, f.rover))
     out = OfflineMap(mapping.new_map())
     rangers: dict[tuple, StereoRanger] = {}
+    bodies = mapping.body_filter()
+    poses: dict[str, dict[int, np.ndarray]] = {}
+    for fr in frames:
+        if fr.pose.header.frame_id == map_frame:
+            t = np.asarray(pose_to_rt(fr.pose.pose.pose)[1], float)
+            if np.all(np.isfinite(t)):
+                poses.setdefault(fr.rover, {})[fr.stamp_ns] = t
     for fr in frames:
         if fr.pose.header.frame_id != map_frame:
             out.rejected['pose_frame'] += 1
@@ -215,6 +234,15 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
         if np.max(np.linalg.norm(pts - origin, axis=1)) > mapping.max_range_m:
             out.rejected['absurd_range'] += 1
             continue
+        if bodies.enabled:
+            cams = bodies.cameras_at(fr.stamp_ns, origin,
+                                     [p for r, p in poses.items() if r != fr.rover])
+            drop = bodies.mask(pts, cams)
+            if drop.all():
+                out.rejected['body_only'] += 1
+                continue
+            pts, cov = pts[~drop], cov[~drop]
+            out.body_points += int(drop.sum())
         try:
             out.map.insert_scan(pts, origin, covariances=cov, source=fr.rover)
         except MapInputError:

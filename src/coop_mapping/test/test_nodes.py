@@ -33,18 +33,23 @@ def _call(ex, client, req, timeout=10.0):
     return fut.result()
 
 
-def test_mapper_fuses_queries_saves_and_rejects(ctx, tmp_path):
-    mapfile = str(tmp_path / 'team.cmap')
-    node = MapperNode(context=ctx, parameter_overrides=[
-        Parameter('rovers', value=['rover1', 'rover2']),
-        Parameter('map_file', value=mapfile),
-        Parameter('publish_period_s', value=0.0),
-        Parameter('autosave_period_s', value=0.0),
-        Parameter('max_points', value=5000)])
+def _mapper_and_peer(ctx, **params):
+    """A mapper for rover1 and rover2 (publishing at once, no autosave, `params` over that), a
+    peer node and an executor spinning both."""
+    over = {'rovers': ['rover1', 'rover2'], 'publish_period_s': 0.0, 'autosave_period_s': 0.0,
+            **params}
+    node = MapperNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                        for k, v in over.items()])
     peer = Node('peer', context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     ex.add_node(peer)
+    return node, peer, ex
+
+
+def test_mapper_fuses_queries_saves_and_rejects(ctx, tmp_path):
+    mapfile = str(tmp_path / 'team.cmap')
+    node, peer, ex = _mapper_and_peer(ctx, map_file=mapfile, max_points=5000)
     try:
         pose_pub = {r: peer.create_publisher(PoseWithCovarianceStamped, f'/{r}/camera_pose',
                                              LATCHED_QOS) for r in ('rover1', 'rover2')}
@@ -117,6 +122,42 @@ def test_mapper_fuses_queries_saves_and_rejects(ctx, tmp_path):
         assert len(node.map) == 0
         r = _call(ex, load, MapFile.Request())
         assert r.success and r.voxels == save.voxels and node.map.sequence == 2
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+
+
+def test_mapper_drops_a_teammate_body(ctx):
+    """rover1 sees a wall 3 m ahead and rover2's body 1 m ahead; rover2's camera pose, taken
+    before rover1's cloud, is known: the body's points are not fused (counted), the wall is."""
+    node, peer, ex = _mapper_and_peer(ctx)
+    try:
+        pose_pub = {r: peer.create_publisher(PoseWithCovarianceStamped, f'/{r}/camera_pose',
+                                             LATCHED_QOS) for r in ('rover1', 'rover2')}
+        cloud_pub = peer.create_publisher(PointCloud2, '/rover1/stereo/points', SENSOR_QOS)
+        wait_for(lambda: peer.count_subscribers('/rover1/stereo/points') > 0
+                 and peer.count_subscribers('/rover2/camera_pose') > 0, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='discovery')
+        rng = np.random.default_rng(1)
+        wall = np.column_stack([np.full(1000, 3.03), rng.uniform(-1, 1, 1000),
+                                rng.uniform(0, 2, 1000)])
+        body = np.array([1.0, 0.0, 0.3]) + rng.uniform(-0.2, 0.2, (300, 3))
+        pts = np.vstack([wall, body])
+        cov = np.tile([1e-4, 0, 0, 1e-4, 0, 1e-4], (len(pts), 1))
+        t2 = peer.get_clock().now().to_msg()
+        pose_pub['rover2'].publish(_pose(t2, (1.05, 0.0, 0.8)))
+        wait_for(lambda: node.poses['rover2'], 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what="rover2's pose")
+        t1 = peer.get_clock().now().to_msg()
+        t1.sec += 1
+        pose_pub['rover1'].publish(_pose(t1, (0.0, 0.0, 0.8)))
+        cloud_pub.publish(cloud_to_msg(pts, cov, Header(stamp=t1, frame_id='map')))
+        wait_for(lambda: node.fused == 1, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+                 what='the fused cloud')
+        assert node.body_points == len(body)
+        p = node.map.probability_at(np.array([[1.0, 0.0, 0.3], [3.05, 0.05, 1.05]]))
+        assert p[0] <= 0.5 < 0.6 < p[1]
     finally:
         ex.shutdown()
         node.destroy_node()

@@ -95,3 +95,40 @@ def test_build_map_fuses_each_frame_with_the_node_defaults():
     assert len(occ) > 0
     assert np.median(occ[:, 2]) == pytest.approx(z_plane, abs=2 * out.map.resolution)
     assert StereoSettings().max_range_m >= z_plane
+
+
+def test_build_map_drops_a_teammate_body_as_the_mapper_does():
+    """rover2's camera 0.5 m under the plane rover1 sees (both looking up the map z axis):
+    rover1's clouds lie inside rover2's body volume (within 0.6 m of its camera horizontally,
+    below 0.3 m over it) and are dropped from rover2's pose at 250 ms on, which is then at most
+    2 s old; rover2's own cloud is above its volume. With the filter off, all are fused."""
+    cam = StereoCamera.from_fov(160, 120, np.radians(41.2), 0.038)
+    left, right = _pair(cam, shift_px=12)
+    msgs = []
+    for r in ('rover1', 'rover2'):
+        msgs += [(f'/{r}/stereo/left/camera_info', _info(cam, False, 0)),
+                 (f'/{r}/stereo/right/camera_info', _info(cam, True, 0))]
+    pose2 = _pose(250_000_000)
+    pose2.pose.pose.position.z = 1.5
+    msgs += [('/rover2/stereo/left/image_raw', _image(left, 250_000_000)),
+             ('/rover2/stereo/right/image_raw', _image(right, 250_000_000)),
+             ('/rover2/stereo/pose', pose2)]
+    for ns in (250_000_000, 500_000_000):
+        msgs += [('/rover1/stereo/left/image_raw', _image(left, ns)),
+                 ('/rover1/stereo/right/image_raw', _image(right, ns)),
+                 ('/rover1/stereo/pose', _pose(ns))]
+    out = build_map(msgs)
+    assert out.scans == {'rover2': 1} and out.rejected == {'body_only': 2}
+    off = build_map(msgs, mapping=MapSettings(body_radius_m=0.0))
+    assert off.scans == {'rover1': 2, 'rover2': 1} and not off.rejected and off.body_points == 0
+    # a pose older than the tolerance no longer counts: rover1's 500 ms cloud is fused
+    old = build_map(msgs, mapping=MapSettings(body_pose_tolerance_s=0.1))
+    assert old.scans == {'rover1': 1, 'rover2': 1} and old.rejected == {'body_only': 1}
+
+
+def test_map_settings_are_the_mapper_parameters():
+    from dataclasses import fields
+
+    from coop_mapping.mapper_node import PARAMS
+    for f in fields(MapSettings):
+        assert PARAMS[f.name].default == f.default, f.name
