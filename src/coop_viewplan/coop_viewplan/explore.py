@@ -183,7 +183,8 @@ def scan(world: World, grid: OccupancyGrid, planner: NextBestViewPlanner,
 @dataclass
 class Trace:
     """One run: fraction mapped and cumulative distance after scan k = 0..scans, paths (every
-    camera's position at each scan), and the fraction of the start room mapped (rooms world)."""
+    camera's position at each scan until the world is mapped), and the fraction of the start
+    room mapped (rooms world)."""
 
     fraction: np.ndarray
     distance: np.ndarray
@@ -196,6 +197,7 @@ class Trace:
             return None
         n = min(len(p) for p in self.paths)
         for k in range(n):
+            # explore's grid has its origin at cell (0, 0)'s corner
             cells = np.array([np.floor(p[k] / world.resolution).astype(int)
                               for p in self.paths])
             if not world.in_start_room(cells).all():
@@ -246,6 +248,8 @@ def explore(world: World, *, strategy: str, n_cameras: int, config: NbvConfig, s
                 cam.yaw = d.yaw
                 cam.visited.append(grid.to_index(cam.position))
                 path.append(cam.position.copy())
+            for cam, path in zip(cams[len(decisions):], paths[len(decisions):]):
+                path.append(cam.position.copy())   # no admissible view: it scans from here again
             for cam in cams:
                 scan(world, grid, planner, cam.position, cam.yaw)
         frac.append(float((grid.known & mappable).sum() / total))
