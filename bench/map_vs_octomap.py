@@ -50,6 +50,8 @@ from coop_mapping.stereo import (  # noqa: E402
 )
 from coop_mapping.voxelmap import (  # noqa: E402
     OCCUPIED,
+    SURFACE_BANDWIDTH,
+    SURFACE_RADIUS,
     VoxelMap,
     kernel_centroids,
     pack_keys,
@@ -59,7 +61,7 @@ from coop_mapping.voxelmap import (  # noqa: E402
 
 PLANE_Z = 0.013
 #: the kernel surface query's settings (VoxelMap.surface_points' defaults)
-KERNEL_BANDWIDTH, KERNEL_RADIUS = 0.8, 2
+KERNEL_BANDWIDTH, KERNEL_RADIUS = SURFACE_BANDWIDTH, SURFACE_RADIUS
 #: Eq. 3-6/3-7 range-noise constant of the VGA camera (0.5 px, f = 851 px, b = 38 mm)
 S_VGA = 0.5 / (851.3 * 0.038)
 

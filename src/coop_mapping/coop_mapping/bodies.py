@@ -51,6 +51,17 @@ class BodyFilter:
                        & (pts[:, 2] < c[2] + self.above_camera_m))
         return inside
 
+    def drop(self, points: np.ndarray, covariances: np.ndarray | None,
+             cameras: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, int]:
+        """(points, covariances, number dropped) with the points inside a body volume (`mask`)
+        removed; covariances (N, 6) or None follow the points."""
+        inside = self.mask(points, cameras)
+        if not inside.any():
+            return points, covariances, 0
+        keep = ~inside
+        return (points[keep], None if covariances is None else covariances[keep],
+                int(inside.sum()))
+
     def cameras_at(self, stamp_ns: int, own: np.ndarray,
                    others: Iterable[Mapping[int, np.ndarray]]) -> list[np.ndarray]:
         """The camera positions whose bodies are filtered out of a cloud taken at `stamp_ns`

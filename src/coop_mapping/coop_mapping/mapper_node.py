@@ -194,14 +194,11 @@ class MapperNode(Node):
         if bodies.enabled:
             cams = bodies.cameras_at(_stamp_ns(msg.header.stamp), origin,
                                      [self.poses[r] for r in self.poses if r != rover])
-            drop = bodies.mask(pts, cams)
-            if drop.all():
+            pts, cov, dropped = bodies.drop(pts, cov, cams)
+            if len(pts) == 0:
                 self.bad.reject('body_only', f'{rover}: every point on a rover body')
                 return
-            if drop.any():
-                pts = pts[~drop]
-                cov = None if cov is None else cov[~drop]
-                self.body_points += int(drop.sum())
+            self.body_points += dropped
         base = self.map.sequence
         try:
             res = self.map.insert_scan(pts, origin, covariances=cov, source=rover)

@@ -237,12 +237,11 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
         if bodies.enabled:
             cams = bodies.cameras_at(fr.stamp_ns, origin,
                                      [p for r, p in poses.items() if r != fr.rover])
-            drop = bodies.mask(pts, cams)
-            if drop.all():
+            pts, cov, dropped = bodies.drop(pts, cov, cams)
+            if len(pts) == 0:
                 out.rejected['body_only'] += 1
                 continue
-            pts, cov = pts[~drop], cov[~drop]
-            out.body_points += int(drop.sum())
+            out.body_points += dropped
         try:
             out.map.insert_scan(pts, origin, covariances=cov, source=fr.rover)
         except MapInputError:

@@ -70,6 +70,8 @@ _BITS = 21
 _OFFSET = 1 << (_BITS - 1)       # keys in [-2^20, 2^20)
 _MASK = (1 << _BITS) - 1
 UNKNOWN, FREE, OCCUPIED = -1, 0, 1
+#: VoxelMap.surface_points' kernel: bandwidth (voxels) and block radius (voxels)
+SURFACE_BANDWIDTH, SURFACE_RADIUS = 0.8, 2
 
 
 class MapInputError(ValueError):
@@ -746,8 +748,9 @@ class VoxelMap:
         cov = sym6_from_cholesky(self.chol[idx].astype(np.float64)) * res * res
         return keys, mean, cov, self.hits[idx]
 
-    def surface_points(self, packed: np.ndarray | None = None, *, bandwidth: float = 0.8,
-                       radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    def surface_points(self, packed: np.ndarray | None = None, *,
+                       bandwidth: float = SURFACE_BANDWIDTH, radius: int = SURFACE_RADIUS
+                       ) -> tuple[np.ndarray, np.ndarray]:
         """(keys, points (N, 3)): a surface point for each voxel with a Gaussian (hits > 0),
         optionally only those among `packed`.
 
