@@ -41,14 +41,6 @@ class TargetFrameError(ValueError):
     """Too few or degenerate marker observations, bad shapes, no consistent assignment."""
 
 
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    K = skew(w)
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
-
-
 @dataclass(frozen=True)
 class TargetGeometry:
     """The known target: marker centres (M, 3) in the target frame, their labels, the target's
@@ -172,7 +164,7 @@ def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarra
                                    'vector, and it must not lie along their line)')
         # s(delta) ~ s + J delta; minimise |s + J delta|_W: delta = -(J^T W J)^-1 J^T W s
         d = -np.linalg.solve(A, b)
-        R = R @ _exp_so3(d[:3])
+        R = R @ cv2.Rodrigues(np.ascontiguousarray(d[:3], float).reshape(3, 1))[0]
         t = t + d[3:]
         if np.linalg.norm(d[:3]) < 1e-12 and np.linalg.norm(d[3:]) < 1e-12:
             break
