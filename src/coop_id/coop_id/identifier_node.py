@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 
 import numpy as np
 from builtin_interfaces.msg import Duration
@@ -31,7 +30,8 @@ from coop_msgs.msg import DynamicParameters, Inclinometer
 
 from .excitation import STRATEGIES, ArmReference, Excitation
 from .identifier_core import Identifier, IdentifierConfig
-from .offline import sensor_noise
+from .offline import FT_FORCE_LIMIT_N, FT_TORQUE_LIMIT_NM, SYNC_TOLERANCE_S, sensor_noise
+from .pairing import SamplePairer, stamp_ns
 
 #: Arm base joints and the three rotation modes of §2.2: (joint driven, (joint1, joint2) hold).
 MODES = (('arm_joint_1', 0.0, None), ('arm_joint_2', 0.0, None),
@@ -63,14 +63,13 @@ SPECS = {
     'command_lead_s': ParamSpec(0.3, 'a new arm trajectory departs from the old one this long '
                                 'after the last sample (covers processing + transport delay)',
                                 lo=0.0, hi=2.0),
-    'sync_tolerance_s': ParamSpec(0.002, 'max stamp difference when pairing sensors (below '
-                                  'half the sample period)',
-                                  lo=0.0005, hi=0.1),
+    'sync_tolerance_s': ParamSpec(SYNC_TOLERANCE_S, 'max stamp difference when pairing '
+                                  'sensors (below half the sample period)', lo=0.0005, hi=0.1),
     'stale_timeout_s': ParamSpec(0.1, 'a sensor silent this long stops the sample stream',
                                  lo=0.01, hi=10.0),
-    'ft_force_limit_n': ParamSpec(200.0, 'F/T force saturation (samples beyond are skipped)',
-                                  lo=1.0, hi=1e4),
-    'ft_torque_limit_nm': ParamSpec(50.0, 'F/T torque saturation', lo=0.1, hi=1e4),
+    'ft_force_limit_n': ParamSpec(FT_FORCE_LIMIT_N, 'F/T force saturation (samples beyond '
+                                  'are skipped)', lo=1.0, hi=1e4),
+    'ft_torque_limit_nm': ParamSpec(FT_TORQUE_LIMIT_NM, 'F/T torque saturation', lo=0.1, hi=1e4),
     'ft_force_noise_std_n': ParamSpec(0.0, 'F/T force noise 1-sigma (datasheet; WrenchStamped '
                                       'has no covariance); 0 = unknown', lo=0.0, hi=100.0),
     'inclinometer_weight': ParamSpec(0.0, 'share of the inclinometer in the roll/pitch angle '
@@ -87,17 +86,12 @@ class IdentifierNode(Node):
         super().__init__('identifier', **kwargs)
         self.p = declare_parameters(self, SPECS, on_change=self._on_change)
         self.bad = BadInputCounter(self)
-        # Pairing queues, stamp-ordered. An IMU sample waits for its partners however the three
-        # streams interleave (a replay's burst, DDS or callback latency): up to QUEUE_S of
-        # samples, the bound only a silent partner reaches. The partner queues are trimmed to
-        # the IMU sample waiting (older entries can never pair), so they never evict a partner
-        # that a lagging IMU stream still needs.
-        cap = int(QUEUE_S * self.p['rate_hz'])
-        self._imu: deque[tuple[float, Imu]] = deque(maxlen=cap)
-        self._incl: deque[tuple[float, Inclinometer]] = deque(maxlen=cap)
-        self._wrench: deque[tuple[float, WrenchStamped]] = deque(maxlen=cap)
-        self._last_stamp = {'imu': -math.inf, 'inclinometer': -math.inf, 'wrench': -math.inf}
-        self._last_sample_t = -math.inf
+        # The sample stream: an IMU sample waits for its partners however the three streams
+        # interleave (a replay's burst, DDS or callback latency), up to QUEUE_S of samples
+        self.pairer = SamplePairer(
+            int(QUEUE_S * self.p['rate_hz']), tolerance_ns=_ns(self.p['sync_tolerance_s']),
+            force_limit=self.p['ft_force_limit_n'], torque_limit=self.p['ft_torque_limit_nm'],
+            on_sample=lambda t, row: self._on_sample(1e-9 * t, row), on_reject=self.bad.reject)
         self._buffer: list[tuple[float, np.ndarray]] = []
         self._last_sample: tuple[float, np.ndarray] | None = None
         self.ident: Identifier | None = None
@@ -135,95 +129,29 @@ class IdentifierNode(Node):
     # -- parameters ----------------------------------------------------------------------------
     def _on_change(self, changed: dict) -> None:
         self.p.update(changed)
+        self.pairer.tolerance_ns = _ns(self.p['sync_tolerance_s'])
+        self.pairer.force_limit = self.p['ft_force_limit_n']
+        self.pairer.torque_limit = self.p['ft_torque_limit_nm']
 
     # -- sensors -------------------------------------------------------------------------------
-    @staticmethod
-    def _stamp(msg) -> float:
-        return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-
-    def _accept(self, name: str, t: float, values: list[float]) -> bool:
-        if not all(math.isfinite(v) for v in values):
-            self.bad.reject('non-finite', name)
-            return False
-        if t <= self._last_stamp[name]:
-            self.bad.reject('out-of-order stamp',
-                            f'{name} {t:.4f} <= {self._last_stamp[name]:.4f}')
-            return False
-        self._last_stamp[name] = t
-        return True
-
     def _on_imu(self, msg: Imu) -> None:
         a, w = msg.linear_acceleration, msg.angular_velocity
-        t = self._stamp(msg)
-        if self._accept('imu', t, [a.x, a.y, a.z, w.x, w.y, w.z]):
+        if self.pairer.imu(stamp_ns(msg.header), [a.x, a.y, a.z], [w.x, w.y, w.z]):
             self._noise_var['acc'] = np.array(msg.linear_acceleration_covariance)[[0, 4, 8]]
             self._noise_var['gyro'] = np.array(msg.angular_velocity_covariance)[[0, 4, 8]]
-            self._imu.append((t, msg))
-            self._assemble()
 
     def _on_incl(self, msg: Inclinometer) -> None:
-        t = self._stamp(msg)
-        if not self._accept('inclinometer', t, [msg.roll, msg.pitch]):
-            return
-        if msg.saturated:      # after _accept: its stamp tells the waiting IMU sample it is lost
-            self.bad.reject('saturated inclinometer')
-        else:
+        if self.pairer.inclinometer(stamp_ns(msg.header), msg.roll, msg.pitch, msg.saturated):
             self._noise_var['incl'] = np.array([msg.roll_variance, msg.pitch_variance])
-            self._incl.append((t, msg))
-        self._assemble()
 
     def _on_wrench(self, msg: WrenchStamped) -> None:
         f, n = msg.wrench.force, msg.wrench.torque
-        t = self._stamp(msg)
-        if not self._accept('wrench', t, [f.x, f.y, f.z, n.x, n.y, n.z]):
-            return
-        if (max(abs(f.x), abs(f.y), abs(f.z)) > self.p['ft_force_limit_n']
-                or max(abs(n.x), abs(n.y), abs(n.z)) > self.p['ft_torque_limit_nm']):
-            self.bad.reject('saturated F/T')
-        else:
-            self._wrench.append((t, msg))
-        self._assemble()
+        self.pairer.wrench(stamp_ns(msg.header), [f.x, f.y, f.z], [n.x, n.y, n.z])
 
     def _on_joints(self, msg: JointState) -> None:
         for name, pos in zip(msg.name, msg.position):
             if math.isfinite(pos):
                 self.joint_positions[name] = pos
-
-    def _assemble(self) -> None:
-        """Pair each IMU sample, in stamp order, with the inclinometer and F/T samples of its
-        instant (the nearest within sync_tolerance_s).
-
-        Each stream's stamps increase (_accept), so the partners of instant t may still come
-        until both partner streams have reached t: until then the IMU sample waits, whatever
-        the order or latency in which the three topics arrive, a partner that has not spoken
-        yet included (the first samples of a replay come in one burst, in any order). Once both
-        have reached t, a missing partner is lost for good (dropped by DDS, saturated, bad
-        stamp) and the sample is dropped. Only a full IMU queue (QUEUE_S of samples) means a
-        silent partner: then the oldest sample goes."""
-        tol = self.p['sync_tolerance_s']
-        while self._imu:
-            t, imu = self._imu[0]
-            # partners older than the waiting sample can never pair: trimming them (not the
-            # queue's bound) keeps every partner a lagging IMU stream still needs
-            _trim(self._incl, t - tol)
-            _trim(self._wrench, t - tol)
-            if min(self._last_stamp['inclinometer'], self._last_stamp['wrench']) < t - 1e-9:
-                if len(self._imu) < self._imu.maxlen:
-                    return        # the partners of this instant may still come: wait
-                self._imu.popleft()
-                self.bad.reject('silent sensor', 'inclinometer or wrench')
-                continue
-            incl = _nearest(self._incl, t, tol)
-            wr = _nearest(self._wrench, t, tol)
-            self._imu.popleft()
-            if incl is None or wr is None:        # the partner will never come: drop it
-                self.bad.reject('unpaired sample', f'imu {t:.4f}')
-                continue
-            a, w = imu.linear_acceleration, imu.angular_velocity
-            f, n = wr.wrench.force, wr.wrench.torque
-            row = np.array([a.x, a.y, a.z, w.x, w.y, w.z, incl.roll, incl.pitch,
-                            f.x, f.y, f.z, n.x, n.y, n.z])
-            self._on_sample(t, row)
 
     def _on_sample(self, t: float, row: np.ndarray) -> None:
         if not self._active or self.ident is None:
@@ -433,22 +361,8 @@ def _qos_kwargs(q: QoSProfile) -> dict:
             'durability': q.durability}
 
 
-def _trim(buf: deque, t_min: float) -> None:
-    """Drop the entries of `buf` (stamp-ordered) stamped before t_min."""
-    while buf and buf[0][0] < t_min:
-        buf.popleft()
-
-
-def _nearest(buf: deque, t: float, tol: float):
-    """The message of `buf` (stamp-ordered) nearest to t within tol, searched from the newest."""
-    best, best_dt = None, tol
-    for tb, msg in reversed(buf):
-        if tb < t - tol:
-            break
-        dt = abs(tb - t)
-        if dt <= best_dt:
-            best, best_dt = msg, dt
-    return best
+def _ns(seconds: float) -> int:
+    return int(round(seconds * 1e9))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -3,6 +3,7 @@ inclinometer and F/T of the same stamp, as the node pairs them) read with rover_
 reader and fed to the same core (`identifier_core.Identifier`) in the node's windows."""
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,13 @@ from coop_common.dynparams import PARAM_NAMES
 from .consistency import Report
 from .identifier_core import Identifier, IdentifierConfig
 from .model import SensorNoise
+from .pairing import SamplePairer, stamp_ns
+
+#: the pairing's defaults, the identifier node's too (its parameters sync_tolerance_s,
+#: ft_force_limit_n, ft_torque_limit_nm)
+SYNC_TOLERANCE_S, FT_FORCE_LIMIT_N, FT_TORQUE_LIMIT_NM = 0.002, 200.0, 50.0
+#: IMU samples that may wait for their partners (the node's 5 s at 200 Hz)
+QUEUE_CAPACITY = 1000
 
 
 class BagError(ValueError):
@@ -22,35 +30,51 @@ def ident_topics(rover: str) -> tuple[str, str, str]:
     return (f'/{rover}/imu', f'/{rover}/inclinometer', f'/{rover}/arm/wrench')
 
 
-def bag_samples(bag: str | Path, *, rover: str = 'rover1') -> tuple[np.ndarray, np.ndarray]:
-    """(stamps_ns, rows) of the samples whose IMU, inclinometer and F/T share a stamp; rows are
-    specific force (3), gyro (3), roll, pitch, force (3), torque (3)."""
+def bag_samples(bag: str | Path, *, rover: str = 'rover1',
+                tolerance_s: float = SYNC_TOLERANCE_S, force_limit: float = FT_FORCE_LIMIT_N,
+                torque_limit: float = FT_TORQUE_LIMIT_NM, rejects: Counter | None = None,
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps_ns, rows) of the identifier's sample stream from the bag: its messages, in their
+    recorded order, through the node's pairing (pairing.SamplePairer: the IMU sample with the
+    inclinometer and F/T samples nearest its stamp within `tolerance_s`, saturated samples
+    skipped; the defaults are the node's). Rows: specific force (3), gyro (3), roll, pitch,
+    force (3), torque (3). `rejects`, if given, counts the samples skipped, by reason."""
     from rover_bag.bagio import BagError as RawBagError  # noqa: PLC0415 - optional at import
     from rover_bag.bagio import read_messages  # noqa: PLC0415
 
     topics = ident_topics(rover)
-    by: dict[str, dict[int, list[float]]] = {t: {} for t in topics}
+    stamps: list[int] = []
+    rows: list[np.ndarray] = []
+    heard = Counter()
+    skipped = rejects if rejects is not None else Counter()
+
+    def on_sample(t: int, row: np.ndarray) -> None:
+        stamps.append(t)
+        rows.append(row)
+
+    pairer = SamplePairer(QUEUE_CAPACITY, tolerance_ns=int(round(tolerance_s * 1e9)),
+                          force_limit=force_limit, torque_limit=torque_limit,
+                          on_sample=on_sample, on_reject=lambda r, _d: skipped.update([r]))
     try:
-        messages = list(read_messages(bag, list(topics)))
+        for m in read_messages(bag, list(topics)):
+            msg, t = m.msg, stamp_ns(m.msg.header)
+            heard[m.topic] += 1
+            if m.topic == topics[0]:
+                a, w = msg.linear_acceleration, msg.angular_velocity
+                pairer.imu(t, [a.x, a.y, a.z], [w.x, w.y, w.z])
+            elif m.topic == topics[1]:
+                pairer.inclinometer(t, msg.roll, msg.pitch, msg.saturated)
+            else:
+                f, n = msg.wrench.force, msg.wrench.torque
+                pairer.wrench(t, [f.x, f.y, f.z], [n.x, n.y, n.z])
     except RawBagError as exc:
         raise BagError(str(exc)) from exc
-    for m in messages:
-        msg = m.msg
-        st = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-        if m.topic == topics[0]:
-            a, w = msg.linear_acceleration, msg.angular_velocity
-            by[m.topic][st] = [a.x, a.y, a.z, w.x, w.y, w.z]
-        elif m.topic == topics[1]:
-            by[m.topic][st] = [msg.roll, msg.pitch]
-        else:
-            f, n = msg.wrench.force, msg.wrench.torque
-            by[m.topic][st] = [f.x, f.y, f.z, n.x, n.y, n.z]
-    stamps = sorted(set.intersection(*(set(d) for d in by.values())))
-    if not stamps:
-        counts = {t: len(d) for t, d in by.items()}
-        raise BagError(f'{bag}: no instant with all of {list(topics)} ({counts})')
-    rows = np.array([by[topics[0]][s] + by[topics[1]][s] + by[topics[2]][s] for s in stamps])
-    return np.array(stamps), rows
+    pairer.flush()
+    if not rows:
+        counts = {t: heard[t] for t in topics}
+        raise BagError(f'{bag}: no instant with all of {list(topics)} ({counts}; skipped: '
+                       f'{dict(skipped)})')
+    return np.array(stamps, dtype=np.int64), np.stack(rows)
 
 
 def sensor_noise(acc_var, gyro_var, incl_var, force_std: float = 0.0,

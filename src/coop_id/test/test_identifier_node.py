@@ -110,8 +110,9 @@ def test_identify_action_over_dds(graph):
         pub_inc.publish(inc)
         pub_imu.publish(imu)
         # best-effort sensor QoS: pace the stream by the node's consumption, not by sleeping
-        wait_for(lambda: node._last_stamp['imu'] >= t - 1e-6 or k == 50, 5, poll_s=0.0005,
-                 what=f'sample {k} consumed')
+        t_ns = round(t * 1e9) - 1000
+        wait_for(lambda: node.pairer.last_stamp['imu'] >= t_ns or k == 50, 5,
+                 poll_s=0.0005, what=f'sample {k} consumed')
     wait_for(res_fut.done, 30, what='action result')
     result = res_fut.result().result
     assert result.success, result.message
