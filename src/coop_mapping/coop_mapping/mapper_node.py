@@ -5,10 +5,12 @@ the map frame with the covariance fields, sensor QoS) and `/<r>/camera_pose`
 (PoseWithCovarianceStamped, the pose the cloud was taken from, matched by stamp; its position is
 the ray origin). Publishes `/map/voxels` (coop_msgs/VoxelMap, latched, at most every
 `publish_period_s`), `/map/updates` (coop_msgs/VoxelMapUpdate per fused cloud), `/map/occupied`
-(PointCloud2 of occupied voxel centres, latched) and `/map/grid` (nav_msgs/OccupancyGrid slice at
-`grid_z_m`, latched). Before fusing a cloud it drops the points inside the body volume of its
-own rover and of every teammate whose camera pose it holds (`bodies.BodyFilter`: `body_radius_m`
-about each camera, 0 = off). Services `/map/save`, `/map/load` (coop_msgs/srv/MapFile),
+(PointCloud2 of occupied voxel centres, latched), `/map/surface` (PointCloud2 of the occupied
+voxels' surface points, `VoxelMap.surface_points`: sub-voxel, computed only while somebody
+subscribes, latched) and `/map/grid` (nav_msgs/OccupancyGrid slice at `grid_z_m`, latched).
+Before fusing a cloud it drops the points inside the body volume of its own rover and of every
+teammate whose camera pose it holds (`bodies.BodyFilter`: `body_radius_m` about each camera,
+0 = off). Services `/map/save`, `/map/load` (coop_msgs/srv/MapFile),
 `/map/query` (coop_msgs/srv/QueryMap), `/map/reset` (std_srvs/Trigger). Autosaves every
 `autosave_period_s` to `map_file` and loads it at start if it is there.
 """
@@ -84,6 +86,8 @@ class MapperNode(Node):
         self.pub_upd = self.create_publisher(VoxelMapUpdate, '/map/updates', COMMAND_QOS)
         self.pub_occ = self.create_publisher(PointCloud2, '/map/occupied', LATCHED_QOS)
         self.pub_grid = self.create_publisher(OccupancyGrid, '/map/grid', LATCHED_QOS)
+        self.pub_surf = self.create_publisher(PointCloud2, '/map/surface', LATCHED_QOS)
+        self._surface_dirty = True
         self.poses: dict[str, OrderedDict[int, np.ndarray]] = {}
         self.pending: dict[str, OrderedDict[int, tuple[PointCloud2, float]]] = {}
         for r in self.p['rovers']:
@@ -247,11 +251,26 @@ class MapperNode(Node):
         self.pub_grid.publish(g)
         self._dirty = False
         self._last_pub = time.monotonic()
+        self._surface_dirty = True
+        self.publish_surface()
+
+    def publish_surface(self) -> None:
+        """The occupied voxels' surface points, if the map changed since the last ones and
+        somebody listens (the kernel query costs ~7 us per occupied voxel, ~0.2 s for the
+        demo's 28,000: not spent for nobody)."""
+        if not self._surface_dirty or self.pub_surf.get_subscription_count() == 0:
+            return
+        _, pts = self.map.surface_points(self.map.occupied_keys())
+        hdr = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.p['map_frame'])
+        self.pub_surf.publish(cloud_to_msg(pts, None, hdr))
+        self._surface_dirty = False
 
     def on_timer(self) -> None:
         now = time.monotonic()
         if self._dirty and now - self._last_pub >= self.p['publish_period_s']:
             self.publish_map()
+        elif not self._dirty:
+            self.publish_surface()      # a subscriber that came after the last publication
         # clouds whose pose never came
         for rover, pend in self.pending.items():
             for st in [s for s, (_, t) in pend.items() if now - t > self.p['pose_wait_s']]:

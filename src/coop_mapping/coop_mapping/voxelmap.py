@@ -770,9 +770,13 @@ class VoxelMap:
         return keys, kernel_centroids(keys_all, mean_all, hits_all, keys, bandwidth=bandwidth,
                                       radius=radius)
 
+    def occupied_keys(self) -> np.ndarray:
+        """Sorted packed keys of the occupied voxels."""
+        return self.keys[self.logodds >= self.model.thr_q]
+
     def occupied_centres(self) -> np.ndarray:
         """(N, 3) centres of the occupied voxels."""
-        return self.centres(self.keys[self.logodds >= self.model.thr_q])
+        return self.centres(self.occupied_keys())
 
     def slice_grid(self, z: float) -> tuple[np.ndarray, np.ndarray]:
         """2-D occupancy of the voxel layer containing height z over the map's x-y extent:

@@ -128,6 +128,45 @@ def test_mapper_fuses_queries_saves_and_rejects(ctx, tmp_path):
         peer.destroy_node()
 
 
+def test_mapper_publishes_surface_points_once_somebody_listens(ctx):
+    """/map/surface: nothing is computed while nobody subscribes; a late subscriber gets the
+    occupied voxels' surface points (on a wall at x = 2.03, where the voxel centres of
+    /map/occupied are at 2.05), one per occupied voxel."""
+    node, peer, ex = _mapper_and_peer(ctx)
+    try:
+        pose_pub = peer.create_publisher(PoseWithCovarianceStamped, '/rover1/camera_pose',
+                                         LATCHED_QOS)
+        cloud_pub = peer.create_publisher(PointCloud2, '/rover1/stereo/points', SENSOR_QOS)
+        wait_for(lambda: peer.count_subscribers('/rover1/stereo/points') > 0, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='discovery')
+        rng = np.random.default_rng(1)
+        wall = np.column_stack([np.full(2000, 2.03), rng.uniform(-1, 1, 2000),
+                                rng.uniform(0, 2, 2000)])
+        stamp = peer.get_clock().now().to_msg()
+        pose_pub.publish(_pose(stamp, (0.05, 0.05, 1.05)))
+        cov = np.tile([1e-4, 0, 0, 1e-4, 0, 1e-4], (2000, 1))
+        cloud_pub.publish(cloud_to_msg(wall, cov, Header(stamp=stamp, frame_id='map')))
+        occupied, surface = [], []
+        peer.create_subscription(PointCloud2, '/map/occupied', occupied.append, LATCHED_QOS)
+        wait_for(lambda: node.fused == 1 and occupied, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='the occupied voxels')
+        assert node._surface_dirty                  # published for nobody: not computed
+        peer.create_subscription(PointCloud2, '/map/surface', surface.append, LATCHED_QOS)
+        wait_for(lambda: surface, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+                 what='the surface points')
+        centres, _ = msg_to_cloud(occupied[-1])
+        pts, cov = msg_to_cloud(surface[-1])
+        assert cov is None and len(pts) == len(centres) > 100
+        np.testing.assert_allclose(centres[:, 0], 2.05, atol=1e-6)
+        # ~5 points per voxel against the voxel-extent prior at its centre (voxelmap): 4 mm
+        np.testing.assert_allclose(pts[:, 0], 2.03, atol=5e-3)
+        assert surface[-1].header.frame_id == 'map'
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+
+
 def test_mapper_drops_a_teammate_body(ctx):
     """rover1 sees a wall 3 m ahead and rover2's body 1 m ahead; rover2's camera pose, taken
     before rover1's cloud, is known: the body's points are not fused (counted), the wall is."""
