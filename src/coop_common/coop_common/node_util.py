@@ -3,6 +3,7 @@ counting, and the Jazzy main() idiom. No algorithm lives here."""
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -96,13 +97,18 @@ class BadInputCounter:
         self._node = node
         self._period = period_s
         self.counts: Counter[str] = Counter()
+        # rclpy throttles per call site, which would make one reason hide the others
+        self._last_warn: dict[str, float] = {}
 
     def reject(self, reason: str, detail: str = '') -> None:
         self.counts[reason] += 1
+        now = time.monotonic()
+        if now - self._last_warn.get(reason, -math.inf) < self._period:
+            return
+        self._last_warn[reason] = now
         suffix = f': {detail}' if detail else ''
         self._node.get_logger().warn(
-            f'skipped input ({reason}, {self.counts[reason]} so far){suffix}',
-            throttle_duration_sec=self._period)
+            f'skipped input ({reason}, {self.counts[reason]} so far){suffix}')
 
     @property
     def total(self) -> int:

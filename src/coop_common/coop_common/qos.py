@@ -24,3 +24,9 @@ COMMAND_QOS = QoSProfile(
 #: /clock: as rosgraph (best effort would drop ticks under load; the sim publishes reliably).
 CLOCK_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE)
+
+
+def with_depth(q: QoSProfile, depth: int) -> QoSProfile:
+    """`q` with another queue depth (a subscriber's buffer; matching is unaffected)."""
+    return QoSProfile(history=q.history, depth=depth, reliability=q.reliability,
+                      durability=q.durability)

@@ -17,14 +17,13 @@ from geometry_msgs.msg import WrenchStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
 from rclpy.task import Future
 from sensor_msgs.msg import Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_msgs.action import Identify
 from coop_msgs.msg import DynamicParameters, Inclinometer
 
@@ -107,7 +106,7 @@ class IdentifierNode(Node):
         self._ref = ArmReference(MODES)
         # best effort as the publishers, but a 2 s queue: a window's processing (the excitation
         # optimisation) must not drop the samples that arrive meanwhile
-        deep = QoSProfile(**{**_qos_kwargs(SENSOR_QOS), 'depth': 400})
+        deep = with_depth(SENSOR_QOS, 400)
         self.create_subscription(Imu, 'imu', self._on_imu, deep)
         self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, deep)
         self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep)
@@ -354,11 +353,6 @@ def identifier_config(p: dict, strategy: str) -> IdentifierConfig:
         decimation=p['decimation'], bits=p['information_bits'],
         accelerometer=p['use_accelerometer'], drift_per_s=p['drift_per_s'],
         incl_weight=p['inclinometer_weight'])
-
-
-def _qos_kwargs(q: QoSProfile) -> dict:
-    return {'history': q.history, 'depth': q.depth, 'reliability': q.reliability,
-            'durability': q.durability}
 
 
 def _ns(seconds: float) -> int:

@@ -41,6 +41,15 @@ def mat_from_sym6(s: np.ndarray) -> np.ndarray:
                      np.stack([xz, yz, zz], -1)], -2)
 
 
+def sym6_is_pd(s: np.ndarray) -> np.ndarray:
+    """(N,) bool: is each symmetric 3x3 matrix given as (N, 6) positive definite (Sylvester:
+    its leading principal minors all > 0)."""
+    a, b, c, d, e, f = np.moveaxis(np.asarray(s, dtype=np.float64), -1, 0)
+    m2 = a * d - b * b
+    det = a * (d * f - e * e) - b * (b * f - c * e) + c * (b * e - c * d)
+    return (a > 0) & (m2 > 0) & (det > 0)
+
+
 def sym6_inv(s: np.ndarray) -> np.ndarray:
     """Inverse of symmetric 3x3 matrices given as (N, 6), by the adjugate.
 

@@ -30,7 +30,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
 from coop_msgs.msg import VoxelMapUpdate
 from coop_msgs.srv import MapFile, QueryMap
@@ -70,6 +70,15 @@ PARAMS = {
 }
 
 
+def _free_name(path: str) -> str:
+    """path, or path.1, path.2, ... : the first that does not exist."""
+    name, i = path, 0
+    while os.path.exists(name):
+        i += 1
+        name = f'{path}.{i}'
+    return name
+
+
 def _stamp_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
@@ -95,8 +104,11 @@ class MapperNode(Node):
             self.pending[r] = OrderedDict()
             self.create_subscription(PointCloud2, f'/{r}/stereo/points',
                                      lambda m, r=r: self.on_cloud(r, m), SENSOR_QOS)
+            # latched (a late mapper gets the last pose) but a stream of one pose per
+            # cloud: a queue, so a busy callback does not lose the pose of a cloud
             self.create_subscription(PoseWithCovarianceStamped, f'/{r}/camera_pose',
-                                     lambda m, r=r: self.on_pose(r, m), LATCHED_QOS)
+                                     lambda m, r=r: self.on_pose(r, m),
+                                     with_depth(LATCHED_QOS, 10))
         self.create_service(MapFile, '/map/save', self.srv_save)
         self.create_service(MapFile, '/map/load', self.srv_load)
         self.create_service(QueryMap, '/map/query', self.srv_query)
@@ -119,25 +131,41 @@ class MapperNode(Node):
 
     def p_update(self, changed: dict) -> None:
         self.p.update(changed)
+        self.map.max_points = self.p['max_points']
 
     # ---------------------------------------------------------------- start / persistence
     def _load_at_start(self) -> None:
+        """The last save, if map_file holds one. One it cannot take (corrupt, another version
+        or resolution) is moved aside, never overwritten by the next autosave."""
         path = self.p['map_file']
         if not path or not os.path.exists(path):
             return
         try:
-            m = VoxelMap.load(path)
+            self._adopt(self._read(path))
         except MapFileError as exc:
-            self.get_logger().error(f'not loading the last save: {exc}')
+            aside = _free_name(f'{path}.refused')
+            try:
+                os.replace(path, aside)
+                kept = f'moved to {aside}'
+            except OSError as mv:
+                kept = f'could not move it aside ({mv}): autosave off'
+                self.p['autosave_period_s'] = 0.0
+            self.get_logger().error(f'not loading the last save: {exc}; {kept}')
             return
+        self.get_logger().info(f'loaded {len(self.map)} voxels (sequence {self.map.sequence}) '
+                               f'from {path}')
+
+    def _read(self, path: str) -> VoxelMap:
+        m = VoxelMap.load(path)
         if m.resolution != self.p['resolution_m']:
-            self.get_logger().error(f'{path} has resolution {m.resolution}, not '
-                                    f'{self.p["resolution_m"]}: not loaded')
-            return
+            raise MapFileError(f'{path}: resolution {m.resolution} differs from the '
+                               f"node's {self.p['resolution_m']}")
+        return m
+
+    def _adopt(self, m: VoxelMap) -> None:
         m.max_points = self.p['max_points']
         m.ray_subdivision = self.p['ray_subdivision']
         self.map = m
-        self.get_logger().info(f'loaded {len(m)} voxels (sequence {m.sequence}) from {path}')
 
     # ---------------------------------------------------------------- inputs
     def on_pose(self, rover: str, msg: PoseWithCovarianceStamped) -> None:
@@ -308,18 +336,13 @@ class MapperNode(Node):
     def srv_load(self, req, resp):
         path = req.path or self.p['map_file']
         try:
-            m = VoxelMap.load(path)
-            if m.resolution != self.map.resolution:
-                raise MapFileError(f'{path}: resolution {m.resolution} differs from the '
-                                   f"node's {self.map.resolution}")
+            m = self._read(path)
         except MapFileError as exc:
             resp.success, resp.message = False, f'{exc} (current map kept)'
             resp.voxels, resp.sequence = len(self.map), self.map.sequence
             self.get_logger().warn(resp.message)
             return resp
-        m.max_points = self.p['max_points']
-        m.ray_subdivision = self.p['ray_subdivision']
-        self.map = m
+        self._adopt(m)
         self._dirty = True
         resp.success, resp.message = True, f'loaded {path}'
         resp.voxels, resp.sequence = len(m), m.sequence

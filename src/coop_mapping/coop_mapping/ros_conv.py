@@ -62,10 +62,20 @@ def msg_to_cloud(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
         raise CloudFormatError('big-endian clouds are not supported')
     n = msg.width * msg.height
     step = msg.point_step
-    if step <= 0 or len(msg.data) < n * step:
-        raise CloudFormatError(f'data has {len(msg.data)} bytes, need {n * step}')
-    buf = np.frombuffer(msg.data, np.uint8, count=n * step)
+    row = msg.width * step
+    if step <= 0 or msg.row_step < row or len(msg.data) < msg.row_step * msg.height:
+        raise CloudFormatError(f'data has {len(msg.data)} bytes in rows of {msg.row_step}, '
+                               f'need {msg.height} rows of {msg.width} x {step}')
+    if msg.row_step == row:
+        buf = np.frombuffer(msg.data, np.uint8, count=n * step)
+    else:          # an organised cloud with padded rows: the points of each row
+        buf = np.frombuffer(msg.data, np.uint8, count=msg.row_step * msg.height).reshape(
+            msg.height, msg.row_step)[:, :row].reshape(-1)
     want = CLOUD_FIELDS if all(f in names for f in CLOUD_FIELDS) else CLOUD_FIELDS[:3]
+    for f in want:
+        if names[f].offset + 4 > step:
+            raise CloudFormatError(f'field {f} at offset {names[f].offset} runs past the '
+                                   f'point ({step} bytes)')
     if step % 4 == 0 and all(names[f].offset == 4 * i and names[f].datatype == PointField.FLOAT32
                              for i, f in enumerate(want)):
         # our own layout: one strided view, one conversion

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import tempfile
 import zipfile
@@ -57,7 +58,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .gauss import NotPositiveDefinite, sym6_cholesky, sym6_from_cholesky, sym6_inv, sym6_matvec
+from .gauss import (
+    NotPositiveDefinite,
+    sym6_cholesky,
+    sym6_from_cholesky,
+    sym6_inv,
+    sym6_is_pd,
+    sym6_matvec,
+)
 
 __all__ = ['OccupancyModel', 'VoxelMap', 'InsertResult', 'MapFileError', 'MapInputError',
            'state_agreement', 'kernel_centroids',
@@ -72,6 +80,7 @@ _MASK = (1 << _BITS) - 1
 UNKNOWN, FREE, OCCUPIED = -1, 0, 1
 #: VoxelMap.surface_points' kernel: bandwidth (voxels) and block radius (voxels)
 SURFACE_BANDWIDTH, SURFACE_RADIUS = 0.8, 2
+_EYE6 = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])     # the identity as xx xy xz yy yz zz
 
 
 class MapInputError(ValueError):
@@ -469,6 +478,11 @@ class VoxelMap:
             cov = np.asarray(covariances, dtype=np.float64)
             if cov.shape != (len(pts), 6) or not np.all(np.isfinite(cov)):
                 raise MapInputError('covariances must be finite (N, 6)')
+            # checked before anything changes: the merge inverts C_i + V
+            bad = ~sym6_is_pd(cov + self.extent_variance * _EYE6)
+            if bad.any():
+                raise MapInputError(f'{int(bad.sum())} covariances not positive definite '
+                                    f'(first: point {int(np.argmax(bad))})')
         carve_only = np.zeros(len(pts), bool)
         if max_range is not None:
             rng = np.linalg.norm(pts - org, axis=1)
@@ -701,12 +715,14 @@ class VoxelMap:
         return np.where(self.logodds >= self.model.thr_q, OCCUPIED, FREE).astype(np.int8)
 
     def probability_at(self, points: np.ndarray) -> np.ndarray:
-        """P(occupied) at each (N, 3) point, 0.5 where unknown."""
-        pk = pack_keys(self.key_of(np.atleast_2d(points)))
-        pos, found = self._find(pk)
-        out = np.full(len(pk), 0.5)
+        """P(occupied) at each (N, 3) finite point, 0.5 where unknown (a point beyond the
+        keys' range, which no voxel can hold, included)."""
+        kf = np.floor(np.atleast_2d(np.asarray(points, np.float64)) / self.resolution)
+        out = np.full(len(kf), 0.5)
+        ok = np.all((kf >= -_OFFSET) & (kf < _OFFSET), axis=1)
+        pos, found = self._find(pack_keys(kf[ok].astype(np.int64)))
         lo = self.logodds[pos[found]].astype(np.float64) / LOGODDS_SCALE
-        out[found] = 1.0 / (1.0 + np.exp(-lo))
+        out[np.flatnonzero(ok)[found]] = 1.0 / (1.0 + np.exp(-lo))
         return out
 
     def state_of_keys(self, packed: np.ndarray) -> np.ndarray:
@@ -717,14 +733,17 @@ class VoxelMap:
         return out
 
     def box_counts(self, lo: np.ndarray, hi: np.ndarray) -> dict[str, int]:
-        """Unknown / free / occupied voxel counts of the voxels whose centre is in [lo, hi]."""
+        """Unknown / free / occupied voxel counts of the voxels whose centre is in [lo, hi]
+        (of those the keys can address: the box is clipped to their range). Python ints:
+        exact however large the box."""
         lo = np.asarray(lo, float)
         hi = np.asarray(hi, float)
-        if np.any(hi <= lo):
-            raise ValueError('box_max must exceed box_min on every axis')
-        klo = np.ceil(lo / self.resolution - 0.5).astype(np.int64)
-        khi = np.floor(hi / self.resolution - 0.5).astype(np.int64)
-        total = int(np.prod(np.maximum(khi - klo + 1, 0)))
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi <= lo):
+            raise ValueError('box_max must exceed box_min on every axis, both finite')
+        klo = np.clip(np.ceil(lo / self.resolution - 0.5), -_OFFSET, _OFFSET).astype(np.int64)
+        khi = np.clip(np.floor(hi / self.resolution - 0.5), -_OFFSET - 1,
+                      _OFFSET - 1).astype(np.int64)
+        total = math.prod(max(int(b) - int(a) + 1, 0) for a, b in zip(klo, khi))
         k = unpack_keys(self.keys)
         inside = np.all((k >= klo) & (k <= khi), axis=1)
         occ = int(np.count_nonzero(self.logodds[inside] >= self.model.thr_q))
@@ -888,7 +907,7 @@ class VoxelMap:
                 if bad is not None:
                     raise MapFileError(f'{path}: corrupted member {bad}')
                 header = json.loads(z.read('header.json'))
-                if header.get('format') != FILE_FORMAT:
+                if not isinstance(header, dict) or header.get('format') != FILE_FORMAT:
                     raise MapFileError(f'{path}: not a voxel map file')
                 if header.get('version') != FILE_VERSION:
                     raise MapFileError(f'{path}: unsupported version {header.get("version")}')
@@ -901,25 +920,26 @@ class VoxelMap:
         except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError,
                 json.JSONDecodeError) as exc:
             raise MapFileError(f'{path}: unreadable map file ({exc})') from exc
-        n = int(header['voxels'])
-        expect = {'keys': ((n,), np.int64), 'logodds': ((n,), np.int16),
-                  'mean_off': ((n, 3), np.float16), 'chol': ((n, 6), np.float16),
-                  'hits': ((n,), np.uint32)}
-        for name, (shape, dt) in expect.items():
-            if arrs[name].shape != shape or arrs[name].dtype != dt:
-                raise MapFileError(f'{path}: array {name} has shape {arrs[name].shape} '
-                                   f'{arrs[name].dtype}, expected {shape} {np.dtype(dt)}')
-        if n > 1 and np.any(np.diff(arrs['keys']) <= 0):
-            raise MapFileError(f'{path}: keys not strictly sorted')
         try:
+            n = int(header['voxels'])
+            expect = {'keys': ((n,), np.int64), 'logodds': ((n,), np.int16),
+                      'mean_off': ((n, 3), np.float16), 'chol': ((n, 6), np.float16),
+                      'hits': ((n,), np.uint32)}
+            for name, (shape, dt) in expect.items():
+                if arrs[name].shape != shape or arrs[name].dtype != dt:
+                    raise MapFileError(f'{path}: array {name} has shape {arrs[name].shape} '
+                                       f'{arrs[name].dtype}, expected {shape} {np.dtype(dt)}')
+            if n > 1 and np.any(np.diff(arrs['keys']) <= 0):
+                raise MapFileError(f'{path}: keys not strictly sorted')
             m = cls(header['resolution'], model=OccupancyModel(**header['model']),
                     default_sigma=header['default_sigma'],
                     # files written before the voxel prior existed merged raw points only
                     voxel_prior=bool(header.get('voxel_prior', False)))
-        except (TypeError, ValueError) as exc:
-            raise MapFileError(f'{path}: bad header ({exc})') from exc
-        for name, arr in arrs.items():
-            setattr(m, name, arr)
-        m.sequence = int(header['sequence'])
-        m.contributions = Counter({str(k): int(v) for k, v in header['contributions'].items()})
+            for name, arr in arrs.items():
+                setattr(m, name, arr)
+            m.sequence = int(header['sequence'])
+            m.contributions = Counter({str(k): int(v)
+                                       for k, v in header['contributions'].items()})
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise MapFileError(f'{path}: bad header ({exc!r})') from exc
         return m

@@ -217,6 +217,30 @@ def test_mapper_loads_last_save_on_restart(ctx, tmp_path):
         node.destroy_node()
 
 
+def test_mapper_moves_a_save_it_cannot_take_aside(ctx, tmp_path):
+    """A last save of another resolution (or corrupt, or another version) is not loaded and
+    not overwritten by the next autosave: it is moved to <map_file>.refused."""
+    from coop_mapping.voxelmap import VoxelMap
+    path = tmp_path / 'team.cmap'
+    vm = VoxelMap(0.05)
+    vm.insert_scan(np.array([[1.05, 0.05, 0.05]]), np.zeros(3), source='rover1')
+    vm.save(path)
+    raw = path.read_bytes()
+    (tmp_path / 'team.cmap.refused').write_bytes(b'an older refused file')
+    node = MapperNode(context=ctx, parameter_overrides=[Parameter('map_file', value=str(path))])
+    try:
+        assert len(node.map) == 0 and not path.exists()
+        assert (tmp_path / 'team.cmap.refused.1').read_bytes() == raw
+        assert (tmp_path / 'team.cmap.refused').read_bytes() == b'an older refused file'
+        node.map.insert_scan(np.array([[1.05, 0.05, 0.05]]), np.zeros(3), source='rover1')
+        assert node._save(str(path)) is None and VoxelMap.load(path).resolution == 0.1
+        # max_points may be raised at run time: the map takes it too
+        assert node.set_parameters([Parameter('max_points', value=7)])[0].successful
+        assert node.map.max_points == 7
+    finally:
+        node.destroy_node()
+
+
 @pytest.mark.parametrize('subpixel,full_width', [('sgbm', False), ('equalise', False),
                                                  ('shift4', False), ('shift4', True)])
 def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel, full_width):

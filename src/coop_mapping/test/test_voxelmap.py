@@ -1,4 +1,7 @@
 """Map core: fusion maths against hand-computed cases, ray carving, OctoMap agreement, files."""
+import json
+import zipfile
+
 import numpy as np
 import pytest
 
@@ -223,6 +226,20 @@ def test_bad_input_rejected():
     with pytest.raises(ValueError):
         OccupancyModel(prob_hit=0.4)
     assert len(vm) == 0
+    # a finite covariance that is not positive definite (two negative eigenvalues, det > 0;
+    # one negative variance): rejected before anything changes, with or without the voxel prior
+    pts = np.array([[1.05, 0.05, 0.05], [1.05, 0.25, 0.05]])
+    good = np.tile([1e-4, 0, 0, 1e-4, 0, 1e-4], (2, 1))
+    for prior in (True, False):
+        vm = VoxelMap(0.1, voxel_prior=prior)
+        vm.insert_scan(pts, np.zeros(3), covariances=good)
+        before = {k: a.copy() for k, a in vm._arrays().items()}, vm.sequence
+        for bad in ([-1, 0, 0, -1, 0, 1e-4], [-1, 0, 0, 1e-4, 0, 1e-4]):
+            with pytest.raises(MapInputError, match='positive definite'):
+                vm.insert_scan(pts + 1.0, np.zeros(3), covariances=np.vstack([good[0], bad]))
+        assert vm.sequence == before[1]
+        for k, a in vm._arrays().items():
+            np.testing.assert_array_equal(a, before[0][k])
 
 
 def test_max_range_carves_without_hit():
@@ -366,3 +383,14 @@ def test_save_load_roundtrip_and_corruption(tmp_path):
     with pytest.raises(MapFileError):
         VoxelMap.load(tmp_path / 'missing.cmap')
     assert not list(tmp_path.glob('*.tmp'))
+    # a well-formed zip (CRCs right) whose header lacks a field or is not an object
+    with zipfile.ZipFile(path) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    header = json.loads(members['header.json'])
+    for bad in ({k: v for k, v in header.items() if k != 'voxels'},
+                {**header, 'model': 3}, {**header, 'contributions': []}, [header]):
+        with zipfile.ZipFile(tmp_path / 'hdr.cmap', 'w') as z:
+            for n, data in members.items():
+                z.writestr(n, json.dumps(bad) if n == 'header.json' else data)
+        with pytest.raises(MapFileError):
+            VoxelMap.load(tmp_path / 'hdr.cmap')

@@ -1,0 +1,39 @@
+"""coop_common.node_util.BadInputCounter: counts every rejection, warns once per period per
+reason (a flood of one reason does not hide the first of another)."""
+from coop_common import node_util
+from coop_common.node_util import BadInputCounter
+
+
+class _Logger:
+    def __init__(self):
+        self.lines = []
+
+    def warn(self, msg, **kw):
+        assert not kw, 'no rclpy throttling: it is per call site, not per reason'
+        self.lines.append(msg)
+
+
+class _Node:
+    def __init__(self):
+        self.logger = _Logger()
+
+    def get_logger(self):
+        return self.logger
+
+
+def test_warns_once_per_period_per_reason(monkeypatch):
+    clock = [100.0]
+    monkeypatch.setattr(node_util.time, 'monotonic', lambda: clock[0])
+    node = _Node()
+    bad = BadInputCounter(node, period_s=5.0)
+    for _ in range(10):
+        bad.reject('nan')
+    bad.reject('unknown_frame', 'odom')
+    bad.reject('too_large')
+    assert bad.counts == {'nan': 10, 'unknown_frame': 1, 'too_large': 1} and bad.total == 12
+    assert node.logger.lines == ['skipped input (nan, 1 so far)',
+                                 'skipped input (unknown_frame, 1 so far): odom',
+                                 'skipped input (too_large, 1 so far)']
+    clock[0] += 5.0
+    bad.reject('nan')
+    assert node.logger.lines[-1] == 'skipped input (nan, 11 so far)'
