@@ -41,21 +41,14 @@ def mat_from_sym6(s: np.ndarray) -> np.ndarray:
                      np.stack([xz, yz, zz], -1)], -2)
 
 
-def sym6_is_pd(s: np.ndarray) -> np.ndarray:
-    """(N,) bool: is each symmetric 3x3 matrix given as (N, 6) positive definite (Sylvester:
-    its leading principal minors all > 0)."""
-    a, b, c, d, e, f = np.moveaxis(np.asarray(s, dtype=np.float64), -1, 0)
-    m2 = a * d - b * b
-    det = a * (d * f - e * e) - b * (b * f - c * e) + c * (b * e - c * d)
-    return (a > 0) & (m2 > 0) & (det > 0)
-
-
-def sym6_inv(s: np.ndarray) -> np.ndarray:
+def sym6_inv(s: np.ndarray, *, require_pd: bool = False) -> np.ndarray:
     """Inverse of symmetric 3x3 matrices given as (N, 6), by the adjugate.
 
     Computed on contiguous (6, N) rows with preallocated temporaries (the strided columns of
     an (N, 6) array cost more than the copy); same operations, so the same bits as the
-    column-wise form."""
+    column-wise form. Raises NotPositiveDefinite when a determinant is not > 0, or with
+    require_pd when a matrix is not positive definite (Sylvester: a, a d - b^2 and the
+    determinant all > 0; a matrix with two negative eigenvalues has det > 0)."""
     s = np.asarray(s, dtype=np.float64)
     shape = s.shape
     r = np.ascontiguousarray(np.moveaxis(s, -1, 0).reshape(6, -1))
@@ -74,7 +67,12 @@ def sym6_inv(s: np.ndarray) -> np.ndarray:
     det += t
     np.multiply(c, o[2], out=t)
     det += t
-    if np.any(~(det > 0)):
+    if require_pd:
+        bad = ~((a > 0) & (o[5] > 0) & (det > 0))
+        if bad.any():
+            raise NotPositiveDefinite(f'{int(bad.sum())} matrices not positive definite '
+                                      f'(first: {int(np.argmax(bad))})')
+    elif np.any(~(det > 0)):
         raise NotPositiveDefinite('covariance/information matrix with det <= 0 or NaN')
     o /= det
     return np.moveaxis(o.reshape(6, *shape[:-1]), 0, -1).copy()

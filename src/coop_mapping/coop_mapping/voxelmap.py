@@ -63,7 +63,6 @@ from .gauss import (
     sym6_cholesky,
     sym6_from_cholesky,
     sym6_inv,
-    sym6_is_pd,
     sym6_matvec,
 )
 
@@ -473,16 +472,18 @@ class VoxelMap:
             raise MapInputError(f'{len(pts)} points > max_points {self.max_points}')
         if not np.all(np.isfinite(pts)):
             raise MapInputError('points contain NaN or inf')
-        cov = None
+        info = None
         if covariances is not None:
             cov = np.asarray(covariances, dtype=np.float64)
             if cov.shape != (len(pts), 6) or not np.all(np.isfinite(cov)):
                 raise MapInputError('covariances must be finite (N, 6)')
-            # checked before anything changes: the merge inverts C_i + V
-            bad = ~sym6_is_pd(cov + self.extent_variance * _EYE6)
-            if bad.any():
-                raise MapInputError(f'{int(bad.sum())} covariances not positive definite '
-                                    f'(first: point {int(np.argmax(bad))})')
+            # each point's information (C_i + V)^-1 for the merge, computed before anything
+            # changes: a covariance that is not positive definite rejects the scan whole
+            v = self.extent_variance
+            try:
+                info = sym6_inv(cov + v * _EYE6 if v else cov, require_pd=True)
+            except NotPositiveDefinite as exc:
+                raise MapInputError(f'covariances: {exc}') from exc
         carve_only = np.zeros(len(pts), bool)
         if max_range is not None:
             rng = np.linalg.norm(pts - org, axis=1)
@@ -534,11 +535,11 @@ class VoxelMap:
             self.hits = np.insert(self.hits, ins, np.zeros(n_new, np.uint32))
         # --- Gaussian merge (Eq. 3-10 in information form) of the points into their voxels
         if not carve_only.any():
-            self._merge_points(pk_s, pts_s, None if cov is None else cov[order])
+            self._merge_points(pk_s, pts_s, None if info is None else info[order])
         elif not carve_only.all():
             keep = ~carve_only[order]
             self._merge_points(pk_s[keep], pts_s[keep],
-                               None if cov is None else cov[order[keep]])
+                               None if info is None else info[order[keep]])
         self.sequence += 1
         if source:
             self.contributions[source] += 1
@@ -598,31 +599,26 @@ class VoxelMap:
         voxel prior)."""
         return self.resolution ** 2 / 12.0 if self.voxel_prior else 0.0
 
-    def _merge_points(self, pk_s: np.ndarray, pts_s: np.ndarray, cov_s: np.ndarray | None
+    def _merge_points(self, pk_s: np.ndarray, pts_s: np.ndarray, info_s: np.ndarray | None
                       ) -> None:
         """Eq. 3-8/3-10: product of the voxel's Gaussian and every new point's Gaussian.
 
         In information form, Lambda = sum C_i^-1, eta = sum C_i^-1 x_i, which equals repeated
         pairwise application of Eq. 3-10 in any order (the product is associative). With the
         voxel prior, C_i + V and a first factor N(centre, V), V = res^2/12 I (module docstring).
-        cov_s is modified (insert_scan passes a temporary)."""
+        info_s: each point's information (C_i + V)^-1 (None: the isotropic default_sigma)."""
         bounds = np.flatnonzero(np.r_[True, pk_s[1:] != pk_s[:-1]])
         keys = pk_s[bounds]
         cnt = np.diff(np.r_[bounds, len(pk_s)])
         v = self.extent_variance
-        if cov_s is None:
+        if info_s is None:
             w = 1.0 / (self.default_sigma ** 2 + v)
             lam = np.zeros((len(keys), 6))
             lam[:, [0, 3, 5]] = (w * cnt)[:, None]
             eta = np.add.reduceat(pts_s, bounds, axis=0) * w
         else:
-            if v:  # cov_s is the caller's fancy-indexed copy: add V in place
-                cov_s[:, 0] += v
-                cov_s[:, 3] += v
-                cov_s[:, 5] += v
-            info = sym6_inv(cov_s)
-            lam = np.add.reduceat(info, bounds, axis=0)
-            eta = np.add.reduceat(sym6_matvec(info, pts_s), bounds, axis=0)
+            lam = np.add.reduceat(info_s, bounds, axis=0)
+            eta = np.add.reduceat(sym6_matvec(info_s, pts_s), bounds, axis=0)
         pos, found = self._find(keys)
         if not np.all(found):
             raise AssertionError('end voxels missing from the map after the occupancy update')
