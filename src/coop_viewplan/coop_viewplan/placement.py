@@ -58,8 +58,9 @@ class Target:
         nn = np.linalg.norm(n)
         if nn < 1e-9:
             raise PlacementError('target normal must be non-zero')
-        if not (self.radius >= 0 and self.sigma >= 0 and self.weight > 0):
-            raise PlacementError('radius, sigma must be >= 0 and weight > 0')
+        if not (np.isfinite([self.radius, self.sigma, self.weight]).all() and self.radius >= 0
+                and self.sigma >= 0 and self.weight > 0):
+            raise PlacementError('radius, sigma must be finite and >= 0, weight finite and > 0')
         object.__setattr__(self, 'position', p)
         object.__setattr__(self, 'normal', n / nn)
 
@@ -114,38 +115,47 @@ def occluder_hulls(points_sets: list[np.ndarray], target_radius: float, *,
 
 
 def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occludes: bool = True,
-                   tile_cells: int = 4) -> list[np.ndarray]:
+                   tile_cells: int = 4, box: tuple[np.ndarray, np.ndarray] | None = None
+                   ) -> list[np.ndarray]:
     """Occluders of a grid as cell-corner vertex sets: occupied cells (and unknown ones when
     `unknown_occludes`) cut into tiles of `tile_cells` per side, one set per connected piece of
-    a tile, so the convex hulls stay close to the occluders' true shape."""
+    a tile, so the convex hulls stay close to the occluders' true shape. box: (lo, hi) cell
+    index bounds (hi exclusive) to restrict to, e.g. the reach of a target (tiles then start
+    at lo). Each set's vertices are unique and in lexicographic order."""
     occ = grid.known & (grid.prob >= threshold)
     if unknown_occludes:
         occ = occ | ~grid.known
     nd = grid.ndim
+    lo = np.zeros(nd, np.int64)
+    if box is not None:
+        lo = np.clip(np.asarray(box[0], np.int64), 0, grid.shape)
+        hi = np.clip(np.asarray(box[1], np.int64), lo, grid.shape)
+        occ = occ[tuple(slice(a, b) for a, b in zip(lo, hi))]
     corners = np.array(np.meshgrid(*([[0, 1]] * nd), indexing='ij')).reshape(nd, -1).T
-    tiles = np.zeros(grid.shape, np.int64)
+    tiles = np.zeros(occ.shape, np.int64)
     mult = 1
     for ax in range(nd):
-        idx = np.arange(grid.shape[ax]) // tile_cells
+        idx = np.arange(occ.shape[ax]) // tile_cells
         sh = [1] * nd
         sh[ax] = -1
         tiles = tiles + idx.reshape(sh) * mult
-        mult *= int(np.ceil(grid.shape[ax] / tile_cells))
+        mult *= int(np.ceil(occ.shape[ax] / tile_cells))
     lab, n = ndimage.label(occ)
-    key = np.where(occ, lab.astype(np.int64) * mult + tiles, -1)
     cells = np.argwhere(occ)
-    k = key[occ]
-    order = np.argsort(k, kind='stable')
-    k, cells = k[order], cells[order]
-    splits = np.flatnonzero(np.diff(k)) + 1
-    out = []
-    for group in np.split(cells, splits):
-        if len(group) == 0:
-            continue
-        pts = (group[:, None, :] + corners[None]).reshape(-1, nd)
-        pts = np.unique(pts, axis=0)
-        out.append(grid.origin + pts * grid.resolution)
-    return out
+    if len(cells) == 0:
+        return []
+    _, gid = np.unique(lab[occ].astype(np.int64) * mult + tiles[occ], return_inverse=True)
+    # every group's cell corners as one sorted set of (group, raveled corner) codes: one sort
+    # for all groups (a unique per group cost 20 s on a live 3-D map)
+    dims = np.array(occ.shape) + 1
+    size = int(np.prod(dims))
+    lin = np.ravel_multi_index(tuple((cells[:, None, :] + corners[None]).reshape(-1, nd).T),
+                               dims)
+    code = np.unique(np.repeat(gid.astype(np.int64), len(corners)) * size + lin)
+    g, c = np.divmod(code, size)
+    pts = np.stack(np.unravel_index(c, dims), axis=1) + lo
+    world = grid.origin + pts * grid.resolution
+    return np.split(world, np.flatnonzero(np.diff(g)) + 1)
 
 
 def _halfspaces(hulls: list[np.ndarray]) -> list[np.ndarray]:
@@ -315,6 +325,26 @@ class Placement:
     extras: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Stations:
+    """Camera positions a robot can take (N, ndim) and the collision probability P of each
+    (Eq. 4-1's 1 - P), e.g. a rover's mast height over the ground cells it may stand on."""
+
+    positions: np.ndarray
+    collision_p: np.ndarray
+
+
+def mast_stations(grid: OccupancyGrid, candidate: np.ndarray, collision_p: np.ndarray,
+                  height_m: float) -> Stations:
+    """The camera of a rover's mast, at `height_m` (z in the grid's frame), over every ground
+    cell of the 3-D `grid` where the rover may stand (`candidate`, (nx, ny) bool, e.g. the
+    next-best-view planner's Traversal.candidate) with that cell's P."""
+    idx = np.argwhere(np.asarray(candidate, bool))
+    xy = grid.origin[:2] + (idx + 0.5) * grid.resolution
+    return Stations(np.column_stack([xy, np.full(len(idx), float(height_m))]),
+                    np.asarray(collision_p, float)[tuple(idx.T)])
+
+
 SEARCHES = ('bounded', 'random')
 
 
@@ -349,26 +379,32 @@ class TaskPlacer:
         return ndimage.maximum_filter(p, footprint=fp, mode='constant', cval=1.0)
 
     def candidates(self, grid: OccupancyGrid, targets: list[Target], rng: np.random.Generator,
-                   pcol: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   pcol: np.ndarray | None = None, stations: Stations | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
         """Free cells (P < P_empty) on a lattice of `stride`, within the depth of field of some
         target (distance bounding), thinned to a random subset of `max_candidates`."""
-        pos, p = self.all_candidates(grid, targets, pcol)
+        pos, p = self.all_candidates(grid, targets, pcol, stations)
         if len(pos) > self.max_candidates:
             keep = rng.choice(len(pos), self.max_candidates, replace=False)
             return pos[keep], p[keep]
         return pos, p
 
     def all_candidates(self, grid: OccupancyGrid, targets: list[Target],
-                       pcol: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       pcol: np.ndarray | None = None, stations: Stations | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
         """Every free cell (P < P_empty) on a lattice of `stride` within the depth of field of
-        some target, and its P."""
-        pcol = self.collision_probability(grid) if pcol is None else pcol
-        sl = tuple(slice(0, None, self.stride) for _ in range(grid.ndim))
-        idx = np.argwhere(np.ones(grid.shape, bool)[sl]) * self.stride
-        p = pcol[tuple(idx.T)]
+        some target, and its P; with `stations`, those of the given camera positions."""
+        if stations is None:
+            pcol = self.collision_probability(grid) if pcol is None else pcol
+            sl = tuple(slice(0, None, self.stride) for _ in range(grid.ndim))
+            idx = np.argwhere(np.ones(grid.shape, bool)[sl]) * self.stride
+            p = pcol[tuple(idx.T)]
+            pos = grid.to_world(idx)
+        else:
+            pos = np.asarray(stations.positions, float).reshape(-1, grid.ndim)
+            p = np.asarray(stations.collision_p, float).reshape(-1)
         ok = p < self.p_empty
-        pos = grid.to_world(idx)
-        near = np.zeros(len(idx), bool)
+        near = np.zeros(len(pos), bool)
         for t in targets:
             d = np.linalg.norm(pos - t.position, axis=1)
             near |= (d >= self.camera.near_m) & (d <= self.camera.far_m)
@@ -395,11 +431,15 @@ class TaskPlacer:
 
     def place(self, grid: OccupancyGrid, primary: Target, secondary: list[Target] = (), *,
               rng: np.random.Generator, hulls: list[np.ndarray] | None = None,
-              fields: list[VisibilityField] | None = None) -> Placement:
+              fields: list[VisibilityField] | None = None,
+              stations: Stations | None = None) -> Placement:
         """Maximise Eq. 4-1 over the candidates, for the primary and every secondary target;
-        raises PlacementError on bad input (target inside an obstacle, no free candidate). A
-        secondary target inside an obstacle (e.g. covered by a moving object) is not rated: it
-        cannot be seen, and the primary or another secondary may still be."""
+        raises PlacementError on bad input (primary target inside an obstacle, no free
+        candidate). A secondary target inside an obstacle or an expanded occluder (covered by a
+        moving object, in unobserved space, against a wall) is not rated: it cannot be seen,
+        and the primary or another secondary may still be (`Placement.extras['unrated']`).
+        stations: the camera positions a robot can take and their P (a rover's mast over the
+        ground it may stand on), instead of every free cell of the grid."""
         targets = [primary, *secondary]
         active = []
         for k, t in enumerate(targets):
@@ -413,14 +453,29 @@ class TaskPlacer:
                     raise PlacementError('target is inside an obstacle')
                 continue
             active.append(k)
-        pcol = self.collision_probability(grid)
+        pcol = self.collision_probability(grid) if stations is None else None
         act = [targets[k] for k in active]
         if self.search == 'random':
-            cams, p = self.candidates(grid, act, rng, pcol)
+            cams, p = self.candidates(grid, act, rng, pcol, stations)
         else:
-            cams, p = self.all_candidates(grid, act, pcol)
+            cams, p = self.all_candidates(grid, act, pcol, stations)
         cache: dict[int, VisibilityField] = {}
-        raw: list = []
+
+        unrated: list[int] = []
+
+        def rating_of(k: int, sel) -> np.ndarray:
+            """Eq. 4-1 of target k at cams[sel]; 0 for a secondary target that is inside an
+            expanded occluder (recorded in `unrated`)."""
+            try:
+                f = field_for(k)
+            except PlacementError as exc:
+                if k == 0:
+                    raise PlacementError(f'primary {exc}') from exc
+                if k not in unrated:
+                    unrated.append(k)
+                return np.zeros(len(cams[sel]))
+            return rate(cams[sel], targets[k], f, self.camera, p[sel],
+                        exponents=self.exponents).rating
 
         def field_for(k: int) -> VisibilityField:
             if k in cache:
@@ -431,12 +486,12 @@ class TaskPlacer:
             elif hulls is not None:
                 f = VisibilityField(t.position, hulls, n_dirs=self.n_dirs)
             else:
-                if not raw:
-                    raw.append(grid_occluders(grid, unknown_occludes=self.unknown_occludes))
                 # Distance bounding: occluders beyond the depth of field cannot hide the target
-                # from any admissible camera.
+                # from any admissible camera (only the grid within reach is cut into them).
                 reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
-                near = [h for h in raw[0]
+                box = (grid.to_index(t.position - reach), grid.to_index(t.position + reach) + 1)
+                near = [h for h in grid_occluders(grid, unknown_occludes=self.unknown_occludes,
+                                                  box=box)
                         if np.min(np.linalg.norm(h - t.position, axis=1)) <= reach]
                 f = VisibilityField(t.position, occluder_hulls(near, t.radius),
                                     n_dirs=self.n_dirs)
@@ -448,8 +503,7 @@ class TaskPlacer:
         extras = {'search': self.search, 'candidates': m}
         if self.search == 'random':
             for k in active:
-                ratings[k] = rate(cams, targets[k], field_for(k), self.camera, p,
-                                  exponents=self.exponents).rating
+                ratings[k] = rating_of(k, slice(None))
             extras.update(evaluated=m * len(active), exact=True)
         else:
             ub = np.zeros((len(targets), m))
@@ -465,14 +519,14 @@ class TaskPlacer:
                 ks, ii = np.divmod(chunk, m)
                 for k in np.unique(ks):
                     sel = ii[ks == k]
-                    r = rate(cams[sel], targets[k], field_for(int(k)), self.camera, p[sel],
-                             exponents=self.exponents).rating
+                    r = rating_of(int(k), sel)
                     ratings[k, sel] = r
                     best = max(best, float(r.max()))
                 pos += len(chunk)
                 batch *= 2
             extras.update(evaluated=pos, pairs=len(order),
                           exact=bool(pos >= len(order) or flat[order[pos]] <= best))
+        extras['unrated'] = sorted(unrated)
         seen = ~np.all(np.isnan(ratings), axis=0)
         r_all = np.where(np.isnan(ratings), -np.inf, ratings)
         best_t = np.argmax(r_all, axis=0)                   # ties: the lowest index (primary)

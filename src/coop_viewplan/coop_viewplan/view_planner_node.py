@@ -22,12 +22,16 @@ from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optic
 from .grid import FREE_GRAYS, MapError, OccupancyGrid, planning_bounds
 from .nbv import NI_MEASURES, STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
 from .offline import nbv_config
-from .placement import CameraModel, PlacementError, Target, TaskPlacer
+from .placement import CameraModel, PlacementError, Target, TaskPlacer, mast_stations
 
 PARAMS = {
     'map_topic': ParamSpec('/map/voxels', 'shared map topic (coop_msgs/VoxelMap, latched)',
                            read_only=True),
-    'frame_id': ParamSpec('map', 'frame of the returned poses', read_only=True),
+    'frame_id': ParamSpec('map', "the map's frame when its messages name none: requests must be "
+                          'in it (there is no TF lookup here), answers are', read_only=True),
+    'max_grid_cells': ParamSpec(20_000_000, 'largest planning grid (cells) a map may make; a '
+                                'bigger one is rejected (a far outlier voxel, a tiny '
+                                'resolution)', lo=1000, hi=2_000_000_000),
     'pad_m': ParamSpec(5.0, 'unknown margin added around the known map (m)', lo=0.0, hi=100.0),
     'ceiling_m': ParamSpec(1.0, 'top of the planning grid (z in the map frame, m) unless the map '
                            'reaches higher: no unknown air above it counts as information '
@@ -85,6 +89,7 @@ class ViewPlannerNode(Node):
         self.bad = BadInputCounter(self)
         self.rng = np.random.default_rng(int(self.p['seed']))
         self.grid: OccupancyGrid | None = None
+        self.map_frame = self.p['frame_id']
         self.sequence = -1
         self.cameras: dict[str, CameraState] = {}
         self.expected: dict[str, tuple[int, np.ndarray]] = {}
@@ -103,7 +108,8 @@ class ViewPlannerNode(Node):
         self.planner = NextBestViewPlanner(nbv_config(p))
         self.placer = TaskPlacer(CameraModel(fov_deg=p['task_fov_deg'], pixels=p['task_pixels'],
                                              near_m=p['task_near_m'], far_m=p['task_far_m']),
-                                 clearance_m=p['clearance_m'],
+                                 clearance_m=p['clearance_m'], p_empty=p['p_empty'],
+                                 camera_height_m=p['camera_height_m'],
                                  max_candidates=p['task_candidates'])
 
     def _on_map(self, msg: VoxelMap) -> None:
@@ -124,11 +130,25 @@ class ViewPlannerNode(Node):
             bounds = planning_bounds(k3, msg.resolution_m, pad_m=self.p['pad_m'],
                                      ceiling_m=self.p['ceiling_m'],
                                      camera_height_m=self.p['camera_height_m'])
-            self.grid = OccupancyGrid.from_sparse(k3, occ, resolution=msg.resolution_m,
-                                                  bounds_keys=bounds)
+            cells = math.prod(int(h) - int(lo) + 1 for lo, h in zip(*bounds))
+            if cells > self.p['max_grid_cells']:
+                raise MapError(f'the planning grid would have {cells} cells > max_grid_cells '
+                               f"{self.p['max_grid_cells']}")
+            grid = OccupancyGrid.from_sparse(k3, occ, resolution=msg.resolution_m,
+                                             bounds_keys=bounds)
         except MapError as exc:
             self.bad.reject('bad map', str(exc))
             return
+        old = self.grid
+        if old is not None and old.resolution == grid.resolution:
+            # the cameras' scan positions are grid indices: follow the grid's origin
+            shift = np.rint((old.origin - grid.origin)[:2] / grid.resolution).astype(np.int64)
+            for cam in self.cameras.values():
+                cam.visited = [np.asarray(v) + shift for v in cam.visited]
+        elif old is not None:
+            self.cameras.clear()
+        self.grid = grid
+        self.map_frame = msg.header.frame_id or self.p['frame_id']
         self.sequence = int(msg.sequence)
         self.get_logger().debug(f'map {self.sequence}: {occ.size} voxels')
 
@@ -154,6 +174,8 @@ class ViewPlannerNode(Node):
             resp.message = 'empty map: nothing received on the map topic yet'
             return resp
         g = self.grid
+        if not self._in_map_frame(req.current_pose.header.frame_id, resp):
+            return resp
         pos = req.current_pose.pose.position
         q = req.current_pose.pose.orientation
         position = np.array([pos.x, pos.y, pos.z])
@@ -175,8 +197,8 @@ class ViewPlannerNode(Node):
         planner = self.planner
         if req.max_candidates:
             from dataclasses import replace
-            planner = NextBestViewPlanner(replace(planner.config,
-                                                  n_positions=int(req.max_candidates)))
+            n = min(int(req.max_candidates), PARAMS['candidates'].hi)
+            planner = NextBestViewPlanner(replace(planner.config, n_positions=n))
         try:
             d = planner.plan(g, cam, strategy=req.strategy, rng=self.rng, claimed=claimed,
                              free_footprint=True)
@@ -184,7 +206,7 @@ class ViewPlannerNode(Node):
             resp.message = str(exc)
             return resp
         self.expected[robot] = (self.sequence, planner.expected_cells(g, d))
-        frame = req.current_pose.header.frame_id or self.p['frame_id']
+        frame = self.map_frame
         order = d.ranked()[: int(self.p['max_ranked'])]
         c = d.candidates
         for i in order:
@@ -207,27 +229,48 @@ class ViewPlannerNode(Node):
 
     @staticmethod
     def _target(msg, *, primary: bool) -> Target:
+        """A TaskTarget as a Target: weight <= 0 means 1, negative radius / sigma 0 (the
+        message's defaults); non-finite numbers are a PlacementError."""
         pos = np.array([msg.position.x, msg.position.y, msg.position.z])
         nrm = np.array([msg.normal.x, msg.normal.y, msg.normal.z])
+        def at_least_0(v: float) -> float:      # nan stays nan: Target rejects it
+            return v if v != v else max(0.0, float(v))
         weight = 1.0 if primary or msg.weight <= 0 else float(msg.weight)
-        return Target(pos, nrm, radius=max(0.0, float(msg.radius_m)),
-                      sigma=0.0 if primary else max(0.0, float(msg.position_sigma_m)),
+        return Target(pos, nrm, radius=at_least_0(msg.radius_m),
+                      sigma=0.0 if primary else at_least_0(msg.position_sigma_m),
                       weight=weight)
+
+    def _in_map_frame(self, frame: str, resp) -> bool:
+        """A request's frame must be the map's (or empty): no TF lookup here."""
+        if frame and frame != self.map_frame:
+            resp.message = (f'request in frame {frame!r}; the map and the answers are in '
+                            f'{self.map_frame!r} (transform before asking)')
+            return False
+        return True
 
     def _on_task(self, req: TaskView.Request, resp: TaskView.Response):
         resp.success = False
         if self.grid is None:
             resp.message = 'empty map: nothing received on the map topic yet'
             return resp
+        for t in [req.primary, *req.secondary]:
+            if not self._in_map_frame(t.header.frame_id, resp):
+                return resp
+        g = self.grid
         try:
             prim = self._target(req.primary, primary=True)
             sec = [self._target(s, primary=False) for s in req.secondary]
-            pl = self.placer.place(self.grid, prim, sec, rng=self.rng)
-        except PlacementError as exc:
+            stations = None
+            if g.ndim == 3:     # the camera on the rover's mast, where the rover may stand
+                trav = self.planner.traversability(g)
+                stations = mast_stations(g, trav.candidate, trav.collision_p,
+                                         self.p['camera_height_m'])
+            pl = self.placer.place(g, prim, sec, rng=self.rng, stations=stations)
+        except (PlacementError, MapError) as exc:
             resp.message = str(exc)
             return resp
         watched = ([prim] + sec)[pl.target_index]
-        frame = req.primary.header.frame_id or self.p['frame_id']
+        frame = self.map_frame
         r = self._rating_msg(frame, pl.position, look_at_quaternion(pl.position,
                                                                     watched.position))
         t = pl.terms

@@ -13,6 +13,7 @@ from coop_viewplan.placement import (
     VisibilityField,
     angular_visibility,
     depth_of_field,
+    mast_stations,
     move_known_object,
     occluder_hulls,
     occlusion_distance,
@@ -158,6 +159,46 @@ def test_secondary_inside_an_obstacle_is_skipped_not_fatal():
     g.prob[30, 30] = 1.0
     with pytest.raises(PlacementError, match='inside an obstacle'):
         TaskPlacer().place(g, prim, [sec], rng=np.random.default_rng(0))
+
+
+def test_secondary_against_an_occluder_or_in_unknown_space_is_unrated():
+    """A secondary whose own cell is free but which sits inside an occluder grown by its
+    radius (next to a wall), or in unobserved space (unknown occludes), cannot be seen: it is
+    not rated whatever its weight, and the primary is watched; the same primary is refused."""
+    g = _room()
+    g.prob[44:47, 29:32] = 1.0                                   # a box
+    g.known[:, 50:] = False                                      # unobserved to the north
+    prim = Target(np.array([30.5, 30.5]), np.array([0.0, 1.0]), radius=0.25)
+    beside = Target(np.array([47.2, 30.5]), np.array([1.0, 0.0]), radius=0.5, weight=50.0)
+    unseen = Target(np.array([30.5, 55.5]), np.array([0.0, -1.0]), radius=0.25, weight=50.0)
+    for search in ('bounded', 'random'):
+        placer = TaskPlacer(CameraModel(near_m=2, far_m=20), max_candidates=5000, search=search)
+        pl = placer.place(g, prim, [beside, unseen], rng=np.random.default_rng(0))
+        assert pl.target_index == 0 and pl.extras['unrated'] == [1, 2]
+    with pytest.raises(PlacementError, match='primary target is inside an'):
+        TaskPlacer(CameraModel(near_m=2, far_m=20)).place(g, beside, [prim],
+                                                          rng=np.random.default_rng(0))
+
+
+def test_mast_stations_and_non_finite_targets():
+    """mast_stations puts the camera at the mast height over each ground cell a rover may
+    stand on, with that cell's P; the placer takes only those positions."""
+    g3 = OccupancyGrid(np.zeros((4, 3, 5), np.float32), np.ones((4, 3, 5), bool),
+                       resolution=0.5, origin=np.array([-1.0, 2.0, -0.5]))
+    cand = np.zeros((4, 3), bool)
+    cand[1, 2] = cand[3, 0] = True
+    pcol = np.full((4, 3), 0.3)
+    pcol[3, 0] = 0.1
+    st = mast_stations(g3, cand, pcol, 0.8)
+    np.testing.assert_allclose(st.positions, [[-0.25, 3.25, 0.8], [0.75, 2.25, 0.8]])
+    np.testing.assert_allclose(st.collision_p, [0.3, 0.1])
+    t = Target(np.array([0.75, 3.25, 0.8]), np.array([0.0, -1.0, 0.0]), radius=0.0)
+    pl = TaskPlacer(CameraModel(near_m=0.5, far_m=5), p_empty=0.2).place(
+        g3, t, rng=np.random.default_rng(0), stations=st)
+    np.testing.assert_allclose(pl.position, [0.75, 2.25, 0.8])   # the one with P < 0.2
+    for bad in ({'radius': np.inf}, {'weight': np.inf}, {'sigma': np.nan}):
+        with pytest.raises(PlacementError, match='finite'):
+            Target(np.zeros(2), np.array([1.0, 0.0]), **bad)
 
 
 def _study_views(seeds, density):

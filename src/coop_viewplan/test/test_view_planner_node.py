@@ -19,19 +19,24 @@ from coop_viewplan.frames import optical_quaternion
 from coop_viewplan.view_planner_node import ViewPlannerNode
 
 
-def _voxel_map() -> VoxelMap:
-    """A 10 m x 10 m x 2 m room at 0.25 m: floor, the west half known free, a box."""
+def _voxel_map(extra: tuple = ()) -> VoxelMap:
+    """A 10 m x 10 m x 2 m room at 0.25 m: floor, the west half known free, a box; the
+    occupancies the mapper gives (OctoMap's clamps: free 0.12, occupied 0.97); `extra` keys
+    added occupied."""
     res = 0.25
     keys, occ = [], []
     for i in range(40):
         for j in range(40):
             keys.append((i, j, 0))
-            occ.append(1.0)
+            occ.append(0.97)
             if i < 20:
                 for k in range(1, 8):
                     box = 8 <= i < 12 and 20 <= j < 24
                     keys.append((i, j, k))
-                    occ.append(1.0 if box else 0.0)
+                    occ.append(0.97 if box else 0.1192)
+    for k in extra:
+        keys.append(k)
+        occ.append(0.97)
     m = VoxelMap()
     m.header.frame_id = 'map'
     m.resolution_m = res
@@ -113,9 +118,51 @@ def test_services_fail_cleanly_then_plan(graph):
     assert r.success, r.message
     p = r.best.pose.pose.position
     assert p.x < 1.9                                     # in front of the one-sided target
+    assert p.z == pytest.approx(1.0)                     # on the rover's mast
+    assert r.best.collision_probability < 0.2            # the map's free voxels are 0.12
     assert r.best.angular_visibility > 0 and r.best.depth_of_field == 1.0
+    assert r.best.pose.header.frame_id == 'map'
+    # a secondary target in unobserved space (and one against the box) is not rated; the
+    # primary is still watched
+    for x, y in ((7.5, 5.0), (1.95, 5.1)):
+        sec = TaskTarget()
+        sec.header.frame_id = 'map'
+        sec.position.x, sec.position.y, sec.position.z = x, y, 1.0
+        sec.normal.x, sec.radius_m, sec.weight = -1.0, 0.2, 5.0
+        req.secondary = [sec]
+        r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+        assert r.success and 'primary' in r.message, r.message
+    req.secondary = []
+    # a frame the planner cannot transform from: refused, not relabelled
+    req.primary.header.frame_id = 'rover1/base_link'
+    r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+    assert not r.success and 'transform' in r.message
+    req.primary.header.frame_id = 'map'
+    nbv = _nbv_req()
+    nbv.current_pose.header.frame_id = 'rover1/odom'
+    r = _call(client, ex, NextBestView, '/viewplan/next_best_view', nbv)
+    assert not r.success and 'transform' in r.message
     # A target inside the box: refused with the reason.
     req.primary.position.x, req.primary.position.y, req.primary.position.z = 2.5, 5.5, 1.1
     r = _call(client, ex, TaskView, '/viewplan/task_view', req)
     assert not r.success and 'inside' in r.message
     assert np.isfinite(node.sequence)
+    # the map grows 4 m west: the grid's origin moves, the camera's scan position stays put
+    cam = node.cameras['rover1']
+    before = node.grid.to_world(np.r_[cam.visited[0], 0])[:2]
+    msg = _voxel_map(extra=((-16, 20, 0),))
+    msg.sequence = 2
+    pub.publish(msg)
+    wait_for(lambda: node.sequence == 2, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+             what='the second map')
+    np.testing.assert_allclose(node.grid.to_world(np.r_[cam.visited[0], 0])[:2], before)
+    np.testing.assert_allclose(before, [1.125, 2.125])
+    # one outlier voxel 100 km away would make a 400,000-cell-long grid: rejected, counted,
+    # the last map kept
+    grid = node.grid
+    msg = _voxel_map(extra=((400_000, 20, 0),))
+    msg.sequence = 3
+    pub.publish(msg)
+    wait_for(lambda: node.bad.counts['bad map'] == 1, 10.0,
+             spin=lambda t: ex.spin_once(timeout_sec=t), what='the outlier map rejected')
+    assert node.grid is grid and node.sequence == 2
