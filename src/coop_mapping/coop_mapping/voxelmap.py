@@ -713,7 +713,8 @@ class VoxelMap:
     def probability_at(self, points: np.ndarray) -> np.ndarray:
         """P(occupied) at each (N, 3) finite point, 0.5 where unknown (a point beyond the
         keys' range, which no voxel can hold, included)."""
-        kf = np.floor(np.atleast_2d(np.asarray(points, np.float64)) / self.resolution)
+        # the float keys as key_of computes them (the same voxel at a face), checked for range
+        kf = np.floor(np.atleast_2d(np.asarray(points, np.float64)) * (1.0 / self.resolution))
         out = np.full(len(kf), 0.5)
         ok = np.all((kf >= -_OFFSET) & (kf < _OFFSET), axis=1)
         pos, found = self._find(pack_keys(kf[ok].astype(np.int64)))

@@ -27,8 +27,9 @@ from .placement import CameraModel, PlacementError, Target, TaskPlacer, mast_sta
 PARAMS = {
     'map_topic': ParamSpec('/map/voxels', 'shared map topic (coop_msgs/VoxelMap, latched)',
                            read_only=True),
-    'frame_id': ParamSpec('map', "the map's frame when its messages name none: requests must be "
-                          'in it (there is no TF lookup here), answers are', read_only=True),
+    'frame_id': ParamSpec('map', "the map's frame when its messages name none; requests must "
+                          'be given in the map frame (no TF lookup here), answers are stamped '
+                          'with it', read_only=True),
     'max_grid_cells': ParamSpec(20_000_000, 'largest planning grid (cells) a map may make; a '
                                 'bigger one is rejected (a far outlier voxel, a tiny '
                                 'resolution)', lo=1000, hi=2_000_000_000),
