@@ -354,7 +354,7 @@ class TaskPlacer:
 
     def __init__(self, camera: CameraModel | None = None, *, exponents: Exponents = Exponents(),
                  p_empty: float = 0.05, clearance_m: float = 0.5, stride: int = 1,
-                 max_candidates: int = 4000, n_dirs: int = 720, camera_height_m: float = 1.0,
+                 max_candidates: int = 4000, n_dirs: int = 720,
                  unknown_occludes: bool = True, search: str = 'bounded') -> None:
         if search not in SEARCHES:
             raise PlacementError(f'search must be one of {SEARCHES}, got {search!r}')
@@ -366,7 +366,6 @@ class TaskPlacer:
         self.stride = max(1, int(stride))
         self.max_candidates = int(max_candidates)
         self.n_dirs = int(n_dirs)
-        self.camera_height_m = camera_height_m
         self.unknown_occludes = unknown_occludes
 
     def collision_probability(self, grid: OccupancyGrid) -> np.ndarray:

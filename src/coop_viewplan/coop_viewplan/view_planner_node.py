@@ -110,7 +110,6 @@ class ViewPlannerNode(Node):
         self.placer = TaskPlacer(CameraModel(fov_deg=p['task_fov_deg'], pixels=p['task_pixels'],
                                              near_m=p['task_near_m'], far_m=p['task_far_m']),
                                  clearance_m=p['clearance_m'], p_empty=p['p_empty'],
-                                 camera_height_m=p['camera_height_m'],
                                  max_candidates=p['task_candidates'])
 
     def _on_map(self, msg: VoxelMap) -> None:
