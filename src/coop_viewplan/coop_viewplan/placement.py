@@ -355,7 +355,12 @@ class TaskPlacer:
     def __init__(self, camera: CameraModel | None = None, *, exponents: Exponents = Exponents(),
                  p_empty: float = 0.05, clearance_m: float = 0.5, stride: int = 1,
                  max_candidates: int = 4000, n_dirs: int = 720,
-                 unknown_occludes: bool = True, search: str = 'bounded') -> None:
+                 unknown_occludes: bool = True, search: str = 'bounded',
+                 cache_fields: int = 0) -> None:
+        """cache_fields: keep the visibility fields of this many (target position, radius)
+        for the grid last placed on, so a repeated request on the same map skips building
+        them (the node's case; a grid changed in place would be served stale fields, so the
+        experiments, which move objects in their grids, leave it 0)."""
         if search not in SEARCHES:
             raise PlacementError(f'search must be one of {SEARCHES}, got {search!r}')
         self.search = search
@@ -366,6 +371,9 @@ class TaskPlacer:
         self.stride = max(1, int(stride))
         self.max_candidates = int(max_candidates)
         self.n_dirs = int(n_dirs)
+        self.cache_fields = int(cache_fields)
+        self._cache_grid: OccupancyGrid | None = None
+        self._cache: dict[tuple, VisibilityField] = {}
         self.unknown_occludes = unknown_occludes
 
     def collision_probability(self, grid: OccupancyGrid) -> np.ndarray:
@@ -411,6 +419,36 @@ class TaskPlacer:
         if len(keep) == 0:
             raise PlacementError('no free candidate within the depth of field of any target')
         return pos[keep], p[keep]
+
+    def _grid_field(self, grid: OccupancyGrid, t: Target) -> VisibilityField:
+        """The visibility field of target t from the grid's occluders (cached, see
+        cache_fields). Raises PlacementError if t is inside an expanded occluder."""
+        key = (t.position.tobytes(), float(t.radius))
+        if self.cache_fields:
+            if grid is not self._cache_grid:
+                self._cache_grid, self._cache = grid, {}
+            if key in self._cache:
+                f = self._cache[key]
+                if isinstance(f, PlacementError):
+                    raise PlacementError(str(f))
+                return f
+        # Distance bounding: occluders beyond the depth of field cannot hide the target from
+        # any admissible camera (only the grid within reach is cut into them).
+        reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
+        box = (grid.to_index(t.position - reach), grid.to_index(t.position + reach) + 1)
+        near = [h for h in grid_occluders(grid, unknown_occludes=self.unknown_occludes, box=box)
+                if np.min(np.linalg.norm(h - t.position, axis=1)) <= reach]
+        try:
+            f = VisibilityField(t.position, occluder_hulls(near, t.radius), n_dirs=self.n_dirs)
+        except PlacementError as exc:       # the target inside an occluder: cached too
+            f = exc
+        if self.cache_fields:
+            if len(self._cache) >= self.cache_fields:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = f
+        if isinstance(f, PlacementError):
+            raise f
+        return f
 
     def rating_bound(self, cameras: np.ndarray, target: Target, collision_p: np.ndarray
                      ) -> np.ndarray:
@@ -485,15 +523,7 @@ class TaskPlacer:
             elif hulls is not None:
                 f = VisibilityField(t.position, hulls, n_dirs=self.n_dirs)
             else:
-                # Distance bounding: occluders beyond the depth of field cannot hide the target
-                # from any admissible camera (only the grid within reach is cut into them).
-                reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
-                box = (grid.to_index(t.position - reach), grid.to_index(t.position + reach) + 1)
-                near = [h for h in grid_occluders(grid, unknown_occludes=self.unknown_occludes,
-                                                  box=box)
-                        if np.min(np.linalg.norm(h - t.position, axis=1)) <= reach]
-                f = VisibilityField(t.position, occluder_hulls(near, t.radius),
-                                    n_dirs=self.n_dirs)
+                f = self._grid_field(grid, t)
             cache[k] = f
             return f
 

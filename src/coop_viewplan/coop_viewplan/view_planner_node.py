@@ -110,7 +110,8 @@ class ViewPlannerNode(Node):
         self.placer = TaskPlacer(CameraModel(fov_deg=p['task_fov_deg'], pixels=p['task_pixels'],
                                              near_m=p['task_near_m'], far_m=p['task_far_m']),
                                  clearance_m=p['clearance_m'], p_empty=p['p_empty'],
-                                 max_candidates=p['task_candidates'])
+                                 max_candidates=p['task_candidates'], cache_fields=16)
+        self._stations = (None, None)       # (grid, its mast stations)
 
     def _on_map(self, msg: VoxelMap) -> None:
         keys = np.asarray(msg.voxels.keys, dtype=np.int64)
@@ -262,9 +263,11 @@ class ViewPlannerNode(Node):
             sec = [self._target(s, primary=False) for s in req.secondary]
             stations = None
             if g.ndim == 3:     # the camera on the rover's mast, where the rover may stand
-                trav = self.planner.traversability(g)
-                stations = mast_stations(g, trav.candidate, trav.collision_p,
-                                         self.p['camera_height_m'])
+                if self._stations[0] is not g:
+                    trav = self.planner.traversability(g)
+                    self._stations = (g, mast_stations(g, trav.candidate, trav.collision_p,
+                                                       self.p['camera_height_m']))
+                stations = self._stations[1]
             pl = self.placer.place(g, prim, sec, rng=self.rng, stations=stations)
         except (PlacementError, MapError) as exc:
             resp.message = str(exc)

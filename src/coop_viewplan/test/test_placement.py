@@ -256,3 +256,29 @@ def test_bounded_search_cap_reports_inexact():
     assert pl.extras['evaluated'] == 3 and not pl.extras['exact']
     with pytest.raises(PlacementError):
         TaskPlacer(search='dense')
+
+
+def test_cached_fields_serve_a_repeated_request_on_the_same_grid(monkeypatch):
+    """cache_fields: the second request for the same target on the same grid object builds no
+    occluders and places the same; a new grid object (a new map) builds them again; a target
+    inside an occluder is refused from the cache too."""
+    from coop_viewplan import placement
+    calls = []
+    real = placement.grid_occluders
+    monkeypatch.setattr(placement, 'grid_occluders',
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
+    g = _room()
+    g.prob[28:33, 36:38] = 1.0
+    t = Target(np.array([30.5, 30.5]), np.array([0.0, 1.0]), radius=0.25)
+    placer = TaskPlacer(CameraModel(near_m=2, far_m=20), max_candidates=5000, cache_fields=2)
+    a = placer.place(g, t, rng=np.random.default_rng(0))
+    b = placer.place(g, t, rng=np.random.default_rng(0))
+    assert len(calls) == 1 and np.array_equal(a.position, b.position)
+    assert a.terms == b.terms
+    placer.place(_room(), t, rng=np.random.default_rng(0))
+    assert len(calls) == 2
+    inside = Target(np.array([30.5, 35.9]), np.array([0.0, -1.0]), radius=0.5)
+    for _ in range(2):
+        with pytest.raises(PlacementError, match='inside'):
+            placer.place(g, inside, rng=np.random.default_rng(0))
+    assert len(calls) == 3          # built once for g again (the cache follows the grid)
