@@ -62,15 +62,20 @@ class ParamSpec:
 
 
 def declare_parameters(node: Node, specs: dict[str, ParamSpec],
-                       on_change: Callable[[dict[str, Any]], None] | None = None
+                       on_change: Callable[[dict[str, Any]], None] | None = None,
+                       check_all: Callable[[dict[str, Any]], str | None] | None = None
                        ) -> dict[str, Any]:
     """Declare every spec with its descriptor, validate the initial values (raising ValueError with
     the reason, so a bad --params-file stops the node at start), and install an on-set callback
-    that rejects bad values with their reason. Returns the current values."""
+    that rejects bad values with their reason. check_all: a rule between parameters (e.g. near
+    < far), given all values as they would be, returning the reason they are not acceptable or
+    None. Returns the current values."""
     for name, spec in specs.items():
         node.declare_parameter(name, spec.default, spec.descriptor())
     values = {name: node.get_parameter(name).value for name in specs}
     bad = [r for name, v in values.items() if (r := specs[name].check(name, v))]
+    if not bad and check_all is not None and (r := check_all(values)):
+        bad.append(r)
     if bad:
         raise ValueError('; '.join(bad))
 
@@ -80,6 +85,12 @@ def declare_parameters(node: Node, specs: dict[str, ParamSpec],
             if spec is None:
                 continue
             reason = spec.check(p.name, p.value)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        if check_all is not None:
+            now = {name: node.get_parameter(name).value for name in specs}
+            now.update({p.name: p.value for p in params if p.name in specs})
+            reason = check_all(now)
             if reason:
                 return SetParametersResult(successful=False, reason=reason)
         if on_change is not None:

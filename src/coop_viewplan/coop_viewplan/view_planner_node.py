@@ -83,10 +83,17 @@ PARAMS = {
 }
 
 
+def _check_params(p: dict) -> str | None:
+    if not p['task_near_m'] < p['task_far_m']:
+        return f"task_near_m ({p['task_near_m']}) must be below task_far_m ({p['task_far_m']})"
+    return None
+
+
 class ViewPlannerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('view_planner', **kwargs)
-        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params,
+                                    check_all=_check_params)
         self.bad = BadInputCounter(self)
         self.rng = np.random.default_rng(int(self.p['seed']))
         self.grid: OccupancyGrid | None = None

@@ -166,3 +166,18 @@ def test_services_fail_cleanly_then_plan(graph):
     wait_for(lambda: node.bad.counts['bad map'] == 1, 10.0,
              spin=lambda t: ex.spin_once(timeout_sec=t), what='the outlier map rejected')
     assert node.grid is grid and node.sequence == 2
+
+
+def test_depth_of_field_limits_are_checked_together(graph):
+    """task_near_m must stay below task_far_m: a change that breaks it is refused with the
+    reason and the placer keeps its camera; one that keeps it is taken."""
+    node, _, _ = graph
+    r = node.set_parameters([Parameter('task_near_m', value=4.5)])[0]   # far is 4.0 here
+    assert not r.successful and 'task_far_m' in r.reason
+    assert node.p['task_near_m'] == 0.3 and node.placer.camera.near_m == 0.3
+    r = node.set_parameters_atomically([Parameter('task_near_m', value=4.5),
+                                        Parameter('task_far_m', value=6.0)])
+    assert r.successful and node.placer.camera.near_m == 4.5
+    with pytest.raises(ValueError, match='task_far_m'):
+        ViewPlannerNode(context=node.context, parameter_overrides=[
+            Parameter('task_near_m', value=5.0), Parameter('task_far_m', value=5.0)])
