@@ -110,10 +110,20 @@ def _stamp_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def _check_params(p: dict) -> str | None:
+    """The rules between parameters: each range's lower end below its upper one."""
+    for lo, hi in (('min_range_m', 'max_range_m'),
+                   ('marker_min_radius_px', 'marker_max_radius_px')):
+        if not p[lo] < p[hi]:
+            return f'{lo} ({p[lo]}) must be below {hi} ({p[hi]})'
+    return None
+
+
 class StereoNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('stereo', **kwargs)
-        self.p = declare_parameters(self, PARAMS, on_change=self._changed)
+        self.p = declare_parameters(self, PARAMS, on_change=self._changed,
+                                    check_all=_check_params)
         self.bad = BadInputCounter(self)
         self.info: dict[str, CameraInfo] = {}
         self.ranger: StereoRanger | None = None

@@ -296,3 +296,20 @@ def test_stereo_node_corrects_dead_reckoning_with_fiducials(stereo_rig):
     print(f'dead-reckoned error {err_dr:.4f} m, corrected {err_fc:.4f} m')
     assert err_fc < 0.5 * err_dr
     assert poses[-1].pose.covariance[0] >= 0.0
+
+
+def test_stereo_node_checks_its_ranges_together(ctx):
+    """min_range_m below max_range_m (and the marker radii likewise), at start and on a change."""
+    from coop_mapping.stereo_node import StereoNode
+    with pytest.raises(ValueError, match='max_range_m'):
+        StereoNode(context=ctx, parameter_overrides=[Parameter('min_range_m', value=12.0)])
+    with pytest.raises(ValueError, match='marker_max_radius_px'):
+        StereoNode(context=ctx, parameter_overrides=[Parameter('marker_min_radius_px',
+                                                               value=30.0)])
+    node = StereoNode(context=ctx)
+    try:
+        r = node.set_parameters([Parameter('min_range_m', value=20.0)])[0]
+        assert not r.successful and 'max_range_m' in r.reason and node.p['min_range_m'] == 0.2
+        assert node.set_parameters([Parameter('min_range_m', value=0.5)])[0].successful
+    finally:
+        node.destroy_node()
