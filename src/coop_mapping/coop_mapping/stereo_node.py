@@ -29,9 +29,11 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import fields
 
+import cv2
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 
@@ -111,7 +113,10 @@ def _stamp_ns(stamp) -> int:
 
 
 def _check_params(p: dict) -> str | None:
-    """The rules between parameters: each range's lower end below its upper one."""
+    """The rules between parameters: each range's lower end below its upper one; StereoSGBM's
+    disparity range a multiple of 16."""
+    if p['num_disparities'] % 16:
+        return f"num_disparities must be a multiple of 16, got {p['num_disparities']}"
     for lo, hi in (('min_range_m', 'max_range_m'),
                    ('marker_min_radius_px', 'marker_max_radius_px')):
         if not p[lo] < p[hi]:
@@ -224,13 +229,20 @@ class StereoNode(Node):
             if self.ranger is None:
                 self.ranger = self._make_ranger()
             left, right = image_to_array(m['left']), image_to_array(m['right'])
+            # checked before the fiducial filter sees the frame: a bad one must not reach it
+            cam = self.ranger.camera
+            if left.shape != (cam.height, cam.width) or right.shape != left.shape:
+                raise StereoError(f'images {left.shape} / {right.shape} do not match '
+                                  f'camera_info {(cam.height, cam.width)}')
             R, t = pose_to_rt(pose.pose.pose)
+            if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+                raise StereoError('camera pose not finite')
             disp = None
             if self.p['fiducial_correction'] != 'none':
                 disp = self.ranger.disparity(left, right)
                 R, t, pose = self._correct(left, disp, R, t, pose)
             scan = self.ranger.process(left, right, R, t, disparity=disp)
-        except (StereoError, ValueError) as exc:
+        except (StereoError, ValueError, cv2.error) as exc:
             self.bad.reject('stereo', str(exc))
             return
         hdr = Header(stamp=m['left'].header.stamp, frame_id=self.p['map_frame'])
@@ -291,8 +303,9 @@ class StereoNode(Node):
                                  method=self.p['fiducial_correction'],
                                  scene_distance=self.p['scene_distance_m'],
                                  spacing_px=left.shape[1] / 16)
-            self.odometry = FiducialOdometry(self.ranger.camera, cfg, T_dr)
-            self.odometry.first(left, disp)
+            odometry = FiducialOdometry(self.ranger.camera, cfg, T_dr)
+            odometry.first(left, disp)       # kept only once it has started
+            self.odometry = odometry
             self.get_logger().info(f'fiducial correction ({cfg.method}) started with '
                                    f'{len(self.odometry.x)} fiducials')
             T = T_dr
@@ -306,9 +319,10 @@ class StereoNode(Node):
         p.position.x, p.position.y, p.position.z = (float(v) for v in T[:3, 3])
         q = _quat(T[:3, :3])
         p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
-        cov = np.array(pose.pose.covariance, float).reshape(6, 6)
-        cov[:3, :3] = self.odometry.C_X
-        out.pose.covariance = cov.reshape(-1).tolist()
+        if self.odometry.S.any():      # the filter's pose covariance, (theta, c) -> ROS order
+            out.pose.covariance = _ros_cov(self.odometry.S).reshape(-1).tolist()
+        else:                          # the first frame: the pose given, with its covariance
+            out.pose.covariance = pose.pose.covariance
         return T[:3, :3], T[:3, 3], out
 
 
@@ -331,11 +345,9 @@ def _pose_msg(stamp, frame: str, R: np.ndarray, t: np.ndarray, cov: np.ndarray
 
 
 def _quat(R: np.ndarray) -> tuple[float, float, float, float]:
-    """Rotation matrix -> quaternion (x, y, z, w)."""
-    w = np.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-    x = np.copysign(np.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2, R[2, 1] - R[1, 2])
-    y = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2, R[0, 2] - R[2, 0])
-    z = np.copysign(np.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2, R[1, 0] - R[0, 1])
+    """Rotation matrix -> quaternion (x, y, z, w), by scipy (stable at 180 deg too, where the
+    sign-copying formula lost the relative signs of x, y, z)."""
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, float)).as_quat()
     return float(x), float(y), float(z), float(w)
 
 

@@ -295,7 +295,20 @@ def test_stereo_node_corrects_dead_reckoning_with_fiducials(stereo_rig):
     err_fc = np.linalg.norm(corrected - true_eyes[1])
     print(f'dead-reckoned error {err_dr:.4f} m, corrected {err_fc:.4f} m')
     assert err_fc < 0.5 * err_dr
-    assert poses[-1].pose.covariance[0] >= 0.0
+    # the filter's pose covariance (ROS order), not the one-frame Eq. 3-19 sample covariance
+    # (identically 0) pasted into the dead reckoning's
+    cov = np.array(poses[-1].pose.covariance).reshape(6, 6)
+    assert np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov).min() >= -1e-12
+    assert np.all(np.diag(cov)[:3] > 0) and np.sqrt(np.diag(cov)[:3]).max() < 0.5
+    # a pair of another size than camera_info is rejected before the filter sees it, and the
+    # next good pair is corrected as before
+    for k, (pair, eye) in enumerate((((pairs[1][0][::2, ::2], pairs[1][1][::2, ::2]),
+                                      dr_eyes[1]), (pairs[1], dr_eyes[1]))):
+        stamp = rig.peer.get_clock().now().to_msg()
+        stamp.sec += 2 + k
+        rig.send(pair[0], pair[1], stamp, R, eye)
+    wait_for(lambda: len(poses) == 3 and rig.node.bad.counts['stereo'] == 1, 20.0,
+             spin=rig.spin, what='the bad pair rejected, the good one published')
 
 
 def test_stereo_node_checks_its_ranges_together(ctx):
@@ -310,6 +323,8 @@ def test_stereo_node_checks_its_ranges_together(ctx):
     try:
         r = node.set_parameters([Parameter('min_range_m', value=20.0)])[0]
         assert not r.successful and 'max_range_m' in r.reason and node.p['min_range_m'] == 0.2
+        r = node.set_parameters([Parameter('num_disparities', value=24)])[0]
+        assert not r.successful and 'multiple of 16' in r.reason
         assert node.set_parameters([Parameter('min_range_m', value=0.5)])[0].successful
     finally:
         node.destroy_node()

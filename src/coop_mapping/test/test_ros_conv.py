@@ -57,3 +57,24 @@ def test_bad_layouts_are_a_format_error(case):
         m.is_bigendian = True
     with pytest.raises(CloudFormatError):
         msg_to_cloud(m)
+
+
+def test_published_quaternions_round_trip_at_180_degrees():
+    """The stereo node's rotation -> quaternion and ros_conv's quaternion -> rotation agree,
+    the half turns included (a level optical frame looking along -y is one: the old sign-copy
+    formula turned it to look along +y)."""
+    from geometry_msgs.msg import Pose
+
+    from coop_mapping.ros_conv import pose_to_rt
+    from coop_mapping.stereo_node import _quat
+    look_minus_y = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]])
+    rng = np.random.default_rng(0)
+    half_turns = []
+    for axis in ([0, 1, 1], [1, -1, 0], [1, 2, -3], [0, 0, 1]):
+        a = np.asarray(axis, float) / np.linalg.norm(axis)
+        half_turns.append(2 * np.outer(a, a) - np.eye(3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    for R in [look_minus_y, *half_turns, q * np.sign(np.linalg.det(q))]:
+        p = Pose()
+        p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = _quat(R)
+        np.testing.assert_allclose(pose_to_rt(p)[0], R, atol=1e-12)
