@@ -66,6 +66,9 @@ SPECS = {
                                   'sensors (below half the sample period)', lo=0.0005, hi=0.1),
     'stale_timeout_s': ParamSpec(0.1, 'a sensor silent this long stops the sample stream',
                                  lo=0.01, hi=10.0),
+    'silence_abort_s': ParamSpec(30.0, 'a running goal is aborted after this long (wall '
+                                 'clock) without a paired sample (0 = wait for ever)',
+                                 lo=0.0, hi=3600.0),
     'ft_force_limit_n': ParamSpec(FT_FORCE_LIMIT_N, 'F/T force saturation (samples beyond '
                                   'are skipped)', lo=1.0, hi=1e4),
     'ft_torque_limit_nm': ParamSpec(FT_TORQUE_LIMIT_NM, 'F/T torque saturation', lo=0.1, hi=1e4),
@@ -90,7 +93,9 @@ class IdentifierNode(Node):
         self.pairer = SamplePairer(
             int(QUEUE_S * self.p['rate_hz']), tolerance_ns=_ns(self.p['sync_tolerance_s']),
             force_limit=self.p['ft_force_limit_n'], torque_limit=self.p['ft_torque_limit_nm'],
-            on_sample=lambda t, row: self._on_sample(1e-9 * t, row), on_reject=self.bad.reject)
+            on_sample=lambda t, row: self._on_sample(1e-9 * t, row), on_reject=self.bad.reject,
+            on_reset=self._on_time_reset)
+        self._time_reset = False   # sensor time jumped back during the running goal
         self._buffer: list[tuple[float, np.ndarray]] = []
         self._last_sample: tuple[float, np.ndarray] | None = None
         self.ident: Identifier | None = None
@@ -193,6 +198,15 @@ class IdentifierNode(Node):
             self._exc_t0 = self._t_now
         self._command_arm()
         self._poke()
+
+    def _on_time_reset(self, old_ns: int, new_ns: int) -> None:
+        self.get_logger().warn(f'sensor time jumped back from {old_ns * 1e-9:.3f} s to '
+                               f'{new_ns * 1e-9:.3f} s: pairing starts over'
+                               + (', the running identification is aborted'
+                                  if self._active else ''))
+        if self._active:
+            self._time_reset = True
+            self._poke()
 
     def _poke(self) -> None:
         """Resume the goal coroutine awaiting the next window (if one runs)."""
@@ -315,18 +329,30 @@ class IdentifierNode(Node):
         self._ref = ArmReference(MODES)
         self.get_logger().info(f'identifying with {cfg.strategy} for {goal.duration_s} s')
         self._active = True
+        self._time_reset = False
         result = Identify.Result()
         last_t, last_wall = None, time.monotonic()
         while True:
             self._wake = Future()
             await self._wake
+            silent = 0.0
             if self._t_now != last_t:
                 last_t, last_wall = self._t_now, time.monotonic()
-            elif time.monotonic() - last_wall > max(1.0, 10 * self.p['stale_timeout_s']):
-                self.bad.reject('silent sensor', 'no paired samples arrive')
+            else:
+                silent = time.monotonic() - last_wall
+                if silent > max(1.0, 10 * self.p['stale_timeout_s']):
+                    self.get_logger().warn(f'no paired sensor samples for {silent:.1f} s',
+                                           throttle_duration_sec=5.0)
             if handle.is_cancel_requested:
                 handle.canceled()
                 result.success, result.message = False, 'canceled'
+                break
+            abort = self.p['silence_abort_s']
+            if self._time_reset or (abort > 0 and silent > abort):
+                handle.abort()
+                result.success = False
+                result.message = ('aborted: sensor time jumped back' if self._time_reset else
+                                  f'aborted: no paired sensor samples for {silent:.1f} s')
                 break
             elapsed = 0.0 if self._t0 is None else self._t_now - self._t0
             if self._windows:

@@ -5,8 +5,11 @@ from the samples the node would have taken.
 
 Stamps are integer nanoseconds (the header's sec * 1e9 + nanosec: exact, whatever the epoch).
 Each stream's stamps must increase; a sample with a non-finite value or a stamp not after its
-stream's last is rejected. A saturated inclinometer or F/T sample is rejected too, but its
-stamp counts as heard (its instant is lost, the IMU sample there need not wait for it).
+stream's last is rejected, unless it is more than `reset_after_ns` before it: then time has
+jumped back (a simulator reset, a looped bag) and the pairer starts over from that sample
+(`on_reset`), rather than rejecting every sample until the old time comes back. A saturated
+inclinometer or F/T sample is rejected too, but its stamp counts as heard (its instant is
+lost, the IMU sample there need not wait for it).
 
 Pairing: an IMU sample at t waits until both partner streams have reached t (whatever the
 order or latency in which the three topics arrive: the first samples of a replay come in one
@@ -45,10 +48,14 @@ class SamplePairer:
     def __init__(self, capacity: int, *, tolerance_ns: int,
                  on_sample: Callable[[int, np.ndarray], None],
                  on_reject: Callable[[str, str], None],
-                 force_limit: float = math.inf, torque_limit: float = math.inf) -> None:
+                 force_limit: float = math.inf, torque_limit: float = math.inf,
+                 reset_after_ns: int = 1_000_000_000,
+                 on_reset: Callable[[int, int], None] | None = None) -> None:
         if capacity < 1:
             raise ValueError('capacity must be >= 1')
         self.tolerance_ns = int(tolerance_ns)
+        self.reset_after_ns = int(reset_after_ns)
+        self._on_reset = on_reset
         self.force_limit = force_limit
         self.torque_limit = torque_limit
         self._on_sample = on_sample
@@ -61,12 +68,23 @@ class SamplePairer:
         if not all(math.isfinite(v) for v in values):
             self._on_reject('non-finite', name)
             return False
+        if t < self.last_stamp[name] - self.reset_after_ns:
+            old = self.last_stamp[name]
+            self.reset()
+            if self._on_reset is not None:
+                self._on_reset(old, t)
         if t <= self.last_stamp[name]:
             self._on_reject('out-of-order stamp', f'{name} {t * 1e-9:.4f} <= '
                             f'{self.last_stamp[name] * 1e-9:.4f}')
             return False
         self.last_stamp[name] = t
         return True
+
+    def reset(self) -> None:
+        """Forget every queued sample and stamp (time starts over)."""
+        for q in self._queues.values():
+            q.clear()
+        self.last_stamp = dict.fromkeys(STREAMS, -math.inf)
 
     def imu(self, t: int, specific_force: Sequence[float], gyro: Sequence[float]) -> bool:
         """Adds an IMU sample; False if it was rejected."""

@@ -134,3 +134,36 @@ def test_bad_parameter_rejected(graph):
     assert not res[0].successful
     res = node.set_parameters([Parameter('strategy', value='magic')])
     assert not res[0].successful
+
+
+def test_a_goal_ends_when_the_sensors_fall_silent_or_time_jumps_back(graph):
+    """No paired sample for silence_abort_s (wall clock): the goal is aborted with the reason,
+    not left running for ever, and no sample is counted as rejected for it. Sensor time
+    jumping back (a sim reset) during a goal aborts it too; pairing starts over."""
+    node, peer = graph
+    assert node.set_parameters([Parameter('silence_abort_s', value=1.0)])[0].successful
+    client = ActionClient(peer, Identify, 'identifier/identify')
+    assert client.wait_for_server(timeout_sec=10)
+    fut = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=60.0))
+    wait_for(fut.done, 10, what='goal answer')
+    res = fut.result().get_result_async()
+    wait_for(res.done, 10, what='the aborted result')
+    r = res.result().result
+    assert not r.success and 'no paired sensor samples' in r.message
+    assert r.estimate.rejected_samples == 0
+    # sensor time jumps back 100 s during the next goal
+    assert node.set_parameters([Parameter('silence_abort_s', value=0.0)])[0].successful
+    fut = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=60.0))
+    wait_for(fut.done, 10, what='goal answer')
+    res = fut.result().get_result_async()
+    pub_imu = peer.create_publisher(Imu, 'imu', SENSOR_QOS)
+    wait_for(lambda: pub_imu.get_subscription_count(), 10, what='node subscription')
+    for t in (100.0, 100.005, 0.0):
+        m = Imu()
+        _stamp(m, t)
+        pub_imu.publish(m)
+        wait_for(lambda: node.pairer.last_stamp['imu'] == round(t * 1e9), 5,
+                 what=f'imu {t} taken')
+    wait_for(res.done, 10, what='the aborted result')
+    r = res.result().result
+    assert not r.success and 'jumped back' in r.message

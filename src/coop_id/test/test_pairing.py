@@ -87,3 +87,23 @@ def test_a_silent_partner_stream_drops_the_oldest_sample_at_capacity_and_flush_p
 def test_capacity_is_validated():
     with pytest.raises(ValueError):
         make(capacity=0)
+
+
+def test_time_jumping_back_starts_the_pairer_over():
+    """A stamp more than reset_after_ns before its stream's last (a sim reset, a looped bag):
+    the queues are dropped and pairing resumes from the new time; a small step back is still
+    an out-of-order rejection."""
+    resets = []
+    p, rows, rejects = make(reset_after_ns=1000 * MS, on_reset=lambda a, b: resets.append(b))
+    for t in (5000, 5005):
+        imu(p, t)
+        p.inclinometer(t * MS, 0.0, 0.0)
+        p.wrench(t * MS, [0, 0, 0], [0, 0, 0])
+    imu(p, 5010)                               # waits for partners that will never come
+    assert not imu(p, 4500) and rejects == ['out-of-order stamp']
+    for t in (5, 10):                          # time starts over
+        imu(p, t)
+        p.inclinometer(t * MS, 0.0, 0.0)
+        p.wrench(t * MS, [0, 0, 0], [0, 0, 0])
+    assert resets == [5 * MS] and [t // MS for t, _ in rows] == [5000, 5005, 5, 10]
+    assert rejects == ['out-of-order stamp']   # the stranded 5010 sample went with the reset
