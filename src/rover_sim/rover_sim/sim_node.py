@@ -37,8 +37,10 @@ from .world import World
 
 
 def stamp(t_s: float) -> Time:
-    sec = int(math.floor(t_s))
-    return Time(sec=sec, nanosec=int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+    """Seconds -> builtin_interfaces/Time, rounded to the nanosecond (a time just below a
+    whole second carries into sec rather than wrapping nanosec to 0)."""
+    ns = int(round(t_s * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 def _pose(msg_pose, position: np.ndarray, rotation: np.ndarray) -> None:
@@ -166,8 +168,9 @@ class SimNode(Node):
 
     def _on_param_change(self, changed: dict) -> None:
         if 'real_time_factor' in changed:
-            self._rtf = float(changed['real_time_factor'])
-            self._pace_origin = None
+            with self._lock:       # the sim thread reads both together (_pace)
+                self._rtf = float(changed['real_time_factor'])
+                self._pace_origin = None
         if 'cmd_vel_timeout_s' in changed:
             self._cmd_timeout = float(changed['cmd_vel_timeout_s'])
 
@@ -294,17 +297,19 @@ class SimNode(Node):
             raise
 
     def _pace(self) -> None:
-        if self._rtf <= 0.0:
-            return
-        now = time.monotonic()
-        if self._pace_origin is None:
-            self._pace_origin = (now, self.world.time_s)
-        wall0, sim0 = self._pace_origin
-        ahead = (self.world.time_s - sim0) / self._rtf - (now - wall0)
+        with self._lock:           # a parameter change sets both on the executor thread
+            rtf, origin = self._rtf, self._pace_origin
+            now = time.monotonic()
+            if rtf <= 0.0:
+                return
+            if origin is None:
+                origin = self._pace_origin = (now, self.world.time_s)
+            wall0, sim0 = origin
+            ahead = (self.world.time_s - sim0) / rtf - (now - wall0)
+            if ahead < -0.5:          # fell behind (rendering, load): do not try to catch up
+                self._pace_origin = (now, self.world.time_s)
         if ahead > 0:
             time.sleep(ahead)
-        elif ahead < -0.5:            # fell behind (rendering, load): do not try to catch up
-            self._pace_origin = (now, self.world.time_s)
 
     def _every(self, rate_hz: float) -> bool:
         if rate_hz <= 0:

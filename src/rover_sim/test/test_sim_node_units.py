@@ -1,0 +1,40 @@
+"""sim_node pieces in-process: the clock stamp and the reset request's defaults."""
+import rclpy
+from rclpy.context import Context
+from rclpy.parameter import Parameter
+
+from coop_msgs.srv import SimScenario
+from rover_sim.sim_node import SimNode, stamp
+
+
+def test_stamp_carries_into_seconds():
+    """A time just below a whole second (steps * dt at 98 Hz) is not sent 1 s back."""
+    t = 98 * (1.0 / 98)
+    assert t < 1.0
+    s = stamp(t)
+    assert (s.sec, s.nanosec) == (1, 0)
+    s = stamp(99 * (1.0 / 98))
+    assert (s.sec, s.nanosec) == (1, 10204082)
+    assert (stamp(0.0).sec, stamp(0.0).nanosec) == (0, 0)
+
+
+def test_a_default_reset_request_keeps_the_scenario():
+    """`ros2 service call /sim/reset coop_msgs/srv/SimScenario` sends the defaults: the same
+    seed and obstacles, not seed 0 without obstacles; a field set explicitly is taken."""
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = SimNode(context=ctx, parameter_overrides=[
+        Parameter('rovers', value=1), Parameter('stereo_rate_hz', value=0.0),
+        Parameter('seed', value=5), Parameter('real_time_factor', value=0.0)])
+    try:
+        n_obstacles = len(node.world.layout.obstacles)
+        assert n_obstacles > 0
+        resp = node._on_reset(SimScenario.Request(), SimScenario.Response())
+        assert resp.success, resp.message
+        assert node.config.seed == 5 and len(node.world.layout.obstacles) == n_obstacles
+        resp = node._on_reset(SimScenario.Request(occlusion_density=0.0), SimScenario.Response())
+        assert resp.success and node.config.seed == 5
+        assert node.config.occlusion_density == 0.0 and not node.world.layout.obstacles
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
