@@ -62,6 +62,9 @@ class Player(Node):
         self.info = bag_info(p['bag'])
         for problem in self.info.problems:
             self.get_logger().warn(f'{p["bag"]}: {problem}')
+        if p['start_offset_s'] > 0 and p['start_offset_s'] >= self.info.duration_s:
+            raise ValueError(f'start_offset_s {p["start_offset_s"]} is not within the bag '
+                             f'({self.info.duration_s:.3f} s)')
         rules = parse_remaps([r for r in p['remap'] if r])
         wanted = [t for t in p['topics'] if t]
         absent = sorted(set(wanted) - set(self.info.topics))

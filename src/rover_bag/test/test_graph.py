@@ -261,6 +261,9 @@ def test_play_bad_input(tmp_path, sample_bag):
         (['-p', f'bag:={sample_bag}', '-p', "remap:=['nope']"], 'is not "/from:=/to"'),
         (['-p', f'bag:={sample_bag}', '-p', 'rate:=0.0'], 'Parameter rate out of range'),
         (['-p', f'bag:={sample_bag}', '-p', 'rate:=2'], "expecting type 'DOUBLE'"),
+        # an offset past the end: refused (with loop it spun re-publishing the latched topics)
+        (['-p', f'bag:={sample_bag}', '-p', 'loop:=true', '-p', 'start_offset_s:=1000.0'],
+         'is not within the bag'),
     ]
     for i, (args, msg) in enumerate(cases):
         with NodeProcess('rover_bag', 'play', args, log_path=tmp_path / f'p{i}.log') as play:
