@@ -30,14 +30,11 @@ from coop_msgs.msg import DynamicParameters, Inclinometer
 from .excitation import STRATEGIES, ArmReference, Excitation
 from .identifier_core import Identifier, IdentifierConfig
 from .offline import FT_FORCE_LIMIT_N, FT_TORQUE_LIMIT_NM, SYNC_TOLERANCE_S, sensor_noise
-from .pairing import SamplePairer, stamp_ns
+from .pairing import QUEUE_S, SamplePairer, stamp_ns
 
 #: Arm base joints and the three rotation modes of §2.2: (joint driven, (joint1, joint2) hold).
 MODES = (('arm_joint_1', 0.0, None), ('arm_joint_2', 0.0, None),
          ('arm_joint_2', math.pi / 2, None))   # about z, about y, about x (joint 1 = pi/2)
-
-#: Sensor seconds an IMU sample may wait for its inclinometer / F/T partners (pairing queues).
-QUEUE_S = 5.0
 
 #: Spacing of the arm trajectory points (>= 20 points per period up to 30 rad/s).
 TRAJECTORY_STEP_S = 0.01

@@ -13,13 +13,11 @@ from coop_common.dynparams import PARAM_NAMES
 from .consistency import Report
 from .identifier_core import Identifier, IdentifierConfig
 from .model import SensorNoise
-from .pairing import SamplePairer, stamp_ns
+from .pairing import QUEUE_S, SamplePairer, stamp_ns
 
 #: the pairing's defaults, the identifier node's too (its parameters sync_tolerance_s,
 #: ft_force_limit_n, ft_torque_limit_nm)
 SYNC_TOLERANCE_S, FT_FORCE_LIMIT_N, FT_TORQUE_LIMIT_NM = 0.002, 200.0, 50.0
-#: IMU samples that may wait for their partners (the node's 5 s at 200 Hz)
-QUEUE_CAPACITY = 1000
 
 
 class BagError(ValueError):
@@ -52,7 +50,8 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
         stamps.append(t)
         rows.append(row)
 
-    pairer = SamplePairer(QUEUE_CAPACITY, tolerance_ns=int(round(tolerance_s * 1e9)),
+    pairer = SamplePairer(int(QUEUE_S * IdentifierConfig.rate_hz),
+                          tolerance_ns=int(round(tolerance_s * 1e9)),
                           force_limit=force_limit, torque_limit=torque_limit,
                           on_sample=on_sample, on_reject=lambda r, _d: skipped.update([r]))
     try:

@@ -28,7 +28,9 @@ import numpy as np
 #: the three streams, in row order: IMU (specific force 3, gyro 3), inclinometer (roll, pitch),
 #: F/T (force 3, torque 3)
 STREAMS = ('imu', 'inclinometer', 'wrench')
-ROW_WIDTH = 14
+#: Sensor seconds an IMU sample may wait for its inclinometer / F/T partners (the capacity is
+#: this times the sample rate)
+QUEUE_S = 5.0
 
 
 def stamp_ns(header) -> int:

@@ -307,6 +307,13 @@ class StereoRanger:
                                  block_size=self.block_size, subpixel=self.subpixel,
                                  full_width=self.full_width)
 
+    def check_images(self, left: np.ndarray, right: np.ndarray) -> None:
+        """StereoError unless both images have the camera's size."""
+        size = (self.camera.height, self.camera.width)
+        if left.shape != size or right.shape != size:
+            raise StereoError(f'images {left.shape} / {right.shape} do not match camera_info '
+                              f'{size}')
+
     def process(self, left: np.ndarray, right: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
                 *, disparity: np.ndarray | None = None) -> StereoScan:
         """`disparity`: reuse one already computed for this pair (by `disparity`)."""
@@ -314,9 +321,7 @@ class StereoRanger:
         t = np.asarray(t_wc, float).reshape(3)
         if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
             raise StereoError('R_wc must be a rotation matrix')
-        if left.shape != (self.camera.height, self.camera.width):
-            raise StereoError(f'image {left.shape} does not match camera_info '
-                              f'{(self.camera.height, self.camera.width)}')
+        self.check_images(left, right)
         disp = disparity if disparity is not None else self.disparity(left, right)
         pc, uv = disparity_to_points(disp, self.camera, stride=self.stride,
                                      min_range=self.min_range, max_range=self.max_range)

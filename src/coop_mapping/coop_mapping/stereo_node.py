@@ -230,10 +230,7 @@ class StereoNode(Node):
                 self.ranger = self._make_ranger()
             left, right = image_to_array(m['left']), image_to_array(m['right'])
             # checked before the fiducial filter sees the frame: a bad one must not reach it
-            cam = self.ranger.camera
-            if left.shape != (cam.height, cam.width) or right.shape != left.shape:
-                raise StereoError(f'images {left.shape} / {right.shape} do not match '
-                                  f'camera_info {(cam.height, cam.width)}')
+            self.ranger.check_images(left, right)
             R, t = pose_to_rt(pose.pose.pose)
             if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
                 raise StereoError('camera pose not finite')
