@@ -381,6 +381,7 @@ class ArmReference:
         self._new = None
         self._t0 = 0.0
         self._dur = 1.0
+        self._home = None
 
     def _target(self, mode: int, exc: Excitation, t0: float):
         joint, hold1, _ = self.modes[mode]
@@ -396,15 +397,33 @@ class ArmReference:
                here: np.ndarray, horizon_s: float, lead_s: float = 0.0) -> None:
         """Follow mode / excitation, blending in from `now + lead_s` on (until then the old
         reference holds: a command that reaches the arm up to lead_s late finds it on the same
-        path); `here`: joint positions for the first call."""
-        key = (mode, exc, exc_t0)
+        path); `here`: joint positions for the first call (the pose `rest` returns to)."""
+        self._switch((mode, exc, exc_t0), self._target(mode, exc, exc_t0), now, here,
+                     horizon_s, lead_s)
+
+    def rest(self, now: float, here: np.ndarray, lead_s: float = 0.0) -> float:
+        """Blend from the reference into standing still at the pose of the first `update`
+        (`here` if there was none) from `now + lead_s` on, as smoothly as any other switch; the
+        time at which the arm is at rest. A trajectory that ends while the arm still swings
+        leaves the joint controller holding the last point: a speed step, the whip `update`'s
+        blends avoid."""
+        home = np.array(self._home if self._home is not None else here, dtype=float)
+        zero = np.zeros(2)
+
+        def still(_t: float) -> tuple[np.ndarray, np.ndarray]:
+            return home, zero
+        self._switch(('rest',), still, now, here, 1.0, lead_s)   # 1 s: the swing's reach
+        return self._t0 + self._dur
+
+    def _switch(self, key, new, now: float, here: np.ndarray, horizon_s: float,
+                lead_s: float) -> None:
         if key == self._key:
             if self._old is not None and now >= self._t0 + self._dur:
                 self._old = None            # blend over: forget the old trajectory
             return
-        new = self._target(mode, exc, exc_t0)
         if self._new is None:
             here = np.asarray(here, dtype=float)
+            self._home = here.copy()
             zero = np.zeros(2)
 
             def live(_t: float) -> tuple[np.ndarray, np.ndarray]:

@@ -257,10 +257,25 @@ class IdentifierNode(Node):
         mode = int((now - self._t0) // self.p['mode_period_s']) % 3
         exc: Excitation = self._current_exc
         horizon = 3.0 * self.p['window_s']     # margin for a late next window
-        here = np.array([self.joint_positions.get('arm_joint_1', 0.0),
-                         self.joint_positions.get('arm_joint_2', 0.0)])
-        self._ref.update(now, mode, exc, self._exc_t0, here, horizon,
+        self._ref.update(now, mode, exc, self._exc_t0, self._joints_here(), horizon,
                          lead_s=self.p['command_lead_s'])
+        self._send_reference(now, horizon)
+
+    def _stop_arm(self) -> None:
+        """At a goal's end: blend the arm from its excitation into standing still at the pose
+        it started from (ArmReference.rest); the trajectory's last point holds it there."""
+        if self._t0 is None:
+            return                              # never commanded
+        now = self._t_now
+        t_rest = self._ref.rest(now, self._joints_here(), lead_s=self.p['command_lead_s'])
+        self._send_reference(now, t_rest - now + 2 * TRAJECTORY_STEP_S)
+
+    def _joints_here(self) -> np.ndarray:
+        return np.array([self.joint_positions.get('arm_joint_1', 0.0),
+                         self.joint_positions.get('arm_joint_2', 0.0)])
+
+    def _send_reference(self, now: float, horizon: float) -> None:
+        """Publish self._ref from about `now` to `horizon` s later."""
         traj = JointTrajectory()
         # The controller interpolates the points linearly and takes the segment slopes as speed
         # references. Points on one global time grid (every trajectory starts at the grid point
@@ -363,6 +378,8 @@ class IdentifierNode(Node):
                                   f'{self.bad.total} rejected samples')
                 break
         self._active = False
+        if not self._time_reset:     # after a jump back (a sim reset) the arm has moved on
+            self._stop_arm()
         result.estimate = self._estimate_msg()
         self.get_logger().info(f'identification done: {result.message}')
         return result

@@ -99,6 +99,29 @@ def test_arm_reference_never_steps_and_respects_the_blend_speed():
     np.testing.assert_allclose(ref(t)[0], [np.pi / 2, a(t - 2.0)[0]], atol=1e-12)
 
 
+def test_arm_reference_rest_blends_into_standing_still_at_home():
+    from coop_id.excitation import ArmReference, Excitation
+    from coop_id.identifier_node import MODES
+    ref = ArmReference(MODES, speed_rad_s=1.5)
+    home = np.array([0.1, -0.6])
+    exc = Excitation(0.8, 6.0, 0.3)
+    ref.update(0.0, 2, exc, 0.0, home, 1.2)
+    t_rest = ref.rest(3.0, np.array([9.0, 9.0]), lead_s=0.1)    # `here` unused once started
+    assert 3.1 + 0.2 <= t_rest < 3.1 + 1.875 * (0.8 + 0.3 + 1.0 + 0.7) / 1.5
+    ts = np.arange(2.95, t_rest + 1.0, 0.001)   # (it holds from 50 ms before `now` on)
+    q, qd = map(np.array, zip(*(ref(t) for t in ts)))
+    assert np.abs(np.diff(q, axis=0)).max() < 0.01 and np.abs(np.diff(qd, axis=0)).max() < 0.1
+    before = ts < 3.1           # the lead: the excitation goes on (tabulated at 1 ms)
+    np.testing.assert_allclose(q[before][:, 1], [exc(t)[0] for t in ts[before]], atol=1e-6)
+    after = ts >= t_rest
+    np.testing.assert_allclose(q[after], np.broadcast_to(home, q[after].shape), atol=1e-12)
+    np.testing.assert_allclose(qd[after], 0.0, atol=1e-12)
+    # a reference never started rests where the arm is
+    idle = ArmReference(MODES)
+    idle.rest(0.0, home)
+    np.testing.assert_allclose(idle(5.0)[0], home)
+
+
 def test_closed_form_arm_kinematics_is_modelsim_s():
     from coop_id.excitation import _ModeKinematics
     from coop_id.modelsim import arm_kinematics

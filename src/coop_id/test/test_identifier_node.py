@@ -126,6 +126,24 @@ def test_identify_action_over_dds(graph):
     wait_for(lambda: len(estimates) > 0 and len(commands) > 0, 10, what='outputs')
     assert commands[0].joint_names == ['arm_joint_1', 'arm_joint_2']
     assert estimates[-1].names[0] == 'mass'
+    # the goal's end stops the arm: the last command, on the path of the one before it, blends
+    # into standing still where the arm started (no joint_states here: at 0, 0)
+    wait_for(lambda: not any(commands[-1].points[-1].velocities), 10, what='stop command')
+    stop, prev = commands[-1], commands[-2]
+    np.testing.assert_allclose(stop.points[-1].positions, [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(stop.points[-1].positions, commands[0].points[0].positions)
+
+    def at(traj, k):
+        t0 = traj.header.stamp.sec + traj.header.stamp.nanosec * 1e-9
+        pt = traj.points[k]
+        return t0 + pt.time_from_start.sec + pt.time_from_start.nanosec * 1e-9, pt
+
+    t_stop, first = at(stop, 0)
+    k = min(range(len(prev.points)), key=lambda j: abs(at(prev, j)[0] - t_stop))
+    assert abs(at(prev, k)[0] - t_stop) < 1e-6
+    # (the blend's old side is tabulated at 1 ms)
+    np.testing.assert_allclose(first.positions, at(prev, k)[1].positions, atol=1e-6)
+    np.testing.assert_allclose(first.velocities, at(prev, k)[1].velocities, atol=1e-4)
 
 
 def test_bad_parameter_rejected(graph):
