@@ -619,12 +619,33 @@ class _Source:
         return out
 
     def messages(self, topics: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
-        if self.reader is not None:
-            conns = [c for c in self.reader.connections if topics is None or c.topic in topics]
-            for c, t, data in self.reader.messages(connections=conns):
-                yield c.topic, c.msgtype, t, data
-            return
         import heapq  # noqa: PLC0415
+
+        if self.reader is not None:
+            if len(self.files) == 1:
+                conns = [c for c in self.reader.connections
+                         if topics is None or c.topic in topics]
+                for c, t, data in self.reader.messages(connections=conns):
+                    yield c.topic, c.msgtype, t, data
+                return
+            # rosbags reads split files one after the other, but a recorder writes in arrival
+            # order, so a file may begin with messages older than the previous file's last
+            # (receive stamps taken on several threads): merge the files' streams by time
+            unzip = None
+            if self.reader.compression_mode == 'message':
+                from rosbags.rosbag2.storage_mcap import zstd  # noqa: PLC0415
+                unzip = zstd.decompress
+
+            def stream(file: Path) -> Iterator[tuple[int, str, str, bytes]]:
+                with Reader(file) as one:          # rosbags opens a lone storage file too
+                    conns = [c for c in one.connections if topics is None or c.topic in topics]
+                    if conns:
+                        for c, t, data in one.messages(connections=conns):
+                            yield t, c.topic, c.msgtype, data if unzip is None else unzip(data)
+            for t, topic, msgtype, data in heapq.merge(*map(stream, self.files),
+                                                      key=lambda m: m[0]):
+                yield topic, msgtype, t, data
+            return
 
         streams = []
         for scan in self.scans:

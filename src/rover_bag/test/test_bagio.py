@@ -132,6 +132,23 @@ def test_split_by_size_and_duration_one_bag(ts, tmp_path):
             '/rover1/inclinometer', '/rover1/imu', '/sim/truth'}
 
 
+def test_split_files_are_merged_in_time_order(ts, tmp_path):
+    """A recorder writes in arrival order: a split file can begin with a message older than the
+    previous file's last (receive stamps taken on several threads). Read in time order."""
+    data = ts.serialize_cdr(ts.types[STR]('x'), STR)
+    order = [0, 15, 22, 14, 30, 45, 29, 50]      # files [0 15] [22 14 30] [45 29 50]
+    with BagWriter(tmp_path / 'bag', typestore=ts, max_duration_s=20e-9) as bag:
+        bag.add_topic('/a', STR, offered_qos=SENSOR)
+        bag.add_topic('/b', STR, offered_qos=SENSOR)
+        for k, t in enumerate(order):
+            bag.write('/a' if k % 2 else '/b', t, data)
+    assert len(bag_info(tmp_path / 'bag').files) >= 3
+    for topics in (None, ['/a']):
+        got = [m.t_ns for m in read_messages(tmp_path / 'bag', topics, raw=True)]
+        want = sorted(t for k, t in enumerate(order) if topics is None or k % 2)
+        assert got == want
+
+
 def test_foreign_readers_open_the_bag(ts, tmp_path):
     write_sample(ts, tmp_path / 'bag', max_bytes=30_000)
     with AnyReader([tmp_path / 'bag']) as reader:   # default typestore: types from the bag
