@@ -130,7 +130,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
              executor_factory: Callable[[], Any] | None = None) -> int:
     """The Jazzy main() idiom: init, spin, clean shutdown on Ctrl-C or external shutdown.
 
-    A node whose construction fails (bad parameter, bad file) logs the reason and returns 1.
+    A node whose construction fails (bad parameter, bad file) logs the reason and returns 1; so
+    does one that shut its context down itself after setting `fatal_error` (a worker thread it
+    cannot run without died).
     """
     rclpy.init(args=args)
     node = None
@@ -152,4 +154,4 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return 1 if getattr(node, 'fatal_error', None) is not None else 0

@@ -37,3 +37,29 @@ def test_warns_once_per_period_per_reason(monkeypatch):
     clock[0] += 5.0
     bad.reject('nan')
     assert node.logger.lines[-1] == 'skipped input (nan, 11 so far)'
+
+
+def test_run_node_exits_1_when_the_node_shut_itself_down_for_a_fatal_error():
+    from rclpy.node import Node
+
+    from coop_common.node_util import run_node
+    from coop_common.testing import isolate_ros_environment
+    isolate_ros_environment()
+
+    class Dies(Node):
+        def __init__(self):
+            super().__init__('dies')
+            self.fatal_error = None
+            self.create_timer(0.01, self._die)
+
+        def _die(self):
+            self.fatal_error = RuntimeError('worker died')
+            self.context.try_shutdown()
+
+    class Stops(Node):
+        def __init__(self):
+            super().__init__('stops')
+            self.create_timer(0.01, self.context.try_shutdown)
+
+    assert run_node(Dies, []) == 1
+    assert run_node(Stops, []) == 0

@@ -104,6 +104,7 @@ class SimNode(Node):
         self._make_interfaces()
         self._publish_latched()
         self._stop = threading.Event()
+        self.fatal_error: Exception | None = None     # what stopped the simulation thread
         self._thread = threading.Thread(target=self._run, name='sim', daemon=True)
         self.get_logger().info(
             f'{self.config.rovers} rovers, seed {self.config.seed}, '
@@ -293,7 +294,11 @@ class SimNode(Node):
             # on Ctrl-C the context goes invalid under a publish in flight: a clean stop
             if self._stop.is_set() or not rclpy.ok(context=self.context):
                 return
-            self.get_logger().fatal(f'simulation thread stopped: {exc!r}')
+            # a node without its simulation would spin on, publishing nothing: stop the
+            # process instead (run_node exits 1), so a supervisor sees it and can respawn it
+            self.fatal_error = exc
+            self.get_logger().fatal(f'simulation thread stopped: {exc!r}; shutting down')
+            self.context.try_shutdown()
             raise
 
     def _pace(self) -> None:

@@ -1,4 +1,5 @@
-"""sim_node pieces in-process: the clock stamp and the reset request's defaults."""
+"""sim_node pieces in-process: the clock stamp, the reset request's defaults, a dying
+simulation thread."""
 import rclpy
 from rclpy.context import Context
 from rclpy.parameter import Parameter
@@ -38,3 +39,31 @@ def test_a_default_reset_request_keeps_the_scenario():
     finally:
         node.destroy_node()
         rclpy.shutdown(context=ctx)
+
+
+def test_a_dying_simulation_thread_stops_the_node():
+    """An exception in the simulation thread shuts the node's context down (run_node then
+    exits 1), instead of leaving a node that spins on and publishes nothing."""
+    import threading
+
+    from coop_common.testing import wait_for
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = SimNode(context=ctx, parameter_overrides=[
+        Parameter('rovers', value=1), Parameter('stereo_rate_hz', value=0.0),
+        Parameter('real_time_factor', value=0.0)])
+
+    def broken():
+        raise RuntimeError('physics server lost')
+    errors = []
+    hook, threading.excepthook = threading.excepthook, errors.append
+    try:
+        node.world.step = broken
+        wait_for(lambda: not rclpy.ok(context=ctx), 20, what='the context shut down')
+        node._thread.join(timeout=10)
+        assert isinstance(node.fatal_error, RuntimeError)
+        assert errors and errors[0].exc_type is RuntimeError     # the traceback is not lost
+    finally:
+        threading.excepthook = hook
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
