@@ -97,6 +97,13 @@ def occluder_hulls(points_sets: list[np.ndarray], target_radius: float, *,
     for pts in points_sets:
         pts = np.asarray(pts, float)
         nd = pts.shape[1]
+        box = _bounding_box_if_filled(pts)
+        if box is not None and (nd == 3 or target_radius <= 0):
+            # the hull of a set holding its bounding box's corners is that box, and a box grown
+            # by the cube (3-D target shape) is a box: no Qhull (thousands of tiles on a map)
+            lo, hi = box[0] - target_radius, box[1] + target_radius
+            out.append(_box_corners(lo, hi))
+            continue
         if target_radius > 0:
             if nd == 2:
                 a = np.arange(n_vertices) * 2 * np.pi / n_vertices
@@ -114,6 +121,40 @@ def occluder_hulls(points_sets: list[np.ndarray], target_radius: float, *,
     return out
 
 
+_CORNER_SELECT = {nd: np.array(np.meshgrid(*([[0, 1]] * nd), indexing='ij')).reshape(nd, -1).T
+                  for nd in (2, 3)}
+
+
+def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.where(_CORNER_SELECT[len(lo)] == 0, lo, hi)
+
+
+def _bounding_box_if_filled(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo, hi) of the set's bounding box if every corner of it is one of the points (the
+    convex hull is then the box itself), else None."""
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    if not np.all(hi > lo):
+        return None
+    # a point with every coordinate at lo or hi is a corner: which one, as a binary code
+    at_hi = pts == hi
+    corner = (at_hi | (pts == lo)).all(axis=1)
+    codes = at_hi[corner] @ (1 << np.arange(pts.shape[1]))
+    return (lo, hi) if np.all(np.bincount(codes, minlength=2 ** pts.shape[1])) else None
+
+
+def _box_distance(pts: np.ndarray, p: np.ndarray) -> float:
+    """Distance from p to the bounding box of pts (0 inside)."""
+    return float(np.linalg.norm(np.maximum(np.maximum(pts.min(axis=0) - p, p - pts.max(axis=0)),
+                                           0.0)))
+
+
+def _as_box(hull: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo, hi) if the hull's vertex set is exactly an axis-aligned box's corners."""
+    if len(hull) != 2 ** hull.shape[1]:
+        return None
+    return _bounding_box_if_filled(hull)
+
+
 def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occludes: bool = True,
                    tile_cells: int = 4, box: tuple[np.ndarray, np.ndarray] | None = None
                    ) -> list[np.ndarray]:
@@ -121,7 +162,9 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     `unknown_occludes`) cut into tiles of `tile_cells` per side, one set per connected piece of
     a tile, so the convex hulls stay close to the occluders' true shape. box: (lo, hi) cell
     index bounds (hi exclusive) to restrict to, e.g. the reach of a target (tiles then start
-    at lo). Each set's vertices are unique and in lexicographic order."""
+    at lo). Each set's vertices are unique and in lexicographic order; a run of tiles filled
+    entirely along the first axis (most of the unknown space of a live map) is one set, its
+    box's 2^ndim corners (the union of the tiles' hulls)."""
     occ = grid.known & (grid.prob >= threshold)
     if unknown_occludes:
         occ = occ | ~grid.known
@@ -131,7 +174,8 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
         lo = np.clip(np.asarray(box[0], np.int64), 0, grid.shape)
         hi = np.clip(np.asarray(box[1], np.int64), lo, grid.shape)
         occ = occ[tuple(slice(a, b) for a, b in zip(lo, hi))]
-    corners = np.array(np.meshgrid(*([[0, 1]] * nd), indexing='ij')).reshape(nd, -1).T
+    corners = _CORNER_SELECT[nd]
+    n_tiles = [int(np.ceil(n / tile_cells)) for n in occ.shape]
     tiles = np.zeros(occ.shape, np.int64)
     mult = 1
     for ax in range(nd):
@@ -139,12 +183,34 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
         sh = [1] * nd
         sh[ax] = -1
         tiles = tiles + idx.reshape(sh) * mult
-        mult *= int(np.ceil(occ.shape[ax] / tile_cells))
-    lab, n = ndimage.label(occ)
+        mult *= n_tiles[ax]
     cells = np.argwhere(occ)
     if len(cells) == 0:
         return []
-    _, gid = np.unique(lab[occ].astype(np.int64) * mult + tiles[occ], return_inverse=True)
+    lab, n = ndimage.label(occ)
+    tile_of = tiles[occ]
+    # filled tiles: their box's corners (one connected piece each)
+    full = np.bincount(tile_of, minlength=mult) == np.bincount(tiles.ravel(), minlength=mult)
+    full_ids = np.flatnonzero(full)
+    t_idx = np.stack(np.unravel_index(full_ids, n_tiles, order='F'), axis=1)
+    box_lo = t_idx * tile_cells
+    box_hi = np.minimum(box_lo + tile_cells, occ.shape)
+    # a run of filled tiles along the first axis is one box: the same union, so the same hulls
+    # (a box grown by the target's cube is the union of its tiles grown), far fewer of them
+    # (ids are in Fortran order: a run is consecutive ids without a wrap of the first axis)
+    starts = np.ones(len(full_ids), bool)
+    starts[1:] = (np.diff(full_ids) != 1) | (t_idx[1:, 0] == 0)
+    first = np.flatnonzero(starts)
+    last = np.append(first[1:], len(full_ids))[:len(first)] - 1
+    box_lo, box_hi = box_lo[first], box_hi[last]
+    boxes = [grid.origin + (lo + np.where(corners == 0, a, b)) * grid.resolution
+             for a, b in zip(box_lo, box_hi)]
+    rest = ~full[tile_of]
+    cells = cells[rest]
+    if len(cells) == 0:
+        return boxes
+    _, gid = np.unique(lab[occ][rest].astype(np.int64) * mult + tile_of[rest],
+                       return_inverse=True)
     # every group's cell corners as one sorted set of (group, raveled corner) codes: one sort
     # for all groups (a unique per group cost 20 s on a live 3-D map)
     dims = np.array(occ.shape) + 1
@@ -155,7 +221,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     g, c = np.divmod(code, size)
     pts = np.stack(np.unravel_index(c, dims), axis=1) + lo
     world = grid.origin + pts * grid.resolution
-    return np.split(world, np.flatnonzero(np.diff(g)) + 1)
+    return boxes + np.split(world, np.flatnonzero(np.diff(g)) + 1)
 
 
 def _halfspaces(hulls: list[np.ndarray]) -> list[np.ndarray]:
@@ -176,7 +242,14 @@ def occlusion_distance(target: np.ndarray, hulls: list[np.ndarray],
     the target point lies inside a hull (target inside an obstacle)."""
     u = np.asarray(directions, float)
     best = np.full(u.shape[0], np.inf)
-    for eq in _halfspaces(hulls):
+    boxes, others = [], []
+    for h in hulls:
+        b = _as_box(np.asarray(h, float))
+        (others if b is None else boxes).append(h if b is None else b)
+    if boxes:
+        best = _box_entry(target, np.array([b[0] for b in boxes]),
+                          np.array([b[1] for b in boxes]), u)
+    for eq in _halfspaces(others):
         n, c = eq[:, :-1], eq[:, -1] + eq[:, :-1] @ target     # n.x + c <= 0 inside, x rel.
         if np.all(c <= 1e-12):
             raise PlacementError('target is inside an (expanded) obstacle')
@@ -188,6 +261,35 @@ def occlusion_distance(target: np.ndarray, hulls: list[np.ndarray],
         parallel_out = ((np.abs(denom) < 1e-15) & (c[None, :] > 0)).any(axis=1)
         hit = (t_enter <= t_exit) & (t_exit >= 0) & ~parallel_out
         best = np.where(hit, np.minimum(best, np.maximum(t_enter, 0.0)), best)
+    return best
+
+
+def _box_entry(target: np.ndarray, lo: np.ndarray, hi: np.ndarray, u: np.ndarray,
+               chunk: int = 256) -> np.ndarray:
+    """occlusion_distance for axis-aligned boxes (B, ndim) by the slab method, all boxes and
+    directions at once. Raises PlacementError if the target lies in a box (boundary included,
+    as the hull test)."""
+    o = np.asarray(target, float)
+    if np.any(np.all((lo - 1e-12 <= o) & (o <= hi + 1e-12), axis=1)):
+        raise PlacementError('target is inside an (expanded) obstacle')
+    best = np.full(u.shape[0], np.inf)
+    zero = u == 0.0
+    with np.errstate(divide='ignore'):
+        inv = np.where(zero, 0.0, 1.0 / np.where(zero, 1.0, u))          # (K, nd)
+    for a in range(0, len(lo), chunk):
+        lo_c, hi_c = lo[a:a + chunk] - o, hi[a:a + chunk] - o               # (B, nd)
+        t1 = lo_c[None] * inv[:, None, :]                                   # (K, B, nd)
+        t2 = hi_c[None] * inv[:, None, :]
+        # a direction parallel to an axis: the slab is everything (-inf, inf) or nothing
+        # (inf, inf: never entered)
+        inside = (lo_c <= 0) & (hi_c >= 0)                                  # (B, nd)
+        par = zero[:, None, :]
+        t1 = np.where(par, np.where(inside[None], -np.inf, np.inf), t1)
+        t2 = np.where(par, np.inf, t2)
+        t_enter = np.minimum(t1, t2).max(axis=2)
+        t_exit = np.maximum(t1, t2).min(axis=2)
+        hit = (t_enter <= t_exit) & (t_exit >= 0)
+        best = np.minimum(best, np.where(hit, np.maximum(t_enter, 0.0), np.inf).min(axis=1))
     return best
 
 
@@ -437,7 +539,7 @@ class TaskPlacer:
         reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
         box = (grid.to_index(t.position - reach), grid.to_index(t.position + reach) + 1)
         near = [h for h in grid_occluders(grid, unknown_occludes=self.unknown_occludes, box=box)
-                if np.min(np.linalg.norm(h - t.position, axis=1)) <= reach]
+                if _box_distance(h, t.position) <= reach]
         try:
             f = VisibilityField(t.position, occluder_hulls(near, t.radius), n_dirs=self.n_dirs)
         except PlacementError as exc:       # the target inside an occluder: cached too

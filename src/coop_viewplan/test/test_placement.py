@@ -282,3 +282,33 @@ def test_cached_fields_serve_a_repeated_request_on_the_same_grid(monkeypatch):
         with pytest.raises(PlacementError, match='inside'):
             placer.place(g, inside, rng=np.random.default_rng(0))
     assert len(calls) == 3          # built once for g again (the cache follows the grid)
+
+
+def test_filled_tiles_are_boxes_with_the_hulls_of_their_cells():
+    """grid_occluders gives a run of filled tiles as one box (its 8 corners), and the box path
+    of occluder_hulls / occlusion_distance (slab test, no Qhull) answers as the hull path does
+    on the same shapes."""
+    from coop_viewplan.placement import grid_occluders, sphere_directions
+    g = OccupancyGrid.empty((16, 8, 8), resolution=0.1)
+    g.known[:], g.prob[:] = True, 0.0
+    g.known[4:12, 0:4, 0:4] = False                  # unknown: two filled 4-cell tiles
+    g.prob[0:2, 6:8, 4:6], g.prob[0, 6, 6] = 1.0, 1.0  # an occupied piece, not a box
+    sets = grid_occluders(g, tile_cells=4)
+    boxes = [s for s in sets if len(s) == 8]
+    assert len(boxes) == 1 and len(sets) == 2
+    np.testing.assert_allclose(boxes[0].min(0), [0.4, 0.0, 0.0])
+    np.testing.assert_allclose(boxes[0].max(0), [1.2, 0.4, 0.4])
+    target = np.array([1.5, 0.25, 0.15])
+    dirs = sphere_directions(400)
+    for r in (0.0, 0.05):
+        hulls = occluder_hulls(sets, r)
+        fast = occlusion_distance(target, hulls, dirs)
+        # the same shapes through Qhull: a face centre added makes a box set a general one
+        slow_sets = [np.vstack([h, h.mean(0) * [1, 1, 0] + [0, 0, h[:, 2].min()]])
+                     if len(h) == 8 else h for h in hulls]
+        slow = occlusion_distance(target, slow_sets, dirs)
+        np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-12)
+        d = occlusion_distance(target, hulls, np.array([[-1.0, 0.0, 0.0]]))
+        assert d[0] == pytest.approx(1.5 - 1.2 - r)          # the box's +x face, grown by r
+    with pytest.raises(PlacementError, match='inside'):
+        occlusion_distance(np.array([0.8, 0.2, 0.2]), occluder_hulls(sets, 0.0), dirs)
