@@ -8,13 +8,25 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+# the process's umask, read once at import (os.umask can only be read by setting it, which
+# would race with other threads creating files later)
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
 
-def _write_atomic(path: str | Path, mode: str, write: Callable[[IO], None]) -> Path:
-    """Call `write` on a temporary file in `path`'s directory, fsync, then os.replace."""
+
+def write_atomic(path: str | Path, mode: str, write: Callable[[IO], None]) -> Path:
+    """Call `write` on a temporary file in `path`'s directory, fsync, then os.replace. The file
+    gets the permissions a plain open() would give it (an existing file's, else 0666 less the
+    umask), not mkstemp's 0600."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        perms = path.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        perms = 0o666 & ~_UMASK
     fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
     try:
+        os.fchmod(fd, perms)
         with os.fdopen(fd, mode, **({} if 'b' in mode else {'encoding': 'utf-8'})) as f:
             write(f)
             f.flush()
@@ -28,7 +40,7 @@ def _write_atomic(path: str | Path, mode: str, write: Callable[[IO], None]) -> P
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write `text` to `path` through a temporary file in the same directory + os.replace."""
-    return _write_atomic(path, 'w', lambda f: f.write(text))
+    return write_atomic(path, 'w', lambda f: f.write(text))
 
 
 def save_figure(fig: Any, path: str | Path, *, dpi: int = 100) -> Path:
@@ -37,7 +49,7 @@ def save_figure(fig: Any, path: str | Path, *, dpi: int = 100) -> Path:
     path = Path(path)
     fig.tight_layout()
     try:
-        return _write_atomic(path, 'wb', lambda f: fig.savefig(
+        return write_atomic(path, 'wb', lambda f: fig.savefig(
             f, dpi=dpi, format=path.suffix.lstrip('.') or 'png'))
     finally:
         plt.close(fig)

@@ -33,3 +33,16 @@ def test_save_figure_writes_atomically_and_closes(tmp_path):
     assert path.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     assert not plt.fignum_exists(fig.number)
     assert [p.name for p in path.parent.iterdir()] == ['f.png']     # no temporary left
+
+
+def test_written_files_get_plain_open_permissions(tmp_path):
+    """Not mkstemp's 0600: a new file gets 0666 less the umask, a replaced one keeps its mode."""
+    import os
+
+    from coop_common.files import _UMASK, write_text_atomic
+    p = write_text_atomic(tmp_path / 'a.txt', 'x')
+    assert p.stat().st_mode & 0o777 == 0o666 & ~_UMASK
+    os.chmod(p, 0o640)
+    write_text_atomic(p, 'y')
+    assert p.stat().st_mode & 0o777 == 0o640 and p.read_text() == 'y'
+    assert sorted(x.name for x in tmp_path.iterdir()) == ['a.txt']     # no temporary left

@@ -49,14 +49,14 @@ import io
 import json
 import math
 import os
-import tempfile
 import zipfile
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
+
+from coop_common.files import write_atomic
 
 from .gauss import (
     NotPositiveDefinite,
@@ -870,30 +870,22 @@ class VoxelMap:
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | os.PathLike) -> None:
         """Versioned file (zip of .npy + JSON header), written to a temporary file in the same
-        directory and moved into place with os.replace: a reader never sees a half file."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        directory and moved into place with os.replace (coop_common.files.write_atomic): a
+        reader never sees a half file."""
         header = {'format': FILE_FORMAT, 'version': FILE_VERSION,
                   'resolution': self.resolution, 'sequence': self.sequence,
                   'default_sigma': self.default_sigma, 'voxel_prior': self.voxel_prior,
                   'model': self.model.__dict__, 'contributions': dict(self.contributions),
                   'voxels': len(self)}
-        fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
-        try:
-            with os.fdopen(fd, 'wb') as f:
-                with zipfile.ZipFile(f, 'w', compression=zipfile.ZIP_STORED) as z:
-                    z.writestr('header.json', json.dumps(header))
-                    for name, arr in self._arrays().items():
-                        buf = io.BytesIO()
-                        np.save(buf, arr, allow_pickle=False)
-                        z.writestr(name + '.npy', buf.getvalue())
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+
+        def write(f) -> None:
+            with zipfile.ZipFile(f, 'w', compression=zipfile.ZIP_STORED) as z:
+                z.writestr('header.json', json.dumps(header))
+                for name, arr in self._arrays().items():
+                    buf = io.BytesIO()
+                    np.save(buf, arr, allow_pickle=False)
+                    z.writestr(name + '.npy', buf.getvalue())
+        write_atomic(path, 'wb', write)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> VoxelMap:
