@@ -97,8 +97,8 @@ def occluder_hulls(points_sets: list[np.ndarray], target_radius: float, *,
     for pts in points_sets:
         pts = np.asarray(pts, float)
         nd = pts.shape[1]
-        box = _bounding_box_if_filled(pts)
-        if box is not None and (nd == 3 or target_radius <= 0):
+        box = _bounding_box_if_filled(pts) if nd == 3 or target_radius <= 0 else None
+        if box is not None:
             # the hull of a set holding its bounding box's corners is that box, and a box grown
             # by the cube (3-D target shape) is a box: no Qhull (thousands of tiles on a map)
             lo, hi = box[0] - target_radius, box[1] + target_radius
