@@ -12,7 +12,8 @@ Before fusing a cloud it drops the points inside the body volume of its own rove
 teammate whose camera pose it holds (`bodies.BodyFilter`: `body_radius_m` about each camera,
 0 = off). Services `/map/save`, `/map/load` (coop_msgs/srv/MapFile),
 `/map/query` (coop_msgs/srv/QueryMap), `/map/reset` (std_srvs/Trigger). Autosaves every
-`autosave_period_s` to `map_file` and loads it at start if it is there.
+`autosave_period_s` to `map_file`, and once more when it stops cleanly (Ctrl-C, SIGTERM,
+shutdown), and loads it at start if it is there.
 """
 from __future__ import annotations
 
@@ -320,6 +321,14 @@ class MapperNode(Node):
         self.get_logger().info(f'saved {len(self.map)} voxels to {path} ({self.body_points} '
                                'points on rover bodies not fused so far)')
         return None
+
+    def destroy_node(self) -> None:
+        """A clean stop saves what the last autosave does not hold (with autosave on), so a
+        restart loses nothing; a killed mapper loses what came after its last autosave."""
+        if self.p['autosave_period_s'] > 0 and self.p['map_file'] and \
+                self.map.sequence != self._saved_seq:
+            self._save(self.p['map_file'])
+        super().destroy_node()
 
     # ---------------------------------------------------------------- services
     def srv_save(self, req, resp):

@@ -217,6 +217,25 @@ def test_mapper_loads_last_save_on_restart(ctx, tmp_path):
         node.destroy_node()
 
 
+def test_mapper_saves_on_a_clean_stop_when_autosave_is_on(ctx, tmp_path):
+    """destroy_node (run_node's clean stop) saves what came after the last autosave; with
+    autosave off it writes nothing."""
+    from coop_mapping.voxelmap import VoxelMap
+    for period, expect_file in ((3600.0, True), (0.0, False)):
+        path = tmp_path / f'team_{period:g}.cmap'
+        node = MapperNode(context=ctx, parameter_overrides=[
+            Parameter('map_file', value=str(path)),
+            Parameter('autosave_period_s', value=period)])
+        node.map.insert_scan(np.array([[1.05, 0.05, 0.05], [1.05, 1.05, 0.05]]),
+                             np.array([0.05, 0.05, 0.05]), source='rover2')
+        node.destroy_node()
+        assert path.exists() is expect_file
+        if expect_file:
+            saved = VoxelMap.load(path)
+            assert len(saved) == len(node.map) and saved.sequence == node.map.sequence
+            assert saved.contributions == {'rover2': 1}
+
+
 def test_mapper_moves_a_save_it_cannot_take_aside(ctx, tmp_path):
     """A last save of another resolution (or corrupt, or another version) is not loaded and
     not overwritten by the next autosave: it is moved to <map_file>.refused."""
