@@ -199,14 +199,21 @@ class StereoNode(Node):
         st = _stamp_ns(msg.header.stamp)
         b = self.buf[kind]
         b[st] = msg
-        while len(b) > 10:
-            b.popitem(last=False)
+        if len(b) > 10:
+            self._drop_unmatched([next(iter(b))])
         if all(st in self.buf[k] for k in ('left', 'right', 'pose')):
             msgs = {k: self.buf[k].pop(st) for k in ('left', 'right', 'pose')}
-            for k in self.buf:  # older unmatched frames will never complete
-                for s in [s for s in self.buf[k] if s < st]:
-                    del self.buf[k][s]
+            # older unmatched frames will never complete
+            self._drop_unmatched(sorted({s for k in self.buf for s in self.buf[k] if s < st}))
             self._process(msgs)
+
+    def _drop_unmatched(self, stamps: list[int]) -> None:
+        """Forget the frames at `stamps`, each missing a part (left, right or pose) that a
+        lossy link or a stalled publisher never delivered: counted as 'unmatched'."""
+        for s in stamps:
+            have = [k for k in self.buf if self.buf[k].pop(s, None) is not None]
+            self.bad.reject('unmatched', f'frame at {s * 1e-9:.3f} s: only '
+                            f'{" + ".join(have)} arrived')
 
     def _process(self, m: dict) -> None:
         if 'left' not in self.info or 'right' not in self.info:

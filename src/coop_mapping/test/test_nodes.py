@@ -330,6 +330,35 @@ def test_stereo_node_corrects_dead_reckoning_with_fiducials(stereo_rig):
              spin=rig.spin, what='the bad pair rejected, the good one published')
 
 
+def test_stereo_node_counts_frames_that_never_complete(ctx):
+    """A frame missing its right image, pose or left image is dropped and counted once when a
+    later frame completes, or when it is the oldest of more than 10 waiting; a complete frame
+    is not."""
+    from builtin_interfaces.msg import Time
+
+    from coop_mapping.stereo_node import StereoNode
+    node = StereoNode(context=ctx)
+
+    def put(kind, sec):
+        m = PoseWithCovarianceStamped()       # _put reads the header only
+        m.header = Header(stamp=Time(sec=sec), frame_id='map')
+        node._put(kind, m)
+    try:
+        put('left', 1)                          # right and pose never come
+        put('left', 2)
+        put('pose', 2)                          # right never comes
+        for kind in ('pose', 'right', 'left'):  # complete: the ones before it are dropped
+            put(kind, 3)
+        assert node.bad.counts['unmatched'] == 2 and all(not b for b in node.buf.values())
+        assert len(node._waiting) == 1          # no camera_info yet: held, not dropped
+        for sec in range(10, 22):               # 12 lone left images: the oldest two go
+            put('left', sec)
+        assert node.bad.counts['unmatched'] == 4 and list(node.buf['left']) == [
+            int(sec * 1e9) for sec in range(12, 22)]
+    finally:
+        node.destroy_node()
+
+
 def test_stereo_node_checks_its_ranges_together(ctx):
     """min_range_m below max_range_m (and the marker radii likewise), at start and on a change."""
     from coop_mapping.stereo_node import StereoNode
