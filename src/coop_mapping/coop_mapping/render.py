@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from coop_common.rendering import projection_matrix
+
 from .stereo import StereoCamera
 
 __all__ = ['Box', 'TexturedScene', 'look_at', 'default_boxes']
@@ -88,9 +90,8 @@ class TexturedScene:
             tid = p.loadTexture(path, physicsClientId=self._cid)
             p.changeVisualShape(body, -1, textureUniqueId=tid, rgbaColor=[1, 1, 1, 1],
                                 physicsClientId=self._cid)
-        cam = camera
-        vfov = 2 * np.degrees(np.arctan(cam.height / 2.0 / cam.fy))
-        self._proj = p.computeProjectionMatrixFOV(vfov, cam.width / cam.height, near, far)
+        k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0, 0, 1]])
+        self._proj = projection_matrix(k, camera.width, camera.height, near, far)
 
     def close(self) -> None:
         if self._cid is not None:

@@ -16,6 +16,7 @@ import numpy as np
 import pybullet as pb
 
 from coop_common.dynparams import BaseParameters
+from coop_common.rendering import projection_matrix
 
 from .compliance import (
     FastCompliance,
@@ -635,7 +636,8 @@ class World:
 
     # ----------------------------------------------------------------- rendering
     def intrinsics(self) -> np.ndarray:
-        """3x3 K of both (rectified, identical) cameras."""
+        """3x3 K of both (rectified, identical) cameras: principal point at the image centre;
+        render_stereo_at draws the images of this K (coop_common.rendering)."""
         w, h = self.config.image_width, self.config.image_height
         f = (w / 2.0) / math.tan(math.radians(self.config.hfov_deg) / 2.0)
         return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
@@ -648,9 +650,7 @@ class World:
         """Left and right mono8 images of a stereo pair whose left optical frame is at `pos`
         with orientation `rot` (columns: optical x right, y down, z forward) in the world."""
         w, h = self.config.image_width, self.config.image_height
-        k = self.intrinsics()
-        vfov = math.degrees(2.0 * math.atan((h / 2.0) / k[1, 1]))
-        proj = pb.computeProjectionMatrixFOV(vfov, w / h, 0.05, 60.0)
+        proj = projection_matrix(self.intrinsics(), w, h, 0.05, 60.0)
         pos, rot = np.asarray(pos, dtype=float), np.asarray(rot, dtype=float)
         images = []
         for offset in (0.0, STEREO_BASELINE_M):

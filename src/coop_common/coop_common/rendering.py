@@ -1,0 +1,43 @@
+"""The OpenGL projection matrix that makes PyBullet's TinyRenderer draw the image of a given
+pinhole camera matrix K, so that the K a simulated camera reports is the one its images have.
+
+TinyRenderer (bullet3 examples/TinyRenderer/our_gl.cpp) maps normalised device coordinates to
+the window by x_w = (x_ndc + 1) w / 2, y_w = (y_ndc + 1) h / 2, fills pixel P where the
+triangle covers the integer point P, and getCameraImage returns the rows top first
+(row r = h - 1 - y_w). In the OpenCV convention (pixel (u, v) covers [u - 1/2, u + 1/2] x
+[v - 1/2, v + 1/2]), the symmetric matrix of computeProjectionMatrixFOV therefore puts the
+principal point at (w / 2, h / 2 - 1), not at the image centre ((w - 1) / 2, (h - 1) / 2):
+half a pixel off in each axis, in opposite directions (measured by
+test_rendering.py::test_tinyrenderer_draws_the_image_of_k). `projection_matrix` shifts the
+matrix's third column so the renderer's principal point is K's. No pybullet here.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ['projection_matrix']
+
+
+def projection_matrix(k: np.ndarray, width: int, height: int, near: float, far: float
+                      ) -> list[float]:
+    """16 floats, column-major (PyBullet's projectionMatrix): the perspective projection of
+    the camera with 3x3 intrinsics `k` (x right, y down, z forward) onto a `width` x `height`
+    TinyRenderer image, depth clipped to [near, far]. Skew must be 0."""
+    k = np.asarray(k, float)
+    if k.shape != (3, 3) or k[0, 1] != 0.0 or not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise ValueError(f'need a 3x3 pinhole matrix with fx, fy > 0 and no skew, got {k!r}')
+    if not (width > 0 and height > 0 and 0 < near < far):
+        raise ValueError(f'need a positive image size and 0 < near < far, got {width}x{height}, '
+                         f'near {near}, far {far}')
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    p = np.zeros((4, 4))
+    # column u = fx X/Z + cx samples x_ndc = 2u/w - 1; row v = fy Y/Z + cy samples
+    # y_ndc = 2(h - 1 - v)/h - 1; with X = x_eye, Y = -y_eye, Z = -z_eye (OpenGL eye frame)
+    p[0, 0] = 2.0 * fx / width
+    p[0, 2] = 1.0 - 2.0 * cx / width
+    p[1, 1] = 2.0 * fy / height
+    p[1, 2] = (2.0 * cy + 2.0 - height) / height
+    p[2, 2] = -(far + near) / (far - near)
+    p[2, 3] = -2.0 * far * near / (far - near)
+    p[3, 2] = -1.0
+    return p.T.reshape(-1).tolist()
