@@ -37,6 +37,7 @@ from coop_msgs.msg import VoxelMapUpdate
 from coop_msgs.srv import MapFile, QueryMap
 
 from .bodies import BodyFilter
+from .offline import stamp_ns
 from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, voxelset
 from .voxelmap import MapFileError, MapInputError, VoxelMap
 
@@ -78,10 +79,6 @@ def _free_name(path: str) -> str:
         i += 1
         name = f'{path}.{i}'
     return name
-
-
-def _stamp_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 class MapperNode(Node):
@@ -178,7 +175,7 @@ class MapperNode(Node):
         if not np.all(np.isfinite(origin)):
             self.bad.reject('pose_nan', rover)
             return
-        st = _stamp_ns(msg.header.stamp)
+        st = stamp_ns(msg.header.stamp)
         poses = self.poses[rover]
         poses[st] = origin
         while len(poses) > 50:
@@ -192,7 +189,7 @@ class MapperNode(Node):
         if msg.header.frame_id != self.p['map_frame']:
             self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
             return
-        st = _stamp_ns(msg.header.stamp)
+        st = stamp_ns(msg.header.stamp)
         origin = self.poses[rover].get(st)
         if origin is None:
             pend = self.pending[rover]
@@ -225,7 +222,7 @@ class MapperNode(Node):
         bodies = BodyFilter(self.p['body_radius_m'], self.p['body_above_camera_m'],
                             self.p['body_pose_tolerance_s'])
         if bodies.enabled:
-            cams = bodies.cameras_at(_stamp_ns(msg.header.stamp), origin,
+            cams = bodies.cameras_at(stamp_ns(msg.header.stamp), origin,
                                      [self.poses[r] for r in self.poses if r != rover])
             pts, cov, dropped = bodies.drop(pts, cov, cams)
             if len(pts) == 0:

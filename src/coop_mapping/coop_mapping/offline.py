@@ -115,6 +115,7 @@ class OfflineMap:
 
 
 def stamp_ns(stamp) -> int:
+    """A builtin_interfaces/Time as integer nanoseconds (the nodes key frames by it too)."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 

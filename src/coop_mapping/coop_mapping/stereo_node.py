@@ -41,7 +41,7 @@ from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
-from .offline import StereoSettings
+from .offline import StereoSettings, stamp_ns
 from .ros_conv import cloud_to_msg, pose_to_rt
 from .stereo import FULL_WIDTH_DEFAULT, SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoError, StereoRanger
 from .target_frame import Initialiser, TargetFrameError, TargetGeometry
@@ -106,10 +106,6 @@ def image_to_array(msg: Image) -> np.ndarray:
         raise StereoError('image data shorter than step * height')
     a = np.frombuffer(bytes(msg.data), np.uint8, count=msg.step * msg.height)
     return a.reshape(msg.height, msg.step)[:, :msg.width].copy()
-
-
-def _stamp_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def _check_params(p: dict) -> str | None:
@@ -196,7 +192,7 @@ class StereoNode(Node):
         return settings.ranger(li.p, ri.p, li.width, li.height)
 
     def _put(self, kind: str, msg) -> None:
-        st = _stamp_ns(msg.header.stamp)
+        st = stamp_ns(msg.header.stamp)
         b = self.buf[kind]
         b[st] = msg
         if len(b) > 10:
