@@ -1,3 +1,4 @@
+#!/usr/bin/env python3
 """Benchmark of coop_viewplan: 3-D NI scoring rate (candidate poses/s), next-best-view decision
 time, and task-placement time (2-D study scene; 3-D map as the view planner node serves it);
 batched scoring is compared with scoring one pose at a time (the peer) in the same run.

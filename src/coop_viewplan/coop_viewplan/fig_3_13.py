@@ -208,10 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
                         'pose, etc."); default: all random')
     p.add_argument('--angle-weight', type=float, default=NbvConfig.alpha[3],
                    help='alpha of yaw and pitch in Eq. 3-11 (m per rad); thesis: "alpha_i = 1 '
-                        'for this thesis" (default); 0 = the pre-2026-11-22 runs')
+                        'for this thesis" (default); 0 = the pre-2026-11-21 runs')
     p.add_argument('--entropy-weight', choices=ENTROPY_WEIGHTS, default=NbvConfig.entropy_weight,
                    help='premultiplier of q_k log2 q_k in NI: -p_k log2 p_k as the thesis writes '
-                        'it (plogp, default) or the binary occupancy entropy (the pre-2026-11-22 '
+                        'it (plogp, default) or the binary occupancy entropy (the pre-2026-11-21 '
                         'runs)')
     p.add_argument('--ni-measure', choices=NI_MEASURES, default=NbvConfig.ni_measure,
                    help='NI binning: gray levels of the cells in view (Eq. 3-13, default) or the '

@@ -18,7 +18,7 @@ Reading of Eq. 3-12b..3-14 used here (the thesis leaves the details open):
   visible");
 * each -q_k log2 q_k is premultiplied by -p_k log2 p_k, as §3.2.4 writes it, with p_k the mean
   over the cells in level k of -p log2 p (`entropy_weight='plogp'`, the default since
-  2026-11-22); `entropy_weight='binary'` (the earlier reading, -p log2 p - (1-p) log2 (1-p),
+  2026-11-21); `entropy_weight='binary'` (the earlier reading, -p log2 p - (1-p) log2 (1-p),
   largest at p = 0.5) remains as an option. Either way a field of view that is entirely known
   (p = 0 or 1) gives NI = 0.
 * `ni_measure='predictor5'` (App. C: predictor 5 "is extended to the information theoretic
@@ -132,7 +132,7 @@ class NbvConfig:
     k_rel: float = 0.15
     n_exp: float = 1.0
     # Eq. 3-11 weights over (x, y, z, yaw, pitch): "alpha_i = 1 for this thesis" (§3.2.4 (iii));
-    # metres and radians. Until 2026-11-22 the angles had weight 0.
+    # metres and radians. Until 2026-11-21 the angles had weight 0.
     alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
     entropy_weight: str = 'plogp'  # NI premultiplier: 'plogp' (§3.2.4 as written) or 'binary'
     ni_measure: str = 'histogram'  # Eq. 3-13 on gray levels, or 'predictor5' (App. C)
