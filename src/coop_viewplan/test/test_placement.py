@@ -312,3 +312,102 @@ def test_filled_tiles_are_boxes_with_the_hulls_of_their_cells():
         assert d[0] == pytest.approx(1.5 - 1.2 - r)          # the box's +x face, grown by r
     with pytest.raises(PlacementError, match='inside'):
         occlusion_distance(np.array([0.8, 0.2, 0.2]), occluder_hulls(sets, 0.0), dirs)
+
+
+def _occlusion_reference(target, hulls, dirs):
+    """occlusion_distance the straightforward way: Qhull on each hull, one hull at a time."""
+    from scipy.spatial import ConvexHull
+
+    from coop_viewplan.placement import _hull_entry_each
+    return _hull_entry_each(target, [ConvexHull(h).equations for h in hulls], dirs,
+                            np.full(len(dirs), np.inf))
+
+
+def test_vectorised_hull_occlusion_matches_a_per_hull_reference():
+    """occlusion_distance rates all 3-D hulls at once (only the rays that pass near a hull's
+    bounding sphere): the same distances as one hull at a time, the same refusal when the
+    target is inside one; in 2-D it is still the per-hull loop, bit for bit."""
+    from coop_viewplan.placement import _expanded_hulls, sphere_directions
+    rng = np.random.default_rng(5)
+    dirs = np.vstack([sphere_directions(720), np.eye(3), -np.eye(3)])
+    for trial in range(6):
+        hulls = []
+        for _ in range(60):
+            centre = rng.uniform(-4, 4, 3)
+            if np.linalg.norm(centre) < 0.8:
+                continue
+            pts = centre + rng.normal(scale=rng.uniform(0.05, 0.6), size=(rng.integers(4, 30), 3))
+            hulls.append(occluder_hulls([pts], rng.choice([0.0, 0.05]))[0])
+        target = rng.normal(scale=0.05, size=3)
+        try:
+            ref = _occlusion_reference(target, hulls, dirs)
+        except PlacementError:
+            continue                    # the random cloud covered the target: skip
+        got = occlusion_distance(target, hulls, dirs)
+        assert np.array_equal(np.isfinite(got), np.isfinite(ref))
+        assert np.isfinite(ref).sum() > 20
+        np.testing.assert_allclose(got[np.isfinite(got)], ref[np.isfinite(ref)], rtol=0,
+                                   atol=1e-12)
+        # the same with the halfspaces handed over (as TaskPlacer does)
+        pts_sets = [h + 0.0 for h in hulls]
+        grown, eqs = _expanded_hulls(pts_sets, 0.0)
+        again = occlusion_distance(target, grown, dirs, equations=eqs)
+        np.testing.assert_allclose(again[np.isfinite(again)], ref[np.isfinite(ref)], rtol=0,
+                                   atol=1e-12)
+        # the target inside one of them (the hull's centroid): refused like the reference
+        inside = hulls[len(hulls) // 2].mean(axis=0)
+        with pytest.raises(PlacementError, match='inside'):
+            _occlusion_reference(inside, hulls, dirs)
+        with pytest.raises(PlacementError, match='inside'):
+            occlusion_distance(inside, hulls, dirs)
+        with pytest.raises(PlacementError, match='inside'):
+            occlusion_distance(inside, grown, dirs, equations=eqs)
+    # 2-D: the loop as before
+    a = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    d2 = np.stack([np.cos(a), np.sin(a)], 1)
+    polys = [occluder_hulls([rng.uniform(-0.3, 0.3, (6, 2)) + c], 0.1)[0]
+             for c in ([2.0, 0.0], [0.0, -3.0], [-1.5, 1.5])]
+    assert np.array_equal(occlusion_distance(np.zeros(2), polys, d2),
+                          _occlusion_reference(np.zeros(2), polys, d2))
+
+
+def test_expanded_hulls_are_the_direct_convex_hulls():
+    """occluder_hulls on 3-D tile pieces (Qhull on the few Minkowski points that can be
+    vertices) gives exactly the vertex arrays of Qhull on every point, and the halfspaces it
+    hands on bound those hulls."""
+    from scipy.spatial import ConvexHull
+
+    from coop_viewplan.placement import _expanded_hulls, grid_occluders
+    rng = np.random.default_rng(11)
+    g = OccupancyGrid.empty((24, 20, 12), resolution=0.1, origin=np.array([-1.03, 0.4, 0.0]))
+    g.known[:] = rng.random(g.shape) < 0.8
+    g.prob[:] = (rng.random(g.shape) < 0.3).astype(np.float32)
+    sets = grid_occluders(g, tile_cells=4)
+    sets += [rng.normal(size=(12, 3)), np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])]
+    assert len(sets) > 100
+    cube = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    for r in (0.0, 0.05):
+        got, eqs = _expanded_hulls(sets, r)
+        public = occluder_hulls(sets, r)
+        assert len(public) == len(got) and all(map(np.array_equal, got, public))
+        boxes = 0
+        for pts, h, eq in zip(sets, got, eqs):
+            grown = pts if r == 0 else (pts[:, None, :] + cube[None] * r).reshape(-1, 3)
+            lo, hi = pts.min(0), pts.max(0)
+            corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                                for c in (lo[2], hi[2])])
+            if len(h) == 8 and all((pts == c).all(1).any() for c in corners):
+                boxes += 1              # a filled box: its corners grown, no Qhull
+                np.testing.assert_array_equal(h.min(0), lo - r)
+                continue
+            try:
+                hull = ConvexHull(grown)
+            except Exception:
+                np.testing.assert_array_equal(h, grown)       # degenerate: kept as is
+                assert eq is None
+                continue
+            np.testing.assert_array_equal(h, grown[hull.vertices])
+            dist = h @ eq[:, :3].T + eq[:, 3]
+            assert dist.max() < 1e-12                         # every vertex inside every face
+            assert ((np.abs(dist) < 1e-12).sum(axis=0) >= 3).all()   # each face is a facet
+        assert boxes > 0
