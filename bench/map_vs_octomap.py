@@ -101,12 +101,12 @@ def synthetic_scans(n_points: int, seed: int = 0):
 
 
 def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = SUBPIXEL_DEFAULT,
-                 full_width: bool = FULL_WIDTH_DEFAULT):
+                 full_width: bool = FULL_WIDTH_DEFAULT, supersample: int = 1):
     cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
     ranger = StereoRanger(cam, num_disparities=64, max_range=10.0, subpixel=subpixel,
                           full_width=full_width)
     scans, truth = [], []
-    with TexturedScene(cam, seed=seed) as scene:
+    with TexturedScene(cam, seed=seed, supersample=supersample) as scene:
         for rover, eye, target in STEREO_POSES:
             eye = np.asarray(eye, float)
             R = look_at(eye, np.asarray(target, float))
@@ -298,15 +298,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--full-width', action=argparse.BooleanOptionalAction,
                     default=FULL_WIDTH_DEFAULT,
                     help='range the left 64 columns of each frame too (stereo.compute_disparity)')
+    ap.add_argument('--supersample', type=int, default=1,
+                    help='render the stereo frames at k x k (odd k) samples per pixel, area '
+                    'averaged (render.TexturedScene: pixel integration, no texture aliasing)')
     args = ap.parse_args(argv)
 
     syn = synthetic_scans(args.points)
     st, truth = stereo_scans(args.width, args.height, subpixel=args.subpixel,
-                             full_width=args.full_width)
+                             full_width=args.full_width, supersample=args.supersample)
     out = {'octomap_model': {'prob_hit': 0.7, 'prob_miss': 0.4, 'clamp_min': 0.1192,
                              'clamp_max': 0.971},
            'stereo_frames': len(st), 'image': [args.width, args.height], 'subpixel': args.subpixel,
-           'full_width': args.full_width,
+           'full_width': args.full_width, 'supersample': args.supersample,
            'resolutions': {}}
     rows = []
     for res in args.resolutions:

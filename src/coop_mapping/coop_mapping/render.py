@@ -62,14 +62,25 @@ def _tiles(boxes: list[Box], tile: float) -> list[Box]:
 
 
 class TexturedScene:
-    """PyBullet DIRECT world of textured boxes; render(R_wc, t_wc) -> left, right, depth."""
+    """PyBullet DIRECT world of textured boxes; render(R_wc, t_wc) -> left, right, depth.
+
+    `supersample` k (odd, >= 1): TinyRenderer samples the scene at pixel centres only (one
+    texel per pixel, no area integration), so texture finer than a pixel aliases, differently
+    in the two images of a pair; a camera's pixel integrates the light over its area. With
+    k > 1 the images are rendered at k times the resolution (the same field of view and
+    principal point) and averaged over k x k blocks (cv2.INTER_AREA); odd k puts a fine
+    sample on each pixel centre, where the true depth is read."""
 
     def __init__(self, camera: StereoCamera, *, boxes: list[Box] | None = None, seed: int = 0,
-                 near: float = 0.1, far: float = 30.0, tile_m: float = 0.8) -> None:
+                 near: float = 0.1, far: float = 30.0, tile_m: float = 0.8,
+                 supersample: int = 1) -> None:
         import pybullet as p  # noqa: PLC0415 - heavy, only for this data source
 
+        if supersample < 1 or supersample % 2 == 0:
+            raise ValueError('supersample must be an odd integer >= 1')
         self._p = p
         self.camera = camera
+        self.supersample = int(supersample)
         self.near, self.far = near, far
         self.boxes = boxes if boxes is not None else default_boxes()
         self._cid = p.connect(p.DIRECT)
@@ -90,8 +101,13 @@ class TexturedScene:
             tid = p.loadTexture(path, physicsClientId=self._cid)
             p.changeVisualShape(body, -1, textureUniqueId=tid, rgbaColor=[1, 1, 1, 1],
                                 physicsClientId=self._cid)
-        k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0, 0, 1]])
-        self._proj = projection_matrix(k, camera.width, camera.height, near, far)
+        # the fine grid's pixel centres: pixel u covers fine u' in [k u, k u + k), centre
+        # k u + (k - 1) / 2, so f' = k f and c' = k c + (k - 1) / 2
+        n = self.supersample
+        k = np.array([[n * camera.fx, 0.0, n * camera.cx + (n - 1) / 2],
+                      [0.0, n * camera.fy, n * camera.cy + (n - 1) / 2], [0, 0, 1]])
+        self._size = (n * camera.width, n * camera.height)
+        self._proj = projection_matrix(k, *self._size, near, far)
 
     def close(self) -> None:
         if self._cid is not None:
@@ -114,13 +130,20 @@ class TexturedScene:
 
     def _render_one(self, R_wc: np.ndarray, t_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self._p
+        w, h = self._size
         _, _, rgb, zbuf, _ = p.getCameraImage(
-            self.camera.width, self.camera.height, viewMatrix=self._view(R_wc, t_wc),
+            w, h, viewMatrix=self._view(R_wc, t_wc),
             projectionMatrix=self._proj, renderer=p.ER_TINY_RENDERER, shadow=0,
             lightDirection=[0.3, 0.2, 1.0], physicsClientId=self._cid)
-        rgb = np.asarray(rgb, np.uint8).reshape(self.camera.height, self.camera.width, 4)
+        rgb = np.asarray(rgb, np.uint8).reshape(h, w, 4)
         gray = cv2.cvtColor(rgb[:, :, :3], cv2.COLOR_RGB2GRAY)
-        zb = np.asarray(zbuf, np.float64).reshape(self.camera.height, self.camera.width)
+        zb = np.asarray(zbuf, np.float64).reshape(h, w)
+        n = self.supersample
+        if n > 1:
+            gray = cv2.resize(gray.astype(np.float32), (self.camera.width, self.camera.height),
+                              interpolation=cv2.INTER_AREA)
+            gray = np.clip(np.rint(gray), 0, 255).astype(np.uint8)
+            zb = zb[n // 2::n, n // 2::n]
         depth = self.far * self.near / (self.far - (self.far - self.near) * zb)
         depth[zb >= 1.0] = np.nan
         return gray, depth

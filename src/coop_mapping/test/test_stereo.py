@@ -244,3 +244,28 @@ def test_subpixel_corrections_range_the_rendered_scene_better(rendered, mode, ra
     assert rms['sgbm'] > 0.15                       # the locking is there to correct
     assert rms[mode] < ratio * rms['sgbm']
     assert valid[mode] > 0.98 * valid['sgbm']       # not by dropping the hard pixels
+
+
+def test_supersampled_render_is_the_same_camera_with_pixel_integration():
+    """TexturedScene(supersample=3) renders 3x3 samples per pixel and averages them: the true
+    depth (read at each pixel's centre sample) is the plain render's, the images are the same
+    view (close to the plain one, a little smoother), and a supersample that puts no sample on
+    the pixel centre is refused."""
+    pytest.importorskip('pybullet')
+    from coop_mapping.render import TexturedScene, look_at
+    cam = StereoCamera.from_fov(160, 120, np.radians(41.2), 0.038)
+    eye = np.array([0.0, 0.0, 1.0])
+    R = look_at(eye, np.array([2.5, 0.0, 0.2]))
+    with TexturedScene(cam, seed=1) as a, TexturedScene(cam, seed=1, supersample=3) as b:
+        l1, _, d1 = a.render(R, eye)
+        l3, r3, d3 = b.render(R, eye)
+    assert l3.shape == r3.shape == d3.shape == (120, 160) and l3.dtype == np.uint8
+    ok = np.isfinite(d1)
+    assert np.array_equal(ok, np.isfinite(d3)) and ok.mean() > 0.9
+    np.testing.assert_allclose(d3[ok], d1[ok], rtol=1e-4)
+    diff = np.abs(l1.astype(float) - l3)
+    assert np.median(diff) < 0.25 * l1.std()              # the same view, shifted by nothing
+    gradient = [np.abs(np.diff(img.astype(float), axis=1)).mean() for img in (l1, l3)]
+    assert gradient[1] < gradient[0]                       # the area average smooths
+    with pytest.raises(ValueError, match='odd'):
+        TexturedScene(cam, supersample=2)
