@@ -101,8 +101,8 @@ class TexturedScene:
             tid = p.loadTexture(path, physicsClientId=self._cid)
             p.changeVisualShape(body, -1, textureUniqueId=tid, rgbaColor=[1, 1, 1, 1],
                                 physicsClientId=self._cid)
-        # the fine grid's pixel centres: pixel u covers fine u' in [k u, k u + k), centre
-        # k u + (k - 1) / 2, so f' = k f and c' = k c + (k - 1) / 2
+        # the fine grid of n x n samples per pixel: pixel u covers fine columns [n u, n u + n),
+        # centred on n u + (n - 1) / 2, so the fine camera has f' = n f, c' = n c + (n - 1) / 2
         n = self.supersample
         k = np.array([[n * camera.fx, 0.0, n * camera.cx + (n - 1) / 2],
                       [0.0, n * camera.fy, n * camera.cy + (n - 1) / 2], [0, 0, 1]])
