@@ -273,15 +273,9 @@ def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 def _bounding_box_if_filled(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(lo, hi) of the set's bounding box if every corner of it is one of the points (the
-    convex hull is then the box itself), else None."""
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    if not np.all(hi > lo):
-        return None
-    # a point with every coordinate at lo or hi is a corner: which one, as a binary code
-    at_hi = pts == hi
-    corner = (at_hi | (pts == lo)).all(axis=1)
-    codes = at_hi[corner] @ (1 << np.arange(pts.shape[1]))
-    return (lo, hi) if np.all(np.bincount(codes, minlength=2 ** pts.shape[1])) else None
+    convex hull is then the box itself), else None: `_filled_boxes` of one set."""
+    is_box, lo, hi = _filled_boxes([pts])
+    return (lo[0], hi[0]) if is_box[0] else None
 
 
 def _box_distance(pts: np.ndarray, p: np.ndarray) -> float:
