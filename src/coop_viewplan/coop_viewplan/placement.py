@@ -32,6 +32,13 @@ from scipy.spatial import ConvexHull, QhullError
 
 from .grid import OccupancyGrid
 
+# A target whose grown shape only touches an expanded occluder (a part resting on the ground, a
+# target in a free voxel next to an occupied or unknown one: the free cell's centre lies exactly
+# on the occluder grown by half a cell) is outside it: a ray into the occluder is blocked at
+# once (distance 0), a ray that leaves it at once (exit within TOUCH_M, m) or runs away from it
+# sees the target. Only a target deeper than TOUCH_M inside an occluder is refused.
+TOUCH_M = 1e-9
+
 
 class PlacementError(ValueError):
     """The placement request cannot be served (target inside an obstacle, no free candidate)."""
@@ -413,7 +420,7 @@ def _hull_entry_each(target: np.ndarray, eqs: list[np.ndarray], u: np.ndarray,
     `best`."""
     for eq in eqs:
         n, c = eq[:, :-1], eq[:, -1] + eq[:, :-1] @ target     # n.x + c <= 0 inside, x rel.
-        if np.all(c <= 1e-12):
+        if np.all(c < -TOUCH_M):
             raise PlacementError('target is inside an (expanded) obstacle')
         denom = u @ n.T                                           # (K, F)
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -421,7 +428,7 @@ def _hull_entry_each(target: np.ndarray, eqs: list[np.ndarray], u: np.ndarray,
         t_enter = np.where(denom < 0, t, -np.inf).max(axis=1)
         t_exit = np.where(denom > 0, t, np.inf).min(axis=1)
         parallel_out = ((np.abs(denom) < 1e-15) & (c[None, :] > 0)).any(axis=1)
-        hit = (t_enter <= t_exit) & (t_exit >= 0) & ~parallel_out
+        hit = (t_enter <= t_exit) & (t_exit > TOUCH_M) & ~parallel_out
         best = np.where(hit, np.minimum(best, np.maximum(t_enter, 0.0)), best)
     return best
 
@@ -461,8 +468,8 @@ def _hull_entry(target: np.ndarray, verts: list[np.ndarray], eqs: list[np.ndarra
     (direction, hull) pair as in the 2-D loop: with faces n.x + c <= 0 (x relative to the
     target) and denom = u.n, the ray enters at the largest -c / denom over the faces with
     denom < 0, leaves at the smallest over those with denom > 0, misses if it runs parallel
-    (|denom| < 1e-15) outside a face (c > 0), and hits iff enter <= exit and exit >= 0.
-    Raises PlacementError if the target is inside a hull (c <= 1e-12 for all its faces).
+    (|denom| < 1e-15) outside a face (c > 0), and hits iff enter <= exit and exit > TOUCH_M.
+    Raises PlacementError if the target is inside a hull (c < -TOUCH_M for all its faces).
 
     Only the pairs of `_ray_pairs` are rated; their faces are stacked flat (no padding):
     a pair's rows are its hull's, and the max / min / any per pair are reduceat over them."""
@@ -471,7 +478,7 @@ def _hull_entry(target: np.ndarray, verts: list[np.ndarray], eqs: list[np.ndarra
     eq = np.concatenate(eqs)
     normal = eq[:, :-1]
     c = eq[:, -1] + normal @ target
-    if np.logical_and.reduceat(c <= 1e-12, face0).any():
+    if np.logical_and.reduceat(c < -TOUCH_M, face0).any():
         raise PlacementError('target is inside an (expanded) obstacle')
     # bounding spheres: the centre of the vertices' box, the farthest vertex from it
     n_verts = np.array([len(v) for v in verts])
@@ -492,7 +499,7 @@ def _hull_entry(target: np.ndarray, verts: list[np.ndarray], eqs: list[np.ndarra
         t_enter = np.maximum.reduceat(np.where(denom < 0, t, -np.inf), seg)
         t_exit = np.minimum.reduceat(np.where(denom > 0, t, np.inf), seg)
         parallel_out = np.logical_or.reduceat((np.abs(denom) < 1e-15) & (cr > 0), seg)
-        hit = (t_enter <= t_exit) & (t_exit >= 0) & ~parallel_out
+        hit = (t_enter <= t_exit) & (t_exit > TOUCH_M) & ~parallel_out
         _min_per_direction(best, k0, k, np.where(hit, np.maximum(t_enter, 0.0), np.inf))
     return best
 
@@ -501,13 +508,13 @@ def _box_entry(target: np.ndarray, lo: np.ndarray, hi: np.ndarray, u: np.ndarray
                ) -> np.ndarray:
     """occlusion_distance for axis-aligned boxes (B, ndim) by the slab method, for the
     (direction, box) pairs of `_ray_pairs` (the same arithmetic per pair as rating them
-    all). Raises PlacementError if the target lies in a box (boundary included, as the hull
-    test)."""
+    all). Raises PlacementError if the target lies in a box deeper than TOUCH_M (a target on
+    its boundary is outside, as in the hull test)."""
     o = np.asarray(target, float)
     best = np.full(u.shape[0], np.inf)
     if len(lo) == 0:
         return best
-    if np.any(np.all((lo - 1e-12 <= o) & (o <= hi + 1e-12), axis=1)):
+    if np.any(np.all((lo + TOUCH_M < o) & (o < hi - TOUCH_M), axis=1)):
         raise PlacementError('target is inside an (expanded) obstacle')
     zero = u == 0.0
     with np.errstate(divide='ignore'):
@@ -522,7 +529,7 @@ def _box_entry(target: np.ndarray, lo: np.ndarray, hi: np.ndarray, u: np.ndarray
         t2 = np.where(par, np.inf, hi_o[b] * ik)
         t_enter = np.minimum(t1, t2).max(axis=1)
         t_exit = np.maximum(t1, t2).min(axis=1)
-        hit = (t_enter <= t_exit) & (t_exit >= 0)
+        hit = (t_enter <= t_exit) & (t_exit > TOUCH_M)
         _min_per_direction(best, k0, k, np.where(hit, np.maximum(t_enter, 0.0), np.inf))
     return best
 
@@ -811,7 +818,8 @@ class TaskPlacer:
         """Maximise Eq. 4-1 over the candidates, for the primary and every secondary target;
         raises PlacementError on bad input (primary target inside an obstacle, no free
         candidate). A secondary target inside an obstacle or an expanded occluder (covered by a
-        moving object, in unobserved space, against a wall) is not rated: it cannot be seen,
+        moving object, in unobserved space, closer to a wall than its radius; one that only
+        touches an occluder is outside it, see TOUCH_M) is not rated: it cannot be seen,
         and the primary or another secondary may still be (`Placement.extras['unrated']`).
         stations: the camera positions a robot can take and their P (a rover's mast over the
         ground it may stand on), instead of every free cell of the grid."""

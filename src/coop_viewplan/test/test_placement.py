@@ -411,3 +411,41 @@ def test_expanded_hulls_are_the_direct_convex_hulls():
             assert dist.max() < 1e-12                         # every vertex inside every face
             assert ((np.abs(dist) < 1e-12).sum(axis=0) >= 3).all()   # each face is a facet
         assert boxes > 0
+
+
+def test_a_target_touching_an_occluder_is_outside_it():
+    """A target whose grown shape only touches an occluder (a part on the ground; a free voxel's
+    centre next to an occupied one, radius half a voxel) is outside it: the rays into the
+    occluder are blocked at 0, those away from it are clear; a target 1e-6 m deeper is refused.
+    The same for the box (slab) path, the 3-D hull path and the 2-D hull path; and the placer
+    puts a camera above a target resting on a floor."""
+    from coop_viewplan.placement import sphere_directions
+    r = 0.05
+    box = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    wedge = np.vstack([box, [[0.5, 0.5, 1.5]]])          # a roof on it: a general hull
+    dirs = sphere_directions(400)
+    for shape in (box, wedge):
+        grown = occluder_hulls([shape], r)
+        assert len(grown[0]) == (8 if shape is box else len(grown[0]))
+        target = np.array([1.0 + r, 0.5, 0.5])            # on the +x face, grown by r
+        d = occlusion_distance(target, grown, dirs)
+        assert np.all(d[dirs[:, 0] < -1e-6] == 0.0)      # into the occluder: blocked at once
+        assert np.all(np.isinf(d[dirs[:, 0] > 1e-6]))     # away from it: clear
+        with pytest.raises(PlacementError, match='inside'):
+            occlusion_distance(target - [1e-6, 0, 0], grown, dirs)
+    # 2-D: a point target on the square's -x face (a grown 2-D hull's faces are those of the
+    # circumscribed polygon, not at r)
+    dirs2 = np.stack([np.cos(np.linspace(0, 2 * np.pi, 361)),
+                      np.sin(np.linspace(0, 2 * np.pi, 361))], axis=1)
+    target = np.array([2.0, 0.0])
+    d = occlusion_distance(target, occluder_hulls([SQUARE], 0.0), dirs2)
+    assert np.all(d[dirs2[:, 0] > 1e-6] == 0.0) and np.all(np.isinf(d[dirs2[:, 0] < -1e-6]))
+    with pytest.raises(PlacementError, match='inside'):
+        occlusion_distance(target + [1e-6, 0], occluder_hulls([SQUARE], 0.0), dirs2)
+    # a target resting on an occupied floor (a free voxel's centre one layer above it)
+    g = OccupancyGrid.empty((40, 40, 20), resolution=0.1)
+    g.known[:], g.prob[:] = True, 0.0
+    g.prob[:, :, 0] = 1.0
+    t = Target(g.to_world(np.array([20, 20, 1])), np.array([0.0, 0.0, 1.0]), radius=0.05)
+    pl = TaskPlacer(CameraModel(near_m=0.3, far_m=1.5)).place(g, t, rng=np.random.default_rng(0))
+    assert pl.position[2] > t.position[2] + 0.3 and pl.terms['tfv'] > 0
