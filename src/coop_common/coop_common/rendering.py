@@ -9,13 +9,18 @@ triangle covers the integer point P, and getCameraImage returns the rows top fir
 principal point at (w / 2, h / 2 - 1), not at the image centre ((w - 1) / 2, (h - 1) / 2):
 half a pixel off in each axis, in opposite directions (measured by
 test_rendering.py::test_tinyrenderer_draws_the_image_of_k). `projection_matrix` shifts the
-matrix's third column so the renderer's principal point is K's. No pybullet here.
+matrix's third column so the renderer's principal point is K's.
+
+TinyRenderer also samples the scene once per pixel (at its centre, one texel, no area
+integration), so texture finer than a pixel aliases, differently in the two images of a stereo
+pair, where a camera's pixel integrates the light over its area. `fine_intrinsics` and
+`pixel_average` render n x n samples per pixel and average them. No pybullet here.
 """
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ['projection_matrix']
+__all__ = ['fine_intrinsics', 'pixel_average', 'projection_matrix']
 
 
 def projection_matrix(k: np.ndarray, width: int, height: int, near: float, far: float
@@ -41,3 +46,29 @@ def projection_matrix(k: np.ndarray, width: int, height: int, near: float, far: 
     p[2, 3] = -2.0 * far * near / (far - near)
     p[3, 2] = -1.0
     return p.T.reshape(-1).tolist()
+
+
+def fine_intrinsics(k: np.ndarray, n: int) -> np.ndarray:
+    """3x3 K of the image n times finer in each axis whose n x n blocks are the pixels of K's
+    image: pixel u covers fine columns [n u, n u + n), centred on n u + (n - 1) / 2, so
+    f' = n f and c' = n c + (n - 1) / 2. With n odd a fine sample sits on each pixel centre
+    (where a renderer's depth is read)."""
+    if not (isinstance(n, (int, np.integer)) and n >= 1 and n % 2 == 1):
+        raise ValueError(f'the supersampling factor must be an odd integer >= 1, got {n!r}')
+    k = np.asarray(k, float)
+    return np.array([[n * k[0, 0], 0.0, n * k[0, 2] + (n - 1) / 2],
+                     [0.0, n * k[1, 1], n * k[1, 2] + (n - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def pixel_average(fine: np.ndarray, n: int) -> np.ndarray:
+    """The mono8 image whose pixels are the means of the n x n blocks of `fine` (a rendering
+    of `fine_intrinsics(k, n)`, shape (n h, n w)), rounded to the nearest level (with n odd
+    no mean is a tie)."""
+    fine = np.asarray(fine)
+    h, w = fine.shape[0] // n, fine.shape[1] // n
+    if fine.shape[:2] != (n * h, n * w):
+        raise ValueError(f'image {fine.shape[:2]} is not n = {n} times an integer size')
+    if n == 1:
+        return fine
+    mean = fine.reshape(h, n, w, n).mean(axis=(1, 3))
+    return np.clip(np.rint(mean), 0, 255).astype(np.uint8)

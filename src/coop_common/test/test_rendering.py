@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from coop_common.rendering import projection_matrix
+from coop_common.rendering import fine_intrinsics, pixel_average, projection_matrix
 
 pb = pytest.importorskip('pybullet')
 
@@ -83,3 +83,47 @@ def test_bad_intrinsics_are_refused():
             projection_matrix(bad, 64, 48, 0.05, 60.0)
     with pytest.raises(ValueError):
         projection_matrix(k, 64, 48, 1.0, 0.5)
+
+
+def test_fine_intrinsics_and_pixel_average_by_hand():
+    k = np.array([[100.0, 0.0, 31.5], [0.0, 90.0, 23.5], [0.0, 0.0, 1.0]])
+    f = fine_intrinsics(k, 3)
+    # pixel 0 covers fine columns 0..2, centred on 1 = 3 * 0 + 1; pixel 31.5 -> 95.5
+    np.testing.assert_allclose(f, [[300.0, 0.0, 95.5], [0.0, 270.0, 71.5], [0.0, 0.0, 1.0]])
+    assert np.array_equal(fine_intrinsics(k, 1), k)
+    fine = np.zeros((3, 6), np.uint8)
+    fine[:, 3:] = 255
+    fine[0, 0], fine[1, 1] = 9, 200                   # block means 209/9 = 23.2, 255
+    assert np.array_equal(pixel_average(fine, 3), [[23, 255]])
+    for bad in (2, 0, 1.0):
+        with pytest.raises(ValueError, match='odd'):
+            fine_intrinsics(k, bad)
+    with pytest.raises(ValueError, match='integer size'):
+        pixel_average(np.zeros((4, 6), np.uint8), 3)
+
+
+@pytest.mark.parametrize('n', [3, 5])
+def test_supersampled_pixel_is_the_covered_fraction_of_its_area(plane, n):
+    """An edge inside a pixel: rendered with fine_intrinsics(k, n) and pixel_average'd, the
+    pixel's level is the fraction of its n samples on the white side (the edge's sub-pixel
+    position, quantised to 1 / n), the pixels either side fully black or white."""
+    w, h = 64, 48
+    k = _k(w, h, (w - 1) / 2.0, (h - 1) / 2.0)
+    cid, body, view = plane
+    proj = projection_matrix(fine_intrinsics(k, n), n * w, n * h, 0.05, 60.0)
+    u = w // 2 + 3
+    for frac in (-0.4, -0.2, 0.05, 0.3):              # the edge at u + frac: pixel u split
+        x_opt = (u + frac - k[0, 2]) / k[0, 0] * Z
+        pb.resetBasePositionAndOrientation(body, [Z + 0.01, -x_opt - 20.0, 0.0], [0, 0, 0, 1],
+                                           physicsClientId=cid)
+        _, _, rgba, _, _ = pb.getCameraImage(n * w, n * h, view, proj,
+                                             renderer=pb.ER_TINY_RENDERER,
+                                             flags=pb.ER_NO_SEGMENTATION_MASK,
+                                             physicsClientId=cid)
+        fine = np.reshape(np.asarray(rgba, np.uint8), (n * h, n * w, 4))[:, :, 0]
+        line = pixel_average(fine, n)[h // 3].astype(float)
+        samples = u + (np.arange(n) - (n - 1) / 2) / n           # pixel u's sample columns
+        white = np.mean(samples < u + frac)                       # left of the edge: background
+        bg = line[0]
+        assert line[u - 1] == pytest.approx(bg, abs=1) and line[u + 1] == pytest.approx(0, abs=1)
+        assert line[u] == pytest.approx(white * bg, abs=1.5), (frac, line[u - 1:u + 2])

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from coop_common.rendering import projection_matrix
+from coop_common.rendering import fine_intrinsics, pixel_average, projection_matrix
 
 from .stereo import StereoCamera
 
@@ -68,16 +68,16 @@ class TexturedScene:
     texel per pixel, no area integration), so texture finer than a pixel aliases, differently
     in the two images of a pair; a camera's pixel integrates the light over its area. With
     k > 1 the images are rendered at k times the resolution (the same field of view and
-    principal point) and averaged over k x k blocks (cv2.INTER_AREA); odd k puts a fine
-    sample on each pixel centre, where the true depth is read."""
+    principal point) and averaged over k x k blocks (coop_common.rendering.fine_intrinsics,
+    pixel_average); odd k puts a fine sample on each pixel centre, where the true depth is
+    read."""
 
     def __init__(self, camera: StereoCamera, *, boxes: list[Box] | None = None, seed: int = 0,
                  near: float = 0.1, far: float = 30.0, tile_m: float = 0.8,
                  supersample: int = 1) -> None:
         import pybullet as p  # noqa: PLC0415 - heavy, only for this data source
 
-        if supersample < 1 or supersample % 2 == 0:
-            raise ValueError('supersample must be an odd integer >= 1')
+        fine_intrinsics(np.eye(3), supersample)      # an odd integer >= 1, or ValueError
         self._p = p
         self.camera = camera
         self.supersample = int(supersample)
@@ -101,11 +101,9 @@ class TexturedScene:
             tid = p.loadTexture(path, physicsClientId=self._cid)
             p.changeVisualShape(body, -1, textureUniqueId=tid, rgbaColor=[1, 1, 1, 1],
                                 physicsClientId=self._cid)
-        # the fine grid of n x n samples per pixel: pixel u covers fine columns [n u, n u + n),
-        # centred on n u + (n - 1) / 2, so the fine camera has f' = n f, c' = n c + (n - 1) / 2
         n = self.supersample
-        k = np.array([[n * camera.fx, 0.0, n * camera.cx + (n - 1) / 2],
-                      [0.0, n * camera.fy, n * camera.cy + (n - 1) / 2], [0, 0, 1]])
+        k = fine_intrinsics(np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
+                                      [0.0, 0.0, 1.0]]), n)
         self._size = (n * camera.width, n * camera.height)
         self._proj = projection_matrix(k, *self._size, near, far)
 
@@ -140,9 +138,7 @@ class TexturedScene:
         zb = np.asarray(zbuf, np.float64).reshape(h, w)
         n = self.supersample
         if n > 1:
-            gray = cv2.resize(gray.astype(np.float32), (self.camera.width, self.camera.height),
-                              interpolation=cv2.INTER_AREA)
-            gray = np.clip(np.rint(gray), 0, 255).astype(np.uint8)
+            gray = pixel_average(gray, n)
             zb = zb[n // 2::n, n // 2::n]
         depth = self.far * self.near / (self.far - (self.far - self.near) * zb)
         depth[zb >= 1.0] = np.nan

@@ -74,6 +74,10 @@ PARAMS = {
                               hi=200.0, read_only=True),
     'image_width': ParamSpec(320, 'Image width (px)', lo=32, hi=1920, read_only=True),
     'image_height': ParamSpec(240, 'Image height (px)', lo=24, hi=1440, read_only=True),
+    'supersample': ParamSpec(1, 'Render n x n samples per pixel and average them (pixel '
+                             'integration: less aliasing of fine texture between the two images; '
+                             'n^2 times the rendering cost); 1, 3, 5 or 7', lo=1, hi=7,
+                             read_only=True),
     'noise_fraction': ParamSpec(0.10, "White noise bound as a fraction of each sensor's maximum "
                                 'sensed value (thesis 2.6.1)', lo=0.0, hi=1.0, read_only=True),
     'real_time_factor': ParamSpec(1.0, 'Sim seconds per wall second; 0 = as fast as possible',
@@ -117,7 +121,8 @@ class SimNode(Node):
     # ------------------------------------------------------------------ set-up
     #: node parameter -> SimConfig field
     _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_width_m', 'physics_substeps',
-                      'sensor_rate_hz', 'stereo_rate_hz', 'image_width', 'image_height')
+                      'sensor_rate_hz', 'stereo_rate_hz', 'image_width', 'image_height',
+                      'supersample')
 
     def _make_config(self) -> SimConfig:
         """Defaults <- world_yaml <- every parameter set away from its default."""

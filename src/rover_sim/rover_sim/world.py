@@ -16,7 +16,7 @@ import numpy as np
 import pybullet as pb
 
 from coop_common.dynparams import BaseParameters
-from coop_common.rendering import projection_matrix
+from coop_common.rendering import fine_intrinsics, pixel_average, projection_matrix
 
 from .compliance import (
     FastCompliance,
@@ -648,9 +648,12 @@ class World:
 
     def render_stereo_at(self, pos: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Left and right mono8 images of a stereo pair whose left optical frame is at `pos`
-        with orientation `rot` (columns: optical x right, y down, z forward) in the world."""
-        w, h = self.config.image_width, self.config.image_height
-        proj = projection_matrix(self.intrinsics(), w, h, 0.05, 60.0)
+        with orientation `rot` (columns: optical x right, y down, z forward) in the world;
+        config.supersample n > 1 renders n x n samples per pixel and averages them (pixel
+        integration, coop_common.rendering; n^2 times the rendering cost)."""
+        n = self.config.supersample
+        w, h = n * self.config.image_width, n * self.config.image_height
+        proj = projection_matrix(fine_intrinsics(self.intrinsics(), n), w, h, 0.05, 60.0)
         pos, rot = np.asarray(pos, dtype=float), np.asarray(rot, dtype=float)
         images = []
         for offset in (0.0, STEREO_BASELINE_M):
@@ -661,7 +664,8 @@ class World:
                                                  flags=pb.ER_NO_SEGMENTATION_MASK,
                                                  physicsClientId=self.client)
             rgb = np.reshape(np.asarray(rgba, dtype=np.uint8), (h, w, 4))[:, :, :3]
-            images.append(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY))
+            images.append(pixel_average(cv2.cvtColor(np.ascontiguousarray(rgb),
+                                                     cv2.COLOR_RGB2GRAY), n))
         return images[0], images[1]
 
     # ----------------------------------------------------------------- life cycle

@@ -229,6 +229,8 @@ def test_config_errors_name_the_field(tmp_path):
         config_from_mapping({'noise': {'fraction': 'high'}})
     with pytest.raises(ConfigError, match='rovers'):
         config_from_mapping({'rovers': 2.5})
+    with pytest.raises(ConfigError, match='supersample'):
+        config_from_mapping({'supersample': 2})       # no sample on the pixel centre
     bad = tmp_path / 'bad.yaml'
     bad.write_text('rovers: [1, 2\n')
     with pytest.raises(ConfigError, match='not valid YAML'):

@@ -167,6 +167,23 @@ def test_stereo_pair_is_textured_and_offset_by_the_baseline():
         assert np.allclose(r.T @ r, np.eye(3), atol=1e-9) and p[2] > 0.5
 
 
+def test_supersampled_stereo_is_the_same_view_integrated_over_each_pixel():
+    """supersample 3: the same camera (K unchanged, the same view), each pixel the mean of
+    3 x 3 samples: close to the plain render, a little smoother."""
+    cfg = SimConfig(rovers=1, stereo_rate_hz=4.0, image_width=160, image_height=120)
+    with World(cfg, [load_truth()]) as a, World(cfg.replace(supersample=3), [load_truth()]) as b:
+        a.step()
+        b.step()
+        assert np.array_equal(a.intrinsics(), b.intrinsics())
+        pose = a.camera_pose(0)
+        plain, smooth = a.render_stereo_at(*pose)[0], b.render_stereo_at(*pose)[0]
+    assert smooth.shape == (120, 160) and smooth.dtype == np.uint8
+    diff = np.abs(plain.astype(float) - smooth)
+    assert np.median(diff) < 0.25 * plain.std()
+    gradient = [np.abs(np.diff(img.astype(float), axis=1)).mean() for img in (plain, smooth)]
+    assert gradient[1] < gradient[0]
+
+
 def test_cmd_vel_moves_the_anchor_and_the_base_follows():
     with one_rover() as w:
         start = w.truth(0).base_position.copy()
