@@ -48,27 +48,39 @@ def projection_matrix(k: np.ndarray, width: int, height: int, near: float, far: 
     return p.T.reshape(-1).tolist()
 
 
+def _factor(n: int) -> int:
+    """The supersampling factor: an odd integer >= 1 (odd puts a sample on each pixel centre,
+    and no block mean is a tie)."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1 or n % 2 == 0:
+        raise ValueError(f'the supersampling factor must be an odd integer >= 1, got {n!r}')
+    return int(n)
+
+
 def fine_intrinsics(k: np.ndarray, n: int) -> np.ndarray:
     """3x3 K of the image n times finer in each axis whose n x n blocks are the pixels of K's
     image: pixel u covers fine columns [n u, n u + n), centred on n u + (n - 1) / 2, so
-    f' = n f and c' = n c + (n - 1) / 2. With n odd a fine sample sits on each pixel centre
-    (where a renderer's depth is read)."""
-    if not (isinstance(n, (int, np.integer)) and n >= 1 and n % 2 == 1):
-        raise ValueError(f'the supersampling factor must be an odd integer >= 1, got {n!r}')
+    f' = n f, skew' = n skew and c' = n c + (n - 1) / 2. With n odd a fine sample sits on
+    each pixel centre (where a renderer's depth is read)."""
+    n = _factor(n)
     k = np.asarray(k, float)
-    return np.array([[n * k[0, 0], 0.0, n * k[0, 2] + (n - 1) / 2],
+    if k.shape != (3, 3) or not np.array_equal(k[2], [0.0, 0.0, 1.0]) or k[1, 0] != 0.0:
+        raise ValueError(f'need a 3x3 pinhole matrix, got {k!r}')
+    return np.array([[n * k[0, 0], n * k[0, 1], n * k[0, 2] + (n - 1) / 2],
                      [0.0, n * k[1, 1], n * k[1, 2] + (n - 1) / 2], [0.0, 0.0, 1.0]])
 
 
 def pixel_average(fine: np.ndarray, n: int) -> np.ndarray:
-    """The mono8 image whose pixels are the means of the n x n blocks of `fine` (a rendering
-    of `fine_intrinsics(k, n)`, shape (n h, n w)), rounded to the nearest level (with n odd
-    no mean is a tie)."""
+    """The mono8 image whose pixels are the means of the n x n blocks of the mono8 image
+    `fine` (a rendering of `fine_intrinsics(k, n)`, shape (n h, n w)), rounded to the nearest
+    level (n odd: no mean is a tie). A new array, also for n = 1."""
+    n = _factor(n)
     fine = np.asarray(fine)
+    if fine.ndim != 2 or fine.dtype != np.uint8:
+        raise ValueError(f'need a mono8 image, got {fine.dtype} of shape {fine.shape}')
     h, w = fine.shape[0] // n, fine.shape[1] // n
-    if fine.shape[:2] != (n * h, n * w):
-        raise ValueError(f'image {fine.shape[:2]} is not n = {n} times an integer size')
+    if fine.shape != (n * h, n * w):
+        raise ValueError(f'image {fine.shape} is not n = {n} times an integer size')
     if n == 1:
-        return fine
+        return fine.copy()
     mean = fine.reshape(h, n, w, n).mean(axis=(1, 3))
     return np.clip(np.rint(mean), 0, 255).astype(np.uint8)

@@ -95,11 +95,20 @@ def test_fine_intrinsics_and_pixel_average_by_hand():
     fine[:, 3:] = 255
     fine[0, 0], fine[1, 1] = 9, 200                   # block means 209/9 = 23.2, 255
     assert np.array_equal(pixel_average(fine, 3), [[23, 255]])
-    for bad in (2, 0, 1.0):
+    for bad in (2, 0, 1.0, True):
         with pytest.raises(ValueError, match='odd'):
             fine_intrinsics(k, bad)
+        with pytest.raises(ValueError, match='odd'):
+            pixel_average(fine, bad)
     with pytest.raises(ValueError, match='integer size'):
         pixel_average(np.zeros((4, 6), np.uint8), 3)
+    for bad in (np.zeros((6, 6, 3), np.uint8), np.zeros((6, 6))):
+        with pytest.raises(ValueError, match='mono8'):
+            pixel_average(bad, 3)
+    with pytest.raises(ValueError, match='pinhole'):
+        fine_intrinsics(k[:2], 3)
+    same = pixel_average(fine, 1)
+    assert np.array_equal(same, fine) and same is not fine
 
 
 @pytest.mark.parametrize('n', [3, 5])

@@ -36,7 +36,11 @@ from .grid import OccupancyGrid
 # target in a free voxel next to an occupied or unknown one: the free cell's centre lies exactly
 # on the occluder grown by half a cell) is outside it: a ray into the occluder is blocked at
 # once (distance 0), a ray that leaves it at once (exit within TOUCH_M, m) or runs away from it
-# sees the target. Only a target deeper than TOUCH_M inside an occluder is refused.
+# sees the target. Only a target deeper than TOUCH_M inside an occluder is refused. A ray exactly
+# along the touched face is left undefined (the slab path blocks it at 0, the hull paths follow
+# the rounding of the face offset); the directions of sphere_directions and of the 2-D fields
+# never run exactly along an axis, and a tolerance there would move the distances of targets
+# that are clearly outside.
 TOUCH_M = 1e-9
 
 
@@ -380,7 +384,8 @@ def occlusion_distance(target: np.ndarray, hulls: list[np.ndarray],
     """Step (iii) of §4.2.3.3: for each unit direction u (K, ndim) from the reduced target, the
     distance at which the ray first enters an expanded hull (inf if none). A camera at
     target + d u sees the whole target iff d < occlusion_distance(u). Raises PlacementError if
-    the target point lies inside a hull (target inside an obstacle). equations: per hull, its
+    the target point lies deeper than TOUCH_M inside a hull (target inside an obstacle; one on
+    a hull's boundary is outside it). equations: per hull, its
     halfspaces if known (`_expanded_hulls`, 3-D: saves a second Qhull per hull), None to have
     them computed here (2-D hulls always are, as before)."""
     u = np.asarray(directions, float)

@@ -426,22 +426,23 @@ def test_a_target_touching_an_occluder_is_outside_it():
     dirs = sphere_directions(400)
     for shape in (box, wedge):
         grown = occluder_hulls([shape], r)
-        assert len(grown[0]) == (8 if shape is box else len(grown[0]))
+        assert (len(grown[0]) == 8) == (shape is box)    # box: slab path; wedge: 3-D hulls
         target = np.array([1.0 + r, 0.5, 0.5])            # on the +x face, grown by r
         d = occlusion_distance(target, grown, dirs)
         assert np.all(d[dirs[:, 0] < -1e-6] == 0.0)      # into the occluder: blocked at once
         assert np.all(np.isinf(d[dirs[:, 0] > 1e-6]))     # away from it: clear
         with pytest.raises(PlacementError, match='inside'):
             occlusion_distance(target - [1e-6, 0, 0], grown, dirs)
-    # 2-D: a point target on the square's -x face (a grown 2-D hull's faces are those of the
-    # circumscribed polygon, not at r)
+    # 2-D (the per-hull path; a square would take the slab path): a point target on the x = 2
+    # face of a triangle
+    tri = np.array([[2.0, -1.0], [4.0, 0.0], [2.0, 1.0]])
     dirs2 = np.stack([np.cos(np.linspace(0, 2 * np.pi, 361)),
                       np.sin(np.linspace(0, 2 * np.pi, 361))], axis=1)
-    target = np.array([2.0, 0.0])
-    d = occlusion_distance(target, occluder_hulls([SQUARE], 0.0), dirs2)
+    target = np.array([2.0, 0.3])
+    d = occlusion_distance(target, occluder_hulls([tri], 0.0), dirs2)
     assert np.all(d[dirs2[:, 0] > 1e-6] == 0.0) and np.all(np.isinf(d[dirs2[:, 0] < -1e-6]))
     with pytest.raises(PlacementError, match='inside'):
-        occlusion_distance(target + [1e-6, 0], occluder_hulls([SQUARE], 0.0), dirs2)
+        occlusion_distance(target + [1e-6, 0], occluder_hulls([tri], 0.0), dirs2)
     # a target resting on an occupied floor (a free voxel's centre one layer above it)
     g = OccupancyGrid.empty((40, 40, 20), resolution=0.1)
     g.known[:], g.prob[:] = True, 0.0

@@ -36,6 +36,10 @@ class NoiseConfig:
     odom_drift: float = 0.02          # fraction of travelled distance / turned angle
 
 
+#: image_width x image_height x supersample^2: TinyRenderer's RGBA and depth buffers of one image
+MAX_RENDERED_PIXELS = 16_000_000
+
+
 @dataclass(frozen=True)
 class SimConfig:
     rovers: int = 2
@@ -71,7 +75,13 @@ class SimConfig:
             ('image_width', 32 <= self.image_width <= 1920, 'must be in [32, 1920]'),
             ('image_height', 24 <= self.image_height <= 1440, 'must be in [24, 1440]'),
             ('hfov_deg', 5.0 <= self.hfov_deg <= 120.0, 'must be in [5, 120]'),
-            ('supersample', self.supersample in (1, 3, 5, 7), 'must be 1, 3, 5 or 7'),
+            ('supersample', isinstance(self.supersample, int)
+             and not isinstance(self.supersample, bool) and self.supersample in (1, 3, 5, 7),
+             'must be the integer 1, 3, 5 or 7'),
+            ('supersample', not isinstance(self.supersample, int)
+             or self.image_width * self.image_height * self.supersample ** 2
+             <= MAX_RENDERED_PIXELS, f'supersample^2 x image_width x image_height must be '
+             f'at most {MAX_RENDERED_PIXELS:,} rendered pixels per image'),
             ('real_time_factor', 0.0 <= self.real_time_factor <= 100.0, 'must be in [0, 100]'),
             ('noise.fraction', 0.0 <= self.noise.fraction <= 1.0, 'must be in [0, 1]'),
         ]

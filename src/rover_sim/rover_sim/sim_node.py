@@ -115,7 +115,9 @@ class SimNode(Node):
             f'{len(self.world.layout.obstacles)} obstacles, '
             f'physics {self.config.physics_rate_hz:g} '
             f'Hz x {self.world.substeps} sub-steps, stereo {self.config.stereo_rate_hz:g} Hz '
-            f'{self.config.image_width}x{self.config.image_height}, rtf {self._rtf:g}')
+            f'{self.config.image_width}x{self.config.image_height}'
+            + (f' ({self.config.supersample}x{self.config.supersample} samples per pixel)'
+               if self.config.supersample > 1 else '') + f', rtf {self._rtf:g}')
         self._thread.start()
 
     # ------------------------------------------------------------------ set-up

@@ -231,6 +231,12 @@ def test_config_errors_name_the_field(tmp_path):
         config_from_mapping({'rovers': 2.5})
     with pytest.raises(ConfigError, match='supersample'):
         config_from_mapping({'supersample': 2})       # no sample on the pixel centre
+    for bad in (3.0, True):
+        with pytest.raises(ConfigError, match='supersample'):
+            SimConfig(supersample=bad)
+    with pytest.raises(ConfigError, match='supersample'):
+        SimConfig(image_width=1920, image_height=1440, supersample=3)   # 24.9 M px an image
+    SimConfig(image_width=640, image_height=480, supersample=7)          # 15.1 M px: allowed
     bad = tmp_path / 'bad.yaml'
     bad.write_text('rovers: [1, 2\n')
     with pytest.raises(ConfigError, match='not valid YAML'):
