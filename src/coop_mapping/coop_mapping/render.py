@@ -77,7 +77,10 @@ class TexturedScene:
                  supersample: int = 1) -> None:
         import pybullet as p  # noqa: PLC0415 - heavy, only for this data source
 
-        fine_intrinsics(np.eye(3), supersample)      # an odd integer >= 1, or ValueError
+        # the camera sampled n x n per pixel (ValueError unless n is an odd integer >= 1),
+        # checked before anything is opened
+        k = fine_intrinsics(np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
+                                      [0.0, 0.0, 1.0]]), supersample)
         self._p = p
         self.camera = camera
         self.supersample = int(supersample)
@@ -102,8 +105,6 @@ class TexturedScene:
             p.changeVisualShape(body, -1, textureUniqueId=tid, rgbaColor=[1, 1, 1, 1],
                                 physicsClientId=self._cid)
         n = self.supersample
-        k = fine_intrinsics(np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy],
-                                      [0.0, 0.0, 1.0]]), n)
         self._size = (n * camera.width, n * camera.height)
         self._proj = projection_matrix(k, *self._size, near, far)
 
