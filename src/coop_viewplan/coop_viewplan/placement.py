@@ -305,9 +305,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     at lo). Each set's vertices are unique and in lexicographic order; a run of tiles filled
     entirely along the first axis (most of the unknown space of a live map) is one set, its
     box's 2^ndim corners (the union of the tiles' hulls)."""
-    occ = grid.known & (grid.prob >= threshold)
-    if unknown_occludes:
-        occ = occ | ~grid.known
+    occ = _occluder_mask(grid, threshold, unknown_occludes)
     nd = grid.ndim
     lo = np.zeros(nd, np.int64)
     if box is not None:
@@ -362,6 +360,57 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     pts = np.stack(np.unravel_index(c, dims), axis=1) + lo
     world = grid.origin + pts * grid.resolution
     return boxes + np.split(world, np.flatnonzero(np.diff(g)) + 1)
+
+
+def _occluder_mask(grid: OccupancyGrid, threshold: float, unknown_occludes: bool) -> np.ndarray:
+    """The cells grid_occluders cuts into occluders."""
+    occ = grid.known & (grid.prob >= threshold)
+    return occ | ~grid.known if unknown_occludes else occ
+
+
+def _hulls_holding(target: np.ndarray, sets: list[np.ndarray], hulls: list[np.ndarray],
+                   equations: list[np.ndarray | None]) -> np.ndarray:
+    """Indices of the grown hulls (`_expanded_hulls` of `sets`, with its equations) that hold
+    `target` deeper than TOUCH_M (the test of occlusion_distance), left out the sets that are
+    boxes of cells (their 2^ndim corners only: a filled tile, a run of them, one cell), which
+    hold it only if their cells do. A set of more vertices whose hull is a box (a U-shaped
+    piece, its corners all present) is tested as that box."""
+    nd = len(target)
+    cand = [i for i, s in enumerate(sets) if len(s) > 2 ** nd]
+    maybe = np.array([i for i in cand if equations[i] is None and len(hulls[i]) == 2 ** nd],
+                     np.int64)
+    out: list[int] = []
+    if len(maybe):
+        is_box, lo, hi = _filled_boxes([hulls[i] for i in maybe])
+        deep = np.all((lo + TOUCH_M < target) & (target < hi - TOUCH_M), axis=1)
+        out = maybe[is_box & deep].tolist()
+        cand = sorted(set(cand) - set(maybe[is_box].tolist()))
+    idx, eqs = [], []
+    for i in cand:
+        eq = equations[i] if equations[i] is not None else _hull_equations(hulls[i])
+        if eq is not None:
+            idx.append(i)
+            eqs.append(eq)
+    if eqs:
+        eq = np.concatenate(eqs)
+        deep = (eq[:, :-1] @ target + eq[:, -1]) < -TOUCH_M
+        face0 = np.concatenate([[0], np.cumsum([len(e) for e in eqs])[:-1]])
+        out.extend(np.asarray(idx, np.int64)[np.logical_and.reduceat(deep, face0)].tolist())
+    return np.asarray(sorted(out), np.int64)
+
+
+def _cells_as_boxes(grid: OccupancyGrid, occ: np.ndarray, sets: list[np.ndarray]
+                    ) -> list[np.ndarray]:
+    """The occluder cells (`occ`) inside the bounding boxes of cell-corner vertex sets (tile
+    pieces of grid_occluders), each cell as its box's corners: the same occluders, exactly."""
+    cells = []
+    for pts in sets:
+        lo = np.rint((pts.min(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
+        hi = np.rint((pts.max(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
+        cells.append(np.argwhere(occ[tuple(slice(a, b) for a, b in zip(lo, hi))]) + lo)
+    cells = np.unique(np.concatenate(cells), axis=0)
+    corners = _CORNER_SELECT[grid.ndim]
+    return list(grid.origin + (cells[:, None, :] + corners[None]) * grid.resolution)
 
 
 def _halfspaces(hulls: list[np.ndarray]) -> list[np.ndarray]:
@@ -787,8 +836,20 @@ class TaskPlacer:
         box = (grid.to_index(t.position - reach), grid.to_index(t.position + reach) + 1)
         near = [h for h in grid_occluders(grid, unknown_occludes=self.unknown_occludes, box=box)
                 if _box_distance(h, t.position) <= reach]
+        hulls, equations = _expanded_hulls(near, t.radius)
+        holding = _hulls_holding(t.position, near, hulls, equations)
+        if len(holding):
+            # the hull of a tile piece that is not convex (an L, a U) may hold a target that
+            # none of its cells does: such pieces go in cell by cell, and only a target inside
+            # a grown cell is refused
+            occ = _occluder_mask(grid, 0.5, self.unknown_occludes)
+            cell_hulls, cell_eqs = _expanded_hulls(
+                _cells_as_boxes(grid, occ, [near[i] for i in holding]), t.radius)
+            keep = np.ones(len(hulls), bool)
+            keep[holding] = False
+            hulls = [h for h, k in zip(hulls, keep) if k] + cell_hulls
+            equations = [e for e, k in zip(equations, keep) if k] + cell_eqs
         try:
-            hulls, equations = _expanded_hulls(near, t.radius)
             f = VisibilityField(t.position, hulls, n_dirs=self.n_dirs, equations=equations)
         except PlacementError as exc:       # the target inside an occluder: cached too
             f = exc

@@ -450,3 +450,35 @@ def test_a_target_touching_an_occluder_is_outside_it():
     t = Target(g.to_world(np.array([20, 20, 1])), np.array([0.0, 0.0, 1.0]), radius=0.05)
     pl = TaskPlacer(CameraModel(near_m=0.3, far_m=1.5)).place(g, t, rng=np.random.default_rng(0))
     assert pl.position[2] > t.position[2] + 0.3 and pl.terms['tfv'] > 0
+
+
+def test_a_target_in_the_notch_of_a_tile_piece_is_outside_it():
+    """A tile piece that is not convex (an L; a U, whose hull is its tile's box) has a hull
+    that holds free cells. A target in such a notch, touching the piece, is placed, with the
+    occlusion distances of the piece given cell by cell (exact); one whose grown shape
+    overlaps a cell is still refused. 3-D and 2-D (there the target's shape is a polygon
+    circumscribing its disc, which reaches r / cos(pi / 8) along the axes: radius 0.04)."""
+    for nd, r in ((3, 0.05), (2, 0.04)):
+        g = OccupancyGrid.empty((16,) * nd, resolution=0.1)
+        corners = np.array(np.meshgrid(*([[0, 1]] * nd), indexing='ij')).reshape(nd, -1).T
+        for notch in ((slice(6, 8), slice(6, 8)),            # L: the tile's +x+y corner free
+                      (slice(5, 7), slice(6, 8))):           # U: a slot open to +y
+            g.known[:], g.prob[:] = True, 0.0
+            g.prob[(slice(4, 8),) * nd] = 1.0                # one 4-cell tile of grid_occluders
+            g.prob[notch + (slice(4, 8),) * (nd - 2)] = 0.0
+            cell = np.array([6, 6, 5][:nd])
+            normal = np.array([0.0, 1.0, 0.0][:nd])
+            target = Target(g.to_world(cell), normal, radius=r)
+            placer = TaskPlacer(CameraModel(near_m=0.3, far_m=1.5), clearance_m=0.2,
+                                n_dirs=400)
+            boxes = [g.origin + (c + corners) * g.resolution for c in np.argwhere(g.prob >= 0.5)]
+            exact = VisibilityField(target.position, occluder_hulls(boxes, r), n_dirs=400)
+            f = placer._grid_field(g, target)
+            assert np.array_equal(f.occ, exact.occ)
+            assert np.isfinite(f.occ).any() and np.isinf(f.occ).any()
+            pl = placer.place(g, target, rng=np.random.default_rng(0))
+            assert pl.terms['tfv'] > 0 and pl.terms['tav'] > 0
+            with pytest.raises(PlacementError, match='inside an \\(expanded\\) obstacle'):
+                TaskPlacer(CameraModel(near_m=0.3, far_m=1.5), clearance_m=0.2,
+                           n_dirs=400).place(g, Target(target.position, normal, radius=r + 0.01),
+                                             rng=np.random.default_rng(0))
