@@ -25,7 +25,9 @@ import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid
 from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.node import Node
+from rclpy.validate_full_topic_name import validate_full_topic_name
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
@@ -72,6 +74,22 @@ PARAMS = {
 }
 
 
+def _check_params(p: dict) -> str | None:
+    """Rover names: each a namespace its topics can live under, none twice (a rover listed
+    twice would have every cloud fused twice); a map frame."""
+    if not p['map_frame']:
+        return 'map_frame must not be empty'
+    rovers = list(p['rovers'])
+    if len(set(rovers)) != len(rovers):
+        return f'rovers {rovers}: a name is listed twice'
+    for r in rovers:
+        try:
+            validate_full_topic_name(f'/{r}/stereo/points')
+        except InvalidTopicNameException as exc:
+            return f'rovers: {r!r} is not a namespace ({str(exc).splitlines()[0]})'
+    return None
+
+
 def _free_name(path: str) -> str:
     """path, or path.1, path.2, ... : the first that does not exist."""
     name, i = path, 0
@@ -84,8 +102,13 @@ def _free_name(path: str) -> str:
 class MapperNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('mapper', **kwargs)
-        self.p = declare_parameters(self, PARAMS, on_change=self.p_update)
+        self.p = declare_parameters(self, PARAMS, on_change=self.p_update,
+                                    check_all=_check_params)
         self.bad = BadInputCounter(self)
+        # what map_file holds, as (map generation, sequence): a reset or a load starts a new
+        # generation (its sequence may come back to the one saved: a reset starts at 0)
+        self._generation = 0
+        self._saved = (0, 0)
         self.map = VoxelMap(self.p['resolution_m'], max_points=self.p['max_points'],
                             ray_subdivision=self.p['ray_subdivision'])
         self._load_at_start()
@@ -113,7 +136,6 @@ class MapperNode(Node):
         self.create_service(Trigger, '/map/reset', self.srv_reset)
         self._last_pub = -np.inf
         self._dirty = True
-        self._saved_seq = self.map.sequence
         # wall-clock timer: publishing, pose timeouts and autosave are wall-time duties (their
         # periods are measured with time.monotonic); with use_sim_time a timer on the ROS clock
         # stops when /clock does (a paused sim, the end of a replayed bag) and the last clouds
@@ -138,8 +160,11 @@ class MapperNode(Node):
         path = self.p['map_file']
         if not path or not os.path.exists(path):
             return
+        if not os.path.isfile(path):
+            raise ValueError(f'map_file {path} is not a file')
         try:
             self._adopt(self._read(path))
+            self._saved = (self._generation, self.map.sequence)
         except MapFileError as exc:
             aside = _free_name(f'{path}.refused')
             try:
@@ -164,6 +189,13 @@ class MapperNode(Node):
         m.max_points = self.p['max_points']
         m.ray_subdivision = self.p['ray_subdivision']
         self.map = m
+        self._generation += 1
+
+    @property
+    def unsaved(self) -> bool:
+        """Whether the map differs from what map_file holds (or would hold: an empty map
+        where there is no file)."""
+        return (self._generation, self.map.sequence) != self._saved
 
     # ---------------------------------------------------------------- inputs
     def on_pose(self, rover: str, msg: PoseWithCovarianceStamped) -> None:
@@ -305,7 +337,7 @@ class MapperNode(Node):
         per = self.p['autosave_period_s']
         if per > 0 and self.p['map_file'] and now - self._last_save >= per:
             self._last_save = now
-            if self.map.sequence != self._saved_seq:
+            if self.unsaved:
                 self._save(self.p['map_file'])
 
     def _save(self, path: str) -> str | None:
@@ -314,7 +346,8 @@ class MapperNode(Node):
         except OSError as exc:
             self.get_logger().error(f'save to {path} failed: {exc}')
             return str(exc)
-        self._saved_seq = self.map.sequence
+        if self._is_map_file(path):
+            self._saved = (self._generation, self.map.sequence)
         self.get_logger().info(f'saved {len(self.map)} voxels to {path} ({self.body_points} '
                                'points on rover bodies not fused so far)')
         return None
@@ -322,10 +355,13 @@ class MapperNode(Node):
     def destroy_node(self) -> None:
         """A clean stop saves what the last autosave does not hold (with autosave on), so a
         restart loses nothing; a killed mapper loses what came after its last autosave."""
-        if self.p['autosave_period_s'] > 0 and self.p['map_file'] and \
-                self.map.sequence != self._saved_seq:
+        if self.p['autosave_period_s'] > 0 and self.p['map_file'] and self.unsaved:
             self._save(self.p['map_file'])
         super().destroy_node()
+
+    def _is_map_file(self, path: str) -> bool:
+        return bool(self.p['map_file']) and \
+            os.path.abspath(path) == os.path.abspath(self.p['map_file'])
 
     # ---------------------------------------------------------------- services
     def srv_save(self, req, resp):
@@ -350,6 +386,8 @@ class MapperNode(Node):
             return resp
         self._adopt(m)
         self._dirty = True
+        if self._is_map_file(path):
+            self._saved = (self._generation, m.sequence)
         resp.success, resp.message = True, f'loaded {path}'
         resp.voxels, resp.sequence = len(m), m.sequence
         self.get_logger().info(resp.message)
@@ -376,8 +414,7 @@ class MapperNode(Node):
         return resp
 
     def srv_reset(self, req, resp):
-        self.map = VoxelMap(self.map.resolution, max_points=self.p['max_points'],
-                            ray_subdivision=self.p['ray_subdivision'])
+        self._adopt(VoxelMap(self.map.resolution))
         self._dirty = True
         resp.success, resp.message = True, 'map cleared'
         self.get_logger().info('map reset')

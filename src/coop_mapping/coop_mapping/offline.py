@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from .bodies import BodyFilter
@@ -223,7 +224,7 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
             if key not in rangers:
                 rangers[key] = stereo.ranger(*key)
             pts, cov, origin = frame_scan(fr, stereo, ranger=rangers[key])
-        except (StereoError, ValueError):
+        except (StereoError, ValueError, cv2.error):       # as the stereo node counts them
             out.rejected['stereo'] += 1
             continue
         if len(pts) == 0:

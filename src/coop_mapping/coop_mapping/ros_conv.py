@@ -71,7 +71,12 @@ def msg_to_cloud(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
     else:          # an organised cloud with padded rows: the points of each row
         buf = np.frombuffer(msg.data, np.uint8, count=msg.row_step * msg.height).reshape(
             msg.height, msg.row_step)[:, :row].reshape(-1)
-    want = CLOUD_FIELDS if all(f in names for f in CLOUD_FIELDS) else CLOUD_FIELDS[:3]
+    has_cov = [f in names for f in CLOUD_FIELDS[3:]]
+    if any(has_cov) and not all(has_cov):
+        missing = [f for f, h in zip(CLOUD_FIELDS[3:], has_cov) if not h]
+        raise CloudFormatError(f'covariance fields {", ".join(missing)} missing (all six or '
+                               'none)')
+    want = CLOUD_FIELDS if all(has_cov) else CLOUD_FIELDS[:3]
     for f in want:
         if names[f].offset + 4 > step:
             raise CloudFormatError(f'field {f} at offset {names[f].offset} runs past the '
@@ -101,6 +106,8 @@ def pose_to_rt(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     q = pose.orientation
     x, y, z, w = q.x, q.y, q.z, q.w
     n = x * x + y * y + z * z + w * w
+    if not np.isfinite(n):
+        raise ValueError('non-finite quaternion')
     if not n > 0:
         raise ValueError('zero quaternion')
     s = 2.0 / n

@@ -45,6 +45,8 @@ class StereoCamera:
     def __post_init__(self) -> None:
         if not (self.fx > 0 and self.fy > 0 and self.baseline > 0):
             raise StereoError('fx, fy and baseline must be > 0')
+        if not (np.isfinite([self.fx, self.fy, self.cx, self.cy, self.baseline]).all()):
+            raise StereoError('fx, fy, cx, cy and baseline must be finite')
         if not (self.width > 0 and self.height > 0):
             raise StereoError('image size must be > 0')
 
@@ -147,6 +149,10 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
     _check_pair(left, right)
     if num_disparities <= 0 or num_disparities % 16:
         raise StereoError('num_disparities must be a positive multiple of 16')
+    if left.shape[1] <= num_disparities:
+        # OpenCV's SGBM fails on such a pair with a misleading "Insufficient memory"
+        raise StereoError(f'images {left.shape[1]} px wide: need more than num_disparities '
+                          f'({num_disparities})')
     if block_size < 1 or block_size % 2 == 0:
         raise StereoError('block_size must be odd and >= 1')
     if subpixel not in SUBPIXEL_MODES:

@@ -50,6 +50,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -907,7 +908,10 @@ class VoxelMap:
         except FileNotFoundError as exc:
             raise MapFileError(f'{path}: no such file') from exc
         except (zipfile.BadZipFile, KeyError, ValueError, OSError, EOFError,
-                json.JSONDecodeError) as exc:
+                json.JSONDecodeError, NotImplementedError, RuntimeError, zlib.error) as exc:
+            # a flipped byte in a member's header can name a compression method zipfile lacks
+            # (NotImplementedError), set the encryption flag (RuntimeError) or give deflate
+            # a stored member (zlib.error)
             raise MapFileError(f'{path}: unreadable map file ({exc})') from exc
         try:
             n = int(header['voxels'])
@@ -929,6 +933,10 @@ class VoxelMap:
             m.sequence = int(header['sequence'])
             m.contributions = Counter({str(k): int(v)
                                        for k, v in header['contributions'].items()})
+            # both go out as uint64 (VoxelMap message, MapFile answer)
+            for what, v in [('sequence', m.sequence), *m.contributions.items()]:
+                if not 0 <= v < 2 ** 64:
+                    raise ValueError(f'{what} {v} outside 0 .. 2^64 - 1')
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise MapFileError(f'{path}: bad header ({exc!r})') from exc
         return m

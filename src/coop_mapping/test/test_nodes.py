@@ -1,6 +1,7 @@
 """mapper and stereo nodes in-process with a private context: fusion, services, bad input."""
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -376,3 +377,78 @@ def test_stereo_node_checks_its_ranges_together(ctx):
         assert node.set_parameters([Parameter('min_range_m', value=0.5)])[0].successful
     finally:
         node.destroy_node()
+
+
+def test_mapper_autosaves_a_reset_or_loaded_map_whatever_its_sequence(ctx, tmp_path):
+    """The map_file holds the map the mapper has: after /map/reset (the sequence starts again
+    at 0) or a /map/load of another file, the next autosave writes even when the sequence has
+    come back to the one last saved; a save elsewhere does not count as saved."""
+    from coop_mapping.voxelmap import VoxelMap
+    path, other = tmp_path / 'team.cmap', tmp_path / 'other.cmap'
+
+    stamps = iter(range(1000, 2000))
+
+    def scan(node, x):                  # a cloud of a wall at x and its camera pose
+        st = Time(sec=next(stamps))
+        node.on_pose('rover1', _pose(st, [0.05, 0.05, 1.05]))
+        yz = np.stack(np.meshgrid(np.arange(-1, 1, 0.05), np.arange(0, 2, 0.05)), -1)
+        pts = np.column_stack([np.full(len(yz.reshape(-1, 2)), x), yz.reshape(-1, 2)])
+        node.on_cloud('rover1', cloud_to_msg(pts, None, Header(stamp=st, frame_id='map')))
+
+    def autosave(node):
+        node._last_save = -np.inf
+        node.on_timer()
+
+    def wall_x(p):
+        return float(VoxelMap.load(p).occupied_centres()[:, 0].mean())
+
+    node, peer, ex = _mapper_and_peer(ctx, map_file=str(path), autosave_period_s=3600.0)
+    try:
+        scan(node, 2.05)
+        autosave(node)
+        assert VoxelMap.load(path).sequence == 1 and wall_x(path) == pytest.approx(2.05, abs=0.05)
+        assert _call(ex, peer.create_client(Trigger, '/map/reset'), Trigger.Request()).success
+        scan(node, -3.05)                                   # sequence 1 again
+        autosave(node)
+        assert node.map.sequence == 1 and wall_x(path) == pytest.approx(-3.05, abs=0.05)
+        # a map loaded from another file is not what map_file holds
+        vm = VoxelMap(0.1)
+        vm.insert_scan(np.array([[5.05, 0.05, 0.05]]), np.zeros(3), source='rover2')
+        vm.save(other)
+        req = MapFile.Request()
+        req.path = str(other)
+        assert _call(ex, peer.create_client(MapFile, '/map/load'), req).success
+        req.path = str(tmp_path / 'copy.cmap')
+        assert _call(ex, peer.create_client(MapFile, '/map/save'), req).success
+        autosave(node)
+        assert wall_x(path) == pytest.approx(5.05, abs=0.05)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
+
+
+@pytest.mark.parametrize('params,reason', [
+    ({'rovers': ['rover1', 'rover1']}, 'listed twice'),
+    ({'rovers': ['rover 1']}, 'not a namespace'),
+    ({'rovers': ['']}, 'not a namespace'),
+    ({'rovers': ['1abc']}, 'not a namespace'),
+    ({'map_frame': ''}, 'map_frame'),
+])
+def test_mapper_refuses_bad_rover_names_and_frames_at_start(ctx, params, reason):
+    """A rover listed twice would have each cloud fused twice; a name that is no namespace
+    would fail deep in create_subscription: both are a clear ValueError (run_node: one FATAL
+    line, exit 1)."""
+    with pytest.raises(ValueError, match=reason):
+        MapperNode(context=ctx, parameter_overrides=[Parameter(k, value=v)
+                                                     for k, v in params.items()])
+
+
+def test_mapper_refuses_a_map_file_that_is_a_directory(ctx, tmp_path):
+    """map_file naming a directory stops the start with the reason; the directory is not
+    moved aside as a refused save."""
+    (tmp_path / 'maps').mkdir()
+    with pytest.raises(ValueError, match='not a file'):
+        MapperNode(context=ctx, parameter_overrides=[
+            Parameter('map_file', value=str(tmp_path / 'maps'))])
+    assert (tmp_path / 'maps').is_dir() and not list(tmp_path.glob('maps.refused*'))

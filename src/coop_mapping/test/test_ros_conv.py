@@ -43,11 +43,14 @@ def test_a_foreign_organised_cloud_with_padded_rows():
 
 
 @pytest.mark.parametrize('case', ['field past the point', 'short data', 'row_step too small',
-                                  'big-endian'])
+                                  'big-endian', 'some covariance fields'])
 def test_bad_layouts_are_a_format_error(case):
     xyz = np.arange(6, dtype='<f4').tobytes()
     m = _cloud([('x', 0), ('y', 4), ('z', 8)], 12, 2, 1, [xyz])
-    if case == 'field past the point':
+    if case == 'some covariance fields':      # five of six: not fused without its variances
+        m = cloud_to_msg(np.ones((2, 3)), np.tile([1.0, 0, 0, 1, 0, 1], (2, 1)), m.header)
+        m.fields = [f for f in m.fields if f.name != 'cov_zz']
+    elif case == 'field past the point':
         m.fields[2].offset = 10
     elif case == 'short data':
         m.data = xyz[:20]

@@ -224,6 +224,19 @@ def test_compute_disparity_rejects_unknown_subpixel_mode():
     img = np.zeros((40, 80), np.uint8)
     with pytest.raises(StereoError, match='subpixel'):
         compute_disparity(img, img, num_disparities=16, subpixel='parabola')
+    # OpenCV's SGBM fails on an image no wider than the disparity range ("Insufficient
+    # memory"): a StereoError with the reason instead
+    with pytest.raises(StereoError, match='wide'):
+        compute_disparity(img[:, :16], img[:, :16], num_disparities=16)
+    assert compute_disparity(img[:, :17], img[:, :17], num_disparities=16).shape == (40, 17)
+
+
+def test_camera_calibration_must_be_finite():
+    """A camera_info with a NaN principal point would range every point to NaN."""
+    for bad in ({'cx': np.nan}, {'cy': np.inf}, {'fx': np.inf}):
+        with pytest.raises(StereoError, match='finite'):
+            StereoCamera(**{'fx': 100.0, 'fy': 100.0, 'cx': 50.0, 'cy': 40.0,
+                            'baseline': 0.04, 'width': 100, 'height': 80, **bad})
 
 
 @pytest.mark.parametrize('mode,ratio', [('equalise', 0.9), ('shift2', 0.7), ('shift4', 0.65)])

@@ -387,10 +387,37 @@ def test_save_load_roundtrip_and_corruption(tmp_path):
     with zipfile.ZipFile(path) as z:
         members = {n: z.read(n) for n in z.namelist()}
     header = json.loads(members['header.json'])
+    # ... or whose sequence / contributions do not fit the uint64 they are published as
     for bad in ({k: v for k, v in header.items() if k != 'voxels'},
-                {**header, 'model': 3}, {**header, 'contributions': []}, [header]):
+                {**header, 'model': 3}, {**header, 'contributions': []}, [header],
+                {**header, 'sequence': -5}, {**header, 'sequence': 2 ** 64},
+                {**header, 'contributions': {'rover1': -1}}):
         with zipfile.ZipFile(tmp_path / 'hdr.cmap', 'w') as z:
             for n, data in members.items():
                 z.writestr(n, json.dumps(bad) if n == 'header.json' else data)
         with pytest.raises(MapFileError):
             VoxelMap.load(tmp_path / 'hdr.cmap')
+
+
+def test_a_flipped_zip_header_field_is_a_map_file_error(tmp_path):
+    """One byte of a member's header in the zip's directory can name a compression method
+    zipfile lacks, deflate for a stored member, or the encryption flag: zipfile then raises
+    NotImplementedError, zlib.error or RuntimeError, which load turns into MapFileError."""
+    import struct
+    vm = VoxelMap(0.1)
+    vm.insert_scan(np.array([[1.05, 0.05, 0.05]]), np.zeros(3), source='rover1')
+    path = tmp_path / 'map.cmap'
+    vm.save(path)
+    raw = path.read_bytes()
+    central = raw.find(b'PK\x01\x02')             # the first member's directory entry
+    for method in (8, 12, 99):                      # deflate, bzip2 of stored data; unknown
+        b = bytearray(raw)
+        struct.pack_into('<H', b, central + 10, method)
+        (tmp_path / 'm.cmap').write_bytes(bytes(b))
+        with pytest.raises(MapFileError):
+            VoxelMap.load(tmp_path / 'm.cmap')
+    b = bytearray(raw)
+    b[central + 8] |= 1                             # general purpose flag: encrypted
+    (tmp_path / 'e.cmap').write_bytes(bytes(b))
+    with pytest.raises(MapFileError):
+        VoxelMap.load(tmp_path / 'e.cmap')
