@@ -128,6 +128,10 @@ def planning_bounds(keys: np.ndarray, resolution: float, *, pad_m: float,
         raise MapError(f'keys must be (N, 3) with N > 0, got {keys.shape}')
     if not (resolution > 0 and pad_m >= 0):
         raise ValueError('resolution must be > 0 and pad_m >= 0')
+    if not pad_m / resolution < 2 ** 31 or not abs(camera_height_m) / resolution < 2 ** 31 \
+            or not ceiling_m / resolution < 2 ** 31:
+        raise MapError(f'resolution {resolution} m: the pad, ceiling or camera height is more '
+                       'than 2^31 voxels')
     pad = int(np.ceil(pad_m / resolution))
     lo = keys.min(axis=0) - pad
     hi = keys.max(axis=0) + pad

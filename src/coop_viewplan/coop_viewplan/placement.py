@@ -44,6 +44,10 @@ from .grid import OccupancyGrid
 TOUCH_M = 1e-9
 
 
+#: the largest target weight: a rating times a weight beyond it may overflow to inf
+MAX_WEIGHT = 1e6
+
+
 class PlacementError(ValueError):
     """The placement request cannot be served (target inside an obstacle, no free candidate)."""
 
@@ -66,12 +70,15 @@ class Target:
             raise PlacementError('target position and normal must both be 2-D or 3-D')
         if not np.all(np.isfinite(p)) or not np.all(np.isfinite(n)):
             raise PlacementError('target position and normal must be finite')
+        big = np.abs(n).max()
+        n = n / big if big > 0 else n         # no overflow in the norm of a huge normal
         nn = np.linalg.norm(n)
         if nn < 1e-9:
             raise PlacementError('target normal must be non-zero')
         if not (np.isfinite([self.radius, self.sigma, self.weight]).all() and self.radius >= 0
-                and self.sigma >= 0 and self.weight > 0):
-            raise PlacementError('radius, sigma must be finite and >= 0, weight finite and > 0')
+                and self.sigma >= 0 and 0 < self.weight <= MAX_WEIGHT):
+            raise PlacementError('radius, sigma must be finite and >= 0, weight in '
+                                 f'(0, {MAX_WEIGHT:g}]')
         object.__setattr__(self, 'position', p)
         object.__setattr__(self, 'normal', n / nn)
 
@@ -833,7 +840,10 @@ class TaskPlacer:
         # Distance bounding: occluders beyond the depth of field cannot hide the target from
         # any admissible camera (only the grid within reach is cut into them).
         reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
-        box = (grid.to_index(t.position - reach), grid.to_index(t.position + reach) + 1)
+        # clipped to the grid in metres first: a huge radius must not overflow the indices
+        top = grid.origin + np.asarray(grid.shape) * grid.resolution
+        box = (grid.to_index(np.clip(t.position - reach, grid.origin, top)),
+               grid.to_index(np.clip(t.position + reach, grid.origin, top)) + 1)
         near = [h for h in grid_occluders(grid, unknown_occludes=self.unknown_occludes, box=box)
                 if _box_distance(h, t.position) <= reach]
         hulls, equations = _expanded_hulls(near, t.radius)
@@ -886,7 +896,8 @@ class TaskPlacer:
         candidate). A secondary target inside an obstacle or an expanded occluder (covered by a
         moving object, in unobserved space, closer to a wall than its radius; one that only
         touches an occluder is outside it, see TOUCH_M) is not rated: it cannot be seen,
-        and the primary or another secondary may still be (`Placement.extras['unrated']`).
+        and the primary or another secondary may still be (`Placement.extras['unrated']`); one
+        inside an obstacle or outside the map is skipped the same way, before any rating.
         stations: the camera positions a robot can take and their P (a rover's mast over the
         ground it may stand on), instead of every free cell of the grid."""
         targets = [primary, *secondary]
@@ -896,7 +907,9 @@ class TaskPlacer:
                 raise PlacementError(f'target is {t.position.shape[0]}-D, map {grid.ndim}-D')
             cell = grid.to_index(t.position)
             if not grid.in_bounds(cell):
-                raise PlacementError('target outside the map')
+                if k == 0:
+                    raise PlacementError('target outside the map')
+                continue                    # a secondary there cannot be rated: skipped
             if grid.known[tuple(cell)] and grid.prob[tuple(cell)] >= 0.5:
                 if k == 0:
                     raise PlacementError('target is inside an obstacle')

@@ -39,8 +39,10 @@ PARAMS = {
                            '(0: pad upwards too)', lo=0.0, hi=1000.0),
     'fov_deg': ParamSpec(75.0, 'camera horizontal field of view (deg)', lo=5.0, hi=170.0),
     'depth_m': ParamSpec(10.0, 'camera depth of field for mapping (m)', lo=0.5, hi=100.0),
-    'rays_az': ParamSpec(24, 'NI rays across the field of view', lo=2, hi=512),
-    'rays_el': ParamSpec(18, 'NI rays up the field of view', lo=2, hi=512),
+    # 128 x 128 rays cost ~40x the default's per pose (512 x 512: 82 s a decision, blocking
+    # the node's one executor)
+    'rays_az': ParamSpec(24, 'NI rays across the field of view', lo=2, hi=128),
+    'rays_el': ParamSpec(18, 'NI rays up the field of view', lo=2, hi=128),
     'k_rel': ParamSpec(0.15, 'K of Eq. 3-15 relative to the NI of an unknown view per depth',
                        lo=0.0, hi=100.0),
     'n_exp': ParamSpec(1.0, 'n of Eq. 3-15', lo=0.1, hi=4.0),
@@ -97,6 +99,7 @@ class ViewPlannerNode(Node):
         self.bad = BadInputCounter(self)
         self.rng = np.random.default_rng(int(self.p['seed']))
         self.grid: OccupancyGrid | None = None
+        self.map_received = False       # an empty map message leaves grid None too
         self.map_frame = self.p['frame_id']
         self.sequence = -1
         self.cameras: dict[str, CameraState] = {}
@@ -109,6 +112,8 @@ class ViewPlannerNode(Node):
 
     def _on_params(self, changed: dict) -> None:
         self.p.update(changed)
+        if 'seed' in changed:
+            self.rng = np.random.default_rng(int(self.p['seed']))
         self._build()
 
     def _build(self) -> None:
@@ -129,6 +134,7 @@ class ViewPlannerNode(Node):
         if keys.size % 3 or keys.size // 3 != occ.size:
             self.bad.reject('malformed voxel set', f'{keys.size} keys, {occ.size} occupancies')
             return
+        self.map_received = True
         if occ.size == 0:
             self.grid = None
             self.sequence = int(msg.sequence)
@@ -179,7 +185,7 @@ class ViewPlannerNode(Node):
             resp.message = f'unknown strategy {req.strategy!r}; one of {list(STRATEGIES)}'
             return resp
         if self.grid is None:
-            resp.message = 'empty map: nothing received on the map topic yet'
+            resp.message = self._no_map_reason()
             return resp
         g = self.grid
         if not self._in_map_frame(req.current_pose.header.frame_id, resp):
@@ -248,6 +254,11 @@ class ViewPlannerNode(Node):
                       sigma=0.0 if primary else at_least_0(msg.position_sigma_m),
                       weight=weight)
 
+    def _no_map_reason(self) -> str:
+        if self.map_received:
+            return 'empty map: the last map received has no voxels'
+        return 'empty map: nothing received on the map topic yet'
+
     def _in_map_frame(self, frame: str, resp) -> bool:
         """A request's frame must be the map's (or empty): no TF lookup here."""
         if frame and frame != self.map_frame:
@@ -259,7 +270,7 @@ class ViewPlannerNode(Node):
     def _on_task(self, req: TaskView.Request, resp: TaskView.Response):
         resp.success = False
         if self.grid is None:
-            resp.message = 'empty map: nothing received on the map topic yet'
+            resp.message = self._no_map_reason()
             return resp
         for t in [req.primary, *req.secondary]:
             if not self._in_map_frame(t.header.frame_id, resp):

@@ -181,3 +181,59 @@ def test_depth_of_field_limits_are_checked_together(graph):
     with pytest.raises(ValueError, match='task_far_m'):
         ViewPlannerNode(context=node.context, parameter_overrides=[
             Parameter('task_near_m', value=5.0), Parameter('task_far_m', value=5.0)])
+
+
+def test_hostile_targets_maps_and_parameters(graph):
+    """An audit's cases: a map of a tiny resolution is counted and skipped (its pad overflowed
+    int64 and the exception killed the node); a huge radius is inside everything (its reach
+    overflowed the occluder box, and nothing occluded); a huge weight is refused (the rating
+    overflowed to inf); a huge normal is a direction (its norm overflowed); a secondary
+    outside the map is skipped like one in unobserved space; a new seed takes effect; an
+    empty map is told apart from no map."""
+    node, client, ex = graph
+    pub = client.create_publisher(VoxelMap, '/map/voxels', LATCHED_QOS)
+    empty = _voxel_map()
+    empty.voxels.keys, empty.voxels.occupancy = [], []
+    pub.publish(empty)
+    wait_for(lambda: node.map_received, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+             what='the empty map')
+    r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req())
+    assert not r.success and 'has no voxels' in r.message
+    pub.publish(_voxel_map())
+    wait_for(lambda: node.grid is not None, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+             what='map received')
+    tiny = _voxel_map()
+    tiny.resolution_m, tiny.sequence = 1e-19, 5
+    pub.publish(tiny)
+    wait_for(lambda: node.bad.counts['bad map'] == 1, 10.0,
+             spin=lambda t: ex.spin_once(timeout_sec=t), what='the tiny-resolution map')
+    assert node.grid is not None and node.sequence == 1
+
+    def task(radius=0.05, normal=(-1.0, 0.0, 0.0), secondary=()):
+        req = TaskView.Request()
+        req.primary.header.frame_id = 'map'
+        req.primary.position.x, req.primary.position.y, req.primary.position.z = 1.9, 5.5, 1.1
+        req.primary.normal.x, req.primary.normal.y, req.primary.normal.z = normal
+        req.primary.radius_m = radius
+        req.secondary = list(secondary)
+        return _call(client, ex, TaskView, '/viewplan/task_view', req)
+
+    ok = task()
+    assert ok.success, ok.message
+    for radius in (1e19, 1e300):
+        r = task(radius=radius)
+        assert not r.success and 'inside' in r.message, (radius, r.message)
+    r = task(normal=(-1e300, 0.0, 0.0))
+    assert r.success and r.best.pose.pose.position == ok.best.pose.pose.position
+    sec = TaskTarget()
+    sec.header.frame_id = 'map'
+    sec.position.x, sec.position.y, sec.position.z = 1.9, 5.5, 1.1
+    sec.normal.x, sec.radius_m, sec.weight = -1.0, 0.05, 1e308
+    r = task(secondary=[sec])
+    assert not r.success and 'weight' in r.message
+    sec.weight, sec.position.x = 1.0, 500.0                 # outside the map
+    r = task(secondary=[sec])
+    assert r.success and 'primary' in r.message, r.message
+    node.rng.random()
+    assert node.set_parameters([Parameter('seed', value=7)])[0].successful
+    assert node.rng.random() == np.random.default_rng(7).random()   # a new generator
