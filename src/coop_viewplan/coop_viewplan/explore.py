@@ -219,7 +219,7 @@ def explore(world: World, *, strategy: str, n_cameras: int, config: NbvConfig, s
     clear = int(np.ceil(config.clearance_m / world.resolution))
     for k in range(n_cameras):
         cell = np.array(world.start) + np.array([0, 2 * k])
-        if world.occupied[tuple(cell)]:
+        if np.any(cell >= world.occupied.shape) or world.occupied[tuple(cell)]:
             cell = np.array(world.start)
         pos = grid.to_world(cell)
         cams.append(CameraState(pos, yaw=float(rng.uniform(0, 2 * np.pi))))

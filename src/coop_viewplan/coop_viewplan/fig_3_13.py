@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from coop_common.cli import number, output_dir, output_path
 from coop_common.files import save_figure, write_json
 
 from .explore import explore, make_world
@@ -187,26 +188,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--world', default='unstructured',
                    help='unstructured | rooms | path to a PNG (dark = obstacle)')
     p.add_argument('--cameras', type=int, choices=(1, 2), default=1)
-    p.add_argument('--fov-deg', type=float, default=None,
+    p.add_argument('--fov-deg', type=number(lo=0, hi=180, lo_open=True, hi_open=True),
+                   default=None,
                    help='default: 90 (one camera, unstructured) else 75, as in the thesis')
-    p.add_argument('--depth-m', type=float, default=None,
+    p.add_argument('--depth-m', type=number(lo=0, lo_open=True), default=None,
                    help='default: 15 (one camera, unstructured) else 10, as in the thesis')
-    p.add_argument('--seeds', type=int, default=5)
-    p.add_argument('--scans', type=int, default=150)
-    p.add_argument('--resolution-m', type=float, default=1.0)
+    p.add_argument('--seeds', type=number(int, lo=1), default=5)
+    p.add_argument('--scans', type=number(int, lo=1), default=150)
+    p.add_argument('--resolution-m', type=number(lo=0.1, hi=50), default=1.0,
+                   help='cell size of the world and the map (m; 0.1-50)')
     p.add_argument('--strategies', default=','.join(STRATEGIES))
-    p.add_argument('--k-rel', type=float, default=NbvConfig.k_rel,
+    p.add_argument('--k-rel', type=number(lo=0), default=NbvConfig.k_rel,
                    help='K of Eq. 3-15 relative to the NI of a fully unknown view per depth')
     p.add_argument('--distance', choices=('configuration', 'path'), default='configuration',
                    help='d of Eq. 3-15: Eq. 3-11 straight-line configuration distance, or '
                         'with the translation measured along the collision-free path')
-    p.add_argument('--candidates', type=int, default=NbvConfig.n_positions,
+    p.add_argument('--candidates', type=number(int, lo=1), default=NbvConfig.n_positions,
                    help='candidate positions per decision (x 8 headings)')
-    p.add_argument('--near-fraction', type=float, default=NbvConfig.near_fraction,
+    p.add_argument('--near-fraction', type=number(lo=0, hi=1),
+                   default=NbvConfig.near_fraction,
                    help='share of the candidate positions taken nearest to the camera (path '
                         'length), the rest at random (thesis: "random, closest to current '
                         'pose, etc."); default: all random')
-    p.add_argument('--angle-weight', type=float, default=NbvConfig.alpha[3],
+    p.add_argument('--angle-weight', type=number(lo=0), default=NbvConfig.alpha[3],
                    help='alpha of yaw and pitch in Eq. 3-11 (m per rad); thesis: "alpha_i = 1 '
                         'for this thesis" (default); 0 = the pre-2026-11-21 runs')
     p.add_argument('--entropy-weight', choices=ENTROPY_WEIGHTS, default=NbvConfig.entropy_weight,
@@ -227,37 +231,33 @@ def build_parser() -> argparse.ArgumentParser:
                         "Markov chain started from the known map's obstacle density (density, "
                         "default) or the planner's Markov-chain estimate as it is (markov, 0.5 "
                         "far from the map)")
-    p.add_argument('--ni-floor', type=float, default=NbvConfig.ni_floor,
+    p.add_argument('--ni-floor', type=number(lo=0, hi=1, hi_open=True),
+                   default=NbvConfig.ni_floor,
                    help='max_information: only views with at least this share of the '
                         "decision's best NI compete (beyond the thesis; 0, default: the plain "
                         'argmax of Eq. 3-15)')
     p.add_argument('--compare-one-camera', action='store_true',
                    help='with --cameras 2: also run max_information with one camera, same '
                         'sensor, and report the scans ratio')
-    p.add_argument('--json', type=Path, default=None)
-    p.add_argument('--plots', type=Path, default=None, help='directory for PNG plots')
+    p.add_argument('--json', type=output_path, default=None)
+    p.add_argument('--plots', type=output_dir, default=None, help='directory for PNG plots')
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     default_wide = args.world == 'unstructured' and args.cameras == 1
     fov = args.fov_deg if args.fov_deg is not None else (90.0 if default_wide else 75.0)
     depth = args.depth_m if args.depth_m is not None else (15.0 if default_wide else 10.0)
     strategies = [s.strip() for s in args.strategies.split(',') if s.strip()]
     bad = [s for s in strategies if s not in STRATEGIES]
-    if not 0.0 <= args.ni_floor < 1.0:
-        print(f'--ni-floor must be within [0, 1), got {args.ni_floor}', file=sys.stderr)
-        return 2
-    if bad or args.seeds < 1 or args.scans < 1:
-        print(f'bad arguments: unknown strategies {bad}' if bad else 'seeds, scans must be >= 1',
-              file=sys.stderr)
-        return 2
+    if bad or not strategies:
+        parser.error(f'--strategies: unknown {bad}; of {list(STRATEGIES)}')
     try:
         make_world(args.world, seed=0, resolution=args.resolution_m)
-    except ValueError as exc:
-        print(str(exc), file=sys.stderr)
-        return 2
+    except (ValueError, OSError, SyntaxError) as exc:     # PIL: SyntaxError for "not a PNG"
+        parser.error(f'--world {args.world}: {exc}')
     common = dict(world=args.world, fov_deg=fov, depth_m=depth, seeds=args.seeds,
                   scans=args.scans, resolution_m=args.resolution_m, k_rel=args.k_rel,
                   n_positions=args.candidates, distance_metric=args.distance,

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from coop_common.cli import number, output_dir, output_path
 from coop_common.files import save_figure, write_json
 
 from .grid import FREE_GRAYS, MapError, OccupancyGrid, gray_estimate
@@ -516,31 +517,40 @@ def main(argv: list[str] | None = None) -> int:
                                             'scan, raster vs maximum information pose selection')
     d = Fig325Config()
     p.add_argument('--rovers', type=int, default=d.rovers, choices=(1, 2))
-    p.add_argument('--scans', type=int, default=d.scans)
-    p.add_argument('--seed', type=int, default=d.seed, help='world seed of the first run')
-    p.add_argument('--seeds', type=int, default=1, help='runs (worlds seed..seed+N-1)')
-    p.add_argument('--occlusion-density', type=float, default=d.occlusion_density)
-    p.add_argument('--depth-m', type=float, default=d.depth_m)
-    p.add_argument('--candidates', type=int, default=d.n_positions,
+    p.add_argument('--scans', type=number(int, lo=1), default=d.scans)
+    p.add_argument('--seed', type=number(int, lo=0), default=d.seed,
+                   help='world seed of the first run')
+    p.add_argument('--seeds', type=number(int, lo=1), default=1,
+                   help='runs (worlds seed..seed+N-1)')
+    p.add_argument('--occlusion-density', type=number(lo=0, hi=0.5),
+                   default=d.occlusion_density)
+    p.add_argument('--depth-m', type=number(lo=0, lo_open=True), default=d.depth_m)
+    p.add_argument('--candidates', type=number(int, lo=1), default=d.n_positions,
                    help='candidate positions per decision (x 8 headings x pitches)')
-    p.add_argument('--raster-spacing-m', type=float, default=d.raster_spacing_m)
-    p.add_argument('--raster-headings', type=int, default=d.raster_headings,
+    p.add_argument('--raster-spacing-m', type=number(lo=0, lo_open=True),
+                   default=d.raster_spacing_m)
+    p.add_argument('--raster-headings', type=number(int, lo=0), default=d.raster_headings,
                    help='headings the raster sweeps at each location (0: one, along the '
                         'raster, as in fig_3_13)')
-    p.add_argument('--p-empty', type=float, default=d.p_empty)
+    p.add_argument('--p-empty', type=number(lo=0, hi=1), default=d.p_empty)
     p.add_argument('--pose', choices=('truth', 'odometry'), default=d.pose_source)
     p.add_argument('--free-gray', choices=FREE_GRAYS, default=d.free_gray,
                    help="NI gray value of known free voxels: 'empty' 0 (the thesis's known "
                         "empty space); 'occupancy' the map's log-odds probability (earlier)")
     p.add_argument('--strategies', default='raster,max_information')
-    p.add_argument('--json', type=Path, default=None)
-    p.add_argument('--plots', type=Path, default=None)
+    p.add_argument('--json', type=output_path, default=None)
+    p.add_argument('--plots', type=output_dir, default=None)
     p.add_argument('--quiet', action='store_true')
     p.add_argument('--from-json', type=Path, default=None,
                    help='print the table (and --plots) of a saved --json run; no simulation')
     a = p.parse_args(argv)
     if a.from_json is not None:
-        res = json.loads(a.from_json.read_text())
+        try:
+            res = json.loads(a.from_json.read_text())
+            if not isinstance(res, dict):
+                raise ValueError('not a fig_3_25 --json result')
+        except (OSError, ValueError) as exc:     # JSONDecodeError is a ValueError
+            p.error(f'--from-json {a.from_json}: {exc}')
         print(format_table(res))
         if a.plots is not None:
             print(f'plot: {plot(res, a.plots)}')

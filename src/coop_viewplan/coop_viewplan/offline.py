@@ -19,7 +19,14 @@ import numpy as np
 
 from .frames import yaw_pitch_from_optical
 from .grid import MapError, OccupancyGrid, planning_bounds
-from .nbv import CameraState, Decision, NbvConfig, NextBestViewPlanner, PlanningError
+from .nbv import (
+    STRATEGIES,
+    CameraState,
+    Decision,
+    NbvConfig,
+    NextBestViewPlanner,
+    PlanningError,
+)
 
 #: the node's parameter defaults that matter here (view_planner_node.PARAMS; checked by a test)
 NODE_DEFAULTS = {'fov_deg': 75.0, 'depth_m': 10.0, 'rays_az': 24, 'rays_el': 18, 'k_rel': 0.15,
@@ -88,7 +95,7 @@ def plan_team(grid: OccupancyGrid, cameras: dict[str, CameraState], params: dict
         try:
             d = planner.plan(grid, cam, strategy=strategy, rng=rng, claimed=claimed,
                              free_footprint=True)
-        except (MapError, PlanningError) as exc:
+        except (MapError, PlanningError, ValueError) as exc:    # as the node answers
             out.append(Answer(rover, None, str(exc)))
             continue
         claimed |= planner.expected_cells(grid, d)
@@ -101,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('bag', type=Path, help='bag with <rover>/stereo/* (poses, and the map '
                                            'unless --map)')
     ap.add_argument('--map', type=Path, default=None, help='a saved coop_mapping map instead')
-    ap.add_argument('--strategy', default='max_information')
+    ap.add_argument('--strategy', default='max_information', choices=list(STRATEGIES))
     ap.add_argument('-p', action='append', default=[], metavar='NAME=VALUE',
                     help='node parameter override, e.g. -p camera_height_m=0.75')
     a = ap.parse_args(argv)
@@ -110,7 +117,14 @@ def main(argv: list[str] | None = None) -> int:
         k, _, v = kv.partition('=')
         if k not in params:
             ap.error(f'unknown parameter {k!r}; one of {sorted(params)}')
-        params[k] = type(params[k])(float(v)) if not isinstance(params[k], str) else v
+        try:
+            params[k] = type(params[k])(float(v)) if not isinstance(params[k], str) else v
+        except (ValueError, OverflowError):
+            ap.error(f'-p {kv}: not a finite number')
+        if isinstance(params[k], float) and not math.isfinite(params[k]):
+            ap.error(f'-p {kv}: not a finite number')
+    if not a.bag.exists():
+        ap.error(f'{a.bag}: no such bag')
     if a.map is not None:
         from coop_mapping.voxelmap import VoxelMap
         vm = VoxelMap.load(a.map)

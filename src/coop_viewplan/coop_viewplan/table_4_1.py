@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from coop_common.cli import number, output_dir, output_path
 from coop_common.files import save_figure, write_json
 
 from .task_study import (
@@ -117,30 +118,28 @@ def plot_rating_maps(out_dir: Path, *, seed: int = 7, density: float = 0.20) -> 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='table_4_1', description=__doc__.split('\n\n')[0])
-    p.add_argument('--trials', type=int, default=300, help='trials per cell (thesis: 300)')
+    p.add_argument('--trials', type=number(int, lo=1), default=300,
+                   help='trials per cell (thesis: 300)')
     p.add_argument('--densities', default=','.join(str(d) for d in DENSITIES))
     p.add_argument('--tolerances', default=','.join(str(t) for t in TOLERANCES))
-    p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--json', type=Path, default=None)
+    p.add_argument('--seed', type=number(int, lo=0), default=0)
+    p.add_argument('--json', type=output_path, default=None)
     p.add_argument('--clear-zone-m', type=float, default=DEFAULT_CLEAR_ZONE_M,
                    help='obstacle-free radius around each target, m (sensitivity study; '
                         f'default {DEFAULT_CLEAR_ZONE_M:g}; widened per scenario only where a '
                         'target would lie inside an expanded occluder)')
-    p.add_argument('--plots', type=Path, default=None,
+    p.add_argument('--plots', type=output_dir, default=None,
                    help='directory for the Fig. 4-8b analogue (RF map)')
     args = p.parse_args(argv)
     try:
         dens = tuple(float(x) for x in args.densities.split(','))
         tols = tuple(float(x) for x in args.tolerances.split(','))
     except ValueError:
-        print('densities and tolerances are comma-separated fractions', file=sys.stderr)
-        return 2
-    if args.trials < 1 or not all(0 <= d < 0.6 for d in dens) or not all(0 < t < 1 for t in tols):
-        print('trials >= 1, densities in [0, 0.6), tolerances in (0, 1)', file=sys.stderr)
-        return 2
+        p.error('--densities and --tolerances are comma-separated fractions')
+    if not all(0 <= d < 0.6 for d in dens) or not all(0 < t < 1 for t in tols):
+        p.error('--densities in [0, 0.6), --tolerances in (0, 1)')
     if not 0 <= args.clear_zone_m < 30:
-        print('clear-zone-m in [0, 30)', file=sys.stderr)
-        return 2
+        p.error('--clear-zone-m in [0, 30)')
     cfg = StudyConfig(clear_zone_m=args.clear_zone_m)
     t0 = time.perf_counter()
     cells = run_study(trials=args.trials, densities=dens, tolerances=tols, seed0=args.seed,

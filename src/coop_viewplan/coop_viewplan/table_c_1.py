@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
+from coop_common.cli import number, output_path
 from coop_common.files import write_json
 
 from .imageinfo import compression_ratio
@@ -87,15 +87,12 @@ def study(images: list[np.ndarray], sizes: tuple[int, ...] = SIZES) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='table_c_1', description=__doc__.split('\n\n')[0])
-    p.add_argument('--images', type=int, default=40)
-    p.add_argument('--noise', type=int, default=20, help='pure-noise images')
-    p.add_argument('--sensor-sigma', type=float, default=2.0,
+    p.add_argument('--images', type=number(int, lo=1), default=40)
+    p.add_argument('--noise', type=number(int, lo=0), default=20, help='pure-noise images')
+    p.add_argument('--sensor-sigma', type=number(lo=0), default=2.0,
                    help='camera noise added to the rendered scenes (gray levels)')
-    p.add_argument('--json', type=Path, default=None)
+    p.add_argument('--json', type=output_path, default=None)
     args = p.parse_args(argv)
-    if args.images < 1 or args.noise < 0:
-        print('--images >= 1, --noise >= 0', file=sys.stderr)
-        return 2
     scenes = [render_scene(s, sensor_sigma=args.sensor_sigma) for s in range(args.images)]
     rng = np.random.default_rng(12345)
     noise = [rng.integers(0, 256, (256, 256)).astype(np.uint8) for _ in range(args.noise)]

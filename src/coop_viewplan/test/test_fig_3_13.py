@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from coop_viewplan import fig_3_13
 from coop_viewplan.explore import Trace, explore, make_world, rooms_world
@@ -83,13 +84,28 @@ def test_cli_rooms_reports_the_start_room(tmp_path, capsys):
     assert data['verdict']['scans_to_map_start_room_rank_of_max_information'] in (1, 2)
 
 
-def test_cli_rejects_bad_world(capsys):
-    assert fig_3_13.main(['--world', 'nowhere.png']) == 2
+def _usage_error(main, argv, capsys) -> str:
+    """main(argv) stops with argparse's exit 2 before any work; its message."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_cli_rejects_bad_world(capsys, tmp_path):
+    assert 'nowhere.png' in _usage_error(fig_3_13.main, ['--world', 'nowhere.png'], capsys)
+    (tmp_path / 'text.png').write_text('not an image')
+    assert 'text.png' in _usage_error(fig_3_13.main, ['--world', str(tmp_path / 'text.png')],
+                                      capsys)
+    # numbers outside their range or not finite, a --json under a file: refused before the run
+    for argv in (['--fov-deg', '0'], ['--depth-m', '-5'], ['--resolution-m', '0'],
+                 ['--k-rel', 'nan'], ['--candidates', '0'], ['--near-fraction', '2'],
+                 ['--json', str(tmp_path / 'text.png' / 'out.json')]):
+        assert argv[0] in _usage_error(fig_3_13.main, argv, capsys), argv
 
 
 def test_cli_ni_floor(tmp_path, capsys):
-    assert fig_3_13.main(['--ni-floor', '1.5']) == 2
-    assert 'ni-floor' in capsys.readouterr().err
+    assert 'ni-floor' in _usage_error(fig_3_13.main, ['--ni-floor', '1.5'], capsys)
     out = tmp_path / 'f.json'
     assert fig_3_13.main(['--seeds', '1', '--scans', '6', '--resolution-m', '2.0',
                           '--strategies', 'max_information', '--ni-floor', '0.25',

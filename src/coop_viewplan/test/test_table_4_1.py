@@ -44,7 +44,10 @@ def test_cli_reduced(tmp_path, capsys):
 
 
 def test_cli_rejects_bad_density():
-    assert table_4_1.main(['--densities', '0.9']) == 2
+    for argv in (['--densities', '0.9'], ['--trials', '0'], ['--seed', '-1']):
+        with pytest.raises(SystemExit) as e:
+            table_4_1.main(argv)
+        assert e.value.code == 2
 
 
 def test_object_covering_the_secondary_does_not_end_guidance():
@@ -103,7 +106,9 @@ def test_smaller_clear_zone_allows_closer_obstacles():
 def test_clear_zone_rejected_when_negative():
     with pytest.raises(ValueError):
         make_scenario(np.random.default_rng(0), 0.2, StudyConfig(clear_zone_m=-1.0))
-    assert table_4_1.main(['--clear-zone-m', '-1']) == 2
+    with pytest.raises(SystemExit) as e:
+        table_4_1.main(['--clear-zone-m', '-1'])
+    assert e.value.code == 2
 
 
 def test_cli_clear_zone_in_header_and_json(tmp_path, capsys):
