@@ -254,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
     bad = [s for s in strategies if s not in STRATEGIES]
     if bad or not strategies:
         parser.error(f'--strategies: unknown {bad}; of {list(STRATEGIES)}')
+    if depth < args.resolution_m:         # the view would hold no cell
+        parser.error(f'--depth-m {depth} is below --resolution-m {args.resolution_m}')
     try:
         make_world(args.world, seed=0, resolution=args.resolution_m)
     except (ValueError, OSError, SyntaxError) as exc:     # PIL: SyntaxError for "not a PNG"

@@ -551,7 +551,11 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError('not a fig_3_25 --json result')
         except (OSError, ValueError) as exc:     # JSONDecodeError is a ValueError
             p.error(f'--from-json {a.from_json}: {exc}')
-        print(format_table(res))
+        try:
+            table = format_table(res)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            p.error(f'--from-json {a.from_json}: not a fig_3_25 --json result ({exc!r})')
+        print(table)
         if a.plots is not None:
             print(f'plot: {plot(res, a.plots)}')
         return 0
@@ -562,6 +566,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f'unknown strategy {bad}; one of {list(STRATEGIES)}')
     if a.scans < 1 or a.seeds < 1:
         p.error('--scans and --seeds must be >= 1')
+    if a.depth_m < d.resolution_m:          # the view would hold no voxel
+        p.error(f'--depth-m {a.depth_m} is below the map resolution {d.resolution_m} m')
     cfg = Fig325Config(rovers=a.rovers, scans=a.scans, seed=a.seed,
                        occlusion_density=a.occlusion_density, depth_m=a.depth_m,
                        n_positions=a.candidates, raster_spacing_m=a.raster_spacing_m,

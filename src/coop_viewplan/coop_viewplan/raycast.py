@@ -56,6 +56,9 @@ def make_template(*, ndim: int, fov_deg: float, depth_m: float, resolution: floa
     n_steps = max(1, int(np.ceil((depth_m - min_range_m) / step)))
     ranges = min_range_m + (np.arange(n_steps) + 0.5) * step
     ranges = ranges[ranges <= depth_m]
+    if len(ranges) == 0:
+        raise ValueError(f'depth_m {depth_m} holds no sample at {step} m steps (depth below '
+                         'half a sample step of the grid)')
     dr = step
     az = (np.arange(n_az) + 0.5) / n_az * fov - fov / 2
     daz = fov / n_az

@@ -99,7 +99,8 @@ class ViewPlannerNode(Node):
         self.bad = BadInputCounter(self)
         self.rng = np.random.default_rng(int(self.p['seed']))
         self.grid: OccupancyGrid | None = None
-        self.map_received = False       # an empty map message leaves grid None too
+        # why grid is None: no map yet, an empty one, or every one so far refused
+        self.map_state = 'empty map: nothing received on the map topic yet'
         self.map_frame = self.p['frame_id']
         self.sequence = -1
         self.cameras: dict[str, CameraState] = {}
@@ -129,14 +130,14 @@ class ViewPlannerNode(Node):
         keys = np.asarray(msg.voxels.keys, dtype=np.int64)
         occ = np.asarray(msg.voxels.occupancy, dtype=np.float32)
         if not (msg.resolution_m > 0 and math.isfinite(msg.resolution_m)):
-            self.bad.reject('bad resolution', f'{msg.resolution_m}')
+            self._refuse('bad resolution', f'{msg.resolution_m}')
             return
         if keys.size % 3 or keys.size // 3 != occ.size:
-            self.bad.reject('malformed voxel set', f'{keys.size} keys, {occ.size} occupancies')
+            self._refuse('malformed voxel set', f'{keys.size} keys, {occ.size} occupancies')
             return
-        self.map_received = True
         if occ.size == 0:
             self.grid = None
+            self.map_state = 'empty map: the last map received has no voxels'
             self.sequence = int(msg.sequence)
             return
         try:
@@ -151,7 +152,7 @@ class ViewPlannerNode(Node):
             grid = OccupancyGrid.from_sparse(k3, occ, resolution=msg.resolution_m,
                                              bounds_keys=bounds)
         except MapError as exc:
-            self.bad.reject('bad map', str(exc))
+            self._refuse('bad map', str(exc))
             return
         old = self.grid
         if old is not None and old.resolution == grid.resolution:
@@ -165,6 +166,13 @@ class ViewPlannerNode(Node):
         self.map_frame = msg.header.frame_id or self.p['frame_id']
         self.sequence = int(msg.sequence)
         self.get_logger().debug(f'map {self.sequence}: {occ.size} voxels')
+
+    def _refuse(self, reason: str, detail: str) -> None:
+        """Count a map that cannot be planned on; the last good one (if any) stays."""
+        self.bad.reject(reason, detail)
+        if self.grid is None:
+            self.map_state = ('no map to plan on: the last map received was refused '
+                              f'({reason}: {detail})')
 
     def _rating_msg(self, frame: str, pos: np.ndarray, quat: np.ndarray) -> ViewRating:
         r = ViewRating()
@@ -185,7 +193,7 @@ class ViewPlannerNode(Node):
             resp.message = f'unknown strategy {req.strategy!r}; one of {list(STRATEGIES)}'
             return resp
         if self.grid is None:
-            resp.message = self._no_map_reason()
+            resp.message = self.map_state
             return resp
         g = self.grid
         if not self._in_map_frame(req.current_pose.header.frame_id, resp):
@@ -254,10 +262,6 @@ class ViewPlannerNode(Node):
                       sigma=0.0 if primary else at_least_0(msg.position_sigma_m),
                       weight=weight)
 
-    def _no_map_reason(self) -> str:
-        if self.map_received:
-            return 'empty map: the last map received has no voxels'
-        return 'empty map: nothing received on the map topic yet'
 
     def _in_map_frame(self, frame: str, resp) -> bool:
         """A request's frame must be the map's (or empty): no TF lookup here."""
@@ -270,7 +274,7 @@ class ViewPlannerNode(Node):
     def _on_task(self, req: TaskView.Request, resp: TaskView.Response):
         resp.success = False
         if self.grid is None:
-            resp.message = self._no_map_reason()
+            resp.message = self.map_state
             return resp
         for t in [req.primary, *req.secondary]:
             if not self._in_map_frame(t.header.frame_id, resp):

@@ -192,20 +192,25 @@ def test_hostile_targets_maps_and_parameters(graph):
     empty map is told apart from no map."""
     node, client, ex = graph
     pub = client.create_publisher(VoxelMap, '/map/voxels', LATCHED_QOS)
+    tiny = _voxel_map()
+    tiny.resolution_m, tiny.sequence = 1e-19, 5
+    pub.publish(tiny)
+    wait_for(lambda: 'refused' in node.map_state, 10.0,
+             spin=lambda t: ex.spin_once(timeout_sec=t), what='the tiny-resolution map')
+    r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req())
+    assert not r.success and 'refused (bad map' in r.message, r.message
     empty = _voxel_map()
     empty.voxels.keys, empty.voxels.occupancy = [], []
     pub.publish(empty)
-    wait_for(lambda: node.map_received, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
-             what='the empty map')
+    wait_for(lambda: 'no voxels' in node.map_state, 10.0,
+             spin=lambda t: ex.spin_once(timeout_sec=t), what='the empty map')
     r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req())
     assert not r.success and 'has no voxels' in r.message
     pub.publish(_voxel_map())
     wait_for(lambda: node.grid is not None, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
              what='map received')
-    tiny = _voxel_map()
-    tiny.resolution_m, tiny.sequence = 1e-19, 5
     pub.publish(tiny)
-    wait_for(lambda: node.bad.counts['bad map'] == 1, 10.0,
+    wait_for(lambda: node.bad.counts['bad map'] == 2, 10.0,
              spin=lambda t: ex.spin_once(timeout_sec=t), what='the tiny-resolution map')
     assert node.grid is not None and node.sequence == 1
 
