@@ -564,8 +564,6 @@ def main(argv: list[str] | None = None) -> int:
     bad = [s for s in names if s not in STRATEGIES]
     if bad or not names:
         p.error(f'unknown strategy {bad}; one of {list(STRATEGIES)}')
-    if a.scans < 1 or a.seeds < 1:
-        p.error('--scans and --seeds must be >= 1')
     if a.depth_m < d.resolution_m:          # the view would hold no voxel
         p.error(f'--depth-m {a.depth_m} is below the map resolution {d.resolution_m} m')
     cfg = Fig325Config(rovers=a.rovers, scans=a.scans, seed=a.seed,

@@ -312,13 +312,13 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     at lo). Each set's vertices are unique and in lexicographic order; a run of tiles filled
     entirely along the first axis (most of the unknown space of a live map) is one set, its
     box's 2^ndim corners (the union of the tiles' hulls)."""
-    occ = _occluder_mask(grid, threshold, unknown_occludes)
     nd = grid.ndim
     lo = np.zeros(nd, np.int64)
+    hi = np.asarray(grid.shape, np.int64)
     if box is not None:
         lo = np.clip(np.asarray(box[0], np.int64), 0, grid.shape)
         hi = np.clip(np.asarray(box[1], np.int64), lo, grid.shape)
-        occ = occ[tuple(slice(a, b) for a, b in zip(lo, hi))]
+    occ = _occluder_mask(grid, lo, hi, threshold=threshold, unknown_occludes=unknown_occludes)
     corners = _CORNER_SELECT[nd]
     n_tiles = [int(np.ceil(n / tile_cells)) for n in occ.shape]
     tiles = np.zeros(occ.shape, np.int64)
@@ -369,10 +369,25 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     return boxes + np.split(world, np.flatnonzero(np.diff(g)) + 1)
 
 
-def _occluder_mask(grid: OccupancyGrid, threshold: float, unknown_occludes: bool) -> np.ndarray:
-    """The cells grid_occluders cuts into occluders."""
-    occ = grid.known & (grid.prob >= threshold)
-    return occ | ~grid.known if unknown_occludes else occ
+def _occluder_mask(grid: OccupancyGrid, lo: np.ndarray, hi: np.ndarray, *,
+                   threshold: float = 0.5, unknown_occludes: bool = True) -> np.ndarray:
+    """The cells grid_occluders cuts into occluders, of the index box [lo, hi) only."""
+    sl = tuple(slice(a, b) for a, b in zip(lo, hi))
+    known = grid.known[sl]
+    occ = known & (grid.prob[sl] >= threshold)
+    return occ | ~known if unknown_occludes else occ
+
+
+def _deep_in_boxes(o: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per box (lo, hi (B, ndim)): whether point o lies deeper than TOUCH_M inside it."""
+    return np.all((lo + TOUCH_M < o) & (o < hi - TOUCH_M), axis=1)
+
+
+def _deep_in_hulls(c: np.ndarray, face0: np.ndarray) -> np.ndarray:
+    """Per hull, from its faces' offsets c (n.x + c <= 0 inside, x relative to the point;
+    hulls stacked, hull i's first face at face0[i]): whether the point lies deeper than
+    TOUCH_M inside it."""
+    return np.logical_and.reduceat(c < -TOUCH_M, face0)
 
 
 def _hulls_holding(target: np.ndarray, sets: list[np.ndarray], hulls: list[np.ndarray],
@@ -389,8 +404,7 @@ def _hulls_holding(target: np.ndarray, sets: list[np.ndarray], hulls: list[np.nd
     out: list[int] = []
     if len(maybe):
         is_box, lo, hi = _filled_boxes([hulls[i] for i in maybe])
-        deep = np.all((lo + TOUCH_M < target) & (target < hi - TOUCH_M), axis=1)
-        out = maybe[is_box & deep].tolist()
+        out = maybe[is_box & _deep_in_boxes(target, lo, hi)].tolist()
         cand = sorted(set(cand) - set(maybe[is_box].tolist()))
     idx, eqs = [], []
     for i in cand:
@@ -400,21 +414,23 @@ def _hulls_holding(target: np.ndarray, sets: list[np.ndarray], hulls: list[np.nd
             eqs.append(eq)
     if eqs:
         eq = np.concatenate(eqs)
-        deep = (eq[:, :-1] @ target + eq[:, -1]) < -TOUCH_M
         face0 = np.concatenate([[0], np.cumsum([len(e) for e in eqs])[:-1]])
-        out.extend(np.asarray(idx, np.int64)[np.logical_and.reduceat(deep, face0)].tolist())
+        deep = _deep_in_hulls(eq[:, :-1] @ target + eq[:, -1], face0)
+        out.extend(np.asarray(idx, np.int64)[deep].tolist())
     return np.asarray(sorted(out), np.int64)
 
 
-def _cells_as_boxes(grid: OccupancyGrid, occ: np.ndarray, sets: list[np.ndarray]
+def _cells_as_boxes(grid: OccupancyGrid, sets: list[np.ndarray], *, unknown_occludes: bool
                     ) -> list[np.ndarray]:
-    """The occluder cells (`occ`) inside the bounding boxes of cell-corner vertex sets (tile
-    pieces of grid_occluders), each cell as its box's corners: the same occluders, exactly."""
+    """The occluder cells (`_occluder_mask`) inside the bounding boxes of cell-corner vertex
+    sets (tile pieces of grid_occluders), each cell as its box's corners: the same occluders,
+    exactly."""
     cells = []
     for pts in sets:
         lo = np.rint((pts.min(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
         hi = np.rint((pts.max(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
-        cells.append(np.argwhere(occ[tuple(slice(a, b) for a, b in zip(lo, hi))]) + lo)
+        cells.append(np.argwhere(_occluder_mask(grid, lo, hi,
+                                                unknown_occludes=unknown_occludes)) + lo)
     cells = np.unique(np.concatenate(cells), axis=0)
     corners = _CORNER_SELECT[grid.ndim]
     return list(grid.origin + (cells[:, None, :] + corners[None]) * grid.resolution)
@@ -539,7 +555,7 @@ def _hull_entry(target: np.ndarray, verts: list[np.ndarray], eqs: list[np.ndarra
     eq = np.concatenate(eqs)
     normal = eq[:, :-1]
     c = eq[:, -1] + normal @ target
-    if np.logical_and.reduceat(c < -TOUCH_M, face0).any():
+    if _deep_in_hulls(c, face0).any():
         raise PlacementError('target is inside an (expanded) obstacle')
     # bounding spheres: the centre of the vertices' box, the farthest vertex from it
     n_verts = np.array([len(v) for v in verts])
@@ -575,7 +591,7 @@ def _box_entry(target: np.ndarray, lo: np.ndarray, hi: np.ndarray, u: np.ndarray
     best = np.full(u.shape[0], np.inf)
     if len(lo) == 0:
         return best
-    if np.any(np.all((lo + TOUCH_M < o) & (o < hi - TOUCH_M), axis=1)):
+    if _deep_in_boxes(o, lo, hi).any():
         raise PlacementError('target is inside an (expanded) obstacle')
     zero = u == 0.0
     with np.errstate(divide='ignore'):
@@ -852,9 +868,9 @@ class TaskPlacer:
             # the hull of a tile piece that is not convex (an L, a U) may hold a target that
             # none of its cells does: such pieces go in cell by cell, and only a target inside
             # a grown cell is refused
-            occ = _occluder_mask(grid, 0.5, self.unknown_occludes)
             cell_hulls, cell_eqs = _expanded_hulls(
-                _cells_as_boxes(grid, occ, [near[i] for i in holding]), t.radius)
+                _cells_as_boxes(grid, [near[i] for i in holding],
+                                unknown_occludes=self.unknown_occludes), t.radius)
             keep = np.ones(len(hulls), bool)
             keep[holding] = False
             hulls = [h for h, k in zip(hulls, keep) if k] + cell_hulls
