@@ -20,6 +20,7 @@ import numpy as np  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_viewplan.grid import OccupancyGrid, markov_estimate, occlusion_estimate  # noqa: E402
 from coop_viewplan.nbv import CameraState, InfoLookup, NbvConfig, NextBestViewPlanner, score_views  # noqa: E402
+from coop_viewplan.params import PARAMS as NODE_SPECS  # noqa: E402
 from coop_viewplan.placement import (  # noqa: E402
     CameraModel,
     PlacementError,
@@ -28,7 +29,6 @@ from coop_viewplan.placement import (  # noqa: E402
     mast_stations,
 )
 from coop_viewplan.task_study import StudyConfig, make_scenario  # noqa: E402
-from coop_viewplan.view_planner_node import PARAMS as NODE_SPECS  # noqa: E402
 
 
 def world_3d(rng: np.random.Generator, *, size_m: float = 24.0, height_m: float = 3.0,

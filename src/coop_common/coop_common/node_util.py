@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import rclpy
@@ -19,46 +19,25 @@ from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from .params import ParamSpec, check_values
 
-class ParamSpec:
-    """One declared parameter: default, description, optional range/choices, read_only."""
+__all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'run_node']
 
-    def __init__(self, default: Any, description: str, *, lo: float | None = None,
-                 hi: float | None = None, choices: Sequence[str] | None = None,
-                 read_only: bool = False) -> None:
-        self.default = default
-        self.description = description
-        self.lo, self.hi = lo, hi
-        self.choices = tuple(choices) if choices else None
-        self.read_only = read_only
 
-    def descriptor(self) -> ParameterDescriptor:
-        d = ParameterDescriptor(description=self.description, read_only=self.read_only)
-        if self.choices:
-            d.additional_constraints = 'one of: ' + ', '.join(self.choices)
-        if self.lo is not None and self.hi is not None:
-            if isinstance(self.default, bool):
-                pass
-            elif isinstance(self.default, int):
-                d.integer_range = [IntegerRange(from_value=int(self.lo), to_value=int(self.hi),
-                                                step=0)]
-            elif isinstance(self.default, float):
-                d.floating_point_range = [FloatingPointRange(from_value=float(self.lo),
-                                                             to_value=float(self.hi), step=0.0)]
-        return d
-
-    def check(self, name: str, value: Any) -> str | None:
-        """Reason `value` is not acceptable, or None."""
-        if isinstance(value, float) and not math.isfinite(value):
-            return f'{name} must be finite, got {value}'
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            if self.lo is not None and value < self.lo:
-                return f'{name} must be >= {self.lo}, got {value}'
-            if self.hi is not None and value > self.hi:
-                return f'{name} must be <= {self.hi}, got {value}'
-        if self.choices and value not in self.choices:
-            return f'{name} must be one of {list(self.choices)}, got {value!r}'
-        return None
+def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    d = ParameterDescriptor(description=spec.description, read_only=spec.read_only)
+    if spec.choices:
+        d.additional_constraints = 'one of: ' + ', '.join(spec.choices)
+    if spec.lo is not None and spec.hi is not None:
+        if isinstance(spec.default, bool):
+            pass
+        elif isinstance(spec.default, int):
+            d.integer_range = [IntegerRange(from_value=int(spec.lo), to_value=int(spec.hi),
+                                            step=0)]
+        elif isinstance(spec.default, float):
+            d.floating_point_range = [FloatingPointRange(from_value=float(spec.lo),
+                                                         to_value=float(spec.hi), step=0.0)]
+    return d
 
 
 def declare_parameters(node: Node, specs: dict[str, ParamSpec],
@@ -71,11 +50,9 @@ def declare_parameters(node: Node, specs: dict[str, ParamSpec],
     < far), given all values as they would be, returning the reason they are not acceptable or
     None. Returns the current values."""
     for name, spec in specs.items():
-        node.declare_parameter(name, spec.default, spec.descriptor())
+        node.declare_parameter(name, spec.default, _descriptor(spec))
     values = {name: node.get_parameter(name).value for name in specs}
-    bad = [r for name, v in values.items() if (r := specs[name].check(name, v))]
-    if not bad and check_all is not None and (r := check_all(values)):
-        bad.append(r)
+    bad = check_values(specs, values, check_all)
     if bad:
         raise ValueError('; '.join(bad))
 

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from coop_common.params import check_values, parse_value
+
 from .frames import yaw_pitch_from_optical
 from .grid import MapError, OccupancyGrid, planning_bounds
 from .nbv import (
@@ -27,13 +29,35 @@ from .nbv import (
     NextBestViewPlanner,
     PlanningError,
 )
+from .params import PARAMS, check_params
 
-#: the node's parameter defaults that matter here (view_planner_node.PARAMS; checked by a test)
-NODE_DEFAULTS = {'fov_deg': 75.0, 'depth_m': 10.0, 'rays_az': 24, 'rays_el': 18, 'k_rel': 0.15,
-                 'n_exp': 1.0, 'candidates': 40, 'headings': 8, 'camera_height_m': 0.8,
-                 'clearance_m': 0.5, 'p_empty': 0.2, 'occupied_voxels': 2, 'occupied_p': 0.7,
-                 'occupied_clamp': 0.97, 'pad_m': 5.0, 'ceiling_m': 1.0, 'seed': 0,
-                 'ni_measure': 'histogram', 'free_gray': 'empty'}
+#: the node's parameters that the planning here reads (`nbv_config`, the grid, the seed); the
+#: others (topics, frames, task placement) have nothing to act on off line
+PLANNING_PARAMS = ('fov_deg', 'depth_m', 'rays_az', 'rays_el', 'k_rel', 'n_exp', 'candidates',
+                   'headings', 'camera_height_m', 'clearance_m', 'p_empty', 'occupied_voxels',
+                   'occupied_p', 'occupied_clamp', 'pad_m', 'ceiling_m', 'seed', 'ni_measure',
+                   'free_gray')
+
+
+def node_parameters(overrides: list[str] = ()) -> dict:
+    """The node's parameter values (its defaults, `params.PARAMS`) with `NAME=VALUE` overrides
+    of PLANNING_PARAMS, typed and validated as the node does (its ranges, choices and rule):
+    ValueError with the reason when one is not acceptable."""
+    values = {k: s.default for k, s in PARAMS.items()}
+    for kv in overrides:
+        k, sep, v = kv.partition('=')
+        if not sep:
+            raise ValueError(f'{kv!r}: not NAME=VALUE')
+        if k not in PLANNING_PARAMS:
+            raise ValueError(f'unknown parameter {k!r}; one of {sorted(PLANNING_PARAMS)}')
+        try:
+            values[k] = parse_value(PARAMS[k], v)
+        except ValueError as exc:
+            raise ValueError(f'{k}: {exc}') from None
+    bad = check_values(PARAMS, values, check_params)
+    if bad:
+        raise ValueError('; '.join(bad))
+    return values
 
 
 def nbv_config(p: dict) -> NbvConfig:
@@ -112,17 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('-p', action='append', default=[], metavar='NAME=VALUE',
                     help='node parameter override, e.g. -p camera_height_m=0.75')
     a = ap.parse_args(argv)
-    params = dict(NODE_DEFAULTS)
-    for kv in a.p:
-        k, _, v = kv.partition('=')
-        if k not in params:
-            ap.error(f'unknown parameter {k!r}; one of {sorted(params)}')
-        try:
-            params[k] = type(params[k])(float(v)) if not isinstance(params[k], str) else v
-        except (ValueError, OverflowError):
-            ap.error(f'-p {kv}: not a finite number')
-        if isinstance(params[k], float) and not math.isfinite(params[k]):
-            ap.error(f'-p {kv}: not a finite number')
+    try:
+        params = node_parameters(a.p)
+    except ValueError as exc:
+        ap.error(f'-p: {exc}')
     if not a.bag.exists():
         ap.error(f'{a.bag}: no such bag')
     if a.map is not None:

@@ -13,89 +13,24 @@ import math
 import numpy as np
 from rclpy.node import Node
 
-from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.qos import LATCHED_QOS
 from coop_msgs.msg import ViewRating, VoxelMap
 from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
-from .grid import FREE_GRAYS, MapError, OccupancyGrid, planning_bounds
-from .nbv import NI_MEASURES, STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
+from .grid import MapError, OccupancyGrid, planning_bounds
+from .nbv import STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
 from .offline import nbv_config
+from .params import PARAMS, check_params
 from .placement import CameraModel, PlacementError, Target, TaskPlacer, mast_stations
-
-PARAMS = {
-    'map_topic': ParamSpec('/map/voxels', 'shared map topic (coop_msgs/VoxelMap, latched)',
-                           read_only=True),
-    'frame_id': ParamSpec('map', "the map's frame when its messages name none; requests must "
-                          'be given in the map frame (no TF lookup here), answers are stamped '
-                          'with it', read_only=True),
-    'max_grid_cells': ParamSpec(20_000_000, 'largest planning grid (cells) a map may make; a '
-                                'bigger one is rejected (a far outlier voxel, a tiny '
-                                'resolution)', lo=1000, hi=2_000_000_000),
-    'pad_m': ParamSpec(5.0, 'unknown margin added around the known map (m)', lo=0.0, hi=100.0),
-    'ceiling_m': ParamSpec(1.0, 'top of the planning grid (z in the map frame, m) unless the map '
-                           'reaches higher: no unknown air above it counts as information '
-                           '(0: pad upwards too)', lo=0.0, hi=1000.0),
-    'fov_deg': ParamSpec(75.0, 'camera horizontal field of view (deg)', lo=5.0, hi=170.0),
-    'depth_m': ParamSpec(10.0, 'camera depth of field for mapping (m)', lo=0.5, hi=100.0),
-    # 128 x 128 rays cost ~40x the default's per pose (512 x 512: 82 s a decision, blocking
-    # the node's one executor)
-    'rays_az': ParamSpec(24, 'NI rays across the field of view', lo=2, hi=128),
-    'rays_el': ParamSpec(18, 'NI rays up the field of view', lo=2, hi=128),
-    'k_rel': ParamSpec(0.15, 'K of Eq. 3-15 relative to the NI of an unknown view per depth',
-                       lo=0.0, hi=100.0),
-    'n_exp': ParamSpec(1.0, 'n of Eq. 3-15', lo=0.1, hi=4.0),
-    'ni_measure': ParamSpec('histogram', 'NI binning: gray levels (Eq. 3-13) or the App. C '
-                            'predictor-5 residual', choices=NI_MEASURES),
-    'free_gray': ParamSpec('empty', 'NI gray of known free voxels: 0 (known empty space) or '
-                           'their occupancy', choices=FREE_GRAYS),
-    'candidates': ParamSpec(40, 'default candidate positions per decision (x headings)',
-                            lo=1, hi=5000),
-    'headings': ParamSpec(8, 'candidate headings per position', lo=1, hi=64),
-    # rover_sim's mast: c.g. 0.30 m + pan joint 0.40 + tilt 0.04 + camera 0.06 = 0.80 m
-    'camera_height_m': ParamSpec(0.8, 'mast camera height above the map origin (m)',
-                                 lo=-100.0, hi=100.0),
-    'clearance_m': ParamSpec(0.5, 'rover clearance for P (m)', lo=0.0, hi=10.0),
-    # A lone occupied voxel in a column is mostly stereo speckle; a real surface gives several
-    # or is seen often enough to reach the map's clamp (0.971 in coop_mapping).
-    'occupied_voxels': ParamSpec(2, 'occupied voxels of a column (ground clearance up to the '
-                                 'camera) that block the rover', lo=1, hi=100),
-    # One stereo hit gives P = 0.7 and a later ray through the voxel lowers it to 0.61: far
-    # points mis-ranged in front of the surface are carved by nearer views (fig_3_25).
-    'occupied_p': ParamSpec(0.7, 'occupancy at which a voxel of a column counts for '
-                            'occupied_voxels', lo=0.5, hi=1.0),
-    'occupied_clamp': ParamSpec(0.97, 'occupancy at which a single voxel blocks its column',
-                                lo=0.5, hi=1.0),
-    # The shared map clamps free voxels at P = 0.12 and one free observation gives 0.4
-    # (OctoMap's hit/miss/clamp model), so the thesis's P < 0.05 is never met on it;
-    # 0.2 = seen free about four times.
-    'p_empty': ParamSpec(0.2, 'collision-free threshold on P (Eq. 3-15 constraint (i))',
-                         lo=0.0, hi=0.5),
-    'max_ranked': ParamSpec(10, 'ranked views returned', lo=1, hi=1000),
-    'task_fov_deg': ParamSpec(60.0, 'task camera field of view (deg), Eq. 4-2', lo=5.0,
-                              hi=170.0),
-    'task_pixels': ParamSpec(640, 'task camera pixels along the axis, Eq. 4-2', lo=1,
-                             hi=100000),
-    'task_near_m': ParamSpec(0.3, 'task depth of field near limit (m)', lo=0.0, hi=100.0),
-    'task_far_m': ParamSpec(5.0, 'task depth of field far limit (m)', lo=0.1, hi=1000.0),
-    'task_candidates': ParamSpec(3000, 'cap on the ratings of the placement search', lo=10,
-                                 hi=100000),
-    'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
-}
-
-
-def _check_params(p: dict) -> str | None:
-    if not p['task_near_m'] < p['task_far_m']:
-        return f"task_near_m ({p['task_near_m']}) must be below task_far_m ({p['task_far_m']})"
-    return None
 
 
 class ViewPlannerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('view_planner', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params,
-                                    check_all=_check_params)
+                                    check_all=check_params)
         self.bad = BadInputCounter(self)
         self.rng = np.random.default_rng(int(self.p['seed']))
         self.grid: OccupancyGrid | None = None

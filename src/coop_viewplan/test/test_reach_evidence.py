@@ -137,10 +137,32 @@ def test_unknown_reach_model_rejected():
 BAG = Path(__file__).resolve().parents[3] / 'bags' / 'mapping_two_rovers'
 
 
-def test_offline_defaults_are_the_nodes():
-    from coop_viewplan.offline import NODE_DEFAULTS
-    from coop_viewplan.view_planner_node import PARAMS
-    assert {k: PARAMS[k].default for k in NODE_DEFAULTS} == NODE_DEFAULTS
+def test_offline_parameters_are_the_nodes_and_validated_as_the_node_does():
+    """`coop_viewplan.offline -p` takes the node's defaults and refuses what the node refuses
+    (its ranges, choices and rule) as a usage error before any work."""
+    from coop_viewplan import offline
+    from coop_viewplan.params import PARAMS
+    assert offline.node_parameters() == {k: s.default for k, s in PARAMS.items()}
+    assert set(offline.PLANNING_PARAMS) <= set(PARAMS)
+    got = offline.node_parameters(['candidates=12', 'k_rel=0.5', 'free_gray=occupancy'])
+    assert (got['candidates'], got['k_rel'], got['free_gray']) == (12, 0.5, 'occupancy')
+    assert type(got['candidates']) is int
+    for bad, reason in [('pad_m=-1', 'pad_m must be >= 0.0'),
+                        ('fov_deg=200', 'fov_deg must be <='),
+                        ('k_rel=nan', 'k_rel must be finite'),
+                        ('candidates=2.5', 'not an integer'),
+                        ('ni_measure=jpeg', 'ni_measure must be one of'),
+                        ('map_topic=/x', 'unknown parameter'), ('fov_deg', 'not NAME=VALUE')]:
+        with pytest.raises(ValueError, match=reason):
+            offline.node_parameters([bad])
+
+
+def test_offline_cli_refuses_a_bad_parameter_before_any_work(tmp_path, capsys):
+    from coop_viewplan import offline
+    with pytest.raises(SystemExit) as e:            # the bag does not exist either: -p first
+        offline.main([str(tmp_path / 'none'), '-p', 'pad_m=-1'])
+    assert e.value.code == 2
+    assert 'pad_m must be >= 0.0, got -1.0' in capsys.readouterr().err
 
 
 @pytest.mark.skipif(not BAG.is_dir(), reason='sample bag not present')
@@ -153,7 +175,7 @@ def test_sample_bag_map_gives_every_rover_a_view():
 
     res = offline_map.map_from_bag(BAG)
     assert set(res.scans) == {'rover1', 'rover2'}
-    params = dict(offline.NODE_DEFAULTS)
+    params = offline.node_parameters()
     grid = offline.grid_from_voxelmap(res.map, pad_m=params['pad_m'],
                                       ceiling_m=params['ceiling_m'],
                                       camera_height_m=params['camera_height_m'])

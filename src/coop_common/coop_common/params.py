@@ -1,0 +1,67 @@
+"""Parameter specifications without rclpy: a node declares them (`node_util.declare_parameters`)
+and an off-line tool that runs the node's core on recorded data validates its overrides with the
+same ranges and rules (`check_values`), so both refuse the same values with the same reason."""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+__all__ = ['ParamSpec', 'check_values', 'parse_value']
+
+
+class ParamSpec:
+    """One declared parameter: default, description, optional range/choices, read_only."""
+
+    def __init__(self, default: Any, description: str, *, lo: float | None = None,
+                 hi: float | None = None, choices: Sequence[str] | None = None,
+                 read_only: bool = False) -> None:
+        self.default = default
+        self.description = description
+        self.lo, self.hi = lo, hi
+        self.choices = tuple(choices) if choices else None
+        self.read_only = read_only
+
+    def check(self, name: str, value: Any) -> str | None:
+        """Reason `value` is not acceptable, or None."""
+        if isinstance(value, float) and not math.isfinite(value):
+            return f'{name} must be finite, got {value}'
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            if self.lo is not None and value < self.lo:
+                return f'{name} must be >= {self.lo}, got {value}'
+            if self.hi is not None and value > self.hi:
+                return f'{name} must be <= {self.hi}, got {value}'
+        if self.choices and value not in self.choices:
+            return f'{name} must be one of {list(self.choices)}, got {value!r}'
+        return None
+
+
+def check_values(specs: Mapping[str, ParamSpec], values: Mapping[str, Any],
+                 check_all: Callable[[dict[str, Any]], str | None] | None = None) -> list[str]:
+    """The reasons `values` (every spec's name) are not acceptable: each value against its spec,
+    then, if they all pass, the rule between them (`check_all`); empty when all is well."""
+    bad = [r for name, v in values.items() if (r := specs[name].check(name, v))]
+    if not bad and check_all is not None and (r := check_all(dict(values))):
+        bad.append(r)
+    return bad
+
+
+def parse_value(spec: ParamSpec, text: str) -> Any:
+    """`text` as a value of the spec's type (bool, int, float or str, from its default), as
+    `--ros-args -p` would type it; ValueError when it is not one (an int must be integral)."""
+    d = spec.default
+    if isinstance(d, bool):
+        if text.lower() not in ('true', 'false'):
+            raise ValueError(f'not a bool: {text!r}')
+        return text.lower() == 'true'
+    if isinstance(d, int):
+        try:
+            return int(text)
+        except ValueError:
+            raise ValueError(f'not an integer: {text!r}') from None
+    if isinstance(d, float):
+        try:
+            return float(text)
+        except ValueError:
+            raise ValueError(f'not a number: {text!r}') from None
+    return text

@@ -1,0 +1,30 @@
+import pytest
+
+from coop_common.params import ParamSpec, check_values, parse_value
+
+SPECS = {'n': ParamSpec(4, 'count', lo=1, hi=10), 'x': ParamSpec(0.5, 'share', lo=0.0, hi=1.0),
+         'mode': ParamSpec('a', 'mode', choices=('a', 'b')), 'on': ParamSpec(True, 'switch')}
+
+
+def test_parse_value_types_as_the_default():
+    assert parse_value(SPECS['n'], '7') == 7 and type(parse_value(SPECS['n'], '7')) is int
+    assert parse_value(SPECS['x'], '1e-1') == 0.1
+    assert parse_value(SPECS['mode'], 'b') == 'b'
+    assert parse_value(SPECS['on'], 'False') is False
+    for spec, text in [(SPECS['n'], '7.5'), (SPECS['x'], 'half'), (SPECS['on'], '1')]:
+        with pytest.raises(ValueError, match='not an? '):
+            parse_value(spec, text)
+
+
+def test_check_values_each_then_the_rule():
+    ok = {'n': 4, 'x': 0.5, 'mode': 'a', 'on': True}
+
+    def rule(v):
+        return 'n must be even' if v['n'] % 2 else None
+
+    assert check_values(SPECS, ok, rule) == []
+    assert check_values(SPECS, ok | {'n': 3}, rule) == ['n must be even']
+    # the rule is not asked while a value is out of its own range
+    assert check_values(SPECS, ok | {'n': 11, 'x': float('nan')}, rule) == [
+        'n must be <= 10, got 11', 'x must be finite, got nan']
+    assert check_values(SPECS, ok | {'mode': 'c'}) == ["mode must be one of ['a', 'b'], got 'c'"]
