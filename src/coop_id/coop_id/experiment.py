@@ -64,6 +64,9 @@ def run_identification(truth: BaseParameters, *, strategy: str, seed: int, durat
     rover = ThesisRover(truth)
     per_window = int(round(cfg.window_s * cfg.rate_hz))
     n_windows = int(round(duration_s / cfg.window_s))
+    if n_windows < 1:
+        raise ValueError(f'duration {duration_s} s holds no {cfg.window_s} s identification '
+                         'window')
     exc: Excitation = ident.excitation
     out = RunResult(strategy, seed)
     times = []

@@ -134,10 +134,21 @@ def identify_rows(rows: np.ndarray, config: IdentifierConfig | None = None, *,
 
 
 def bag_truth(bag: str | Path, *, rover: str = 'rover1') -> np.ndarray | None:
-    """The true parameters the simulator latched under /sim/<rover>/parameters, if recorded."""
-    from rover_bag.bagio import read_messages  # noqa: PLC0415
+    """The true parameters the simulator latched under /sim/<rover>/parameters, or None when
+    the bag has none (a real rover's bag); BagError when the record lacks a parameter."""
+    from rover_bag.bagio import BagError as RawBagError  # noqa: PLC0415
+    from rover_bag.bagio import bag_info, read_messages  # noqa: PLC0415
 
-    for m in read_messages(bag, [f'/sim/{rover}/parameters']):
-        d = dict(zip(m.msg.names, m.msg.values))
-        return np.array([d[n] for n in PARAM_NAMES])
+    topic = f'/sim/{rover}/parameters'
+    try:
+        if topic not in bag_info(bag).topics:
+            return None
+        for m in read_messages(bag, [topic]):
+            d = dict(zip(m.msg.names, m.msg.values))
+            missing = [n for n in PARAM_NAMES if n not in d]
+            if missing:
+                raise BagError(f'{bag}: {topic} lacks {missing}')
+            return np.array([d[n] for n in PARAM_NAMES])
+    except RawBagError as exc:
+        raise BagError(str(exc)) from exc
     return None

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from coop_common.cli import number, output_dir, output_path
 from coop_common.dynparams import PARAM_LABELS, PARAM_NAMES, TruthFileError, load_truth
 from coop_common.files import save_figure, write_json
 
@@ -167,34 +168,70 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
     return paths
 
 
+#: what each mode reads besides --json: an option given (not at its default) to a mode that does
+#: not read it is a usage error, not a silent no-op
+_MODE_OPTIONS = {
+    'model': ('truth', 'seeds', 'first_seed', 'duration', 'noise', 'strategies',
+              'no_accelerometer', 'no_bias_compensation', 'plots'),
+    'sim': ('duration', 'noise', 'strategies'),
+    'bag': ('bag', 'rover', 'no_accelerometer', 'no_bias_compensation'),
+}
+
+
+def _strategies(text: str) -> list[str]:
+    names = text.split(',')
+    bad = [s for s in names if s not in STRATEGIES]
+    if bad:
+        raise argparse.ArgumentTypeError(f'unknown strategies {bad}; choose from '
+                                         f'{",".join(STRATEGIES)}')
+    if len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f'a strategy is listed twice: {text}')
+    return names
+
+
+def _existing(text: str) -> Path:
+    p = Path(text)
+    if not p.exists():
+        raise argparse.ArgumentTypeError(f'{text} does not exist')
+    return p
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    window_s = IdentifierConfig().window_s
     ap = argparse.ArgumentParser(prog='table_2_1', description=__doc__.splitlines()[0])
-    ap.add_argument('--truth', type=Path, default=None, help='true parameter YAML '
+    ap.add_argument('--truth', type=_existing, default=None, help='true parameter YAML '
                     '(default: Table 2-1, coop_common/data/table_2_1_truth.yaml)')
-    ap.add_argument('--seeds', type=int, default=30)
-    ap.add_argument('--duration', type=float, default=10.0, help='seconds of excitation')
-    ap.add_argument('--noise', type=float, default=0.10,
+    ap.add_argument('--seeds', type=number(int, lo=1, hi=10_000), default=30)
+    ap.add_argument('--duration', type=number(float, lo=window_s, hi=600.0), default=10.0,
+                    help=f'seconds of excitation ({window_s:g} s, one identification window, '
+                    'to 600 s)')
+    ap.add_argument('--noise', type=number(float, lo=0.0, hi=1.0, hi_open=True), default=0.10,
                     help='white sensor noise, fraction of the maximum sensed value')
-    ap.add_argument('--strategies', default=','.join(STRATEGIES))
-    ap.add_argument('--first-seed', type=int, default=0)
+    ap.add_argument('--strategies', type=_strategies, default=list(STRATEGIES),
+                    help=f'comma-separated, of {",".join(STRATEGIES)}')
+    ap.add_argument('--first-seed', type=number(int, lo=0, hi=2 ** 32 - 1), default=0)
     ap.add_argument('--no-accelerometer', action='store_true',
                     help='the thesis experimental rover (§2.6.2): rotational subset only')
     ap.add_argument('--no-bias-compensation', action='store_true',
                     help='plain recursive least squares (no errors-in-variables correction)')
-    ap.add_argument('--json', type=Path, default=None)
-    ap.add_argument('--plots', type=Path, default=None)
+    ap.add_argument('--json', type=output_path, default=None)
+    ap.add_argument('--plots', type=output_dir, default=None)
     ap.add_argument('--sim', action='store_true',
                     help='identification end to end through rover_sim + identifier, one run '
                          'per listed strategy')
-    ap.add_argument('--bag', type=Path, default=None,
+    ap.add_argument('--bag', type=_existing, default=None,
                     help='identify from a recorded bag instead (no DDS; the core as the node)')
     ap.add_argument('--rover', default='rover1', help='rover namespace in --bag')
     args = ap.parse_args(argv)
-    bad = [s for s in args.strategies.split(',') if s not in STRATEGIES]
-    if bad:
-        ap.error(f'unknown strategies {bad}; choose from {",".join(STRATEGIES)}')
-    if args.seeds < 1 or not (0 < args.duration <= 600) or not (0 <= args.noise < 1):
-        ap.error('need --seeds >= 1, 0 < --duration <= 600, 0 <= --noise < 1')
+    if args.sim and args.bag is not None:
+        ap.error('--sim and --bag are two different sources: give one')
+    mode = 'sim' if args.sim else 'bag' if args.bag is not None else 'model'
+    ignored = [f'--{k.replace("_", "-")}' for k in vars(args)
+               if k not in ('json', 'sim') and k not in _MODE_OPTIONS[mode]
+               and getattr(args, k) != ap.get_default(k)]
+    if ignored:
+        ap.error(f'{", ".join(ignored)}: not used with '
+                 + {'model': 'the model-level study', 'sim': '--sim', 'bag': '--bag'}[mode])
     return args
 
 
@@ -203,7 +240,7 @@ def _main_sim(args: argparse.Namespace) -> int:
     so the same noise draws where the commands agree): one table, estimates side by side."""
     from .sim_mode import run_sim_identification  # noqa: PLC0415
 
-    strategies = args.strategies.split(',')
+    strategies = args.strategies
     results = {}
     for strategy in strategies:
         try:
@@ -250,9 +287,10 @@ def _main_bag(args: argparse.Namespace) -> int:
 
     try:
         _, rows = offline.bag_samples(args.bag, rover=args.rover)
+        noise = (None if args.no_bias_compensation
+                 else offline.bag_sensor_noise(args.bag, rover=args.rover))
         report = offline.identify_rows(rows, IdentifierConfig(
-            accelerometer=not args.no_accelerometer), noise=offline.bag_sensor_noise(
-                args.bag, rover=args.rover))
+            accelerometer=not args.no_accelerometer), noise=noise)
         truth = offline.bag_truth(args.bag, rover=args.rover)
     except (offline.BagError, OSError, ValueError) as exc:
         print(f'table_2_1 --bag: {exc}', file=sys.stderr)
@@ -292,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     truth = truth_p.to_vector()
     scales = reference_noise_scales(truth_p, args.duration)
-    strategies = args.strategies.split(',')
+    strategies = args.strategies
     runs: dict[str, list[RunResult]] = {s: [] for s in strategies}
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     for s in strategies:

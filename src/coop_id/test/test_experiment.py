@@ -80,3 +80,10 @@ def test_bias_compensation_removes_errors_in_variables_bias(scenario):
     k = [list(np.flatnonzero(x != 0)).index(IDX[n]) for n in ('k_x', 'k_y', 'k_z')]
     assert err[True][k].mean() < err[False][k].mean()
     assert err[True].mean() < err[False].mean()
+
+
+def test_a_duration_without_a_window_is_refused(scenario):
+    truth, scales = scenario
+    with pytest.raises(ValueError, match='holds no 0.4 s identification window'):
+        run_identification(truth, strategy='information', seed=0, duration_s=0.1, noise=0.1,
+                           scales=scales)

@@ -46,3 +46,23 @@ def test_a_bag_without_the_stream_is_a_clear_error():
         pytest.skip('sample bag not recorded')
     with pytest.raises(offline.BagError, match='imu'):
         offline.bag_samples(other)
+
+
+def _without_truth(dst: Path) -> Path:
+    """ident_rover1 as a real rover would record it: the sensor streams, no simulator truth."""
+    from rover_bag.bagio import BagWriter, read_messages
+    with BagWriter(dst) as w:
+        for m in read_messages(BAG, list(offline.ident_topics('rover1')), raw=True):
+            w.add_topic(m.topic, m.msgtype)
+            w.write(m.topic, m.t_ns, m.msg)
+    return dst
+
+
+def test_a_real_rovers_bag_has_no_truth_and_is_still_identified(samples, tmp_path, capsys):
+    from coop_id.table_2_1 import main
+    bag = _without_truth(tmp_path / 'hw')
+    assert offline.bag_truth(bag) is None                 # was the rover_bag error, uncaught
+    assert main(['--bag', str(bag), '--json', str(tmp_path / 'r.json')]) == 0
+    out = capsys.readouterr().out
+    assert 'Mass (kg)' in out and '% Avg. Error' not in out
+    assert '"mean_abs_rel_error": null' in (tmp_path / 'r.json').read_text()

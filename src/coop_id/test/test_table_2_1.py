@@ -32,6 +32,30 @@ def test_cli_rejects_bad_arguments(tmp_path):
     assert main(['--truth', str(bad), '--seeds', '1', '--duration', '1']) == 2
 
 
+@pytest.mark.parametrize('args, reason', [
+    (['--duration', '0.2'], '--duration: 0.2 must be >= 0.4'),     # no identification window
+    (['--duration', 'nan'], "--duration: 'nan' is not finite"),
+    (['--first-seed', '-1'], '--first-seed: -1 must be >= 0'),
+    (['--seeds', '1000000000'], '--seeds: 1000000000 must be <= 10000'),
+    (['--strategies', 'constant,constant'], 'a strategy is listed twice'),
+    (['--json', '{tmp}'], 'is a directory'),
+    (['--plots', '{tmp}/f'], 'is not a directory'),
+    (['--bag', '{tmp}/none'], 'does not exist'),
+    (['--sim', '--bag', '{tmp}'], '--sim and --bag are two different sources'),
+    (['--bag', '{tmp}', '--seeds', '3'], '--seeds: not used with --bag'),
+    (['--sim', '--plots', '{tmp}'], '--plots: not used with --sim'),
+    (['--rover', 'rover2'], '--rover: not used with the model-level study'),
+])
+def test_cli_refuses_before_any_work(tmp_path, capsys, args, reason):
+    """Each a usage error (exit 2) before a run: they were tracebacks after the run (--json,
+    --plots), an UnboundLocalError (no window), or silently ignored options."""
+    (tmp_path / 'f').write_text('a file')
+    with pytest.raises(SystemExit) as e:
+        main([a.format(tmp=tmp_path) for a in args])
+    assert e.value.code == 2
+    assert reason in capsys.readouterr().err
+
+
 def test_time_to_settles():
     assert time_to([1, 2, 3, 4], [0.5, 0.1, 0.3, 0.1], 0.2) == 4
     assert time_to([1, 2, 3], [0.5, 0.3, 0.3], 0.2) is None
