@@ -51,3 +51,16 @@ def output_dir(text: str) -> Path:
                 raise argparse.ArgumentTypeError(f'{q} is not a directory')
             break
     return p
+
+
+#: the figure formats the experiments write (matplotlib's Agg: the format from the suffix)
+FIGURE_SUFFIXES = ('.png', '.pdf', '.svg')
+
+
+def figure_path(text: str) -> Path:
+    """`output_path` of a figure whose suffix names a format it can be written in."""
+    p = output_path(text)
+    if p.suffix.lower() not in FIGURE_SUFFIXES:
+        raise argparse.ArgumentTypeError(f'{text}: a figure file ends in one of '
+                                         f'{", ".join(FIGURE_SUFFIXES)}')
+    return p

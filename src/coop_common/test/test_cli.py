@@ -30,3 +30,12 @@ def test_output_paths_refused_before_the_run(tmp_path):
     for bad in (tmp_path / 'a_file', tmp_path / 'a_file' / 'plots'):
         with pytest.raises(argparse.ArgumentTypeError):
             output_dir(str(bad))
+
+
+def test_figure_path_names_a_format_it_can_write(tmp_path):
+    from coop_common.cli import figure_path
+    assert figure_path(str(tmp_path / 'a.PNG')) == tmp_path / 'a.PNG'
+    assert figure_path(str(tmp_path / 'new' / 'a.pdf')) == tmp_path / 'new' / 'a.pdf'
+    for bad in ('a.xyz', 'a', str(tmp_path)):
+        with pytest.raises(argparse.ArgumentTypeError):
+            figure_path(bad)

@@ -14,7 +14,7 @@ VoxelMap of the first scan), tracked by Lucas-Kanade, ranged by StereoSGBM, g01 
 (Eq. 3-16..3-18, or the rigid / reprojection alternatives), averaged over the frames taken at
 each step (Eq. 3-19), and the fiducials' positions refined by the EKF of Eq. 3-20; a fiducial is
 replaced only when the tracker loses it or the fit rejects it. The SGBM disparity search range
-is set, like a rig's working range, from the nearest depth in the first view plus a 10 % margin
+is set, like a rig's working range, from the nearest depth in the first view plus a 20 % margin
 (search_range). The true pose and depth are used only to render the images, to set that range,
 and to score the result.
 
@@ -25,11 +25,11 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 
+from coop_common.cli import figure_path, number, output_path
 from coop_common.files import save_figure, write_json
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
@@ -104,23 +104,53 @@ def search_range(cam: StereoCamera, z_near: float, margin: float = 0.2) -> int:
     return int(16 * np.ceil((1.0 + margin) * cam.fx * cam.baseline / z_near / 16))
 
 
-def run_trial(cfg: TrialConfig, seed: int) -> dict:
-    """One trajectory: translation error per step of the dead-reckoned and corrected poses."""
-    rng = np.random.default_rng(seed)
+def _rig(cfg: TrialConfig) -> tuple[StereoCamera, float, np.ndarray]:
+    """The camera, the scene scale and the first camera pose of a trial."""
     s = cfg.distance / 1.1
     cam = StereoCamera.from_fov(cfg.width, cfg.height, np.radians(41.2), 0.038)
     eye = np.array([-0.35 * s, -0.4 * s, 0.45 * s])
-    R0 = look_at(eye, eye + np.array([1.0, 0.0, -0.25]))
-    T0 = _se3(R0, eye)
+    return cam, s, _se3(look_at(eye, eye + np.array([1.0, 0.0, -0.25])), eye)
+
+
+def _scene(cam: StereoCamera, s: float, seed: int) -> TexturedScene:
+    # the scene, the renderer's clip planes and the camera path all scale with the distance
+    return TexturedScene(cam, boxes=_scene_boxes(s), seed=seed, tile_m=0.8 * s, near=0.05 * s,
+                         far=30.0 * max(1.0, s))
+
+
+def _working_range(cfg: TrialConfig, cam: StereoCamera, scene: TexturedScene,
+                   T0: np.ndarray) -> int:
+    """The rig's SGBM search range for its working range (the nearest depth of the first
+    view); ValueError when the images are not wider than it (SGBM cannot run on them)."""
+    depth = scene.render(T0[:3, :3], T0[:3, 3])[2]
+    if not np.isfinite(depth).any():
+        raise ValueError(f'scene at {cfg.distance:g} m: nothing in the first view')
+    nd = cfg.num_disparities or search_range(cam, float(np.nanmin(depth)))
+    if cfg.width <= nd:
+        raise ValueError(f'scene at {cfg.distance:g} m: a disparity range of {nd} px, not less '
+                         f'than the image width {cfg.width}; a wider image or a farther scene')
+    return nd
+
+
+def check_config(cfg: TrialConfig) -> int:
+    """The search range a trial of `cfg` will use, or ValueError before any trial runs (the
+    first view alone is rendered; the scene's geometry does not depend on the seed)."""
+    cam, s, T0 = _rig(cfg)
+    with _scene(cam, s, 0) as scene:
+        return _working_range(cfg, cam, scene, T0)
+
+
+def run_trial(cfg: TrialConfig, seed: int) -> dict:
+    """One trajectory: translation error per step of the dead-reckoned and corrected poses."""
+    rng = np.random.default_rng(seed)
+    cam, s, T0 = _rig(cfg)
     step_world = np.array([0.0, cfg.step_m * s, 0.0])
     T_cmd = T0.copy()
     T_true = T0.copy()
     err_dr, err_fc = [0.0], [0.0]
-    with TexturedScene(cam, boxes=_scene_boxes(s), seed=seed, tile_m=0.8 * s,
-                       near=0.05 * s) as scene:
+    with _scene(cam, s, seed) as scene:
         # the rig is set up for its working range: the nearest depth in the first view
-        nd = cfg.num_disparities or search_range(
-            cam, float(np.nanmin(scene.render(T0[:3, :3], T0[:3, 3])[2])))
+        nd = _working_range(cfg, cam, scene, T0)
         d_max = [0.0]                    # largest true disparity met, to check the range
 
         def frames(T):
@@ -163,11 +193,16 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
     out = {'distances_m': distances, 'trials': trials, 'steps': steps,
            'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'full_width': full_width,
            'results': {}}
+    def config(D: float, method: str) -> TrialConfig:
+        return TrialConfig(distance=D, steps=steps, width=width, height=height, method=method,
+                           fuse_prediction=fuse_prediction, subpixel=subpixel,
+                           full_width=full_width)
+
+    for D in distances:             # every distance checked before the first trial
+        check_config(config(D, methods[0]))
     for method in methods:
         for D in distances:
-            cfg = TrialConfig(distance=D, steps=steps, width=width, height=height,
-                              method=method, fuse_prediction=fuse_prediction,
-                              subpixel=subpixel, full_width=full_width)
+            cfg = config(D, method)
             # same seeds for every method: the same true trajectories and images
             runs = [run_trial(cfg, seed + 1000 * i) for i in range(trials)]
             dr = np.array([r['dead_reckoned'] for r in runs])
@@ -192,12 +227,16 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description='Fig. 3-24: camera translation error with and '
                                  'without fiducial correction')
-    ap.add_argument('--json', type=Path)
-    ap.add_argument('--plots', type=Path, help='PNG of the RMS error per step')
-    ap.add_argument('--trials', type=int, default=3)
-    ap.add_argument('--steps', type=int, default=20)
-    ap.add_argument('--seed', type=int, default=0)
-    ap.add_argument('--distances', type=float, nargs='+', default=[1.1, 0.35])
+    ap.add_argument('--json', type=output_path)
+    ap.add_argument('--plots', type=figure_path, help='figure of the RMS error per step (.png, '
+                    '.pdf or .svg)')
+    ap.add_argument('--trials', type=number(int, lo=1, hi=1000), default=3)
+    ap.add_argument('--steps', type=number(int, lo=1, hi=10_000), default=20)
+    ap.add_argument('--seed', type=number(int, lo=0, hi=2 ** 32 - 1), default=0)
+    ap.add_argument('--distances', type=number(float, lo=0.0, lo_open=True, hi=100.0),
+                    nargs='+', default=[1.1, 0.35],
+                    help='average distances of the scene (m); the images must be wider than '
+                    'the disparity range the nearest one needs')
     ap.add_argument('--methods', nargs='+', choices=['linear', 'linear_so3', 'rigid', 'pnp'],
                     default=['linear', 'linear_so3', 'rigid', 'pnp'],
                     help='g01 by Eq. 3-18 as printed (12 independent entries), the same with R '
@@ -206,8 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--no-fusion', action='store_true',
                     help='corrected pose from the fiducial measurement alone, the commanded '
                     'motion only as its starting point (no Kalman update with the prediction)')
-    ap.add_argument('--width', type=int, default=320)
-    ap.add_argument('--height', type=int, default=240)
+    ap.add_argument('--width', type=number(int, lo=32, hi=4096), default=320)
+    ap.add_argument('--height', type=number(int, lo=32, hi=4096), default=240)
     ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default=SUBPIXEL_DEFAULT,
                     help="sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
                     'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image')
@@ -215,6 +254,11 @@ def main(argv: list[str] | None = None) -> int:
                     default=FULL_WIDTH_DEFAULT,
                     help='range the left num_disparities columns too (stereo.compute_disparity)')
     args = ap.parse_args(argv)
+    try:
+        for D in args.distances:
+            check_config(TrialConfig(distance=D, width=args.width, height=args.height))
+    except ValueError as exc:
+        ap.error(str(exc))
     out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
               tuple(args.methods), fuse_prediction=not args.no_fusion,
               subpixel=args.subpixel, full_width=args.full_width)

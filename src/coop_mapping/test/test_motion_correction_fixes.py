@@ -96,6 +96,38 @@ def test_fig_3_24_trial_sets_search_range_from_the_scene():
     assert len(r['kept']) == 1 and r['kept'][0] >= 30
 
 
+@pytest.mark.parametrize('args, reason', [
+    (['--trials', '0'], '--trials: 0 must be >= 1'),           # was an IndexError traceback
+    (['--steps', '0'], '--steps: 0 must be >= 1'),             # was a silent 'nan%' run
+    (['--seed', '-1'], '--seed: -1 must be >= 0'),
+    (['--distances', 'nan'], "--distances: 'nan' is not finite"),
+    (['--distances', '1.1', '0.05'],                          # 1.1 used to run first
+     'scene at 0.05 m: a disparity range of 496 px, not less than the image width 320'),
+    (['--width', '16'], '--width: 16 must be >= 32'),
+    (['--height', '100000'], '--height: 100000 must be <= 4096'),
+    (['--json', '{tmp}'], 'is a directory'),                  # these failed after the run
+    (['--plots', '{tmp}/f/x.png'], 'is not a directory'),
+    (['--plots', '{tmp}/x.xyz'], 'a figure file ends in one of .png, .pdf, .svg'),
+])
+def test_fig_3_24_cli_refuses_before_any_trial(tmp_path, capsys, args, reason):
+    pytest.importorskip('pybullet')
+    from coop_mapping.fig_3_24 import main
+    (tmp_path / 'f').write_text('a file')
+    with pytest.raises(SystemExit) as e:
+        main([a.format(tmp=tmp_path) for a in args])
+    assert e.value.code == 2
+    assert reason in capsys.readouterr().err
+
+
+def test_fig_3_24_far_scene_is_rendered_not_clipped():
+    """The renderer's far plane scales with the scene: at 100 m the first view has depth (it
+    was all beyond the 30 m plane, and the range NaN)."""
+    pytest.importorskip('pybullet')
+    from coop_mapping.fig_3_24 import TrialConfig, check_config
+    assert check_config(TrialConfig(distance=100.0)) == 16
+    assert check_config(TrialConfig(distance=0.35, width=640, height=480)) == 144
+
+
 # ------------------------------------------------------------------ rigid fit and covariances
 def test_stereo_point_cov_matches_triangulation():
     rng = np.random.default_rng(1)
