@@ -4,7 +4,8 @@ one `coop_mapping stereo` node per rover and the team's `coop_mapping mapper`; d
 and camera masts through a short scripted motion (rover 1 shakes its arm with the thesis's
 Eq. 2-21 excitation, rover 2 drives an arc, both pan their cameras), prints what each rover senses
 and how the shared map grows, and writes under OUT/: a stereo pair (PNG) per rover, a plot of base
-tilt and arm-base force, the shared map (`team.cmap`) and its occupancy slice (`map_grid.png`)."""
+tilt and arm-base force, the shared map (`team.cmap`) and its occupancy slice with each rover's
+camera and next best view (`map_grid.png`)."""
 from __future__ import annotations
 
 import argparse
@@ -29,6 +30,7 @@ from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
 from coop_msgs.msg import Inclinometer, VoxelMap
 from coop_msgs.srv import MapFile, NextBestView
+from coop_viewplan.frames import yaw_pitch_from_optical
 
 ROVERS = ('rover1', 'rover2')
 
@@ -152,13 +154,21 @@ def map_summary(node: DemoNode) -> str:
             f'{int((occ > 0.5).sum())} occupied, {int((occ < 0.5).sum())} free ({per})')
 
 
-def next_views(node: DemoNode, spin) -> None:
+def _xy_yaw(pose) -> tuple[float, float, float]:
+    """(x, y, heading of the optical axis) of a camera pose in the map frame."""
+    q = pose.orientation
+    yaw, _ = yaw_pitch_from_optical(np.array([q.x, q.y, q.z, q.w]))
+    return pose.position.x, pose.position.y, yaw
+
+
+def next_views(node: DemoNode, spin) -> dict[str, tuple[float, float, float]]:
     """Ask the view planner where each rover's camera should look next on the shared map
-    (Eq. 3-15, maximum information) and print its answer."""
+    (Eq. 3-15, maximum information), print its answer and return (x, y, yaw) per rover."""
     client = node.create_client(NextBestView, '/viewplan/next_best_view')
     if not client.wait_for_service(timeout_sec=10.0):
         print('demo: no view planner')
-        return
+        return {}
+    views = {}
     for r in ROVERS:
         req = NextBestView.Request(robot=r, strategy='max_information', max_candidates=0)
         est = node.last[r].get('cam_pose')
@@ -171,25 +181,60 @@ def next_views(node: DemoNode, spin) -> None:
             continue
         b = res.best
         p = b.pose.pose.position
+        views[r] = _xy_yaw(b.pose.pose)
         print(f'demo: next best view for {r} (max information, Eq. 3-15): camera at '
               f'({p.x:+.2f}, {p.y:+.2f}, {p.z:+.2f}) m, NI {b.new_information_bits:.2f} bits, '
               f'distance {b.distance:.2f}, RF {b.rating:.1f}')
+    return views
 
 
-def save_grid(grid: OccupancyGrid, path: Path) -> None:
-    """The occupancy slice as an image: unknown grey, free white, occupied black; +x right,
-    +y up (REP 103 seen from above)."""
-    data = np.asarray(grid.data, dtype=np.int16).reshape(grid.info.height, grid.info.width)
-    img = np.full(data.shape, 128, np.uint8)
-    img[(data >= 0) & (data < 50)] = 255
-    img[data >= 50] = 0
-    img = np.flipud(img)
-    scale = max(1, 600 // max(img.shape))
-    cv2.imwrite(str(path), cv2.resize(img, None, fx=scale, fy=scale,
-                                      interpolation=cv2.INTER_NEAREST))
+def save_map_figure(grid: OccupancyGrid, cameras: dict, views: dict, path: Path) -> Path:
+    """The mapper's occupancy slice (/map/grid) in map-frame metres, seen from above (REP 103:
+    +x right, +y up): unknown grey, free white, occupied black; each rover's camera where it
+    is (its last stereo/pose) and where the view planner sends it next."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    info = grid.info
+    data = np.asarray(grid.data, dtype=np.int16).reshape(info.height, info.width)
+    state = np.where(data < 0, 1, np.where(data >= 50, 2, 0))       # free, unknown, occupied
+    x0, y0 = info.origin.position.x, info.origin.position.y
+    extent = (x0, x0 + info.width * info.resolution, y0, y0 + info.height * info.resolution)
+    fig, ax = plt.subplots(figsize=(7, 7))
+    ax.imshow(state, origin='lower', extent=extent, interpolation='nearest', vmin=0, vmax=2,
+              cmap=ListedColormap(['white', '0.6', 'black']))
+    handles = [Patch(facecolor=c, edgecolor='0.3', label=t) for c, t in
+               (('white', 'free'), ('0.6', 'unknown'), ('black', 'occupied'))]
+    for r, colour in zip(ROVERS, ('tab:blue', 'tab:orange')):
+        arrow = 0.08 * max(extent[1] - extent[0], extent[3] - extent[2])
+        for pose, marker, what in ((cameras.get(r), 'o', 'camera now'),
+                                   (views.get(r), '*', 'next best view')):
+            if pose is None:
+                continue
+            x, y, yaw = pose
+            ax.plot(x, y, marker, color=colour, ms=12 if marker == '*' else 8,
+                    mec='k', label=f'{r}: {what}')
+            ax.annotate('', (x + arrow * np.cos(yaw), y + arrow * np.sin(yaw)), (x, y),
+                        arrowprops={'arrowstyle': '->', 'color': colour, 'lw': 1.5})
+        if r in cameras and r in views:
+            ax.plot([cameras[r][0], views[r][0]], [cameras[r][1], views[r][1]], ':',
+                    color=colour)
+    pts = np.array([extent[:2], extent[2:]]).T.tolist() + [p[:2] for p in
+                                                            (*cameras.values(), *views.values())]
+    lo, hi = np.min(pts, axis=0) - 0.5, np.max(pts, axis=0) + 0.5
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_xlabel(f'x (m, {grid.header.frame_id!r} frame; {info.resolution:g} m cells)')
+    ax.set_ylabel('y (m)')
+    ax.set_title('shared map, occupancy slice (/map/grid), cameras and next best views')
+    ax.legend(handles=handles + ax.get_legend_handles_labels()[0], loc='upper left',
+              fontsize=8, framealpha=0.9)
+    ax.set_aspect('equal')
+    return save_figure(fig, path, dpi=100)
 
 
-def save_outputs(node: DemoNode, out: Path) -> list[Path]:
+def save_outputs(node: DemoNode, out: Path, views: dict) -> list[Path]:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -219,9 +264,9 @@ def save_outputs(node: DemoNode, out: Path) -> list[Path]:
             axes[1, col].legend(loc='upper right')
     written.append(save_figure(fig, out / 'tilt_and_force.png', dpi=90))
     if node.grid is not None:
-        path = out / 'map_grid.png'
-        save_grid(node.grid, path)
-        written.append(path)
+        cams = {r: _xy_yaw(node.last[r]['cam_pose'].pose) for r in ROVERS
+                if 'cam_pose' in node.last[r]}
+        written.append(save_map_figure(node.grid, cams, views, out / 'map_grid.png'))
     return written
 
 
@@ -291,8 +336,8 @@ def main() -> int:
                 res = future.result()
                 print(f'demo: /map/save -> {res.message} ({res.voxels} voxels)')
             print('demo: ' + map_summary(node))
-            next_views(node, spin)
-            for path in save_outputs(node, args.out):
+            views = next_views(node, spin)
+            for path in save_outputs(node, args.out, views):
                 print(f'demo: wrote {path}')
         finally:
             ex.shutdown()
