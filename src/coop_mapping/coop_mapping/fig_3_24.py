@@ -104,6 +104,10 @@ def search_range(cam: StereoCamera, z_near: float, margin: float = 0.2) -> int:
     return int(16 * np.ceil((1.0 + margin) * cam.fx * cam.baseline / z_near / 16))
 
 
+class ConfigError(ValueError):
+    """A trial setting the rig cannot run (found before any trial)."""
+
+
 def _rig(cfg: TrialConfig) -> tuple[StereoCamera, float, np.ndarray]:
     """The camera, the scene scale and the first camera pose of a trial."""
     s = cfg.distance / 1.1
@@ -121,19 +125,19 @@ def _scene(cam: StereoCamera, s: float, seed: int) -> TexturedScene:
 def _working_range(cfg: TrialConfig, cam: StereoCamera, scene: TexturedScene,
                    T0: np.ndarray) -> int:
     """The rig's SGBM search range for its working range (the nearest depth of the first
-    view); ValueError when the images are not wider than it (SGBM cannot run on them)."""
+    view); ConfigError when the images are not wider than it (SGBM cannot run on them)."""
     depth = scene.render(T0[:3, :3], T0[:3, 3])[2]
     if not np.isfinite(depth).any():
-        raise ValueError(f'scene at {cfg.distance:g} m: nothing in the first view')
+        raise ConfigError(f'scene at {cfg.distance:g} m: nothing in the first view')
     nd = cfg.num_disparities or search_range(cam, float(np.nanmin(depth)))
     if cfg.width <= nd:
-        raise ValueError(f'scene at {cfg.distance:g} m: a disparity range of {nd} px, not less '
+        raise ConfigError(f'scene at {cfg.distance:g} m: a disparity range of {nd} px, not less '
                          f'than the image width {cfg.width}; a wider image or a farther scene')
     return nd
 
 
 def check_config(cfg: TrialConfig) -> int:
-    """The search range a trial of `cfg` will use, or ValueError before any trial runs (the
+    """The search range a trial of `cfg` will use, or ConfigError before any trial runs (the
     first view alone is rendered; the scene's geometry does not depend on the seed)."""
     cam, s, T0 = _rig(cfg)
     with _scene(cam, s, 0) as scene:
@@ -254,14 +258,12 @@ def main(argv: list[str] | None = None) -> int:
                     default=FULL_WIDTH_DEFAULT,
                     help='range the left num_disparities columns too (stereo.compute_disparity)')
     args = ap.parse_args(argv)
-    try:
-        for D in args.distances:
-            check_config(TrialConfig(distance=D, width=args.width, height=args.height))
-    except ValueError as exc:
+    try:        # run() checks every distance's first view before its first trial
+        out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
+                  tuple(args.methods), fuse_prediction=not args.no_fusion,
+                  subpixel=args.subpixel, full_width=args.full_width)
+    except ConfigError as exc:
         ap.error(str(exc))
-    out = run(args.distances, args.trials, args.steps, args.seed, args.width, args.height,
-              tuple(args.methods), fuse_prediction=not args.no_fusion,
-              subpixel=args.subpixel, full_width=args.full_width)
     print(f'images {args.width}x{args.height}, {args.trials} trials, {args.steps} steps; '
           f'per-step motion error sigma {TrialConfig.sigma_t_m * 1e3:g} mm, '
           f'{TrialConfig.sigma_rot_deg:g} deg per axis; corrected pose: '
