@@ -40,6 +40,7 @@ import numpy as np  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 
+from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from rover_bag.bagio import BagWriter, bag_info, make_qos, make_typestore, read_messages  # noqa
 
@@ -322,10 +323,11 @@ def live_in_child(seconds: float, profile: Path | None, tmp: Path) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--json', type=Path, help='write the figures here')
-    ap.add_argument('--messages', type=int, default=100_000)
-    ap.add_argument('--repeats', type=int, default=3)
-    ap.add_argument('--seconds', type=float, default=10.0, help='live record / play duration')
+    ap.add_argument('--json', type=output_path, help='write the figures here')
+    ap.add_argument('--messages', type=number(int, lo=1, hi=10 ** 8), default=100_000)
+    ap.add_argument('--repeats', type=number(int, lo=1, hi=100), default=3)
+    ap.add_argument('--seconds', type=number(float, lo=0.0, lo_open=True, hi=3600.0), default=10.0,
+                    help='live record / play duration')
     ap.add_argument('--skip-live', action='store_true', help='core figures only (no DDS)')
     ap.add_argument('--live-only', type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()

@@ -23,9 +23,10 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import numpy as np  # noqa: E402
 
+from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.dynparams import load_truth  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
-from coop_id.excitation import constant_excitation  # noqa: E402
+from coop_id.excitation import STRATEGIES, constant_excitation  # noqa: E402
 from coop_id.experiment import reference_noise_scales  # noqa: E402
 from coop_id.identifier_core import Identifier, IdentifierConfig  # noqa: E402
 from coop_id.model import FilterBank, SensorNoise, filtered_rows, raw_channels  # noqa: E402
@@ -50,9 +51,9 @@ def windows(n: int, seed: int = 0) -> tuple[list[dict], dict]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--json', required=True)
-    ap.add_argument('--steps', type=int, default=25)
-    ap.add_argument('--strategy', default='information')
+    ap.add_argument('--json', type=output_path, required=True)
+    ap.add_argument('--steps', type=number(int, lo=1, hi=10_000), default=25)
+    ap.add_argument('--strategy', default='information', choices=STRATEGIES)
     args = ap.parse_args()
     data, noise = windows(args.steps + 3)
     ident = Identifier(IdentifierConfig(strategy=args.strategy), sensor_noise=noise)

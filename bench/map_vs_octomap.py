@@ -38,6 +38,7 @@ except ImportError:  # run from a source checkout before the package is built
 import octomap  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
+from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_mapping.octomap_peer import leaf_states  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
@@ -282,13 +283,16 @@ def fused_vs_single(scans, res) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--json', type=Path, help='write the results here')
-    ap.add_argument('--repeats', type=int, default=2)
-    ap.add_argument('--points', type=int, default=300_000, help='synthetic points per scan')
-    ap.add_argument('--width', type=int, default=640)
-    ap.add_argument('--height', type=int, default=480)
-    ap.add_argument('--resolutions', type=float, nargs='+', default=[0.1, 0.05])
-    ap.add_argument('--grid-offsets', type=int, default=8,
+    ap.add_argument('--json', type=output_path, help='write the results here')
+    ap.add_argument('--repeats', type=number(int, lo=1, hi=100), default=2)
+    ap.add_argument('--points', type=number(int, lo=1, hi=10 ** 8), default=300_000,
+                    help='synthetic points per scan')
+    ap.add_argument('--width', type=number(int, lo=65, hi=4096), default=640,
+                    help='stereo frame width (px, more than the 64 px disparity range)')
+    ap.add_argument('--height', type=number(int, lo=32, hi=4096), default=480)
+    ap.add_argument('--resolutions', type=number(float, lo=0.01, hi=10.0), nargs='+',
+                    default=[0.1, 0.05], help='voxel sizes (m)')
+    ap.add_argument('--grid-offsets', type=number(int, lo=1, hi=1000), default=8,
                     help='placements of the scene in the grid the surface error is pooled '
                     'over: N seeded random offsets')
     ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default=SUBPIXEL_DEFAULT,
@@ -298,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--full-width', action=argparse.BooleanOptionalAction,
                     default=FULL_WIDTH_DEFAULT,
                     help='range the left 64 columns of each frame too (stereo.compute_disparity)')
-    ap.add_argument('--supersample', type=int, default=1,
+    ap.add_argument('--supersample', type=int, choices=(1, 3, 5, 7), default=1,
                     help='render the stereo frames at k x k (odd k) samples per pixel, area '
                     'averaged (render.TexturedScene: pixel integration, no texture aliasing)')
     args = ap.parse_args(argv)

@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'coop_viewp
 
 import numpy as np  # noqa: E402
 
+from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_viewplan.grid import OccupancyGrid, markov_estimate, occlusion_estimate  # noqa: E402
 from coop_viewplan.nbv import CameraState, InfoLookup, NbvConfig, NextBestViewPlanner, score_views  # noqa: E402
@@ -58,8 +59,8 @@ def timed(fn, repeat: int = 3) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('.')[0])
-    p.add_argument('--json', type=Path, default=None)
-    p.add_argument('--poses', type=int, default=400)
+    p.add_argument('--json', type=output_path, default=None)
+    p.add_argument('--poses', type=number(int, lo=1, hi=10 ** 6), default=400)
     args = p.parse_args(argv)
     rng = np.random.default_rng(0)
     g = world_3d(rng)

@@ -12,12 +12,12 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import pybullet as pb  # noqa: E402
 
+from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.dynparams import load_truth  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from rover_sim.config import SimConfig  # noqa: E402
@@ -92,8 +92,9 @@ def node_rtf(seconds: float) -> float | None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--json', type=Path, required=True)
-    ap.add_argument('--seconds', type=float, default=5.0, help='sim seconds per case')
+    ap.add_argument('--json', type=output_path, required=True)
+    ap.add_argument('--seconds', type=number(float, lo=0.0, lo_open=True, hi=3600.0), default=5.0,
+                    help='sim seconds per case')
     args = ap.parse_args()
     rows = []
     none = world_rtf(args.seconds, stereo_rate_hz=0.0)

@@ -12,19 +12,29 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 import numpy as np  # noqa: E402
 from scipy.signal import butter, filtfilt  # noqa: E402
 
+from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.dynparams import load_truth  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from rover_sim.config import NoiseConfig, SimConfig  # noqa: E402
 from rover_sim.world import World  # noqa: E402
 
 SIGNALS = ('base dr', 'base dtheta', 'F/T force', 'F/T torque', 'accel', 'gyro')
+
+
+def _counts(text: str) -> list[int]:
+    try:
+        n = [int(v) for v in text.split(',')]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r}: comma-separated integers') from None
+    if min(n) < 1:
+        raise argparse.ArgumentTypeError(f'{text!r}: sub-steps are >= 1')
+    return n
 
 
 def run(substeps: int) -> tuple[np.ndarray, float]:
@@ -53,9 +63,11 @@ def run(substeps: int) -> tuple[np.ndarray, float]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--json', type=Path, required=True)
-    ap.add_argument('--substeps', default='10,20')
-    ap.add_argument('--reference', type=int, default=200, help='sub-steps of the reference')
+    ap.add_argument('--json', type=output_path, required=True)
+    ap.add_argument('--substeps', type=_counts, default=[10, 20],
+                    help='comma-separated physics sub-steps per control step')
+    ap.add_argument('--reference', type=number(int, lo=1, hi=10_000), default=200,
+                    help='sub-steps of the reference')
     args = ap.parse_args()
     b, a = butter(4, 20.0 / 100.0)
     ref, _ = run(args.reference)
@@ -63,7 +75,7 @@ def main() -> int:
     result = {'reference_substeps': args.reference, 'lowpass_hz': 20.0, 'rows': {}}
     header = ' '.join(f'{n:>12}' for n in SIGNALS)
     print(f'{"sub-steps":>9} {header} {"CPU RTF 1 rover":>16}')
-    for n in (int(v) for v in args.substeps.split(',')):
+    for n in args.substeps:
         x, rtf = run(n)
         x = filtfilt(b, a, x, axis=0)
         err = np.sqrt(((x - ref) ** 2).mean(axis=0)) / (ref.std(axis=0) + 1e-15)

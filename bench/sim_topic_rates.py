@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 
 import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
@@ -20,6 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, Imu, JointState
 
+from coop_common.cli import number, output_path
 from coop_common.files import write_json
 from coop_common.testing import NodeProcess, isolate_ros_environment
 from coop_msgs.msg import Inclinometer
@@ -43,8 +43,9 @@ def stamp_of(msg) -> float:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--json', type=Path, required=True)
-    ap.add_argument('--seconds', type=float, default=10.0, help='wall seconds of listening')
+    ap.add_argument('--json', type=output_path, required=True)
+    ap.add_argument('--seconds', type=number(float, lo=0.0, lo_open=True, hi=3600.0),
+                    default=10.0, help='wall seconds of listening')
     args = ap.parse_args()
     isolate_ros_environment()
     rclpy.init()

@@ -39,6 +39,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from map_vs_octomap import STEREO_POSES  # noqa: E402
 
+from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
 from coop_mapping.render import TexturedScene, look_at  # noqa: E402
 from coop_mapping.stereo import SUBPIXEL_DEFAULT, StereoCamera, compute_disparity  # noqa: E402
@@ -148,13 +149,13 @@ def normal_error_bands(cam: StereoCamera, pairs) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('--width', type=int, default=640)
-    ap.add_argument('--height', type=int, default=480)
-    ap.add_argument('--seed', type=int, default=0)
-    ap.add_argument('--supersample', type=int, default=1,
+    ap.add_argument('--width', type=number(int, lo=SEARCH_PX + 1, hi=4096), default=640)
+    ap.add_argument('--height', type=number(int, lo=32, hi=4096), default=480)
+    ap.add_argument('--seed', type=number(int, lo=0, hi=2 ** 32 - 1), default=0)
+    ap.add_argument('--supersample', type=int, choices=(1, 3, 5, 7), default=1,
                     help='render at k x k (odd k) samples per pixel, area averaged '
                     '(render.TexturedScene: pixel integration, no texture aliasing)')
-    ap.add_argument('--json', type=Path, default=None)
+    ap.add_argument('--json', type=output_path, default=None)
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)                 # the times are per frame on one thread
     cam, images = frames(args.width, args.height, args.seed, args.supersample)
