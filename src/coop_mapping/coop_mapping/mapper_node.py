@@ -361,7 +361,7 @@ class MapperNode(Node):
 
     def _is_map_file(self, path: str) -> bool:
         return bool(self.p['map_file']) and \
-            os.path.abspath(path) == os.path.abspath(self.p['map_file'])
+            os.path.realpath(path) == os.path.realpath(self.p['map_file'])
 
     # ---------------------------------------------------------------- services
     def srv_save(self, req, resp):

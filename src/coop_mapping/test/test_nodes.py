@@ -422,6 +422,13 @@ def test_mapper_autosaves_a_reset_or_loaded_map_whatever_its_sequence(ctx, tmp_p
         assert _call(ex, peer.create_client(MapFile, '/map/save'), req).success
         autosave(node)
         assert wall_x(path) == pytest.approx(5.05, abs=0.05)
+        # map_file reached through a symlinked directory is map_file: saved, nothing to autosave
+        scan(node, 1.05)
+        assert node.unsaved
+        (tmp_path / 'alias').symlink_to(tmp_path, target_is_directory=True)
+        req.path = str(tmp_path / 'alias' / 'team.cmap')
+        assert _call(ex, peer.create_client(MapFile, '/map/save'), req).success
+        assert not node.unsaved
     finally:
         ex.shutdown()
         node.destroy_node()
