@@ -16,10 +16,11 @@ the left 64 columns (the search range), which SGBM leaves invalid and compute_di
 the default, shift4 with it).
 
 Then, for each mode, the error of the points normal to the true surface (the distance the map's
-surface error measures), by range band: its RMS, and its systematic part, the RMS of its mean
-over 31 x 31 px windows (what no averaging of neighbouring points or voxels removes; with the
-random part of a window's mean, about RMS / sqrt(38) for SGBM's 5 px blocks, still in it).
-Pixels at depth edges (true depth changing by > 3 % to a neighbour) are left out.
+surface error measures), by band of true depth: its RMS, and its systematic part, the RMS of its
+mean over 31 x 31 px windows at 640 px width (scaled with the width; what no averaging of
+neighbouring points or voxels removes; with the random part of a window's mean, about
+RMS / sqrt(38) for SGBM's 5 px blocks, still in it). Pixels at depth edges (a central
+difference of the true depth above 3 % of it) are left out.
 
     bench/stereo_subpixel.py --json out/bench/stereo_subpixel.json
 """
@@ -99,14 +100,20 @@ def stats(cam: StereoCamera, pairs) -> dict:
     }
 
 
-RANGE_BANDS_M = ((0.0, 3.0), (3.0, 5.0), (5.0, 7.0), (7.0, np.inf))
-LOCAL_PX = 31
+DEPTH_BANDS_M = ((0.0, 3.0), (3.0, 5.0), (5.0, 7.0), (7.0, np.inf))
+LOCAL_PX_AT_640 = 31
+
+
+def local_px(width: int) -> int:
+    """The systematic part's window: 31 px at 640 px width, the same share of other widths."""
+    return 2 * max(2, round((LOCAL_PX_AT_640 - 1) / 2 * width / 640)) + 1
 
 
 def normal_errors(cam: StereoCamera, pairs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(true range, error normal to the true surface, its 31 x 31 px local mean) of every pixel
-    with a valid disparity off depth edges and |disparity error| < GROSS_PX."""
+    """(true depth, error normal to the true surface, its local mean over `local_px` windows)
+    of every pixel with a valid disparity off depth edges and |disparity error| < GROSS_PX."""
     h, w = pairs[0][0].shape
+    k = local_px(w)
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     ray = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], -1)
     fxb = cam.fx * cam.baseline
@@ -124,26 +131,28 @@ def normal_errors(cam: StereoCamera, pairs) -> tuple[np.ndarray, np.ndarray, np.
                       & (np.abs(np.gradient(z_true, axis=1)) < 0.03 * z_true))
             ok = np.isfinite(e_n) & smooth & (np.abs(meas - true) < GROSS_PX)
         e0 = np.where(ok, e_n, 0.0).astype(np.float32)
-        cnt = cv2.boxFilter(ok.astype(np.float32), -1, (LOCAL_PX, LOCAL_PX), normalize=False)
-        tot = cv2.boxFilter(e0, -1, (LOCAL_PX, LOCAL_PX), normalize=False)
-        full = ok & (cnt >= 0.5 * LOCAL_PX ** 2)
+        cnt = cv2.boxFilter(ok.astype(np.float32), -1, (k, k), normalize=False)
+        tot = cv2.boxFilter(e0, -1, (k, k), normalize=False)
+        full = ok & (cnt >= 0.5 * k ** 2)
         for acc, x in zip(out, (z_true[full], e_n[full], (tot / np.maximum(cnt, 1))[full])):
             acc.append(x)
     return tuple(np.concatenate(a) for a in out)
 
 
 def normal_error_bands(cam: StereoCamera, pairs) -> list[dict]:
+    """Per depth band (DEPTH_BANDS_M, then all): share of the scored pixels, RMS of the normal
+    error and of its local mean (mm); NaN for a band with no pixel."""
     z, e, local = normal_errors(cam, pairs)
+
+    def rms_mm(x: np.ndarray) -> float:
+        return float(1e3 * np.sqrt(np.mean(x ** 2))) if x.size else float('nan')
+
     rows = []
-    for lo, hi in RANGE_BANDS_M:
+    for lo, hi in (*DEPTH_BANDS_M, (0.0, np.inf)):
         m = (z >= lo) & (z < hi)
-        if m.any():
-            rows.append({'range_m': [lo, hi], 'share': float(m.mean()),
-                         'rms_mm': float(1e3 * np.sqrt(np.mean(e[m] ** 2))),
-                         'systematic_rms_mm': float(1e3 * np.sqrt(np.mean(local[m] ** 2)))})
-    rows.append({'range_m': [0.0, np.inf], 'share': 1.0,
-                 'rms_mm': float(1e3 * np.sqrt(np.mean(e ** 2))),
-                 'systematic_rms_mm': float(1e3 * np.sqrt(np.mean(local ** 2)))})
+        rows.append({'depth_m': [lo, hi], 'pixels': int(m.sum()),
+                     'share': float(m.mean()) if z.size else 0.0,
+                     'rms_mm': rms_mm(e[m]), 'systematic_rms_mm': rms_mm(local[m])})
     return rows
 
 
@@ -166,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         edge = (stats(cam, [(d[:, :SEARCH_PX], t[:, :SEARCH_PX]) for d, t in pairs]) if fw
                 else {'pixels': 0, 'rms_error_px': float('nan'), 'gross_share': float('nan')})
         res[label] = stats(cam, pairs) | {'ms_per_frame': 1e3 * dt, 'full_width': fw,
-                                          'normal_error_by_range': normal_error_bands(cam, pairs),
+                                          'normal_error_by_depth': normal_error_bands(cam, pairs),
                                           'left_columns_valid_px': edge['pixels'],
                                           'left_columns_rms_error_px': edge['rms_error_px'],
                                           'left_columns_gross_share': edge['gross_share']}
@@ -190,18 +199,20 @@ def main(argv: list[str] | None = None) -> int:
     for m in res:
         bins = res[m]['mean_error_by_true_subpixel_px']
         print(f'{m:>10} ' + ' '.join(f'{v:+.3f}' for v in bins))
-    print(f'error normal to the true surface (mm): RMS / systematic (mean over {LOCAL_PX} x '
-          f'{LOCAL_PX} px), share of pixels, by true range band:')
-    bands = res[next(iter(res))]['normal_error_by_range']
-    def band(b: dict) -> str:
-        lo, hi = b['range_m']
-        return 'all' if b['share'] == 1.0 else f'{lo:g}-{hi:g} m'
+    k = local_px(args.width)
+    print(f'error normal to the true surface (mm): RMS / systematic (mean over {k} x {k} px), '
+          'share of the scored pixels, by band of true depth:')
+    bands = [tuple(b['depth_m']) for b in res[next(iter(res))]['normal_error_by_depth']]
 
-    print(f'{"mode":>10} ' + ' '.join(f'{band(b):>17}' for b in bands))
-    print(f'{"share":>10} ' + ' '.join(f'{100 * b["share"]:16.0f}%' for b in bands))
+    def band(lo: float, hi: float) -> str:
+        return 'all' if (lo, hi) == (0.0, np.inf) else f'{lo:g}-{hi:g} m'
+
+    print(f'{"mode":>10} ' + ' '.join(f'{band(*b):>17}' for b in bands))
+    print(f'{"share":>10} ' + ' '.join(
+        f'{100 * b["share"]:16.0f}%' for b in res[next(iter(res))]['normal_error_by_depth']))
     for m in res:
         print(f'{m:>10} ' + ' '.join(f'{b["rms_mm"]:8.1f} / {b["systematic_rms_mm"]:5.1f}'
-                                     for b in res[m]['normal_error_by_range']))
+                                     for b in res[m]['normal_error_by_depth']))
     if args.json:
         write_json(args.json, {'config': vars(args) | {'json': str(args.json)}, **res}, indent=2)
     return 0

@@ -189,10 +189,19 @@ def next_views(node: DemoNode, spin) -> dict[str, tuple[float, float, float]]:
 
 
 def save_map_figure(grid: OccupancyGrid, cameras: dict, views: dict, path: Path) -> Path:
+    """`draw_map` on a figure of its own, written to `path`."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 7))
+    draw_map(ax, grid, cameras, views)
+    return save_figure(fig, path, dpi=100)
+
+
+def draw_map(ax, grid: OccupancyGrid, cameras: dict, views: dict) -> None:
     """The mapper's occupancy slice (/map/grid) in map-frame metres, seen from above (REP 103:
     +x right, +y up): unknown grey, free white, occupied black; each rover's camera where it
-    is (its last stereo/pose) and where the view planner sends it next."""
-    import matplotlib.pyplot as plt
+    is (its last stereo/pose, (x, y, yaw) in `cameras`) and where the view planner sends it
+    next (`views`)."""
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
@@ -201,7 +210,6 @@ def save_map_figure(grid: OccupancyGrid, cameras: dict, views: dict, path: Path)
     state = np.where(data < 0, 1, np.where(data >= 50, 2, 0))       # free, unknown, occupied
     x0, y0 = info.origin.position.x, info.origin.position.y
     extent = (x0, x0 + info.width * info.resolution, y0, y0 + info.height * info.resolution)
-    fig, ax = plt.subplots(figsize=(7, 7))
     ax.imshow(state, origin='lower', extent=extent, interpolation='nearest', vmin=0, vmax=2,
               cmap=ListedColormap(['white', '0.6', 'black']))
     handles = [Patch(facecolor=c, edgecolor='0.3', label=t) for c, t in
@@ -231,7 +239,6 @@ def save_map_figure(grid: OccupancyGrid, cameras: dict, views: dict, path: Path)
     ax.legend(handles=handles + ax.get_legend_handles_labels()[0], loc='upper left',
               fontsize=8, framealpha=0.9)
     ax.set_aspect('equal')
-    return save_figure(fig, path, dpi=100)
 
 
 def save_outputs(node: DemoNode, out: Path, views: dict) -> list[Path]:

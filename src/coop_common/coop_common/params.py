@@ -47,8 +47,10 @@ def check_values(specs: Mapping[str, ParamSpec], values: Mapping[str, Any],
 
 
 def parse_value(spec: ParamSpec, text: str) -> Any:
-    """`text` as a value of the spec's type (bool, int, float or str, from its default), as
-    `--ros-args -p` would type it; ValueError when it is not one (an int must be integral)."""
+    """`text` as a value of the spec's type (bool, int, float or str, from its default);
+    ValueError when it is not one. An int must be integral; a float parameter also takes an
+    integer ('60' is 60.0, where `--ros-args -p fov_deg:=60` would be refused by rclpy as an
+    INTEGER for a DOUBLE parameter)."""
     d = spec.default
     if isinstance(d, bool):
         if text.lower() not in ('true', 'false'):

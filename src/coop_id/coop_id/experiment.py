@@ -10,9 +10,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from coop_common.cli import number
 from coop_common.dynparams import BaseParameters, load_truth
 
-from .excitation import Excitation, constant_excitation
+from .excitation import STRATEGIES, Excitation, constant_excitation
 from .identifier_core import Identifier, IdentifierConfig
 from .model import IDX, SensorNoise
 from .modelsim import ThesisRover, add_noise, noise_scales, stack_frames
@@ -197,16 +198,27 @@ def format_tracking(runs: list[StepTracking], *, tol: float = 0.05, delay_s: flo
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='coop_id.experiment',
                                  description='the +20 % mass step (drift) scenario')
-    ap.add_argument('--seeds', type=int, default=20)
-    ap.add_argument('--first-seed', type=int, default=0)
-    ap.add_argument('--drift', type=float, default=0.01, help='drift_per_s')
-    ap.add_argument('--drift-parameters', default='mass')
-    ap.add_argument('--step', type=float, default=8.0, help='step time, s')
-    ap.add_argument('--duration', type=float, default=14.0)
-    ap.add_argument('--fraction', type=float, default=0.2)
-    ap.add_argument('--strategy', default='information')
+    ap.add_argument('--seeds', type=number(int, lo=1, hi=10_000), default=20)
+    ap.add_argument('--first-seed', type=number(int, lo=0, hi=2 ** 32 - 1), default=0)
+    ap.add_argument('--drift', type=number(float, lo=0.0, hi=10.0), default=0.01,
+                    help='drift_per_s')
+    ap.add_argument('--drift-parameters', default='mass',
+                    help='comma-separated names of Table 2-1 parameters ("" for none)')
+    ap.add_argument('--step', type=number(float, lo=0.0, lo_open=True, hi=600.0), default=8.0,
+                    help='step time, s')
+    ap.add_argument('--duration', type=number(float, lo=0.0, lo_open=True, hi=600.0),
+                    default=14.0)
+    ap.add_argument('--fraction', type=number(float, lo=-1.0, lo_open=True, hi=10.0),
+                    default=0.2, help='the mass step as a fraction of the mass')
+    ap.add_argument('--strategy', default='information', choices=STRATEGIES)
     args = ap.parse_args(argv)
     names = tuple(n for n in args.drift_parameters.split(',') if n)
+    unknown = [n for n in names if n not in IDX]
+    if unknown:
+        ap.error(f'--drift-parameters: unknown {unknown}; of {",".join(IDX)}')
+    if not args.step < args.duration:
+        ap.error(f'--step ({args.step:g} s) must come before the end (--duration '
+                 f'{args.duration:g} s)')
 
     def factory() -> IdentifierConfig:
         return IdentifierConfig(drift_per_s=args.drift, drift_parameters=names)

@@ -168,8 +168,8 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
     return paths
 
 
-#: what each mode reads besides --json: an option given (not at its default) to a mode that does
-#: not read it is a usage error, not a silent no-op
+#: what each mode reads besides --json: an option given to a mode that does not read it (even at
+#: its default value) is a usage error, not a silent no-op
 _MODE_OPTIONS = {
     'model': ('truth', 'seeds', 'first_seed', 'duration', 'noise', 'strategies',
               'no_accelerometer', 'no_bias_compensation', 'plots'),
@@ -196,9 +196,21 @@ def _existing(text: str) -> Path:
     return p
 
 
+def _given(ap: argparse.ArgumentParser, argv: list[str]) -> set[str]:
+    """The destinations of the options spelled out in `argv` (at their default value too)."""
+    out = set()
+    for action in ap._actions:
+        for opt in action.option_strings:
+            if any(a == opt or a.startswith(opt + '=') for a in argv):
+                out.add(action.dest)
+    return out
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     window_s = IdentifierConfig().window_s
-    ap = argparse.ArgumentParser(prog='table_2_1', description=__doc__.splitlines()[0])
+    # no abbreviations: an option is given when one of its spellings is in argv (_given)
+    ap = argparse.ArgumentParser(prog='table_2_1', description=__doc__.splitlines()[0],
+                                 allow_abbrev=False)
     ap.add_argument('--truth', type=_existing, default=None, help='true parameter YAML '
                     '(default: Table 2-1, coop_common/data/table_2_1_truth.yaml)')
     ap.add_argument('--seeds', type=number(int, lo=1, hi=10_000), default=30)
@@ -223,12 +235,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help='identify from a recorded bag instead (no DDS; the core as the node)')
     ap.add_argument('--rover', default='rover1', help='rover namespace in --bag')
     args = ap.parse_args(argv)
+    given = _given(ap, argv if argv is not None else sys.argv[1:])
     if args.sim and args.bag is not None:
         ap.error('--sim and --bag are two different sources: give one')
     mode = 'sim' if args.sim else 'bag' if args.bag is not None else 'model'
     ignored = [f'--{k.replace("_", "-")}' for k in vars(args)
-               if k not in ('json', 'sim') and k not in _MODE_OPTIONS[mode]
-               and getattr(args, k) != ap.get_default(k)]
+               if k not in ('json', 'sim') and k not in _MODE_OPTIONS[mode] and k in given]
     if ignored:
         ap.error(f'{", ".join(ignored)}: not used with '
                  + {'model': 'the model-level study', 'sim': '--sim', 'bag': '--bag'}[mode])
@@ -309,6 +321,8 @@ def _main_bag(args: argparse.Namespace) -> int:
     if args.json is not None:
         write_json(args.json, {
             'mode': 'bag', 'bag': str(args.bag), 'rover': args.rover, 'samples': len(rows),
+            'accelerometer': not args.no_accelerometer,
+            'bias_compensation': not args.no_bias_compensation and noise is not None,
             'mean_abs_rel_error': err,
             'per_parameter': {p: {'estimate': float(report.values[i]),
                                   'std': float(report.std[i]),

@@ -87,3 +87,17 @@ def test_a_duration_without_a_window_is_refused(scenario):
     with pytest.raises(ValueError, match='holds no 0.4 s identification window'):
         run_identification(truth, strategy='information', seed=0, duration_s=0.1, noise=0.1,
                            scales=scales)
+
+
+@pytest.mark.parametrize('args, reason', [
+    (['--drift-parameters', 'mass,weight'], "unknown ['weight']"),
+    (['--step', '20', '--duration', '14'], 'must come before the end'),
+    (['--fraction', '-1'], '--fraction: -1.0 must be > -1.0'),
+    (['--strategy', 'magic'], "invalid choice: 'magic'"),
+    (['--duration', 'nan'], "'nan' is not finite"),
+])
+def test_mass_step_cli_refuses_before_any_run(capsys, args, reason):
+    from coop_id.experiment import main
+    with pytest.raises(SystemExit) as e:
+        main(args)
+    assert e.value.code == 2 and reason in capsys.readouterr().err

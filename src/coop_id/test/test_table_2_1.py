@@ -43,6 +43,8 @@ def test_cli_rejects_bad_arguments(tmp_path):
     (['--bag', '{tmp}/none'], 'does not exist'),
     (['--sim', '--bag', '{tmp}'], '--sim and --bag are two different sources'),
     (['--bag', '{tmp}', '--seeds', '3'], '--seeds: not used with --bag'),
+    (['--bag', '{tmp}', '--seeds=30'], '--seeds: not used with --bag'),      # at its default
+    (['--bag', '{tmp}', '--see', '3'], 'unrecognized arguments'),             # no abbreviation
     (['--sim', '--plots', '{tmp}'], '--plots: not used with --sim'),
     (['--rover', 'rover2'], '--rover: not used with the model-level study'),
 ])

@@ -197,6 +197,7 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
     out = {'distances_m': distances, 'trials': trials, 'steps': steps,
            'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'full_width': full_width,
            'results': {}}
+
     def config(D: float, method: str) -> TrialConfig:
         return TrialConfig(distance=D, steps=steps, width=width, height=height, method=method,
                            fuse_prediction=fuse_prediction, subpixel=subpixel,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +40,7 @@ PLANNING_PARAMS = ('fov_deg', 'depth_m', 'rays_az', 'rays_el', 'k_rel', 'n_exp',
                    'free_gray')
 
 
-def node_parameters(overrides: list[str] = ()) -> dict:
+def node_parameters(overrides: Sequence[str] = ()) -> dict:
     """The node's parameter values (its defaults, `params.PARAMS`) with `NAME=VALUE` overrides
     of PLANNING_PARAMS, typed and validated as the node does (its ranges, choices and rule):
     ValueError with the reason when one is not acceptable."""
