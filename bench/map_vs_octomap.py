@@ -13,7 +13,8 @@ surface of each map's surface estimate, ours the voxel's merged Gaussian mean, O
 centre, over the same voxels for both: every voxel occupied in both maps, the ones of those the
 true surface passes through, and those of the latter where the predicted stereo sigma is below
 the voxel size; see surface_errors; pooled over several placements of the scene in the grid,
-see grid_offsets), and two rovers' maps fused vs every scan in one map.
+see grid_offsets; the stereo surface voxels also by range from the nearest camera), and two
+rovers' maps fused vs every scan in one map.
 
     bench/map_vs_octomap.py --json out/bench/map_vs_octomap.json
 """
@@ -179,7 +180,7 @@ def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
     Returns, per class, the per-voxel errors (m) of ours, OctoMap's, the literal map's, ours
     by the kernel surface query (VoxelMap.surface_points) and the same kernel over OctoMap's
     occupied leaf centres (each weighing 1: what smoothing alone does for a map without
-    means)."""
+    means); and `surface_range_m`, each surface voxel's distance to the nearest scan origin."""
     keys, mean, _, _ = vm.gaussians()
     ok, ostate = leaf_states(tree, res)
     both = (vm.state_of_keys(keys) == OCCUPIED) & np.isin(keys, ok[ostate == OCCUPIED])
@@ -194,7 +195,12 @@ def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
     surf = np.isin(keys, surface_keys)
     L = np.min(np.linalg.norm(centre[:, None, :] - np.asarray(origins)[None], axis=2), axis=1)
     near = surf & (S_VGA * L * L < res)
-    return {'all': e, 'surface': e[:, surf], 'near': e[:, near], 'off_surface': e[:, ~surf]}
+    return {'all': e, 'surface': e[:, surf], 'near': e[:, near], 'off_surface': e[:, ~surf],
+            'surface_range_m': L[surf]}
+
+
+#: range bands (m from the nearest scan origin) of the surface-error breakdown
+SURFACE_RANGE_BANDS_M = ((0.0, 3.0), (3.0, 5.0), (5.0, 7.0), (7.0, 100.0))
 
 
 def grid_offsets(res: float, n: int, seed: int = 0) -> np.ndarray:
@@ -214,6 +220,7 @@ def surface_error_study(scans, res: float, offsets: np.ndarray, truth=None) -> d
     per: dict[str, list[np.ndarray]] = {}
     ratios: dict[str, list[float]] = {}
     ratios_k: dict[str, list[float]] = {}
+    ranges: list[np.ndarray] = []
     for off in offsets:
         sh = [(sc[0] + off, sc[1] + off, sc[2], sc[3]) for sc in scans]
         vm = VoxelMap(res)
@@ -234,6 +241,7 @@ def surface_error_study(scans, res: float, offsets: np.ndarray, truth=None) -> d
                 return tt.query(p)[0]
         errs = surface_errors(vm, tree, res, dist, skeys, [sc[1] for sc in sh],
                               literal_map(sh, res))
+        ranges.append(errs.pop('surface_range_m'))
         for name, e in errs.items():
             per.setdefault(name, []).append(e)
             if e.shape[1]:
@@ -252,6 +260,16 @@ def surface_error_study(scans, res: float, offsets: np.ndarray, truth=None) -> d
                      'rms_ours_kernel_m': float(rms[3]), 'rms_octomap_kernel_m': float(rms[4]),
                      'kernel_ratio': float(rms[3] / rms[1]),
                      'kernel_ratio_per_offset': ratios_k.get(name, [])}
+    # the surface voxels by range from the nearest camera: where the estimate can beat the centre
+    e, rng = np.concatenate(per['surface'], axis=1), np.concatenate(ranges)
+    out['surface']['by_range'] = []
+    for lo, hi in SURFACE_RANGE_BANDS_M:
+        m = (rng >= lo) & (rng < hi)
+        rms = np.sqrt(np.mean(e[:, m] ** 2, axis=1)) if m.any() else np.full(5, np.nan)
+        out['surface']['by_range'].append({
+            'range_m': [lo, hi], 'voxels': int(m.sum()), 'rms_ours_m': float(rms[0]),
+            'rms_octomap_m': float(rms[1]), 'rms_ours_kernel_m': float(rms[3]),
+            'ratio': float(rms[0] / rms[1]), 'kernel_ratio': float(rms[3] / rms[1])})
     # how much of the all-voxel squared error the voxels off the surface carry (same for both)
     off_sq = sum(float(np.sum(e[1] ** 2)) for e in per['off_surface'])
     all_sq = sum(float(np.sum(e[1] ** 2)) for e in per['all'])
@@ -384,6 +402,17 @@ def main(argv: list[str] | None = None) -> int:
                       f'{q["rms_ours_literal_eq_3_10_m"] / q["rms_octomap_m"]:9.2f} '
                       f'{1e3 * q["rms_ours_kernel_m"]:7.1f} {q["kernel_ratio"]:10.2f} '
                       f'{rng_k:>10} {1e3 * q["rms_octomap_kernel_m"]:12.1f}')
+    print('stereo surface voxels by range from the nearest camera (the same voxels as the '
+          "'surface' rows): voxels, ours / octo / kern mm, ratio, kern ratio")
+    bands = SURFACE_RANGE_BANDS_M
+    print(f'{"res m":>6} ' + ' '.join(f'{f"{lo:g}-{hi:g} m":>34}' for lo, hi in bands))
+    for k, r in out['resolutions'].items():
+        cells = []
+        for b in r['stereo']['surface_error']['surface']['by_range']:
+            cells.append(f'{b["voxels"]:6d} {1e3 * b["rms_ours_m"]:5.1f}/'
+                         f'{1e3 * b["rms_octomap_m"]:4.1f}/{1e3 * b["rms_ours_kernel_m"]:4.1f} '
+                         f'{b["ratio"]:4.2f} {b["kernel_ratio"]:4.2f}')
+        print(f'{k:>6} ' + ' '.join(f'{c:>34}' for c in cells))
     print(f'{"res m":>6} {"data":>9} {"off-surface share of all-voxel MSE":>36} '
           f'{"fused!=single":>13} {"octo B/leaf":>11}')
     for k, r in out['resolutions'].items():
