@@ -35,6 +35,18 @@ def executable_path(package: str, executable: str) -> Path:
     return path
 
 
+def usage_error(main: Callable[[list[str]], object], argv: Sequence[str], capsys) -> str:
+    """Run a CLI's `main(argv)` expecting argparse's usage error (SystemExit 2) and return
+    what it wrote to stderr (`capsys`: pytest's fixture)."""
+    try:
+        main(list(argv))
+    except SystemExit as exc:
+        if exc.code != 2:
+            raise AssertionError(f'{argv}: exit {exc.code}, not a usage error') from None
+        return capsys.readouterr().err
+    raise AssertionError(f'{argv}: ran without a usage error')
+
+
 def wait_for(predicate: Callable[[], bool], timeout_s: float, *, poll_s: float = 0.02,
              spin: Callable[[float], None] | None = None, what: str = 'condition') -> None:
     """Wait until predicate() holds, spinning `spin(poll_s)` (or sleeping) between checks.

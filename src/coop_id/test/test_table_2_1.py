@@ -3,6 +3,7 @@ import json
 
 import pytest
 
+from coop_common.testing import usage_error
 from coop_id.table_2_1 import main, time_to
 
 
@@ -52,10 +53,7 @@ def test_cli_refuses_before_any_work(tmp_path, capsys, args, reason):
     """Each a usage error (exit 2) before a run: they were tracebacks after the run (--json,
     --plots), an UnboundLocalError (no window), or silently ignored options."""
     (tmp_path / 'f').write_text('a file')
-    with pytest.raises(SystemExit) as e:
-        main([a.format(tmp=tmp_path) for a in args])
-    assert e.value.code == 2
-    assert reason in capsys.readouterr().err
+    assert reason in usage_error(main, [a.format(tmp=tmp_path) for a in args], capsys)
 
 
 def test_time_to_settles():

@@ -111,12 +111,10 @@ def test_fig_3_24_trial_sets_search_range_from_the_scene():
 ])
 def test_fig_3_24_cli_refuses_before_any_trial(tmp_path, capsys, args, reason):
     pytest.importorskip('pybullet')
+    from coop_common.testing import usage_error
     from coop_mapping.fig_3_24 import main
     (tmp_path / 'f').write_text('a file')
-    with pytest.raises(SystemExit) as e:
-        main([a.format(tmp=tmp_path) for a in args])
-    assert e.value.code == 2
-    assert reason in capsys.readouterr().err
+    assert reason in usage_error(main, [a.format(tmp=tmp_path) for a in args], capsys)
 
 
 def test_fig_3_24_far_scene_is_rendered_not_clipped():

@@ -158,11 +158,11 @@ def test_offline_parameters_are_the_nodes_and_validated_as_the_node_does():
 
 
 def test_offline_cli_refuses_a_bad_parameter_before_any_work(tmp_path, capsys):
+    from coop_common.testing import usage_error
     from coop_viewplan import offline
-    with pytest.raises(SystemExit) as e:            # the bag does not exist either: -p first
-        offline.main([str(tmp_path / 'none'), '-p', 'pad_m=-1'])
-    assert e.value.code == 2
-    assert 'pad_m must be >= 0.0, got -1.0' in capsys.readouterr().err
+    # the bag does not exist either: -p is checked first
+    err = usage_error(offline.main, [str(tmp_path / 'none'), '-p', 'pad_m=-1'], capsys)
+    assert 'pad_m must be >= 0.0, got -1.0' in err
 
 
 @pytest.mark.skipif(not BAG.is_dir(), reason='sample bag not present')
