@@ -1,0 +1,20 @@
+from setuptools import find_packages, setup
+
+package_name = 'coop_insertion'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='Coop Field Robots maintainers',
+    maintainer_email='maintainers@coop-field-robots.org',
+    description='Cooperative insertion (thesis ch. 5): vision-guided master/slave, force-feedback finish.',
+    license='Apache-2.0',
+    entry_points={'console_scripts': []},
+)
