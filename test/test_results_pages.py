@@ -44,3 +44,13 @@ def test_an_unknown_function_is_an_error(tmp_path, spec):
     page = tmp_path / 'p.md'
     page.write_text(f'<!-- generated: md {spec} r.json -->\n<!-- end generated -->\n')
     assert results_pages.main(['--check', str(page)]) == 2
+
+
+def test_a_block_may_name_an_object_such_as_a_parameter_table(tmp_path):
+    page = tmp_path / 'p.md'
+    page.write_text('<!-- generated: md coop_common.params:markdown_table '
+                    'rover_sim.sim_node:PARAMS -->\n<!-- end generated -->\n')
+    assert results_pages.main([str(page)]) == 0
+    text = page.read_text()
+    assert '| `seed` | int | `1` | 0 .. 2147483647 | no |' in text
+    assert '| `real_time_factor` | float | `1.0` | 0.0 .. 100.0 | yes |' in text

@@ -7,7 +7,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-__all__ = ['ParamSpec', 'check_values', 'parse_value']
+__all__ = ['ParamSpec', 'check_values', 'markdown_table', 'parse_value']
 
 
 class ParamSpec:
@@ -67,3 +67,24 @@ def parse_value(spec: ParamSpec, text: str) -> Any:
         except ValueError:
             raise ValueError(f'not a number: {text!r}') from None
     return text
+
+
+def _cell(value: Any) -> str:
+    return (repr(value) if isinstance(value, str) else str(value)).replace('|', '\\|')
+
+
+def markdown_table(specs: Mapping[str, ParamSpec]) -> str:
+    """The parameters as a Markdown table (name, type, default, range or choices, settable at
+    run time, description): a README shows the node's own table, so the two cannot drift."""
+    rows = ['| parameter | type | default | range | at run time | description |',
+            '|---|---|---|---|---|---|']
+    for name, s in specs.items():
+        if s.choices:
+            rng = ', '.join(f'`{c}`' for c in s.choices)
+        elif s.lo is not None or s.hi is not None:
+            rng = f'{"" if s.lo is None else s.lo} .. {"" if s.hi is None else s.hi}'
+        else:
+            rng = ''
+        rows.append(f'| `{name}` | {type(s.default).__name__} | `{_cell(s.default)}` | {rng} | '
+                    f'{"no" if s.read_only else "yes"} | {_cell(s.description)} |')
+    return '\n'.join(rows)
