@@ -321,6 +321,52 @@ def live_in_child(seconds: float, profile: Path | None, tmp: Path) -> dict:
     return json.loads(out.read_text())
 
 
+def format_table(res: dict) -> str:
+    """The table main prints, from its JSON result (docs/results pages are made with it)."""
+    out: list[str] = []
+    rows = [
+        ('write, raw rosbags Writer (peer)', res['peer_write_msgs_s'], ''),
+        ('write, BagWriter', res['ours_write_msgs_s'],
+         f'{res["ours_write_msgs_s"] / res["peer_write_msgs_s"]:.2f}x peer; target >= 50k'),
+        ('write, BagWriter split every 8 MB', res['ours_write_split8MB_msgs_s'],
+         f'{res["ours_write_split8MB_msgs_s"] / res["peer_write_msgs_s"]:.2f}x peer'),
+        ('read raw, AnyReader (peer)', res['peer_read_raw_msgs_s'], ''),
+        ('read raw, read_messages', res['ours_read_raw_msgs_s'],
+         f'{res["ours_read_raw_msgs_s"] / res["peer_read_raw_msgs_s"]:.2f}x peer'),
+        ('read+deserialize, AnyReader (peer)', res['peer_read_deser_msgs_s'], ''),
+        ('read+deserialize, read_messages', res['ours_read_deser_msgs_s'],
+         f'{res["ours_read_deser_msgs_s"] / res["peer_read_deser_msgs_s"]:.2f}x peer'),
+    ]
+    out.append(f'{"figure":42s} {"msgs/s":>10s}  note')
+    for name, val, note in rows:
+        out.append(f'{name:42s} {val:10.0f}  {note}')
+    if 'live_fastdds_default' in res:
+        lives = [('Fast DDS defaults (0.5 MB SHM segment)', res['live_fastdds_default']),
+                 ('16 MB SHM segment (config/fastdds_large_shm.xml)', res['live_large_shm'])]
+        out.append(f'\nlive record, sim load for {res["seconds"]:g} s, recorded / published:')
+        out.append(f'{"topic":34s} ' + ' '.join(f'{n.split(" (")[0]:>24s}' for n, _ in lives))
+        for t in lives[0][1]['live_published']:
+            out.append(f'{t:34s} ' + ' '.join(
+                f'{str(r["live_recorded"][t]) + " / " + str(r["live_published"][t]):>24s}'
+                for _n, r in lives))
+        for name, r in lives:
+            out.append(f'{name}: missing {r["live_missing_total"]} (recorder reported lost '
+                       f'{r["recorder_reported_lost"]}); /rover1/imu steps missing '
+                       f'{r["live_rover1_imu_missing_steps"][:12]}; burst of 20000 reliable '
+                       f'published at {r["burst_publish_msgs_s"]:.0f} msgs/s: recorded '
+                       f'{r["burst_recorded"]} at {r["burst_record_msgs_s"]:.0f} msgs/s')
+        out.append(f'\nplayback 200 Hz, {res["play_messages"]} msgs: received '
+                   f'{res["play_received"]}, in order {res["play_in_order"]}')
+        out.append(f'inter-arrival jitter median '
+                   f'{res["play_interarrival_jitter_median_ms"]:.3f} ms, p99 '
+                   f'{res["play_interarrival_jitter_p99_ms"]:.3f} ms (target median <= 1 ms)')
+        out.append(f'arrival behind schedule median '
+                   f'{res["play_arrival_vs_schedule_median_ms"]:.3f} ms; player lateness median '
+                   f'{res["player_lateness_median_ms"]} ms, '
+                   f'p99 {res["player_lateness_p99_ms"]} ms')
+    return '\n'.join(out)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--json', type=output_path, help='write the figures here')
@@ -343,44 +389,8 @@ def main() -> int:
             res.update(bench_play_jitter(args.seconds, tmp))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    rows = [
-        ('write, raw rosbags Writer (peer)', res['peer_write_msgs_s'], ''),
-        ('write, BagWriter', res['ours_write_msgs_s'],
-         f'{res["ours_write_msgs_s"] / res["peer_write_msgs_s"]:.2f}x peer; target >= 50k'),
-        ('write, BagWriter split every 8 MB', res['ours_write_split8MB_msgs_s'],
-         f'{res["ours_write_split8MB_msgs_s"] / res["peer_write_msgs_s"]:.2f}x peer'),
-        ('read raw, AnyReader (peer)', res['peer_read_raw_msgs_s'], ''),
-        ('read raw, read_messages', res['ours_read_raw_msgs_s'],
-         f'{res["ours_read_raw_msgs_s"] / res["peer_read_raw_msgs_s"]:.2f}x peer'),
-        ('read+deserialize, AnyReader (peer)', res['peer_read_deser_msgs_s'], ''),
-        ('read+deserialize, read_messages', res['ours_read_deser_msgs_s'],
-         f'{res["ours_read_deser_msgs_s"] / res["peer_read_deser_msgs_s"]:.2f}x peer'),
-    ]
-    print(f'{"figure":42s} {"msgs/s":>10s}  note')
-    for name, val, note in rows:
-        print(f'{name:42s} {val:10.0f}  {note}')
-    if not args.skip_live:
-        lives = [('Fast DDS defaults (0.5 MB SHM segment)', res['live_fastdds_default']),
-                 ('16 MB SHM segment (config/fastdds_large_shm.xml)', res['live_large_shm'])]
-        print(f'\nlive record, sim load for {args.seconds:g} s, recorded / published:')
-        print(f'{"topic":34s} ' + ' '.join(f'{n.split(" (")[0]:>24s}' for n, _ in lives))
-        for t in lives[0][1]['live_published']:
-            print(f'{t:34s} ' + ' '.join(
-                f'{str(r["live_recorded"][t]) + " / " + str(r["live_published"][t]):>24s}'
-                for _n, r in lives))
-        for name, r in lives:
-            print(f'{name}: missing {r["live_missing_total"]} (recorder reported lost '
-                  f'{r["recorder_reported_lost"]}); /rover1/imu steps missing '
-                  f'{r["live_rover1_imu_missing_steps"][:12]}; burst of 20000 reliable published'
-                  f' at {r["burst_publish_msgs_s"]:.0f} msgs/s: recorded {r["burst_recorded"]} '
-                  f'at {r["burst_record_msgs_s"]:.0f} msgs/s')
-        print(f'\nplayback 200 Hz, {res["play_messages"]} msgs: received {res["play_received"]}'
-              f', in order {res["play_in_order"]}')
-        print(f'inter-arrival jitter median {res["play_interarrival_jitter_median_ms"]:.3f} ms,'
-              f' p99 {res["play_interarrival_jitter_p99_ms"]:.3f} ms (target median <= 1 ms)')
-        print(f'arrival behind schedule median {res["play_arrival_vs_schedule_median_ms"]:.3f} ms'
-              f'; player lateness median {res["player_lateness_median_ms"]} ms, p99 '
-              f'{res["player_lateness_p99_ms"]} ms')
+    res['seconds'] = args.seconds
+    print(format_table(res))
     if args.json:
         write_json(args.json, res, indent=2)
     return 0

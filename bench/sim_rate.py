@@ -90,31 +90,40 @@ def node_rtf(seconds: float) -> float | None:
         rclpy.shutdown()
 
 
+_CASES = (('rtf_no_render', 'world, 2 rovers, no rendering'),
+          ('rtf_stereo_4hz_320x240', 'world, 2 rovers, stereo 4 Hz 320x240'),
+          ('rtf_stereo_4hz_640x480', 'world, 2 rovers, stereo 4 Hz 640x480'),
+          ('rtf_peer_pybullet_only', 'peer: pb.stepSimulation only ({substeps} sub-steps)'))
+
+
+def format_table(result: dict) -> str:
+    """The table main prints, from its JSON result (docs/results pages are made with it)."""
+    lines = [f'{"case":<52} {"RTF (CPU)":>10} {"RTF (wall)":>11} {"target":>8}']
+    for key, name in _CASES:
+        target = result['targets'].get(key)
+        tgt = f'>= {target:g}x' if target else '-'
+        lines.append(f'{name.format(substeps=result["substeps"]):<52} {result[key]:>9.2f}x '
+                     f'{result["wall"][key]:>10.2f}x {tgt:>8}')
+    node = result['wall']['rtf_node_over_dds']
+    if node is not None:
+        lines.append(f'{"node over DDS, stereo 4 Hz 320x240, all topics":<52} {"-":>10} '
+                     f'{node:>10.2f}x {">= 1x":>8}')
+    lines.append(f'{"ours / peer, CPU (no rendering)":<52} {result["ratio_to_peer"]:>9.2f}')
+    return '\n'.join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--json', type=output_path, required=True)
     ap.add_argument('--seconds', type=number(float, lo=0.0, lo_open=True, hi=3600.0), default=5.0,
                     help='sim seconds per case')
     args = ap.parse_args()
-    rows = []
     none = world_rtf(args.seconds, stereo_rate_hz=0.0)
     substeps = none[2]
-    rows.append(('world, 2 rovers, no rendering', none[:2], 5.0))
     s320 = world_rtf(args.seconds, stereo_rate_hz=4.0)
-    rows.append(('world, 2 rovers, stereo 4 Hz 320x240', s320[:2], 1.0))
     s640 = world_rtf(args.seconds / 2, stereo_rate_hz=4.0, image_width=640, image_height=480)
-    rows.append(('world, 2 rovers, stereo 4 Hz 640x480', s640[:2], None))
     peer = raw_pybullet_rtf(args.seconds, substeps)
-    rows.append((f'peer: pb.stepSimulation only ({substeps} sub-steps)', peer, None))
     node = node_rtf(args.seconds)
-    print(f'{"case":<52} {"RTF (CPU)":>10} {"RTF (wall)":>11} {"target":>8}')
-    for name, (wall, cpu), target in rows:
-        tgt = f'>= {target:g}x' if target else '-'
-        print(f'{name:<52} {cpu:>9.2f}x {wall:>10.2f}x {tgt:>8}')
-    if node is not None:
-        print(f'{"node over DDS, stereo 4 Hz 320x240, all topics":<52} {"-":>10} '
-              f'{node:>10.2f}x {">= 1x":>8}')
-    print(f'{"ours / peer, CPU (no rendering)":<52} {none[1] / peer[1]:>9.2f}')
     result = {
         'rtf_no_render': none[1], 'rtf_stereo_4hz_320x240': s320[1],
         'rtf_stereo_4hz_640x480': s640[1], 'rtf_peer_pybullet_only': peer[1],
@@ -125,6 +134,7 @@ def main() -> int:
         'clock': 'rtf_* are sim seconds per CPU second of this process; wall.* per wall second',
         'targets': {'rtf_no_render': 5.0, 'rtf_stereo_4hz_320x240': 1.0},
     }
+    print(format_table(result))
     write_json(args.json, result, indent=2)
     return 0
 

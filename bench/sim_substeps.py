@@ -61,6 +61,17 @@ def run(substeps: int) -> tuple[np.ndarray, float]:
         return np.array(rows), 3.5 / (time.process_time() - c0)
 
 
+def format_table(result: dict) -> str:
+    """The table main prints, from its JSON result (docs/results pages are made with it)."""
+    header = ' '.join(f'{n:>12}' for n in SIGNALS)
+    lines = [f'{"sub-steps":>9} {header} {"CPU RTF 1 rover":>16}']
+    for n, row in result['rows'].items():
+        per = [row['rel_rms_error'][k] for k in SIGNALS]
+        lines.append(f'{n:>9} ' + ' '.join(f'{100 * e:>11.1f}%' for e in per)
+                     + f' {row["cpu_rtf"]:>15.1f}x')
+    return '\n'.join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--json', type=output_path, required=True)
@@ -73,15 +84,13 @@ def main() -> int:
     ref, _ = run(args.reference)
     ref = filtfilt(b, a, ref, axis=0)
     result = {'reference_substeps': args.reference, 'lowpass_hz': 20.0, 'rows': {}}
-    header = ' '.join(f'{n:>12}' for n in SIGNALS)
-    print(f'{"sub-steps":>9} {header} {"CPU RTF 1 rover":>16}')
     for n in args.substeps:
         x, rtf = run(n)
         x = filtfilt(b, a, x, axis=0)
         err = np.sqrt(((x - ref) ** 2).mean(axis=0)) / (ref.std(axis=0) + 1e-15)
         per = [float(err[3 * k:3 * k + 3].max()) for k in range(len(SIGNALS))]
-        print(f'{n:>9} ' + ' '.join(f'{100 * e:>11.1f}%' for e in per) + f' {rtf:>15.1f}x')
         result['rows'][str(n)] = {'rel_rms_error': dict(zip(SIGNALS, per)), 'cpu_rtf': rtf}
+    print(format_table(result))
     write_json(args.json, result, indent=2)
     return 0
 

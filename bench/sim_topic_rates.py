@@ -41,6 +41,16 @@ def stamp_of(msg) -> float:
     return t.sec + t.nanosec * 1e-9
 
 
+def format_table(result: dict) -> str:
+    """The table main prints, from its JSON result (docs/results pages are made with it)."""
+    lines = [f'{"topic":<34} {"configured Hz":>13} {"sim-time Hz":>12} {"wall Hz":>9} '
+             f'{"msgs":>6}']
+    for topic, r in result['topics'].items():
+        lines.append(f'{topic:<34} {r["configured_hz"]:>13.1f} {r["sim_hz"]:>12.2f} '
+                     f'{r["wall_hz"]:>9.2f} {r["messages"]:>6}')
+    return '\n'.join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--json', type=output_path, required=True)
@@ -66,19 +76,18 @@ def main() -> int:
             end = time.monotonic() + args.seconds
             while time.monotonic() < end:
                 rclpy.spin_once(node, timeout_sec=0.01)
-        print(f'{"topic":<34} {"configured Hz":>13} {"sim-time Hz":>12} {"wall Hz":>9} '
-              f'{"msgs":>6}')
         for topic, _, expected in TOPICS:
             s = seen[topic]
             sim_hz = (len(s) - 1) / (s[-1][1] - s[0][1]) if len(s) > 1 else 0.0
             wall_hz = (len(s) - 1) / (s[-1][0] - s[0][0]) if len(s) > 1 else 0.0
             rows[topic] = {'configured_hz': expected, 'sim_hz': sim_hz, 'wall_hz': wall_hz,
                            'messages': len(s)}
-            print(f'{topic:<34} {expected:>13.1f} {sim_hz:>12.2f} {wall_hz:>9.2f} {len(s):>6}')
     finally:
         node.destroy_node()
         rclpy.shutdown()
-    write_json(args.json, {'seconds': args.seconds, 'topics': rows}, indent=2)
+    result = {'seconds': args.seconds, 'topics': rows}
+    print(format_table(result))
+    write_json(args.json, result, indent=2)
     return 0
 
 

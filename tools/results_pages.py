@@ -33,6 +33,7 @@ from coop_common.files import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / 'docs' / 'results'
+sys.path.insert(0, str(ROOT))     # bench/*.py format their tables too: `bench.sim_rate:...`
 
 BLOCK = re.compile(
     r'(?P<open><!-- generated: (?P<kind>text|md) (?P<func>[\w.]+:\w+) (?P<json>[\w./:-]+) -->\n)'
