@@ -69,8 +69,8 @@ def parse_value(spec: ParamSpec, text: str) -> Any:
     return text
 
 
-def _cell(value: Any) -> str:
-    return (repr(value) if isinstance(value, str) else str(value)).replace('|', '\\|')
+def _cell(text: str) -> str:
+    return text.replace('|', '\\|').replace('\n', ' ')
 
 
 def markdown_table(specs: Mapping[str, ParamSpec]) -> str:
@@ -85,6 +85,7 @@ def markdown_table(specs: Mapping[str, ParamSpec]) -> str:
             rng = f'{"" if s.lo is None else s.lo} .. {"" if s.hi is None else s.hi}'
         else:
             rng = ''
-        rows.append(f'| `{name}` | {type(s.default).__name__} | `{_cell(s.default)}` | {rng} | '
+        default = _cell(repr(s.default))
+        rows.append(f'| `{name}` | {type(s.default).__name__} | `{default}` | {rng} | '
                     f'{"no" if s.read_only else "yes"} | {_cell(s.description)} |')
     return '\n'.join(rows)
