@@ -3,6 +3,7 @@ frames, /clock and use_sim_time, determinism, F/T and inclinometer physics, name
 parameter files, bad input and bad configuration."""
 from __future__ import annotations
 
+import math
 import subprocess
 import threading
 import time
@@ -24,7 +25,7 @@ from visualization_msgs.msg import MarkerArray
 
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import NodeProcess, executable_path, wait_for
-from coop_msgs.msg import DynamicParameters, Inclinometer
+from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer
 from coop_msgs.srv import SimScenario
 
 pytestmark = pytest.mark.graph
@@ -260,16 +261,51 @@ def test_reset_service_changes_the_world(live):
     before = len(probe.msgs['/sim/world'][-1].markers)
     client = probe.node.create_client(SimScenario, '/sim/reset')
     assert client.wait_for_service(timeout_sec=10.0)
-    req = SimScenario.Request(seed=11, occlusion_density=0.3, slot_width_m=0.0, truth_yaml='')
+    req = SimScenario.Request(seed=11, occlusion_density=0.3, slot_gap_m=0.0, truth_yaml='')
     future = client.call_async(req)
     probe.spin_until(future.done, 30.0, 'the reset response')
     assert future.result().success, future.result().message
     probe.spin_until(lambda: len(probe.msgs['/sim/world'][-1].markers) != before, 10.0,
                      'the new world markers')
     bad = client.call_async(SimScenario.Request(seed=-1, occlusion_density=0.9,
-                                                slot_width_m=0.0, truth_yaml=''))
+                                                slot_gap_m=0.0, truth_yaml=''))
     probe.spin_until(bad.done, 10.0, 'the rejected reset')
     assert not bad.result().success and 'occlusion_density' in bad.result().message
+    for places, why in ((dict(place_rovers=['rover9'], place_x=[0.0], place_y=[0.0],
+                              place_yaw=[0.0]), 'rover9'),
+                        (dict(place_rovers=['rover2'], place_x=[0.0], place_y=[], place_yaw=[]),
+                         'one length'),
+                        (dict(place_rovers=['rover2'], place_x=[float('nan')], place_y=[0.0],
+                              place_yaw=[0.0]), 'non-finite')):
+        bad = client.call_async(SimScenario.Request(**places))
+        probe.spin_until(bad.done, 10.0, 'the rejected placement')
+        assert not bad.result().success and why in bad.result().message
+
+
+def test_reset_places_a_rover_and_the_card_is_published(live):
+    _, probe = live
+    probe.listen(PoseStamped, '/sim/rover2/card_pose', SENSOR_QOS)
+    probe.listen(ContactState, '/sim/rover2/contact', SENSOR_QOS)
+    probe.listen(PoseStamped, '/sim/rover2/base_pose', SENSOR_QOS)
+    client = probe.node.create_client(SimScenario, '/sim/reset')
+    assert client.wait_for_service(timeout_sec=10.0)
+    req = SimScenario.Request(occlusion_density=0.0, slot_gap_m=0.127,
+                              place_rovers=['rover2'], place_x=[1.5],
+                              place_y=[-1.0], place_yaw=[0.5])
+    future = client.call_async(req)
+    probe.spin_until(future.done, 30.0, 'the reset response')
+    assert future.result().success, future.result().message
+    poses = probe.msgs['/sim/rover2/base_pose']
+    poses.clear()
+    probe.spin_until(lambda: len(poses) > 0, 10.0, 'the placed rover')
+    p = poses[-1].pose.position
+    assert math.hypot(p.x - 1.5, p.y + 1.0) < 0.05
+    probe.spin_until(lambda: probe.count('/sim/rover2/card_pose') > 0
+                     and probe.count('/sim/rover2/contact') > 0, 10.0, 'card pose and contact')
+    c = probe.msgs['/sim/rover2/card_pose'][-1].pose.position
+    assert math.hypot(c.x - 1.5, c.y + 1.0) < 0.8           # the card is in the rover's hand
+    contact = probe.msgs['/sim/rover2/contact'][-1]
+    assert contact.points == 0 and not contact.seated and contact.max_penetration_m == 0.0
 
 
 def _first_imus(tmp_path: Path, seed: int, n: int = 100, name: str = 'det') -> dict:
@@ -286,7 +322,7 @@ def _first_imus(tmp_path: Path, seed: int, n: int = 100, name: str = 'det') -> d
             client = probe.node.create_client(SimScenario, '/det/sim/reset')
             assert client.wait_for_service(timeout_sec=10.0)
             future = client.call_async(SimScenario.Request(seed=seed, occlusion_density=-1.0,
-                                                           slot_width_m=0.0, truth_yaml=''))
+                                                           slot_gap_m=0.0, truth_yaml=''))
             probe.spin_until(future.done, 30.0, 'the reset')
             assert future.result().success
             msgs = probe.msgs['/det/rover1/imu']

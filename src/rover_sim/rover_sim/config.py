@@ -9,6 +9,8 @@ from typing import Any
 
 import yaml
 
+from .worldgen import CARD_WIDTH_M, TABLE_5_1_GAPS_M
+
 
 class ConfigError(ValueError):
     """A world/params YAML or value that the simulator cannot use; the message names the field."""
@@ -46,7 +48,8 @@ class SimConfig:
     seed: int = 1
     occlusion_density: float = 0.08
     extent_m: float = 10.0
-    slot_width_m: float = 0.004
+    slot_gap_m: float = TABLE_5_1_GAPS_M[1]   # the slot's gap along the card's width (4.5 in)
+    contact_friction: float = 0.4        # Coulomb friction of the card on the site and ground
     truth_yaml: str = ''                 # '' : Table 2-1 for every rover
     physics_rate_hz: float = 200.0
     physics_substeps: int = 0            # 0: the stability minimum (world.substeps_for)
@@ -66,7 +69,9 @@ class SimConfig:
             ('rovers', 1 <= self.rovers <= 8, 'must be 1..8'),
             ('occlusion_density', 0.0 <= self.occlusion_density <= 0.5, 'must be in [0, 0.5]'),
             ('extent_m', 2.0 <= self.extent_m <= 200.0, 'must be in [2, 200]'),
-            ('slot_width_m', 0.0 < self.slot_width_m < 0.05, 'must be in (0, 0.05)'),
+            ('slot_gap_m', CARD_WIDTH_M < self.slot_gap_m <= 0.25,
+             f'must be in ({CARD_WIDTH_M:.5f}, 0.25]: wider than the 4.25 in card'),
+            ('contact_friction', 0.0 <= self.contact_friction <= 2.0, 'must be in [0, 2]'),
             ('physics_rate_hz', 50.0 <= self.physics_rate_hz <= 2000.0, 'must be in [50, 2000]'),
             ('physics_substeps', 0 <= self.physics_substeps <= 200, 'must be in [0, 200]'),
             ('sensor_rate_hz', 0.0 < self.sensor_rate_hz <= self.physics_rate_hz,

@@ -2,7 +2,8 @@
 a 6-axis F/T sensor at r_2, a 4-DOF 1 kg arm on it, and a pan/tilt stereo mast.
 
 The base carries no collision shape: it floats on its 6-DOF compliance (Eq. B-3), applied by
-`world.World`, and nothing else touches it.
+`world.World`, and nothing else touches it. The card in rover 2's gripper is the one link with a
+collision shape: it is what touches the insertion site (ch. 5).
 """
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from coop_common.dynparams import BaseParameters
+
+from .worldgen import Card
 
 ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
 MAST_JOINTS = ('mast_pan', 'mast_tilt')
@@ -42,6 +45,11 @@ MAST_POSITION = (-0.12, -0.10, 0.40)      # pan joint, relative to the base c.g.
 CAMERA_OFFSET = (0.04, 0.0, 0.06)          # left optical origin, in the tilt link
 STEREO_BASELINE_M = 0.038
 SENSOR_MASS = 1e-3
+#: the card's centre in the last arm link (x along the link): its near edge at the gripper
+CARD_OFFSET_M = 0.134
+CARD_IN_LINK_4 = f'{CARD_OFFSET_M} 0 0'
+#: arm joint 1 sits this far above the F/T sensor's origin, joint 2 this far above joint 1
+ARM_JOINT1_ABOVE_SENSOR_M = 0.015
 #: mast links: (mass, c.o.m. in the base frame at pan = tilt = 0, principal inertia)
 #: Light (50 g in all) so that the Table 2-1 inertia less the mast's is still a physical body.
 MAST_PAN = (0.02, (MAST_POSITION[0], MAST_POSITION[1], MAST_POSITION[2] + 0.02), (1e-5,) * 3)
@@ -117,7 +125,7 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
              '<joint name="ft_sensor_joint" type="fixed"><parent link="base_link"/>'
              f'<child link="ft_sensor_link"/><origin xyz="{r2[0]} {r2[1]} {r2[2]}"/></joint>']
     parent = 'ft_sensor_link'
-    offset = (0.0, 0.0, 0.015)
+    offset = (0.0, 0.0, ARM_JOINT1_ABOVE_SENSOR_M)
     axes = ('0 0 1', '0 1 0', '0 1 0', '0 1 0')
     for k, link in enumerate(ARM_LINKS):
         lo, hi = ARM_LIMITS_RAD[k]
@@ -132,16 +140,19 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
         parent = link.name
         offset = (0.0, 0.0, link.length) if k == 0 else (link.length, 0.0, 0.0)
     if with_card:
+        card = Card()
+        size = (card.width_m, card.thickness_m, card.height_m)
+        markers = ''.join(
+            f'<visual><origin xyz="{u} {card.thickness_m / 2 + 0.0005} {v}" rpy="1.5708 0 0"/>'
+            f'<geometry><cylinder radius="{card.marker_radius_m}" length="0.001"/></geometry>'
+            '<material name="w"><color rgba="1 1 1 1"/></material></visual>'
+            for u, v in card.marker_offsets)
         parts.append(f'<link name="card_link">{_inertial(0.01, (0, 0, 0), (1e-6,) * 3)}'
-                     f'{_box((0.108, 0.003, 0.07), rgba=(0.15, 0.15, 0.15, 1))}'
-                     '<visual><origin xyz="-0.03175 -0.002 0" rpy="1.5708 0 0"/><geometry>'
-                     '<cylinder radius="0.00635" length="0.001"/></geometry><material name="w">'
-                     '<color rgba="1 1 1 1"/></material></visual>'
-                     '<visual><origin xyz="0.03175 -0.002 0" rpy="1.5708 0 0"/><geometry>'
-                     '<cylinder radius="0.00635" length="0.001"/></geometry><material name="w">'
-                     '<color rgba="1 1 1 1"/></material></visual></link>')
+                     f'{_box(size, rgba=(0.15, 0.15, 0.15, 1))}{markers}'
+                     f'<collision><geometry><box size="{size[0]} {size[1]} {size[2]}"/>'
+                     '</geometry></collision></link>')
         parts.append('<joint name="card_joint" type="fixed"><parent link="arm_link_4"/>'
-                     '<child link="card_link"/><origin xyz="0.134 0 0"/></joint>')
+                     f'<child link="card_link"/><origin xyz="{CARD_IN_LINK_4}"/></joint>')
     mx, my, mz = MAST_POSITION
     pan_inertial = _inertial(MAST_PAN[0], (0, 0, 0.02), MAST_PAN[2])
     parts.append(f'<link name="mast_pan_link">{pan_inertial}'
@@ -190,3 +201,41 @@ def arm_joint_inertias(q: np.ndarray) -> np.ndarray:
              for link, c in links[1:])
     i4 = l4.mass * l4.com[0] ** 2 + l4.inertia[1]
     return np.array([i1, i2, i3, i4])
+
+
+class ReachError(ValueError):
+    """A card pose the arm cannot reach."""
+
+
+def card_ik(x: float, z: float, pitch: float = 0.0) -> tuple[float, float, float]:
+    """Arm joints 2..4 that put the card's centre at (x, z) from joint 2's axis in the arm's
+    plane (x along joint 1's heading, z up) with the card pitched by `pitch` (rad, about the
+    joint axes: positive tilts its width axis down); the elbow above the line from joint 2 to
+    joint 4 where the joint limits allow, else below. ReachError when out of reach."""
+    l2, l3 = ARM_LINKS[1].length, ARM_LINKS[2].length
+    l4 = CARD_OFFSET_M
+    # joint 4 = card centre less the card's offset along the pitched link 4
+    wx, wz = x - l4 * np.cos(pitch), z + l4 * np.sin(pitch)
+    r2 = wx * wx + wz * wz
+    c3 = (r2 - l2 * l2 - l3 * l3) / (2.0 * l2 * l3)
+    if not (np.isfinite(c3) and -1.0 <= c3 <= 1.0):
+        raise ReachError(f'card at ({x:.3f}, {z:.3f}) m, pitch {pitch:.3f} is out of reach')
+    why = ''
+    for q3 in (float(np.arccos(c3)), -float(np.arccos(c3))):     # elbow up first, then down
+        q2 = float(np.arctan2(-wz, wx) - np.arctan2(l3 * np.sin(q3), l2 + l3 * np.cos(q3)))
+        q = (q2, q3, float(pitch - q2 - q3))
+        bad = [(k + 2, v) for k, v in enumerate(q)
+               if not ARM_LIMITS_RAD[k + 1][0] <= v <= ARM_LIMITS_RAD[k + 1][1]]
+        if not bad:
+            return q
+        why = ', '.join(f'arm_joint_{k} = {v:.3f} rad' for k, v in bad)
+    raise ReachError(f'card at ({x:.3f}, {z:.3f}) m, pitch {pitch:.3f}: {why} beyond its limits')
+
+
+def card_fk(q2: float, q3: float, q4: float) -> tuple[float, float, float]:
+    """The card's centre (x, z) from joint 2's axis and its pitch: card_ik's inverse."""
+    l2, l3 = ARM_LINKS[1].length, ARM_LINKS[2].length
+    t2, t3, t4 = q2, q2 + q3, q2 + q3 + q4
+    x = l2 * np.cos(t2) + l3 * np.cos(t3) + CARD_OFFSET_M * np.cos(t4)
+    z = -(l2 * np.sin(t2) + l3 * np.sin(t3) + CARD_OFFSET_M * np.sin(t4))
+    return float(x), float(z), float(t4)

@@ -26,7 +26,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from coop_common.dynparams import PARAM_NAMES, TruthFileError, load_truth
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
-from coop_msgs.msg import DynamicParameters, Inclinometer
+from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer
 from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat
@@ -34,6 +34,7 @@ from .config import ConfigError, NoiseConfig, SimConfig, load_config
 from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
 from .trajectory import TrajectoryError
 from .world import World
+from .worldgen import TABLE_5_1_GAPS_M
 
 
 def stamp(t_s: float) -> Time:
@@ -61,8 +62,11 @@ PARAMS = {
                       hi=2 ** 31 - 1, read_only=True),
     'occlusion_density': ParamSpec(0.08, 'Obstacle footprint fraction of the site', lo=0.0,
                                    hi=0.5, read_only=True),
-    'slot_width_m': ParamSpec(0.004, 'Insertion slot width (m)', lo=0.0005, hi=0.049,
-                              read_only=True),
+    'slot_gap_m': ParamSpec(TABLE_5_1_GAPS_M[1], "The insertion slot's gap between its jaws "
+                            "along the 4.25 in card's width (m); Table 5-1: 5.0, 4.5, 4.375 in",
+                            lo=0.108, hi=0.25, read_only=True),
+    'contact_friction': ParamSpec(0.4, 'Coulomb friction coefficient of the card on the site, '
+                                  'obstacles and ground', lo=0.0, hi=2.0, read_only=True),
     'physics_substeps': ParamSpec(0, 'Physics sub-steps per 5 ms step; 0 = the stability minimum '
                                   '(more: closer to the continuous Eq. B-3 dynamics, slower)',
                                   lo=0, hi=200, read_only=True),
@@ -122,9 +126,9 @@ class SimNode(Node):
 
     # ------------------------------------------------------------------ set-up
     #: node parameter -> SimConfig field
-    _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_width_m', 'physics_substeps',
-                      'sensor_rate_hz', 'stereo_rate_hz', 'image_width', 'image_height',
-                      'supersample')
+    _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_gap_m', 'contact_friction',
+                      'physics_substeps', 'sensor_rate_hz', 'stereo_rate_hz', 'image_width',
+                      'image_height', 'supersample')
 
     def _make_config(self) -> SimConfig:
         """Defaults <- world_yaml <- every parameter set away from its default."""
@@ -161,6 +165,8 @@ class SimNode(Node):
                 'truth_base': self.create_publisher(PoseStamped, f'sim/{n}/base_pose', SENSOR_QOS),
                 'truth_cam': self.create_publisher(PoseStamped, f'sim/{n}/camera_pose',
                                                    SENSOR_QOS),
+                'card_pose': self.create_publisher(PoseStamped, f'sim/{n}/card_pose', SENSOR_QOS),
+                'contact': self.create_publisher(ContactState, f'sim/{n}/contact', SENSOR_QOS),
                 'truth_params': self.create_publisher(DynamicParameters, f'sim/{n}/parameters',
                                                       LATCHED_QOS),
             }
@@ -231,24 +237,44 @@ class SimNode(Node):
             changes['seed'] = int(request.seed)
         if request.occlusion_density >= 0:
             changes['occlusion_density'] = float(request.occlusion_density)
-        if request.slot_width_m > 0:
-            changes['slot_width_m'] = float(request.slot_width_m)
+        if request.slot_gap_m > 0:
+            changes['slot_gap_m'] = float(request.slot_gap_m)
         try:
             config = self.config.replace(**changes)
             truth = load_truth(request.truth_yaml or self.truth_path)
-        except (ConfigError, TruthFileError) as exc:
+            places = self._placements(request, config.rovers)
+        except (ConfigError, TruthFileError, ValueError) as exc:
             response.success, response.message = False, str(exc)
             return response
         done = threading.Event()
         with self._lock:
-            self._pending.append(('reset', config, truth, request.truth_yaml, done))
+            self._pending.append(('reset', config, truth, request.truth_yaml, places, done))
         if not done.wait(timeout=30.0):
             response.success, response.message = False, 'simulator did not reset within 30 s'
             return response
         response.success = True
         response.message = (f'reset: seed {config.seed}, occlusion {config.occlusion_density:g}, '
-                            f'slot {config.slot_width_m:g} m')
+                            f'slot gap {config.slot_gap_m:g} m'
+                            + ''.join(f', {r} at ({x:g}, {y:g}, {a:g})' for r, x, y, a in places))
         return response
+
+    @staticmethod
+    def _placements(request: SimScenario.Request, rovers: int
+                    ) -> list[tuple[str, float, float, float]]:
+        """The request's rover placements, checked: ValueError names what is wrong."""
+        names = list(request.place_rovers)
+        cols = (list(request.place_x), list(request.place_y), list(request.place_yaw))
+        if any(len(c) != len(names) for c in cols):
+            raise ValueError('place_rovers, place_x, place_y and place_yaw must be of one length')
+        known = [f'rover{i + 1}' for i in range(rovers)]
+        out = []
+        for name, x, y, yaw in zip(names, *cols):
+            if name not in known:
+                raise ValueError(f'place_rovers: {name!r} is not one of {known}')
+            if not all(math.isfinite(v) for v in (x, y, yaw)):
+                raise ValueError(f'place_rovers: {name} at a non-finite pose')
+            out.append((name, float(x), float(y), float(yaw)))
+        return out
 
     # ------------------------------------------------------------------ sim thread
     def _apply_pending(self) -> None:
@@ -272,12 +298,14 @@ class SimNode(Node):
                 self.world.command_velocity(i, v, w)
                 self._last_cmd_vel[i] = self.world.time_s
             elif kind == 'reset':
-                _, config, truth, truth_yaml, done = item
+                _, config, truth, truth_yaml, places, done = item
                 self.world.close()
                 self.config = config
                 if truth_yaml:
                     self.truth_path = truth_yaml
                 self.world = World(config, [truth] * config.rovers)
+                for name, x, y, yaw in places:
+                    self.world.place_rover(self.world.rover_index(name), x, y, yaw)
                 self._last_cmd_vel.clear()
                 self._pace_origin = None
                 self._publish_latched()
@@ -340,6 +368,8 @@ class SimNode(Node):
             pubs = self.pubs[i]
             if sensors:
                 self._publish_sensors(i, r.name, pubs, t)
+                if r.card_index is not None:
+                    self._publish_card(i, pubs, t)
             if odom:
                 self._publish_odom(i, r.name, pubs, t)
             if stereo:
@@ -377,6 +407,27 @@ class SimNode(Node):
         js.position = [float(v) for v in s.joint_positions]
         js.velocity = [float(v) for v in s.joint_velocities]
         pubs['joints'].publish(js)
+
+    def _publish_card(self, i: int, pubs: dict, t: Time) -> None:
+        frame = self.values['map_frame']
+        ps = PoseStamped()
+        ps.header.stamp, ps.header.frame_id = t, frame
+        _pose(ps.pose, *self.world.card_pose(i))
+        pubs['card_pose'].publish(ps)
+        cs = self.world.contact(i)
+        if cs is None:
+            return
+        msg = ContactState()
+        msg.header.stamp, msg.header.frame_id = t, frame
+        f, m = msg.wrench.force, msg.wrench.torque
+        f.x, f.y, f.z = (float(v) for v in cs.force)
+        m.x, m.y, m.z = (float(v) for v in cs.torque)
+        msg.points = cs.points
+        msg.max_penetration_m = float(cs.max_penetration_m)
+        msg.insertion_depth_m = self.world.insertion_depth(i)
+        msg.seated = self.world.seated(i)
+        msg.bodies = list(cs.bodies)
+        pubs['contact'].publish(msg)
 
     def _publish_odom(self, i: int, name: str, pubs: dict, t: Time) -> None:
         from .compliance import rpy_to_matrix
@@ -470,26 +521,32 @@ class SimNode(Node):
             m.color.a = 1.0
             arr.markers.append(m)
         site = self.world.layout.site
-        for k, (x, y, z) in enumerate(site.markers):
+        for ns, centres, radius, q in (
+                ('site_marker', site.markers, site.marker_radius_m, (0.0, math.sqrt(0.5))),
+                ('slot_marker', site.slot_markers, site.slot_marker_radius_m,
+                 (math.sqrt(0.5), 0.0))):
+            for k, (x, y, z) in enumerate(centres):
+                m = Marker()
+                m.header.stamp, m.header.frame_id = t, frame
+                m.ns, m.id, m.type = ns, k, Marker.CYLINDER
+                m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, z
+                m.pose.orientation.x, m.pose.orientation.y = q
+                m.pose.orientation.w = math.sqrt(0.5)
+                m.scale.x = m.scale.y = 2 * radius
+                m.scale.z = 0.002
+                m.color.r = m.color.g = m.color.b = m.color.a = 1.0
+                arr.markers.append(m)
+        for k, (name, box) in enumerate(zip(('jaw_near', 'jaw_far', 'floor'), site.jaws)):
             m = Marker()
             m.header.stamp, m.header.frame_id = t, frame
-            m.ns, m.id, m.type = 'site_marker', k, Marker.CYLINDER
-            m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, z
-            m.pose.orientation.y = m.pose.orientation.w = math.sqrt(0.5)
-            m.scale.x = m.scale.y = 2 * site.marker_radius_m
-            m.scale.z = 0.002
-            m.color.r = m.color.g = m.color.b = m.color.a = 1.0
+            m.ns, m.id, m.type = 'site', k, Marker.CUBE
+            m.pose.position.x, m.pose.position.y, m.pose.position.z = box.centre
+            m.pose.orientation.w = 1.0
+            m.scale.x, m.scale.y, m.scale.z = (2 * h for h in box.half_extents)
+            m.color.r = m.color.g = 0.25
+            m.color.b, m.color.a = 0.3, 1.0
+            m.text = f'{name}; slot_gap_m={site.gap_m:g}'
             arr.markers.append(m)
-        m = Marker()
-        m.header.stamp, m.header.frame_id = t, frame
-        m.ns, m.id, m.type = 'site', 0, Marker.CUBE
-        m.pose.position.x, m.pose.position.y, m.pose.position.z = site.position
-        m.pose.orientation.w = 1.0
-        m.scale.x, m.scale.y, m.scale.z = 0.2, 0.6 + site.slot_width_m, 0.4
-        m.color.r = m.color.g = 0.25
-        m.color.b, m.color.a = 0.3, 1.0
-        m.text = f'slot_width_m={site.slot_width_m:g}'
-        arr.markers.append(m)
         return arr
 
     def destroy_node(self) -> None:

@@ -105,6 +105,30 @@ class ArmMomentum:
     sensor_rotation: np.ndarray   # F/T sensor frame in the world
 
 
+@dataclass(frozen=True)
+class ContactState:
+    """The card's contacts over the last control step (ground truth, ch. 5 / app. A.4)."""
+
+    stamp_s: float
+    force: np.ndarray             # mean contact force on the card over the step, world, N
+    torque: np.ndarray            # its mean moment about the card's centre, world, N m
+    points: int                   # contact points at the end of the step
+    max_penetration_m: float      # deepest overlap of the card into anything during the step
+    bodies: tuple[str, ...]       # what it touched: 'jaw_near', 'jaw_far', 'floor', 'ground',
+    #                               'obstacle'
+
+
+@dataclass
+class _Contact:
+    """Per-step accumulators of a card's contact forces (sums over the sub-steps)."""
+
+    force: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    moment: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))  # about origin
+    penetration: float = 0.0
+    points: int = 0
+    bodies: set = dataclasses.field(default_factory=set)
+
+
 @dataclass
 class _Rover:
     name: str
@@ -143,6 +167,9 @@ class _Rover:
     arm_masses: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     arm_inertias: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     arm_prev: ArmMomentum | None = None
+    card_index: int | None = None     # the card's link (the one link that collides), if carried
+    contact: _Contact = dataclasses.field(default_factory=_Contact)
+    last_contact: ContactState | None = None
 
 
 def substeps_for(params: Sequence[BaseParameters], dt: float) -> int:
@@ -182,7 +209,7 @@ class World:
         starts = [(-2.0, 1.5 * (i - (n - 1) / 2.0)) for i in range(n)]
         self.layout: WorldLayout = generate_world(
             seed=config.seed, occlusion_density=config.occlusion_density,
-            extent_m=config.extent_m, slot_width_m=config.slot_width_m,
+            extent_m=config.extent_m, slot_gap_m=config.slot_gap_m,
             keep_clear=tuple((x, y, 0.9) for x, y in starts))
         self._textures = self._make_textures()
         self._build_static()
@@ -221,44 +248,65 @@ class World:
             out[name] = pb.loadTexture(str(path), physicsClientId=self.client)
         return out
 
-    def _static_body(self, shape: int, position, orientation=(0, 0, 0, 1)) -> int:
-        return pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
-                                  basePosition=position, baseOrientation=orientation,
-                                  physicsClientId=self.client)
+    def _static_body(self, shape: int, position, orientation=(0, 0, 0, 1), *,
+                     collision: int = -1) -> int:
+        body = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
+                                  baseCollisionShapeIndex=collision, basePosition=position,
+                                  baseOrientation=orientation, physicsClientId=self.client)
+        if collision >= 0:
+            pb.changeDynamics(body, -1, lateralFriction=self.config.contact_friction,
+                              physicsClientId=self.client)
+        return body
 
     def _build_static(self) -> None:
+        """Ground, obstacles and the insertion site, each with a collision shape (only the card
+        touches them: no other link of a rover has one), and the site's markers (visual)."""
         c = self.client
         half = self.config.extent_m
         ground = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half, half, 0.005],
                                       rgbaColor=[0.75, 0.7, 0.6, 1], physicsClientId=c)
-        self.ground = self._static_body(ground, [0, 0, -0.005])
+        self.ground = self._static_body(
+            ground, [0, 0, -0.005], collision=pb.createCollisionShape(
+                pb.GEOM_BOX, halfExtents=[half, half, 0.005], physicsClientId=c))
         pb.changeVisualShape(self.ground, -1, textureUniqueId=self._textures['ground'],
                              physicsClientId=c)
+        self._body_kind: dict[int, str] = {self.ground: 'ground'}
         self.obstacle_bodies = []
         for ob in self.layout.obstacles:
             s = ob.shade
             if ob.kind == 'rock':
                 vis = pb.createVisualShape(pb.GEOM_SPHERE, radius=ob.radius,
                                            rgbaColor=[s, s * 0.9, s * 0.8, 1], physicsClientId=c)
+                col = pb.createCollisionShape(pb.GEOM_SPHERE, radius=ob.radius,
+                                              physicsClientId=c)
             else:
                 vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=ob.radius, length=ob.height,
                                            rgbaColor=[s * 0.6, s * 0.7, s, 1], physicsClientId=c)
-            body = self._static_body(vis, ob.position)
+                col = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=ob.radius,
+                                              height=ob.height, physicsClientId=c)
+            body = self._static_body(vis, ob.position, collision=col)
             pb.changeVisualShape(body, -1, textureUniqueId=self._textures['rock'],
                                  physicsClientId=c)
             self.obstacle_bodies.append(body)
+            self._body_kind[body] = 'obstacle'
         site = self.layout.site
-        sx, sy, sz = site.position
-        gap = site.slot_width_m
-        for side in (-1, 1):
-            vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[0.1, 0.15, 0.2],
+        self.site_bodies = []
+        for kind, box in zip(('jaw_near', 'jaw_far', 'floor'), site.jaws):
+            vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
                                        rgbaColor=[0.25, 0.25, 0.3, 1], physicsClientId=c)
-            self._static_body(vis, [sx, sy + side * (0.15 + gap / 2), sz])
-        for m in site.markers:
-            vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=site.marker_radius_m,
-                                       length=0.002,
-                                       rgbaColor=[1, 1, 1, 1], physicsClientId=c)
-            self._static_body(vis, m, pb.getQuaternionFromEuler([0, math.pi / 2, 0]))
+            col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
+                                          physicsClientId=c)
+            body = self._static_body(vis, list(box.centre), collision=col)
+            self.site_bodies.append(body)
+            self._body_kind[body] = kind
+        # fiducials face -x (disc axis along x), slot markers face +y (axis along y)
+        for centres, radius, rpy in ((site.markers, site.marker_radius_m, (0, math.pi / 2, 0)),
+                                     (site.slot_markers, site.slot_marker_radius_m,
+                                      (math.pi / 2, 0, 0))):
+            for m in centres:
+                vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=radius, length=0.002,
+                                           rgbaColor=[1, 1, 1, 1], physicsClientId=c)
+                self._static_body(vis, m, pb.getQuaternionFromEuler(rpy))
 
     def _spawn(self, name: str, params: BaseParameters, x: float, y: float,
                with_card: bool) -> _Rover:
@@ -279,6 +327,10 @@ class World:
             pb.changeDynamics(body, j, linearDamping=0, angularDamping=0, jointDamping=0,
                               physicsClientId=c)
         pb.changeDynamics(body, -1, linearDamping=0, angularDamping=0, physicsClientId=c)
+        card = joints.get('card_joint')
+        if card is not None:
+            pb.changeDynamics(body, card, lateralFriction=self.config.contact_friction,
+                              physicsClientId=c)
         q_in = pb.getDynamicsInfo(body, -1, physicsClientId=c)[4]
         ft = joints['ft_sensor_joint']
         parents = {j: pb.getJointInfo(body, j, physicsClientId=c)[16] for j in joints.values()}
@@ -296,7 +348,7 @@ class World:
         rover = _Rover(
             name=name, body=body, params=params, joint_index=joints, ft_index=ft,
             tilt_index=joints['mast_tilt'], inertial_rot=quat_to_matrix(q_in),
-            com_offset=base_link_inertial(params)[1], arm_links=arm_links,
+            com_offset=base_link_inertial(params)[1], arm_links=arm_links, card_index=card,
             arm_masses=np.array([d[0] for d in dyn]),
             arm_inertias=np.array([d[2] for d in dyn]),
             arm=JointTrajectoryFollower(ARM_JOINTS, ARM_HOME),
@@ -428,8 +480,52 @@ class World:
         torque = ((new.ang_momentum - old.ang_momentum) / dt
                   + 0.5 * (new.transport + old.transport)
                   - 0.5 * (new.gravity_moment + old.gravity_moment))
+        if r.card_index is not None:
+            # what the site and ground push on the card is not the base's: the sensor reads
+            # the momentum change less the mean contact wrench, about the sensor's origin
+            f_c, m_c = self._close_contact_step(r)
+            force = force - f_c
+            p = self._sensor_origin(r)
+            torque = torque - (m_c - np.cross(p, f_c))
         rot = 0.5 * (new.sensor_rotation + old.sensor_rotation)
         return np.concatenate([rot.T @ force, rot.T @ torque])
+
+    def _accumulate_contact(self, r: _Rover) -> None:
+        """Add one sub-step's contact forces on the card (force on the card: the normal force
+        along the normal on the other body, less the two friction components; checked against
+        a box at rest and sliding) to the step's sums."""
+        acc = r.contact
+        pts = pb.getContactPoints(bodyA=r.body, linkIndexA=r.card_index,
+                                  physicsClientId=self.client)
+        acc.points = len(pts)
+        for p in pts:
+            n, d1, d2 = p[7], p[11], p[13]
+            fx = p[9] * n[0] - p[10] * d1[0] - p[12] * d2[0]
+            fy = p[9] * n[1] - p[10] * d1[1] - p[12] * d2[1]
+            fz = p[9] * n[2] - p[10] * d1[2] - p[12] * d2[2]
+            x, y, z = p[5]
+            acc.force += (fx, fy, fz)
+            acc.moment += (y * fz - z * fy, z * fx - x * fz, x * fy - y * fx)
+            acc.penetration = max(acc.penetration, -p[8])
+            acc.bodies.add(self._body_kind.get(p[2], 'rover'))
+
+    def _close_contact_step(self, r: _Rover) -> tuple[np.ndarray, np.ndarray]:
+        """The step's mean contact force on the card and its mean moment about the world origin;
+        keeps the step's ContactState (moment about the card's centre) and resets the sums."""
+        acc = r.contact
+        n = self.substeps
+        f, m = acc.force / n, acc.moment / n
+        centre = np.array(pb.getLinkState(r.body, r.card_index, computeForwardKinematics=1,
+                                          physicsClientId=self.client)[4])
+        r.last_contact = ContactState(
+            stamp_s=self.time_s, force=f, torque=m - np.cross(centre, f), points=acc.points,
+            max_penetration_m=acc.penetration, bodies=tuple(sorted(acc.bodies)))
+        r.contact = _Contact()
+        return f, m
+
+    def _sensor_origin(self, r: _Rover) -> np.ndarray:
+        return np.array(pb.getLinkState(r.body, r.ft_index, computeForwardKinematics=1,
+                                        physicsClientId=self.client)[4])
 
     def link_masses_and_coms(self, index: int, links: Sequence[int]) -> tuple[np.ndarray,
                                                                               np.ndarray]:
@@ -465,6 +561,27 @@ class World:
         now = self.time_s
         r.mast.set(names, times_s, positions, now if start_s is None or start_s <= 0 else start_s,
                    r.mast.target(now)[0])
+
+    def place_rover(self, index: int, x: float, y: float, yaw: float = 0.0) -> None:
+        """Put rover `index` at rest at (x, y, yaw) (its chassis anchor and odometry too), arm
+        and mast as they are: a scenario's start, e.g. the slave near the insertion site."""
+        if not all(math.isfinite(v) for v in (x, y, yaw)):
+            raise ValueError('place_rover: x, y and yaw must be finite')
+        r = self.rovers[index]
+        c = self.client
+        r.anchor_xy = np.array([x, y], dtype=float)
+        r.anchor_yaw = float(yaw)
+        r.odom_xy, r.odom_yaw = r.anchor_xy.copy(), float(yaw)
+        r.cmd = (0.0, 0.0)
+        self._set_base_pose(r, np.array([x, y, NOMINAL_HEIGHT_M]), rpy_to_matrix(0.0, 0.0, yaw))
+        for j in r.actuated + r.mast_joints:
+            pb.resetJointState(r.body, j, pb.getJointState(r.body, j, physicsClientId=c)[0],
+                               targetVelocity=0.0, physicsClientId=c)
+        r.prev_velocity = np.zeros(3)
+        r.arm_prev = self._arm_momentum(r)
+        q = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)[1]
+        r.prev_quat = r.last_sub_quat = r.prev_sub_quat = q
+        r.contact = _Contact()
 
     def command_velocity(self, index: int, v: float, w: float) -> None:
         """Skid-steer body speed (m/s) and yaw rate (rad/s), clipped to the rover's limits."""
@@ -525,6 +642,8 @@ class World:
                 pb.applyExternalTorque(r.body, -1, t, pb.WORLD_FRAME, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
             for r in self.rovers:
+                if r.card_index is not None:
+                    self._accumulate_contact(r)
                 v, w = r.cmd
                 if v != 0.0 or w != 0.0:
                     r.anchor_yaw += w * h
@@ -575,6 +694,42 @@ class World:
         d = deflection(p, rot, v, w, pa, ra, va, wa)
         cp, cr = self.camera_pose(index)
         return Truth(self.time_s, p, rot, d.dr, d.dtheta, cp, cr, pa, r.anchor_yaw)
+
+    def card_pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """True pose of the card carried by rover `index` (centre, rotation: x along its width,
+        y its face normal, z its height; worldgen.Card), map frame. KeyError: no card."""
+        r = self.rovers[index]
+        if r.card_index is None:
+            raise KeyError(f'{r.name} carries no card')
+        st = pb.getLinkState(r.body, r.card_index, computeForwardKinematics=1,
+                             physicsClientId=self.client)
+        return np.array(st[4]), quat_to_matrix(st[5])
+
+    def contact(self, index: int) -> ContactState | None:
+        """The card's contacts over the last control step (None before the first step)."""
+        return self.rovers[index].last_contact
+
+    def insertion_depth(self, index: int) -> float:
+        """How far the card's lower edge is into the slot below its mouth (m; negative: above
+        it), counted only while both lower corners are between the jaws (else -inf)."""
+        site = self.layout.site
+        pos, rot = self.card_pose(index)
+        card = self.layout.card
+        corners = [pos + rot @ np.array([u * card.width_m / 2, 0.0, v * card.height_m / 2])
+                   for u in (-1, 1) for v in (-1, 1)]
+        lower = sorted(corners, key=lambda q: q[2])[:2]
+        x0 = site.slot_centre[0] - site.gap_m / 2
+        x1 = site.slot_centre[0] + site.gap_m / 2
+        y0 = site.slot_centre[1] - site.jaws[2].half_extents[1]
+        y1 = site.slot_centre[1] + site.jaws[2].half_extents[1]
+        if not all(x0 <= q[0] <= x1 and y0 <= q[1] <= y1 for q in lower):
+            return -math.inf
+        return float(site.slot_centre[2] - max(q[2] for q in lower))
+
+    def seated(self, index: int, *, tolerance_m: float = 0.002) -> bool:
+        """The card is between the jaws with its lower edge within `tolerance_m` of the slot's
+        floor (the depth it is inserted to; penetration is judged apart, `contact`)."""
+        return self.insertion_depth(index) >= self.layout.site.seat_depth_m - tolerance_m
 
     def joint_positions(self, index: int, names: Sequence[str]) -> np.ndarray:
         r = self.rovers[index]
@@ -685,4 +840,5 @@ class World:
         self.close()
 
 
-__all__ = ['ArmMomentum', 'World', 'Readings', 'Truth', 'substeps_for', 'rotation_vector']
+__all__ = ['ArmMomentum', 'ContactState', 'World', 'Readings', 'Truth', 'substeps_for',
+           'rotation_vector']

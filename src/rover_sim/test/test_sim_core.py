@@ -216,8 +216,7 @@ def test_world_generator_density_determinism_and_clearance():
     with pytest.raises(ValueError):
         generate_world(seed=1, occlusion_density=0.9)
     site = a.site
-    gap = abs(site.markers[0][1] - site.markers[1][1])
-    assert gap == pytest.approx(0.12 + site.slot_width_m)
+    assert abs(site.markers[0][1] - site.markers[1][1]) == pytest.approx(0.124)
 
 
 def test_config_errors_name_the_field(tmp_path):

@@ -1,0 +1,128 @@
+"""Contact in the world core: the Table 5-1 site, the card entering the slot or landing on a
+jaw, penetration, and the contact force at the F/T sensor (ch. 5, app. A.4)."""
+import math
+
+import numpy as np
+import pytest
+
+from coop_common.dynparams import load_truth
+from rover_sim.config import ConfigError, NoiseConfig, SimConfig
+from rover_sim.rover_model import (
+    ARM_JOINT1_ABOVE_SENSOR_M,
+    ARM_JOINTS,
+    ARM_LINKS,
+    ReachError,
+    card_fk,
+    card_ik,
+)
+from rover_sim.world import NOMINAL_HEIGHT_M, World
+from rover_sim.worldgen import CARD_WIDTH_M, INCH, TABLE_5_1_GAPS_M, generate_world
+
+QUIET = NoiseConfig(fraction=0.0)
+REACH_M = 0.30          # joint 2 to the card's centre, along the arm's heading
+
+
+def test_site_geometry_is_table_5_1s():
+    assert [round(g / INCH, 3) for g in TABLE_5_1_GAPS_M] == [5.0, 4.5, 4.375]
+    for gap in TABLE_5_1_GAPS_M:
+        site = generate_world(seed=1, occlusion_density=0.0, slot_gap_m=gap).site
+        near, far, floor = site.jaws
+        inner_near = near.centre[0] + near.half_extents[0]
+        inner_far = far.centre[0] - far.half_extents[0]
+        assert inner_far - inner_near == pytest.approx(gap)
+        assert site.slot_centre[0] == pytest.approx((inner_near + inner_far) / 2)
+        assert floor.centre[2] + floor.half_extents[2] == pytest.approx(
+            site.slot_centre[2] - site.seat_depth_m)
+        # the fiducials of the target-frame initialisation stay where coop_mapping knows them
+        assert site.markers == ((2.9, -0.062, 0.25), (2.9, 0.062, 0.25))
+        # slot markers on the jaws' +y faces, either side of the mouth
+        (xa, ya, za), (xb, yb, zb) = site.slot_markers
+        assert ya == yb == pytest.approx(near.centre[1] + near.half_extents[1])
+        assert xa < inner_near and xb > inner_far and za == zb < site.slot_centre[2]
+    with pytest.raises(ValueError, match='slot_gap_m'):
+        generate_world(seed=1, occlusion_density=0.0, slot_gap_m=CARD_WIDTH_M)
+    with pytest.raises(ConfigError, match='slot_gap_m'):
+        SimConfig(slot_gap_m=0.1)
+
+
+def test_card_ik_is_the_inverse_of_fk_and_refuses_what_is_out_of_reach():
+    for x, z, pitch in ((0.30, -0.02, 0.0), (0.35, 0.05, 0.1), (0.25, -0.10, -0.2)):
+        q = card_ik(x, z, pitch)
+        np.testing.assert_allclose(card_fk(*q), (x, z, pitch), atol=1e-12)
+    with pytest.raises(ReachError):
+        card_ik(0.8, 0.0)
+
+
+def _slave_over_slot(gap: float, offset_x: float = 0.0) -> tuple[World, float]:
+    """Rover 2 placed so that its card hangs level 2 cm above the slot (offset along x)."""
+    w = World(SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
+                        noise=QUIET), [load_truth()] * 2)
+    truth = load_truth()
+    site = w.layout.site
+    sx, sy, top = site.slot_centre
+    r2 = truth.cg_to_arm
+    joint2_z = (NOMINAL_HEIGHT_M + r2[2] + ARM_JOINT1_ABOVE_SENSOR_M
+                + ARM_LINKS[0].length)
+    w.place_rover(1, sx - REACH_M - r2[0] + offset_x, sy - r2[1], 0.0)
+    above = top + w.layout.card.height_m / 2 + 0.02 - joint2_z
+    w.command_arm(1, ARM_JOINTS, [0.2], [[0.0, *card_ik(REACH_M, above)]])
+    for _ in range(300):
+        w.step()
+    return w, above
+
+
+def _lower(w: World, above: float, depth: float, seconds: float) -> dict:
+    """Lower the card at 1 cm/s by `depth` (m), then hold for the rest of `seconds`; the card is
+    kept level against the base's sag from its true pitch (as a vision loop would)."""
+    worst, readings, pitch = 0.0, [], 0.0
+    for k in range(int(seconds / w.dt)):
+        if k % 10 == 0:
+            rot = w.card_pose(1)[1]
+            pitch -= 0.5 * math.atan2(-rot[2, 0], rot[0, 0])
+            dz = above - min(depth, 0.01 * k * w.dt)
+            w.command_arm(1, ARM_JOINTS, [0.05], [[0.0, *card_ik(REACH_M, dz, pitch)]])
+        w.step()
+        cs = w.contact(1)
+        worst = max(worst, cs.max_penetration_m)
+        readings.append((w.sense(1), cs, w.truth(1).base_rotation, w._sensor_origin(w.rovers[1]),
+                         w.card_pose(1)[0]))
+    return {'worst': worst, 'readings': readings}
+
+
+def test_an_aligned_card_is_seated_without_penetration():
+    w, above = _slave_over_slot(TABLE_5_1_GAPS_M[2])
+    with w:
+        assert w.insertion_depth(1) < 0 and not w.seated(1)
+        assert w.contact(1).points == 0
+        out = _lower(w, above, 0.02 + w.layout.site.seat_depth_m + 0.005, 7.0)
+        assert w.seated(1), w.insertion_depth(1)
+        assert 'floor' in w.contact(1).bodies
+        assert out['worst'] < 0.5e-3
+
+
+def test_a_misaligned_card_lands_on_the_far_jaw_and_is_not_seated():
+    w, above = _slave_over_slot(TABLE_5_1_GAPS_M[2], offset_x=0.004)
+    with w:
+        out = _lower(w, above, 0.04, 5.0)
+        cs = w.contact(1)
+        assert cs.bodies == ('jaw_far',) and cs.force[2] > 0.5
+        assert w.insertion_depth(1) == -math.inf and not w.seated(1)
+        assert out['worst'] < 0.5e-3
+
+
+def test_the_contact_force_reaches_the_ft_sensor():
+    """Pressing on a jaw, the F/T sensor reads what statics says the base holds: the arm's
+    weight and the contact wrench, the force in the sensor's axes, the moment about its origin
+    (weight moments from the links' own masses and c.o.m.s, not from the sensor model)."""
+    w, above = _slave_over_slot(TABLE_5_1_GAPS_M[2], offset_x=0.004)
+    with w:
+        out = _lower(w, above, 0.04, 5.0)
+        s, cs, rot, p, centre = out['readings'][-1]
+        assert np.linalg.norm(cs.force) > 1.0
+        m, c = w.link_masses_and_coms(1, w.rovers[1].arm_links)
+        g = np.array([0.0, 0.0, -9.81])
+        force = -(m.sum() * g) - cs.force
+        moment = (-np.cross(c - p, m[:, None] * g).sum(axis=0)
+                  - (cs.torque + np.cross(centre - p, cs.force)))
+        np.testing.assert_allclose(s.force, rot.T @ force, atol=0.03)
+        np.testing.assert_allclose(s.torque, rot.T @ moment, atol=0.01)
