@@ -14,7 +14,8 @@ setup(
     zip_safe=True,
     maintainer='Coop Field Robots maintainers',
     maintainer_email='maintainers@coop-field-robots.org',
-    description='Cooperative insertion (thesis ch. 5): vision-guided master/slave, force-feedback finish.',
+    description='Cooperative insertion (thesis ch. 5): vision-guided master/slave, '
+                'force-feedback finish.',
     license='Apache-2.0',
     entry_points={'console_scripts': []},
 )

@@ -1,1 +1,2 @@
-"""Cooperative insertion (thesis ch. 5, app. A): marker identification, frames, force-feedback finish."""
+"""Cooperative insertion (thesis ch. 5, app. A): marker identification, frames, force-feedback
+finish."""
