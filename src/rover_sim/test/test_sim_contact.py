@@ -7,19 +7,12 @@ import pytest
 
 from coop_common.dynparams import load_truth
 from rover_sim.config import ConfigError, NoiseConfig, SimConfig
-from rover_sim.rover_model import (
-    ARM_JOINT1_ABOVE_SENSOR_M,
-    ARM_JOINTS,
-    ARM_LINKS,
-    ReachError,
-    card_fk,
-    card_ik,
-)
-from rover_sim.world import NOMINAL_HEIGHT_M, World
+from rover_sim.rover_model import ReachError, card_fk, card_ik
+from rover_sim.scenarios import card_over_slot, lower_card
+from rover_sim.world import World
 from rover_sim.worldgen import CARD_WIDTH_M, INCH, TABLE_5_1_GAPS_M, generate_world
 
 QUIET = NoiseConfig(fraction=0.0)
-REACH_M = 0.30          # joint 2 to the card's centre, along the arm's heading
 
 
 def test_site_geometry_is_table_5_1s():
@@ -53,71 +46,43 @@ def test_card_ik_is_the_inverse_of_fk_and_refuses_what_is_out_of_reach():
         card_ik(0.8, 0.0)
 
 
-def _slave_over_slot(gap: float, offset_x: float = 0.0) -> tuple[World, float]:
-    """Rover 2 placed so that its card hangs level 2 cm above the slot (offset along x)."""
-    w = World(SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
-                        noise=QUIET), [load_truth()] * 2)
-    truth = load_truth()
-    site = w.layout.site
-    sx, sy, top = site.slot_centre
-    r2 = truth.cg_to_arm
-    joint2_z = (NOMINAL_HEIGHT_M + r2[2] + ARM_JOINT1_ABOVE_SENSOR_M
-                + ARM_LINKS[0].length)
-    w.place_rover(1, sx - REACH_M - r2[0] + offset_x, sy - r2[1], 0.0)
-    above = top + w.layout.card.height_m / 2 + 0.02 - joint2_z
-    w.command_arm(1, ARM_JOINTS, [0.2], [[0.0, *card_ik(REACH_M, above)]])
-    for _ in range(300):
-        w.step()
-    return w, above
-
-
-def _lower(w: World, above: float, depth: float, seconds: float) -> dict:
-    """Lower the card at 1 cm/s by `depth` (m), then hold for the rest of `seconds`; the card is
-    kept level against the base's sag from its true pitch (as a vision loop would)."""
-    worst, readings, pitch = 0.0, [], 0.0
-    for k in range(int(seconds / w.dt)):
-        if k % 10 == 0:
-            rot = w.card_pose(1)[1]
-            pitch -= 0.5 * math.atan2(-rot[2, 0], rot[0, 0])
-            dz = above - min(depth, 0.01 * k * w.dt)
-            w.command_arm(1, ARM_JOINTS, [0.05], [[0.0, *card_ik(REACH_M, dz, pitch)]])
-        w.step()
-        cs = w.contact(1)
-        worst = max(worst, cs.max_penetration_m)
-        readings.append((w.sense(1), cs, w.truth(1).base_rotation, w._sensor_origin(w.rovers[1]),
-                         w.card_pose(1)[0]))
-    return {'worst': worst, 'readings': readings}
+def _world(gap: float) -> World:
+    return World(SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
+                           noise=QUIET), [load_truth()] * 2)
 
 
 def test_an_aligned_card_is_seated_without_penetration():
-    w, above = _slave_over_slot(TABLE_5_1_GAPS_M[2])
-    with w:
+    with _world(TABLE_5_1_GAPS_M[2]) as w:
+        start = card_over_slot(w, 1)
         assert w.insertion_depth(1) < 0 and not w.seated(1)
         assert w.contact(1).points == 0
-        out = _lower(w, above, 0.02 + w.layout.site.seat_depth_m + 0.005, 7.0)
+        worst = max(c.max_penetration_m for c in lower_card(
+            w, start, depth_m=0.02 + w.layout.site.seat_depth_m + 0.005, hold_s=1.5))
         assert w.seated(1), w.insertion_depth(1)
         assert 'floor' in w.contact(1).bodies
-        assert out['worst'] < 0.5e-3
+        assert worst < 0.5e-3
 
 
 def test_a_misaligned_card_lands_on_the_far_jaw_and_is_not_seated():
-    w, above = _slave_over_slot(TABLE_5_1_GAPS_M[2], offset_x=0.004)
-    with w:
-        out = _lower(w, above, 0.04, 5.0)
+    with _world(TABLE_5_1_GAPS_M[2]) as w:
+        start = card_over_slot(w, 1, offset_m=0.004)
+        worst = max(c.max_penetration_m for c in lower_card(w, start, depth_m=0.04, hold_s=1.0))
         cs = w.contact(1)
         assert cs.bodies == ('jaw_far',) and cs.force[2] > 0.5
         assert w.insertion_depth(1) == -math.inf and not w.seated(1)
-        assert out['worst'] < 0.5e-3
+        assert worst < 0.5e-3
 
 
 def test_the_contact_force_reaches_the_ft_sensor():
     """Pressing on a jaw, the F/T sensor reads what statics says the base holds: the arm's
     weight and the contact wrench, the force in the sensor's axes, the moment about its origin
     (weight moments from the links' own masses and c.o.m.s, not from the sensor model)."""
-    w, above = _slave_over_slot(TABLE_5_1_GAPS_M[2], offset_x=0.004)
-    with w:
-        out = _lower(w, above, 0.04, 5.0)
-        s, cs, rot, p, centre = out['readings'][-1]
+    with _world(TABLE_5_1_GAPS_M[2]) as w:
+        start = card_over_slot(w, 1, offset_m=0.004)
+        for cs in lower_card(w, start, depth_m=0.04, hold_s=1.0):
+            pass
+        s, rot, p = w.sense(1), w.truth(1).base_rotation, w._sensor_origin(w.rovers[1])
+        centre = w.card_pose(1)[0]
         assert np.linalg.norm(cs.force) > 1.0
         m, c = w.link_masses_and_coms(1, w.rovers[1].arm_links)
         g = np.array([0.0, 0.0, -9.81])
