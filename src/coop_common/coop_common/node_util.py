@@ -3,6 +3,7 @@ counting, and the Jazzy main() idiom. No algorithm lives here."""
 from __future__ import annotations
 
 import math
+import signal
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -103,6 +104,13 @@ class BadInputCounter:
         return sum(self.counts.values())
 
 
+def rover_frame(namespace: str, frame: str) -> str:
+    """`<rover>/<frame>` for a node in a rover's namespace (its last part: `/team_a/rover1` ->
+    `rover1/base_link`), as rover_sim names every rover's frames; `frame` itself at the root."""
+    rover = namespace.rstrip('/').rsplit('/', 1)[-1]
+    return f'{rover}/{frame}' if rover else frame
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None,
              executor_factory: Callable[[], Any] | None = None) -> int:
     """The Jazzy main() idiom: init, spin, clean shutdown on Ctrl-C or external shutdown.
@@ -128,6 +136,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # `ros2 launch` signals the whole process group and then each child: a second SIGINT
+        # in the middle of the clean-up would raise inside destroy_node (a traceback, exit -2)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -63,3 +63,9 @@ def test_run_node_exits_1_when_the_node_shut_itself_down_for_a_fatal_error():
 
     assert run_node(Dies, []) == 1
     assert run_node(Stops, []) == 0
+
+
+def test_rover_frame_takes_the_last_part_of_the_namespace():
+    assert node_util.rover_frame('/rover1', 'base_link') == 'rover1/base_link'
+    assert node_util.rover_frame('/team_a/rover2', 'base_link') == 'rover2/base_link'
+    assert node_util.rover_frame('/', 'base_link') == 'base_link'

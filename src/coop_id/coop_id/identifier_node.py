@@ -22,7 +22,13 @@ from sensor_msgs.msg import Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import PARAM_NAMES
-from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.node_util import (
+    BadInputCounter,
+    ParamSpec,
+    declare_parameters,
+    rover_frame,
+    run_node,
+)
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_msgs.action import Identify
 from coop_msgs.msg import DynamicParameters, Inclinometer
@@ -77,6 +83,8 @@ SPECS = {
                                      lo=0.0, hi=1.0, read_only=True),
     'bias_compensation': ParamSpec(True, 'remove the errors-in-variables bias using the sensor '
                                    'noise covariances of the messages', read_only=True),
+    'base_frame': ParamSpec('', "frame id of the estimates; empty: '<rover>/base_link' with "
+                            "<rover> the last part of the node's namespace", read_only=True),
 }
 
 
@@ -84,6 +92,7 @@ class IdentifierNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('identifier', **kwargs)
         self.p = declare_parameters(self, SPECS, on_change=self._on_change)
+        self.base_frame = self.p['base_frame'] or rover_frame(self.get_namespace(), 'base_link')
         self.bad = BadInputCounter(self)
         # The sample stream: an IMU sample waits for its partners however the three streams
         # interleave (a replay's burst, DDS or callback latency), up to QUEUE_S of samples
@@ -224,7 +233,7 @@ class IdentifierNode(Node):
                 int(round(self._t_estimate * 1e9)), 10**9)
         else:
             msg.header.stamp = self.get_clock().now().to_msg()
-        msg.header.frame_id = 'base_link'
+        msg.header.frame_id = self.base_frame
         msg.names = list(PARAM_NAMES)
         msg.values = rep.values.tolist()
         msg.std_devs = rep.std.tolist()

@@ -118,6 +118,7 @@ def test_identify_action_over_dds(graph):
     assert result.success, result.message
     est = result.estimate
     assert len(est.values) == 22 and est.physically_consistent
+    assert est.header.frame_id == 'rover1/base_link'      # the rover's frame, as rover_sim's
     assert est.samples >= 350 and est.rejected_samples >= 2
     assert node.bad.counts['non-finite'] >= 1 and node.bad.counts['out-of-order stamp'] >= 1
     assert all(np.isfinite(est.values)) and all(s >= 0 for s in est.std_devs)

@@ -1,17 +1,17 @@
 """Node `mapper` (one per team): fuses every rover's stereo clouds into one VoxelMap.
 
-Subscribes, per rover name r in the `rovers` parameter: `/<r>/stereo/points` (PointCloud2 in
-the map frame with the covariance fields, sensor QoS) and `/<r>/camera_pose`
+Subscribes, per rover name r in the `rovers` parameter: `<r>/stereo/points` (PointCloud2 in
+the map frame with the covariance fields, sensor QoS) and `<r>/camera_pose`
 (PoseWithCovarianceStamped, the pose the cloud was taken from, matched by stamp; its position is
-the ray origin). Publishes `/map/voxels` (coop_msgs/VoxelMap, latched, at most every
-`publish_period_s`), `/map/updates` (coop_msgs/VoxelMapUpdate per fused cloud), `/map/occupied`
-(PointCloud2 of occupied voxel centres, latched), `/map/surface` (PointCloud2 of the occupied
+the ray origin). Publishes `map/voxels` (coop_msgs/VoxelMap, latched, at most every
+`publish_period_s`), `map/updates` (coop_msgs/VoxelMapUpdate per fused cloud), `map/occupied`
+(PointCloud2 of occupied voxel centres, latched), `map/surface` (PointCloud2 of the occupied
 voxels' surface points, `VoxelMap.surface_points`: sub-voxel, computed only while somebody
-subscribes, latched) and `/map/grid` (nav_msgs/OccupancyGrid slice at `grid_z_m`, latched).
+subscribes, latched) and `map/grid` (nav_msgs/OccupancyGrid slice at `grid_z_m`, latched).
 Before fusing a cloud it drops the points inside the body volume of its own rover and of every
 teammate whose camera pose it holds (`bodies.BodyFilter`: `body_radius_m` about each camera,
-0 = off). Services `/map/save`, `/map/load` (coop_msgs/srv/MapFile),
-`/map/query` (coop_msgs/srv/QueryMap), `/map/reset` (std_srvs/Trigger). Autosaves every
+0 = off). Services `map/save`, `map/load` (coop_msgs/srv/MapFile),
+`map/query` (coop_msgs/srv/QueryMap), `map/reset` (std_srvs/Trigger). Autosaves every
 `autosave_period_s` to `map_file`, and once more when it stops cleanly (Ctrl-C, SIGTERM,
 shutdown), and loads it at start if it is there.
 """
@@ -112,28 +112,28 @@ class MapperNode(Node):
         self.map = VoxelMap(self.p['resolution_m'], max_points=self.p['max_points'],
                             ray_subdivision=self.p['ray_subdivision'])
         self._load_at_start()
-        self.pub_map = self.create_publisher(VoxelMapMsg, '/map/voxels', LATCHED_QOS)
-        self.pub_upd = self.create_publisher(VoxelMapUpdate, '/map/updates', COMMAND_QOS)
-        self.pub_occ = self.create_publisher(PointCloud2, '/map/occupied', LATCHED_QOS)
-        self.pub_grid = self.create_publisher(OccupancyGrid, '/map/grid', LATCHED_QOS)
-        self.pub_surf = self.create_publisher(PointCloud2, '/map/surface', LATCHED_QOS)
+        self.pub_map = self.create_publisher(VoxelMapMsg, 'map/voxels', LATCHED_QOS)
+        self.pub_upd = self.create_publisher(VoxelMapUpdate, 'map/updates', COMMAND_QOS)
+        self.pub_occ = self.create_publisher(PointCloud2, 'map/occupied', LATCHED_QOS)
+        self.pub_grid = self.create_publisher(OccupancyGrid, 'map/grid', LATCHED_QOS)
+        self.pub_surf = self.create_publisher(PointCloud2, 'map/surface', LATCHED_QOS)
         self._surface_dirty = True
         self.poses: dict[str, OrderedDict[int, np.ndarray]] = {}
         self.pending: dict[str, OrderedDict[int, tuple[PointCloud2, float]]] = {}
         for r in self.p['rovers']:
             self.poses[r] = OrderedDict()
             self.pending[r] = OrderedDict()
-            self.create_subscription(PointCloud2, f'/{r}/stereo/points',
+            self.create_subscription(PointCloud2, f'{r}/stereo/points',
                                      lambda m, r=r: self.on_cloud(r, m), SENSOR_QOS)
             # latched (a late mapper gets the last pose) but a stream of one pose per
             # cloud: a queue, so a busy callback does not lose the pose of a cloud
-            self.create_subscription(PoseWithCovarianceStamped, f'/{r}/camera_pose',
+            self.create_subscription(PoseWithCovarianceStamped, f'{r}/camera_pose',
                                      lambda m, r=r: self.on_pose(r, m),
                                      with_depth(LATCHED_QOS, 10))
-        self.create_service(MapFile, '/map/save', self.srv_save)
-        self.create_service(MapFile, '/map/load', self.srv_load)
-        self.create_service(QueryMap, '/map/query', self.srv_query)
-        self.create_service(Trigger, '/map/reset', self.srv_reset)
+        self.create_service(MapFile, 'map/save', self.srv_save)
+        self.create_service(MapFile, 'map/load', self.srv_load)
+        self.create_service(QueryMap, 'map/query', self.srv_query)
+        self.create_service(Trigger, 'map/reset', self.srv_reset)
         self._last_pub = -np.inf
         self._dirty = True
         # wall-clock timer: publishing, pose timeouts and autosave are wall-time duties (their

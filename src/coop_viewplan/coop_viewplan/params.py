@@ -10,7 +10,7 @@ from .nbv import NI_MEASURES
 __all__ = ['PARAMS', 'check_params']
 
 PARAMS = {
-    'map_topic': ParamSpec('/map/voxels', 'shared map topic (coop_msgs/VoxelMap, latched)',
+    'map_topic': ParamSpec('map/voxels', 'shared map topic (coop_msgs/VoxelMap, latched)',
                            read_only=True),
     'frame_id': ParamSpec('map', "the map's frame when its messages name none; requests must "
                           'be given in the map frame (no TF lookup here), answers are stamped '

@@ -1,8 +1,8 @@
 """Node `view_planner`: next-best-view (Eq. 3-15) and task-directed placement (Eq. 4-1) services
 on the shared map.
 
-Subscribes `/map/voxels` (coop_msgs/VoxelMap, latched). Services `/viewplan/next_best_view`
-(coop_msgs/srv/NextBestView) and `/viewplan/task_view` (coop_msgs/srv/TaskView). Bad requests
+Subscribes `map/voxels` (coop_msgs/VoxelMap, latched). Services `viewplan/next_best_view`
+(coop_msgs/srv/NextBestView) and `viewplan/task_view` (coop_msgs/srv/TaskView). Bad requests
 (unknown strategy, empty map, no free candidate, target inside an obstacle) answer
 success=false with the reason.
 """
@@ -42,8 +42,8 @@ class ViewPlannerNode(Node):
         self.expected: dict[str, tuple[int, np.ndarray]] = {}
         self._build()
         self.create_subscription(VoxelMap, self.p['map_topic'], self._on_map, LATCHED_QOS)
-        self.create_service(NextBestView, '/viewplan/next_best_view', self._on_nbv)
-        self.create_service(TaskView, '/viewplan/task_view', self._on_task)
+        self.create_service(NextBestView, 'viewplan/next_best_view', self._on_nbv)
+        self.create_service(TaskView, 'viewplan/task_view', self._on_task)
         self.get_logger().info('view_planner ready')
 
     def _on_params(self, changed: dict) -> None:

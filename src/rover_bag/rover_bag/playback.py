@@ -62,6 +62,22 @@ class RemapError(ValueError):
     """A remap rule is not 'from:=to' with absolute names."""
 
 
+def bag_topic(topic: str, namespace: str) -> str | None:
+    """The name a recorder running in `namespace` stores `topic` under: relative to that
+    namespace (written with a leading '/', as rosbag2 stores names), so a team's bag replays
+    into any team; `/clock`, the one global name, as it is; None for a topic outside it."""
+    if topic == '/clock' or namespace in ('', '/'):
+        return topic
+    prefix = namespace.rstrip('/') + '/'
+    return '/' + topic[len(prefix):] if topic.startswith(prefix) else None
+
+
+def play_topic(name: str) -> str:
+    """The name a recorded topic is published under: relative to the player's namespace (at
+    the root namespace the recorded name itself), `/clock` absolute."""
+    return name if name == '/clock' else name.lstrip('/')
+
+
 def parse_remaps(rules: Sequence[str]) -> list[tuple[str, str]]:
     """'from:=to' rules. A rule whose `from` ends with '/' renames a namespace prefix
     ('/rover1/:=/rover3/'), any other rule one topic. Names must be absolute."""

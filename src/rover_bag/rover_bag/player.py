@@ -27,7 +27,14 @@ from coop_common.qos import CLOCK_QOS
 
 from .bagio import bag_info, read_messages
 from .cli import spin_until_stopped
-from .playback import parse_remaps, publisher_qos, remap_topic, schedule, summarize_lateness
+from .playback import (
+    parse_remaps,
+    play_topic,
+    publisher_qos,
+    remap_topic,
+    schedule,
+    summarize_lateness,
+)
 from .recorder import message_class, qos_profile
 
 PARAMS = {
@@ -84,7 +91,7 @@ class Player(Node):
             if choice.transient_local:
                 self.latched.add(name)
             self.pubs[name] = self.create_publisher(message_class(topic.msgtype),
-                                                    remap_topic(name, rules), qos)
+                                                    play_topic(remap_topic(name, rules)), qos)
         if not self.pubs:
             raise ValueError(f'nothing to play in {p["bag"]}')
         self.lateness: deque[float] = deque(maxlen=200_000)   # recent, bounded when looping

@@ -26,7 +26,7 @@ from coop_common.node_util import ParamSpec, declare_parameters
 
 from .bagio import COMPRESSIONS, BagWriter, UnknownTypeError, make_qos, make_typestore
 from .cli import spin_until_stopped
-from .playback import QosChoice, select_topics, subscription_qos
+from .playback import QosChoice, bag_topic, select_topics, subscription_qos
 
 PARAMS = {
     'output': ParamSpec('', 'bag directory to create (must not exist); empty: '
@@ -114,7 +114,13 @@ class Recorder(Node):
 
     def discover(self) -> None:
         """Subscribe to every new matching topic that has a publisher."""
-        names_types = dict(self.get_topic_names_and_types())
+        # under a namespace only its topics, named relative to it (playback.bag_topic)
+        ns = self.get_namespace()
+        full: dict[str, str] = {}
+        names_types: dict[str, list[str]] = {}
+        for name, types in self.get_topic_names_and_types():
+            if (local := bag_topic(name, ns)) is not None:
+                full[local], names_types[local] = name, types
         for topic in select_topics(names_types, include=self._include, exclude=self._exclude):
             if topic in self._subs or topic in self._skipped:
                 continue
@@ -122,7 +128,7 @@ class Recorder(Node):
             if len(types) != 1:
                 self._skip(topic, f'published with several types {types}')
                 continue
-            infos = self.get_publishers_info_by_topic(topic)
+            infos = self.get_publishers_info_by_topic(full[topic])
             if not infos:
                 continue      # only subscribers so far: no QoS to match yet
             msgtype = types[0]
@@ -139,7 +145,7 @@ class Recorder(Node):
                 message_lost=lambda info, t=topic: self._on_lost(t, info))
             callback, holder = self._make_callback(topic)
             self._subs[topic] = holder['sub'] = self.create_subscription(
-                cls, topic, callback, qos, raw=True, event_callbacks=events)
+                cls, full[topic], callback, qos, raw=True, event_callbacks=events)
             self.get_logger().info(
                 f'subscribed {topic} [{msgtype}] '
                 f'{"reliable" if choice.reliable else "best effort"}'

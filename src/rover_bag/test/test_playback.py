@@ -9,7 +9,9 @@ from rover_bag.bagio import make_qos
 from rover_bag.playback import (
     QosChoice,
     RemapError,
+    bag_topic,
     parse_remaps,
+    play_topic,
     publisher_qos,
     remap_topic,
     schedule,
@@ -106,3 +108,12 @@ def test_summarize_lateness():
     assert s['n'] == 4 and s['median_ms'] == pytest.approx(2.0)
     assert s['max_ms'] == pytest.approx(10)
     assert summarize_lateness([])['n'] == 0
+
+
+def test_names_relative_to_the_team_namespace():
+    assert bag_topic('/team_a/rover1/imu', '/team_a') == '/rover1/imu'
+    assert bag_topic('/team_b/rover1/imu', '/team_a') is None
+    assert bag_topic('/team_ab/x', '/team_a') is None
+    assert bag_topic('/clock', '/team_a') == '/clock'
+    assert bag_topic('/rover1/imu', '/') == '/rover1/imu'
+    assert play_topic('/rover1/imu') == 'rover1/imu' and play_topic('/clock') == '/clock'
