@@ -135,6 +135,11 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
             rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # Ctrl-C shuts the context down under a callback in flight, whose next publish then
+        # raises (RCLError: the publisher's context is invalid): that is a clean stop too
+        if rclpy.ok():
+            raise
     finally:
         # `ros2 launch` signals the whole process group and then each child: a second SIGINT
         # in the middle of the clean-up would raise inside destroy_node (a traceback, exit -2)

@@ -35,6 +35,25 @@ def executable_path(package: str, executable: str) -> Path:
     return path
 
 
+def ros2_tools() -> str:
+    """The `ros2` command (a ROS 2 Jazzy install's, or ../shared/ros2-tools' in the venv) with
+    launch_ros beside it: its path. Without them a test skips with the reason, or fails when
+    COOP_REQUIRE_ROS2_TOOLS=1 (CI installs them and requires them)."""
+    import importlib.util  # noqa: PLC0415
+    import shutil  # noqa: PLC0415
+
+    import pytest  # noqa: PLC0415 - a test helper; the nodes never import this function
+
+    exe = shutil.which('ros2')
+    if exe and importlib.util.find_spec('launch_ros') is not None:
+        return exe
+    why = ('no ros2 / launch_ros here: install ROS 2 Jazzy, or ../shared/ros2-tools/install.sh '
+           '.ros2-tools && . .ros2-tools/install/local_setup.bash')
+    if os.environ.get('COOP_REQUIRE_ROS2_TOOLS') == '1':
+        pytest.fail(f'COOP_REQUIRE_ROS2_TOOLS=1 but {why}')
+    pytest.skip(why)
+
+
 def usage_error(main: Callable[[list[str]], object], argv: Sequence[str], capsys) -> str:
     """Run a CLI's `main(argv)` expecting argparse's usage error (SystemExit 2) and return
     what it wrote to stderr (`capsys`: pytest's fixture)."""

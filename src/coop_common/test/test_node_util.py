@@ -1,5 +1,7 @@
 """coop_common.node_util.BadInputCounter: counts every rejection, warns once per period per
 reason (a flood of one reason does not hide the first of another)."""
+import pytest
+
 from coop_common import node_util
 from coop_common.node_util import BadInputCounter
 
@@ -61,8 +63,31 @@ def test_run_node_exits_1_when_the_node_shut_itself_down_for_a_fatal_error():
             super().__init__('stops')
             self.create_timer(0.01, self.context.try_shutdown)
 
+    class PublishesAfterShutdown(Node):      # Ctrl-C under a callback in flight
+        def __init__(self):
+            super().__init__('late')
+            from std_msgs.msg import Empty
+            self.msg = Empty()
+            self.pub = self.create_publisher(Empty, 'x', 1)
+            self.create_timer(0.01, self._late)
+
+        def _late(self):
+            self.context.try_shutdown()
+            self.pub.publish(self.msg)
+
+    class Fails(Node):
+        def __init__(self):
+            super().__init__('fails')
+            self.create_timer(0.01, self._fail)
+
+        def _fail(self):
+            raise RuntimeError('a real bug')
+
     assert run_node(Dies, []) == 1
     assert run_node(Stops, []) == 0
+    assert run_node(PublishesAfterShutdown, []) == 0
+    with pytest.raises(RuntimeError, match='a real bug'):
+        run_node(Fails, [])
 
 
 def test_rover_frame_takes_the_last_part_of_the_namespace():
