@@ -18,7 +18,9 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
+from visualization_msgs.msg import MarkerArray
 
+from coop_common.qos import LATCHED_QOS
 from coop_common.testing import pick_domain_id, ros2_tools, wait_for
 
 pytestmark = pytest.mark.graph
@@ -149,3 +151,51 @@ def test_bag_source_and_bad_arguments(ros2, graph_node):
         out = subprocess.run([ros2, 'launch', 'coop_bringup', 'team.launch.py', *args],
                              capture_output=True, text=True, timeout=60)
         assert out.returncode != 0 and why in out.stdout + out.stderr, (args, out.stdout[-2000:])
+
+
+def test_two_teams_in_one_domain_do_not_cross_talk(ros2, graph_node):
+    """team_a (seed 1) and team_b (seed 2) side by side, each on its own clock: every topic and
+    service of a team is published, served and subscribed by that team's nodes only, and each
+    team's world is its own."""
+    teams = {'team_a': 1, 'team_b': 2}
+    launches = [Launch(ros2, f'team:={t}', f'seed:={s}', 'clock:=team', 'identify:=false',
+                       'rate:=0.5') for t, s in teams.items()]
+    try:
+        want = {f'/{t}/{n}' for t in teams for n in ('rover_sim', 'mapper', 'view_planner',
+                                                      'rover1/stereo', 'rover2/stereo')}
+        spin = lambda dt: graph_node.executor_.spin_once(timeout_sec=dt)  # noqa: E731
+        wait_for(lambda: want <= _nodes(graph_node), 120.0, spin=spin, what='both teams')
+        wait_for(lambda: {f'/{t}/rover1/stereo/points' for t in teams}
+                 <= {n for n, _ in graph_node.get_topic_names_and_types()}, 60.0, spin=spin,
+                 what="both teams' clouds")
+        topics = [n for n, _ in graph_node.get_topic_names_and_types()]
+        assert not graph_node.get_publishers_info_by_topic('/clock'), 'a team on the global clock'
+        # no name outside the teams' namespaces: an absolute name would show up here
+        stray = [n for n in topics if not n.startswith(('/team_a/', '/team_b/'))
+                 and n not in ('/rosout', '/parameter_events')]
+        assert not stray, stray
+        for t in teams:
+            ours = [n for n in topics if n.startswith(f'/{t}/')]
+            assert f'/{t}/clock' in ours and f'/{t}/map/voxels' in ours
+            subs = graph_node.get_subscriptions_info_by_topic(f'/{t}/rover2/stereo/points')
+            assert any(i.node_name == 'mapper' and i.node_namespace == f'/{t}' for i in subs)
+            for name in ours:
+                for info in (graph_node.get_publishers_info_by_topic(name)
+                             + graph_node.get_subscriptions_info_by_topic(name)):
+                    if info.node_name == 'launch_probe':
+                        continue
+                    assert info.node_namespace.startswith(f'/{t}'), (name, info.node_namespace)
+        # each team's own world (seeded differently), each served by its own simulator
+        worlds = {}
+        for t in teams:
+            got = []
+            graph_node.create_subscription(MarkerArray, f'/{t}/sim/world', got.append,
+                                           LATCHED_QOS)
+            wait_for(lambda: got, 30.0, spin=spin, what=f'{t}/sim/world')
+            worlds[t] = len(got[-1].markers)
+        assert worlds['team_a'] != worlds['team_b'], worlds
+        for launch in launches:
+            assert launch.interrupt() == 0, launch.text()[-3000:]
+    finally:
+        for launch in launches:
+            launch.close()

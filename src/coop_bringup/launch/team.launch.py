@@ -30,14 +30,17 @@ def _rovers(text: str) -> list[str]:
 
 def _team(context: LaunchContext) -> list:
     arg = {name: LaunchConfiguration(name).perform(context) for name in (
-        'team', 'source', 'bag', 'rovers', 'params_file', 'seed', 'rate', 'identify')}
+        'team', 'source', 'bag', 'rovers', 'params_file', 'seed', 'rate', 'identify', 'clock')}
     if arg['source'] not in SOURCES:
         raise ValueError(f'source:={arg["source"]!r} is not one of {list(SOURCES)}')
     rovers = _rovers(arg['rovers'])
     params = arg['params_file']
+    # /clock is the one global name: two simulated teams in one domain each keep their own
+    remap = [('/clock', 'clock')] if arg['clock'] == 'team' else []
     sim_time = {'use_sim_time': True}
     if arg['source'] == 'sim':
         source = Node(package='rover_sim', executable='sim', name='rover_sim', output='screen',
+                      remappings=remap,
                       parameters=[params, {'rovers': len(rovers), 'seed': int(arg['seed']),
                                            'real_time_factor': float(arg['rate'])}])
         expected = [f'rover{i + 1}' for i in range(len(rovers))]
@@ -49,22 +52,24 @@ def _team(context: LaunchContext) -> list:
             raise ValueError('source:=bag needs bag:=<path of a recorded bag>')
         source = Node(package='rover_bag', executable='play', name='rover_bag_player',
                       output='screen', arguments=[str(Path(arg['bag']).resolve())],
+                      remappings=remap,
                       parameters=[{'rate': float(arg['rate'])}])
     per_rover = []
     for r in rovers:
         nodes = [Node(package='coop_mapping', executable='stereo', name='stereo',
-                      output='screen', parameters=[params, sim_time])]
+                      output='screen', remappings=remap, parameters=[params, sim_time])]
         if arg['identify'].lower() == 'true':
             nodes.append(Node(package='coop_id', executable='identifier', name='identifier',
-                              output='screen', parameters=[params, sim_time]))
+                              output='screen', remappings=remap,
+                              parameters=[params, sim_time]))
         per_rover.append(GroupAction([PushRosNamespace(r), *nodes]))
     team = [
         source,
         *per_rover,
         Node(package='coop_mapping', executable='mapper', name='mapper', output='screen',
-             parameters=[params, sim_time, {'rovers': rovers}]),
+             remappings=remap, parameters=[params, sim_time, {'rovers': rovers}]),
         Node(package='coop_viewplan', executable='view_planner', name='view_planner',
-             output='screen', parameters=[params, sim_time]),
+             output='screen', remappings=remap, parameters=[params, sim_time]),
     ]
     return [GroupAction([PushRosNamespace(arg['team']), *team]) if arg['team']
             else GroupAction(team)]
@@ -88,5 +93,8 @@ def generate_launch_description() -> LaunchDescription:
                               description='sim or playback speed (sim: 0 = as fast as it can)'),
         DeclareLaunchArgument('identify', default_value='true', choices=['true', 'false'],
                               description="start each rover's identifier"),
+        DeclareLaunchArgument('clock', default_value='global', choices=['global', 'team'],
+                              description="the time source's topic: /clock, or the team's own "
+                              '<team>/clock (two simulated teams in one domain)'),
         OpaqueFunction(function=_team),
     ])
