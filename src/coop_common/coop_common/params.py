@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from enum import StrEnum
+from typing import Any, TypeVar
 
-__all__ = ['ParamSpec', 'check_values', 'markdown_table', 'parse_value']
+E = TypeVar('E', bound=StrEnum)
+
+__all__ = ['ParamSpec', 'check_values', 'choice', 'markdown_table', 'parse_value']
 
 
 class ParamSpec:
@@ -34,6 +37,17 @@ class ParamSpec:
         if self.choices and value not in self.choices:
             return f'{name} must be one of {list(self.choices)}, got {value!r}'
         return None
+
+
+def choice(kind: type[E], value: Any, name: str, *,
+           error: type[Exception] = ValueError) -> E:
+    """`value` (a member of the StrEnum `kind` or its string) as the member; `error` naming
+    `name` and the choices otherwise. Options typed with a StrEnum take their plain strings
+    too (from a parameter, a CLI, a YAML), checked once, at construction."""
+    try:
+        return kind(value)
+    except ValueError:
+        raise error(f'{name} must be one of {[m.value for m in kind]}, got {value!r}') from None
 
 
 def check_values(specs: Mapping[str, ParamSpec], values: Mapping[str, Any],

@@ -28,3 +28,17 @@ def test_check_values_each_then_the_rule():
     assert check_values(SPECS, ok | {'n': 11, 'x': float('nan')}, rule) == [
         'n must be <= 10, got 11', 'x must be finite, got nan']
     assert check_values(SPECS, ok | {'mode': 'c'}) == ["mode must be one of ['a', 'b'], got 'c'"]
+
+
+def test_choice_takes_a_member_or_its_string_and_names_the_choices():
+    from enum import StrEnum
+
+    from coop_common.params import choice
+
+    class Mode(StrEnum):
+        A = 'a'
+        B = 'b'
+
+    assert choice(Mode, 'a', 'mode') is Mode.A and choice(Mode, Mode.B, 'mode') is Mode.B
+    with pytest.raises(KeyError, match=r"mode must be one of \['a', 'b'\], got 'c'"):
+        choice(Mode, 'c', 'mode', error=KeyError)

@@ -22,14 +22,37 @@ posterior covariance, hence each strategy's cost:
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from enum import StrEnum
 
 import numpy as np
+
+from coop_common.params import choice
 
 from .information import mutual_information_bits
 from .model import GRAVITY, ArmModel, assemble_rows, cross, skew
 from .modelsim import MODE_AXES, Z_HAT, ArmKinematics, JointLimits, mode_geometry
 
-STRATEGIES = ('constant', 'information', 'condition', 'd_optimal', 'a_optimal')
+
+class Strategy(StrEnum):
+    """How the arm excites the base (§2.6): the thesis's constant Eq. 2-21 motion, or one
+    re-optimised every window by information (Eq. 2-12), condition number, D- or A-optimality."""
+
+    CONSTANT = 'constant'
+    INFORMATION = 'information'
+    CONDITION = 'condition'
+    D_OPTIMAL = 'd_optimal'
+    A_OPTIMAL = 'a_optimal'
+
+
+class ConditionMatrix(StrEnum):
+    """The matrix whose condition number the 'condition' strategy lowers (CostContext)."""
+
+    ACCUMULATED = 'accumulated'
+    WINDOW = 'window'
+    UNSCALED = 'unscaled'
+
+
+STRATEGIES = tuple(Strategy)
 
 
 class ExcitationError(ValueError):
@@ -249,7 +272,11 @@ class CostContext:
     #: 'accumulated' = all rows so far + the predicted window, columns scaled by the prior
     #: ranges (default); 'window' = the predicted window's rows alone; 'unscaled' = accumulated
     #: in SI units (columns 0.01 .. 3000 apart)
-    condition_matrix: str = 'accumulated'
+    condition_matrix: ConditionMatrix = ConditionMatrix.ACCUMULATED
+
+    def __post_init__(self) -> None:
+        self.condition_matrix = choice(ConditionMatrix, self.condition_matrix,
+                                       'condition_matrix', error=ExcitationError)
 
 
 def residuals(strategy: str, d: np.ndarray, predictor: WindowPredictor,

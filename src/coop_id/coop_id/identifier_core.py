@@ -14,13 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from coop_common.params import choice
+
 from .consistency import ChangeDetector, Report, make_report, project_physical
 from .estimators import RecursiveEstimator
 from .excitation import (
-    STRATEGIES,
+    ConditionMatrix,
     CostContext,
     Excitation,
     ExcitationBounds,
+    Strategy,
     WindowPredictor,
     constant_excitation,
     optimise,
@@ -48,7 +51,7 @@ class IdentifierError(ValueError):
 
 @dataclass
 class IdentifierConfig:
-    strategy: str = 'information'
+    strategy: Strategy = Strategy.INFORMATION
     rate_hz: float = 200.0
     window_s: float = 0.4
     decimation: int = 4
@@ -73,7 +76,7 @@ class IdentifierConfig:
     extra_starts: int = 1
     literal_eq_2_13: bool = False
     #: see excitation.CostContext.condition_matrix ('condition' strategy only)
-    condition_matrix: str = 'accumulated'
+    condition_matrix: ConditionMatrix = ConditionMatrix.ACCUMULATED
     prior_path: str | None = None
     #: share of the inclinometer in the roll/pitch angle (rest: integrated gyro); 0 when the
     #: inclinometer cannot resolve the dynamic tilt (10 bits over +-20 deg on the thesis rover)
@@ -86,6 +89,11 @@ class IdentifierConfig:
     #: frozen: 2 s, so the large errors of the first windows do not pass for noise
     hac_delay_windows: int = 5
 
+    def __post_init__(self) -> None:
+        self.strategy = choice(Strategy, self.strategy, 'strategy', error=IdentifierError)
+        self.condition_matrix = choice(ConditionMatrix, self.condition_matrix,
+                                       'condition_matrix', error=IdentifierError)
+
 
 class Identifier:
     """Streaming identification of the 22 base parameters (thesis ch. 2)."""
@@ -97,8 +105,7 @@ class Identifier:
         covariances). When given, the published estimate is bias-compensated for the noise in
         the regressors (errors in variables); without it, plain recursive least squares."""
         cfg = config or IdentifierConfig()
-        if cfg.strategy not in STRATEGIES:
-            raise IdentifierError(f'strategy must be one of {STRATEGIES}, got {cfg.strategy!r}')
+        cfg.__post_init__()          # a config whose fields were set after construction
         if cfg.decimation < 1 or cfg.window_s <= 0 or cfg.rate_hz <= 0:
             raise IdentifierError('decimation >= 1, window_s > 0 and rate_hz > 0 required')
         if not 0.0 <= cfg.incl_weight <= 1.0:

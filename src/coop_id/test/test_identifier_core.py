@@ -1,5 +1,6 @@
 """The identifier's covariance: the sandwich with a Bartlett (Newey-West) score covariance."""
 import numpy as np
+import pytest
 
 from coop_common.dynparams import load_truth
 from coop_id.identifier_core import Identifier, IdentifierConfig
@@ -115,3 +116,15 @@ def test_covariance_stays_positive_when_the_change_detector_fires():
         ident.end_window(optimise_excitation=False)
         _, cov = ident.estimate()
         assert np.linalg.eigvalsh(cov).min() > 0, f'window {w}'
+
+
+def test_config_strategy_and_condition_matrix_are_checked_at_construction():
+    from coop_id.excitation import ConditionMatrix, Strategy
+    from coop_id.identifier_core import IdentifierConfig, IdentifierError
+
+    cfg = IdentifierConfig(strategy='condition', condition_matrix='window')
+    assert cfg.strategy is Strategy.CONDITION and cfg.condition_matrix is ConditionMatrix.WINDOW
+    with pytest.raises(IdentifierError, match='strategy must be one of'):
+        IdentifierConfig(strategy='magic')
+    with pytest.raises(IdentifierError, match='condition_matrix must be one of'):
+        IdentifierConfig(condition_matrix='best')

@@ -19,9 +19,12 @@ instead of the measurement replacing the prediction. No rclpy here.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import cv2
 import numpy as np
+
+from coop_common.params import choice
 
 from .gauss import skew
 from .motion import (
@@ -40,13 +43,24 @@ from .motion import (
 from .stereo import ErrorModel, StereoCamera, disparity_to_points
 from .voxelmap import VoxelMap
 
-METHODS = ('linear', 'linear_so3', 'rigid', 'pnp')
+
+class PoseMethod(StrEnum):
+    """g01 from the tracked fiducials: Eq. 3-18 ('linear', its SO(3) projection 'linear_so3'),
+    a covariance-weighted 'rigid' fit, or 'pnp' (reprojection, no range in the fit)."""
+
+    LINEAR = 'linear'
+    LINEAR_SO3 = 'linear_so3'
+    RIGID = 'rigid'
+    PNP = 'pnp'
+
+
+METHODS = tuple(PoseMethod)
 
 
 @dataclass(frozen=True)
 class OdometryConfig:
     n_fiducials: int = 40
-    method: str = 'pnp'
+    method: PoseMethod = PoseMethod.PNP
     scene_distance: float = 1.1     # m, sets the resolution of the first scan's map
     spacing_px: float = 20.0
     #: per-step error of the commanded motion (per axis, 1 sigma, in the camera frame). Both
@@ -60,8 +74,7 @@ class OdometryConfig:
     sigma_px: float = 0.5
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f'method must be one of {METHODS}, got {self.method!r}')
+        object.__setattr__(self, 'method', choice(PoseMethod, self.method, 'method'))
         if self.n_fiducials < 4:
             raise ValueError('n_fiducials must be >= 4')
         if (self.sigma_t_m is None) != (self.sigma_rot_rad is None):

@@ -31,14 +31,16 @@ import numpy as np
 
 from coop_common.cli import figure_path, number, output_path
 from coop_common.files import save_figure, write_json
+from coop_common.params import choice
 
-from .fiducial_odometry import FiducialOdometry, OdometryConfig
+from .fiducial_odometry import FiducialOdometry, OdometryConfig, PoseMethod
 from .render import Box, TexturedScene, look_at
 from .stereo import (
     FULL_WIDTH_DEFAULT,
     SUBPIXEL_DEFAULT,
     SUBPIXEL_MODES,
     StereoCamera,
+    Subpixel,
     compute_disparity,
 )
 
@@ -57,16 +59,16 @@ class TrialConfig:
     n_fiducials: int = 40
     num_disparities: int | None = None   # SGBM search range; None: from the camera and the
                                          # nearest depth in the first view (search_range)
-    method: str = 'linear'         # g01 by Eq. 3-18 ('linear', 'linear_so3'), rigid, or 'pnp'
+    method: PoseMethod = PoseMethod.LINEAR   # g01 (fiducial_odometry.PoseMethod)
                                    # (reprojection of the mapped fiducials, no range in the fit)
     fuse_prediction: bool = True   # Kalman-fuse the commanded motion (known per-step sigmas)
                                    # with the fiducial measurement; False: fiducials only
-    subpixel: str = SUBPIXEL_DEFAULT  # sub-pixel disparity (stereo.compute_disparity)
+    subpixel: Subpixel = SUBPIXEL_DEFAULT  # sub-pixel disparity (stereo.compute_disparity)
     full_width: bool = FULL_WIDTH_DEFAULT  # range the left num_disparities columns too (same)
 
     def __post_init__(self) -> None:
-        if self.subpixel not in SUBPIXEL_MODES:
-            raise ValueError(f'subpixel must be one of {SUBPIXEL_MODES}, got {self.subpixel!r}')
+        for name, kind in (('method', PoseMethod), ('subpixel', Subpixel)):
+            object.__setattr__(self, name, choice(kind, getattr(self, name), name))
 
 
 def _scene_boxes(s: float) -> list[Box]:

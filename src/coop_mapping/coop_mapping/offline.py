@@ -23,6 +23,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from coop_common.params import choice
+
 from .bodies import BodyFilter
 from .stereo import (
     FULL_WIDTH_DEFAULT,
@@ -31,6 +33,7 @@ from .stereo import (
     StereoCamera,
     StereoError,
     StereoRanger,
+    Subpixel,
 )
 from .voxelmap import MapInputError, VoxelMap
 
@@ -54,8 +57,12 @@ class StereoSettings:
     sigma_disparity_px: float = 0.5
     error_T_lateral: float = 0.1
     error_n: float = 2.0
-    subpixel: str = SUBPIXEL_DEFAULT
+    subpixel: Subpixel = SUBPIXEL_DEFAULT
     full_width: bool = FULL_WIDTH_DEFAULT
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'subpixel', choice(Subpixel, self.subpixel, 'subpixel',
+                                                    error=StereoError))
 
     def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
                height: int) -> StereoRanger:

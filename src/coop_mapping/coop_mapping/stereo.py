@@ -7,21 +7,34 @@ Eq. 3-9. No rclpy here.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import cv2
 import numpy as np
 
+from coop_common.params import choice
+
 from .gauss import rotate_sym6
 
-__all__ = ['SUBPIXEL_MODES', 'SUBPIXEL_DEFAULT', 'FULL_WIDTH_DEFAULT', 'StereoCamera',
+__all__ = ['SUBPIXEL_MODES', 'Subpixel', 'SUBPIXEL_DEFAULT', 'FULL_WIDTH_DEFAULT', 'StereoCamera',
            'ErrorModel', 'StereoError',
            'compute_disparity', 'equalize_subpixel', 'phase_averaged_disparity', 'shift_columns',
            'disparity_to_range', 'range_sigma', 'disparity_to_points',
            'StereoRanger', 'StereoScan']
 
 
-SUBPIXEL_MODES = ('sgbm', 'equalise', 'shift2', 'shift4')
-SUBPIXEL_DEFAULT = 'shift4'
+class Subpixel(StrEnum):
+    """The sub-pixel disparity estimate (compute_disparity): SGBM's own, after equalising, or
+    the mean over 2 or 4 sub-pixel shifts of the right image."""
+
+    SGBM = 'sgbm'
+    EQUALISE = 'equalise'
+    SHIFT2 = 'shift2'
+    SHIFT4 = 'shift4'
+
+
+SUBPIXEL_MODES = tuple(Subpixel)
+SUBPIXEL_DEFAULT = Subpixel.SHIFT4
 FULL_WIDTH_DEFAULT = True
 _PHASES = {'shift2': 2, 'shift4': 4}
 
@@ -155,8 +168,7 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
                           f'({num_disparities})')
     if block_size < 1 or block_size % 2 == 0:
         raise StereoError('block_size must be odd and >= 1')
-    if subpixel not in SUBPIXEL_MODES:
-        raise StereoError(f'subpixel must be one of {SUBPIXEL_MODES}, got {subpixel!r}')
+    subpixel = choice(Subpixel, subpixel, 'subpixel', error=StereoError)
     sgbm = cv2.StereoSGBM_create(
         minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
         P1=8 * block_size ** 2, P2=32 * block_size ** 2, disp12MaxDiff=1,

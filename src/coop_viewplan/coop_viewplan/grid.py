@@ -7,6 +7,7 @@ map (`from_sparse` converts the sparse keys of coop_msgs/VoxelMap without import
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from scipy import ndimage
@@ -162,7 +163,14 @@ def markov_estimate(grid: OccupancyGrid, *, iterations: int = 6,
     return est
 
 
-FREE_GRAYS = ('empty', 'occupancy')
+class FreeGray(StrEnum):
+    """The gray of a known free cell: 'empty' (NI 0, the thesis) or 'occupancy' (its P)."""
+
+    EMPTY = 'empty'
+    OCCUPANCY = 'occupancy'
+
+
+FREE_GRAYS = tuple(FreeGray)
 
 
 def gray_estimate(grid: OccupancyGrid, *, free_gray: str = 'empty',
@@ -191,7 +199,14 @@ def obstacle_density(grid: OccupancyGrid, *, threshold: float = 0.5) -> float:
     return float(grid.occupied(threshold=threshold).sum() / n) if n else 0.5
 
 
-OCCLUSION_PRIORS = ('markov', 'density')
+class OcclusionPrior(StrEnum):
+    """The occupancy expected of unknown cells: 'markov' or 'density' (occlusion_estimate)."""
+
+    MARKOV = 'markov'
+    DENSITY = 'density'
+
+
+OCCLUSION_PRIORS = tuple(OcclusionPrior)
 
 
 def occlusion_estimate(grid: OccupancyGrid, *, prior: str = 'density', free_gray: str = 'empty',

@@ -61,13 +61,23 @@ Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from enum import StrEnum
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from .grid import OCCLUSION_PRIORS, MapError, OccupancyGrid, gray_estimate, occlusion_estimate
+from coop_common.params import choice
+
+from .grid import (
+    FreeGray,
+    MapError,
+    OcclusionPrior,
+    OccupancyGrid,
+    gray_estimate,
+    occlusion_estimate,
+)
 from .imageinfo import prediction
 from .raycast import (
     Cast,
@@ -79,8 +89,56 @@ from .raycast import (
     transmission_table,
 )
 
-STRATEGIES = ('random', 'raster', 'max_unmapped', 'min_mapped', 'max_information', 'frontier')
-UNKNOWN_OCCLUSIONS = ('none', 'expected')
+
+class Strategy(StrEnum):
+    """The exploration strategies of Figs. 3-13/3-16/3-20 (the thesis's five) and frontier."""
+
+    RANDOM = 'random'
+    RASTER = 'raster'
+    MAX_UNMAPPED = 'max_unmapped'
+    MIN_MAPPED = 'min_mapped'
+    MAX_INFORMATION = 'max_information'
+    FRONTIER = 'frontier'
+
+
+class UnknownOcclusion(StrEnum):
+    """'none': unknown cells do not occlude (the thesis); 'expected': they occlude with their
+    expected occupancy (beyond the thesis, module docstring)."""
+
+    NONE = 'none'
+    EXPECTED = 'expected'
+
+
+class EntropyWeight(StrEnum):
+    """The NI premultiplier: 'plogp' (§3.2.4 as written) or 'binary' (occupancy entropy)."""
+
+    PLOGP = 'plogp'
+    BINARY = 'binary'
+
+
+class NiMeasure(StrEnum):
+    """NI from the gray-level histogram (Eq. 3-13) or App. C's predictor 5."""
+
+    HISTOGRAM = 'histogram'
+    PREDICTOR5 = 'predictor5'
+
+
+class DistanceMetric(StrEnum):
+    """d of Eq. 3-15: 'configuration' (Eq. 3-11, the thesis) or the 'path' length."""
+
+    CONFIGURATION = 'configuration'
+    PATH = 'path'
+
+
+class ReachModel(StrEnum):
+    """Where a rover may go: 'known' free cells, or wherever no obstacle 'evidence' blocks."""
+
+    KNOWN = 'known'
+    EVIDENCE = 'evidence'
+
+
+STRATEGIES = tuple(Strategy)
+UNKNOWN_OCCLUSIONS = tuple(UnknownOcclusion)
 
 
 class PlanningError(RuntimeError):
@@ -95,7 +153,7 @@ def plogp(p: np.ndarray) -> np.ndarray:
     return np.nan_to_num(h, nan=0.0)
 
 
-ENTROPY_WEIGHTS = ('plogp', 'binary')
+ENTROPY_WEIGHTS = tuple(EntropyWeight)
 
 
 def occupancy_weight(p: np.ndarray, kind: str = 'plogp') -> np.ndarray:
@@ -132,11 +190,11 @@ class NbvConfig:
     k_rel: float = 0.15
     n_exp: float = 1.0
     # Eq. 3-11 weights over (x, y, z, yaw, pitch): "alpha_i = 1 for this thesis" (§3.2.4 (iii));
-    # metres and radians. Until 2026-11-21 the angles had weight 0.
+    # metres and radians
     alpha: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)
-    entropy_weight: str = 'plogp'  # NI premultiplier: 'plogp' (§3.2.4 as written) or 'binary'
-    ni_measure: str = 'histogram'  # Eq. 3-13 on gray levels, or 'predictor5' (App. C)
-    free_gray: str = 'empty'       # known free cells' gray: 0 or 'occupancy' (grid.gray_estimate)
+    entropy_weight: EntropyWeight = EntropyWeight.PLOGP     # the NI premultiplier
+    ni_measure: NiMeasure = NiMeasure.HISTOGRAM            # Eq. 3-13, or App. C's predictor
+    free_gray: FreeGray = FreeGray.EMPTY                   # known free cells' gray
     n_positions: int = 80
     near_fraction: float = 0.0    # share of the candidate positions taken nearest (path) first
     n_yaw: int = 8
@@ -148,14 +206,14 @@ class NbvConfig:
     markov_iterations: int = 6
     raster_spacing_m: float | None = None
     raster_headings: int = 0      # > 0: raster sweeps this many headings at each location
-    distance_metric: str = 'configuration'     # 'configuration' (Eq. 3-11) or 'path'
+    distance_metric: DistanceMetric = DistanceMetric.CONFIGURATION    # d of Eq. 3-15
     chunk_samples: int = 400_000
-    reach_model: str = 'known'                 # 'known' or 'evidence' (module docstring)
+    reach_model: ReachModel = ReachModel.KNOWN     # where a rover may go (module docstring)
     occupied_voxels: int = 2                   # 'evidence': occupied slab voxels that block
     occupied_p: float = 0.7                    # 'evidence': P at which a slab voxel counts
     occupied_clamp: float = 0.97               # 'evidence': one voxel this sure blocks alone
-    unknown_occlusion: str = 'none'            # 'none' (thesis) or 'expected' (docstring)
-    occlusion_prior: str = 'density'           # 'expected': p of unknown cells, 'density'|'markov'
+    unknown_occlusion: UnknownOcclusion = UnknownOcclusion.NONE       # (module docstring)
+    occlusion_prior: OcclusionPrior = OcclusionPrior.DENSITY  # 'expected': unknown cells' p
     ni_floor: float = 0.0                      # max_information: skip views below this share
                                                # of the decision's best NI (0: the thesis)
 
@@ -164,12 +222,30 @@ class NbvConfig:
             raise ValueError(f'occupied_p must be within [0.5, 1], got {self.occupied_p}')
         if not 0.0 <= self.ni_floor < 1.0:
             raise ValueError(f'ni_floor must be within [0, 1), got {self.ni_floor}')
-        if self.unknown_occlusion not in UNKNOWN_OCCLUSIONS:
-            raise ValueError(f'unknown_occlusion must be one of {UNKNOWN_OCCLUSIONS}, got '
-                             f'{self.unknown_occlusion!r}')
-        if self.occlusion_prior not in OCCLUSION_PRIORS:
-            raise ValueError(f'occlusion_prior must be one of {OCCLUSION_PRIORS}, got '
-                             f'{self.occlusion_prior!r}')
+        for name, kind in self._CHOICES.items():
+            object.__setattr__(self, name, choice(kind, getattr(self, name), name))
+
+    _CHOICES: ClassVar[dict[str, type[StrEnum]]] = {
+        'entropy_weight': EntropyWeight, 'ni_measure': NiMeasure, 'free_gray': FreeGray,
+        'distance_metric': DistanceMetric, 'reach_model': ReachModel,
+        'unknown_occlusion': UnknownOcclusion, 'occlusion_prior': OcclusionPrior}
+
+    @classmethod
+    def thesis(cls, **changes: Any) -> NbvConfig:
+        """The planner as ch. 3 specifies it: alpha_i = 1, -p log p, the gray-level NI, known
+        empty space at NI 0, Eq. 3-11 distance, unknown space that does not occlude, every
+        candidate rated (the defaults)."""
+        return cls(**changes)
+
+    @classmethod
+    def best_measured(cls, **changes: Any) -> NbvConfig:
+        """The opt-in settings beyond the thesis that measured best against nearest-frontier
+        (docs/results/exploration.md): unknown space occludes with its expected occupancy, half
+        the candidates taken nearest by path, path distance, K 0.8, and an information floor of
+        a quarter of the decision's best NI."""
+        return cls(**{'unknown_occlusion': UnknownOcclusion.EXPECTED, 'near_fraction': 0.5,
+                      'distance_metric': DistanceMetric.PATH, 'k_rel': 0.8, 'ni_floor': 0.25,
+                      **changes})
 
     def template(self, *, ndim: int, resolution: float) -> RayTemplate:
         return make_template(ndim=ndim, fov_deg=self.fov_deg, depth_m=self.depth_m,
@@ -280,7 +356,7 @@ class InfoLookup:
         return cls((unknown * np.int16(n_gray) + level).astype(np.int16), h, n_gray)
 
 
-NI_MEASURES = ('histogram', 'predictor5')
+NI_MEASURES = tuple(NiMeasure)
 
 
 def predictor5_codes(code: np.ndarray, visible: np.ndarray, n_gray: int) -> tuple[np.ndarray,

@@ -317,3 +317,18 @@ def test_ni_floor_stops_the_zero_information_stay():
     assert ni >= 0.25 * best and dist > 0
     with pytest.raises(ValueError, match='ni_floor'):
         NbvConfig(ni_floor=1.0)
+
+
+def test_config_options_are_enums_checked_at_construction():
+    from coop_viewplan.nbv import DistanceMetric, NbvConfig, UnknownOcclusion
+
+    cfg = NbvConfig(unknown_occlusion='expected', distance_metric='path')
+    assert cfg.unknown_occlusion is UnknownOcclusion.EXPECTED
+    assert cfg.distance_metric is DistanceMetric.PATH
+    with pytest.raises(ValueError, match=r"reach_model must be one of \['known', 'evidence'\]"):
+        NbvConfig(reach_model='nearby')
+    assert NbvConfig.thesis() == NbvConfig()
+    best = NbvConfig.best_measured()
+    assert (best.unknown_occlusion, best.distance_metric, best.k_rel, best.ni_floor,
+            best.near_fraction) == ('expected', 'path', 0.8, 0.25, 0.5)
+    assert NbvConfig.best_measured(k_rel=0.1).k_rel == 0.1
