@@ -50,6 +50,9 @@ CARD_OFFSET_M = 0.134
 CARD_IN_LINK_4 = f'{CARD_OFFSET_M} 0 0'
 #: arm joint 1 sits this far above the F/T sensor's origin, joint 2 this far above joint 1
 ARM_JOINT1_ABOVE_SENSOR_M = 0.015
+#: the mast's tilt joint sits this far above its pan joint
+TILT_ABOVE_PAN_M = 0.04
+MAST_TILT_LIMITS_RAD = (-1.2, 1.2)
 #: mast links: (mass, c.o.m. in the base frame at pan = tilt = 0, principal inertia)
 #: Light (50 g in all) so that the Table 2-1 inertia less the mast's is still a physical body.
 MAST_PAN = (0.02, (MAST_POSITION[0], MAST_POSITION[1], MAST_POSITION[2] + 0.02), (1e-5,) * 3)
@@ -167,8 +170,10 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
                         (0.1, 0.1, 0.1, 1)) +
                  '</link>')
     parts.append('<joint name="mast_tilt" type="revolute"><parent link="mast_pan_link"/>'
-                 '<child link="mast_tilt_link"/><origin xyz="0 0 0.04"/><axis xyz="0 1 0"/>'
-                 '<limit lower="-1.2" upper="1.2" effort="5" velocity="2"/></joint>')
+                 f'<child link="mast_tilt_link"/><origin xyz="0 0 {TILT_ABOVE_PAN_M}"/>'
+                 '<axis xyz="0 1 0"/>'
+                 f'<limit lower="{MAST_TILT_LIMITS_RAD[0]}" upper="{MAST_TILT_LIMITS_RAD[1]}" '
+                 'effort="5" velocity="2"/></joint>')
     parts.append('</robot>')
     return '\n'.join(parts)
 
@@ -239,3 +244,35 @@ def card_fk(q2: float, q3: float, q4: float) -> tuple[float, float, float]:
     x = l2 * np.cos(t2) + l3 * np.cos(t3) + CARD_OFFSET_M * np.cos(t4)
     z = -(l2 * np.sin(t2) + l3 * np.sin(t3) + CARD_OFFSET_M * np.sin(t4))
     return float(x), float(z), float(t4)
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """Where a rover stands and how it turns its mast to put its left camera at a pose: base
+    c.g. (x, y) and heading, pan and tilt (rad), and the camera height that gives (m)."""
+
+    base_xy: tuple[float, float]
+    base_yaw: float
+    pan: float
+    tilt: float
+    camera_z: float
+
+
+def camera_mount(camera_xy: tuple[float, float], yaw: float, pitch: float, *,
+                 base_z: float = 0.30) -> CameraMount:
+    """The rover pose and mast angles that put the left optical frame at `camera_xy` looking
+    along heading `yaw` and `pitch` (rad, positive down, coop_viewplan's convention): the base
+    faces the view (pan 0) and the tilt takes the pitch; the camera's height follows from the
+    mast (`camera_z`). ReachError when the tilt is beyond the joint's limits."""
+    lo, hi = MAST_TILT_LIMITS_RAD
+    if not lo <= pitch <= hi:
+        raise ReachError(f'pitch {pitch:.3f} rad is beyond the mast tilt limits [{lo}, {hi}]')
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    ct, st = np.cos(pitch), np.sin(pitch)
+    cx, _, cz = CAMERA_OFFSET
+    # the camera in the base frame: pan joint, tilt joint above it, offset in the tilted link
+    local = np.array([MAST_POSITION[0] + ct * cx + st * cz, MAST_POSITION[1],
+                      MAST_POSITION[2] + TILT_ABOVE_PAN_M - st * cx + ct * cz])
+    world_off = np.array([cy * local[0] - sy * local[1], sy * local[0] + cy * local[1]])
+    return CameraMount((float(camera_xy[0] - world_off[0]), float(camera_xy[1] - world_off[1])),
+                       float(yaw), 0.0, float(pitch), float(base_z + local[2]))

@@ -37,8 +37,10 @@ from .rover_model import (
     ARM_JOINTS,
     CAMERA_OFFSET,
     MAST_JOINTS,
+    MAST_POSITION,
     OPTICAL_IN_TILT,
     STEREO_BASELINE_M,
+    TILT_ABOVE_PAN_M,
     WHEELS,
     arm_joint_inertias,
     base_link_inertial,
@@ -777,13 +779,12 @@ class World:
         kinematics, blind to the compliance deflection. Returns (position, rotation, 6x6 cov)."""
         r = self.rovers[index]
         pan, tilt = self.joint_positions(index, MAST_JOINTS)
-        from .rover_model import MAST_POSITION
         rot_base = rpy_to_matrix(0.0, 0.0, r.odom_yaw)
         base = np.array([r.odom_xy[0], r.odom_xy[1], NOMINAL_HEIGHT_M])
         rot_pan = rot_base @ rpy_to_matrix(0.0, 0.0, pan)
         p_pan = base + rot_base @ np.array(MAST_POSITION)
         rot_tilt = rot_pan @ rpy_to_matrix(0.0, tilt, 0.0)
-        p_tilt = p_pan + rot_pan @ np.array([0.0, 0.0, 0.04])
+        p_tilt = p_pan + rot_pan @ np.array([0.0, 0.0, TILT_ABOVE_PAN_M])
         pos = p_tilt + rot_tilt @ np.array(CAMERA_OFFSET)
         travelled = np.linalg.norm(r.odom_xy - r.anchor_xy) + 0.01
         cov = np.diag([travelled ** 2 * 0.25] * 2 + [1e-4] + [(2 * DEG) ** 2] * 3)

@@ -91,3 +91,22 @@ def test_the_contact_force_reaches_the_ft_sensor():
                   - (cs.torque + np.cross(centre - p, cs.force)))
         np.testing.assert_allclose(s.force, rot.T @ force, atol=0.03)
         np.testing.assert_allclose(s.torque, rot.T @ moment, atol=0.01)
+
+
+def test_camera_mount_puts_the_camera_where_asked():
+    from rover_sim.rover_model import MAST_JOINTS, camera_mount
+
+    with _world(TABLE_5_1_GAPS_M[1]) as w:
+        for xy, yaw, pitch in (((1.0, -0.5), 0.7, 0.3), ((2.0, 1.0), -2.5, -0.1)):
+            m = camera_mount(xy, yaw, pitch)
+            w.place_rover(0, *m.base_xy, m.base_yaw)
+            w.command_mast(0, MAST_JOINTS, [0.1], [[m.pan, m.tilt]])
+            for _ in range(200):
+                w.step()
+            pos, rot = w.camera_pose(0)
+            axis = rot[:, 2]
+            np.testing.assert_allclose(pos, [*xy, m.camera_z], atol=0.01)
+            assert math.atan2(axis[1], axis[0]) == pytest.approx(yaw, abs=0.01)
+            assert -math.asin(axis[2]) == pytest.approx(pitch, abs=0.01)
+    with pytest.raises(ReachError):
+        camera_mount((0.0, 0.0), 0.0, 1.5)
