@@ -49,6 +49,19 @@ def windows(n: int, seed: int = 0) -> tuple[list[dict], dict]:
     return out, noise
 
 
+def format_table(result: dict) -> str:
+    """The table main prints, from its JSON result (docs/results pages are made with it)."""
+    lines = [f'coop_id full 0.4 s step, strategy {result["strategy"]}, {result["steps"]} steps, '
+             f'OPENBLAS_NUM_THREADS={result["openblas_num_threads"]}',
+             f'{"part":28s}{"median ms":>10s}{"CPU ms":>9s}']
+    for k, v in result['median_ms'].items():
+        lines.append(f'{k:28s}{v:10.2f}{result["median_cpu_ms"][k]:9.2f}')
+    lines.append(f'{"thesis (PIII 750 MHz)":28s}{result["thesis_ms"]:10.2f}')
+    lines.append(f'{"target":28s}{result["target_ms"]:10.2f}')
+    lines.append(f'ratio full step / peer batch lstsq = {result["ratio_full_over_peer"]:.1f}')
+    return '\n'.join(lines)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--json', type=output_path, required=True)
@@ -105,18 +118,13 @@ def main() -> int:
     med = {n: statistics.median(v) for n, v in wall.items()}
     med_cpu = {n: statistics.median(v) for n, v in cpu.items()}
     steps = len(wall['full_step_ms'])
-    print(f'coop_id full 0.4 s step, strategy {args.strategy}, {steps} steps, '
-          f'OPENBLAS_NUM_THREADS={os.environ.get("OPENBLAS_NUM_THREADS")}')
-    print(f'{"part":28s}{"median ms":>10s}{"CPU ms":>9s}')
-    for k_, v in med.items():
-        print(f'{k_:28s}{v:10.2f}{med_cpu[k_]:9.2f}')
-    print(f'{"thesis (PIII 750 MHz)":28s}{75.0:10.2f}')
-    print(f'{"target":28s}{20.0:10.2f}')
-    ratio = med['full_step_ms'] / med['peer_batch_lstsq_ms']
-    print(f'ratio full step / peer batch lstsq = {ratio:.1f}')
-    write_json(args.json, {'strategy': args.strategy, 'steps': steps, 'median_ms': med,
-                           'median_cpu_ms': med_cpu, 'thesis_ms': 75.0, 'target_ms': 20.0,
-                           'ratio_full_over_peer': ratio}, indent=1)
+    result = {'strategy': args.strategy, 'steps': steps,
+              'openblas_num_threads': os.environ.get('OPENBLAS_NUM_THREADS'),
+              'median_ms': med, 'median_cpu_ms': med_cpu, 'thesis_ms': 75.0,
+              'target_ms': 20.0,
+              'ratio_full_over_peer': med['full_step_ms'] / med['peer_batch_lstsq_ms']}
+    print(format_table(result))
+    write_json(args.json, result, indent=1)
     return 0
 
 

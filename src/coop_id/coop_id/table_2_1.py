@@ -135,6 +135,36 @@ def format_table(summary: dict, truth: np.ndarray, seeds: int) -> str:
     return '\n'.join(lines)
 
 
+def _truth(doc: dict) -> np.ndarray:
+    return np.array([doc['truth'][p] for p in PARAM_NAMES], dtype=float)
+
+
+def format_json(doc: dict) -> str:
+    """The model-level study's printed result, from its JSON (docs/results is made with it).
+
+    Without the accelerometer (§2.6.2) the parameters it cannot see stay at the prior and weigh
+    on the mean error; the rotational subset is then summed up on its own: the error of the
+    seed-mean estimate over the non-zero parameters some strategy observes (those flagged
+    unobservable in every seed of every strategy are left out), and each strategy's 95 %
+    coverage of the parameters it flagged observable."""
+    summary = doc['strategies']
+    truth = _truth(doc)
+    out = format_table(summary, truth, doc['seeds'])
+    if doc['accelerometer']:
+        return out
+    seen = [i for i, p in enumerate(PARAM_NAMES) if truth[i] != 0 and any(
+        s['per_parameter'][p]['observable_fraction'] > 0 for s in summary.values())]
+    lines = [out, '', f'without accelerometer, over the {len(seen)} non-zero parameters some '
+             'strategy observes (error of the seed-mean estimate):']
+    for n, s in summary.items():
+        est = np.array([s['per_parameter'][PARAM_NAMES[i]]['estimate'] for i in seen])
+        err = np.mean(np.abs(est - truth[seen]) / np.abs(truth[seen]))
+        cov = s['coverage_95_observable']
+        cov_s = '-' if cov is None else f'{100 * cov:.1f}%'
+        lines.append(f'{n:12s} err {100 * err:6.1f}%  cover95 of its observable {cov_s}')
+    return '\n'.join(lines)
+
+
 def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Path) -> list[Path]:
     import matplotlib  # noqa: PLC0415 - only when plots are asked for
     matplotlib.use('Agg')
@@ -247,6 +277,32 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def format_sim(doc: dict) -> str:
+    """`--sim`'s printed table, from its JSON: each strategy's estimate (std) beside the truth
+    the simulator latched, * where the identifier flagged the parameter unobservable."""
+    strategies = list(doc['strategies'])
+    runs = doc['strategies']
+    lines = [f'end to end through rover_sim + identifier: {doc["duration_s"]} s, noise '
+             f'{doc["noise"]}; estimate (std), * = flagged unobservable',
+             f'{"Parameter":16s}{"True":>9s}' + ''.join(f'{s:>22s}' for s in strategies),
+             '-' * (25 + 22 * len(strategies))]
+    for p in PARAM_NAMES:
+        cells = ''
+        for s in strategies:
+            q = runs[s]['per_parameter'][p]
+            mark = ' ' if q['observable'] else '*'
+            cells += f'{q["estimate"]:>11.4g} ({q["std"]:7.2g}){mark}'
+        truth = runs[strategies[0]]['per_parameter'][p]['truth']
+        lines.append(f'{PARAM_LABELS[p]:16s}{truth:9.4g}{cells}')
+    lines.append('-' * (25 + 22 * len(strategies)))
+    lines.append(f'{"% Avg. Error":25s}' + ''.join(
+        f'{100 * runs[s]["mean_abs_rel_error"]:>22.1f}' for s in strategies))
+    for s in strategies:
+        r = runs[s]
+        lines.append(f'{s}: {r["message"]}; {r["samples"]} samples; logs {r["logs"]}')
+    return '\n'.join(lines)
+
+
 def _main_sim(args: argparse.Namespace) -> int:
     """Every listed strategy end to end, each in its own fresh sim + identifier (the same seed,
     so the same noise draws where the commands agree): one table, estimates side by side."""
@@ -261,37 +317,40 @@ def _main_sim(args: argparse.Namespace) -> int:
         except (RuntimeError, FileNotFoundError) as exc:
             print(f'table_2_1 --sim ({strategy}): {exc}', file=sys.stderr)
             return 1
-    truth = next(iter(results.values()))['truth']
-    print(f'end to end through rover_sim + identifier: {args.duration} s, noise {args.noise}; '
-          'estimate (std), * = flagged unobservable')
-    print(f'{"Parameter":16s}{"True":>9s}' + ''.join(f'{s:>22s}' for s in strategies))
-    print('-' * (25 + 22 * len(strategies)))
-    for i, p in enumerate(PARAM_NAMES):
-        cells = ''
-        for s in strategies:
-            r = results[s]
-            mark = ' ' if r['observable'][i] else '*'
-            cells += f'{r["estimate"][i]:>11.4g} ({r["std"][i]:7.2g}){mark}'
-        print(f'{PARAM_LABELS[p]:16s}{truth[i]:9.4g}{cells}')
-    print('-' * (25 + 22 * len(strategies)))
-    print(f'{"% Avg. Error":25s}' + ''.join(
-        f'{100 * results[s]["mean_abs_rel_error"]:>22.1f}' for s in strategies))
-    for s in strategies:
-        r = results[s]
-        print(f'{s}: {r["message"]}; {r["samples"]} samples; logs {r["logs"]}')
+    doc = {
+        'mode': 'sim', 'duration_s': args.duration, 'noise': args.noise,
+        'strategies': {s: {
+            'success': r['success'], 'message': r['message'],
+            'mean_abs_rel_error': r['mean_abs_rel_error'],
+            'samples': r['samples'], 'rejected': r['rejected'], 'logs': r['logs'],
+            'per_parameter': {p: {'estimate': float(r['estimate'][i]),
+                                  'std': float(r['std'][i]),
+                                  'observable': bool(r['observable'][i]),
+                                  'truth': float(r['truth'][i])}
+                              for i, p in enumerate(PARAM_NAMES)}}
+            for s, r in results.items()}}
+    print(format_sim(doc))
     if args.json is not None:
-        write_json(args.json, {
-            'mode': 'sim', 'duration_s': args.duration, 'noise': args.noise,
-            'strategies': {s: {
-                'success': r['success'], 'mean_abs_rel_error': r['mean_abs_rel_error'],
-                'samples': r['samples'], 'rejected': r['rejected'],
-                'per_parameter': {p: {'estimate': float(r['estimate'][i]),
-                                      'std': float(r['std'][i]),
-                                      'observable': bool(r['observable'][i]),
-                                      'truth': float(r['truth'][i])}
-                                  for i, p in enumerate(PARAM_NAMES)}}
-                for s, r in results.items()}}, indent=1)
+        write_json(args.json, doc, indent=1)
     return 0
+
+
+def format_bag(doc: dict) -> str:
+    """`--bag`'s printed table, from its JSON (True and the mean error only where the bag
+    carries the simulator's truth)."""
+    pp = doc['per_parameter']
+    lines = [f'identification from {doc["bag"]} ({doc["rover"]}): {doc["samples"]} samples',
+             f'{"Parameter":16s}{"True":>10s}{"estimate":>11s}{"std":>10s}  observable']
+    for p in PARAM_NAMES:
+        q = pp[p]
+        t = f'{"-":>10s}' if q['truth'] is None else f'{q["truth"]:10.4g}'
+        lines.append(f'{PARAM_LABELS[p]:16s}{t}{q["estimate"]:11.4g}{q["std"]:10.3g}  '
+                     f'{q["observable"]}')
+    if doc['mean_abs_rel_error'] is not None:
+        nz = sum(pp[p]['truth'] != 0 for p in PARAM_NAMES)
+        lines.append(f'% Avg. Error {100 * doc["mean_abs_rel_error"]:.1f} (over the {nz} '
+                     'non-zero parameters)')
+    return '\n'.join(lines)
 
 
 def _main_bag(args: argparse.Namespace) -> int:
@@ -307,27 +366,23 @@ def _main_bag(args: argparse.Namespace) -> int:
     except (offline.BagError, OSError, ValueError) as exc:
         print(f'table_2_1 --bag: {exc}', file=sys.stderr)
         return 1
-    print(f'identification from {args.bag} ({args.rover}): {len(rows)} samples')
-    print(f'{"Parameter":16s}{"True":>10s}{"estimate":>11s}{"std":>10s}  observable')
-    for i, p in enumerate(PARAM_NAMES):
-        t = f'{truth[i]:10.4g}' if truth is not None else f'{"-":>10s}'
-        print(f'{PARAM_LABELS[p]:16s}{t}{report.values[i]:11.4g}{report.std[i]:10.3g}  '
-              f'{bool(report.observable[i])}')
     err = None
     if truth is not None:
         nz = truth != 0
         err = float(np.mean(np.abs(report.values[nz] - truth[nz]) / np.abs(truth[nz])))
-        print(f'% Avg. Error {100 * err:.1f} (over the {int(nz.sum())} non-zero parameters)')
+    doc = {
+        'mode': 'bag', 'bag': str(args.bag), 'rover': args.rover, 'samples': len(rows),
+        'accelerometer': not args.no_accelerometer,
+        'bias_compensation': not args.no_bias_compensation and noise is not None,
+        'mean_abs_rel_error': err,
+        'per_parameter': {p: {'estimate': float(report.values[i]),
+                              'std': float(report.std[i]),
+                              'observable': bool(report.observable[i]),
+                              'truth': None if truth is None else float(truth[i])}
+                          for i, p in enumerate(PARAM_NAMES)}}
+    print(format_bag(doc))
     if args.json is not None:
-        write_json(args.json, {
-            'mode': 'bag', 'bag': str(args.bag), 'rover': args.rover, 'samples': len(rows),
-            'accelerometer': not args.no_accelerometer,
-            'bias_compensation': not args.no_bias_compensation and noise is not None,
-            'mean_abs_rel_error': err,
-            'per_parameter': {p: {'estimate': float(report.values[i]),
-                                  'std': float(report.std[i]),
-                                  'observable': bool(report.observable[i])}
-                              for i, p in enumerate(PARAM_NAMES)}}, indent=1)
+        write_json(args.json, doc, indent=1)
     return 0
 
 
@@ -354,20 +409,19 @@ def main(argv: list[str] | None = None) -> int:
                                               duration_s=args.duration, noise=args.noise,
                                               scales=scales, config=cfg,
                                               bias_compensation=not args.no_bias_compensation))
-    summary = summarise(runs, truth)
-    print(format_table(summary, truth, args.seeds))
+    doc = {'seeds': args.seeds, 'first_seed': args.first_seed, 'duration_s': args.duration,
+           'noise': args.noise, 'accelerometer': not args.no_accelerometer,
+           'bias_compensation': not args.no_bias_compensation,
+           'truth': dict(zip(PARAM_NAMES, truth.tolist())),
+           'thesis': {'constant': dict(zip(PARAM_NAMES, THESIS_CONSTANT)),
+                      'variable': dict(zip(PARAM_NAMES, THESIS_VARIABLE)),
+                      'avg_error_pct': THESIS_AVG_ERROR},
+           'strategies': summarise(runs, truth)}
+    print(format_json(doc))
     if args.plots is not None:
         for p in draw_plots(runs, truth, args.plots):
             print(f'wrote {p}')
     if args.json is not None:
-        doc = {'seeds': args.seeds, 'first_seed': args.first_seed, 'duration_s': args.duration,
-               'noise': args.noise, 'accelerometer': not args.no_accelerometer,
-               'bias_compensation': not args.no_bias_compensation,
-               'truth': dict(zip(PARAM_NAMES, truth.tolist())),
-               'thesis': {'constant': dict(zip(PARAM_NAMES, THESIS_CONSTANT)),
-                          'variable': dict(zip(PARAM_NAMES, THESIS_VARIABLE)),
-                          'avg_error_pct': THESIS_AVG_ERROR},
-               'strategies': summary}
         write_json(args.json, doc, indent=1)
         print(f'wrote {args.json}')
     return 0

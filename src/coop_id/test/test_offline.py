@@ -1,5 +1,6 @@
 """Identification from a bag without DDS (coop_id.offline): the sample stream is read and the
 core runs in the node's windows."""
+import json
 from pathlib import Path
 
 import numpy as np
@@ -66,3 +67,6 @@ def test_a_real_rovers_bag_has_no_truth_and_is_still_identified(samples, tmp_pat
     out = capsys.readouterr().out
     assert 'Mass (kg)' in out and '% Avg. Error' not in out
     assert '"mean_abs_rel_error": null' in (tmp_path / 'r.json').read_text()
+    # the printed table is what docs/results makes of the JSON (no True column here)
+    from coop_id.table_2_1 import format_bag
+    assert out == format_bag(json.loads((tmp_path / 'r.json').read_text())) + '\n'

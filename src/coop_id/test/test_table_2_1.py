@@ -4,7 +4,7 @@ import json
 import pytest
 
 from coop_common.testing import usage_error
-from coop_id.table_2_1 import main, time_to
+from coop_id.table_2_1 import format_json, format_sim, main, time_to
 
 
 def test_cli_writes_the_issue_json_keys(tmp_path, capsys):
@@ -23,6 +23,49 @@ def test_cli_writes_the_issue_json_keys(tmp_path, capsys):
         assert set(st['per_parameter']['mass']) >= {'estimate', 'std'}
         assert len(st['per_parameter']) == 22
     assert (tmp_path / 'plots' / 'fig_2_6_information_k_pitch.png').stat().st_size > 1000
+    # the printed table is what docs/results makes of the JSON
+    assert text.startswith(format_json(doc) + '\n')
+
+
+def test_without_accelerometer_the_rotational_subset_is_summed_up(tmp_path, capsys):
+    out = tmp_path / 'r.json'
+    assert main(['--seeds', '1', '--duration', '2', '--strategies', 'constant,information',
+                 '--no-accelerometer', '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    assert text.startswith(format_json(doc) + '\n')
+    # mass, damping and stiffness in x, y, z need the accelerometer: flagged in every seed
+    for s in ('constant', 'information'):
+        pp = doc['strategies'][s]['per_parameter']
+        assert all(pp[p]['observable_fraction'] == 0 for p in ('mass', 'b_z', 'k_x'))
+    assert 'without accelerometer, over the ' in text
+
+
+def test_sim_mode_prints_its_json(tmp_path, capsys, monkeypatch):
+    """`--sim` prints through format_sim(its JSON); the nodes are replaced by a fixed result."""
+    import numpy as np
+
+    import coop_id.sim_mode
+    from coop_common.dynparams import PARAM_NAMES, load_truth
+    truth = load_truth().to_vector()
+    n = len(PARAM_NAMES)
+
+    def fake(*, duration_s, strategy, noise):
+        est = truth * (1.1 if strategy == 'constant' else 1.01) + 0.001
+        return {'success': True, 'message': f'{strategy}: 22/22 observable', 'truth': truth,
+                'estimate': est, 'std': np.full(n, 0.002),
+                'observable': [True] * (n - 1) + [False],
+                'mean_abs_rel_error': 0.05, 'samples': 2001, 'rejected': 0, 'logs': '/tmp/x'}
+    monkeypatch.setattr(coop_id.sim_mode, 'run_sim_identification', fake)
+    out = tmp_path / 's.json'
+    assert main(['--sim', '--strategies', 'information,constant', '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    assert text == format_sim(doc) + '\n'
+    k_yaw = next(line for line in text.splitlines() if line.startswith('Stiffness th_v'))
+    assert k_yaw.endswith('*') and text.count('*') == 2 + 1     # + the header's legend
+    assert doc['strategies']['constant']['per_parameter']['mass']['estimate'] == \
+        pytest.approx(3.301)
 
 
 def test_cli_rejects_bad_arguments(tmp_path):
