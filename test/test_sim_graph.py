@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
+from nav_msgs.msg import Odometry
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -157,6 +158,10 @@ def test_units_and_frames(live):
     assert {'arm_joint_1', 'arm_joint_2', 'wheel_fl', 'articulation', 'mast_tilt'} <= set(js.name)
     truth = probe.msgs['/sim/rover1/parameters'][-1]
     assert dict(zip(truth.names, truth.values))['k_pitch'] == 200.0   # the truth_yaml took
+    probe.listen(Odometry, '/rover2/odom')
+    probe.spin_until(lambda: probe.count('/rover2/odom') > 0, 10.0, 'odometry')
+    odom = probe.msgs['/rover2/odom'][-1]
+    assert (odom.header.frame_id, odom.child_frame_id) == ('rover2/odom', 'rover2/base_link')
 
 
 def test_stamps_follow_clock_and_use_sim_time(live):

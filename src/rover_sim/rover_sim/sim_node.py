@@ -433,7 +433,7 @@ class SimNode(Node):
         from .compliance import rpy_to_matrix
         xy, yaw, v, w = self.world.odometry(i)
         od = Odometry()
-        od.header.stamp, od.header.frame_id = t, 'odom'
+        od.header.stamp, od.header.frame_id = t, f'{name}/odom'
         od.child_frame_id = f'{name}/base_link'
         _pose(od.pose.pose, np.array([xy[0], xy[1], 0.0]), rpy_to_matrix(0.0, 0.0, yaw))
         od.twist.twist.linear.x, od.twist.twist.angular.z = float(v), float(w)
