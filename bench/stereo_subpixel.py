@@ -156,6 +156,49 @@ def normal_error_bands(cam: StereoCamera, pairs) -> list[dict]:
     return rows
 
 
+def format_table(result: dict) -> str:
+    """The tables main prints, from its JSON result (docs/results pages are made with it)."""
+    cfg = result['config']
+    res = {m: r for m, r in result.items() if m not in ('config', 'frames')}
+    lines = [f'stereo sub-pixel accuracy: {result["frames"]} frames {cfg["width"]}x{cfg["height"]}'
+             + (f' (rendered {cfg["supersample"]}x{cfg["supersample"]} per pixel)'
+                if cfg['supersample'] > 1 else '') + ', '
+             f'|error| < {GROSS_PX:g} px (gross mismatches: '
+             + ', '.join(f'{m} {100 * res[m]["gross_share"]:.2f} %' for m in res) + ')']
+    lines.append(f'{"mode":>10} {"valid px":>9} {"<1/8 px of int":>14} {"bias swing px":>13} '
+                 f'{"mean px":>8} {"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8} '
+                 f'{"ms/frame":>8} {"left 64 px":>10} {"rms px":>6} {"gross":>6}')
+    for m in res:
+        r = res[m]
+        lines.append(
+            f'{m:>10} {r["pixels"]:9d} {100 * r["near_integer_share"]:13.1f}% '
+            f'{r["bias_swing_px"]:13.3f} {r["mean_error_px"]:+8.3f} {r["rms_error_px"]:7.3f} '
+            f'{r["range_rms_error_m"]:11.3f} {r["range_rms_over_model"]:8.2f} '
+            f'{r["ms_per_frame"]:8.1f} {r["left_columns_valid_px"]:10d} '
+            f'{r["left_columns_rms_error_px"]:6.3f} '
+            f'{100 * r["left_columns_gross_share"]:5.2f}%')
+    lines.append('mean error (px) by true sub-pixel part, bins of 1/8 from -0.5:')
+    for m in res:
+        bins = res[m]['mean_error_by_true_subpixel_px']
+        lines.append(f'{m:>10} ' + ' '.join(f'{v:+.3f}' for v in bins))
+    k = local_px(cfg['width'])
+    lines.append(f'error normal to the true surface (mm): RMS / systematic (mean over {k} x {k} '
+                 'px), share of the scored pixels, by band of true depth:')
+    first = res[next(iter(res))]['normal_error_by_depth']
+    bands = [tuple(b['depth_m']) for b in first]
+
+    def band(lo: float, hi: float) -> str:
+        return 'all' if (lo, hi) == (0.0, np.inf) else f'{lo:g}-{hi:g} m'
+
+    lines.append(f'{"mode":>10} ' + ' '.join(f'{band(*b):>17}' for b in bands))
+    lines.append(f'{"share":>10} ' + ' '.join(f'{100 * b["share"]:16.0f}%' for b in first))
+    for m in res:
+        lines.append(f'{m:>10} ' + ' '.join(
+            f'{b["rms_mm"]:8.1f} / {b["systematic_rms_mm"]:5.1f}'
+            for b in res[m]['normal_error_by_depth']))
+    return '\n'.join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--width', type=number(int, lo=SEARCH_PX + 1, hi=4096), default=640)
@@ -179,42 +222,10 @@ def main(argv: list[str] | None = None) -> int:
                                           'left_columns_valid_px': edge['pixels'],
                                           'left_columns_rms_error_px': edge['rms_error_px'],
                                           'left_columns_gross_share': edge['gross_share']}
-    print(f'stereo sub-pixel accuracy: {len(pairs)} frames {args.width}x{args.height}'
-          + (f' (rendered {args.supersample}x{args.supersample} per pixel)'
-             if args.supersample > 1 else '') + ', '
-          f'|error| < {GROSS_PX:g} px (gross mismatches: '
-          + ', '.join(f'{m} {100 * res[m]["gross_share"]:.2f} %' for m in res) + ')')
-    print(f'{"mode":>10} {"valid px":>9} {"<1/8 px of int":>14} {"bias swing px":>13} '
-          f'{"mean px":>8} {"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8} {"ms/frame":>8} '
-          f'{"left 64 px":>10} {"rms px":>6} {"gross":>6}')
-    for m in res:
-        r = res[m]
-        print(f'{m:>10} {r["pixels"]:9d} {100 * r["near_integer_share"]:13.1f}% '
-              f'{r["bias_swing_px"]:13.3f} {r["mean_error_px"]:+8.3f} {r["rms_error_px"]:7.3f} '
-              f'{r["range_rms_error_m"]:11.3f} {r["range_rms_over_model"]:8.2f} '
-              f'{r["ms_per_frame"]:8.1f} {r["left_columns_valid_px"]:10d} '
-              f'{r["left_columns_rms_error_px"]:6.3f} '
-              f'{100 * r["left_columns_gross_share"]:5.2f}%')
-    print('mean error (px) by true sub-pixel part, bins of 1/8 from -0.5:')
-    for m in res:
-        bins = res[m]['mean_error_by_true_subpixel_px']
-        print(f'{m:>10} ' + ' '.join(f'{v:+.3f}' for v in bins))
-    k = local_px(args.width)
-    print(f'error normal to the true surface (mm): RMS / systematic (mean over {k} x {k} px), '
-          'share of the scored pixels, by band of true depth:')
-    bands = [tuple(b['depth_m']) for b in res[next(iter(res))]['normal_error_by_depth']]
-
-    def band(lo: float, hi: float) -> str:
-        return 'all' if (lo, hi) == (0.0, np.inf) else f'{lo:g}-{hi:g} m'
-
-    print(f'{"mode":>10} ' + ' '.join(f'{band(*b):>17}' for b in bands))
-    print(f'{"share":>10} ' + ' '.join(
-        f'{100 * b["share"]:16.0f}%' for b in res[next(iter(res))]['normal_error_by_depth']))
-    for m in res:
-        print(f'{m:>10} ' + ' '.join(f'{b["rms_mm"]:8.1f} / {b["systematic_rms_mm"]:5.1f}'
-                                     for b in res[m]['normal_error_by_depth']))
+    result = {'config': vars(args) | {'json': str(args.json)}, 'frames': len(pairs), **res}
+    print(format_table(result))
     if args.json:
-        write_json(args.json, {'config': vars(args) | {'json': str(args.json)}, **res}, indent=2)
+        write_json(args.json, result, indent=2)
     return 0
 
 

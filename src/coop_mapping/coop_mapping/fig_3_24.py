@@ -196,9 +196,9 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
         width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',),
         fuse_prediction: bool = True, subpixel: str = SUBPIXEL_DEFAULT,
         full_width: bool = FULL_WIDTH_DEFAULT) -> dict:
-    out = {'distances_m': distances, 'trials': trials, 'steps': steps,
-           'fuse_prediction': fuse_prediction, 'subpixel': subpixel, 'full_width': full_width,
-           'results': {}}
+    out = {'distances_m': distances, 'trials': trials, 'steps': steps, 'seed': seed,
+           'width': width, 'height': height, 'fuse_prediction': fuse_prediction,
+           'subpixel': subpixel, 'full_width': full_width, 'results': {}}
 
     def config(D: float, method: str) -> TrialConfig:
         return TrialConfig(distance=D, steps=steps, width=width, height=height, method=method,
@@ -229,6 +229,39 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
                 'fiducials_kept_per_step': float(np.mean([r['kept'] for r in runs])),
             }
     return out
+
+
+def format_table(out: dict) -> str:
+    """The table main prints, from the JSON result of `run` (docs/results pages are made with
+    it): the RMS errors at every quarter of the trajectory, then one summary line per method and
+    distance."""
+    first = next(iter(next(iter(out['results'].values())).values()))['config']
+    lines = [f'images {out["width"]}x{out["height"]}, {out["trials"]} trials, {out["steps"]} '
+             f'steps; per-step motion error sigma {first["sigma_t_m"] * 1e3:g} mm, '
+             f'{first["sigma_rot_deg"]:g} deg per axis; corrected pose: '
+             + ('commanded motion and fiducial measurement fused by covariance'
+                if out['fuse_prediction'] else 'fiducial measurement alone')
+             + f'; sub-pixel disparity {out["subpixel"]}'
+             + (', full width' if out['full_width']
+                else ', without the left search-range columns'),
+             f'{"method":>6} {"dist m":>6} {"step":>4} {"RMS dead-reckoned mm":>21} '
+             f'{"RMS corrected mm":>17}']
+    for method, per in out['results'].items():
+        for D, r in per.items():
+            for k in range(0, out['steps'] + 1, max(1, out['steps'] // 4)):
+                lines.append(f'{method:>6} {D:>6} {k:4d} '
+                             f'{1e3 * r["rms_error_dead_reckoned_m"][k]:21.2f} '
+                             f'{1e3 * r["rms_error_corrected_m"][k]:17.2f}')
+    for method, per in out['results'].items():
+        for D, r in per.items():
+            lines.append(f'{method:>6} distance {D} m: final error reduction '
+                         f'{100 * r["final_reduction"]:.1f}%, mean over steps '
+                         f'{100 * r["mean_reduction"]:.1f}%, fallback steps '
+                         f'{r["fallback_steps"]}, fiducials kept/step '
+                         f'{r["fiducials_kept_per_step"]:.1f} of {r["config"]["n_fiducials"]}, '
+                         f'disparity range {max(r["num_disparities"])} '
+                         f'(true max {max(r["max_true_disparity_px"]):.1f}) px')
+    return '\n'.join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -267,28 +300,7 @@ def main(argv: list[str] | None = None) -> int:
                   subpixel=args.subpixel, full_width=args.full_width)
     except ConfigError as exc:
         ap.error(str(exc))
-    print(f'images {args.width}x{args.height}, {args.trials} trials, {args.steps} steps; '
-          f'per-step motion error sigma {TrialConfig.sigma_t_m * 1e3:g} mm, '
-          f'{TrialConfig.sigma_rot_deg:g} deg per axis; corrected pose: '
-          + ('fiducial measurement alone' if args.no_fusion else
-             'commanded motion and fiducial measurement fused by covariance')
-          + f'; sub-pixel disparity {args.subpixel}'
-          + (', full width' if args.full_width else ', without the left search-range columns'))
-    print(f'{"method":>6} {"dist m":>6} {"step":>4} {"RMS dead-reckoned mm":>21} '
-          f'{"RMS corrected mm":>17}')
-    for method, per in out['results'].items():
-        for D, r in per.items():
-            for k in range(0, args.steps + 1, max(1, args.steps // 4)):
-                print(f'{method:>6} {D:>6} {k:4d} {1e3 * r["rms_error_dead_reckoned_m"][k]:21.2f} '
-                      f'{1e3 * r["rms_error_corrected_m"][k]:17.2f}')
-    for method, per in out['results'].items():
-        for D, r in per.items():
-            print(f'{method:>6} distance {D} m: final error reduction '
-                  f'{100 * r["final_reduction"]:.1f}%, mean over steps '
-                  f'{100 * r["mean_reduction"]:.1f}%, fallback steps {r["fallback_steps"]}, '
-                  f'fiducials kept/step {r["fiducials_kept_per_step"]:.1f} of '
-                  f'{r["config"]["n_fiducials"]}, disparity range {max(r["num_disparities"])} '
-                  f'(true max {max(r["max_true_disparity_px"]):.1f}) px')
+    print(format_table(out))
     if args.json:
         write_json(args.json, out, indent=2)
     if args.plots:
