@@ -99,7 +99,9 @@ def markdown_table(specs: Mapping[str, ParamSpec]) -> str:
             rng = f'{"" if s.lo is None else s.lo} .. {"" if s.hi is None else s.hi}'
         else:
             rng = ''
-        default = _cell(repr(s.default))
-        rows.append(f'| `{name}` | {type(s.default).__name__} | `{default}` | {rng} | '
+        # a StrEnum default is declared as its string: the table shows what ROS sees
+        value = s.default.value if isinstance(s.default, StrEnum) else s.default
+        default = _cell(repr(value))
+        rows.append(f'| `{name}` | {type(value).__name__} | `{default}` | {rng} | '
                     f'{"no" if s.read_only else "yes"} | {_cell(s.description)} |')
     return '\n'.join(rows)

@@ -1,6 +1,6 @@
 import pytest
 
-from coop_common.params import ParamSpec, check_values, parse_value
+from coop_common.params import ParamSpec, check_values, markdown_table, parse_value
 
 SPECS = {'n': ParamSpec(4, 'count', lo=1, hi=10), 'x': ParamSpec(0.5, 'share', lo=0.0, hi=1.0),
          'mode': ParamSpec('a', 'mode', choices=('a', 'b')), 'on': ParamSpec(True, 'switch')}
@@ -42,3 +42,14 @@ def test_choice_takes_a_member_or_its_string_and_names_the_choices():
     assert choice(Mode, 'a', 'mode') is Mode.A and choice(Mode, Mode.B, 'mode') is Mode.B
     with pytest.raises(KeyError, match=r"mode must be one of \['a', 'b'\], got 'c'"):
         choice(Mode, 'c', 'mode', error=KeyError)
+
+
+def test_markdown_table_shows_a_strenum_default_as_its_string():
+    from enum import StrEnum
+
+    class Mode(StrEnum):
+        FAST = 'fast'
+        SLOW = 'slow'
+
+    table = markdown_table({'mode': ParamSpec(Mode.FAST, 'how', choices=list(Mode))})
+    assert "| `mode` | str | `'fast'` | `fast`, `slow` | yes | how |" in table
