@@ -46,10 +46,18 @@ def declare_parameters(node: Node, specs: dict[str, ParamSpec],
                        check_all: Callable[[dict[str, Any]], str | None] | None = None
                        ) -> dict[str, Any]:
     """Declare every spec with its descriptor, validate the initial values (raising ValueError with
-    the reason, so a bad --params-file stops the node at start), and install an on-set callback
-    that rejects bad values with their reason. check_all: a rule between parameters (e.g. near
-    < far), given all values as they would be, returning the reason they are not acceptable or
-    None. Returns the current values."""
+    the reason, so a bad --params-file stops the node at start), and install the Jazzy pair of
+    parameter callbacks (ros2/demos `demo_nodes_py/parameters/set_parameters_callback.py`):
+
+    * an on-set callback that only validates: each value against its spec, then `check_all`, a
+      rule between parameters (e.g. near < far) given all values as they would be, returning
+      the reason they are not acceptable or None; a bad value is rejected with that reason and
+      nothing changes;
+    * a post-set callback that applies: `on_change` gets the accepted values by name, after
+      rclpy has stored them. Applying in the on-set callback would change the node's state
+      before the change is certain (another on-set callback may still reject it).
+
+    Returns the current values."""
     for name, spec in specs.items():
         node.declare_parameter(name, spec.default, _descriptor(spec))
     values = {name: node.get_parameter(name).value for name in specs}
@@ -71,11 +79,16 @@ def declare_parameters(node: Node, specs: dict[str, ParamSpec],
             reason = check_all(now)
             if reason:
                 return SetParametersResult(successful=False, reason=reason)
-        if on_change is not None:
-            on_change({p.name: p.value for p in params if p.name in specs})
         return SetParametersResult(successful=True)
 
+    def _apply(params) -> None:
+        changed = {p.name: p.value for p in params if p.name in specs}
+        if changed:
+            on_change(changed)
+
     node.add_on_set_parameters_callback(_validate)
+    if on_change is not None:
+        node.add_post_set_parameters_callback(_apply)
     return values
 
 

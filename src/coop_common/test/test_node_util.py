@@ -94,3 +94,85 @@ def test_rover_frame_takes_the_last_part_of_the_namespace():
     assert node_util.rover_frame('/rover1', 'base_link') == 'rover1/base_link'
     assert node_util.rover_frame('/team_a/rover2', 'base_link') == 'rover2/base_link'
     assert node_util.rover_frame('/', 'base_link') == 'base_link'
+
+
+def _param_node(name, specs, check_all=None, reject_also=None):
+    """A node in a private context with `specs` declared; returns (node, context, applied),
+    applied: the on_change calls. reject_also: another on-set callback, registered before
+    declare_parameters, so rclpy runs it after the validator (it inserts at the front)."""
+    import rclpy
+    from rclpy.node import Node
+
+    from coop_common.node_util import declare_parameters
+    from coop_common.testing import isolate_ros_environment
+    isolate_ros_environment()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node(name, context=ctx)
+    if reject_also is not None:
+        node.add_on_set_parameters_callback(reject_also)
+    applied = []
+    state = declare_parameters(node, specs, on_change=lambda ch: (applied.append(dict(ch)),
+                                                                  state.update(ch)),
+                               check_all=check_all)
+    return node, ctx, state, applied
+
+
+def test_parameters_are_validated_then_applied_after_the_set():
+    """A rejected value (range, the rule between parameters) is refused with its reason and
+    leaves the node's state as it was; an accepted one is stored and then applied."""
+    from rclpy.parameter import Parameter
+
+    from coop_common.node_util import ParamSpec
+    specs = {'near_m': ParamSpec(0.3, 'near', lo=0.0, hi=10.0),
+             'far_m': ParamSpec(5.0, 'far', lo=0.1, hi=100.0),
+             'mode': ParamSpec('a', 'mode', choices=('a', 'b'))}
+
+    def rule(p):
+        return None if p['near_m'] < p['far_m'] else 'near_m must be below far_m'
+
+    node, ctx, state, applied = _param_node('params_apply', specs, rule)
+    try:
+        before = dict(state)
+        for bad, why in ((Parameter('far_m', value=500.0), 'far_m must be <= 100.0'),
+                         (Parameter('near_m', value=6.0), 'near_m must be below far_m'),
+                         (Parameter('mode', value='c'), "mode must be one of ['a', 'b']")):
+            res = node.set_parameters([bad])[0]
+            assert not res.successful and why in res.reason
+        assert state == before and applied == []
+        assert node.get_parameter('far_m').value == 5.0
+        res = node.set_parameters_atomically([Parameter('far_m', value=8.0),
+                                              Parameter('near_m', value=6.0)])
+        assert res.successful
+        assert applied == [{'far_m': 8.0, 'near_m': 6.0}]
+        assert state['near_m'] == 6.0 and state['far_m'] == 8.0
+        assert node.get_parameter('near_m').value == 6.0
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+
+
+def test_a_change_another_callback_rejects_is_not_applied():
+    """Applying happens after the whole set succeeded: a value our validator accepts but another
+    on-set callback of the node rejects changes nothing (applied in the on-set callback, it
+    would have been half applied)."""
+    from rcl_interfaces.msg import SetParametersResult
+    from rclpy.parameter import Parameter
+
+    from coop_common.node_util import ParamSpec
+
+    def veto(params):
+        ok = all(p.name != 'rate_hz' or p.value != 7.0 for p in params)
+        return SetParametersResult(successful=ok, reason='' if ok else 'vetoed')
+
+    node, ctx, state, applied = _param_node('params_veto', {
+        'rate_hz': ParamSpec(1.0, 'rate', lo=0.1, hi=100.0)}, reject_also=veto)
+    try:
+        res = node.set_parameters([Parameter('rate_hz', value=7.0)])[0]
+        assert not res.successful and res.reason == 'vetoed'
+        assert state['rate_hz'] == 1.0 and applied == []
+        assert node.set_parameters([Parameter('rate_hz', value=8.0)])[0].successful
+        assert state['rate_hz'] == 8.0 and applied == [{'rate_hz': 8.0}]
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
