@@ -7,12 +7,12 @@ No rclpy here: offline tools (identification, mapping, insertion experiments) re
 """
 from __future__ import annotations
 
-import io
+import heapq
+import shutil
 import struct
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from importlib.metadata import version as _dist_version
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -24,12 +24,13 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.rosbag2.errors import ReaderError, WriterError
-from rosbags.rosbag2.storage_mcap import McapWriter, decompress, get_qos, write_record
-from rosbags.rosbag2.storage_mcap import write_string as _mcap_write_string
+from rosbags.rosbag2.metadata import dump_qos_v9
+from rosbags.rosbag2.storage_mcap import decompress, get_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
+from ruamel.yaml import YAML
 
 #: Interface packages of this project whose .msg files are registered in every typestore.
 PROJECT_INTERFACE_PACKAGES: tuple[str, ...] = ('coop_msgs',)
@@ -146,64 +147,54 @@ def make_qos(*, reliable: bool, transient_local: bool, depth: int = 10,
 # Writing
 # ---------------------------------------------------------------------------------------------
 
-class _McapFile(McapWriter):
-    """rosbags' MCAP storage writing to an explicit file name.
+class _SplitFile:
+    """One split file of a bag, written by rosbags' public `Writer` (MCAP storage, rosbag2 v9).
 
-    rosbags names its one file `<dir>/<dir>.mcap`; a split rosbag2 bag holds `<bag>_<i>.mcap`
-    files in one directory, so the constructor is the only thing replaced (same header record)."""
+    rosbags writes a bag directory `<dir>/<dir>.mcap` + `metadata.yaml`; a split rosbag2 bag holds
+    `<bag>_<i>.mcap` files in one directory. So file i is written as the bag `<bag>/<bag>_<i>/`
+    and, once closed, its MCAP file is moved up to `<bag>/<bag>_<i>.mcap` and its metadata kept
+    in memory for the bag's metadata.yaml."""
 
-    def __init__(self, file_path: Path, compression: str = 'none') -> None:  # noqa: D107
-        self.path = file_path
-        self.bio = self.path.open('xb')
-        self.bio.write(_MCAP_MAGIC)
-        rec = io.BytesIO()
-        _mcap_write_string(rec, 'ros2')
-        _mcap_write_string(rec, f'rosbags-{_dist_version("rosbags")}')
-        write_record(self.bio, 0x01, rec)
-        self.schemas = []
-        self.channels = []
-        self.chunks = []
-        self.chunk = self._new_chunk()
+    def __init__(self, bag: Path, index: int, compression: str) -> None:
+        self.name = f'{bag.name}_{index}.mcap'
+        self.file_path = bag / self.name            # where the file is once closed
+        self.dir = bag / f'{bag.name}_{index}'      # rosbags' bag of this one file
+        self.writer = Writer(self.dir, version=9, storage_plugin=StoragePlugin.MCAP)
         if compression == 'zstd':
             # MCAP chunk compression: transparent to every MCAP reader (ros2 bag play included);
             # the rosbag2 metadata keeps compression_mode '' as rosbag2's own MCAP presets do
-            from rosbags.rosbag2.storage_mcap import zstd  # noqa: PLC0415
-            self.compression, self.compressor = 'zstd', zstd.compress
-        else:
-            self.compression, self.compressor = '', (lambda x: x)
-        self.message_start_time = 2**63 - 1
-        self.message_end_time = 0
-        self.channel_stats = {}
+            self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        self.writer.open()
+        self.messages = 0
 
-    @staticmethod
-    def _new_chunk():
-        from collections import defaultdict  # noqa: PLC0415
+    def add_connection(self, spec: TopicSpec, typestore: Typestore) -> Any:
+        return self.writer.add_connection(
+            spec.name, spec.msgtype, typestore=typestore, rihs01=spec.type_hash,
+            msgdef=typestore.generate_msgdef(spec.msgtype, ros_version=2)[0],
+            offered_qos_profiles=spec.offered_qos)
 
-        from rosbags.rosbag2.storage_mcap import PendingChunk  # noqa: PLC0415
-        return PendingChunk(2**63 - 1, 0, io.BytesIO(), defaultdict(list))
+    def write(self, conn: Any, t_ns: int, data: bytes | memoryview) -> None:
+        self.writer.write(conn, t_ns, data)
+        self.messages += 1
 
-    def pending_bytes(self) -> int:
-        return self.chunk.bio.tell()
+    def close(self) -> dict[str, Any] | None:
+        """Finish the file; its rosbag2 metadata, or None (and no file) if it holds nothing."""
+        if not self.messages:
+            self.abort()
+            shutil.rmtree(self.dir, ignore_errors=True)
+            return None
+        self.writer.close()
 
-    def flush(self) -> None:
-        """Write the pending chunk and its indexes to the OS: a killed recorder keeps them."""
-        if self.chunk.bio.tell():
-            self.close_chunk()
-        self.bio.flush()
+        meta = self.dir / 'metadata.yaml'
+        info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
+        (self.dir / self.name).replace(self.file_path)
+        meta.unlink()
+        self.dir.rmdir()
+        return info
 
-
-class _FileWriter(Writer):
-    """One split file of a bag: rosbags' Writer on `_McapFile`, its metadata kept in memory."""
-
-    def __init__(self, file_path: Path, compression: str = 'none') -> None:
-        super().__init__(file_path.with_suffix(''), version=9,
-                         storage_plugin=StoragePlugin.MCAP)
-        self.file_path = file_path
-        self.chunk_compression = compression
-        self.metapath = file_path.with_name(f'.{file_path.stem}.metadata.yaml')
-
-    def open(self) -> None:
-        self.storage = _McapFile(self.file_path, self.chunk_compression)
+    def abort(self) -> None:
+        """Stop without finishing the file (what a crash leaves)."""
+        self.writer.abort()
 
 
 @dataclass
@@ -224,9 +215,11 @@ class BagWriter:
         bag.write('/rover1/imu', t_ns, cdr_bytes)
 
     `compression='zstd'` compresses MCAP chunks (stereo images shrink several-fold).
-    Split files are `<path>/<name>_<i>.mcap` as rosbag2 names them; metadata.yaml (listing all of
-    them) is written by `close()`. `flush()` pushes the pending chunk to the OS, so a killed
-    process leaves every message up to the last flush readable (`read_messages` recovers it).
+    Split files are `<path>/<name>_<i>.mcap` as rosbag2 names them, each written by rosbags'
+    public `Writer` (`_SplitFile`); metadata.yaml (listing all of them) is written by `close()`.
+    `flush()` finishes the current file, so a killed process leaves every message up to the
+    last flush in complete files (`read_messages` reads them without metadata.yaml); each flush
+    that follows new messages therefore adds a split file.
     """
 
     def __init__(self, path: str | Path, *, typestore: Typestore | None = None,
@@ -247,7 +240,7 @@ class BagWriter:
         self.topics: dict[str, TopicSpec] = {}
         self.counts: dict[str, int] = {}
         self._files: list[dict[str, Any]] = []    # closed files' metadata
-        self._file: _FileWriter | None = None
+        self._file: _SplitFile | None = None
         self._conns: dict[str, Any] = {}
         self._file_start_ns: int | None = None
         self._file_bytes = 0
@@ -275,16 +268,12 @@ class BagWriter:
 
     def _add_connection(self, spec: TopicSpec) -> None:
         assert self._file is not None
-        self._conns[spec.name] = self._file.add_connection(
-            spec.name, spec.msgtype, typestore=self.typestore, rihs01=spec.type_hash,
-            msgdef=self.typestore.generate_msgdef(spec.msgtype, ros_version=2)[0],
-            offered_qos_profiles=spec.offered_qos)
+        self._conns[spec.name] = self._file.add_connection(spec, self.typestore)
 
     # -- writing ----------------------------------------------------------------------------
     def _open_file(self) -> None:
         index = len(self._files)
-        self._file = _FileWriter(self.path / f'{self.path.name}_{index}.mcap', self.compression)
-        self._file.open()
+        self._file = _SplitFile(self.path, index, self.compression)
         self._conns = {}
         self._file_start_ns = None
         self._file_bytes = 0
@@ -295,16 +284,9 @@ class BagWriter:
         file, self._file = self._file, None
         if file is None:
             return
-        if not any(file.counts.values()):
-            file.abort()
-            file.file_path.unlink(missing_ok=True)
-            return
-        file.close()
-        from ruamel.yaml import YAML  # noqa: PLC0415 - rosbags' own YAML dependency
-
-        info = YAML(typ='safe').load(file.metapath.read_text())['rosbag2_bagfile_information']
-        file.metapath.unlink()
-        self._files.append(info)
+        info = file.close()
+        if info is not None:
+            self._files.append(info)
 
     def write(self, topic: str, t_ns: int, data: bytes | memoryview) -> None:
         """Write one serialized (CDR) message received at `t_ns`."""
@@ -327,15 +309,19 @@ class BagWriter:
         self.counts[topic] += 1
 
     def flush(self) -> None:
-        """Push buffered messages to the OS (not fsync: a killed process, not a power cut)."""
-        if self._file is not None:
-            self._file.storage.flush()
+        """Make every message written so far survive a killed process: the current split file
+        is finished (a complete MCAP file, index and summary included) and the next message
+        starts a new one. rosbags' public Writer buffers up to 1 MiB per chunk and offers no
+        flush of its own. Not fsync: a killed process, not a power cut. Nothing to do when no
+        message came since the last flush."""
+        if self._file is not None and self._file.messages:
+            self._close_file()
 
     @property
     def files(self) -> list[Path]:
         names = [self.path / f['relative_file_paths'][0] for f in self._files]
         if self._file is not None:
-            names.append(self._file.file_path)
+            names.append(self._file.dir / self._file.name)     # moved up when closed
         return names
 
     def close(self) -> Path:
@@ -348,8 +334,6 @@ class BagWriter:
         return self.path
 
     def _write_metadata(self) -> None:
-        from rosbags.rosbag2.metadata import dump_qos_v9  # noqa: PLC0415
-        from ruamel.yaml import YAML  # noqa: PLC0415
 
         starts = [f['starting_time']['nanoseconds_since_epoch'] for f in self._files]
         ends = [f['starting_time']['nanoseconds_since_epoch'] + f['duration']['nanoseconds']
@@ -389,7 +373,7 @@ class BagWriter:
         """Stop without metadata (what a crash leaves, minus unflushed data)."""
         self._closed = True
         if self._file is not None:
-            self._file.storage.bio.close()
+            self._file.abort()
             self._file = None
 
     def __enter__(self) -> BagWriter:
@@ -562,7 +546,6 @@ class _Source:
             return
         meta = path / 'metadata.yaml'
         if meta.is_file():
-            from ruamel.yaml import YAML  # noqa: PLC0415 - rosbags' own YAML dependency
             try:
                 doc = YAML(typ='safe').load(meta.read_text())
                 names = doc['rosbag2_bagfile_information']['relative_file_paths']
@@ -587,7 +570,11 @@ class _Source:
         else:
             self.problems.append(f'{path.name}: no metadata.yaml (recorder did not close the '
                                  'bag); recovered from the MCAP files')
-        self.files = sorted(path.glob('*.mcap'), key=_split_index)
+        # closed split files, and the one a killed writer left in its own directory
+        # (`_SplitFile`: <bag>/<bag>_<i>/<bag>_<i>.mcap)
+        self.files = sorted([*path.glob('*.mcap'),
+                             *(f for f in path.glob('*/*.mcap') if f.parent.name == f.stem)],
+                            key=_split_index)
         if not self.files:
             raise BagNotFoundError(f'{path}: no metadata.yaml and no .mcap file')
         self._scan_all(complete_ok=False)
@@ -619,7 +606,6 @@ class _Source:
         return out
 
     def messages(self, topics: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
-        import heapq  # noqa: PLC0415
 
         if self.reader is not None:
             if len(self.files) == 1:

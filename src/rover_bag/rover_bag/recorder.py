@@ -20,6 +20,7 @@ import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from coop_common.node_util import ParamSpec, declare_parameters
@@ -41,9 +42,9 @@ PARAMS = {
                                  '(0: never)', lo=0.0, hi=1e6, read_only=True),
     'max_bag_duration_s': ParamSpec(0.0, 'split after this much recorded time (0: never)',
                                     lo=0.0, hi=1e7, read_only=True),
-    'flush_period_s': ParamSpec(1.0, 'write buffered messages to the file at this period, so a '
-                                'killed recorder loses at most this much', lo=0.05, hi=60.0,
-                                read_only=True),
+    'flush_period_s': ParamSpec(1.0, 'finish the current split file at this period (the next '
+                                'message starts a new one), so a killed recorder loses at most '
+                                'this much', lo=0.05, hi=60.0, read_only=True),
     'compression': ParamSpec('none', 'MCAP chunk compression', choices=COMPRESSIONS,
                              read_only=True),
     'queue_depth': ParamSpec(1000, 'subscription history depth (KEEP_LAST)', lo=1, hi=100000,
@@ -217,7 +218,6 @@ def main(args: list[str] | None = None) -> int:
     cli.add_argument('topics', nargs='*', help='topics to record (same as -p topics:=[...])')
     ns = cli.parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
     overrides = []
-    from rclpy.parameter import Parameter  # noqa: PLC0415
 
     if ns.output:
         overrides.append(Parameter('output', value=ns.output))

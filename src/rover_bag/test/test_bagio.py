@@ -193,21 +193,36 @@ def test_no_metadata_reads_what_the_files_allow(ts, tmp_path):
     assert info.recovered and info.topics['/sim/truth'].offered_qos == LATCHED
 
 
+def write_big(ts, path: Path, n: int = 48, size: int = 100_000,
+              **kw) -> list[tuple[str, int, bytes]]:
+    """n strings of about `size` bytes: several MiB, so rosbags' writer closes several chunks
+    (at 1 MiB each) inside one file; returns (topic, t_ns, cdr) as written."""
+    written = []
+    with BagWriter(path, typestore=ts, **kw) as bag:
+        bag.add_topic('/big', STR, offered_qos=SENSOR)
+        for i in range(n):
+            text = ' '.join(f'w{(i * 7919 + k * 104729) % 100003}' for k in range(size // 7))
+            data = ts.serialize_cdr(ts.types[STR](text), STR)
+            bag.write('/big', 1000 + i, data)
+            written.append(('/big', 1000 + i, data))
+    return written
+
+
 @pytest.mark.parametrize('seed', [1, 2, 3])
 def test_truncated_file_yields_a_prefix(ts, tmp_path, seed):
-    written = write_sample(ts, tmp_path / 'bag', n=2000, flush_every=100)   # 20 chunks
+    written = write_big(ts, tmp_path / 'bag')
     f = tmp_path / 'bag' / 'bag_0.mcap'
     data = f.read_bytes()
-    cut = random.Random(seed).randrange(len(data) // 4, len(data) - 40)
+    assert len(data) > 3 << 20               # at least three chunks
+    cut = random.Random(seed).randrange(len(data) // 2, len(data) - (256 << 10))
     f.write_bytes(data[:cut])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter('always')
         got = [(m.topic, m.t_ns, bytes(m.msg))
                for m in read_messages(tmp_path / 'bag', raw=True, strict=False)]
     assert any('truncated' in str(w.message) for w in caught)
-    want = sorted(written, key=lambda w: w[1])
-    assert 0 < len(got) < len(want)
-    assert got == want[:len(got)]      # a prefix, never a corrupted message
+    assert 0 < len(got) < len(written)
+    assert got == written[:len(got)]      # a prefix, never a corrupted message
     with pytest.raises(DamagedBagError, match=rf'bag_0.mcap: truncated at byte \d+ of {cut}'):
         list(read_messages(tmp_path / 'bag', raw=True))
 
@@ -218,11 +233,18 @@ def test_flush_then_kill_keeps_flushed_messages(ts, tmp_path):
     for i in range(50):
         bag.write('/a', i, ts.serialize_cdr(ts.types[STR](f'm{i}'), STR))
     bag.flush()
+    bag.flush()          # nothing new: no empty file
+    # a flushed file is finished: complete, indexed, readable by any MCAP reader
+    assert sorted(p.name for p in (tmp_path / 'bag').glob('*.mcap')) == ['bag_0.mcap']
+    with (tmp_path / 'bag' / 'bag_0.mcap').open('rb') as fh:
+        assert make_reader(fh).get_summary().statistics.message_count == 50
     for i in range(50, 80):
         bag.write('/a', i, ts.serialize_cdr(ts.types[STR](f'm{i}'), STR))
-    bag.abort()          # what SIGKILL leaves: no metadata, no footer, unflushed chunk gone
+    bag.abort()          # what SIGKILL leaves: no metadata, the unflushed file unfinished
     got = [m.msg.data for m in read_messages(tmp_path / 'bag', strict=False)]
     assert got == [f'm{i}' for i in range(50)]
+    with pytest.raises(DamagedBagError, match='bag_1.mcap: truncated'):
+        list(read_messages(tmp_path / 'bag'))
 
 
 def test_unknown_type(ts, tmp_path):
@@ -282,8 +304,8 @@ def test_writer_refuses_bad_input(ts, tmp_path):
 
 
 def test_zstd_chunks_round_trip_and_recovery(ts, tmp_path):
-    written = write_sample(ts, tmp_path / 'z', n=1000, flush_every=100, compression='zstd')
-    plain = write_sample(ts, tmp_path / 'p', n=1000, flush_every=100)
+    written = write_sample(ts, tmp_path / 'z', n=1000, compression='zstd')
+    plain = write_sample(ts, tmp_path / 'p', n=1000)
     assert written == plain
     size = lambda p: sum(f.stat().st_size for f in p.glob('*.mcap'))  # noqa: E731
     assert size(tmp_path / 'z') < 0.8 * size(tmp_path / 'p')
@@ -292,12 +314,13 @@ def test_zstd_chunks_round_trip_and_recovery(ts, tmp_path):
     assert got == want
     with (tmp_path / 'z' / 'z_0.mcap').open('rb') as fh:
         assert sum(1 for _ in make_reader(fh).iter_messages()) == len(written)
-    (tmp_path / 'z' / 'metadata.yaml').unlink()
-    f = tmp_path / 'z' / 'z_0.mcap'
+    big = write_big(ts, tmp_path / 'zb', compression='zstd')
+    (tmp_path / 'zb' / 'metadata.yaml').unlink()
+    f = tmp_path / 'zb' / 'zb_0.mcap'
     f.write_bytes(f.read_bytes()[:f.stat().st_size // 2])
     with pytest.warns(DamagedBagWarning):
         got = [(m.topic, m.t_ns, bytes(m.msg))
-               for m in read_messages(tmp_path / 'z', raw=True, strict=False)]
-    assert 0 < len(got) < len(want) and got == want[:len(got)]
+               for m in read_messages(tmp_path / 'zb', raw=True, strict=False)]
+    assert 0 < len(got) < len(big) and got == big[:len(got)]
     with pytest.raises(ValueError, match='compression must be one of'):
         BagWriter(tmp_path / 'bad', typestore=ts, compression='lz4')
