@@ -41,7 +41,7 @@ from coop_msgs.srv import MapFile, QueryMap
 from .bodies import BodyFilter
 from .offline import stamp_ns
 from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, voxelset
-from .voxelmap import MapFileError, MapInputError, VoxelMap
+from .voxelmap import MapFileError, MapInputError, ScanLimits, ScanRejected, VoxelMap
 
 PARAMS = {
     'rovers': ParamSpec(['rover1', 'rover2'], 'rover namespaces whose clouds are fused',
@@ -233,23 +233,16 @@ class MapperNode(Node):
         self.fuse(rover, msg, origin, t_arrival)
 
     def fuse(self, rover: str, msg: PointCloud2, origin: np.ndarray, t_arrival: float) -> None:
-        n = msg.width * msg.height
-        if n == 0:
-            self.bad.reject('empty', rover)
-            return
-        if n > self.p['max_points']:
-            self.bad.reject('too_large', f'{rover}: {n} points')
-            return
+        limits = ScanLimits(self.p['max_points'], self.p['max_range_m'])
         try:
+            limits.check_count(msg.width * msg.height)     # before decoding it
             pts, cov = msg_to_cloud(msg)
+            limits.check(pts, cov, origin)
         except CloudFormatError as exc:
             self.bad.reject('format', f'{rover}: {exc}')
             return
-        if not (np.all(np.isfinite(pts)) and (cov is None or np.all(np.isfinite(cov)))):
-            self.bad.reject('nan', rover)
-            return
-        if np.max(np.linalg.norm(pts - origin, axis=1)) > self.p['max_range_m']:
-            self.bad.reject('absurd_range', rover)
+        except ScanRejected as exc:
+            self.bad.reject(exc.reason, f'{rover}: {exc}')
             return
         bodies = BodyFilter(self.p['body_radius_m'], self.p['body_above_camera_m'],
                             self.p['body_pose_tolerance_s'])

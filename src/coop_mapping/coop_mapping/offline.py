@@ -35,7 +35,7 @@ from .stereo import (
     StereoRanger,
     Subpixel,
 )
-from .voxelmap import MapInputError, VoxelMap
+from .voxelmap import MapInputError, ScanLimits, ScanRejected, VoxelMap
 
 __all__ = ['StereoSettings', 'MapSettings', 'StereoFrame', 'OfflineMap', 'image_array',
            'stereo_frames', 'frame_scan', 'build_map', 'map_from_bag', 'stereo_topics']
@@ -92,6 +92,10 @@ class MapSettings:
     def new_map(self) -> VoxelMap:
         return VoxelMap(self.resolution_m, max_points=self.max_points,
                         ray_subdivision=self.ray_subdivision)
+
+    def limits(self) -> ScanLimits:
+        """The mapper's input checks with these settings."""
+        return ScanLimits(self.max_points, self.max_range_m)
 
     def body_filter(self) -> BodyFilter:
         return BodyFilter(self.body_radius_m, self.body_above_camera_m,
@@ -207,14 +211,15 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
               map_frame: str = 'map') -> OfflineMap:
     """Fuse every complete stereo frame of `rovers` (None: all found) into one VoxelMap, in
     stamp order (ties: rover name), with the mapper's body filter (every frame's camera pose
-    is a pose the mapper would hold) and rejections (empty cloud, absurd range, too many
-    points, clouds of rover bodies only, bad input)."""
+    is a pose the mapper would hold) and rejections (`voxelmap.ScanLimits`: empty cloud, too
+    many points, non-finite numbers, absurd range; clouds of rover bodies only; bad input)."""
     from .ros_conv import pose_to_rt  # noqa: PLC0415 - message types only, not needed above
 
     frames = sorted(stereo_frames(messages, rovers), key=lambda f: (f.stamp_ns, f.rover))
     out = OfflineMap(mapping.new_map())
     rangers: dict[tuple, StereoRanger] = {}
     bodies = mapping.body_filter()
+    limits = mapping.limits()
     poses: dict[str, dict[int, np.ndarray]] = {}
     for fr in frames:
         if fr.pose.header.frame_id == map_frame:
@@ -234,14 +239,10 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
         except (StereoError, ValueError, cv2.error):       # as the stereo node counts them
             out.rejected['stereo'] += 1
             continue
-        if len(pts) == 0:
-            out.rejected['empty'] += 1
-            continue
-        if len(pts) > mapping.max_points:
-            out.rejected['too_large'] += 1
-            continue
-        if np.max(np.linalg.norm(pts - origin, axis=1)) > mapping.max_range_m:
-            out.rejected['absurd_range'] += 1
+        try:
+            limits.check(pts, cov, origin)
+        except ScanRejected as exc:                         # as the mapper counts them
+            out.rejected[exc.reason] += 1
             continue
         if bodies.enabled:
             cams = bodies.cameras_at(fr.stamp_ns, origin,
@@ -265,7 +266,8 @@ def map_from_bag(bag: str | Path, rovers: Iterable[str] | None = None, *,
                  stereo: StereoSettings = StereoSettings(),
                  mapping: MapSettings = MapSettings()) -> OfflineMap:
     """`build_map` on a rosbag2 bag (read with rover_bag.bagio, no DDS)."""
-    from rover_bag.bagio import bag_info, read_messages  # noqa: PLC0415 - optional dependency
+    # rosbags: only bag reading needs it; the mapper node imports this module
+    from rover_bag.bagio import bag_info, read_messages  # noqa: PLC0415
 
     names = list(rovers) if rovers is not None else sorted(
         {m['rover'] for t in bag_info(bag).topics if (m := _TOPIC.match(t))})

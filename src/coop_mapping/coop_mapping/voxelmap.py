@@ -68,6 +68,7 @@ from .gauss import (
 )
 
 __all__ = ['OccupancyModel', 'VoxelMap', 'InsertResult', 'MapFileError', 'MapInputError',
+           'ScanLimits', 'ScanRejected',
            'state_agreement', 'kernel_centroids',
            'pack_keys', 'unpack_keys', 'ray_voxel_keys', 'FREE', 'OCCUPIED', 'UNKNOWN']
 
@@ -85,6 +86,44 @@ _EYE6 = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])     # the identity as xx xy xz 
 
 class MapInputError(ValueError):
     """Bad scan given to the map (NaN, wrong shape, out of the key range...)."""
+
+
+class ScanRejected(MapInputError):
+    """A scan the mappers do not fuse; `reason` is the short key they count it under."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class ScanLimits:
+    """The input checks the `mapper` node and `coop_mapping.offline` both apply to a scan
+    before fusing it (the map's own checks in `insert_scan` come after): each raises
+    ScanRejected with the reason key and what is wrong."""
+
+    max_points: int = 1_000_000
+    max_range_m: float = 30.0
+
+    def check_count(self, n: int) -> None:
+        """Before decoding a cloud of `n` points: not empty, at most max_points."""
+        if n == 0:
+            raise ScanRejected('empty', 'no points')
+        if n > self.max_points:
+            raise ScanRejected('too_large', f'{n} points > max_points {self.max_points}')
+
+    def check(self, points: np.ndarray, covariances: np.ndarray | None,
+              origin: np.ndarray) -> None:
+        """A decoded scan: `check_count`, every number finite, no point farther than
+        max_range_m from the camera at `origin` (an absurd range is a broken cloud)."""
+        self.check_count(len(points))
+        if not (np.all(np.isfinite(points))
+                and (covariances is None or np.all(np.isfinite(covariances)))):
+            raise ScanRejected('nan', 'points or covariances not finite')
+        far = float(np.max(np.linalg.norm(points - origin, axis=1)))
+        if far > self.max_range_m:
+            raise ScanRejected('absurd_range', f'a point {far:.1f} m from the camera > '
+                                               f'max_range_m {self.max_range_m}')
 
 
 class MapFileError(RuntimeError):

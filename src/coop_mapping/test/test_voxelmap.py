@@ -421,3 +421,23 @@ def test_a_flipped_zip_header_field_is_a_map_file_error(tmp_path):
     (tmp_path / 'e.cmap').write_bytes(bytes(b))
     with pytest.raises(MapFileError):
         VoxelMap.load(tmp_path / 'e.cmap')
+
+
+def test_scan_limits_are_the_mappers_input_rules():
+    """`ScanLimits` is the one rule set the mapper node and coop_mapping.offline apply before
+    fusing: each defect refused with its reason key; a sound scan passes."""
+    from coop_mapping.voxelmap import MapInputError, ScanLimits, ScanRejected
+    lim = ScanLimits(max_points=5, max_range_m=10.0)
+    o = np.zeros(3)
+    pts = np.array([[1.0, 0, 0], [0, 2.0, 0], [0, 0, 3.0]])
+    lim.check(pts, None, o)
+    lim.check(pts, np.ones((3, 6)), o)
+    cases = [(np.zeros((0, 3)), None, 'empty'), (np.ones((6, 3)), None, 'too_large'),
+             (np.r_[pts, [[np.nan, 0, 0]]], None, 'nan'), (pts, np.full((3, 6), np.inf), 'nan'),
+             (np.r_[pts, [[10.5, 0, 0]]], None, 'absurd_range')]
+    for p, c, reason in cases:
+        with pytest.raises(ScanRejected) as info:
+            lim.check(p, c, o)
+        assert info.value.reason == reason and isinstance(info.value, MapInputError)
+    with pytest.raises(ScanRejected, match='6 points > max_points 5'):
+        lim.check_count(6)
