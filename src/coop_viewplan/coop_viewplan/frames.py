@@ -26,6 +26,18 @@ def yaw_pitch_from_optical(quat_xyzw: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(fwd[1], fwd[0])), float(-np.arcsin(np.clip(fwd[2], -1, 1)))
 
 
+def camera_pose(position, quat_xyzw) -> tuple[np.ndarray, float, float]:
+    """A camera's pose from a pose message's position (x, y, z) and optical-frame orientation:
+    (position (3,), yaw, pitch). The guard the `view_planner` node applies to a request and
+    `coop_viewplan.offline` to a bag's poses: ValueError unless the position is finite and the
+    quaternion finite and non-zero."""
+    pos = np.asarray(position, dtype=float).reshape(3)
+    if not np.all(np.isfinite(pos)):
+        raise ValueError('current pose position must be finite')
+    yaw, pitch = yaw_pitch_from_optical(quat_xyzw)
+    return pos, yaw, pitch
+
+
 def look_at_quaternion(camera: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Optical frame orientation pointing the camera axis at the target (Eq. 4-1 assumes it)."""
     d = np.asarray(target, float) - np.asarray(camera, float)

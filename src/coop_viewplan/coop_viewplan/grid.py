@@ -6,6 +6,7 @@ map (`from_sparse` converts the sparse keys of coop_msgs/VoxelMap without import
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -140,6 +141,36 @@ def planning_bounds(keys: np.ndarray, resolution: float, *, pad_m: float,
         top_m = max(ceiling_m, camera_height_m + resolution)
         hi[2] = max(int(keys[:, 2].max()), int(np.floor(top_m / resolution)))
     return lo, hi
+
+
+class EmptyMapError(MapError):
+    """The map holds no voxel: nothing to plan on yet (a state, not a defect)."""
+
+
+def planning_grid(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, pad_m: float,
+                  ceiling_m: float = 0.0, camera_height_m: float = 0.0,
+                  max_cells: int | None = None) -> OccupancyGrid:
+    """The dense planning grid of a sparse voxel map (keys (N, 3) or flat, occupancy (N,)), with
+    the checks the `view_planner` node and `coop_viewplan.offline` both apply: a positive finite
+    resolution, one occupancy per key, at least one voxel (EmptyMapError), at most `max_cells`
+    cells (a far outlier voxel or a tiny resolution would make a huge grid), and
+    `from_sparse`'s own. MapError with the reason otherwise."""
+    keys = np.asarray(keys, dtype=np.int64)
+    occ = np.asarray(occupancy, dtype=np.float32).reshape(-1)
+    if not (resolution > 0 and math.isfinite(resolution)):
+        raise MapError(f'bad resolution: {resolution}')
+    if keys.size % 3 or keys.size // 3 != occ.size:
+        raise MapError(f'malformed voxel set: {keys.size} keys, {occ.size} occupancies')
+    if occ.size == 0:
+        raise EmptyMapError('empty map: no voxels')
+    k3 = keys.reshape(-1, 3)
+    bounds = planning_bounds(k3, resolution, pad_m=pad_m, ceiling_m=ceiling_m,
+                             camera_height_m=camera_height_m)
+    cells = math.prod(int(h) - int(lo) + 1 for lo, h in zip(*bounds))
+    if max_cells is not None and cells > max_cells:
+        raise MapError(f'the planning grid would have {cells} cells > max_grid_cells '
+                       f'{max_cells}')
+    return OccupancyGrid.from_sparse(k3, occ, resolution=resolution, bounds_keys=bounds)
 
 
 def markov_estimate(grid: OccupancyGrid, *, iterations: int = 6,

@@ -90,7 +90,7 @@ from .raycast import (
 )
 
 
-class Strategy(StrEnum):
+class StrategyName(StrEnum):
     """The exploration strategies of Figs. 3-13/3-16/3-20 (the thesis's five) and frontier."""
 
     RANDOM = 'random'
@@ -137,7 +137,7 @@ class ReachModel(StrEnum):
     EVIDENCE = 'evidence'
 
 
-STRATEGIES = tuple(Strategy)
+STRATEGIES = tuple(StrategyName)
 UNKNOWN_OCCLUSIONS = tuple(UnknownOcclusion)
 
 

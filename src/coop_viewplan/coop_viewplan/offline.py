@@ -12,16 +12,17 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from coop_common.params import check_values, parse_value
+from coop_common.params import check_values, choice, parse_value
 
-from .frames import yaw_pitch_from_optical
-from .grid import MapError, OccupancyGrid, planning_bounds
+from .frames import camera_pose
+from .grid import MapError, OccupancyGrid, planning_grid
 from .nbv import (
     STRATEGIES,
     CameraState,
@@ -29,6 +30,7 @@ from .nbv import (
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
+    StrategyName,
 )
 from .params import PARAMS, check_params
 
@@ -37,7 +39,7 @@ from .params import PARAMS, check_params
 PLANNING_PARAMS = ('fov_deg', 'depth_m', 'rays_az', 'rays_el', 'k_rel', 'n_exp', 'candidates',
                    'headings', 'camera_height_m', 'clearance_m', 'p_empty', 'occupied_voxels',
                    'occupied_p', 'occupied_clamp', 'pad_m', 'ceiling_m', 'seed', 'ni_measure',
-                   'free_gray')
+                   'free_gray', 'max_grid_cells')
 
 
 def node_parameters(overrides: Sequence[str] = ()) -> dict:
@@ -74,31 +76,31 @@ def nbv_config(p: dict) -> NbvConfig:
         ni_measure=p['ni_measure'], free_gray=p['free_gray'])
 
 
-def grid_from_voxelmap(vm, *, pad_m: float, ceiling_m: float = 0.0,
-                       camera_height_m: float = 0.0) -> OccupancyGrid:
-    """coop_mapping VoxelMap -> dense planning grid (`grid.planning_bounds`), as the node
-    converts /map/voxels."""
-    from coop_mapping.voxelmap import unpack_keys
-    keys = unpack_keys(vm.keys)
-    return OccupancyGrid.from_sparse(
-        keys, vm.probability(), resolution=vm.resolution,
-        bounds_keys=planning_bounds(keys, vm.resolution, pad_m=pad_m, ceiling_m=ceiling_m,
-                                    camera_height_m=camera_height_m))
+def grid_from_voxelmap(vm, p: dict) -> OccupancyGrid:
+    """coop_mapping VoxelMap -> dense planning grid, with the node's checks and its parameter
+    values `p` (`grid.planning_grid`, as the node converts the map topic)."""
+    from coop_mapping.voxelmap import unpack_keys  # noqa: PLC0415 - see map_from_bag below
+    return planning_grid(unpack_keys(vm.keys), vm.probability(), vm.resolution, pad_m=p['pad_m'],
+                         ceiling_m=p['ceiling_m'], camera_height_m=p['camera_height_m'],
+                         max_cells=p['max_grid_cells'])
 
 
 def last_camera_poses(bag: str | Path) -> dict[str, CameraState]:
     """Each rover's last `<rover>/stereo/pose` in a bag as a CameraState."""
-    from rover_bag.bagio import bag_info, read_messages
+    # rosbags: only the offline paths read bags; the view_planner node imports this module
+    from rover_bag.bagio import bag_info, read_messages  # noqa: PLC0415
     topics = sorted(t for t in bag_info(bag).topics if t.endswith('/stereo/pose'))
     last = {}
     for rec in read_messages(bag, topics):
         last[rec.topic.split('/')[1]] = rec.msg.pose.pose
     out = {}
     for rover, pose in sorted(last.items()):
-        q = pose.orientation
-        yaw, pitch = yaw_pitch_from_optical(np.array([q.x, q.y, q.z, q.w]))
-        out[rover] = CameraState(np.array([pose.position.x, pose.position.y,
-                                           pose.position.z]), yaw, pitch)
+        q, t = pose.orientation, pose.position
+        try:
+            position, yaw, pitch = camera_pose([t.x, t.y, t.z], [q.x, q.y, q.z, q.w])
+        except ValueError as exc:      # as the node answers such a request
+            raise ValueError(f'{rover}: last stereo/pose: {exc}') from None
+        out[rover] = CameraState(position, yaw, pitch)
     return out
 
 
@@ -110,8 +112,9 @@ class Answer:
 
 
 def plan_team(grid: OccupancyGrid, cameras: dict[str, CameraState], params: dict, *,
-              strategy: str = 'max_information') -> list[Answer]:
+              strategy: StrategyName | str = StrategyName.MAX_INFORMATION) -> list[Answer]:
     """The node's answers to each rover in turn on one map (later rovers see earlier claims)."""
+    strategy = choice(StrategyName, strategy, 'strategy')
     planner = NextBestViewPlanner(nbv_config(params))
     rng = np.random.default_rng(int(params['seed']))
     claimed = np.zeros(grid.shape, bool)
@@ -133,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('bag', type=Path, help='bag with <rover>/stereo/* (poses, and the map '
                                            'unless --map)')
     ap.add_argument('--map', type=Path, default=None, help='a saved coop_mapping map instead')
-    ap.add_argument('--strategy', default='max_information', choices=list(STRATEGIES))
+    ap.add_argument('--strategy', default=StrategyName.MAX_INFORMATION,
+                    choices=list(STRATEGIES))
     ap.add_argument('-p', action='append', default=[], metavar='NAME=VALUE',
                     help='node parameter override, e.g. -p camera_height_m=0.75')
     a = ap.parse_args(argv)
@@ -144,17 +148,22 @@ def main(argv: list[str] | None = None) -> int:
     if not a.bag.exists():
         ap.error(f'{a.bag}: no such bag')
     if a.map is not None:
-        from coop_mapping.voxelmap import VoxelMap
+        from coop_mapping.voxelmap import VoxelMap  # noqa: PLC0415 - see map_from_bag below
         vm = VoxelMap.load(a.map)
         src = str(a.map)
     else:
-        from coop_mapping.offline import map_from_bag
+        # cv2 and rosbags: only this CLI reads bags; the view_planner node imports this module
+        from coop_mapping.offline import map_from_bag  # noqa: PLC0415
         vm = map_from_bag(a.bag).map
         src = f'map_from_bag({a.bag})'
-    grid = grid_from_voxelmap(vm, pad_m=params['pad_m'], ceiling_m=params['ceiling_m'],
-                              camera_height_m=params['camera_height_m'])
+    try:
+        grid = grid_from_voxelmap(vm, params)
+        cameras = last_camera_poses(a.bag)
+    except ValueError as exc:       # MapError included: what the node refuses
+        print(f'{src}: {exc}', file=sys.stderr)
+        return 1
     print(f'{src}: {len(vm)} voxels at {vm.resolution} m; poses: last stereo/pose in {a.bag}')
-    for ans in plan_team(grid, last_camera_poses(a.bag), params, strategy=a.strategy):
+    for ans in plan_team(grid, cameras, params, strategy=a.strategy):
         d = ans.decision
         if d is None:
             print(f'{ans.rover}: none ({ans.message})')

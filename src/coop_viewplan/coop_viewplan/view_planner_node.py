@@ -9,18 +9,20 @@ success=false with the reason.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from rclpy.node import Node
 
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node
+from coop_common.params import choice
 from coop_common.qos import LATCHED_QOS
 from coop_msgs.msg import ViewRating, VoxelMap
 from coop_msgs.srv import NextBestView, TaskView
 
-from .frames import look_at_quaternion, optical_quaternion, yaw_pitch_from_optical
-from .grid import MapError, OccupancyGrid, planning_bounds
-from .nbv import STRATEGIES, CameraState, NextBestViewPlanner, PlanningError
+from .frames import camera_pose, look_at_quaternion, optical_quaternion
+from .grid import EmptyMapError, MapError, OccupancyGrid, planning_grid
+from .nbv import CameraState, NextBestViewPlanner, PlanningError, StrategyName
 from .offline import nbv_config
 from .params import PARAMS, check_params
 from .placement import CameraModel, PlacementError, Target, TaskPlacer, mast_stations
@@ -62,30 +64,16 @@ class ViewPlannerNode(Node):
         self._stations = (None, None)       # (grid, its mast stations)
 
     def _on_map(self, msg: VoxelMap) -> None:
-        keys = np.asarray(msg.voxels.keys, dtype=np.int64)
-        occ = np.asarray(msg.voxels.occupancy, dtype=np.float32)
-        if not (msg.resolution_m > 0 and math.isfinite(msg.resolution_m)):
-            self._refuse('bad resolution', f'{msg.resolution_m}')
-            return
-        if keys.size % 3 or keys.size // 3 != occ.size:
-            self._refuse('malformed voxel set', f'{keys.size} keys, {occ.size} occupancies')
-            return
-        if occ.size == 0:
+        try:
+            grid = planning_grid(msg.voxels.keys, msg.voxels.occupancy, msg.resolution_m,
+                                 pad_m=self.p['pad_m'], ceiling_m=self.p['ceiling_m'],
+                                 camera_height_m=self.p['camera_height_m'],
+                                 max_cells=self.p['max_grid_cells'])
+        except EmptyMapError:
             self.grid = None
             self.map_state = 'empty map: the last map received has no voxels'
             self.sequence = int(msg.sequence)
             return
-        try:
-            k3 = keys.reshape(-1, 3)
-            bounds = planning_bounds(k3, msg.resolution_m, pad_m=self.p['pad_m'],
-                                     ceiling_m=self.p['ceiling_m'],
-                                     camera_height_m=self.p['camera_height_m'])
-            cells = math.prod(int(h) - int(lo) + 1 for lo, h in zip(*bounds))
-            if cells > self.p['max_grid_cells']:
-                raise MapError(f'the planning grid would have {cells} cells > max_grid_cells '
-                               f"{self.p['max_grid_cells']}")
-            grid = OccupancyGrid.from_sparse(k3, occ, resolution=msg.resolution_m,
-                                             bounds_keys=bounds)
         except MapError as exc:
             self._refuse('bad map', str(exc))
             return
@@ -100,7 +88,7 @@ class ViewPlannerNode(Node):
         self.grid = grid
         self.map_frame = msg.header.frame_id or self.p['frame_id']
         self.sequence = int(msg.sequence)
-        self.get_logger().debug(f'map {self.sequence}: {occ.size} voxels')
+        self.get_logger().debug(f'map {self.sequence}: {len(msg.voxels.occupancy)} voxels')
 
     def _refuse(self, reason: str, detail: str) -> None:
         """Count a map that cannot be planned on; the last good one (if any) stays."""
@@ -124,8 +112,10 @@ class ViewPlannerNode(Node):
 
     def _on_nbv(self, req: NextBestView.Request, resp: NextBestView.Response):
         resp.success = False
-        if req.strategy not in STRATEGIES:
-            resp.message = f'unknown strategy {req.strategy!r}; one of {list(STRATEGIES)}'
+        try:
+            strategy = choice(StrategyName, req.strategy, 'strategy')
+        except ValueError as exc:
+            resp.message = str(exc)
             return resp
         if self.grid is None:
             resp.message = self.map_state
@@ -135,11 +125,8 @@ class ViewPlannerNode(Node):
             return resp
         pos = req.current_pose.pose.position
         q = req.current_pose.pose.orientation
-        position = np.array([pos.x, pos.y, pos.z])
         try:
-            if not np.all(np.isfinite(position)):
-                raise ValueError('current pose position must be finite')
-            yaw, pitch = yaw_pitch_from_optical(np.array([q.x, q.y, q.z, q.w]))
+            position, yaw, pitch = camera_pose([pos.x, pos.y, pos.z], [q.x, q.y, q.z, q.w])
         except ValueError as exc:
             resp.message = str(exc)
             return resp
@@ -153,11 +140,10 @@ class ViewPlannerNode(Node):
                 claimed |= mask
         planner = self.planner
         if req.max_candidates:
-            from dataclasses import replace
             n = min(int(req.max_candidates), PARAMS['candidates'].hi)
             planner = NextBestViewPlanner(replace(planner.config, n_positions=n))
         try:
-            d = planner.plan(g, cam, strategy=req.strategy, rng=self.rng, claimed=claimed,
+            d = planner.plan(g, cam, strategy=strategy, rng=self.rng, claimed=claimed,
                              free_footprint=True)
         except (MapError, PlanningError, ValueError) as exc:
             resp.message = str(exc)
@@ -180,7 +166,7 @@ class ViewPlannerNode(Node):
         best.collision_probability = float(c.collision_p[d.index])
         resp.best = best
         resp.success = True
-        resp.message = (f'{req.strategy}: {len(c)} candidates, NI {best.new_information_bits:.3f}'
+        resp.message = (f'{strategy}: {len(c)} candidates, NI {best.new_information_bits:.3f}'
                         f' bits, d {best.distance:.2f} m')
         return resp
 

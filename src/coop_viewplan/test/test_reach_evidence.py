@@ -176,9 +176,7 @@ def test_sample_bag_map_gives_every_rover_a_view():
     res = offline_map.map_from_bag(BAG)
     assert set(res.scans) == {'rover1', 'rover2'}
     params = offline.node_parameters()
-    grid = offline.grid_from_voxelmap(res.map, pad_m=params['pad_m'],
-                                      ceiling_m=params['ceiling_m'],
-                                      camera_height_m=params['camera_height_m'])
+    grid = offline.grid_from_voxelmap(res.map, params)
     cams = offline.last_camera_poses(BAG)
     assert set(cams) == {'rover1', 'rover2'}
     answers = offline.plan_team(grid, cams, params)
@@ -191,3 +189,23 @@ def test_sample_bag_map_gives_every_rover_a_view():
         assert d.candidates.collision_p[d.index] < params['p_empty'], a.rover
         cell = tuple(grid.to_index(d.position))
         assert grid.known[cell] and grid.prob[cell] < params['p_empty'], a.rover
+
+
+def test_node_and_offline_share_the_map_guards():
+    """`grid.planning_grid` is the one rule set both the node's map topic and the offline tool
+    apply: each defect refused with its reason, an empty map told apart."""
+    from coop_viewplan.grid import EmptyMapError, MapError, planning_grid
+    keys = np.array([[0, 0, 0], [1, 0, 0], [2, 1, 0]])
+    occ = np.array([0.2, 0.9, 0.3], np.float32)
+    g = planning_grid(keys, occ, 0.1, pad_m=0.5, max_cells=10_000)
+    assert g.known.sum() == 3
+    for args, kw, why in (((keys, occ, 0.0), {}, 'bad resolution'),
+                          ((keys, occ, float('nan')), {}, 'bad resolution'),
+                          ((keys.reshape(-1)[:-1], occ, 0.1), {}, 'malformed voxel set'),
+                          ((keys, occ[:2], 0.1), {}, 'malformed voxel set'),
+                          ((keys, occ, 0.1), {'max_cells': 50}, 'max_grid_cells 50'),
+                          ((keys, np.array([0.2, 1.5, 0.3]), 0.1), {}, 'within 0..1')):
+        with pytest.raises(MapError, match=why):
+            planning_grid(*args, pad_m=0.5, **kw)
+    with pytest.raises(EmptyMapError, match='empty map'):
+        planning_grid(np.zeros((0, 3), int), np.zeros(0), 0.1, pad_m=0.5)

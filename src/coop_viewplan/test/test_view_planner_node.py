@@ -96,7 +96,7 @@ def test_services_fail_cleanly_then_plan(graph):
     wait_for(lambda: node.grid is not None, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
              what='map received')
     r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req('teleport'))
-    assert not r.success and 'unknown strategy' in r.message
+    assert not r.success and 'strategy must be one of' in r.message
     r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req())
     assert r.success, r.message
     p = r.best.pose.pose.position
