@@ -2,12 +2,16 @@
 installed executables the way `ros2 run` finds them, and waiting on conditions, not sleeping."""
 from __future__ import annotations
 
+import importlib.util
 import os
+import shutil
 import signal
 import subprocess
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+
+from ament_index_python.packages import get_package_prefix
 
 
 def pick_domain_id(pid: int | None = None) -> int:
@@ -27,7 +31,6 @@ def isolate_ros_environment(domain_id: int | None = None) -> int:
 def executable_path(package: str, executable: str) -> Path:
     """Where `ros2 run <package> <executable>` would find it: <prefix>/lib/<package>/<executable>,
     prefix from the ament index on AMENT_PREFIX_PATH."""
-    from ament_index_python.packages import get_package_prefix  # noqa: PLC0415
 
     path = Path(get_package_prefix(package)) / 'lib' / package / executable
     if not (path.is_file() and os.access(path, os.X_OK)):
@@ -39,9 +42,6 @@ def ros2_tools() -> str:
     """The `ros2` command (a ROS 2 Jazzy install's, or ../shared/ros2-tools' in the venv) with
     launch_ros beside it: its path. Without them a test skips with the reason, or fails when
     COOP_REQUIRE_ROS2_TOOLS=1 (CI installs them and requires them)."""
-    import importlib.util  # noqa: PLC0415
-    import shutil  # noqa: PLC0415
-
     import pytest  # noqa: PLC0415 - a test helper; the nodes never import this function
 
     exe = shutil.which('ros2')

@@ -37,7 +37,8 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
     inclinometer and F/T samples nearest its stamp within `tolerance_s`, saturated samples
     skipped; the defaults are the node's). Rows: specific force (3), gyro (3), roll, pitch,
     force (3), torque (3). `rejects`, if given, counts the samples skipped, by reason."""
-    from rover_bag.bagio import BagError as RawBagError  # noqa: PLC0415 - optional at import
+    # rosbags: only the bag paths need it; the identifier node imports this module
+    from rover_bag.bagio import BagError as RawBagError  # noqa: PLC0415
     from rover_bag.bagio import read_messages  # noqa: PLC0415
 
     topics = ident_topics(rover)

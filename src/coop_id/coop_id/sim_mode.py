@@ -12,6 +12,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+import rclpy
+from rclpy.action import ActionClient
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+from coop_common.dynparams import PARAM_NAMES
+from coop_common.qos import LATCHED_QOS
+from coop_common.testing import NodeProcess, isolate_ros_environment
+from coop_msgs.action import Identify
+from coop_msgs.msg import DynamicParameters
 
 
 def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
@@ -20,18 +31,6 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
     """domain_id: the ROS domain of the run (default: $COOP_SIM_DOMAIN_ID, else one from the
     pid); the processes started inherit it. log_dir: where the nodes' logs go (default: a new
     temporary directory)."""
-    import rclpy  # noqa: PLC0415 - only this mode needs ROS
-    from rclpy.action import ActionClient  # noqa: PLC0415
-    from rclpy.context import Context  # noqa: PLC0415
-    from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
-    from rclpy.node import Node  # noqa: PLC0415
-
-    from coop_common.dynparams import PARAM_NAMES  # noqa: PLC0415
-    from coop_common.qos import LATCHED_QOS  # noqa: PLC0415
-    from coop_common.testing import NodeProcess, isolate_ros_environment  # noqa: PLC0415
-    from coop_msgs.action import Identify  # noqa: PLC0415
-    from coop_msgs.msg import DynamicParameters  # noqa: PLC0415
-
     if domain_id is None:
         domain_id = int(os.environ.get('COOP_SIM_DOMAIN_ID', '0')) or None
     isolate_ros_environment(domain_id)

@@ -19,6 +19,7 @@ from coop_common.cli import number, output_dir, output_path
 from coop_common.dynparams import PARAM_LABELS, PARAM_NAMES, TruthFileError, load_truth
 from coop_common.files import save_figure, write_json
 
+from . import offline
 from .excitation import STRATEGIES
 from .experiment import RunResult, reference_noise_scales, run_identification
 from .identifier_core import IdentifierConfig
@@ -306,7 +307,7 @@ def format_sim(doc: dict) -> str:
 def _main_sim(args: argparse.Namespace) -> int:
     """Every listed strategy end to end, each in its own fresh sim + identifier (the same seed,
     so the same noise draws where the commands agree): one table, estimates side by side."""
-    from .sim_mode import run_sim_identification  # noqa: PLC0415
+    from .sim_mode import run_sim_identification  # noqa: PLC0415 - rclpy, only --sim
 
     strategies = args.strategies
     results = {}
@@ -354,7 +355,6 @@ def format_bag(doc: dict) -> str:
 
 
 def _main_bag(args: argparse.Namespace) -> int:
-    from . import offline  # noqa: PLC0415
 
     try:
         _, rows = offline.bag_samples(args.bag, rover=args.rover)

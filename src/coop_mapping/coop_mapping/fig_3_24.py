@@ -304,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(args.json, out, indent=2)
     if args.plots:
-        import matplotlib  # noqa: PLC0415
+        import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt  # noqa: PLC0415
         fig, ax = plt.subplots(figsize=(7, 4.5))

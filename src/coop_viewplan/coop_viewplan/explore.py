@@ -148,7 +148,7 @@ def rooms_world(*, seed: int, size_m: float = 100.0, resolution: float = 1.0,
 def png_world(path: str | Path, *, resolution: float = 1.0, seed: int = 0,
               clearance_cells: int = 1) -> World:
     """A world from an image: dark pixels (< 0.5 gray) are obstacles; row 0 is the top (+y)."""
-    import matplotlib.image as mpimg
+    import matplotlib.image as mpimg  # noqa: PLC0415 - heavy, only to read a PNG world
     img = np.asarray(mpimg.imread(str(path)), dtype=float)
     if img.ndim == 3:
         img = img[..., :3].mean(axis=2)

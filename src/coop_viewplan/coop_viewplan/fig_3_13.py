@@ -159,7 +159,7 @@ def verdict(strategies: dict) -> dict:
 
 
 def plot(result: dict, out_dir: Path) -> list[Path]:
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))

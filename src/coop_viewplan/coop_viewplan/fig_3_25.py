@@ -34,10 +34,17 @@ from pathlib import Path
 import numpy as np
 
 from coop_common.cli import number, output_dir, output_path
+from coop_common.dynparams import load_truth
 from coop_common.files import save_figure, write_json
+from coop_mapping.offline import MapSettings, StereoSettings
+from coop_mapping.voxelmap import OCCUPIED, unpack_keys
+from rover_sim.config import SimConfig
+from rover_sim.rover_model import MAST_JOINTS, STEREO_BASELINE_M
+from rover_sim.world import World
 
 from .grid import FREE_GRAYS, MapError, OccupancyGrid, gray_estimate
 from .nbv import (
+    STRATEGIES,
     CameraState,
     NbvConfig,
     NextBestViewPlanner,
@@ -101,11 +108,6 @@ class SimMapper:
     ROVER_HALF_WIDTH_M = 0.2      # rover_sim chassis 0.5 m x 0.36 m
 
     def __init__(self, cfg: Fig325Config, *, seed: int) -> None:
-        from coop_common.dynparams import load_truth
-        from coop_mapping.offline import MapSettings, StereoSettings
-        from rover_sim.config import SimConfig
-        from rover_sim.rover_model import MAST_JOINTS, STEREO_BASELINE_M
-        from rover_sim.world import World
 
         self.cfg = cfg
         sim = SimConfig(rovers=cfg.rovers, seed=seed, occlusion_density=cfg.occlusion_density,
@@ -245,7 +247,6 @@ class SimMapper:
     def counts(self) -> dict[str, int]:
         """Known and occupied voxels of the shared map: in the site (the planning volume: the
         rocks-and-drums square + 1 m, ground to 1 m) and in all (out to the stereo range)."""
-        from coop_mapping.voxelmap import OCCUPIED, unpack_keys
         k = unpack_keys(self.map.keys)
         occ = self.map.states() == OCCUPIED
         lo, hi = self.bounds
@@ -254,7 +255,6 @@ class SimMapper:
                 'known_all': len(self.map), 'occupied_all': int(np.count_nonzero(occ))}
 
     def grid(self) -> OccupancyGrid:
-        from coop_mapping.voxelmap import unpack_keys
         return OccupancyGrid.from_sparse(unpack_keys(self.map.keys), self.map.probability(),
                                          resolution=self.map.resolution,
                                          bounds_keys=self.bounds)
@@ -376,7 +376,6 @@ def run_strategy(strategy: str, cfg: Fig325Config, *, seed: int,
 
 def _top_view(sm: SimMapper) -> dict:
     """Per ground cell: -1 unknown, 0 known free, 1 an occupied voxel above the ground."""
-    from coop_mapping.voxelmap import OCCUPIED, unpack_keys
     k = unpack_keys(sm.map.keys)
     lo, hi = sm.bounds
     keep = np.all((k >= lo) & (k <= hi), axis=1)
@@ -481,7 +480,7 @@ def format_table(res: dict) -> str:
 
 
 def plot(res: dict, out_dir: Path) -> Path:
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     s = res['strategies']
@@ -559,7 +558,6 @@ def main(argv: list[str] | None = None) -> int:
         if a.plots is not None:
             print(f'plot: {plot(res, a.plots)}')
         return 0
-    from .nbv import STRATEGIES
     names = [s.strip() for s in a.strategies.split(',') if s.strip()]
     bad = [s for s in names if s not in STRATEGIES]
     if bad or not names:

@@ -65,6 +65,7 @@ from enum import StrEnum
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
@@ -525,7 +526,6 @@ def footprint_probability(grid2d_prob: np.ndarray, known2d: np.ndarray,
                           clearance_cells: int) -> np.ndarray:
     """Collision probability P of a rover standing on each cell: the largest occupancy within
     the clearance disk (unknown cells count 0.5, cells beyond the border 1)."""
-    from scipy import ndimage
     p = np.where(known2d, grid2d_prob, 0.5)
     return ndimage.maximum_filter(p, footprint=_disk(clearance_cells, 2), mode='constant',
                                   cval=1.0)
@@ -618,7 +618,6 @@ class Traversal:
         disk = self._disk(cell, radius_cells)
         nav = self.navigable | disk
         if self.blocked is not None and (self.blocked & disk).any():
-            from scipy import ndimage
             st = _disk(self.clearance_cells, 2)
             near_all = ndimage.binary_dilation(self.blocked, structure=st)
             near_rest = ndimage.binary_dilation(self.blocked & ~disk, structure=st)
@@ -867,7 +866,6 @@ class FrontierStrategy:
     name = 'frontier'
 
     def choose(self, ctx: PlanContext) -> Decision:
-        from scipy import ndimage
         g = ctx.grid
         if g.ndim == 2:
             unknown2d, free2d = ~g.known, g.free(p_empty=ctx.config.p_empty)
@@ -971,7 +969,6 @@ class NextBestViewPlanner:
     def _evidence_traversability(self, grid: OccupancyGrid) -> Traversal:
         """'evidence' model: obstacle columns block the path, unknown does not; the goal's
         camera voxel must be known free (P < P_empty)."""
-        from scipy import ndimage
         cfg = self.config
         if cfg.occupied_voxels < 1:
             raise ValueError('occupied_voxels must be >= 1')

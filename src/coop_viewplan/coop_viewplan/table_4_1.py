@@ -88,7 +88,7 @@ def check(cells: list[dict]) -> dict:
 def plot_rating_maps(out_dir: Path, *, seed: int = 7, density: float = 0.20) -> Path:
     """Fig. 4-8b analogue: RF over the free cells, object far / near (darker = better, as in
     the thesis)."""
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     maps = rating_maps(seed, density)

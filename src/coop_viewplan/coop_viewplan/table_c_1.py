@@ -27,7 +27,7 @@ THESIS = {1: [1.000] * 5, 2: [1.009, 1.142, 1.253, 1.375, 1.531],
 def render_scene(seed: int, size: int = 256, *, sensor_sigma: float = 2.0) -> np.ndarray:
     """A mono8 image of a random scene rendered by PyBullet's TinyRenderer, with Gaussian
     sensor noise of `sensor_sigma` gray levels (a rendered image has none; a camera does)."""
-    import pybullet as pb
+    import pybullet as pb  # noqa: PLC0415 - heavy, only to render the scenes
     rng = np.random.default_rng(seed)
     cid = pb.connect(pb.DIRECT)
     try:

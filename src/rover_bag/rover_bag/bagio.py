@@ -619,7 +619,7 @@ class _Source:
             # (receive stamps taken on several threads): merge the files' streams by time
             unzip = None
             if self.reader.compression_mode == 'message':
-                from rosbags.rosbag2.storage_mcap import zstd  # noqa: PLC0415
+                from rosbags.rosbag2.storage_mcap import zstd  # noqa: PLC0415 - message-compressed bags only
                 unzip = zstd.decompress
 
             def stream(file: Path) -> Iterator[tuple[int, str, str, bytes]]:

@@ -29,7 +29,7 @@ from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer
 from coop_msgs.srv import SimScenario
 
-from .compliance import matrix_to_quat
+from .compliance import matrix_to_quat, rpy_to_matrix
 from .config import ConfigError, NoiseConfig, SimConfig, load_config
 from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
 from .trajectory import TrajectoryError
@@ -430,7 +430,6 @@ class SimNode(Node):
         pubs['contact'].publish(msg)
 
     def _publish_odom(self, i: int, name: str, pubs: dict, t: Time) -> None:
-        from .compliance import rpy_to_matrix
         xy, yaw, v, w = self.world.odometry(i)
         od = Odometry()
         od.header.stamp, od.header.frame_id = t, f'{name}/odom'
