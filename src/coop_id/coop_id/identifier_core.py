@@ -94,6 +94,23 @@ class IdentifierConfig:
         self.condition_matrix = choice(ConditionMatrix, self.condition_matrix,
                                        'condition_matrix', error=IdentifierError)
 
+    @classmethod
+    def thesis(cls, **changes) -> IdentifierConfig:
+        """Ch. 2 as the thesis prints it: the information-based excitation costed by Eq. 2-13
+        as printed (literal_eq_2_13), constant parameters (no random walk) and no detection of
+        parameter changes. `changes`: the rest (rates, sensors, priors)."""
+        return cls(**{'strategy': Strategy.INFORMATION, 'literal_eq_2_13': True,
+                      'drift_per_s': 0.0, 'detect_changes': False, **changes})
+
+    @classmethod
+    def best_measured(cls, **changes) -> IdentifierConfig:
+        """The defaults, with the extensions beyond the thesis that measured best (coop_id
+        README): the information-based excitation costed by the information deficit
+        1 - In_i / n (Eq. 2-13 as printed rates a fully known parameter like an unknown one)
+        and the detection of parameter changes (a rock picked up) on. The errors-in-variables
+        bias compensation is `Identifier`'s `sensor_noise` argument, not a setting here."""
+        return cls(**changes)
+
 
 class Identifier:
     """Streaming identification of the 22 base parameters (thesis ch. 2)."""

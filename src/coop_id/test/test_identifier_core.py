@@ -128,3 +128,16 @@ def test_config_strategy_and_condition_matrix_are_checked_at_construction():
         IdentifierConfig(strategy='magic')
     with pytest.raises(IdentifierError, match='condition_matrix must be one of'):
         IdentifierConfig(condition_matrix='best')
+
+
+def test_named_configurations_thesis_and_best_measured():
+    """thesis(): ch. 2 as printed (Eq. 2-13 literal, constant parameters, no change
+    detection); best_measured(): the defaults; both take changes and check them."""
+    from coop_id.identifier_core import IdentifierConfig, IdentifierError
+    t = IdentifierConfig.thesis(rate_hz=100.0)
+    assert (t.literal_eq_2_13, t.drift_per_s, t.detect_changes, t.rate_hz) == (
+        True, 0.0, False, 100.0)
+    assert t.strategy == 'information'
+    assert IdentifierConfig.best_measured() == IdentifierConfig()
+    with pytest.raises(IdentifierError, match='strategy must be one of'):
+        IdentifierConfig.thesis(strategy='shake')

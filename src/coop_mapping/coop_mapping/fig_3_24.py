@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -69,6 +70,19 @@ class TrialConfig:
     def __post_init__(self) -> None:
         for name, kind in (('method', PoseMethod), ('subpixel', Subpixel)):
             object.__setattr__(self, name, choice(kind, getattr(self, name), name))
+
+    @classmethod
+    def thesis(cls, **changes: Any) -> TrialConfig:
+        """The thesis's motion estimate from the fiducials: g01 by Eq. 3-18 as printed
+        ('linear', the default). `changes`: the scene and the sensor."""
+        return cls(**{'method': PoseMethod.LINEAR, **changes})
+
+    @classmethod
+    def best_measured(cls, **changes: Any) -> TrialConfig:
+        """The fit beyond the thesis that measured best on Fig. 3-24 (coop_mapping README): the
+        covariance-weighted rigid fit, fused with the commanded motion (final error reduction
+        60 % / 78 % at 1100 / 350 mm, where the printed Eq. 3-18 gave -9 % / 65 %)."""
+        return cls(**{'method': PoseMethod.RIGID, 'fuse_prediction': True, **changes})
 
 
 def _scene_boxes(s: float) -> list[Box]:

@@ -318,3 +318,10 @@ def test_step_fuses_prediction_and_measurement(monkeypatch):
     assert 0.0 < err < 0.004                           # pulled towards the exact measurement
     assert np.all(np.linalg.eigvalsh(od.S) > 0)
     assert np.sqrt(od.S[3, 3]) < 0.002                 # smaller than the prediction's
+
+
+def test_fig_3_24_named_configurations():
+    from coop_mapping.fig_3_24 import TrialConfig
+    assert TrialConfig.thesis().method == 'linear' == TrialConfig().method
+    b = TrialConfig.best_measured(distance=0.35)
+    assert (b.method, b.fuse_prediction, b.distance) == ('rigid', True, 0.35)

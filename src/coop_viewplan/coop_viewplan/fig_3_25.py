@@ -29,6 +29,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -36,13 +37,14 @@ import numpy as np
 from coop_common.cli import number, output_dir, output_path
 from coop_common.dynparams import load_truth
 from coop_common.files import save_figure, write_json
+from coop_common.params import choice
 from coop_mapping.offline import MapSettings, StereoSettings
 from coop_mapping.voxelmap import OCCUPIED, unpack_keys
 from rover_sim.config import SimConfig
 from rover_sim.rover_model import MAST_JOINTS, STEREO_BASELINE_M
 from rover_sim.world import World
 
-from .grid import FREE_GRAYS, MapError, OccupancyGrid, gray_estimate
+from .grid import FREE_GRAYS, FreeGray, MapError, OccupancyGrid, gray_estimate
 from .nbv import (
     STRATEGIES,
     CameraState,
@@ -57,6 +59,14 @@ THESIS_CLAIM = ('Fig. 3-25 (§3.3.2, one stereo camera on the mobile manipulator
                 'information pose selection - "the effectiveness of the information based pose '
                 'selection process is seen" (maximum information maps more per scan).')
 STRATEGY_NAMES = {'raster': 'sequential/raster', 'max_information': 'maximum information'}
+
+
+class PoseSource(StrEnum):
+    """The camera pose each cloud is placed with: the simulator's 'truth' or the rover's own
+    'odometry'."""
+
+    TRUTH = 'truth'
+    ODOMETRY = 'odometry'
 
 
 @dataclass(frozen=True)
@@ -78,14 +88,18 @@ class Fig325Config:
     clearance_m: float = 0.5
     p_empty: float = 0.45
     k_rel: float = 0.15
-    pose_source: str = 'truth'            # camera pose of each cloud: 'truth' or 'odometry'
+    pose_source: PoseSource = PoseSource.TRUTH   # camera pose of each cloud
     # gray value of a known free voxel in NI: 'empty' 0 (§3.2.3/§3.3.2: empty space in the field
     # of view is tabulated as known with no contribution to the uncertainty model; "if every
     # point in the field of view is known and is empty then NI = 0"); 'occupancy' the map's
     # log-odds probability (0.40 after one miss, -p log2 p = 0.53: more than an unknown voxel's
     # 0.5; the earlier runs)
-    free_gray: str = 'empty'
+    free_gray: FreeGray = FreeGray.EMPTY
     max_speed_m_s: float = 0.25
+
+    def __post_init__(self) -> None:
+        for name, kind in (('pose_source', PoseSource), ('free_gray', FreeGray)):
+            object.__setattr__(self, name, choice(kind, getattr(self, name), name))
 
 
 @dataclass
@@ -225,7 +239,7 @@ class SimMapper:
     def scan(self, i: int) -> int:
         """Render rover i's stereo pair, range it, fuse it into the shared map; points fused."""
         left, right = self.world.render_stereo(i)
-        if self.cfg.pose_source == 'odometry':
+        if self.cfg.pose_source is PoseSource.ODOMETRY:
             t, rot, _ = self.world.estimated_camera_pose(i)
         else:
             t, rot = self.world.camera_pose(i)
@@ -532,7 +546,7 @@ def main(argv: list[str] | None = None) -> int:
                    help='headings the raster sweeps at each location (0: one, along the '
                         'raster, as in fig_3_13)')
     p.add_argument('--p-empty', type=number(lo=0, hi=1), default=d.p_empty)
-    p.add_argument('--pose', choices=('truth', 'odometry'), default=d.pose_source)
+    p.add_argument('--pose', choices=list(PoseSource), default=d.pose_source)
     p.add_argument('--free-gray', choices=FREE_GRAYS, default=d.free_gray,
                    help="NI gray value of known free voxels: 'empty' 0 (the thesis's known "
                         "empty space); 'occupancy' the map's log-odds probability (earlier)")

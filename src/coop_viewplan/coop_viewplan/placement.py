@@ -25,10 +25,13 @@ evaluations). `search='random'` rates a random subset of `max_candidates` candid
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
+
+from coop_common.params import choice
 
 from .grid import OccupancyGrid
 
@@ -766,7 +769,15 @@ def mast_stations(grid: OccupancyGrid, candidate: np.ndarray, collision_p: np.nd
                     np.asarray(collision_p, float)[tuple(idx.T)])
 
 
-SEARCHES = ('bounded', 'random')
+class Search(StrEnum):
+    """TaskPlacer's search: candidates rated best distance bound first, stopping when no bound
+    beats the best ('bounded', exact), or a random subset of max_candidates ('random')."""
+
+    BOUNDED = 'bounded'
+    RANDOM = 'random'
+
+
+SEARCHES = tuple(Search)
 
 
 class TaskPlacer:
@@ -776,15 +787,14 @@ class TaskPlacer:
     def __init__(self, camera: CameraModel | None = None, *, exponents: Exponents = Exponents(),
                  p_empty: float = 0.05, clearance_m: float = 0.5, stride: int = 1,
                  max_candidates: int = 4000, n_dirs: int = 720,
-                 unknown_occludes: bool = True, search: str = 'bounded',
+                 unknown_occludes: bool = True,
+                 search: Search | str = Search.BOUNDED,
                  cache_fields: int = 0) -> None:
         """cache_fields: keep the visibility fields of this many (target position, radius)
         for the grid last placed on, so a repeated request on the same map skips building
         them (the node's case; a grid changed in place would be served stale fields, so the
         experiments, which move objects in their grids, leave it 0)."""
-        if search not in SEARCHES:
-            raise PlacementError(f'search must be one of {SEARCHES}, got {search!r}')
-        self.search = search
+        self.search = choice(Search, search, 'search', error=PlacementError)
         self.camera = camera or CameraModel()
         self.exponents = exponents
         self.p_empty = p_empty
@@ -933,7 +943,7 @@ class TaskPlacer:
             active.append(k)
         pcol = self.collision_probability(grid) if stations is None else None
         act = [targets[k] for k in active]
-        if self.search == 'random':
+        if self.search is Search.RANDOM:
             cams, p = self.candidates(grid, act, rng, pcol, stations)
         else:
             cams, p = self.all_candidates(grid, act, pcol, stations)
@@ -971,7 +981,7 @@ class TaskPlacer:
         m = len(cams)
         ratings = np.full((len(targets), m), np.nan)       # nan: not evaluated
         extras = {'search': self.search, 'candidates': m}
-        if self.search == 'random':
+        if self.search is Search.RANDOM:
             for k in active:
                 ratings[k] = rating_of(k, slice(None))
             extras.update(evaluated=m * len(active), exact=True)

@@ -32,10 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from coop_common.params import choice
+
 from .grid import OccupancyGrid
 from .placement import (
     CameraModel,
     PlacementError,
+    Search,
     Target,
     TaskPlacer,
     VisibilityField,
@@ -81,8 +84,11 @@ class StudyConfig:
     task_scale_m: float = 0.5
     max_candidates: int = 1500
     n_dirs: int = 360
-    search: str = 'bounded'
+    search: Search = Search.BOUNDED
     clear_zone_m: float = 2.0    # obstacle-free radius around each target (cell centres)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'search', choice(Search, self.search, 'search'))
 
 
 @dataclass
@@ -320,7 +326,7 @@ def rating_maps(seed: int, density: float, *, cfg: StudyConfig = StudyConfig()
     targets = [sc.primary, sc.secondary]
     # every candidate rated (an exhaustive search) for the map
     placer = TaskPlacer(cfg.camera, clearance_m=cfg.clearance_m, max_candidates=10 ** 9,
-                        n_dirs=720, search='random')
+                        n_dirs=720, search=Search.RANDOM)
     static = [_static_field(sc.grid, t, cfg) for t in targets]
     out = []
     for k in (0, cfg.steps - 1):

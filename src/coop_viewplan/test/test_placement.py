@@ -482,3 +482,17 @@ def test_a_target_in_the_notch_of_a_tile_piece_is_outside_it():
                 TaskPlacer(CameraModel(near_m=0.3, far_m=1.5), clearance_m=0.2,
                            n_dirs=400).place(g, Target(target.position, normal, radius=r + 0.01),
                                              rng=np.random.default_rng(0))
+
+
+def test_search_and_experiment_modes_are_checked_at_construction():
+    from coop_viewplan.fig_3_25 import Fig325Config, PoseSource
+    from coop_viewplan.placement import PlacementError, Search, TaskPlacer
+    from coop_viewplan.task_study import StudyConfig
+    assert TaskPlacer(search='random').search is Search.RANDOM
+    with pytest.raises(PlacementError, match=r"search must be one of \['bounded', 'random'\]"):
+        TaskPlacer(search='exhaustive')
+    with pytest.raises(ValueError, match='search must be one of'):
+        StudyConfig(search='all')
+    assert Fig325Config(pose_source='odometry').pose_source is PoseSource.ODOMETRY
+    with pytest.raises(ValueError, match='pose_source must be one of'):
+        Fig325Config(pose_source='gps')
