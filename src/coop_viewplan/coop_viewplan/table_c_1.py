@@ -85,6 +85,23 @@ def study(images: list[np.ndarray], sizes: tuple[int, ...] = SIZES) -> dict:
     return out
 
 
+def format_json(result: dict) -> str:
+    """The printed tables of a result (as `--json` writes it: method keys may be strings)."""
+    thesis = {int(m): v for m, v in result['thesis'].items()}
+    count = {'scenes': result['images'], 'noise': result['noise_images']}
+    lines = []
+    for name, table in result['results'].items():
+        lines.append(f'Table C-1 ({name}, {count[name]} images): CR mean +- std  [thesis]')
+        lines.append('method ' + ''.join(f'{f"{s}^2":>22s}' for s in SIZES))
+        for m, row in sorted((int(m), row) for m, row in table.items()):
+            cells = ''.join(f'{f"{v[0]:.3f}+-{v[1]:.3f} [{t:.3f}]":>22s}'
+                            for v, t in zip(row, thesis[m]))
+            lines.append(f'{m:>6d} {cells}')
+    lines.append(f"best predictor at 256^2 on scenes: method {result['best_predictor_256']} "
+                 '(thesis: method 5)')
+    return '\n'.join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='table_c_1', description=__doc__.split('\n\n')[0])
     p.add_argument('--images', type=number(int, lo=1), default=40)
@@ -99,19 +116,13 @@ def main(argv: list[str] | None = None) -> int:
     res = {'scenes': study(scenes)}
     if noise:
         res['noise'] = study(noise)
-    for name, table in res.items():
-        print(f'Table C-1 ({name}, {len(scenes) if name == "scenes" else len(noise)} images):'
-              ' CR mean +- std  [thesis]')
-        print('method ' + ''.join(f'{f"{s}^2":>22s}' for s in SIZES))
-        for m, row in table.items():
-            cells = ''.join(f'{f"{v[0]:.3f}+-{v[1]:.3f} [{t:.3f}]":>22s}'
-                            for v, t in zip(row, THESIS[m]))
-            print(f'{m:>6d} {cells}')
     best = max(range(2, 10), key=lambda m: res['scenes'][m][-1][0])
-    print(f'best predictor at 256^2 on scenes: method {best} (thesis: method 5)')
+    result = {'images': len(scenes), 'noise_images': len(noise),
+              'sensor_sigma': args.sensor_sigma, 'results': res,
+              'thesis': THESIS, 'best_predictor_256': best}
+    print(format_json(result))
     if args.json is not None:
-        write_json(args.json, {'results': res, 'thesis': THESIS, 'best_predictor_256': best},
-                   indent=1)
+        write_json(args.json, result, indent=1)
         print(f'json: {args.json}')
     return 0
 
