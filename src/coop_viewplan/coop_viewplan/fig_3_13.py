@@ -183,6 +183,46 @@ def plot(result: dict, out_dir: Path) -> list[Path]:
     return [save_figure(fig, out_dir / f'{stem}.png', dpi=110)]
 
 
+def format_json(result: dict) -> str:
+    """The printed table of a result, as `--json` writes it."""
+    r = result
+    seeds, strat = r['seeds'], r['strategies']
+    lines = [f"{r['figure']}: world={r['world']} cameras={r['cameras']} "
+             f"fov={r['fov_deg']:.0f} deg depth={r['depth_m']:.0f} m seeds={seeds} "
+             f"scans={r['scans']} res={r['resolution_m']} m"
+             + (f" unknown_occlusion=expected/{r['occlusion_prior']}"
+                if r['unknown_occlusion'] == 'expected' else '')
+             + (f" ni_floor={r['ni_floor']:g}" if r['ni_floor'] > 0 else '')
+             + (f" near_fraction={r['near_fraction']:g}" if r['near_fraction'] > 0 else '')
+             + (f" distance={r['distance']}" if r['distance'] != 'configuration' else '')
+             + (f" k_rel={r['k_rel']:g}" if r['k_rel'] != NbvConfig.k_rel else '')
+             + (f" candidates={r['candidates']}" if r['candidates'] != NbvConfig.n_positions
+                else '')]
+    lines.append(f"{'strategy':16s} {'scans to 90% [95% CI]':>24s} {'reached':>8s} "
+                 f"{'distance to 90% m [95% CI]':>30s} {'final frac':>10s} {'final dist m':>12s}")
+    for name, v in strat.items():
+        d = v['distance_to_90pct_detail']
+        lines.append(f"{name:16s} {_scans_cell(v['scans_to_90pct_detail'], seeds)} "
+                     f"{_fmt(d['mean'], d['ci95']):>30s} "
+                     f"{v['final_fraction']:>10.3f} {v['final_distance_m']:>12.0f}")
+    if any('scans_to_map_start_room' in v for v in strat.values()):
+        lines.append('start room (Fig. 3-20: "the information theoretic vision algorithm is the '
+                     'first to map the room and find its way out into the corridor"): scans until '
+                     '90 % of the start room is mapped, and until a camera scans from outside its '
+                     'walls')
+        lines.append(f"{'strategy':16s} {'room 90% [95% CI]':>24s} {'reached':>8s} "
+                     f"{'left room [95% CI]':>24s} {'reached':>8s}")
+        for name, v in strat.items():
+            lines.append(f"{name:16s} {_scans_cell(v['scans_to_map_start_room'], seeds)} "
+                         f"{_scans_cell(v['scans_to_leave_start_room'], seeds)}")
+    if 'one_camera_max_information' in r:
+        o = r['one_camera_max_information']
+        lines.append(f"{'max_info 1 cam':16s} {_fmt(o['scans_to_90pct'], None, 1):>24s} "
+                     f"{o['scans_to_90pct_detail']['reached']:>4d}/{seeds:<3d}")
+    lines.append('verdict: ' + json.dumps(r['verdict']))
+    return '\n'.join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='fig_3_13', description=__doc__.split('\n\n')[0])
     p.add_argument('--world', default='unstructured',
@@ -271,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {'figure': THESIS_FIGURE.get((args.world, args.cameras), 'Fig. 3-13 analogue'),
               'world': args.world, 'cameras': args.cameras, 'fov_deg': fov, 'depth_m': depth,
               'seeds': args.seeds, 'scans': args.scans, 'resolution_m': args.resolution_m,
-              'k_rel': args.k_rel, 'distance': args.distance,
+              'k_rel': args.k_rel, 'distance': args.distance, 'candidates': args.candidates,
               'near_fraction': args.near_fraction, 'angle_weight': args.angle_weight,
               'entropy_weight': args.entropy_weight, 'ni_measure': args.ni_measure,
               'unknown_occlusion': args.unknown_occlusion,
@@ -287,38 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         result['one_camera_max_information'] = {k: one[k] for k in (
             'scans_to_90pct', 'distance_to_90pct_m', 'scans_to_90pct_detail', 'final_fraction')}
         result['verdict']['scans_one_over_two_cameras'] = ratio
-    print(f"{result['figure']}: world={args.world} cameras={args.cameras} fov={fov:.0f} deg "
-          f"depth={depth:.0f} m seeds={args.seeds} scans={args.scans} "
-          f"res={args.resolution_m} m"
-          + (f' unknown_occlusion=expected/{args.occlusion_prior}'
-             if args.unknown_occlusion == 'expected' else '')
-          + (f' ni_floor={args.ni_floor:g}' if args.ni_floor > 0 else '')
-          + (f' near_fraction={args.near_fraction:g}' if args.near_fraction > 0 else '')
-          + (f' distance={args.distance}' if args.distance != 'configuration' else '')
-          + (f' k_rel={args.k_rel:g}' if args.k_rel != NbvConfig.k_rel else '')
-          + (f' candidates={args.candidates}' if args.candidates != NbvConfig.n_positions
-             else ''))
-    print(f"{'strategy':16s} {'scans to 90% [95% CI]':>24s} {'reached':>8s} "
-          f"{'distance to 90% m [95% CI]':>30s} {'final frac':>10s} {'final dist m':>12s}")
-    for name, r in strat.items():
-        d = r['distance_to_90pct_detail']
-        print(f"{name:16s} {_scans_cell(r['scans_to_90pct_detail'], args.seeds)} "
-              f"{_fmt(d['mean'], d['ci95']):>30s} "
-              f"{r['final_fraction']:>10.3f} {r['final_distance_m']:>12.0f}")
-    if any('scans_to_map_start_room' in r for r in strat.values()):
-        print('start room (Fig. 3-20: "the information theoretic vision algorithm is the first to '
-              'map the room and find its way out into the corridor"): scans until 90 % of the '
-              'start room is mapped, and until a camera scans from outside its walls')
-        print(f"{'strategy':16s} {'room 90% [95% CI]':>24s} {'reached':>8s} "
-              f"{'left room [95% CI]':>24s} {'reached':>8s}")
-        for name, r in strat.items():
-            print(f"{name:16s} {_scans_cell(r['scans_to_map_start_room'], args.seeds)} "
-                  f"{_scans_cell(r['scans_to_leave_start_room'], args.seeds)}")
-    if 'one_camera_max_information' in result:
-        o = result['one_camera_max_information']
-        print(f"{'max_info 1 cam':16s} {_fmt(o['scans_to_90pct'], None, 1):>24s} "
-              f"{o['scans_to_90pct_detail']['reached']:>4d}/{args.seeds:<3d}")
-    print('verdict:', json.dumps(result['verdict']))
+    print(format_json(result))
     if args.plots is not None:
         for p in plot(result, args.plots):
             print(f'plot: {p}')

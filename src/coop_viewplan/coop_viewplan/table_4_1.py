@@ -63,6 +63,15 @@ def format_table(cells: list[dict], trials: int, *,
     return '\n'.join(lines)
 
 
+def format_json(result: dict) -> str:
+    """The printed table of a result, as `--json` writes it."""
+    return '\n'.join([
+        'Table 4-1 (reproduction)',
+        format_table(result['cells'], result['trials_per_cell'],
+                     clear_zone_m=result['clear_zone_m']),
+        'check: ' + json.dumps(result['check'])])
+
+
 def check(cells: list[dict]) -> dict:
     """The issue's targets: ordering optimal > random re-placement > random fixed in every cell;
     each optimal cell within 5 points of the thesis or above it."""
@@ -146,9 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                       cfg=cfg)
     result = {'trials_per_cell': args.trials, 'clear_zone_m': args.clear_zone_m, 'cells': cells,
               'check': check(cells), 'seconds': time.perf_counter() - t0}
-    print('Table 4-1 (reproduction)')
-    print(format_table(cells, args.trials, clear_zone_m=args.clear_zone_m))
-    print('check:', json.dumps(result['check']))
+    print(format_json(result))
     if args.plots is not None:
         print(f'plot: {plot_rating_maps(args.plots)}')
     if args.json is not None:

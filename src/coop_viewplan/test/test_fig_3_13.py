@@ -72,8 +72,11 @@ def test_cli_rooms_reports_the_start_room(tmp_path, capsys):
     assert fig_3_13.main(['--world', 'rooms', '--seeds', '1', '--scans', '12',
                           '--candidates', '30', '--strategies', 'raster,max_information',
                           '--json', str(out)]) == 0
-    assert 'start room' in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert 'start room' in printed
     data = json.loads(out.read_text())
+    # a results page's table is made from the JSON by the function that printed it
+    assert printed.startswith(fig_3_13.format_json(data) + '\n')
     for name in ('raster', 'max_information'):
         r = data['strategies'][name]
         for what in ('scans_to_map_start_room', 'scans_to_leave_start_room'):
@@ -110,8 +113,11 @@ def test_cli_ni_floor(tmp_path, capsys):
     assert fig_3_13.main(['--seeds', '1', '--scans', '6', '--resolution-m', '2.0',
                           '--strategies', 'max_information', '--ni-floor', '0.25',
                           '--k-rel', '0.8', '--json', str(out)]) == 0
-    assert 'ni_floor=0.25' in capsys.readouterr().out
-    assert json.loads(out.read_text())['ni_floor'] == 0.25
+    printed = capsys.readouterr().out
+    assert 'ni_floor=0.25' in printed
+    data = json.loads(out.read_text())
+    assert data['ni_floor'] == 0.25
+    assert printed.startswith(fig_3_13.format_json(data) + '\n')
 
 
 def test_installed_executables_answer_help():

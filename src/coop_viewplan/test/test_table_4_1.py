@@ -41,6 +41,8 @@ def test_cli_reduced(tmp_path, capsys):
     assert all(0 <= c['success_rate'] <= 100 for c in data['cells'])
     text = capsys.readouterr().out
     assert 'Optimal camera re-placement' in text and '(100)' in text
+    # a results page's table is made from the JSON by the function that printed it
+    assert text.startswith(table_4_1.format_json(data) + '\n')
 
 
 def test_cli_rejects_bad_density():
