@@ -1,0 +1,228 @@
+"""Test images of circular markers with known centres (§5.2 card and site markers), no rclpy.
+
+A flat plate (the card or the insertion site's face) with white circular markers, posed in front
+of a pinhole camera K, over a textured background; rendered by ray casting each pixel centre onto
+the plate, with the pixels near any edge (marker rims, plate border) integrated over their area
+by `samples` x `samples` sub-samples (the area mean of coop_common.rendering.pixel_average, done
+only where an edge crosses the pixel). Then uneven lighting (a linear gradient and vignetting),
+a Gaussian blur (optics), an optional occluding bar in front of a marker, Gaussian noise and
+8-bit quantisation. The true centre of a marker is the projection of its circle's centre
+K (R c + t), not the centre of its imaged ellipse.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .errors import InsertionError
+
+__all__ = ['Plate', 'Rendered', 'render_plate', 'random_pose', 'random_scene', 'CARD', 'SITE',
+           'sim_intrinsics']
+
+INCH = 0.0254
+
+
+@dataclass(frozen=True)
+class Plate:
+    """A rectangular plate (half sizes in m) with circular markers at `markers` (plate x, y in
+    m, plate normal +z towards the camera side), all of radius `marker_radius_m`."""
+
+    half_size_m: tuple[float, float]
+    markers: tuple[tuple[float, float], ...]
+    marker_radius_m: float
+    plate_reflectance: float = 0.3
+    marker_reflectance: float = 0.9
+
+
+#: the 4.25 in card of rover_sim's worldgen.Card: markers of 0.25 in radius, 1.25 in off centre
+CARD = Plate((2.125 * INCH, 1.375 * INCH), ((-1.25 * INCH, 0.0), (1.25 * INCH, 0.0)),
+             0.25 * INCH)
+#: the insertion site's face (rover_sim: 0.02 m markers either side of the slot, 0.06 m off)
+SITE = Plate((0.1, 0.06), ((-0.062, 0.0), (0.062, 0.0)), 0.02)
+
+
+def sim_intrinsics(width: int = 640, height: int = 480, hfov_deg: float = 41.2) -> np.ndarray:
+    """K of rover_sim's cameras (principal point at the image centre) at this size."""
+    f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0, 0, 1.0]])
+
+
+@dataclass(frozen=True)
+class Rendered:
+    image: np.ndarray          # mono8
+    centres: np.ndarray        # (M, 2) true centre images (px), M = 0 for a marker-free image
+    radius_px: np.ndarray      # (M,) approximate imaged radius (f r / depth)
+    normal: np.ndarray         # (3,) plate normal in the camera frame (towards the camera)
+    occluded: np.ndarray       # (M,) fraction of the rim hidden by the occluder (approx.)
+    ellipse_centres: np.ndarray  # (M, 2) centres of the imaged ellipses (the biased point)
+
+
+def _rot(axis: np.ndarray, ang: float) -> np.ndarray:
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(ang) * k + (1 - math.cos(ang)) * k @ k
+
+
+def _plate_coords(K_inv: np.ndarray, R: np.ndarray, t: np.ndarray, u: np.ndarray,
+                  v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plate (x, y) hit by the rays through image points (u, v)."""
+    d = K_inv @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    n = R[:, 2]
+    s = (n @ t) / (n @ d)
+    X = d * s - t[:, None]
+    p = R.T @ X
+    return p[0].reshape(u.shape), p[1].reshape(u.shape)
+
+
+def _reflectance(plate: Plate, x: np.ndarray, y: np.ndarray, bg: np.ndarray,
+                 with_markers: bool) -> np.ndarray:
+    on = (np.abs(x) <= plate.half_size_m[0]) & (np.abs(y) <= plate.half_size_m[1])
+    out = np.where(on, plate.plate_reflectance, bg)
+    if with_markers:
+        for mx, my in plate.markers:
+            inside = (x - mx) ** 2 + (y - my) ** 2 <= plate.marker_radius_m ** 2
+            out = np.where(inside & on, plate.marker_reflectance, out)
+    return out
+
+
+def render_plate(K: np.ndarray, width: int, height: int, R: np.ndarray, t: np.ndarray,
+                 plate: Plate, *, rng: np.random.Generator, with_markers: bool = True,
+                 noise_sigma: float = 3.0, blur_sigma: float = 0.8, gradient: float = 0.4,
+                 vignetting: float = 0.2, occlude: float = 0.0, samples: int = 9) -> Rendered:
+    """One image of `plate` at pose (R, t) (plate frame -> camera optical frame).
+
+    `gradient`: the lighting changes by this fraction across the image (random direction);
+    `vignetting`: darkening at the corners; `occlude`: when > 0, a dark bar hides up to this
+    fraction of the rim of one marker (the first); `samples`: sub-samples per axis on edge
+    pixels (odd)."""
+    K = np.asarray(K, float)
+    R = np.asarray(R, float)
+    t = np.asarray(t, float)
+    if R.shape != (3, 3) or t.shape != (3,) or K.shape != (3, 3):
+        raise InsertionError('K and R must be 3x3, t a 3-vector')
+    if samples < 1 or samples % 2 == 0:
+        raise InsertionError(f'samples must be odd and >= 1, got {samples}')
+    if not (0.0 <= occlude < 0.5):
+        raise InsertionError(f'occlude must be in [0, 0.5), got {occlude}')
+    K_inv = np.linalg.inv(K)
+    vv, uu = np.mgrid[0:height, 0:width].astype(np.float64)
+    # background: smooth random texture (blobs of several sizes)
+    bg = np.zeros((height, width))
+    for cells, amp in ((8, 0.25), (32, 0.12), (96, 0.05)):
+        small = rng.random((max(2, cells * height // width), cells))
+        bg += amp * cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC)
+    bg = np.clip(0.1 + bg, 0.02, 0.95)
+    x, y = _plate_coords(K_inv, R, t, uu, vv)
+    refl = _reflectance(plate, x, y, bg, with_markers)
+    # pixels near an edge: a marker rim or the plate border, within 2 pixel footprints
+    depth = (R[:, 2] @ t) / (R[:, 2] @ (K_inv @ np.stack([uu.ravel(), vv.ravel(),
+                                                          np.ones(uu.size)]))).reshape(uu.shape)
+    foot = 2.5 * np.abs(depth) / K[0, 0] / max(abs(R[2, 2]), 0.2)
+    near = (np.abs(np.abs(x) - plate.half_size_m[0]) < foot) \
+        | (np.abs(np.abs(y) - plate.half_size_m[1]) < foot)
+    if with_markers:
+        for mx, my in plate.markers:
+            near |= np.abs(np.hypot(x - mx, y - my) - plate.marker_radius_m) < foot
+    rr, cc = np.nonzero(near)
+    if len(rr):
+        off = (np.arange(samples) - (samples - 1) / 2) / samples
+        du, dv = np.meshgrid(off, off)
+        su = (cc[:, None] + du.ravel()[None, :])
+        sv = (rr[:, None] + dv.ravel()[None, :])
+        sx, sy = _plate_coords(K_inv, R, t, su, sv)
+        sub = _reflectance(plate, sx, sy, bg[rr, cc][:, None], with_markers)
+        refl[rr, cc] = sub.mean(1)
+    # lighting
+    phi = rng.uniform(0, 2 * math.pi)
+    lin = ((uu - width / 2) * math.cos(phi) + (vv - height / 2) * math.sin(phi)) / width
+    r2 = ((uu - width / 2) ** 2 + (vv - height / 2) ** 2) / ((width / 2) ** 2 + (height / 2) ** 2)
+    light = (1.0 + gradient * lin) * (1.0 - vignetting * r2)
+    img = 240.0 * refl * light
+    centres = np.zeros((0, 2))
+    ell_c = np.zeros((0, 2))
+    radius = np.zeros(0)
+    occluded = np.zeros(0)
+    if with_markers:
+        pts = np.array([R @ np.array([mx, my, 0.0]) + t for mx, my in plate.markers])
+        proj = (K @ pts.T).T
+        centres = proj[:, :2] / proj[:, 2:]
+        radius = K[0, 0] * plate.marker_radius_m / pts[:, 2]
+        ell_c = np.array([_ellipse_centre(K, R, t, (mx, my), plate.marker_radius_m)
+                          for mx, my in plate.markers])
+        occluded = np.zeros(len(centres))
+    if occlude > 0 and with_markers:
+        # a dark bar whose edge cuts the first marker's rim: hidden arc fraction
+        # f = arccos(d / r) / pi for an edge at distance d from the centre
+        f = rng.uniform(0.05, occlude)
+        d = radius[0] * math.cos(math.pi * f)
+        psi = rng.uniform(0, 2 * math.pi)
+        nrm = np.array([math.cos(psi), math.sin(psi)])
+        sd = (uu - centres[0, 0]) * nrm[0] + (vv - centres[0, 1]) * nrm[1] - d
+        cover = np.clip(0.5 + sd, 0.0, 1.0) * np.clip(0.5 + (d + 40.0 - sd), 0.0, 1.0)
+        img = img * (1 - cover) + 40.0 * cover
+        occluded[0] = f
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), blur_sigma) if blur_sigma > 0 else img
+    img = img + rng.normal(0.0, noise_sigma, img.shape)
+    image = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return Rendered(image, centres, radius, R[:, 2].copy(), occluded, ell_c)
+
+
+def _ellipse_centre(K, R, t, m, r) -> np.ndarray:
+    """Centre of the exact imaged ellipse of the circle (radius r at plate point m)."""
+    H = K @ np.column_stack([R[:, 0], R[:, 1], R @ np.array([m[0], m[1], 0.0]) + t])
+    Hi = np.linalg.inv(H)
+    C = Hi.T @ np.diag([1.0, 1.0, -r * r]) @ Hi
+    return -np.linalg.solve(C[:2, :2], C[:2, 2])
+
+
+def random_pose(rng: np.random.Generator, K: np.ndarray, width: int, height: int,
+                plate: Plate, *, distance_m: tuple[float, float] = (0.25, 0.6),
+                max_tilt_rad: float = math.radians(45.0), margin_px: float = 10.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """A plate pose with every marker inside the image (margin plus its radius): tilt uniform in
+    [0, max_tilt] about a random in-plane axis, random roll, random position."""
+    flip = _rot(np.array([1.0, 0.0, 0.0]), math.pi)        # plate +z towards the camera
+    for _ in range(1000):
+        roll = _rot(np.array([0.0, 0.0, 1.0]), rng.uniform(0, 2 * math.pi))
+        ax = rng.uniform(0, 2 * math.pi)
+        tilt = _rot(np.array([math.cos(ax), math.sin(ax), 0.0]), rng.uniform(0, max_tilt_rad))
+        R = tilt @ flip @ roll
+        z = rng.uniform(*distance_m)
+        u = rng.uniform(0.1, 0.9) * width
+        v = rng.uniform(0.1, 0.9) * height
+        t = z * np.linalg.solve(K, np.array([u, v, 1.0]))
+        pts = np.array([R @ np.array([mx, my, 0.0]) + t for mx, my in plate.markers])
+        if np.any(pts[:, 2] <= 0.05):
+            continue
+        proj = (K @ pts.T).T
+        c = proj[:, :2] / proj[:, 2:]
+        r = K[0, 0] * plate.marker_radius_m / pts[:, 2] * 1.5 + margin_px
+        if np.all((c[:, 0] > r) & (c[:, 0] < width - r) & (c[:, 1] > r) & (c[:, 1] < height - r)):
+            return R, t
+    raise InsertionError('no pose found with every marker in the image')
+
+
+def random_scene(rng: np.random.Generator, K: np.ndarray, width: int, height: int, *,
+                 with_markers: bool = True, plate: Plate | None = None,
+                 max_tilt_rad: float = math.radians(45.0),
+                 distance_m: tuple[float, float] = (0.25, 0.6),
+                 noise_sigma: tuple[float, float] = (1.0, 5.0),
+                 blur_sigma: tuple[float, float] = (0.5, 1.5),
+                 gradient: tuple[float, float] = (0.0, 0.6),
+                 occlude_probability: float = 0.25, occlude: float = 0.25) -> Rendered:
+    """A random image for the tests and the benchmark: the card or the site (at random unless
+    `plate`), a random pose, random noise / blur / lighting, and with `occlude_probability`
+    a bar hiding up to `occlude` of one marker's rim."""
+    if plate is None:
+        plate = CARD if rng.random() < 0.5 else SITE
+    R, t = random_pose(rng, K, width, height, plate, distance_m=distance_m,
+                       max_tilt_rad=max_tilt_rad)
+    occ = occlude if (rng.random() < occlude_probability) else 0.0
+    return render_plate(K, width, height, R, t, plate, rng=rng, with_markers=with_markers,
+                        noise_sigma=rng.uniform(*noise_sigma), blur_sigma=rng.uniform(*blur_sigma),
+                        gradient=rng.uniform(*gradient), vignetting=rng.uniform(0.0, 0.3),
+                        occlude=occ)
