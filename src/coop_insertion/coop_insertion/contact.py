@@ -385,7 +385,9 @@ class LeastResistance:
     there moves v(r) = (dx, dy) + dtheta z x (r - p) and the force becomes
     f_n + stiffness * max(0, -n . v(r)); a force above the limit forces a retreat of the excess
     over the stiffness. The projection is the least-squares nearest feasible increment (rotation
-    weighted by half the card width), then bounded by max_step_m / max_rotation_rad.
+    weighted by half the card width), then bounded by max_step_m / max_rotation_rad and so that
+    no point of the card moves further than (force_limit_n - |F|) / stiffness: a contact the
+    identification missed cannot go over the limit in one step either.
 
     Options (keyword-only): insert_step_m (nominal advance per step), max_step_m,
     max_rotation_rad, force_limit_n (default 25 N), stiffness_n_per_m (contact stiffness seen
@@ -418,6 +420,8 @@ class LeastResistance:
         if self.entry_margin_m >= geometry.clearance_m / 2:
             raise InsertionError('entry_margin_m must be below half the clearance')
         self._weight = np.array([1.0, 1.0, geometry.card_width_m / 2])
+        self._reach = float(np.hypot(geometry.card_width_m / 2, geometry.card_height_m))
+        self._budget = np.inf
 
     def _desired(self, ident: Identification, pose: CardPose) -> tuple[np.ndarray, str]:
         g = self.geometry
@@ -505,6 +509,8 @@ class LeastResistance:
         w = _check_wrench(wrench)
         desired, reason = self._desired(ident, pose)
         cons = self._constraints(ident, w, pose)
+        self._budget = max(0.0, self.force_limit_n - float(np.hypot(w[0], w[1]))) / \
+            self.stiffness
         d = self._bound(self._project(desired, cons), self._project(np.zeros(3), cons))
         retreat = any(b > 0 for _, b, _ in cons)
         if retreat:
@@ -558,8 +564,12 @@ class LeastResistance:
         the whole segment is feasible. A retreat larger than the bounds is kept whole: getting
         under the force limit comes first."""
         def within(x: np.ndarray) -> bool:
+            # and no card point moves further than an unforeseen contact could take before its
+            # force reaches the limit (what the identification may have missed)
+            travel = np.hypot(x[0], x[1]) + abs(x[2]) * self._reach
             return (np.hypot(x[0], x[1]) <= self.max_step_m * (1 + 1e-9) and
-                    abs(x[2]) <= self.max_rotation_rad * (1 + 1e-9))
+                    abs(x[2]) <= self.max_rotation_rad * (1 + 1e-9) and
+                    travel <= self._budget * (1 + 1e-9))
 
         if within(d):
             return d

@@ -199,18 +199,21 @@ def test_free_advances_and_aligns():
 
 
 def test_corner_on_mouth_slides_towards_the_slot():
-    pose, _, ident, s = plan(case_corner_on_mouth)
+    pose, w, ident, s = plan(case_corner_on_mouth)
     assert s.dx < 0 and s.dy >= 0
-    assert np.isclose(np.hypot(s.dx, s.dy), 0.002)          # bounded by max_step_m
-    # with a larger step bound it puts the corner just inside the edge
-    pose, _, ident, s = plan(case_corner_on_mouth, max_step_m=0.02)
+    # bounded by max_step_m and by the travel an unforeseen contact allows under the limit
+    budget = (25.0 - np.hypot(w[0], w[1])) / 2e4
+    assert np.isclose(np.hypot(s.dx, s.dy), min(0.002, budget))
+    # with looser bounds it puts the corner just inside the edge
+    pose, _, ident, s = plan(case_corner_on_mouth, max_step_m=0.02, stiffness_n_per_m=500.0)
     corner_after = ident.contacts[0].point[0] + s.dx
     lr = LeastResistance(GEOM)
     assert np.isclose(corner_after, W / 2 - lr.entry_margin_m)
 
 
 def test_edge_on_face_shifts_clear_and_aligns():
-    pose, _, _, s = plan(case_edge_on_face, max_step_m=0.05, max_rotation_rad=0.2)
+    pose, _, _, s = plan(case_edge_on_face, max_step_m=0.05, max_rotation_rad=0.2,
+                         stiffness_n_per_m=100.0)
     assert s.dx > 0 and s.dtheta > 0
     # enough to take the left corner past the left jaw's edge
     assert pose.corner(-1, WC)[0] + s.dx > -W / 2
@@ -330,3 +333,70 @@ def test_bad_options_and_inputs_raise():
         ContactIdentifier(GEOM).identify([1.0, np.nan, 0.0], CardPose(0, 0, 0))
     with pytest.raises(InsertionError):
         CardPose(0.0, np.inf, 0.0)
+
+
+# --- closed loop against a planar penalty-contact card ---------------------------------------
+
+def penalty_wrench(geom: SlotGeometry, pose: CardPose, k: float) -> tuple[np.ndarray, float]:
+    """The site's wrench on a kinematically moved card: a corner inside a jaw or below the
+    bottom, or a jaw edge inside the card, pushed out the shortest way with k * depth."""
+    half, d, w, h = geom.slot_width_m / 2, geom.slot_depth_m, geom.card_width_m, \
+        geom.card_height_m
+    total, peak = np.zeros(3), 0.0
+    for s in (-1, 1):
+        c = pose.corner(s, w)
+        f = None
+        if abs(c[0]) > half and c[1] < 0:
+            f = (k * -c[1] * np.array([0.0, 1.0]) if -c[1] < abs(c[0]) - half else
+                 k * (abs(c[0]) - half) * np.array([-np.sign(c[0]), 0.0]))
+        elif c[1] < -d:
+            f = k * (-d - c[1]) * np.array([0.0, 1.0])
+        if f is not None:
+            total += [f[0], f[1], c[0] * f[1] - c[1] * f[0]]
+            peak = max(peak, float(np.hypot(*f)))
+        e = np.array([s * half, 0.0])
+        xi, eta = (e - pose.p) @ pose.v, (e - pose.p) @ pose.u
+        if abs(xi) < w / 2 and 0 < eta < h:
+            f = (k * eta * pose.u if eta < w / 2 - abs(xi) else
+                 -k * (w / 2 - abs(xi)) * np.sign(xi) * pose.v)
+            total += [f[0], f[1], e[0] * f[1] - e[1] * f[0]]
+            peak = max(peak, float(np.hypot(*f)))
+    return total, peak
+
+
+def insert(geom: SlotGeometry, start, bias, *, k: float = 2e4, steps: int = 400):
+    rng = np.random.default_rng(21)
+    ident, lr = ContactIdentifier(geom), LeastResistance(geom, stiffness_n_per_m=k)
+    x, y, th = start
+    peak = 0.0
+    for i in range(steps):
+        w, f = penalty_wrench(geom, CardPose(x, y, th), k)
+        peak = max(peak, f)
+        w = w + rng.normal(size=3) * [0.3, 0.3, 0.01]
+        est = CardPose(x + bias[0], y + bias[1], th + bias[2])
+        s = lr.step(ident.identify(w, est), w, est)
+        if s.done:
+            return True, peak, (x, y, th)
+        x, y, th = x + s.dx, y + s.dy, th + s.dtheta
+    return False, peak, (x, y, th)
+
+
+@pytest.mark.parametrize('width_in', [5.0, 4.5, 4.375])
+@pytest.mark.parametrize('start', [(0.008, 0.004, 0.03), (-0.004, 0.002, -0.02)])
+def test_closed_loop_seats_with_a_good_pose_estimate(width_in, start):
+    """Pose estimate 1 mm off (within every Table 5-1 clearance): seated, force under 25 N."""
+    geom = SlotGeometry(slot_width_m=width_in * INCH, slot_depth_m=0.03)
+    ok, peak, end = insert(geom, start, (0.001, 0.0, 0.0))
+    assert ok and peak <= 25.0, (ok, peak, end)
+    assert end[1] < -0.029 and abs(end[2]) < 0.02
+
+
+@pytest.mark.known_issue
+@pytest.mark.parametrize('bias', [(-0.006, 0.0, 0.0), (0.0, 0.0, -0.04)])
+def test_closed_loop_seats_with_a_pose_estimate_off_by_more_than_the_clearance(bias):
+    """Open: the step aligns to the pose estimate, which the contacts contradict; the identified
+    contact locations and normals should correct it (lateral offset, tilt). Today: limit cycles,
+    a corner held on the bottom, and penalty forces far above 25 N in the 4.5 in slot."""
+    geom = SlotGeometry(slot_width_m=4.5 * INCH, slot_depth_m=0.03)
+    ok, peak, end = insert(geom, (0.0, 0.004, 0.0), bias)
+    assert ok and peak <= 25.0, (ok, peak, end)
