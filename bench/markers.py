@@ -29,11 +29,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-from coop_insertion.marker_render import random_scene, sim_intrinsics  # noqa: E402
-from coop_insertion.markers import make_detector  # noqa: E402
 
 from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
+from coop_insertion.marker_render import random_scene, sim_intrinsics  # noqa: E402
+from coop_insertion.markers import make_detector  # noqa: E402
 
 WIDTH, HEIGHT = 640, 480
 NAMES = ('thesis', 'default', 'hough')

@@ -7,6 +7,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+
 from coop_insertion.errors import InsertionError
 from coop_insertion.marker_render import (
     CARD,

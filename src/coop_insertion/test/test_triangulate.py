@@ -5,11 +5,11 @@ import math
 
 import numpy as np
 import pytest
+
 from coop_insertion.errors import InsertionError
 from coop_insertion.marker_render import CARD, SITE, random_pose, render_plate
 from coop_insertion.markers import EllipseDetector, Marker
 from coop_insertion.triangulate import match_markers, triangulate_markers
-
 from coop_mapping.stereo import StereoCamera, range_sigma
 
 CAM = StereoCamera.from_fov(640, 480, math.radians(41.2), 0.038)

@@ -1,0 +1,636 @@
+"""Force-feedback finish of the insertion (Sujan 2002, app. A.4, Figs. A-5/A-6): identify the
+contact state from the force/torque readings of all cooperating rovers, then move in the
+direction of least resistance, never pushing the contact force above a limit.
+
+The planar model (§5.2 assumes the insertion planar). Task (site) frame: origin at the centre of
+the slot's mouth, x across the slot (from the left jaw to the right jaw), y out of the slot
+(the card comes in along -y), z = x cross y, moments about z. The slot is `slot_width_m` wide
+(walls x = +-W/2 for -D <= y <= 0), `slot_depth_m` deep (bottom y = -D); each jaw's mouth face
+is y = 0 for W/2 <= |x| <= W/2 + jaw_width_m, its mouth edge the corner (+-W/2, 0). The card
+(width w) is a rectangle; its pose is that of its leading-edge centre p = (x, y) and its tilt
+theta (counter-clockwise): card axis u = (-sin theta, cos theta) (pointing back at the gripper),
+lateral axis v = (cos theta, sin theta), leading corners c_L,R = p -+ (w/2) v.
+
+A contact is either a site edge on a card face (its normal is set by the card's angle theta) or a
+card corner on a site face (normal set by the site's angle alpha, zero in the site frame): the
+two kinds Fig. A-6 writes as the ratios tan(theta) and tan(alpha). Each state's equilibrium is
+Fig. A-6's: sum F = 0 = F_x + F_y + sum (f_n + f_fr), sum M = 0 = M + sum r x (f_n + f_fr), with
+|f_fr| <= mu f_n. The states (single contacts have a side, left or right):
+
+- FREE: no contact.
+- EDGE_ON_FACE: a jaw's mouth edge on the card's leading face; -f_x/f_y = tan theta (A-6 a).
+- EDGE_ON_SIDE: a jaw's mouth edge on a card side face; f_y/f_x = tan theta (A-6 b).
+- CORNER_ON_MOUTH: a card corner on a jaw's mouth face (a lateral miss);
+  -f_x/f_y = tan alpha (A-6 c).
+- CORNER_ON_WALL: a card corner on a jaw's inner wall; f_y/f_x = tan alpha.
+- CORNER_ON_BOTTOM: a card corner on the slot bottom (card tilted); -f_x/f_y = tan alpha.
+- TWO_POINT: a corner on one wall (or the bottom) and the other jaw's edge on the card's side
+  face, wedged / jammed; one alpha and one theta contact (A-6 d/e).
+- SEATED: the leading face flat on the slot bottom; -f_x/f_y = tan alpha at both corners.
+
+The figure panels themselves are not in the thesis text this project has, only their equations;
+the list is this module's reading of them (which face or corner touches is named by the normal's
+axis and whether theta or alpha sets it), with the states a rectangle in a slot can reach.
+
+Identification fits every hypothesis to the measured planar wrench (F_x, F_y, M_z) by
+non-negative least squares over the friction-cone edges of its contacts (noise-weighted by
+force_noise_n and moment_noise_nm), adds the squared distance, in pose_sigma_m, between each
+fitted contact point and where the estimated card pose puts that feature, and a penalty per
+contact; the least score wins. FREE is the hypothesis with no contact, so a wrench inside the
+noise is FREE. As the thesis notes, the contact points of a two-point state are not unique; the
+motion plan does not need them to be.
+
+No rclpy here.
+"""
+from __future__ import annotations
+
+import enum
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import nnls
+
+from .errors import InsertionError
+
+__all__ = ['ContactState', 'SlotGeometry', 'CardPose', 'Contact', 'Identification',
+           'ContactIdentifier', 'Step', 'LeastResistance', 'task_wrench', 'planar_wrench',
+           'planar_step_in_frame', 'INCH']
+
+INCH = 0.0254
+
+
+class ContactState(enum.Enum):
+    FREE = 'free'
+    EDGE_ON_FACE = 'edge_on_face'
+    EDGE_ON_SIDE = 'edge_on_side'
+    CORNER_ON_MOUTH = 'corner_on_mouth'
+    CORNER_ON_WALL = 'corner_on_wall'
+    CORNER_ON_BOTTOM = 'corner_on_bottom'
+    TWO_POINT = 'two_point'
+    SEATED = 'seated'
+
+
+def _pos(name: str, v, *, zero_ok: bool = False) -> float:
+    x = float(v)
+    if not np.isfinite(x) or x < 0 or (x == 0 and not zero_ok):
+        raise InsertionError(f'{name} must be finite and {">=" if zero_ok else ">"} 0, got {v}')
+    return x
+
+
+@dataclass(frozen=True)
+class SlotGeometry:
+    """The card and the slot (Table 5-1: a 4.25 in card into 5.0 / 4.5 / 4.375 in sites)."""
+
+    card_width_m: float = 4.25 * INCH
+    slot_width_m: float = 4.5 * INCH
+    slot_depth_m: float = 0.05
+    jaw_width_m: float = 0.1
+    card_height_m: float = 2.75 * INCH
+
+    def __post_init__(self) -> None:
+        for name in ('card_width_m', 'slot_width_m', 'slot_depth_m', 'jaw_width_m',
+                     'card_height_m'):
+            _pos(name, getattr(self, name))
+        if self.slot_width_m <= self.card_width_m:
+            raise InsertionError(f'the slot ({self.slot_width_m} m) must be wider than the card '
+                                 f'({self.card_width_m} m)')
+
+    @property
+    def clearance_m(self) -> float:
+        """Total lateral play of the centred card (slot width - card width)."""
+        return self.slot_width_m - self.card_width_m
+
+
+@dataclass(frozen=True)
+class CardPose:
+    """The card's leading-edge centre (x, y) and tilt theta in the site frame (m, m, rad)."""
+
+    x: float
+    y: float
+    theta: float
+
+    def __post_init__(self) -> None:
+        if not np.all(np.isfinite([self.x, self.y, self.theta])):
+            raise InsertionError(f'card pose must be finite, got {self}')
+
+    @property
+    def p(self) -> np.ndarray:
+        return np.array([self.x, self.y])
+
+    @property
+    def u(self) -> np.ndarray:
+        return np.array([-np.sin(self.theta), np.cos(self.theta)])
+
+    @property
+    def v(self) -> np.ndarray:
+        return np.array([np.cos(self.theta), np.sin(self.theta)])
+
+    def corner(self, side: int, width: float) -> np.ndarray:
+        """Leading corner on side -1 (left) or +1 (right)."""
+        return self.p + side * 0.5 * width * self.v
+
+
+@dataclass(frozen=True)
+class Contact:
+    """One fitted contact: where (site frame), its unit normal (the direction the site pushes the
+    card), the normal and friction force magnitudes, and the side (-1 left jaw, +1 right)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    normal_force_n: float
+    friction_force_n: float
+    side: int
+    kind: str
+
+
+@dataclass(frozen=True)
+class Identification:
+    """The winning hypothesis: state, side (-1 / +1; 0 for FREE, SEATED and two-point states
+    name the side of the corner), fitted contacts, the noise-weighted wrench residual (chi^2),
+    the total score, and every hypothesis's score (for diagnostics)."""
+
+    state: ContactState
+    side: int
+    contacts: tuple[Contact, ...]
+    wrench_chi2: float
+    score: float
+    scores: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def in_contact(self) -> bool:
+        return self.state is not ContactState.FREE
+
+
+def _check_wrench(w) -> np.ndarray:
+    a = np.asarray(w, float)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise InsertionError(f'planar wrench must be a finite (F_x, F_y, M_z), got {w}')
+    return a
+
+
+@dataclass(frozen=True)
+class _Spec:
+    """One contact of a hypothesis: the normal, and the point either fixed or on a segment
+    a + s (b - a), s in [0, 1]; `feature` is where the card pose puts the touching feature."""
+
+    normal: np.ndarray
+    a: np.ndarray
+    b: np.ndarray | None
+    feature: np.ndarray
+    side: int
+    kind: str
+
+
+class ContactIdentifier:
+    """Contact-state identification (app. A.4, Fig. A-6) from the summed wrench of all rovers.
+
+    Options (keyword-only): force_noise_n and moment_noise_nm (1-sigma noise of the summed
+    planar wrench: a wrench within a few of these is FREE), friction (Coulomb mu of the card on
+    the jaws), pose_sigma_m (1-sigma of the card pose estimate, weighting how far a fitted
+    contact may lie from the feature the pose puts there), contact_penalty (score per contact,
+    in chi^2 units), seat_angle_rad and seat_depth_m (how flat and how deep a card on the bottom
+    must be to count as SEATED rather than CORNER_ON_BOTTOM), samples (points tried along a
+    segment locus, within 3 pose sigmas of the pose's feature, in the two-point fits)."""
+
+    def __init__(self, geometry: SlotGeometry, *, force_noise_n: float = 0.5,
+                 moment_noise_nm: float = 0.02, friction: float = 0.3,
+                 pose_sigma_m: float = 0.003, contact_penalty: float = 9.0,
+                 seat_angle_rad: float = 0.02, seat_depth_m: float = 0.002,
+                 samples: int = 9) -> None:
+        if not isinstance(geometry, SlotGeometry):
+            raise InsertionError('geometry must be a SlotGeometry')
+        self.geometry = geometry
+        self.force_noise_n = _pos('force_noise_n', force_noise_n)
+        self.moment_noise_nm = _pos('moment_noise_nm', moment_noise_nm)
+        self.friction = _pos('friction', friction, zero_ok=True)
+        self.pose_sigma_m = _pos('pose_sigma_m', pose_sigma_m)
+        self.contact_penalty = _pos('contact_penalty', contact_penalty, zero_ok=True)
+        self.seat_angle_rad = _pos('seat_angle_rad', seat_angle_rad)
+        self.seat_depth_m = _pos('seat_depth_m', seat_depth_m)
+        if int(samples) != samples or samples < 2:
+            raise InsertionError(f'samples must be an integer >= 2, got {samples}')
+        self.samples = int(samples)
+        self._scale = np.array([1 / self.force_noise_n, 1 / self.force_noise_n,
+                                1 / self.moment_noise_nm])
+
+    # -- hypotheses ---------------------------------------------------------------------------
+    def _edge(self, s: int) -> np.ndarray:
+        return np.array([s * self.geometry.slot_width_m / 2, 0.0])
+
+    def _hypotheses(self, pose: CardPose) -> dict[tuple[ContactState, int], list[_Spec]]:
+        g = self.geometry
+        half, d, jaw = g.slot_width_m / 2, g.slot_depth_m, g.jaw_width_m
+        u, v, p = pose.u, pose.v, pose.p
+        up, lat = np.array([0.0, 1.0]), np.array([1.0, 0.0])
+        hyps: dict[tuple[ContactState, int], list[_Spec]] = {(ContactState.FREE, 0): []}
+        for s in (-1, 1):
+            e = self._edge(s)
+            corner = pose.corner(s, g.card_width_m)
+            # the point of the leading face (clamped to it) nearest the edge
+            xi = float(np.clip(np.dot(e - p, v), -g.card_width_m / 2, g.card_width_m / 2))
+            on_face = p + xi * v
+            # the point of side face s (from corner s back along u) nearest the edge
+            eta = float(np.clip(np.dot(e - corner, u), 0.0, g.card_height_m))
+            on_side = corner + eta * u
+            edge_on_side = _Spec(-s * v, e, None, on_side, s, 'edge_on_side')
+            wall = _Spec(-s * lat, np.array([s * half, 0.0]), np.array([s * half, -d]), corner,
+                         s, 'corner_on_wall')
+            bottom = _Spec(up, np.array([-half, -d]), np.array([half, -d]), corner, s,
+                           'corner_on_bottom')
+            hyps[(ContactState.EDGE_ON_FACE, s)] = [_Spec(u, e, None, on_face, s,
+                                                          'edge_on_face')]
+            hyps[(ContactState.EDGE_ON_SIDE, s)] = [edge_on_side]
+            hyps[(ContactState.CORNER_ON_MOUTH, s)] = [
+                _Spec(up, np.array([s * half, 0.0]), np.array([s * (half + jaw), 0.0]), corner,
+                      s, 'corner_on_mouth')]
+            hyps[(ContactState.CORNER_ON_WALL, s)] = [wall]
+            hyps[(ContactState.CORNER_ON_BOTTOM, s)] = [bottom]
+            # wedged: corner s on wall s (or on the bottom) and the other jaw's edge on the
+            # card's side face -s
+            other = -s
+            e_o = self._edge(other)
+            c_o = pose.corner(other, g.card_width_m)
+            eta_o = float(np.clip(np.dot(e_o - c_o, u), 0.0, g.card_height_m))
+            side_o = _Spec(-other * v, e_o, None, c_o + eta_o * u, other, 'edge_on_side')
+            hyps[(ContactState.TWO_POINT, s)] = [wall, side_o]
+            hyps[(ContactState.TWO_POINT, 2 * s)] = [bottom, side_o]
+        c_l, c_r = pose.corner(-1, g.card_width_m), pose.corner(1, g.card_width_m)
+        hyps[(ContactState.SEATED, 0)] = [
+            _Spec(up, np.array([np.clip(c[0], -half, half), -d]), None, c, k, 'seated')
+            for k, c in ((-1, c_l), (1, c_r))]
+        return hyps
+
+    # -- fitting ------------------------------------------------------------------------------
+    def _generators(self, point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """Columns: the unit wrenches of the friction cone's edges n +- mu t at the point."""
+        mu = self.friction
+        t0, t1 = -normal[1], normal[0]
+        g = [(normal[0] + mu * t0, normal[1] + mu * t1)]
+        if mu > 0:
+            g.append((normal[0] - mu * t0, normal[1] - mu * t1))
+        return np.array([[gx, gy, point[0] * gy - point[1] * gx] for gx, gy in g]).T
+
+    def _fit_points(self, w: np.ndarray, specs: list[_Spec], points: list[np.ndarray]
+                    ) -> tuple[float, np.ndarray, list[np.ndarray]]:
+        a = np.hstack([self._generators(pt, sp.normal) for pt, sp in zip(points, specs)])
+        lam, _ = nnls(a * self._scale[:, None], w * self._scale)
+        r = (w - a @ lam) * self._scale
+        ncol = a.shape[1] // len(specs)
+        return float(r @ r), lam, [lam[k * ncol:(k + 1) * ncol] for k in range(len(specs))]
+
+    def _fit(self, w: np.ndarray, specs: list[_Spec]):
+        """Best (chi2 + geometric term) over the hypothesis's contact points."""
+        if not specs:
+            r = w * self._scale
+            return float(r @ r), 0.0, []
+        choices = []
+        for sp in specs:
+            if sp.b is None:
+                choices.append([sp.a])
+            elif len(specs) == 1:
+                choices.append([self._single_point(w, sp)])
+            else:
+                # points within +-3 pose sigmas of the feature's projection (further ones cost
+                # more than a contact in the geometric term)
+                seg = sp.b - sp.a
+                length = float(np.sqrt(seg @ seg))
+                proj = float(np.dot(sp.feature - sp.a, seg)) / length
+                lo = max(0.0, proj - 3 * self.pose_sigma_m)
+                hi = min(length, proj + 3 * self.pose_sigma_m)
+                ss = (np.linspace(lo, hi, self.samples) if hi > lo else
+                      np.array([min(max(proj, 0.0), length)]))
+                choices.append([sp.a + s / length * seg for s in ss])
+        best = None
+        for pts in itertools.product(*choices):
+            chi2, _, lams = self._fit_points(w, specs, list(pts))
+            geo = sum(float(np.sum((pt - sp.feature) ** 2)) for pt, sp in zip(pts, specs))
+            geo /= self.pose_sigma_m ** 2
+            if best is None or chi2 + geo < best[0] + best[1]:
+                best = (chi2, geo, list(zip(pts, lams)))
+        return best
+
+    def _single_point(self, w: np.ndarray, sp: _Spec) -> np.ndarray:
+        """The point of a segment locus on the measured line of action (moment balance
+        M = r x F), clamped to the segment; the pose's feature if the force is too small."""
+        f = w[:2]
+        d = sp.b - sp.a
+        den = d[0] * f[1] - d[1] * f[0]
+        if np.hypot(*f) < self.force_noise_n or abs(den) < 1e-9 * np.hypot(*f) * np.hypot(*d):
+            s = np.dot(sp.feature - sp.a, d) / np.dot(d, d)
+        else:
+            s = (w[2] - (sp.a[0] * f[1] - sp.a[1] * f[0])) / den
+        return sp.a + float(np.clip(s, 0.0, 1.0)) * d
+
+    def identify(self, wrench, pose: CardPose) -> Identification:
+        """The contact state from the summed planar wrench (F_x, F_y, M_z about the site origin;
+        the force the site exerts on the card, see task_wrench / planar_wrench) and the card's
+        estimated pose in the site frame."""
+        w = _check_wrench(wrench)
+        if not isinstance(pose, CardPose):
+            raise InsertionError('pose must be a CardPose')
+        scores: dict[str, float] = {}
+        best = None
+        for (state, side), specs in self._hypotheses(pose).items():
+            chi2, geo, fitted = self._fit(w, specs)
+            score = chi2 + geo + self.contact_penalty * len(specs)
+            if state is ContactState.SEATED:
+                # flat and at depth, or it is not seated
+                flat = abs(pose.theta) / self.seat_angle_rad
+                deep = (pose.y + self.geometry.slot_depth_m) / self.seat_depth_m
+                score += flat ** 2 + deep ** 2
+            key = state.value if side == 0 else f'{state.value}:{side:+d}'
+            scores[key] = score
+            if best is None or score < best[0]:
+                best = (score, state, side, chi2, specs, fitted)
+        score, state, side, chi2, specs, fitted = best
+        contacts = []
+        for sp, (pt, lam) in zip(specs, fitted):
+            fn = float(lam.sum())
+            ft = float(self.friction * (lam[0] - lam[1])) if lam.size == 2 else 0.0
+            contacts.append(Contact(np.asarray(pt, float), sp.normal.copy(), fn, ft, sp.side,
+                                    sp.kind))
+        if state is ContactState.TWO_POINT:
+            side = int(np.sign(side))
+        return Identification(state, side, tuple(contacts), chi2, score, scores)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One commanded increment of the card, in the site frame: (dx, dy) of the card's
+    leading-edge centre and dtheta about it. predicted_force_n: the largest contact force the
+    stiffness model predicts after the step; done when SEATED; reason says why this step."""
+
+    dx: float
+    dy: float
+    dtheta: float
+    predicted_force_n: float
+    done: bool
+    retreat: bool
+    reason: str
+
+    @property
+    def vector(self) -> np.ndarray:
+        return np.array([self.dx, self.dy, self.dtheta])
+
+
+class LeastResistance:
+    """Motion in the direction of least resistance (app. A.4) with a force limit.
+
+    For the identified state a desired increment is formed (slide off a jaw's mouth past its
+    edge, rotate towards alignment, slide along a wall or side face, back off a two-point jam,
+    rotate a corner flat on the bottom, keep inserting when free), then projected onto the
+    motions that the stiffness model says keep every contact force (and the measured resultant)
+    at or below force_limit_n: for a contact with normal n at r carrying f_n, the card point
+    there moves v(r) = (dx, dy) + dtheta z x (r - p) and the force becomes
+    f_n + stiffness * max(0, -n . v(r)); a force above the limit forces a retreat of the excess
+    over the stiffness. The projection is the least-squares nearest feasible increment (rotation
+    weighted by half the card width), then bounded by max_step_m / max_rotation_rad and so that
+    no point of the card moves further than (force_limit_n - |F|) / stiffness: a contact the
+    identification missed cannot go over the limit in one step either.
+
+    Options (keyword-only): insert_step_m (nominal advance per step), max_step_m,
+    max_rotation_rad, force_limit_n (default 25 N), stiffness_n_per_m (contact stiffness seen
+    through the arm and base), contact_force_n (the light contact force kept while sliding;
+    above it the step also lifts off), align_gain (fraction of the estimated lateral/tilt
+    misalignment removed per step), entry_margin_m (how far inside the jaw edge a corner is
+    aimed when sliding off a mouth face; default a quarter of the clearance)."""
+
+    def __init__(self, geometry: SlotGeometry, *, insert_step_m: float = 0.0005,
+                 max_step_m: float = 0.002, max_rotation_rad: float = 0.01,
+                 force_limit_n: float = 25.0, stiffness_n_per_m: float = 2.0e4,
+                 contact_force_n: float = 3.0, align_gain: float = 0.3,
+                 entry_margin_m: float | None = None) -> None:
+        if not isinstance(geometry, SlotGeometry):
+            raise InsertionError('geometry must be a SlotGeometry')
+        self.geometry = geometry
+        self.insert_step_m = _pos('insert_step_m', insert_step_m)
+        self.max_step_m = _pos('max_step_m', max_step_m)
+        self.max_rotation_rad = _pos('max_rotation_rad', max_rotation_rad)
+        self.force_limit_n = _pos('force_limit_n', force_limit_n)
+        self.stiffness = _pos('stiffness_n_per_m', stiffness_n_per_m)
+        self.contact_force_n = _pos('contact_force_n', contact_force_n, zero_ok=True)
+        if self.contact_force_n >= self.force_limit_n:
+            raise InsertionError('contact_force_n must be below force_limit_n')
+        self.align_gain = _pos('align_gain', align_gain, zero_ok=True)
+        if self.align_gain > 1:
+            raise InsertionError('align_gain must be in [0, 1]')
+        self.entry_margin_m = (geometry.clearance_m / 4 if entry_margin_m is None
+                               else _pos('entry_margin_m', entry_margin_m))
+        if self.entry_margin_m >= geometry.clearance_m / 2:
+            raise InsertionError('entry_margin_m must be below half the clearance')
+        self._weight = np.array([1.0, 1.0, geometry.card_width_m / 2])
+        self._reach = float(np.hypot(geometry.card_width_m / 2, geometry.card_height_m))
+        self._budget = np.inf
+
+    def _desired(self, ident: Identification, pose: CardPose) -> tuple[np.ndarray, str]:
+        g = self.geometry
+        st, s = ident.state, ident.side
+        step = self.insert_step_m
+        align = -self.align_gain * np.array([pose.x, 0.0, pose.theta])
+        lift = 0.0
+        if ident.contacts and max(c.normal_force_n for c in ident.contacts) > \
+                self.contact_force_n:
+            lift = step
+        if st is ContactState.FREE:
+            return align + np.array([0.0, -step, 0.0]), 'free: advance along -y, align'
+        if st is ContactState.SEATED:
+            return np.zeros(3), 'seated'
+        if st is ContactState.CORNER_ON_MOUTH:
+            # move the corner from where the wrench puts it to entry_margin inside the edge
+            xc = ident.contacts[0].point[0]
+            dx = s * (g.slot_width_m / 2 - self.entry_margin_m) - xc
+            return np.array([dx, lift, align[2]]), 'corner on a mouth face: slide off past edge'
+        if st is ContactState.EDGE_ON_FACE:
+            # the edge under the leading face: shift the card until corner s clears the edge
+            e = np.array([s * g.slot_width_m / 2, 0.0])
+            xi = float(np.dot(e - pose.p, pose.v))
+            overlap = g.card_width_m / 2 - s * xi
+            dx = -s * (max(overlap, 0.0) + self.entry_margin_m)
+            return np.array([dx, lift, align[2]]), 'edge on the leading face: shift clear, align'
+        if st is ContactState.EDGE_ON_SIDE:
+            # slide along the side face (along -u, tangent to the contact), away from the edge,
+            # rotating towards alignment
+            d = -step * pose.u - s * 0.5 * step * pose.v
+            return np.array([d[0], d[1], align[2]]), 'edge on a side face: slide in, align'
+        if st is ContactState.CORNER_ON_WALL:
+            # -y is tangent to the wall: keep inserting, ease off the wall, align
+            return (np.array([-s * 0.5 * step, -step, align[2]]),
+                    'corner on a wall: slide along it, align')
+        if st is ContactState.CORNER_ON_BOTTOM:
+            # pivot about the corner on the bottom until the leading face is flat
+            c = ident.contacts[0].point
+            dth = -pose.theta
+            r = pose.p - c
+            dp = dth * np.array([-r[1], r[0]])
+            return np.array([dp[0], dp[1], dth]), 'corner on the bottom: rotate flat about it'
+        if st is ContactState.TWO_POINT:
+            # jammed: back off along the card axis and rotate out of the wedge. The tilt to
+            # remove is the estimated one; if the estimate says aligned, the wedge's moment
+            # about the card centre says which way
+            dth = -pose.theta
+            if abs(pose.theta) < 1e-3:
+                m = sum(np.cross(c.point - pose.p, (c.normal_force_n * c.normal +
+                                                     c.friction_force_n *
+                                                     np.array([-c.normal[1], c.normal[0]])))
+                        for c in ident.contacts)
+                dth = float(np.sign(m)) * self.max_rotation_rad
+            d = step * pose.u
+            return np.array([d[0], d[1], dth]), 'two-point (wedged): back off, rotate out'
+        raise InsertionError(f'unknown state {st}')  # pragma: no cover
+
+    def _constraints(self, ident: Identification, wrench: np.ndarray, pose: CardPose
+                     ) -> list[tuple[np.ndarray, float, float]]:
+        """(a, b, f) rows meaning a . d >= b (n . v(r) >= (f - limit) / k), f the force now."""
+        rows = []
+        for c in ident.contacts:
+            rows.append((c.normal, c.point, c.normal_force_n))
+        f = wrench[:2]
+        fn = float(np.hypot(*f))
+        if fn > 1e-9:
+            n = f / fn
+            # the point of the line of action nearest the card's reference point
+            # (r x F = M: r0 = (M / |F|^2) (F_y, -F_x) is on it)
+            r0 = wrench[2] / fn ** 2 * np.array([f[1], -f[0]])
+            r = r0 + np.dot(pose.p - r0, n) * n
+            rows.append((n, r, fn))
+        out = []
+        for n, r, force in rows:
+            rel = r - pose.p
+            a = np.array([n[0], n[1], -n[0] * rel[1] + n[1] * rel[0]])
+            out.append((a, (force - self.force_limit_n) / self.stiffness, force))
+        return out
+
+    def step(self, ident: Identification, wrench, pose: CardPose) -> Step:
+        """The bounded increment for this control step (site frame, about the card's
+        leading-edge centre)."""
+        if not isinstance(ident, Identification) or not isinstance(pose, CardPose):
+            raise InsertionError('step needs an Identification and a CardPose')
+        w = _check_wrench(wrench)
+        desired, reason = self._desired(ident, pose)
+        cons = self._constraints(ident, w, pose)
+        self._budget = max(0.0, self.force_limit_n - float(np.hypot(w[0], w[1]))) / \
+            self.stiffness
+        d = self._bound(self._project(desired, cons), self._project(np.zeros(3), cons))
+        retreat = any(b > 0 for _, b, _ in cons)
+        if retreat:
+            reason = 'force above the limit: retreat; ' + reason
+        return Step(float(d[0]), float(d[1]), float(d[2]), self._predict(ident, w, pose, d),
+                    ident.state is ContactState.SEATED, retreat, reason)
+
+    def _predict(self, ident: Identification, w: np.ndarray, pose: CardPose,
+                 d: np.ndarray) -> float:
+        """Largest contact force after d by the linear contact spring (0 once separated)."""
+        worst = 0.0
+        for a, _, force in self._constraints(ident, w, pose):
+            worst = max(worst, force - self.stiffness * float(a @ d))
+        return worst
+
+    def _project(self, desired: np.ndarray, cons) -> np.ndarray:
+        """Nearest (weighted) d to desired with a_k . d >= b_k: enumerate active sets."""
+        wgt = self._weight
+        # work in scaled coordinates z = W d, so the metric is Euclidean
+        z0 = desired * wgt
+        rows = [(a / wgt, b) for a, b, _ in cons]
+        best = None
+        for k in range(len(rows) + 1):
+            for active in itertools.combinations(range(len(rows)), k):
+                z = z0.copy()
+                if active:
+                    am = np.array([rows[i][0] for i in active])
+                    bm = np.array([rows[i][1] for i in active])
+                    gram = am @ am.T
+                    if np.linalg.matrix_rank(gram) < len(active):
+                        continue
+                    lam = np.linalg.solve(gram, bm - am @ z0)
+                    if np.any(lam < -1e-12):
+                        continue
+                    z = z0 + am.T @ lam
+                if all(a @ z >= b - 1e-12 for a, b in rows):
+                    cost = float(np.sum((z - z0) ** 2))
+                    if best is None or cost < best[0]:
+                        best = (cost, z)
+        if best is None:
+            # conflicting retreats (cannot happen for b <= 0, where d = 0 is feasible): retreat
+            # along the summed constraint normals
+            a = sum(a for a, _, _ in cons)
+            need = max(b for _, b, _ in cons)
+            return a * need / max(float(a @ a), 1e-12)
+        return best[1] / wgt
+
+    def _bound(self, d: np.ndarray, d_min: np.ndarray) -> np.ndarray:
+        """Into the step bounds along the segment from d_min (the smallest feasible increment:
+        0, or the retreat a force above the limit needs) to d; the feasible set is convex, so
+        the whole segment is feasible. A retreat larger than the bounds is kept whole: getting
+        under the force limit comes first."""
+        def within(x: np.ndarray) -> bool:
+            # and no card point moves further than an unforeseen contact could take before its
+            # force reaches the limit (what the identification may have missed)
+            travel = np.hypot(x[0], x[1]) + abs(x[2]) * self._reach
+            return (np.hypot(x[0], x[1]) <= self.max_step_m * (1 + 1e-9) and
+                    abs(x[2]) <= self.max_rotation_rad * (1 + 1e-9) and
+                    travel <= self._budget * (1 + 1e-9))
+
+        if within(d):
+            return d
+        if not within(d_min):
+            return d_min
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if within(d_min + mid * (d - d_min)) else (lo, mid)
+        return d_min + lo * (d - d_min)
+
+
+def task_wrench(sensor_wrench, t_task_sensor, *, tare=None, reaction: bool = True
+                ) -> np.ndarray:
+    """A rover's 6-axis F/T reading (F, M in its sensor frame) as the wrench the environment
+    exerts on the carried card, in the task (site) frame, moments about the task origin.
+
+    tare: the reading in free space with the same arm pose (gravity and offsets), subtracted
+    first. reaction: the sensor reports the base's wrench on the arm (rover_sim's F_12, N_12
+    of Eq. B-1), so in quasi-static contact the site's wrench on the card is its negative.
+    t_task_sensor: 4x4 pose of the sensor frame in the task frame (vision + arm kinematics)."""
+    w = np.asarray(sensor_wrench, float)
+    if w.shape != (6,) or not np.all(np.isfinite(w)):
+        raise InsertionError(f'sensor wrench must be a finite 6-vector, got {w}')
+    if tare is not None:
+        t0 = np.asarray(tare, float)
+        if t0.shape != (6,) or not np.all(np.isfinite(t0)):
+            raise InsertionError('tare must be a finite 6-vector')
+        w = w - t0
+    t = np.asarray(t_task_sensor, float)
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        raise InsertionError('t_task_sensor must be a finite 4x4 transform')
+    r, p = t[:3, :3], t[:3, 3]
+    if not np.allclose(r.T @ r, np.eye(3), atol=1e-6):
+        raise InsertionError('t_task_sensor: rotation block is not orthonormal')
+    f = r @ w[:3]
+    m = r @ w[3:] + np.cross(p, f)
+    out = np.concatenate([f, m])
+    return -out if reaction else out
+
+
+def planar_wrench(task_wrenches) -> np.ndarray:
+    """Sum of the rovers' task-frame wrenches (N, 6) reduced to the plane of the insertion:
+    (F_x, F_y, M_z). "The measured forces/torques are evaluated from force/torque sensor
+    readings of all cooperating robots" (app. A.4)."""
+    w = np.atleast_2d(np.asarray(task_wrenches, float))
+    if w.ndim != 2 or w.shape[1] != 6 or w.shape[0] < 1 or not np.all(np.isfinite(w)):
+        raise InsertionError(f'task wrenches must be a finite (N >= 1, 6) array, got {w.shape}')
+    total = w.sum(axis=0)
+    return np.array([total[0], total[1], total[5]])
+
+
+def planar_step_in_frame(step: Step, pose: CardPose, t_frame_task) -> tuple[np.ndarray,
+                                                                              np.ndarray]:
+    """A Step as a 3-D translation of the card's leading-edge centre and a rotation vector
+    (about that point), both in the frame t_frame_task maps into (e.g. the slave's base frame
+    R_S: t_frame_task = its pose of the site frame)."""
+    if not isinstance(step, Step) or not isinstance(pose, CardPose):
+        raise InsertionError('need a Step and a CardPose')
+    t = np.asarray(t_frame_task, float)
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        raise InsertionError('t_frame_task must be a finite 4x4 transform')
+    r = t[:3, :3]
+    return r @ np.array([step.dx, step.dy, 0.0]), r @ np.array([0.0, 0.0, step.dtheta])
