@@ -12,47 +12,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from coop_common.dynparams import BaseParameters
+# the rover's kinematic geometry is shared with the nodes that reason about it (re-exported)
+from coop_common.rover_geometry import (  # noqa: F401
+    ARM_JOINT1_ABOVE_SENSOR_M, ARM_JOINTS, ARM_LIMITS_RAD, ARM_LINKS, ARM_MASS, CAMERA_OFFSET,
+    CARD_OFFSET_M, MAST_JOINTS, MAST_POSITION, MAST_TILT_LIMITS_RAD, OPTICAL_IN_TILT,
+    STEREO_BASELINE_M, TILT_ABOVE_PAN_M, ArmLink, ReachError, card_fk, card_ik)
 
 from .worldgen import Card
 
-ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
-MAST_JOINTS = ('mast_pan', 'mast_tilt')
 WHEELS = ('wheel_fl', 'wheel_fr', 'wheel_rl', 'wheel_rr')
-
-
-@dataclass(frozen=True)
-class ArmLink:
-    name: str
-    mass: float
-    com: tuple[float, float, float]
-    inertia: tuple[float, float, float]     # principal, about the link's c.o.m., link axes
-    length: float                           # where the next joint sits along the link's x (m)
-
-
-#: Arm of §2.6.1: 1 kg in all; link 2 carries most of it so the arm as a whole has inertias close
-#: to the thesis's I_x = I_z = 0.02, I_y = 0.001 kg m^2 when stretched out.
-ARM_LINKS = (
-    ArmLink('arm_link_1', 0.15, (0.0, 0.0, 0.03), (2e-4, 2e-4, 1e-4), 0.06),
-    ArmLink('arm_link_2', 0.45, (0.125, 0.0, 0.0), (1e-4, 2.4e-3, 2.4e-3), 0.25),
-    ArmLink('arm_link_3', 0.30, (0.10, 0.0, 0.0), (5e-5, 1.0e-3, 1.0e-3), 0.20),
-    ArmLink('arm_link_4', 0.10, (0.04, 0.0, 0.0), (1e-5, 6e-5, 6e-5), 0.08),
-)
-ARM_MASS = sum(link.mass for link in ARM_LINKS)
 ARM_EFFORT_NM = (12.0, 12.0, 8.0, 4.0)
 ARM_VELOCITY_RAD_S = (3.0, 3.0, 3.0, 3.0)
-ARM_LIMITS_RAD = ((-np.pi, np.pi), (-2.0, 2.0), (-2.5, 2.5), (-2.0, 2.0))
-MAST_POSITION = (-0.12, -0.10, 0.40)      # pan joint, relative to the base c.g. (m)
-CAMERA_OFFSET = (0.04, 0.0, 0.06)          # left optical origin, in the tilt link
-STEREO_BASELINE_M = 0.038
 SENSOR_MASS = 1e-3
-#: the card's centre in the last arm link (x along the link): its near edge at the gripper
-CARD_OFFSET_M = 0.134
 CARD_IN_LINK_4 = f'{CARD_OFFSET_M} 0 0'
-#: arm joint 1 sits this far above the F/T sensor's origin, joint 2 this far above joint 1
-ARM_JOINT1_ABOVE_SENSOR_M = 0.015
-#: the mast's tilt joint sits this far above its pan joint
-TILT_ABOVE_PAN_M = 0.04
-MAST_TILT_LIMITS_RAD = (-1.2, 1.2)
 #: mast links: (mass, c.o.m. in the base frame at pan = tilt = 0, principal inertia)
 #: Light (50 g in all) so that the Table 2-1 inertia less the mast's is still a physical body.
 MAST_PAN = (0.02, (MAST_POSITION[0], MAST_POSITION[1], MAST_POSITION[2] + 0.02), (1e-5,) * 3)
@@ -179,7 +151,6 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
 
 
 #: Left optical frame in the tilt link: z forward (link x), x right (link -y), y down (link -z).
-OPTICAL_IN_TILT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 def arm_joint_inertias(q: np.ndarray) -> np.ndarray:
@@ -206,44 +177,6 @@ def arm_joint_inertias(q: np.ndarray) -> np.ndarray:
              for link, c in links[1:])
     i4 = l4.mass * l4.com[0] ** 2 + l4.inertia[1]
     return np.array([i1, i2, i3, i4])
-
-
-class ReachError(ValueError):
-    """A card pose the arm cannot reach."""
-
-
-def card_ik(x: float, z: float, pitch: float = 0.0) -> tuple[float, float, float]:
-    """Arm joints 2..4 that put the card's centre at (x, z) from joint 2's axis in the arm's
-    plane (x along joint 1's heading, z up) with the card pitched by `pitch` (rad, about the
-    joint axes: positive tilts its width axis down); the elbow above the line from joint 2 to
-    joint 4 where the joint limits allow, else below. ReachError when out of reach."""
-    l2, l3 = ARM_LINKS[1].length, ARM_LINKS[2].length
-    l4 = CARD_OFFSET_M
-    # joint 4 = card centre less the card's offset along the pitched link 4
-    wx, wz = x - l4 * np.cos(pitch), z + l4 * np.sin(pitch)
-    r2 = wx * wx + wz * wz
-    c3 = (r2 - l2 * l2 - l3 * l3) / (2.0 * l2 * l3)
-    if not (np.isfinite(c3) and -1.0 <= c3 <= 1.0):
-        raise ReachError(f'card at ({x:.3f}, {z:.3f}) m, pitch {pitch:.3f} is out of reach')
-    why = ''
-    for q3 in (float(np.arccos(c3)), -float(np.arccos(c3))):     # elbow up first, then down
-        q2 = float(np.arctan2(-wz, wx) - np.arctan2(l3 * np.sin(q3), l2 + l3 * np.cos(q3)))
-        q = (q2, q3, float(pitch - q2 - q3))
-        bad = [(k + 2, v) for k, v in enumerate(q)
-               if not ARM_LIMITS_RAD[k + 1][0] <= v <= ARM_LIMITS_RAD[k + 1][1]]
-        if not bad:
-            return q
-        why = ', '.join(f'arm_joint_{k} = {v:.3f} rad' for k, v in bad)
-    raise ReachError(f'card at ({x:.3f}, {z:.3f}) m, pitch {pitch:.3f}: {why} beyond its limits')
-
-
-def card_fk(q2: float, q3: float, q4: float) -> tuple[float, float, float]:
-    """The card's centre (x, z) from joint 2's axis and its pitch: card_ik's inverse."""
-    l2, l3 = ARM_LINKS[1].length, ARM_LINKS[2].length
-    t2, t3, t4 = q2, q2 + q3, q2 + q3 + q4
-    x = l2 * np.cos(t2) + l3 * np.cos(t3) + CARD_OFFSET_M * np.cos(t4)
-    z = -(l2 * np.sin(t2) + l3 * np.sin(t3) + CARD_OFFSET_M * np.sin(t4))
-    return float(x), float(z), float(t4)
 
 
 @dataclass(frozen=True)

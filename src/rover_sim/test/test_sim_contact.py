@@ -110,3 +110,38 @@ def test_camera_mount_puts_the_camera_where_asked():
             assert -math.asin(axis[2]) == pytest.approx(pitch, abs=0.01)
     with pytest.raises(ReachError):
         camera_mount((0.0, 0.0), 0.0, 1.5)
+
+
+def test_shared_geometry_puts_card_and_camera_where_the_sim_has_them():
+    """coop_common.rover_geometry (what the insertion nodes reason with) against the world:
+    the card from the arm's encoders and the left camera from the mast's, in the base frame."""
+    from coop_common.rover_geometry import (ARM_JOINTS, MAST_JOINTS, camera_in_base,
+                                            card_in_base, card_joints)
+
+    with _world(TABLE_5_1_GAPS_M[1]) as w:
+        r2 = w.rovers[1].params.cg_to_arm
+        for heading, target, pitch, mast in ((0.0, None, 0.0, (0.0, 0.3)),
+                                             (0.3, None, 0.1, (0.4, -0.2))):
+            if target is None:     # in the plane joint 1 turns the arm into
+                target = np.array([r2[0] + 0.45 * math.cos(heading),
+                                   r2[1] + 0.45 * math.sin(heading), 0.2])
+            q = card_joints(target, heading, pitch, r2)
+            w.command_arm(1, ARM_JOINTS, [0.3], [list(q)])
+            w.command_mast(1, MAST_JOINTS, [0.1], [list(mast)])
+            for _ in range(300):
+                w.step()
+            t = w.truth(1)
+            qm = w.joint_positions(1, ARM_JOINTS)
+            pan, tilt = w.joint_positions(1, MAST_JOINTS)
+            pos, rot = w.card_pose(1)
+            tc = card_in_base(qm, r2)
+            np.testing.assert_allclose(t.base_rotation @ tc[:3, 3] + t.base_position, pos,
+                                       atol=2e-4)
+            np.testing.assert_allclose(t.base_rotation @ tc[:3, :3], rot, atol=2e-4)
+            cam = camera_in_base(pan, tilt)
+            cp, cr = w.camera_pose(1)
+            np.testing.assert_allclose(t.base_rotation @ cam[:3, 3] + t.base_position, cp,
+                                       atol=2e-4)
+            np.testing.assert_allclose(t.base_rotation @ cam[:3, :3], cr, atol=2e-4)
+    with pytest.raises(ReachError, match='off the arm plane'):
+        card_joints((0.5, 0.5, 0.3), 0.0, 0.0, r2)

@@ -1,0 +1,143 @@
+"""The thesis rover's kinematic geometry (app. D, Fig. 2-2): the 4-DOF arm on its F/T sensor with
+the card in its gripper, and the pan/tilt stereo mast. One place for the numbers the simulator
+builds its URDF from and the nodes that reason about a real or simulated rover use: the card's
+pose in the base frame from the arm's encoders (`card_in_base`), the arm's inverse (`card_ik`),
+the left camera's pose from the mast's (`camera_in_base`). No rclpy, no pybullet.
+
+Base frame (`<rover>/base_link`, REP 103): at the base's c.g., x forward, z up. The F/T sensor
+(the arm's base) sits at r_2 (the identified c.g. offset, coop_common.dynparams); arm joint 1
+turns about z above it, joints 2..4 pitch about their y axes in the arm's plane.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
+MAST_JOINTS = ('mast_pan', 'mast_tilt')
+
+
+@dataclass(frozen=True)
+class ArmLink:
+    name: str
+    mass: float
+    com: tuple[float, float, float]
+    inertia: tuple[float, float, float]     # principal, about the link's c.o.m., link axes
+    length: float                           # where the next joint sits along the link's x (m)
+
+
+#: Arm of §2.6.1: 1 kg in all; link 2 carries most of it so the arm as a whole has inertias close
+#: to the thesis's I_x = I_z = 0.02, I_y = 0.001 kg m^2 when stretched out.
+ARM_LINKS = (
+    ArmLink('arm_link_1', 0.15, (0.0, 0.0, 0.03), (2e-4, 2e-4, 1e-4), 0.06),
+    ArmLink('arm_link_2', 0.45, (0.125, 0.0, 0.0), (1e-4, 2.4e-3, 2.4e-3), 0.25),
+    ArmLink('arm_link_3', 0.30, (0.10, 0.0, 0.0), (5e-5, 1.0e-3, 1.0e-3), 0.20),
+    ArmLink('arm_link_4', 0.10, (0.04, 0.0, 0.0), (1e-5, 6e-5, 6e-5), 0.08),
+)
+ARM_MASS = sum(link.mass for link in ARM_LINKS)
+ARM_LIMITS_RAD = ((-np.pi, np.pi), (-2.0, 2.0), (-2.5, 2.5), (-2.0, 2.0))
+MAST_POSITION = (-0.12, -0.10, 0.40)      # pan joint, relative to the base c.g. (m)
+CAMERA_OFFSET = (0.04, 0.0, 0.06)          # left optical origin, in the tilt link
+STEREO_BASELINE_M = 0.038
+#: the card's centre in the last arm link (x along the link): its near edge at the gripper
+CARD_OFFSET_M = 0.134
+#: arm joint 1 sits this far above the F/T sensor's origin, joint 2 this far above joint 1
+ARM_JOINT1_ABOVE_SENSOR_M = 0.015
+#: the mast's tilt joint sits this far above its pan joint
+TILT_ABOVE_PAN_M = 0.04
+MAST_TILT_LIMITS_RAD = (-1.2, 1.2)
+OPTICAL_IN_TILT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+class ReachError(ValueError):
+    """A card pose the arm cannot reach."""
+
+
+def card_ik(x: float, z: float, pitch: float = 0.0) -> tuple[float, float, float]:
+    """Arm joints 2..4 that put the card's centre at (x, z) from joint 2's axis in the arm's
+    plane (x along joint 1's heading, z up) with the card pitched by `pitch` (rad, about the
+    joint axes: positive tilts its width axis down); the elbow above the line from joint 2 to
+    joint 4 where the joint limits allow, else below. ReachError when out of reach."""
+    l2, l3 = ARM_LINKS[1].length, ARM_LINKS[2].length
+    l4 = CARD_OFFSET_M
+    # joint 4 = card centre less the card's offset along the pitched link 4
+    wx, wz = x - l4 * np.cos(pitch), z + l4 * np.sin(pitch)
+    r2 = wx * wx + wz * wz
+    c3 = (r2 - l2 * l2 - l3 * l3) / (2.0 * l2 * l3)
+    if not (np.isfinite(c3) and -1.0 <= c3 <= 1.0):
+        raise ReachError(f'card at ({x:.3f}, {z:.3f}) m, pitch {pitch:.3f} is out of reach')
+    why = ''
+    for q3 in (float(np.arccos(c3)), -float(np.arccos(c3))):     # elbow up first, then down
+        q2 = float(np.arctan2(-wz, wx) - np.arctan2(l3 * np.sin(q3), l2 + l3 * np.cos(q3)))
+        q = (q2, q3, float(pitch - q2 - q3))
+        bad = [(k + 2, v) for k, v in enumerate(q)
+               if not ARM_LIMITS_RAD[k + 1][0] <= v <= ARM_LIMITS_RAD[k + 1][1]]
+        if not bad:
+            return q
+        why = ', '.join(f'arm_joint_{k} = {v:.3f} rad' for k, v in bad)
+    raise ReachError(f'card at ({x:.3f}, {z:.3f}) m, pitch {pitch:.3f}: {why} beyond its limits')
+
+
+def card_fk(q2: float, q3: float, q4: float) -> tuple[float, float, float]:
+    """The card's centre (x, z) from joint 2's axis and its pitch: card_ik's inverse."""
+    l2, l3 = ARM_LINKS[1].length, ARM_LINKS[2].length
+    t2, t3, t4 = q2, q2 + q3, q2 + q3 + q4
+    x = l2 * np.cos(t2) + l3 * np.cos(t3) + CARD_OFFSET_M * np.cos(t4)
+    z = -(l2 * np.sin(t2) + l3 * np.sin(t3) + CARD_OFFSET_M * np.sin(t4))
+    return float(x), float(z), float(t4)
+
+
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def joint2_in_base(cg_to_arm) -> np.ndarray:
+    """Arm joint 2's axis point in the base frame at joint 1 = 0 (joint 1 turns about the
+    vertical through it): r_2 plus the heights of joint 1 and of joint 2 above it."""
+    r2 = np.asarray(cg_to_arm, float)
+    return r2 + np.array([0.0, 0.0, ARM_JOINT1_ABOVE_SENSOR_M + ARM_LINKS[0].length])
+
+
+def card_in_base(q, cg_to_arm) -> np.ndarray:
+    """4x4 pose of the card frame (centre; x along its width, y its face normal, z its height)
+    in the base frame from the arm's four joint angles and r_2."""
+    q1, q2, q3, q4 = (float(v) for v in q)
+    x, z, pitch = card_fk(q2, q3, q4)
+    rz = _rot_z(q1)
+    t = np.eye(4)
+    t[:3, :3] = rz @ _rot_y(pitch)
+    t[:3, 3] = joint2_in_base(cg_to_arm) + rz @ np.array([x, 0.0, z])
+    return t
+
+
+def card_joints(position, heading: float, pitch: float, cg_to_arm
+                ) -> tuple[float, float, float, float]:
+    """Arm joints that put the card's centre at `position` (base frame) with joint 1 at
+    `heading` (rad about z: the card's width axis then points along it) and pitched by `pitch`;
+    the centre must lie in the plane joint 1 turns the arm into. ReachError otherwise."""
+    p = np.asarray(position, float) - joint2_in_base(cg_to_arm)
+    local = _rot_z(heading).T @ p
+    if abs(local[1]) > 1e-6:
+        raise ReachError(f'card centre {local[1]:.4f} m off the arm plane at heading {heading:.3f}')
+    return (float(heading), *card_ik(float(local[0]), float(local[2]), pitch))
+
+
+def camera_in_base(pan: float, tilt: float) -> np.ndarray:
+    """4x4 pose of the left optical frame (z forward, x right, y down) in the base frame from
+    the mast's pan and tilt (rad; positive tilt looks down)."""
+    rz = _rot_z(pan)
+    ry = _rot_y(tilt)
+    t = np.eye(4)
+    t[:3, :3] = rz @ ry @ OPTICAL_IN_TILT
+    t[:3, 3] = np.asarray(MAST_POSITION) + rz @ (np.array([0.0, 0.0, TILT_ABOVE_PAN_M]) +
+                                                ry @ np.asarray(CAMERA_OFFSET))
+    return t
