@@ -127,7 +127,8 @@ def card_joints(position, heading: float, pitch: float, cg_to_arm
     p = np.asarray(position, float) - joint2_in_base(cg_to_arm)
     local = _rot_z(heading).T @ p
     if abs(local[1]) > 1e-6:
-        raise ReachError(f'card centre {local[1]:.4f} m off the arm plane at heading {heading:.3f}')
+        raise ReachError(f'card centre {local[1]:.4f} m off the arm plane at heading '
+                         f'{heading:.3f}')
     return (float(heading), *card_ik(float(local[0]), float(local[2]), pitch))
 
 

@@ -12,12 +12,27 @@ from dataclasses import dataclass
 import numpy as np
 
 from coop_common.dynparams import BaseParameters
-# the rover's kinematic geometry is shared with the nodes that reason about it (re-exported)
 from coop_common.rover_geometry import (  # noqa: F401
-    ARM_JOINT1_ABOVE_SENSOR_M, ARM_JOINTS, ARM_LIMITS_RAD, ARM_LINKS, ARM_MASS, CAMERA_OFFSET,
-    CARD_OFFSET_M, MAST_JOINTS, MAST_POSITION, MAST_TILT_LIMITS_RAD, OPTICAL_IN_TILT,
-    STEREO_BASELINE_M, TILT_ABOVE_PAN_M, ArmLink, ReachError, card_fk, card_ik)
+    ARM_JOINT1_ABOVE_SENSOR_M,
+    ARM_JOINTS,
+    ARM_LIMITS_RAD,
+    ARM_LINKS,
+    ARM_MASS,
+    CAMERA_OFFSET,
+    CARD_OFFSET_M,
+    MAST_JOINTS,
+    MAST_POSITION,
+    MAST_TILT_LIMITS_RAD,
+    OPTICAL_IN_TILT,
+    STEREO_BASELINE_M,
+    TILT_ABOVE_PAN_M,
+    ArmLink,
+    ReachError,
+    card_fk,
+    card_ik,
+)
 
+# (the kinematic geometry above is coop_common's, shared with the nodes; re-exported here)
 from .worldgen import Card
 
 WHEELS = ('wheel_fl', 'wheel_fr', 'wheel_rl', 'wheel_rr')

@@ -115,8 +115,13 @@ def test_camera_mount_puts_the_camera_where_asked():
 def test_shared_geometry_puts_card_and_camera_where_the_sim_has_them():
     """coop_common.rover_geometry (what the insertion nodes reason with) against the world:
     the card from the arm's encoders and the left camera from the mast's, in the base frame."""
-    from coop_common.rover_geometry import (ARM_JOINTS, MAST_JOINTS, camera_in_base,
-                                            card_in_base, card_joints)
+    from coop_common.rover_geometry import (
+        ARM_JOINTS,
+        MAST_JOINTS,
+        camera_in_base,
+        card_in_base,
+        card_joints,
+    )
 
     with _world(TABLE_5_1_GAPS_M[1]) as w:
         r2 = w.rovers[1].params.cg_to_arm
