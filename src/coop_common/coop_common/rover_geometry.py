@@ -14,6 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: the base's c.g. above flat ground at rest (the odometry frame's z = 0 is the ground)
+BASE_HEIGHT_M = 0.30
+
 ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
 MAST_JOINTS = ('mast_pan', 'mast_tilt')
 
@@ -142,3 +145,35 @@ def camera_in_base(pan: float, tilt: float) -> np.ndarray:
     t[:3, 3] = np.asarray(MAST_POSITION) + rz @ (np.array([0.0, 0.0, TILT_ABOVE_PAN_M]) +
                                                 ry @ np.asarray(CAMERA_OFFSET))
     return t
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """Where a rover stands and how it turns its mast to put its left camera at a pose: base
+    c.g. (x, y) and heading, pan and tilt (rad), and the camera height that gives (m)."""
+
+    base_xy: tuple[float, float]
+    base_yaw: float
+    pan: float
+    tilt: float
+    camera_z: float
+
+
+def camera_mount(camera_xy: tuple[float, float], yaw: float, pitch: float, *,
+                 base_z: float = 0.30) -> CameraMount:
+    """The rover pose and mast angles that put the left optical frame at `camera_xy` looking
+    along heading `yaw` and `pitch` (rad, positive down, coop_viewplan's convention): the base
+    faces the view (pan 0) and the tilt takes the pitch; the camera's height follows from the
+    mast (`camera_z`). ReachError when the tilt is beyond the joint's limits."""
+    lo, hi = MAST_TILT_LIMITS_RAD
+    if not lo <= pitch <= hi:
+        raise ReachError(f'pitch {pitch:.3f} rad is beyond the mast tilt limits [{lo}, {hi}]')
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    ct, st = np.cos(pitch), np.sin(pitch)
+    cx, _, cz = CAMERA_OFFSET
+    # the camera in the base frame: pan joint, tilt joint above it, offset in the tilted link
+    local = np.array([MAST_POSITION[0] + ct * cx + st * cz, MAST_POSITION[1],
+                      MAST_POSITION[2] + TILT_ABOVE_PAN_M - st * cx + ct * cz])
+    world_off = np.array([cy * local[0] - sy * local[1], sy * local[0] + cy * local[1]])
+    return CameraMount((float(camera_xy[0] - world_off[0]), float(camera_xy[1] - world_off[1])),
+                       float(yaw), 0.0, float(pitch), float(base_z + local[2]))

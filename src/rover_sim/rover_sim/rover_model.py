@@ -7,8 +7,6 @@ collision shape: it is what touches the insertion site (ch. 5).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from coop_common.dynparams import BaseParameters
@@ -27,7 +25,9 @@ from coop_common.rover_geometry import (  # noqa: F401
     STEREO_BASELINE_M,
     TILT_ABOVE_PAN_M,
     ArmLink,
+    CameraMount,
     ReachError,
+    camera_mount,
     card_fk,
     card_ik,
 )
@@ -192,35 +192,3 @@ def arm_joint_inertias(q: np.ndarray) -> np.ndarray:
              for link, c in links[1:])
     i4 = l4.mass * l4.com[0] ** 2 + l4.inertia[1]
     return np.array([i1, i2, i3, i4])
-
-
-@dataclass(frozen=True)
-class CameraMount:
-    """Where a rover stands and how it turns its mast to put its left camera at a pose: base
-    c.g. (x, y) and heading, pan and tilt (rad), and the camera height that gives (m)."""
-
-    base_xy: tuple[float, float]
-    base_yaw: float
-    pan: float
-    tilt: float
-    camera_z: float
-
-
-def camera_mount(camera_xy: tuple[float, float], yaw: float, pitch: float, *,
-                 base_z: float = 0.30) -> CameraMount:
-    """The rover pose and mast angles that put the left optical frame at `camera_xy` looking
-    along heading `yaw` and `pitch` (rad, positive down, coop_viewplan's convention): the base
-    faces the view (pan 0) and the tilt takes the pitch; the camera's height follows from the
-    mast (`camera_z`). ReachError when the tilt is beyond the joint's limits."""
-    lo, hi = MAST_TILT_LIMITS_RAD
-    if not lo <= pitch <= hi:
-        raise ReachError(f'pitch {pitch:.3f} rad is beyond the mast tilt limits [{lo}, {hi}]')
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    ct, st = np.cos(pitch), np.sin(pitch)
-    cx, _, cz = CAMERA_OFFSET
-    # the camera in the base frame: pan joint, tilt joint above it, offset in the tilted link
-    local = np.array([MAST_POSITION[0] + ct * cx + st * cz, MAST_POSITION[1],
-                      MAST_POSITION[2] + TILT_ABOVE_PAN_M - st * cx + ct * cz])
-    world_off = np.array([cy * local[0] - sy * local[1], sy * local[0] + cy * local[1]])
-    return CameraMount((float(camera_xy[0] - world_off[0]), float(camera_xy[1] - world_off[1])),
-                       float(yaw), 0.0, float(pitch), float(base_z + local[2]))

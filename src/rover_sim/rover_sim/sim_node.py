@@ -74,6 +74,9 @@ PARAMS = {
                                 lo=1.0, hi=200.0, read_only=True),
     'stereo_rate_hz': ParamSpec(4.0, 'Stereo pair rate (Hz); 0 disables rendering', lo=0.0,
                                 hi=30.0, read_only=True),
+    'stereo_rovers': ParamSpec([''], 'Rovers whose stereo pair is rendered and published '
+                               "(e.g. [rover1]: the master watching an insertion); [''] or "
+                               'empty: all', read_only=True),
     'odom_rate_hz': ParamSpec(50.0, 'Odometry, stereo/pose-free truth pose rate (Hz)', lo=1.0,
                               hi=200.0, read_only=True),
     'image_width': ParamSpec(320, 'Image width (px)', lo=32, hi=1920, read_only=True),
@@ -139,7 +142,12 @@ class SimNode(Node):
             if v['noise_fraction'] != PARAMS['noise_fraction'].default:
                 changes['noise'] = NoiseConfig(**{**base.noise.__dict__,
                                                   'fraction': v['noise_fraction']})
-            return base.replace(real_time_factor=self._rtf, **changes)
+            config = base.replace(real_time_factor=self._rtf, **changes)
+            known = [f'rover{i + 1}' for i in range(config.rovers)]
+            unknown = [r for r in v['stereo_rovers'] if r and r not in known]
+            if unknown:
+                raise ConfigError(f'stereo_rovers: {unknown} not among {known}')
+            return config
         except ConfigError as exc:
             raise ValueError(str(exc)) from exc
 
@@ -372,8 +380,12 @@ class SimNode(Node):
                     self._publish_card(i, pubs, t)
             if odom:
                 self._publish_odom(i, r.name, pubs, t)
-            if stereo:
+            if stereo and self._renders(r.name):
                 self._publish_stereo(i, r.name, pubs, t)
+
+    def _renders(self, name: str) -> bool:
+        chosen = [r for r in self.values['stereo_rovers'] if r]
+        return not chosen or name in chosen
 
     def _publish_sensors(self, i: int, name: str, pubs: dict, t: Time) -> None:
         s = self.world.sense(i)

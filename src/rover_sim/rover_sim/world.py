@@ -17,6 +17,7 @@ import pybullet as pb
 
 from coop_common.dynparams import BaseParameters
 from coop_common.rendering import fine_intrinsics, pixel_average, projection_matrix
+from coop_common.rover_geometry import BASE_HEIGHT_M
 
 from .compliance import (
     FastCompliance,
@@ -50,7 +51,7 @@ from .sensors import DEG, InclinometerModel, WhiteNoise, specific_force, wheel_s
 from .trajectory import JointTrajectoryFollower
 from .worldgen import WorldLayout, generate_world
 
-NOMINAL_HEIGHT_M = 0.30       # base c.g. above the ground at rest
+NOMINAL_HEIGHT_M = BASE_HEIGHT_M    # base c.g. above the ground at rest
 GRAVITY_VEC = np.array([0.0, 0.0, -9.81])
 TRACK_M = 0.30
 WHEEL_RADIUS_M = 0.06
