@@ -303,9 +303,11 @@ def _waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
 
 
 def run_strategy(strategy: str, cfg: Fig325Config, *, seed: int,
-                 log=None) -> dict:
+                 log=None, save_map: Path | None = None) -> dict:
     """One run of one strategy: mapped voxel counts after the initial scan and each of
-    `cfg.scans` planned scans (every rover scans once per scan step)."""
+    `cfg.scans` planned scans (every rover scans once per scan step). save_map: write the
+    shared map there at the end (the mapper's file format: `mapper -p map_file:=...` loads
+    it), e.g. the site map an insertion experiment's view planner places its camera in."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(1000 + seed)
     with SimMapper(cfg, seed=seed) as sm:
@@ -383,6 +385,8 @@ def run_strategy(strategy: str, cfg: Fig325Config, *, seed: int,
         top = _top_view(sm)
         top['site'] = sm.site_label
         contacts = sm.contacts
+        if save_map is not None:
+            sm.map.save(save_map)
     return {'rows': rows, 'plan_seconds': plan_s, 'seconds': time.perf_counter() - t0,
             'failures': [r.failures for r in runs], 'poses': [r.poses for r in runs],
             'obstacle_contacts': contacts, 'top_view': top}

@@ -66,6 +66,11 @@ PARAMS = {
     'task_far_m': ParamSpec(5.0, 'task depth of field far limit (m)', lo=0.1, hi=1000.0),
     'task_candidates': ParamSpec(3000, 'cap on the ratings of the placement search', lo=10,
                                  hi=100000),
+    # A stereo map of a work site keeps unknown pockets the cameras never saw (under and behind
+    # the site, above it): counted as occluders they can hide a target from every nearby
+    # camera (coop_insertion's site maps); false treats only mapped obstacles as occluders.
+    'task_unknown_occludes': ParamSpec(True, 'task placement: unknown voxels occlude the '
+                                       'target (else only occupied ones)'),
     'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
 }
 

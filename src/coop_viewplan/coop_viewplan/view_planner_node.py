@@ -60,7 +60,8 @@ class ViewPlannerNode(Node):
         self.placer = TaskPlacer(CameraModel(fov_deg=p['task_fov_deg'], pixels=p['task_pixels'],
                                              near_m=p['task_near_m'], far_m=p['task_far_m']),
                                  clearance_m=p['clearance_m'], p_empty=p['p_empty'],
-                                 max_candidates=p['task_candidates'], cache_fields=16)
+                                 max_candidates=p['task_candidates'], cache_fields=16,
+                                 unknown_occludes=p['task_unknown_occludes'])
         self._stations = (None, None)       # (grid, its mast stations)
 
     def _on_map(self, msg: VoxelMap) -> None:
