@@ -267,6 +267,21 @@ class VisualServo:
                             z if e_r is None else e_r, True, reason, age)
 
     @property
+    def goal(self) -> np.ndarray | None:
+        """4x4 pose of the fused goal (the card frame where the fixes want it) in odom, None
+        before the first fix."""
+        if self._goal_p is None:
+            return None
+        out = np.eye(4)
+        out[:3, :3], out[:3, 3] = self._goal_r, self._goal_p
+        return out
+
+    @property
+    def newest_fix_stamp(self) -> float:
+        """Stamp of the newest fix (-inf before the first)."""
+        return self._last_stamp
+
+    @property
     def goal_covariance(self) -> np.ndarray:
         """6x6 covariance of the fused goal (odom frame, translation then rotation)."""
         return self._cov.copy()

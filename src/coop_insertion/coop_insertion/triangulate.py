@@ -110,8 +110,8 @@ def triangulate_markers(left: list[Marker], right: list[Marker], camera: StereoC
     for i, j in match_markers(left, right, camera, marker_radius_m=marker_radius_m,
                               max_row_px=max_row_px):
         (ul, vl), (ur, vr) = stereo_candidates(left[i], right[j])
-        s = max(sigma_px, *(x for x in (left[i].sigma_px, right[j].sigma_px)
-                            if math.isfinite(x)))
+        s = max([sigma_px, *(x for x in (left[i].sigma_px, right[j].sigma_px)
+                             if math.isfinite(x))])
         d = ul - ur
         if not d > 0:
             continue

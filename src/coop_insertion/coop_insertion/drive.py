@@ -1,0 +1,90 @@
+"""Driving a skid-steer rover to a pose on its odometry (turn, drive, turn), and the camera pose
+the master drives to (§4, §5.4: optimal from the view planner, or random within reasonable
+bounds). No rclpy here."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InsertionError
+
+__all__ = ['GoToPose', 'DriveCommand', 'random_camera_pose', 'wrap']
+
+
+def wrap(a: float) -> float:
+    """Angle into [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+@dataclass(frozen=True)
+class DriveCommand:
+    linear_x: float
+    angular_z: float
+    arrived: bool
+    stage: str
+
+
+class GoToPose:
+    """Turn on the spot to face the goal, drive to it (steering on the bearing), turn to the
+    goal's heading. Options (keyword-only): max_speed_m_s (app. D: 0.25), max_yaw_rate_rad_s,
+    gain (1/s, on distance and on heading), position_tolerance_m, yaw_tolerance_rad."""
+
+    def __init__(self, goal_xy, goal_yaw: float, *, max_speed_m_s: float = 0.2,
+                 max_yaw_rate_rad_s: float = 0.6, gain: float = 1.5,
+                 position_tolerance_m: float = 0.02, yaw_tolerance_rad: float = 0.02) -> None:
+        g = np.asarray(goal_xy, float)
+        if g.shape != (2,) or not np.all(np.isfinite(g)) or not math.isfinite(goal_yaw):
+            raise InsertionError('goal must be a finite (x, y) and heading')
+        for name, v in (('max_speed_m_s', max_speed_m_s), ('max_yaw_rate_rad_s',
+                        max_yaw_rate_rad_s), ('gain', gain), ('position_tolerance_m',
+                        position_tolerance_m), ('yaw_tolerance_rad', yaw_tolerance_rad)):
+            if not (math.isfinite(v) and v > 0):
+                raise InsertionError(f'{name} must be finite and > 0, got {v}')
+        self.goal = g
+        self.goal_yaw = float(goal_yaw)
+        self.v_max, self.w_max, self.k = max_speed_m_s, max_yaw_rate_rad_s, gain
+        self.tol_p, self.tol_yaw = position_tolerance_m, yaw_tolerance_rad
+        self.stage = 'face'
+
+    def command(self, x: float, y: float, yaw: float) -> DriveCommand:
+        d = self.goal - np.array([x, y])
+        dist = float(np.hypot(*d))
+        if self.stage != 'turn' and dist <= self.tol_p:
+            self.stage = 'turn'
+        if self.stage == 'turn':
+            e = wrap(self.goal_yaw - yaw)
+            if abs(e) <= self.tol_yaw:
+                return DriveCommand(0.0, 0.0, True, 'arrived')
+            return DriveCommand(0.0, float(np.clip(self.k * e, -self.w_max, self.w_max)),
+                                False, 'turn')
+        bearing = math.atan2(d[1], d[0])
+        e = wrap(bearing - yaw)
+        if self.stage == 'face':
+            if abs(e) <= 0.05:
+                self.stage = 'drive'
+            else:
+                return DriveCommand(0.0, float(np.clip(self.k * e, -self.w_max, self.w_max)),
+                                    False, 'face')
+        v = float(np.clip(self.k * dist * max(0.0, math.cos(e)), 0.0, self.v_max))
+        w = float(np.clip(2 * self.k * e, -self.w_max, self.w_max))
+        return DriveCommand(v, w, False, 'drive')
+
+
+def random_camera_pose(site_xyz, rng: np.random.Generator, *, min_range_m: float = 0.5,
+                       max_range_m: float = 1.2, face_normal=(0.0, 1.0), max_bearing_rad:
+                       float = math.radians(75), aim_error_rad: float = math.radians(8),
+                       camera_z: float) -> tuple[np.ndarray, float, float]:
+    """§5.4's random placement, bounded to reasonable locations: a camera at a range uniform in
+    [min_range_m, max_range_m] from the site, on the side its markers face (bearing within
+    max_bearing_rad of face_normal), at the mast's camera height, aimed at the site with an
+    error uniform within +-aim_error_rad in heading and pitch. Returns (xy, yaw, pitch)."""
+    s = np.asarray(site_xyz, float)
+    n = math.atan2(face_normal[1], face_normal[0])
+    rng_m = rng.uniform(min_range_m, max_range_m)
+    b = n + rng.uniform(-max_bearing_rad, max_bearing_rad)
+    xy = s[:2] + rng_m * np.array([math.cos(b), math.sin(b)])
+    yaw = math.atan2(s[1] - xy[1], s[0] - xy[0]) + rng.uniform(-aim_error_rad, aim_error_rad)
+    pitch = math.atan2(camera_z - s[2], rng_m) + rng.uniform(-aim_error_rad, aim_error_rad)
+    return xy, float(yaw), float(pitch)

@@ -1,0 +1,402 @@
+"""The slave's side of the cooperative insertion (Sujan 2002, §5.1, §5.3, app. A.4), no rclpy.
+
+`SlaveController` runs at the slave's servo rate (its joint-state rate) and turns what the slave
+knows into arm-joint and base-velocity commands through three phases:
+
+1. READY: the arm brings the card to its carry pose (level, `carry_reach_m` ahead of arm joint 2,
+   `carry_height_m` above it) and the F/T reading settles.
+2. VISUAL_SERVO: each master fix (the four labelled markers, task.label_markers) becomes the
+   card's required motion in the base frame (Eq. 5-1..5-4, task.card_required_motion) to the
+   pre-insertion pose, the card's lower edge `standoff_m` above the mouth; servo.VisualServo
+   fuses the fixes with odometry and arm kinematics, and splits the motion between the base
+   (to keep the goal within the arm's reach) and the arm. The arm's card target integrates the
+   servo's card velocity (an integral loop on the encoders' card pose: the arm's sag under load
+   is taken out). Once the error is below the goal's tolerances for `settle_s`, the card
+   descends at `descent_speed_m_s` along the site's vertical while vision keeps correcting
+   across the slot; it holds whenever vision is older than the servo's timeout (never into
+   contact blind). The F/T is tared when the descent starts.
+3. FORCE_INSERT: when the tared force exceeds `contact_threshold_n`, every `force_period_s` the
+   card's pose in the site frame (from the fused vision goal, odometry and encoders) and the
+   tared F/T wrench in the task frame go to contact.ContactIdentifier, and
+   contact.LeastResistance's bounded step moves the card's target (the base stands still).
+   SEATED, or the card's lower edge at the slot's depth with no contact force pushing it back,
+   ends it with success; a force above `abort_force_factor` x `max_force_n` ends it with
+   failure, as does the caller's timeout.
+
+Frames: base = `<slave>/base_link` (c.g., x forward, z up); odom = `<slave>/odom` (wheel
+odometry, planar); the F/T sensor frame is the base frame's axes at r_2 (rover_sim's
+`<slave>/ft_sensor_link`). The site frame is task.py's; contact.py's planar frame is its
+(x, z) plane: planar y = site z, planar z = -site y.
+"""
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from coop_common.rover_geometry import (
+    BASE_HEIGHT_M,
+    ReachError,
+    card_in_base,
+    card_joints,
+    joint2_in_base,
+)
+
+from .contact import (
+    CardPose,
+    ContactIdentifier,
+    ContactState,
+    LeastResistance,
+    planar_step_in_frame,
+    planar_wrench,
+    task_wrench,
+)
+from .errors import InsertionError
+from .frames import homogeneous, invert
+from .servo import VisionFix, VisualServo
+from .task import LabelledMarkers, TaskModel, card_required_motion
+
+__all__ = ['Phase', 'SlaveStatus', 'SlaveCommand', 'SlaveController', 'pose_2d']
+
+#: the site frame's axes as contact.py's planar frame sees them (columns: planar x, y, z in site)
+SITE_FROM_PLANAR = homogeneous(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+                               np.zeros(3))
+
+
+class Phase(enum.IntEnum):
+    """The phases, numbered as coop_msgs/action/Insert's feedback (READY is before them)."""
+
+    PLACE_CAMERA = 0
+    VISUAL_SERVO = 1
+    FORCE_INSERT = 2
+    DONE = 3
+    READY = 10
+
+
+def pose_2d(x: float, y: float, yaw: float, z: float = BASE_HEIGHT_M) -> np.ndarray:
+    """4x4 of the base's pose from planar odometry: the c.g. at height z over the ground
+    (the odometry frame's origin is on the ground)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return homogeneous(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), [x, y, z])
+
+
+@dataclass(frozen=True)
+class SlaveStatus:
+    phase: Phase
+    displacement_error_m: float        # card to its current goal (vision), nan before a fix
+    angle_error_rad: float
+    wrench: np.ndarray                 # tared F/T reading (sensor frame, 6)
+    contact_state: str                 # contact.ContactState value in FORCE_INSERT, else ''
+    done: bool
+    success: bool
+    reason: str
+    descending: bool = False
+    card_in_site: tuple[float, float, float] | None = None   # planar (x, y, theta) estimate
+
+
+@dataclass(frozen=True)
+class SlaveCommand:
+    arm_joints: tuple[float, float, float, float] | None     # None: leave the arm as it is
+    base_linear_x: float
+    base_angular_z: float
+    status: SlaveStatus
+
+
+@dataclass
+class _State:
+    t: float
+    q: np.ndarray
+    odom: np.ndarray
+    wrench: np.ndarray
+
+
+@dataclass
+class _Target:
+    position: np.ndarray         # card centre, base frame
+    pitch: float
+
+
+class SlaveController:
+    """The slave's insertion loop (see the module notes). Options (keyword-only):
+    tolerance_m, angle_tolerance_rad (the vision phase's goal before descent: displacement and
+    the card's tilt in the insertion plane), yaw_tolerance_rad (the whole rotation), settle_s,
+    standoff_m override (else the model's), descent_speed_m_s, contact_threshold_n, max_force_n
+    (the least-resistance force limit), abort_force_factor, force_period_s, carry_reach_m,
+    carry_height_m, ready_s, servo (a VisualServo; default one with arm_home at the carry
+    pose), identifier / planner options through `contact_options` / `step_options`."""
+
+    def __init__(self, model: TaskModel, cg_to_arm, *, tolerance_m: float = 0.003,
+                 angle_tolerance_rad: float = 0.03, yaw_tolerance_rad: float = 0.15,
+                 settle_s: float = 1.0,
+                 descent_speed_m_s: float = 0.01, contact_threshold_n: float = 1.5,
+                 max_force_n: float = 25.0, abort_force_factor: float = 1.5,
+                 force_period_s: float = 0.05, carry_reach_m: float = 0.30,
+                 carry_height_m: float = 0.0, ready_s: float = 2.0,
+                 servo: VisualServo | None = None, contact_options: dict | None = None,
+                 step_options: dict | None = None, site_in_odom=None,
+                 approach_speed_m_s: float = 0.1) -> None:
+        if not isinstance(model, TaskModel):
+            raise InsertionError('model must be a TaskModel')
+        self.model = model
+        self.r2 = np.asarray(cg_to_arm, float)
+        if self.r2.shape != (3,) or not np.all(np.isfinite(self.r2)):
+            raise InsertionError('cg_to_arm must be a finite 3-vector')
+        for name, v in (('tolerance_m', tolerance_m), ('angle_tolerance_rad',
+                        angle_tolerance_rad), ('descent_speed_m_s', descent_speed_m_s),
+                        ('contact_threshold_n', contact_threshold_n),
+                        ('max_force_n', max_force_n), ('force_period_s', force_period_s),
+                        ('carry_reach_m', carry_reach_m), ('ready_s', ready_s)):
+            if not (math.isfinite(v) and v > 0):
+                raise InsertionError(f'{name} must be finite and > 0, got {v}')
+        if not abort_force_factor >= 1:
+            raise InsertionError('abort_force_factor must be >= 1')
+        self.tolerance_m = float(tolerance_m)
+        self.angle_tolerance_rad = float(angle_tolerance_rad)
+        self.yaw_tolerance_rad = float(yaw_tolerance_rad)
+        self.settle_s = float(settle_s)
+        self.descent_speed = float(descent_speed_m_s)
+        self.contact_threshold_n = float(contact_threshold_n)
+        self.max_force_n = float(max_force_n)
+        self.abort_force_n = float(abort_force_factor * max_force_n)
+        self.force_period_s = float(force_period_s)
+        self.carry = joint2_in_base(self.r2) + np.array([carry_reach_m, 0.0, carry_height_m])
+        self.ready_s = float(ready_s)
+        self.site_in_odom = None if site_in_odom is None else np.asarray(site_in_odom, float)
+        if self.site_in_odom is not None and (self.site_in_odom.shape != (4, 4) or not
+                                              np.all(np.isfinite(self.site_in_odom))):
+            raise InsertionError('site_in_odom must be a finite 4x4 pose')
+        self.approach_speed = float(approach_speed_m_s)
+        self.servo = servo if servo is not None else VisualServo(
+            arm_home_m=tuple(self.carry), max_arm_speed_m_s=0.04, base_deadband_m=0.04)
+        geo = model.geometry
+        self.identifier = ContactIdentifier(geo, **(contact_options or {}))
+        self.planner = LeastResistance(geo, force_limit_n=max_force_n, **(step_options or {}))
+        self.reset()
+
+    # -- lifecycle ----------------------------------------------------------------------------
+    def reset(self) -> None:
+        self.servo.reset()
+        self.phase = Phase.READY
+        self._state: _State | None = None
+        self._start_t: float | None = None
+        self._target: _Target | None = None
+        self._settled_since: float | None = None
+        self._descending = False
+        self._descent_start: float | None = None
+        self._tare: np.ndarray | None = None
+        self._recent: deque[tuple[float, np.ndarray]] = deque()
+        self._last_force_step = -math.inf
+        self._done = False
+        self._success = False
+        self._reason = ''
+        self._contact_state = ''
+        self._errors = (math.nan, math.nan)
+        self._card_in_site: tuple[float, float, float] | None = None
+        self.peak_force_n = 0.0
+
+    # -- inputs -------------------------------------------------------------------------------
+    def add_state(self, t: float, q, odom_xy_yaw, wrench) -> None:
+        """Servo-rate sensing: arm joints (4, rad), odometry (x, y, yaw) and the F/T reading
+        (force, torque in the sensor frame)."""
+        qa = np.asarray(q, float)
+        w = np.asarray(wrench, float)
+        o = np.asarray(odom_xy_yaw, float)
+        if qa.shape != (4,) or w.shape != (6,) or o.shape != (3,) or not (
+                np.all(np.isfinite(qa)) and np.all(np.isfinite(w)) and np.all(np.isfinite(o))
+                and math.isfinite(t)):
+            raise InsertionError('state: finite q (4), odometry (3) and wrench (6) needed')
+        odom = pose_2d(*o)
+        self._state = _State(float(t), qa, odom, w)
+        self.servo.add_odometry(t, odom, self._card_marker_in_base(qa))
+        self._recent.append((float(t), w))
+        while self._recent and self._recent[0][0] < t - 0.25:
+            self._recent.popleft()
+        if self._start_t is None:
+            self._start_t = float(t)
+
+    def add_observation(self, stamp: float, obs: LabelledMarkers) -> None:
+        """A master fix: the four labelled markers at the image's stamp."""
+        if self._state is None or self.phase is Phase.READY or self._done:
+            return
+        q_at = self._state.q      # the arm moves slowly: kinematics now, odometry at the stamp
+        m = card_required_motion(obs, self._card_marker_in_base(q_at), self.model,
+                                 above_m=self.model.standoff_m)
+        cov = m.covariance_s + np.diag([1e-8] * 3 + [1e-6] * 3)
+        self.servo.add_vision(VisionFix(stamp, m.translation_s, m.rotvec_s, cov))
+
+    def _card_marker_in_base(self, q: np.ndarray) -> np.ndarray:
+        return card_in_base(q, self.r2) @ self.model.card_marker_frame
+
+    # -- output -------------------------------------------------------------------------------
+    def step(self, t: float) -> SlaveCommand:
+        """The command for servo time t (after add_state)."""
+        s = self._state
+        if s is None:
+            raise InsertionError('step before the first state')
+        if self._done:
+            return self._command(None, 0.0, 0.0)
+        if self._target is None:
+            self._target = _Target(self.carry.copy(), 0.0)
+        if self.phase is Phase.READY:
+            if t - self._start_t >= self.ready_s:
+                self.phase = Phase.VISUAL_SERVO
+            return self._command(self._joints(), 0.0, 0.0)
+        if self.phase is Phase.VISUAL_SERVO:
+            return self._visual(t, s)
+        return self._force(t, s)
+
+    def fail(self, reason: str) -> None:
+        """End the insertion as a failure (a timeout, a cancel) and hold."""
+        if not self._done:
+            self._done, self._success, self._reason = True, False, reason
+            self.phase = Phase.DONE
+
+    def _finish(self, success: bool, reason: str) -> None:
+        self._done, self._success, self._reason = True, success, reason
+        self.phase = Phase.DONE
+
+    def _joints(self) -> tuple[float, float, float, float]:
+        tg = self._target
+        j2 = joint2_in_base(self.r2)
+        heading = math.atan2(tg.position[1] - j2[1], tg.position[0] - j2[0])
+        return card_joints(tg.position, heading, tg.pitch, self.r2)
+
+    def _plane_normal(self) -> np.ndarray:
+        """The arm plane's normal (base frame): the axis the card's pitch turns about."""
+        tg = self._target
+        j2 = joint2_in_base(self.r2)
+        heading = math.atan2(tg.position[1] - j2[1], tg.position[0] - j2[0])
+        return np.array([-math.sin(heading), math.cos(heading), 0.0])
+
+    def _tared(self, w: np.ndarray) -> np.ndarray:
+        return w - self._tare if self._tare is not None else np.zeros(6)
+
+    def _status(self) -> SlaveStatus:
+        w = self._tared(self._state.wrench) if self._state is not None else np.zeros(6)
+        return SlaveStatus(self.phase, self._errors[0], self._errors[1], w,
+                           self._contact_state, self._done, self._success, self._reason,
+                           self._descending, self._card_in_site)
+
+    def _command(self, joints, v: float, w: float) -> SlaveCommand:
+        return SlaveCommand(joints, float(v), float(w), self._status())
+
+    def _move_target(self, dp: np.ndarray, dpitch: float) -> tuple | None:
+        """Move the arm's card target, undoing the move when the arm cannot reach it."""
+        tg = self._target
+        old = (tg.position.copy(), tg.pitch)
+        tg.position = tg.position + dp
+        tg.pitch += dpitch
+        try:
+            return self._joints()
+        except ReachError:
+            tg.position, tg.pitch = old
+            return self._joints()
+
+    def _approach(self, s: _State) -> SlaveCommand:
+        """Before the first fix: the base brings the card towards the pre-insertion pose the
+        map puts it at (site_in_odom, odometry), so that it enters the master's view; it
+        stops within approach_tolerance of it and waits for vision."""
+        m = self.model
+        goal = self.site_in_odom @ m.card_goal(m.standoff_m)
+        card = s.odom @ card_in_base(s.q, self.r2)
+        e = s.odom[:3, :3].T @ (goal[:3, 3] - card[:3, 3])     # base frame
+        self._errors = (float(np.linalg.norm(e)), math.nan)
+        # the arm takes the card to the pre-insertion height on the way (20 mm/s)
+        dz = float(np.clip(e[2], -0.02 / 200.0, 0.02 / 200.0))
+        joints = self._move_target(np.array([0.0, 0.0, dz]), 0.0)
+        if abs(e[0]) < 0.02 and abs(e[1]) < 0.05:
+            return self._command(joints, 0.0, 0.0)
+        v = float(np.clip(1.0 * e[0], -self.approach_speed, self.approach_speed))
+        w = float(np.clip(0.8 * math.atan2(e[1], max(abs(e[0]), 0.3)), -0.3, 0.3))
+        return self._command(joints, v, w)
+
+    def _visual(self, t: float, s: _State) -> SlaveCommand:
+        if self.servo.goal is None and self.site_in_odom is not None:
+            return self._approach(s)
+        cmd = self.servo.command(t)
+        self._errors = (cmd.displacement_error_m, cmd.angle_error_rad) \
+            if math.isfinite(cmd.vision_age_s) else (math.nan, math.nan)
+        if cmd.held:
+            return self._command(self._joints(), 0.0, 0.0)
+        dt = 1.0 / 200.0 if not hasattr(self, '_last_t') else max(0.0, t - self._last_t)
+        self._last_t = t
+        arm_v = cmd.arm_linear.copy()
+        if not self._descending:
+            # the arm turns the card about its plane's normal only (4 DOF): the rest of the
+            # rotation (yaw from the base's heading) is tolerated up to yaw_tolerance_rad
+            tilt = abs(float(cmd.error_rotvec @ self._plane_normal()))
+            ok = (cmd.displacement_error_m <= self.tolerance_m and
+                  tilt <= self.angle_tolerance_rad and
+                  float(np.linalg.norm(cmd.error_rotvec)) <= self.yaw_tolerance_rad)
+            if not ok:
+                self._settled_since = None
+            elif self._settled_since is None:
+                self._settled_since = t
+            elif t - self._settled_since >= self.settle_s:
+                self._descending = True
+                self._descent_start = t
+                self._tare = np.mean([w for _, w in self._recent], axis=0)
+        if self._descending:
+            arm_v[2] = -self.descent_speed
+            tared = self._tared(s.wrench)
+            force = float(np.linalg.norm(tared[:3]))
+            recent = np.mean([w for _, w in list(self._recent)[-4:]], axis=0) - self._tare
+            if float(np.linalg.norm(recent[:3])) > self.contact_threshold_n:
+                self.phase = Phase.FORCE_INSERT
+                self._contact_since = t
+                return self._command(self._joints(), 0.0, 0.0)
+            self.peak_force_n = max(self.peak_force_n, force)
+        # only the card's pitch (about the arm plane's normal) is the arm's to turn
+        joints = self._move_target(arm_v * dt, float(cmd.arm_angular @ self._plane_normal()) * dt)
+        base_v = 0.0 if self._descending else cmd.base_linear_x
+        base_w = 0.0 if self._descending else cmd.base_angular_z
+        return self._command(joints, base_v, base_w)
+
+    # -- force feedback -----------------------------------------------------------------------
+    def _site_in_odom(self) -> np.ndarray:
+        goal = self.servo.goal          # the card-marker frame's pre-insertion goal, odom
+        m = self.model
+        return goal @ invert(m.card_goal(m.standoff_m) @ m.card_marker_frame)
+
+    def _force(self, t: float, s: _State) -> SlaveCommand:
+        tared = self._tared(s.wrench)
+        force = float(np.linalg.norm(tared[:3]))
+        self.peak_force_n = max(self.peak_force_n, force)
+        if force > self.abort_force_n:
+            self._finish(False, f'contact force {force:.1f} N above the abort limit '
+                                f'{self.abort_force_n:.1f} N')
+            return self._command(None, 0.0, 0.0)
+        if t - self._last_force_step < self.force_period_s - 1e-9:
+            return self._command(self._joints(), 0.0, 0.0)
+        self._last_force_step = t
+        site_odom = self._site_in_odom()
+        base_in_planar = invert(SITE_FROM_PLANAR) @ invert(site_odom) @ s.odom
+        card = base_in_planar @ card_in_base(s.q, self.r2)
+        m = self.model
+        lead = card[:3, 3] - card[:3, 2] * (m.card_height_m / 2)
+        theta = math.atan2(card[1, 0], card[0, 0])
+        pose = CardPose(float(lead[0]), float(lead[1]), theta)
+        self._card_in_site = (pose.x, pose.y, pose.theta)
+        sensor = base_in_planar.copy()
+        sensor[:3, 3] = base_in_planar[:3, :3] @ self.r2 + base_in_planar[:3, 3]
+        w = planar_wrench([task_wrench(s.wrench, sensor, tare=self._tare)])
+        ident = self.identifier.identify(w, pose)
+        self._contact_state = ident.state.value
+        deep = pose.y <= -(m.slot_depth_m - 0.003)
+        if ident.state is ContactState.SEATED or (deep and abs(pose.x) < m.geometry.clearance_m
+                                                  and ident.state is ContactState.FREE):
+            self._finish(True, f'seated: {ident.state.value}, card edge {-pose.y * 1e3:.1f} mm '
+                               f'into the slot, peak force {self.peak_force_n:.1f} N')
+            return self._command(self._joints(), 0.0, 0.0)
+        step = self.planner.step(ident, w, pose)
+        planar_in_base = invert(base_in_planar)
+        d_lead, rotvec = planar_step_in_frame(step, pose, planar_in_base)
+        centre = card_in_base(s.q, self.r2)[:3, 3]
+        lead_b = planar_in_base[:3, :3] @ lead + planar_in_base[:3, 3]
+        dp = d_lead + np.cross(rotvec, centre - lead_b)
+        joints = self._move_target(dp, float(rotvec @ self._plane_normal()))
+        return self._command(joints, 0.0, 0.0)
+

@@ -1,0 +1,182 @@
+"""The insertion task's model and what the master's camera makes of it (Sujan 2002, §5.1-5.3).
+
+Task model: the card (a 4.25 in card, two markers on its face) and the insertion site (two jaws
+forming the slot, a marker on each jaw's face beside the mouth), with the marker positions in
+their own frames:
+
+- card frame: the card's centre, x along its width, y its face normal (the markers' side), z its
+  height (rover_sim's card link; coop_common.rover_geometry.card_in_base);
+- site frame: the centre of the slot's mouth, x across the slot (from the near jaw to the far
+  one), y the jaws' marked faces' normal, z up. contact.py's planar frame is this frame's x and z
+  (its y is the site's z, its z the site's -y).
+
+Each pair of markers gives a frame by Eq. 5-2 (P1 the first marker, P2 the second on the x axis,
+P3 on the z axis from the vertical the master's mast encoders give: frames.third_point), so the
+master's stereo fixes A_VT (card markers) and A_VO (slot markers); the slave's arm encoders give
+A_TS, and Eq. 5-4 with the task model's goal offset gives the card's required motion in the
+slave's base frame (frames.required_motion_from_points). The camera's own pose is never needed.
+
+`label_markers` turns a stereo frame's triangulated markers into the four labelled points: the
+card's two by their size (0.5 in across against the slot's 0.25 in, §5.3), each pair ordered
+along the site's x as the camera sees it (the vertical crossed with the viewing direction).
+
+No rclpy here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .contact import INCH, SlotGeometry
+from .errors import InsertionError
+from .frames import RequiredMotion, homogeneous, invert, required_motion_from_points, third_point
+from .triangulate import StereoMarker
+
+__all__ = ['TaskModel', 'LabelledMarkers', 'label_markers', 'card_required_motion', 'LABELS']
+
+LABELS = ('card_a', 'card_b', 'slot_a', 'slot_b')
+
+
+@dataclass(frozen=True)
+class TaskModel:
+    """The card, the slot and their markers (defaults: rover_sim's Table 5-1 site and card).
+
+    slot_width_m: the gap between the jaws (Table 5-1: 5.0, 4.5, 4.375 in); standoff_m: how far
+    above the mouth the card's lower edge is brought by vision before it descends."""
+
+    slot_width_m: float = 4.5 * INCH
+    card_width_m: float = 4.25 * INCH
+    card_height_m: float = 2.75 * INCH
+    card_thickness_m: float = 0.003
+    card_marker_radius_m: float = 0.25 * INCH
+    card_marker_x_m: float = 1.25 * INCH        # the card's markers at x = -+ this on its face
+    slot_depth_m: float = 0.03
+    jaw_width_m: float = 0.10
+    jaw_half_length_m: float = 0.10             # the jaws' marked faces at site y = + this
+    slot_marker_radius_m: float = 0.125 * INCH
+    slot_marker_inset_m: float = 0.03           # beyond the slot's edges, along x
+    slot_marker_depth_m: float = 0.03           # below the mouth
+    standoff_m: float = 0.015
+
+    def __post_init__(self) -> None:
+        for name, v in self.__dict__.items():
+            if not (np.isfinite(v) and v > 0):
+                raise InsertionError(f'{name} must be finite and > 0, got {v}')
+        self.geometry        # the slot must be wider than the card
+
+    @property
+    def geometry(self) -> SlotGeometry:
+        return SlotGeometry(card_width_m=self.card_width_m, slot_width_m=self.slot_width_m,
+                            slot_depth_m=self.slot_depth_m, jaw_width_m=self.jaw_width_m,
+                            card_height_m=self.card_height_m)
+
+    @property
+    def card_markers(self) -> np.ndarray:
+        """(2, 3) marker centres in the card frame (on its +y face)."""
+        y = self.card_thickness_m / 2
+        return np.array([[-self.card_marker_x_m, y, 0.0], [self.card_marker_x_m, y, 0.0]])
+
+    @property
+    def slot_markers(self) -> np.ndarray:
+        """(2, 3) marker centres in the site frame (on the jaws' +y faces)."""
+        x = self.slot_width_m / 2 + self.slot_marker_inset_m
+        return np.array([[-x, self.jaw_half_length_m, -self.slot_marker_depth_m],
+                         [x, self.jaw_half_length_m, -self.slot_marker_depth_m]])
+
+    @property
+    def card_marker_frame(self) -> np.ndarray:
+        """The Eq. 5-2 frame of the card's markers in the card frame (level: no rotation)."""
+        return homogeneous(np.eye(3), self.card_markers[0])
+
+    @property
+    def slot_marker_frame(self) -> np.ndarray:
+        """The Eq. 5-2 frame of the slot's markers in the site frame, its origin midway between
+        them (the slot's centre line for any slot width)."""
+        return homogeneous(np.eye(3), self.slot_markers.mean(axis=0))
+
+    def card_goal(self, above_m: float) -> np.ndarray:
+        """The card frame's pose in the site frame with its lower edge `above_m` over the mouth
+        (negative: inside the slot), centred over the slot, level."""
+        return homogeneous(np.eye(3), [0.0, 0.0, self.card_height_m / 2 + above_m])
+
+    def goal_offset(self, above_m: float) -> np.ndarray:
+        """The card-marker frame's goal in the slot-marker frame (Eq. 5-4's goal_offset)."""
+        return invert(self.slot_marker_frame) @ self.card_goal(above_m) @ self.card_marker_frame
+
+
+@dataclass(frozen=True)
+class LabelledMarkers:
+    """The four markers in the camera frame: rows card_a, card_b, slot_a, slot_b (m), their
+    3x3 covariances, and the vertical (unit, camera frame) the frames take their z from."""
+
+    points: np.ndarray          # (4, 3)
+    covariances: np.ndarray     # (4, 3, 3)
+    up: np.ndarray              # (3,)
+
+
+def _size_m(m: StereoMarker, radius_px: float, fx: float) -> float:
+    return float(radius_px * m.position[2] / fx)
+
+
+def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
+                  model: TaskModel, *, size_tolerance: float = 0.6) -> LabelledMarkers:
+    """The card's and the slot's markers among the triangulated ones. radii_px: each marker's
+    radius in the left image; fx: the focal length (px); up: the vertical in the camera frame.
+    Each marker goes to the kind its size (radius_px * Z / fx) is nearest to in ratio, if within
+    1 + size_tolerance of it (rendered and real small markers look larger than they are:
+    blur, shading); one within it of neither is ignored (a fiducial, a glint). Each kind needs
+    exactly two, whose distance apart must match the model within 20 %, else InsertionError
+    (the caller holds and waits for the next frame)."""
+    u = np.asarray(up, float)
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        raise InsertionError('up must be a finite non-zero 3-vector')
+    u = u / np.linalg.norm(u)
+    if len(radii_px) != len(markers):
+        raise InsertionError('one radius per marker')
+    across = np.cross(u, [0.0, 0.0, 1.0])     # the site's x as this camera sees it
+    if np.linalg.norm(across) < 1e-6:
+        raise InsertionError('the camera looks straight down or up: the site x is undefined')
+    across /= np.linalg.norm(across)
+    kinds = {'card': (model.card_marker_radius_m, 2 * model.card_marker_x_m),
+             'slot': (model.slot_marker_radius_m,
+                      model.slot_markers[1, 0] - model.slot_markers[0, 0])}
+    # each marker goes to the kind nearest in size (log ratio), within the tolerance
+    sizes = [_size_m(m, r, fx) for m, r in zip(markers, radii_px)]
+    kind_of = []
+    for sz in sizes:
+        ratios = {k: abs(np.log(sz / r)) for k, (r, _) in kinds.items()} if sz > 0 else {}
+        best = min(ratios, key=ratios.get) if ratios else None
+        kind_of.append(best if best is not None and
+                       ratios[best] <= np.log1p(size_tolerance) else None)
+    points, covs = [], []
+    for kind, (radius, spacing) in kinds.items():
+        found = [m for m, k in zip(markers, kind_of) if k == kind]
+        if len(found) != 2:
+            raise InsertionError(f'{len(found)} {kind} markers seen (need 2)')
+        found.sort(key=lambda m: float(m.position @ across))
+        d = float(np.linalg.norm(found[1].position - found[0].position))
+        if abs(d / spacing - 1.0) > 0.2:
+            raise InsertionError(f'{kind} markers {d:.3f} m apart, the model says {spacing:.3f}')
+        points += [m.position for m in found]
+        covs += [m.covariance for m in found]
+    return LabelledMarkers(np.array(points), np.array(covs), u)
+
+
+def card_required_motion(obs: LabelledMarkers, t_base_card, model: TaskModel, *,
+                         above_m: float) -> RequiredMotion:
+    """Eq. 5-1..5-4: the card's required motion in the slave's base frame, to the pose with its
+    lower edge `above_m` over the mouth, from the master's labelled markers and the card's pose in
+    the base frame (arm kinematics, A_TS of the card-marker frame). Translation and rotation
+    are those of the card-marker frame (about its origin); covariance_s from the points'."""
+    pts = obs.points
+    obj = np.array([pts[0], pts[1], third_point(pts[0], pts[1], obs.up)])
+    mid = 0.5 * (pts[2] + pts[3])      # the slot's centre line, whatever its width
+    site = np.array([mid, pts[3], third_point(mid, pts[3], obs.up)])
+    # the third point is exact given the first two: its covariance is the first point's
+    c_mid = 0.25 * (obs.covariances[2] + obs.covariances[3])
+    cov = np.array([obs.covariances[0], obs.covariances[1], obs.covariances[0],
+                    c_mid, obs.covariances[3], c_mid])
+    a_ts = np.asarray(t_base_card, float) @ model.card_marker_frame
+    return required_motion_from_points(obj, site, a_ts, goal_offset=model.goal_offset(above_m),
+                                       covariances=cov)

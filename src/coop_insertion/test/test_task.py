@@ -1,0 +1,125 @@
+"""The task model, marker labelling and the card's required motion (task.py), and the drive to a
+camera pose (drive.py), on hand-built frames."""
+import math
+
+import numpy as np
+import pytest
+
+from coop_common.rover_geometry import card_in_base
+from coop_insertion.drive import GoToPose, random_camera_pose, wrap
+from coop_insertion.errors import InsertionError
+from coop_insertion.frames import homogeneous, invert, rot_z
+from coop_insertion.task import TaskModel, card_required_motion, label_markers
+from coop_insertion.triangulate import StereoMarker
+
+MODEL = TaskModel()
+R2 = np.array([0.01, 0.3, 0.1])
+Q = np.array([0.05, 0.6, -1.1, 0.5])
+
+
+def _camera():
+    """A camera 0.6 m in front of the site (+y), looking back at it, pitched down 30 deg:
+    pose of the optical frame (z forward, x right, y down) in the site frame."""
+    pitch = math.radians(30)
+    fwd = np.array([0.0, -math.cos(pitch), -math.sin(pitch)])
+    right = np.array([-1.0, 0.0, 0.0])
+    down = np.cross(fwd, right)
+    return homogeneous(np.column_stack([right, down, fwd]), [0.0, 0.6, 0.35])
+
+
+def _observe(cam, site_card, *, rng=None, sigma=0.0):
+    """The four markers in the camera frame for the card frame at `site_card` (site frame),
+    as StereoMarkers with plausible image radii (f = 850 px)."""
+    pts = [site_card[:3, :3] @ p + site_card[:3, 3] for p in MODEL.card_markers] + \
+        list(MODEL.slot_markers)
+    radii = [MODEL.card_marker_radius_m] * 2 + [MODEL.slot_marker_radius_m] * 2
+    ms, rs = [], []
+    for k, (p, r) in enumerate(zip(pts, radii)):
+        pc = invert(cam)[:3, :3] @ p + invert(cam)[:3, 3]
+        if rng is not None:
+            pc = pc + rng.normal(0.0, sigma, 3)
+        ms.append(StereoMarker(k, k, pc, np.eye(3) * max(sigma, 1e-4) ** 2, (0, 0), (0, 0)))
+        rs.append(850.0 * r / pc[2])
+    order = [2, 0, 3, 1]                      # detection order is arbitrary
+    up = invert(cam)[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    return [ms[i] for i in order], [rs[i] for i in order], up
+
+
+def test_labels_follow_size_and_the_site_x_whatever_the_detection_order():
+    cam = _camera()
+    card = MODEL.card_goal(0.05)
+    ms, rs, up = _observe(cam, card)
+    lab = label_markers(ms, rs, 850.0, up, MODEL)
+    site = [invert(cam)[:3, :3] @ p + invert(cam)[:3, 3] for p in MODEL.slot_markers]
+    np.testing.assert_allclose(lab.points[2:], site, atol=1e-12)
+    assert lab.points[0] @ np.cross(up, [0, 0, 1]) < lab.points[1] @ np.cross(up, [0, 0, 1])
+    with pytest.raises(InsertionError, match='card markers'):
+        label_markers(ms[:1] + ms[2:], rs[:1] + rs[2:], 850.0, up, MODEL)
+    with pytest.raises(InsertionError, match='slot markers .* apart'):
+        far = TaskModel(slot_width_m=0.2)
+        label_markers(ms, rs, 850.0, up, far)
+
+
+@pytest.mark.parametrize('slot_in', [5.0, 4.5, 4.375])
+def test_required_motion_is_zero_at_the_goal_and_the_offset_elsewhere(slot_in):
+    model = TaskModel(slot_width_m=slot_in * 0.0254)
+    cam = _camera()
+    t_base_card = card_in_base(Q, R2)
+    # the slave's base somewhere, turned: the site in the base frame follows from the card
+    for offset, turn in (((0.0, 0.0, 0.0), 0.0), ((0.012, -0.004, 0.02), 0.03)):
+        card_site = model.card_goal(model.standoff_m)
+        card_site = homogeneous(rot_z(turn), offset) @ card_site
+        ms, rs, up = _observe(cam, card_site)
+        lab = label_markers(ms, rs, 850.0, up, model)
+        m = card_required_motion(lab, t_base_card, model, above_m=model.standoff_m)
+        # the base frame's view of the site: card_in_base = base_site @ card_site
+        base_site = t_base_card @ invert(card_site)
+        goal_base = base_site @ model.card_goal(model.standoff_m) @ model.card_marker_frame
+        now = t_base_card @ model.card_marker_frame
+        np.testing.assert_allclose(m.translation_s, goal_base[:3, 3] - now[:3, 3], atol=1e-9)
+        assert m.angle_error_rad == pytest.approx(abs(turn), abs=1e-9)
+
+
+def test_required_motion_carries_the_stereo_covariance():
+    cam = _camera()
+    rng = np.random.default_rng(3)
+    card = MODEL.card_goal(MODEL.standoff_m)
+    shifts = []
+    for _ in range(120):
+        ms, rs, up = _observe(cam, card, rng=rng, sigma=5e-4)
+        lab = label_markers(ms, rs, 850.0, up, MODEL)
+        m = card_required_motion(lab, card_in_base(Q, R2), MODEL, above_m=MODEL.standoff_m)
+        shifts.append(m.translation_s)
+    spread = np.std(np.array(shifts), axis=0)
+    predicted = np.sqrt(np.diag(m.covariance_s)[:3])
+    np.testing.assert_allclose(spread, predicted, rtol=0.35)
+
+
+def test_go_to_pose_turns_drives_and_turns_on_a_unicycle():
+    x, y, yaw = 0.0, 0.0, 0.0
+    drive = GoToPose((1.0, -0.5), math.pi / 2)
+    dt = 0.02
+    for _ in range(3000):
+        c = drive.command(x, y, yaw)
+        if c.arrived:
+            break
+        yaw = wrap(yaw + c.angular_z * dt)
+        x += c.linear_x * math.cos(yaw) * dt
+        y += c.linear_x * math.sin(yaw) * dt
+    assert c.arrived
+    assert math.hypot(x - 1.0, y + 0.5) <= 0.02
+    assert abs(wrap(yaw - math.pi / 2)) <= 0.02
+    with pytest.raises(InsertionError):
+        GoToPose((math.nan, 0.0), 0.0)
+
+
+def test_random_camera_poses_stay_within_their_bounds_and_face_the_site():
+    rng = np.random.default_rng(1)
+    site = np.array([3.0, 0.0, 0.4])
+    for _ in range(200):
+        xy, yaw, pitch = random_camera_pose(site, rng, camera_z=0.8)
+        d = xy - site[:2]
+        assert 0.5 <= np.hypot(*d) <= 1.2
+        assert abs(wrap(math.atan2(d[1], d[0]) - math.pi / 2)) <= math.radians(75) + 1e-9
+        assert abs(wrap(yaw - math.atan2(-d[1], -d[0]))) <= math.radians(8) + 1e-9
+        assert 0.0 < pitch < 1.2
