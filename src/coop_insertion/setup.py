@@ -9,6 +9,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', ['config/insertion_world.yaml']),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
@@ -17,5 +18,9 @@ setup(
     description='Cooperative insertion (thesis ch. 5): vision-guided master/slave, '
                 'force-feedback finish.',
     license='Apache-2.0',
-    entry_points={'console_scripts': []},
+    entry_points={'console_scripts': [
+        'master = coop_insertion.master_node:main',
+        'slave = coop_insertion.slave_node:main',
+        'table_5_1 = coop_insertion.table_5_1:main',
+    ]},
 )

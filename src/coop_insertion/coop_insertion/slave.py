@@ -19,8 +19,9 @@ knows into arm-joint and base-velocity commands through three phases:
    card's pose in the site frame (from the fused vision goal, odometry and encoders) and the
    tared F/T wrench in the task frame go to contact.ContactIdentifier, and
    contact.LeastResistance's bounded step moves the card's target (the base stands still).
-   SEATED, or the card's lower edge at the slot's depth with no contact force pushing it back,
-   ends it with success; a force above `abort_force_factor` x `max_force_n` ends it with
+   SEATED, the card's lower edge at the slot's depth (within 1 mm), or stalled for `stall_s`
+   within 4 mm of it against the bottom ends it with success; a force above
+   `abort_force_factor` x `max_force_n` ends it with
    failure, as does the caller's timeout.
 
 Frames: base = `<slave>/base_link` (c.g., x forward, z up); odom = `<slave>/odom` (wheel
@@ -131,13 +132,13 @@ class SlaveController:
     def __init__(self, model: TaskModel, cg_to_arm, *, tolerance_m: float = 0.003,
                  angle_tolerance_rad: float = 0.03, yaw_tolerance_rad: float = 0.15,
                  settle_s: float = 1.0,
-                 descent_speed_m_s: float = 0.01, contact_threshold_n: float = 1.5,
+                 descent_speed_m_s: float = 0.005, contact_threshold_n: float = 1.5,
                  max_force_n: float = 25.0, abort_force_factor: float = 1.5,
                  force_period_s: float = 0.05, carry_reach_m: float = 0.30,
                  carry_height_m: float = 0.0, ready_s: float = 2.0,
                  servo: VisualServo | None = None, contact_options: dict | None = None,
                  step_options: dict | None = None, site_in_odom=None,
-                 approach_speed_m_s: float = 0.1) -> None:
+                 approach_speed_m_s: float = 0.1, stall_s: float = 2.0) -> None:
         if not isinstance(model, TaskModel):
             raise InsertionError('model must be a TaskModel')
         self.model = model
@@ -169,6 +170,7 @@ class SlaveController:
                                               np.all(np.isfinite(self.site_in_odom))):
             raise InsertionError('site_in_odom must be a finite 4x4 pose')
         self.approach_speed = float(approach_speed_m_s)
+        self.stall_s = float(stall_s)
         self.servo = servo if servo is not None else VisualServo(
             arm_home_m=tuple(self.carry), max_arm_speed_m_s=0.04, base_deadband_m=0.04)
         geo = model.geometry
@@ -189,6 +191,7 @@ class SlaveController:
         self._tare: np.ndarray | None = None
         self._recent: deque[tuple[float, np.ndarray]] = deque()
         self._last_force_step = -math.inf
+        self._depths: deque[tuple[float, float]] = deque()
         self._done = False
         self._success = False
         self._reason = ''
@@ -385,10 +388,19 @@ class SlaveController:
         w = planar_wrench([task_wrench(s.wrench, sensor, tare=self._tare)])
         ident = self.identifier.identify(w, pose)
         self._contact_state = ident.state.value
-        deep = pose.y <= -(m.slot_depth_m - 0.003)
-        if ident.state is ContactState.SEATED or (deep and abs(pose.x) < m.geometry.clearance_m
-                                                  and ident.state is ContactState.FREE):
-            self._finish(True, f'seated: {ident.state.value}, card edge {-pose.y * 1e3:.1f} mm '
+        # seated: identified so, or the card's edge at the floor's depth (within the pose
+        # estimate's millimetre), or stalled near it with the floor pushing back
+        depth = -pose.y
+        self._depths.append((t, depth))
+        while self._depths and self._depths[0][0] < t - self.stall_s:
+            self._depths.popleft()
+        stalled = (len(self._depths) > 1 and t - self._depths[0][0] >= 0.9 * self.stall_s and
+                   max(d for _, d in self._depths) - min(d for _, d in self._depths) < 2e-4)
+        at_floor = depth >= m.slot_depth_m - 0.001
+        near_floor = depth >= m.slot_depth_m - 0.004 and stalled and ident.state in (
+            ContactState.CORNER_ON_BOTTOM, ContactState.SEATED, ContactState.TWO_POINT)
+        if ident.state is ContactState.SEATED or at_floor or near_floor:
+            self._finish(True, f'seated ({ident.state.value}): card edge {depth * 1e3:.1f} mm '
                                f'into the slot, peak force {self.peak_force_n:.1f} N')
             return self._command(self._joints(), 0.0, 0.0)
         step = self.planner.step(ident, w, pose)

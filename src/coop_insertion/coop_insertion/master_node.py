@@ -1,0 +1,396 @@
+"""Node `master`: the rover that watches the task (thesis ch. 4-5) and runs the `insert` action.
+
+Runs in the team's namespace (like the mapper) for the rover named by `rover`:
+
+- tracks the card's and the slot's markers in `<rover>/stereo/{left,right}/image_raw` (every
+  frame, or at most `vision_rate_hz`), triangulates them and publishes the four labelled
+  centres with their covariances and the vertical from the mast encoders on `<rover>/markers`;
+- action `insert` (coop_msgs/action/Insert): PLACE_CAMERA (the camera pose from the team's
+  `viewplan/task_view` for the site, or random within bounds; the rover drives there on its
+  odometry and tilts its mast), then hands the task to the slave's `<slave>/insert_card` action
+  and relays its feedback and result.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from geometry_msgs.msg import Point, Twist
+from nav_msgs.msg import Odometry
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.task import Future
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from coop_common.node_util import BadInputCounter, declare_parameters, run_node
+from coop_common.params import ParamSpec
+from coop_common.qos import COMMAND_QOS, SENSOR_QOS
+from coop_common.rover_geometry import MAST_JOINTS, ReachError, camera_in_base, camera_mount
+from coop_mapping.stereo import StereoCamera
+from coop_msgs.action import Insert
+from coop_msgs.msg import MarkerObservation, TaskTarget
+from coop_msgs.srv import TaskView
+
+from .drive import GoToPose, random_camera_pose, wrap
+from .errors import InsertionError
+from .markers import DETECTORS, make_detector
+from .task import LABELS, TaskModel, label_markers
+from .triangulate import triangulate_markers
+
+PARAMS = {
+    'rover': ParamSpec('rover1', 'The master rover (its topics are <rover>/...)', read_only=True),
+    'detector': ParamSpec('default', 'Marker detector (coop_insertion.markers)',
+                          choices=DETECTORS, read_only=True),
+    'marker_min_coverage': ParamSpec(0.3, "Default detector: least fraction of a marker's rim "
+                                     'with edge points (the 0.25 in slot markers are 6-8 px '
+                                     'across at 0.6-0.8 m)', lo=0.05, hi=1.0, read_only=True),
+    'marker_max_residual_px': ParamSpec(1.5, 'Default detector: largest RMS ellipse-fit '
+                                        'residual (px) of a marker kept', lo=0.05, hi=5.0,
+                                        read_only=True),
+    'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
+                                '(0: every frame)', lo=0.0, hi=100.0),
+    'site_position': ParamSpec([3.0572, 0.0, 0.4], "The slot mouth's centre in the map "
+                               "frame (m): the task view's primary target"),
+    'site_normal': ParamSpec([0.0, 1.0, 0.0], "The outward normal of the site's marked faces "
+                             '(map frame)'),
+    'target_sigma_m': ParamSpec(0.01, 'Position uncertainty of the site in the map (m)',
+                                lo=0.0, hi=1.0),
+    'max_speed_m_s': ParamSpec(0.2, 'Driving speed to the camera pose (m/s)', lo=0.01,
+                               hi=0.25),
+    'random_min_range_m': ParamSpec(0.5, 'Random placement: nearest camera range (m)',
+                                    lo=0.2, hi=5.0),
+    'random_max_range_m': ParamSpec(1.2, 'Random placement: farthest camera range (m)',
+                                    lo=0.2, hi=5.0),
+    'random_max_bearing_deg': ParamSpec(75.0, 'Random placement: widest bearing from the '
+                                        "site's face normal (deg)", lo=0.0, hi=90.0),
+    'random_aim_error_deg': ParamSpec(8.0, 'Random placement: largest aim error in heading '
+                                      'and pitch (deg)', lo=0.0, hi=30.0),
+    'view_target_offset_m': ParamSpec([0.0, 0.15, 0.1], "The task view's primary target "
+                                      'relative to site_position (map axes, m): in front of the '
+                                      'marked faces and above the mouth, so that a camera aimed '
+                                      "at it has the card's markers and the slot's in view"),
+    'target_radius_m': ParamSpec(0.03, "The primary target's extent (m)", lo=0.0, hi=1.0),
+    'camera_height_m': ParamSpec(0.8, "The mast camera's height at rest (m), for random poses",
+                                 lo=0.1, hi=3.0),
+    'seed': ParamSpec(0, 'Seed of the random placement', lo=0, hi=2**31 - 1),
+    'place_timeout_s': ParamSpec(120.0, 'Give up placing the camera after this (sim s)',
+                                 lo=1.0, hi=3600.0),
+}
+
+
+def _check(p: dict) -> str | None:
+    if not p['random_min_range_m'] < p['random_max_range_m']:
+        return 'random_min_range_m must be below random_max_range_m'
+    for name in ('site_position', 'site_normal', 'view_target_offset_m'):
+        v = p[name]
+        if len(v) != 3 or not all(math.isfinite(x) for x in v):
+            return f'{name} must be three finite numbers'
+    if np.linalg.norm(p['site_normal']) < 1e-6:
+        return 'site_normal must be non-zero'
+    return None
+
+
+def image_to_array(msg: Image) -> np.ndarray:
+    if msg.encoding not in ('mono8', '8UC1'):
+        raise InsertionError(f'encoding {msg.encoding!r}, need mono8')
+    if msg.step < msg.width or len(msg.data) < msg.step * msg.height:
+        raise InsertionError('image data shorter than step * height')
+    a = np.frombuffer(bytes(msg.data), np.uint8, count=msg.step * msg.height)
+    return a.reshape(msg.height, msg.step)[:, :msg.width]
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+class MasterNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('master', **kwargs)
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params, check_all=_check)
+        self.bad = BadInputCounter(self)
+        r = self.p['rover']
+        self.model = TaskModel()
+        self.detector = None
+        self.camera: StereoCamera | None = None
+        self.info: dict[str, CameraInfo] = {}
+        self.frames: dict[int, dict[str, Image]] = {}
+        self.mast = (0.0, 0.0)
+        self.odom: tuple[float, float, float] | None = None
+        self._last_vision = -math.inf
+        self.tracked = 0
+        self.rng = np.random.default_rng(int(self.p['seed']))
+        for side in ('left', 'right'):
+            self.create_subscription(Image, f'{r}/stereo/{side}/image_raw',
+                                     lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
+            self.create_subscription(CameraInfo, f'{r}/stereo/{side}/camera_info',
+                                     lambda m, s=side: self.info.__setitem__(s, m), SENSOR_QOS)
+        self.create_subscription(JointState, f'{r}/joint_states', self._on_joints, SENSOR_QOS)
+        self.create_subscription(Odometry, f'{r}/odom', self._on_odom, SENSOR_QOS)
+        self.pub_markers = self.create_publisher(MarkerObservation, f'{r}/markers', SENSOR_QOS)
+        self.pub_cmd = self.create_publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS)
+        self.pub_mast = self.create_publisher(JointTrajectory, f'{r}/mast/command', COMMAND_QOS)
+        self.task_view = self.create_client(TaskView, 'viewplan/task_view')
+        self._busy = False
+        self._drive: GoToPose | None = None
+        self._wake: Future | None = None
+        self._slaves: dict[str, ActionClient] = {}
+        self.create_timer(0.25, self._poke, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        ActionServer(self, Insert, 'insert', execute_callback=self._execute,
+                     goal_callback=self._on_goal,
+                     cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        self.get_logger().info(f'master ready: {r} watches, action insert')
+
+    def _on_params(self, changed: dict) -> None:
+        self.p.update(changed)
+
+    # -- vision -------------------------------------------------------------------------------
+    def _on_joints(self, msg: JointState) -> None:
+        idx = {n: i for i, n in enumerate(msg.name)}
+        if all(n in idx for n in MAST_JOINTS) and len(msg.position) == len(msg.name):
+            pan, tilt = (float(msg.position[idx[n]]) for n in MAST_JOINTS)
+            if math.isfinite(pan) and math.isfinite(tilt):
+                self.mast = (pan, tilt)
+
+    def _on_image(self, side: str, msg: Image) -> None:
+        st = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        f = self.frames.setdefault(st, {})
+        f[side] = msg
+        for old in [s for s in self.frames if s < st - 2 * 10**9]:
+            del self.frames[old]
+        if len(f) == 2:
+            del self.frames[st]
+            rate = self.p['vision_rate_hz']
+            t = _stamp(msg)
+            if rate > 0 and t - self._last_vision < 1.0 / rate - 1e-6:
+                return
+            self._last_vision = t
+            try:
+                self._track(f['left'], f['right'])
+            except InsertionError as exc:
+                self.bad.reject('frame', str(exc))
+
+    def _setup_camera(self) -> None:
+        li, ri = self.info['left'], self.info['right']
+        fx, cx, cy, fy = li.p[0], li.p[2], li.p[6], li.p[5]
+        baseline = -ri.p[3] / ri.p[0]
+        self.camera = StereoCamera(fx=fx, fy=fy, cx=cx, cy=cy, baseline=baseline,
+                                   width=li.width, height=li.height)
+        k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+        kind = self.p['detector']
+        opts = {'radius_px': (2.0, 60.0)}
+        if kind == 'default':
+            opts.update(K=k, min_coverage=self.p['marker_min_coverage'],
+                        max_residual_px=self.p['marker_max_residual_px'])
+        self.detector = make_detector(kind, **opts)
+
+    def _track(self, left: Image, right: Image) -> None:
+        if 'left' not in self.info or 'right' not in self.info:
+            raise InsertionError('no camera_info yet')
+        if self.camera is None or self.camera.width != self.info['left'].width:
+            self._setup_camera()
+        ml = self.detector.detect(image_to_array(left))
+        mr = self.detector.detect(image_to_array(right))
+        st = triangulate_markers(ml, mr, self.camera)
+        up = camera_in_base(*self.mast)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        try:
+            lab = label_markers(st, [ml[m.left].radius_px for m in st], self.camera.fx, up,
+                                self.model)
+        except InsertionError as exc:
+            self.get_logger().info(f'markers: {exc}', throttle_duration_sec=5.0)
+            return
+        msg = MarkerObservation()
+        msg.header = left.header
+        msg.labels = list(LABELS)
+        for p, c in zip(lab.points, lab.covariances):
+            msg.positions.append(Point(x=float(p[0]), y=float(p[1]), z=float(p[2])))
+            msg.covariances.extend(float(v) for v in c.ravel())
+            u = self.camera.cx + self.camera.fx * p[0] / p[2]
+            v = self.camera.cy + self.camera.fy * p[1] / p[2]
+            msg.u.append(float(u))
+            msg.v.append(float(v))
+            msg.radius_px.append(float('nan'))
+        msg.up.x, msg.up.y, msg.up.z = (float(x) for x in lab.up)
+        self.pub_markers.publish(msg)
+        self.tracked += 1
+
+    # -- driving ------------------------------------------------------------------------------
+    def _on_odom(self, msg: Odometry) -> None:
+        q = msg.pose.pose.orientation
+        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        self.odom = (msg.pose.pose.position.x, msg.pose.pose.position.y, yaw)
+        if self._drive is not None:
+            c = self._drive.command(*self.odom)
+            t = Twist()
+            t.linear.x, t.angular.z = c.linear_x, c.angular_z
+            self.pub_cmd.publish(t)
+            if c.arrived:
+                self._drive = None
+                self._wakeup()
+
+    def _poke(self) -> None:
+        self._wakeup()
+
+    def _wakeup(self) -> None:
+        if self._wake is not None and not self._wake.done():
+            self._wake.set_result(None)
+
+    async def _sleep_until_wake(self) -> None:
+        self._wake = Future()
+        await self._wake
+
+    # -- the action ---------------------------------------------------------------------------
+    def _on_goal(self, goal: Insert.Goal) -> GoalResponse:
+        if self._busy:
+            self.get_logger().warn('insert: a goal is running; rejected')
+            return GoalResponse.REJECT
+        if goal.master and goal.master != self.p['rover']:
+            self.get_logger().warn(f'insert: this master is {self.p["rover"]}, not '
+                                   f'{goal.master}; rejected')
+            return GoalResponse.REJECT
+        if not goal.slave or goal.slave == self.p['rover']:
+            self.get_logger().warn('insert: the goal names no slave (or the master); rejected')
+            return GoalResponse.REJECT
+        if goal.placement not in (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM):
+            return GoalResponse.REJECT
+        self._busy = True
+        return GoalResponse.ACCEPT
+
+    async def _execute(self, handle) -> Insert.Result:
+        t0 = time.monotonic()
+        try:
+            res = await self._run(handle)
+        except Exception as exc:     # noqa: BLE001  an action must end with a result
+            self.get_logger().error(f'insert failed: {exc!r}')
+            handle.abort()
+            res = Insert.Result(success=False, reason=f'master error: {exc}')
+        finally:
+            self._busy = False
+            self._drive = None
+            self.pub_cmd.publish(Twist())
+        res.duration_s = time.monotonic() - t0 if res.duration_s == 0 else res.duration_s
+        return res
+
+    def _feedback(self, handle, phase: int, **kw) -> None:
+        fb = Insert.Feedback(phase=phase, displacement_error_m=kw.get('d', math.nan),
+                             angle_error_rad=kw.get('a', math.nan))
+        handle.publish_feedback(fb)
+
+    async def _run(self, handle) -> Insert.Result:
+        goal = handle.request
+        self._feedback(handle, Insert.Feedback.PHASE_PLACE_CAMERA)
+        where = await self._choose_pose(goal.placement)
+        if isinstance(where, str):
+            handle.abort()
+            return Insert.Result(success=False, reason=where)
+        xy, yaw, pitch, how = where
+        try:
+            mount = camera_mount(xy, yaw, pitch)
+        except ReachError as exc:
+            handle.abort()
+            return Insert.Result(success=False, reason=f'camera pose out of reach: {exc}')
+        self.get_logger().info(f'placing the camera ({how}): base at ({mount.base_xy[0]:.2f}, '
+                               f'{mount.base_xy[1]:.2f}) heading {mount.base_yaw:.2f}, '
+                               f'tilt {mount.tilt:.2f}')
+        tilt = JointTrajectory(joint_names=list(MAST_JOINTS))
+        tilt.points = [JointTrajectoryPoint(positions=[0.0, mount.tilt])]
+        tilt.points[0].time_from_start.sec = 1
+        self.pub_mast.publish(tilt)
+        self._drive = GoToPose(mount.base_xy, mount.base_yaw,
+                               max_speed_m_s=self.p['max_speed_m_s'])
+        started = time.monotonic()
+        while self._drive is not None:
+            await self._sleep_until_wake()
+            if handle.is_cancel_requested:
+                self._drive = None
+                handle.canceled()
+                return Insert.Result(success=False, reason='canceled while placing the camera')
+            if time.monotonic() - started > self.p['place_timeout_s']:
+                self._drive = None
+                handle.abort()
+                return Insert.Result(success=False, reason='timed out placing the camera')
+        self.pub_cmd.publish(Twist())
+        # hand over to the slave
+        client = self._slaves.get(goal.slave)
+        if client is None:
+            client = ActionClient(self, Insert, f'{goal.slave}/insert_card')
+            self._slaves[goal.slave] = client
+        if not client.wait_for_server(timeout_sec=10.0):
+            handle.abort()
+            return Insert.Result(success=False, reason=f'no {goal.slave}/insert_card server')
+        sub = Insert.Goal(master=self.p['rover'], slave=goal.slave, placement=goal.placement,
+                          tolerance_m=goal.tolerance_m,
+                          angle_tolerance_rad=goal.angle_tolerance_rad,
+                          max_force_n=goal.max_force_n, timeout_s=goal.timeout_s)
+        sh = await client.send_goal_async(sub, feedback_callback=lambda fb:
+                                          handle.publish_feedback(fb.feedback))
+        if not sh.accepted:
+            handle.abort()
+            return Insert.Result(success=False, reason=f'{goal.slave} rejected the task')
+        res_future = sh.get_result_async()
+        while not res_future.done():
+            await self._sleep_until_wake()
+            if handle.is_cancel_requested:
+                await sh.cancel_goal_async()
+        res = res_future.result().result
+        if handle.is_cancel_requested:
+            handle.canceled()
+        elif res.success:
+            handle.succeed()
+        else:
+            handle.abort()
+        return res
+
+    async def _choose_pose(self, placement: int):
+        site = np.asarray(self.p['site_position'], float)
+        normal = np.asarray(self.p['site_normal'], float)
+        normal /= np.linalg.norm(normal)
+        if placement == Insert.Goal.PLACEMENT_RANDOM:
+            target = site + np.asarray(self.p['view_target_offset_m'], float)
+            xy, yaw, pitch = random_camera_pose(
+                target, self.rng, min_range_m=self.p['random_min_range_m'],
+                max_range_m=self.p['random_max_range_m'], face_normal=normal[:2],
+                max_bearing_rad=math.radians(self.p['random_max_bearing_deg']),
+                aim_error_rad=math.radians(self.p['random_aim_error_deg']),
+                camera_z=self.p['camera_height_m'])
+            return xy, yaw, pitch, 'random'
+        if not self.task_view.wait_for_service(timeout_sec=10.0):
+            return 'no viewplan/task_view service'
+        req = TaskView.Request(robot=self.p['rover'], tolerance=0.1)
+        t = TaskTarget()
+        t.header.frame_id = 'map'
+        target = site + np.asarray(self.p['view_target_offset_m'], float)
+        t.position.x, t.position.y, t.position.z = (float(v) for v in target)
+        t.normal.x, t.normal.y, t.normal.z = (float(v) for v in normal)
+        t.radius_m = self.p['target_radius_m']
+        t.position_sigma_m = self.p['target_sigma_m']
+        t.weight = 1.0
+        req.primary = t
+        resp = await self.task_view.call_async(req)
+        if not resp.success:
+            return f'task_view: {resp.message}'
+        pose = resp.best.pose.pose
+        q = pose.orientation
+        rot = _quat_matrix(q.x, q.y, q.z, q.w)
+        fwd = rot[:, 2]
+        yaw = math.atan2(fwd[1], fwd[0])
+        pitch = -math.asin(max(-1.0, min(1.0, fwd[2])))
+        return (np.array([pose.position.x, pose.position.y]), wrap(yaw), pitch,
+                f'optimal, {resp.message}')
+
+
+def _quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(MasterNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,303 @@
+"""Node `slave`: the rover that carries the card and inserts it (thesis ch. 5, app. A.4).
+
+Runs in the team's namespace for the rover named by `rover`. Action `<rover>/insert_card`
+(coop_msgs/action/Insert; the master's `insert` action sends it once the camera is placed):
+the arm brings the card to its carry pose, then coop_insertion.slave.SlaveController closes the
+vision error from the master's `<master>/markers` at the servo rate (`<rover>/joint_states`,
+with `<rover>/odom` and `<rover>/arm/wrench`), descends, and on contact finishes by force
+feedback; it commands `<rover>/arm/joint_command` and `<rover>/cmd_vel`. The arm's mount r_2
+comes from the identifier's `<rover>/dynamic_parameters` when it has published, else from the
+`cg_to_arm` parameter.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from geometry_msgs.msg import Twist, WrenchStamped
+from nav_msgs.msg import Odometry
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.task import Future
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from coop_common.node_util import BadInputCounter, declare_parameters, run_node
+from coop_common.params import ParamSpec
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
+from coop_common.rover_geometry import ARM_JOINTS, ReachError
+from coop_msgs.action import Insert
+from coop_msgs.msg import DynamicParameters, MarkerObservation
+
+from .errors import InsertionError
+from .slave import Phase, SlaveController
+from .task import LABELS, LabelledMarkers, TaskModel
+
+PARAMS = {
+    'rover': ParamSpec('rover2', 'The slave rover (its topics are <rover>/...)',
+                       read_only=True),
+    'master': ParamSpec('rover1', 'The master rover whose <master>/markers guide the card'),
+    'slot_width_m': ParamSpec(0.1143, "The slot's width (the task's given; Table 5-1: 5.0, "
+                              '4.5, 4.375 in)', lo=0.1080, hi=0.25),
+    'site_position': ParamSpec([3.0572, 0.0, 0.4], "The slot mouth's centre in the map frame "
+                               '(m), for the coarse approach; the map frame is taken as the '
+                               'odometry frame (rover_sim starts odometry at the true pose)'),
+    'site_yaw': ParamSpec(0.0, "The site frame's heading in the map (rad): its x across the "
+                          'slot', lo=-math.pi, hi=math.pi),
+    'cg_to_arm': ParamSpec([0.01, 0.3, 0.1], 'r_2, the arm mount from the base c.g. (m), '
+                           'until the identifier publishes it'),
+    'tolerance_m': ParamSpec(0.003, 'Vision error to reach before descending, when the goal '
+                             'gives none (m)', lo=1e-4, hi=0.1),
+    'angle_tolerance_rad': ParamSpec(0.03, 'Card tilt error before descending, when the goal '
+                                     'gives none (rad)', lo=1e-4, hi=1.0),
+    'max_force_n': ParamSpec(25.0, 'Contact force limit, when the goal gives none (N)',
+                             lo=1.0, hi=200.0),
+    'timeout_s': ParamSpec(120.0, 'Task timeout when the goal gives none (sim s)', lo=1.0,
+                           hi=3600.0),
+    'descent_speed_m_s': ParamSpec(0.005, 'Speed of the vision-guided descent (m/s)',
+                                   lo=0.001, hi=0.1),
+    'contact_threshold_n': ParamSpec(1.5, 'Tared force that means contact (N)', lo=0.1,
+                                     hi=50.0),
+    'command_rate_hz': ParamSpec(100.0, 'Arm and base command rate (Hz)', lo=1.0, hi=200.0),
+}
+
+
+def _site_pose(position, yaw: float) -> np.ndarray:
+    t = np.eye(4)
+    c, s = math.cos(yaw), math.sin(yaw)
+    t[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    t[:3, 3] = position
+    return t
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+class SlaveNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__('slave', **kwargs)
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params,
+                                    check_all=self._check)
+        self.bad = BadInputCounter(self)
+        r = self.p['rover']
+        self.r2 = np.asarray(self.p['cg_to_arm'], float)
+        self.r2_source = 'parameter'
+        self.odom: tuple[float, float, float] | None = None
+        self.wrench: np.ndarray | None = None
+        self.ctl: SlaveController | None = None
+        self._goal_t0: float | None = None
+        self._timeout = 0.0
+        self._last_cmd = -math.inf
+        self._wake: Future | None = None
+        self._busy = False
+        self._marker_sub = None
+        self.create_subscription(JointState, f'{r}/joint_states', self._on_joints,
+                                 with_depth(SENSOR_QOS, 50))
+        self.create_subscription(Odometry, f'{r}/odom', self._on_odom, SENSOR_QOS)
+        self.create_subscription(WrenchStamped, f'{r}/arm/wrench', self._on_wrench,
+                                 with_depth(SENSOR_QOS, 50))
+        self.create_subscription(DynamicParameters, f'{r}/dynamic_parameters', self._on_params_id,
+                                 LATCHED_QOS)
+        self.pub_arm = self.create_publisher(JointTrajectory, f'{r}/arm/joint_command',
+                                             COMMAND_QOS)
+        self.pub_cmd = self.create_publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS)
+        self.create_timer(0.2, self._wakeup, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        ActionServer(self, Insert, f'{r}/insert_card', execute_callback=self._execute,
+                     goal_callback=self._on_goal,
+                     cancel_callback=lambda _g: CancelResponse.ACCEPT)
+        self.get_logger().info(f'slave ready: {r} carries the card, action {r}/insert_card')
+
+    @staticmethod
+    def _check(p: dict) -> str | None:
+        for name in ('cg_to_arm', 'site_position'):
+            v = p[name]
+            if len(v) != 3 or not all(math.isfinite(x) for x in v):
+                return f'{name} must be three finite numbers'
+        return None
+
+    def _on_params(self, changed: dict) -> None:
+        self.p.update(changed)
+        if 'cg_to_arm' in changed and self.r2_source == 'parameter':
+            self.r2 = np.asarray(changed['cg_to_arm'], float)
+
+    def _on_params_id(self, msg: DynamicParameters) -> None:
+        v = dict(zip(msg.names, msg.values))
+        obs = dict(zip(msg.names, msg.observable)) if len(msg.observable) == len(msg.names) \
+            else {}
+        if all(k in v and obs.get(k, True) and math.isfinite(v[k])
+               for k in ('cg_x', 'cg_y', 'cg_z')):
+            self.r2 = np.array([v['cg_x'], v['cg_y'], v['cg_z']])
+            self.r2_source = 'identified'
+
+    # -- sensing ------------------------------------------------------------------------------
+    def _on_odom(self, msg: Odometry) -> None:
+        q = msg.pose.pose.orientation
+        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        self.odom = (msg.pose.pose.position.x, msg.pose.pose.position.y, yaw)
+
+    def _on_wrench(self, msg: WrenchStamped) -> None:
+        f, m = msg.wrench.force, msg.wrench.torque
+        w = np.array([f.x, f.y, f.z, m.x, m.y, m.z])
+        if np.all(np.isfinite(w)):
+            self.wrench = w
+        else:
+            self.bad.reject('wrench', 'non-finite')
+
+    def _on_markers(self, msg: MarkerObservation) -> None:
+        if self.ctl is None:
+            return
+        n = len(msg.positions)
+        if list(msg.labels) != list(LABELS) or len(msg.covariances) != 9 * n:
+            self.bad.reject('markers', f'labels {list(msg.labels)}, {n} positions')
+            return
+        pts = np.array([[p.x, p.y, p.z] for p in msg.positions])
+        cov = np.asarray(msg.covariances, float).reshape(n, 3, 3)
+        up = np.array([msg.up.x, msg.up.y, msg.up.z])
+        try:
+            self.ctl.add_observation(_stamp(msg), LabelledMarkers(pts, cov, up))
+        except InsertionError as exc:
+            self.bad.reject('markers', str(exc))
+
+    def _on_joints(self, msg: JointState) -> None:
+        if self.ctl is None or self.odom is None or self.wrench is None:
+            return
+        idx = {n: i for i, n in enumerate(msg.name)}
+        if not all(n in idx for n in ARM_JOINTS) or len(msg.position) != len(msg.name):
+            self.bad.reject('joint_states', 'arm joints missing')
+            return
+        q = np.array([msg.position[idx[n]] for n in ARM_JOINTS])
+        t = _stamp(msg)
+        if self._goal_t0 is None:
+            self._goal_t0 = t
+        try:
+            self.ctl.add_state(t, q, self.odom, self.wrench)
+            if t - self._goal_t0 > self._timeout:
+                self.ctl.fail(f'timed out after {self._timeout:.0f} s in '
+                              f'{self.ctl.phase.name}')
+            cmd = self.ctl.step(t)
+        except (InsertionError, ReachError) as exc:
+            self.ctl.fail(f'slave error: {exc}')
+            self._wakeup()
+            return
+        if t - self._last_cmd >= 1.0 / self.p['command_rate_hz'] - 1e-6:
+            self._last_cmd = t
+            if cmd.arm_joints is not None:
+                tr = JointTrajectory(joint_names=list(ARM_JOINTS))
+                pt = JointTrajectoryPoint(positions=[float(v) for v in cmd.arm_joints])
+                pt.time_from_start.nanosec = int(2e9 / self.p['command_rate_hz'])
+                tr.points = [pt]
+                self.pub_arm.publish(tr)
+            tw = Twist()
+            tw.linear.x, tw.angular.z = cmd.base_linear_x, cmd.base_angular_z
+            self.pub_cmd.publish(tw)
+        st = cmd.status
+        key = (st.phase, st.descending, st.contact_state if st.phase is Phase.FORCE_INSERT
+               else '')
+        if key != getattr(self, '_logged', None):
+            self._logged = key
+            self.get_logger().info(f'{st.phase.name}{" (descending)" if st.descending else ""}'
+                                   f'{" " + st.contact_state if key[2] else ""} at '
+                                   f'{t - self._goal_t0:.1f} s')
+        self.get_logger().info(f'error {st.displacement_error_m * 1e3:.1f} mm, '
+                               f'{st.angle_error_rad:.3f} rad, |F| '
+                               f'{np.linalg.norm(st.wrench[:3]):.1f} N',
+                               throttle_duration_sec=5.0)
+        self._status = st
+        if st.done:
+            self._wakeup()
+
+    # -- the action ---------------------------------------------------------------------------
+    def _wakeup(self) -> None:
+        if self._wake is not None and not self._wake.done():
+            self._wake.set_result(None)
+
+    def _on_goal(self, goal: Insert.Goal) -> GoalResponse:
+        if self._busy:
+            self.get_logger().warn('insert_card: a goal is running; rejected')
+            return GoalResponse.REJECT
+        if goal.slave and goal.slave != self.p['rover']:
+            return GoalResponse.REJECT
+        for v in (goal.tolerance_m, goal.angle_tolerance_rad, goal.max_force_n, goal.timeout_s):
+            if not (math.isfinite(v) and v >= 0):
+                return GoalResponse.REJECT
+        self._busy = True
+        return GoalResponse.ACCEPT
+
+    async def _execute(self, handle) -> Insert.Result:
+        t0 = time.monotonic()
+        try:
+            return await self._run(handle, t0)
+        finally:
+            self.ctl = None
+            self._busy = False
+            self.pub_cmd.publish(Twist())
+            if self._marker_sub is not None:
+                self.destroy_subscription(self._marker_sub)
+                self._marker_sub = None
+
+    async def _run(self, handle, t0: float) -> Insert.Result:
+        g = handle.request
+        p = self.p
+        master = g.master or p['master']
+        model = TaskModel(slot_width_m=p['slot_width_m'])
+        self.ctl = SlaveController(
+            model, self.r2, tolerance_m=g.tolerance_m or p['tolerance_m'],
+            angle_tolerance_rad=g.angle_tolerance_rad or p['angle_tolerance_rad'],
+            max_force_n=g.max_force_n or p['max_force_n'],
+            descent_speed_m_s=p['descent_speed_m_s'],
+            contact_threshold_n=p['contact_threshold_n'],
+            site_in_odom=_site_pose(p['site_position'], p['site_yaw']))
+        self._timeout = g.timeout_s or p['timeout_s']
+        self._goal_t0 = None
+        self._status = None
+        self._marker_sub = self.create_subscription(MarkerObservation, f'{master}/markers',
+                                                    self._on_markers, SENSOR_QOS)
+        self.get_logger().info(f'inserting: guided by {master}/markers, r_2 '
+                               f'{np.round(self.r2, 4).tolist()} ({self.r2_source}), slot '
+                               f'{model.slot_width_m * 1e3:.1f} mm')
+        last_fb = -math.inf
+        while True:
+            self._wake = Future()
+            await self._wake
+            st = self._status
+            if handle.is_cancel_requested:
+                self.ctl.fail('canceled')
+                handle.canceled()
+                return self._result(False, 'canceled', t0)
+            if st is None:
+                continue
+            if time.monotonic() - last_fb > 0.2:
+                last_fb = time.monotonic()
+                fb = Insert.Feedback(phase=int(min(st.phase, Phase.DONE)) if st.phase !=
+                                     Phase.READY else Insert.Feedback.PHASE_VISUAL_SERVO,
+                                     displacement_error_m=st.displacement_error_m,
+                                     angle_error_rad=st.angle_error_rad)
+                w = st.wrench
+                fb.wrench.force.x, fb.wrench.force.y, fb.wrench.force.z = (float(v) for v in w[:3])
+                fb.wrench.torque.x, fb.wrench.torque.y, fb.wrench.torque.z = \
+                    (float(v) for v in w[3:])
+                handle.publish_feedback(fb)
+            if st.done:
+                (handle.succeed if st.success else handle.abort)()
+                self.get_logger().info(f'insertion {"done" if st.success else "failed"}: '
+                                       f'{st.reason}')
+                return self._result(st.success, st.reason, t0, st)
+
+    def _result(self, ok: bool, reason: str, t0: float, st=None) -> Insert.Result:
+        r = Insert.Result(success=bool(ok), reason=reason, duration_s=time.monotonic() - t0)
+        if st is not None:
+            r.displacement_error_m = float(st.displacement_error_m)
+            r.angle_error_rad = float(st.angle_error_rad)
+        r.peak_force_n = float(self.ctl.peak_force_n) if self.ctl is not None else math.nan
+        return r
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(SlaveNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,185 @@
+"""Table 5-1 in the simulator: task success of the cooperative insertion for slot widths of 5.0,
+4.5 and 4.375 in (the thesis's easy, medium and hard rows) and 4.2925 in (1 % of the card's
+width in clearance, beyond the thesis), with the master's camera placed optimally (the view
+planner's `task_view`) or at random within reasonable bounds (§5.4).
+
+    ros2 run coop_insertion table_5_1 --attempts 20 --json out/table_5_1.json --plots out
+
+Every attempt runs through the whole graph over DDS (coop_insertion.rig: rover_sim, the mapper
+with the site's map, view_planner, master and slave): the simulator is reset to the row's slot
+width with the slave's start perturbed (attempt seed), one `insert` goal runs, and the
+simulator's truth decides success: the card seated to depth with its penetration into anything
+at most 0.5 mm at every step. The site map the view planner places the camera in is built once
+per scenario by the mapping pipeline (coop_viewplan.fig_3_25's maximum-information exploration
+with stereo ranging and the shared voxel map, saved with `save_map`), plus the master's own
+survey of the site through the live stereo and mapper nodes.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from coop_common.cli import number, output_dir, output_path
+from coop_common.files import save_figure, write_json
+
+from .rig import InsertionRig, as_row
+
+ROWS_IN = (5.0, 4.5, 4.375, 4.2925)
+THESIS = {5.0: (10, 7), 4.5: (10, 4), 4.375: (9, 2)}       # of 10: optimal, random
+LABELS = {5.0: 'Easy', 4.5: 'Medium', 4.375: 'Hard', 4.2925: '1 % clearance'}
+
+
+def build_site_map(path: Path, *, seed: int, occlusion_density: float, scans: int = 14,
+                   log=None) -> Path:
+    """The scenario's map by the mapping pipeline (coop_viewplan.fig_3_25's exploration)."""
+    from coop_viewplan.fig_3_25 import Fig325Config, run_strategy
+    cfg = Fig325Config(rovers=2, scans=scans, seed=seed, occlusion_density=occlusion_density)
+    run_strategy('max_information', cfg, seed=seed, log=log, save_map=path)
+    return path
+
+
+def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], seed: int,
+        occlusion_density: float, timeout_s: float, max_force_n: float, site_map: Path | None,
+        log=print) -> dict:
+    t0 = time.perf_counter()
+    work = Path(tempfile.mkdtemp(prefix='table_5_1_'))
+    if site_map is None:
+        log(f'building the site map (seed {seed}, occlusion {occlusion_density})')
+        site_map = build_site_map(work / 'site.cmap', seed=seed,
+                                  occlusion_density=occlusion_density)
+    out_rows = []
+    with InsertionRig(seed=seed, occlusion_density=occlusion_density, slot_in=rows[0],
+                      log_dir=work / 'logs', site_map=site_map) as rig:
+        rig.place(rows[0], np.random.default_rng(seed))
+        scans = rig.survey()
+        log(f'site surveyed: {scans} scans in the map')
+        for slot_in in rows:
+            rig.set_slot(slot_in)
+            row = {'slot_in': slot_in, 'label': LABELS.get(slot_in, f'{slot_in} in'),
+                   'attempts': attempts, 'thesis': THESIS.get(slot_in)}
+            for placement in placements:
+                results = []
+                for k in range(attempts):
+                    a = rig.attempt(slot_in=slot_in, placement=placement,
+                                    seed=seed * 1000 + k, timeout_s=timeout_s,
+                                    max_force_n=max_force_n)
+                    results.append(a)
+                    log(f'{slot_in} in {placement} #{k + 1}: '
+                        f'{"success" if a.success else "failure"} ({a.reason}); '
+                        f'penetration {a.max_penetration_mm:.2f} mm, peak force '
+                        f'{a.peak_force_n:.1f} N, {a.sim_s:.0f} sim s, {a.duration_s:.0f} s')
+                row[f'{placement}_successes'] = sum(a.success for a in results)
+                row[f'{placement}_peak_force_n'] = max((a.peak_force_n for a in results
+                                                        if math.isfinite(a.peak_force_n)),
+                                                       default=None)
+                row[f'{placement}_attempts'] = [as_row(a) for a in results]
+                row[f'{placement}_curves'] = [a.curves for a in results]
+            out_rows.append(row)
+    return {'attempts': attempts, 'seed': seed, 'occlusion_density': occlusion_density,
+            'placements': list(placements), 'rows': out_rows,
+            'seconds': time.perf_counter() - t0, 'logs': str(work / 'logs')}
+
+
+def format_table(res: dict) -> str:
+    n = res['attempts']
+    head = (f'Table 5-1 through sim + nodes: {n} attempts per cell (thesis: 10); success = '
+            'seated, penetration <= 0.5 mm')
+    lines = [head, f'{"row":16s} {"slot (in)":>9s} {"optimal":>9s} {"random":>9s} '
+             f'{"thesis opt":>10s} {"thesis rnd":>10s} {"peak F opt (N)":>15s}']
+    for r in res['rows']:
+        th = r.get('thesis')
+        opt = r.get('optimal_successes')
+        rnd = r.get('random_successes')
+        pk = r.get('optimal_peak_force_n')
+        lines.append(
+            f'{r["label"]:16s} {r["slot_in"]:9.4g} '
+            f'{"-" if opt is None else f"{opt}/{n}":>9s} '
+            f'{"-" if rnd is None else f"{rnd}/{n}":>9s} '
+            f'{"-" if th is None else f"{th[0]}/10":>10s} '
+            f'{"-" if th is None else f"{th[1]}/10":>10s} '
+            f'{"-" if pk is None else f"{pk:.1f}":>15s}')
+    lines.append(f'{res["seconds"] / 60:.1f} min')
+    return '\n'.join(lines)
+
+
+def plot(res: dict, out: Path) -> list[Path]:
+    """Figs. 5-13 / 5-14: displacement and angular error against time, and the F/T force after
+    contact, for the first attempt of the hardest row with each placement."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    row = res['rows'][-1]
+    paths = []
+    for placement in res['placements']:
+        curves = row.get(f'{placement}_curves') or []
+        if not curves:
+            continue
+        c = curves[0]
+        fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
+        t = c['t']
+        ax[0].plot(t, [1e3 * v for v in c['displacement_m']])
+        ax[0].set(xlabel='time (s)', ylabel='displacement error (mm)')
+        ax[1].plot(t, c['angle_rad'])
+        ax[1].set(xlabel='time (s)', ylabel='angular error (rad)')
+        contact = [k for k, ph in enumerate(c['phase']) if ph == 2]
+        if contact:
+            k0 = contact[0]
+            ax[2].plot(t[k0:], [f[1] for f in c['force'][k0:]], label='F_y')
+            ax[2].plot(t[k0:], [f[2] for f in c['force'][k0:]], label='F_z')
+            ax[2].legend()
+        ax[2].set(xlabel='time (s)', ylabel='F/T force after contact (N)')
+        fig.suptitle(f'{row["label"]} ({row["slot_in"]} in), {placement} placement: '
+                     f'{"success" if row[f"{placement}_attempts"][0]["success"] else "failure"}')
+        fig.tight_layout()
+        paths.append(save_figure(fig, out / f'fig_5_13_{placement}.png'))
+        plt.close(fig)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog='table_5_1', description=__doc__.split('\n\n')[0])
+    p.add_argument('--attempts', type=number(int, lo=1), default=20)
+    p.add_argument('--rows', default=','.join(f'{r:g}' for r in ROWS_IN),
+                   help='slot widths in inches')
+    p.add_argument('--placements', default='optimal,random')
+    p.add_argument('--seed', type=number(int, lo=0), default=1)
+    p.add_argument('--occlusion-density', type=number(float, lo=0.0, hi=0.5), default=0.05)
+    p.add_argument('--timeout', type=number(float, lo=1.0), default=90.0,
+                   help='sim seconds per attempt')
+    p.add_argument('--max-force', type=number(float, lo=1.0), default=25.0)
+    p.add_argument('--site-map', type=Path, default=None,
+                   help='a map file of the scenario (default: built by the mapping pipeline)')
+    p.add_argument('--json', type=output_path, default=None)
+    p.add_argument('--plots', type=output_dir, default=None)
+    args = p.parse_args(argv)
+    try:
+        rows = tuple(float(x) for x in args.rows.split(','))
+    except ValueError:
+        p.error('--rows: comma-separated slot widths in inches')
+    if not all(4.25 < r <= 9.8 for r in rows):
+        p.error('--rows: each slot must be wider than the 4.25 in card (and at most 9.8 in)')
+    placements = tuple(x for x in args.placements.split(',') if x)
+    if not placements or any(x not in ('optimal', 'random') for x in placements):
+        p.error('--placements: optimal and/or random')
+    res = run(attempts=args.attempts, rows=rows, placements=placements, seed=args.seed,
+              occlusion_density=args.occlusion_density, timeout_s=args.timeout,
+              max_force_n=args.max_force, site_map=args.site_map,
+              log=lambda s: print(s, file=sys.stderr, flush=True))
+    print(format_table(res))
+    if args.json:
+        write_json(args.json, res)
+    if args.plots:
+        for path in plot(res, args.plots):
+            print(f'wrote {path}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
+
