@@ -24,6 +24,7 @@ No rclpy here.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,11 +124,12 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
                   model: TaskModel, *, size_tolerance: float = 0.6) -> LabelledMarkers:
     """The card's and the slot's markers among the triangulated ones. radii_px: each marker's
     radius in the left image; fx: the focal length (px); up: the vertical in the camera frame.
-    Each marker goes to the kind its size (radius_px * Z / fx) is nearest to in ratio, if within
-    1 + size_tolerance of it (rendered and real small markers look larger than they are:
-    blur, shading); one within it of neither is ignored (a fiducial, a glint). Each kind needs
-    exactly two, whose distance apart must match the model within 20 %, else InsertionError
-    (the caller holds and waits for the next frame)."""
+    Markers whose size (radius_px * Z / fx) is within a factor 1 + size_tolerance of either
+    kind's are candidates (a fiducial or a glint is not; small markers look larger than they
+    are: blur, shading). The labelling is the pair of disjoint candidate pairs whose distances
+    apart match the card's and the slot's within 20 %, the card's pair the larger, with the
+    least squared spacing error; none: InsertionError (the caller holds and waits for the next
+    frame)."""
     u = np.asarray(up, float)
     if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
         raise InsertionError('up must be a finite non-zero 3-vector')
@@ -141,25 +143,48 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
     kinds = {'card': (model.card_marker_radius_m, 2 * model.card_marker_x_m),
              'slot': (model.slot_marker_radius_m,
                       model.slot_markers[1, 0] - model.slot_markers[0, 0])}
-    # each marker goes to the kind nearest in size (log ratio), within the tolerance
+    # candidates: sizes within the tolerance of either kind (fiducials and glints drop out)
     sizes = [_size_m(m, r, fx) for m, r in zip(markers, radii_px)]
-    kind_of = []
-    for sz in sizes:
-        ratios = {k: abs(np.log(sz / r)) for k, (r, _) in kinds.items()} if sz > 0 else {}
-        best = min(ratios, key=ratios.get) if ratios else None
-        kind_of.append(best if best is not None and
-                       ratios[best] <= np.log1p(size_tolerance) else None)
+    lo = kinds['slot'][0] / (1 + size_tolerance)
+    hi = kinds['card'][0] * (1 + size_tolerance)
+    cand = [k for k, sz in enumerate(sizes) if lo <= sz <= hi]
+    # the pairing: two disjoint pairs whose spacings match the card's and the slot's within
+    # 20 %, the card's pair the larger; least squared spacing error (size breaks ties)
+    best, found = None, {'card': False, 'slot': False}
+    pos = [m.position for m in markers]
+
+    def spacing_error(a: int, b: int, kind: str) -> float:
+        return float(np.linalg.norm(pos[a] - pos[b])) / kinds[kind][1] - 1.0
+
+    for ca, cb in itertools.combinations(cand, 2):
+        ec = spacing_error(ca, cb, 'card')
+        if abs(ec) > 0.2:
+            continue
+        found['card'] = True
+        for sa, sb in itertools.combinations([k for k in cand if k not in (ca, cb)], 2):
+            es = spacing_error(sa, sb, 'slot')
+            if abs(es) > 0.2:
+                why = "no slot pair at the slot markers' spacing"
+                continue
+            if sizes[ca] + sizes[cb] <= sizes[sa] + sizes[sb]:
+                why = 'the card pair is not the larger'
+                continue
+            size_cost = sum(np.log(sizes[k] / kinds[kind][0]) ** 2 for kind, ks in
+                            (('card', (ca, cb)), ('slot', (sa, sb))) for k in ks)
+            cost = ec * ec + es * es + 0.01 * size_cost
+            if best is None or cost < best[0]:
+                best = (cost, (ca, cb), (sa, sb))
+    if best is None:
+        why = (f'no card pair {2 * model.card_marker_x_m:.3f} m apart' if not found['card'] else
+               f'no slot pair {kinds["slot"][1]:.3f} m apart' if not found['slot'] else
+               'the card pair is not the larger')
+        raise InsertionError(f'markers not labelled: {why} ({len(cand)} of {len(markers)} '
+                             "of a marker's size)")
     points, covs = [], []
-    for kind, (radius, spacing) in kinds.items():
-        found = [m for m, k in zip(markers, kind_of) if k == kind]
-        if len(found) != 2:
-            raise InsertionError(f'{len(found)} {kind} markers seen (need 2)')
-        found.sort(key=lambda m: float(m.position @ across))
-        d = float(np.linalg.norm(found[1].position - found[0].position))
-        if abs(d / spacing - 1.0) > 0.2:
-            raise InsertionError(f'{kind} markers {d:.3f} m apart, the model says {spacing:.3f}')
-        points += [m.position for m in found]
-        covs += [m.covariance for m in found]
+    for pair in best[1:]:
+        found = sorted(pair, key=lambda k: float(pos[k] @ across))
+        points += [pos[k] for k in found]
+        covs += [markers[k].covariance for k in found]
     return LabelledMarkers(np.array(points), np.array(covs), u)
 
 

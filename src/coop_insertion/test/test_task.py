@@ -53,11 +53,19 @@ def test_labels_follow_size_and_the_site_x_whatever_the_detection_order():
     site = [invert(cam)[:3, :3] @ p + invert(cam)[:3, 3] for p in MODEL.slot_markers]
     np.testing.assert_allclose(lab.points[2:], site, atol=1e-12)
     assert lab.points[0] @ np.cross(up, [0, 0, 1]) < lab.points[1] @ np.cross(up, [0, 0, 1])
-    with pytest.raises(InsertionError, match='card markers'):
+    with pytest.raises(InsertionError, match='no card pair'):
         label_markers(ms[:1] + ms[2:], rs[:1] + rs[2:], 850.0, up, MODEL)
-    with pytest.raises(InsertionError, match='slot markers .* apart'):
+    with pytest.raises(InsertionError, match='no slot pair'):
         far = TaskModel(slot_width_m=0.2)
         label_markers(ms, rs, 850.0, up, far)
+    # a slot marker imaged larger than it is (blur): still labelled by the spacings
+    big = [r * (1.5 if abs(r - max(rs)) > 1e-9 and r < max(rs) else 1.0) for r in rs]
+    lab2 = label_markers(ms, big, 850.0, up, MODEL)
+    np.testing.assert_allclose(lab2.points, lab.points)
+    # a fiducial-sized marker among them is ignored
+    fid = StereoMarker(9, 9, ms[0].position + [0.3, 0.0, 0.0], np.eye(3) * 1e-8, (0, 0), (0, 0))
+    lab3 = label_markers(ms + [fid], rs + [850.0 * 0.02 / fid.position[2]], 850.0, up, MODEL)
+    np.testing.assert_allclose(lab3.points, lab.points)
 
 
 @pytest.mark.parametrize('slot_in', [5.0, 4.5, 4.375])
