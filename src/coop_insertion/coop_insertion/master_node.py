@@ -50,6 +50,9 @@ PARAMS = {
     'marker_max_residual_px': ParamSpec(1.5, 'Default detector: largest RMS ellipse-fit '
                                         'residual (px) of a marker kept', lo=0.05, hi=5.0,
                                         read_only=True),
+    'marker_min_contrast': ParamSpec(15.0, 'Default detector: least marker-to-surround contrast '
+                                     '(grey levels; a 3-4 px slot marker shaded across its '
+                                     'face measures 20-30)', lo=1.0, hi=254.0, read_only=True),
     'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
                                 '(0: every frame)', lo=0.0, hi=100.0),
     'site_position': ParamSpec([3.0572, 0.0, 0.4], "The slot mouth's centre in the map "
@@ -183,7 +186,8 @@ class MasterNode(Node):
         opts = {'radius_px': (2.0, 60.0)}
         if kind == 'default':
             opts.update(K=k, min_coverage=self.p['marker_min_coverage'],
-                        max_residual_px=self.p['marker_max_residual_px'])
+                        max_residual_px=self.p['marker_max_residual_px'],
+                        min_contrast=self.p['marker_min_contrast'])
         self.detector = make_detector(kind, **opts)
 
     def _track(self, left: Image, right: Image) -> None:

@@ -133,8 +133,8 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
         card = Card()
         size = (card.width_m, card.thickness_m, card.height_m)
         markers = ''.join(
-            f'<visual><origin xyz="{u} {card.thickness_m / 2 + 0.0005} {v}" rpy="1.5708 0 0"/>'
-            f'<geometry><cylinder radius="{card.marker_radius_m}" length="0.001"/></geometry>'
+            f'<visual><origin xyz="{u} {card.thickness_m / 2 + 0.0001} {v}" rpy="1.5708 0 0"/>'
+            f'<geometry><cylinder radius="{card.marker_radius_m}" length="0.0004"/></geometry>'
             '<material name="w"><color rgba="1 1 1 1"/></material></visual>'
             for u, v in card.marker_offsets)
         parts.append(f'<link name="card_link">{_inertial(0.01, (0, 0, 0), (1e-6,) * 3)}'

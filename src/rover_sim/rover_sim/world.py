@@ -302,14 +302,17 @@ class World:
             body = self._static_body(vis, list(box.centre), collision=col)
             self.site_bodies.append(body)
             self._body_kind[body] = kind
-        # fiducials face -x (disc axis along x), slot markers face +y (axis along y)
-        for centres, radius, rpy in ((site.markers, site.marker_radius_m, (0, math.pi / 2, 0)),
-                                     (site.slot_markers, site.slot_marker_radius_m,
-                                      (math.pi / 2, 0, 0))):
+        # fiducials face -x (disc axis along x, 2 mm discs half in the face); the slot markers
+        # face +y as painted discs (0.4 mm, 0.3 mm proud of the face: a thicker disc shows its
+        # rim at an oblique view, which at 3 px radius is not an ellipse any more)
+        for centres, radius, rpy, length, out in (
+                (site.markers, site.marker_radius_m, (0, math.pi / 2, 0), 0.002, (0, 0, 0)),
+                (site.slot_markers, site.slot_marker_radius_m, (math.pi / 2, 0, 0), 0.0004,
+                 (0, 0.0001, 0))):
             for m in centres:
-                vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=radius, length=0.002,
+                vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=radius, length=length,
                                            rgbaColor=[1, 1, 1, 1], physicsClientId=c)
-                self._static_body(vis, m, pb.getQuaternionFromEuler(rpy))
+                self._static_body(vis, np.add(m, out), pb.getQuaternionFromEuler(rpy))
 
     def _spawn(self, name: str, params: BaseParameters, x: float, y: float,
                with_card: bool) -> _Rover:
