@@ -182,7 +182,9 @@ class SlaveNode(Node):
             self.ctl.fail(f'slave error: {exc}')
             self._wakeup()
             return
-        if t - self._last_cmd >= 1.0 / self.p['command_rate_hz'] - 1e-6:
+        # (sim time starts again at 0 after a simulator reset: a stamp before the last
+        # command's is a new clock, not a command to skip)
+        if t < self._last_cmd or t - self._last_cmd >= 1.0 / self.p['command_rate_hz'] - 1e-6:
             self._last_cmd = t
             if cmd.arm_joints is not None:
                 tr = JointTrajectory(joint_names=list(ARM_JOINTS))
@@ -252,6 +254,7 @@ class SlaveNode(Node):
             site_in_odom=_site_pose(p['site_position'], p['site_yaw']))
         self._timeout = g.timeout_s or p['timeout_s']
         self._goal_t0 = None
+        self._last_cmd = -math.inf
         self._status = None
         self._marker_sub = self.create_subscription(MarkerObservation, f'{master}/markers',
                                                     self._on_markers, SENSOR_QOS)
