@@ -29,7 +29,8 @@ from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, ReachError, camera_in_base, camera_mount
-from coop_mapping.stereo import StereoCamera
+from coop_mapping.stereo import StereoCamera, StereoError
+from coop_mapping.stereo_node import image_to_array
 from coop_msgs.action import Insert
 from coop_msgs.msg import MarkerObservation, TaskTarget
 from coop_msgs.srv import TaskView
@@ -94,15 +95,6 @@ def _check(p: dict) -> str | None:
     if np.linalg.norm(p['site_normal']) < 1e-6:
         return 'site_normal must be non-zero'
     return None
-
-
-def image_to_array(msg: Image) -> np.ndarray:
-    if msg.encoding not in ('mono8', '8UC1'):
-        raise InsertionError(f'encoding {msg.encoding!r}, need mono8')
-    if msg.step < msg.width or len(msg.data) < msg.step * msg.height:
-        raise InsertionError('image data shorter than step * height')
-    a = np.frombuffer(bytes(msg.data), np.uint8, count=msg.step * msg.height)
-    return a.reshape(msg.height, msg.step)[:, :msg.width]
 
 
 def _stamp(msg) -> float:
@@ -172,7 +164,7 @@ class MasterNode(Node):
             self._last_vision = t
             try:
                 self._track(f['left'], f['right'])
-            except InsertionError as exc:
+            except (InsertionError, StereoError) as exc:
                 self.bad.reject('frame', str(exc))
 
     def _setup_camera(self) -> None:
