@@ -70,7 +70,8 @@ PARAMS = {
     # the site, above it): counted as occluders they can hide a target from every nearby
     # camera (coop_insertion's site maps); false treats only mapped obstacles as occluders.
     'task_unknown_occludes': ParamSpec(True, 'task placement: unknown voxels occlude the '
-                                       'target (else only occupied ones)'),
+                                       'target and bar a camera station (else only occupied '
+                                       'ones; a station in unknown space has P = p_empty / 2)'),
     'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
 }
 

@@ -24,7 +24,8 @@ evaluations). `search='random'` rates a random subset of `max_candidates` candid
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import copy
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 import numpy as np
@@ -806,6 +807,22 @@ class TaskPlacer:
         self._cache_grid: OccupancyGrid | None = None
         self._cache: dict[tuple, VisibilityField] = {}
         self.unknown_occludes = unknown_occludes
+
+    def narrowed(self, near_m: float = 0.0, far_m: float = 0.0) -> TaskPlacer:
+        """This placer for a task whose depth of field (§4.2.3.1: what focus and the image
+        processing allow) is [near_m, far_m] within the camera's; 0 keeps the camera's limit.
+        Only narrows (a field is built out to the far limit). The narrowed placer keeps no
+        cache: its fields, cut at the nearer limit, must not serve the wider one."""
+        near = max(self.camera.near_m, near_m)
+        far = min(self.camera.far_m, far_m) if far_m > 0 else self.camera.far_m
+        if not near < far:
+            raise PlacementError(f'depth of field [{near:g}, {far:g}] m is empty')
+        if (near, far) == (self.camera.near_m, self.camera.far_m):
+            return self
+        other = copy.copy(self)
+        other.camera = replace(self.camera, near_m=near, far_m=far)
+        other.cache_fields, other._cache_grid, other._cache = 0, None, {}
+        return other
 
     def collision_probability(self, grid: OccupancyGrid) -> np.ndarray:
         """P per cell: the largest occupancy within the clearance (unknown = 0.5)."""

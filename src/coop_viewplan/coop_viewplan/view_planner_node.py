@@ -193,6 +193,22 @@ class ViewPlannerNode(Node):
             return False
         return True
 
+    def _task_stations(self, g: OccupancyGrid):
+        """Where the mast camera may stand: over navigable ground, its voxel seen free; with
+        task_unknown_occludes false (unknown space is taken as free for the task), also where
+        its voxel is unknown, at P = p_empty / 2 (between a voxel seen free and the free
+        threshold): a stereo map seldom sees the layer of the camera itself."""
+        trav = self.planner.traversability(g)
+        ok, p = trav.candidate, trav.collision_p
+        if not self.p['task_unknown_occludes']:
+            kc = int(g.to_index(np.r_[g.origin[:2], self.p['camera_height_m']])[2])
+            unknown = (~g.known[:, :, kc] if 0 <= kc < g.shape[2]
+                       else np.ones(g.shape[:2], bool))
+            extra = trav.navigable & unknown & ~ok
+            ok = ok | extra
+            p = np.where(extra, 0.5 * self.p['p_empty'], p)
+        return mast_stations(g, ok, p, self.p['camera_height_m'])
+
     def _on_task(self, req: TaskView.Request, resp: TaskView.Response):
         resp.success = False
         if self.grid is None:
@@ -208,11 +224,12 @@ class ViewPlannerNode(Node):
             stations = None
             if g.ndim == 3:     # the camera on the rover's mast, where the rover may stand
                 if self._stations[0] is not g:
-                    trav = self.planner.traversability(g)
-                    self._stations = (g, mast_stations(g, trav.candidate, trav.collision_p,
-                                                       self.p['camera_height_m']))
+                    self._stations = (g, self._task_stations(g))
                 stations = self._stations[1]
-            pl = self.placer.place(g, prim, sec, rng=self.rng, stations=stations)
+            if not (math.isfinite(req.near_m) and math.isfinite(req.far_m)):
+                raise PlacementError('near_m and far_m must be finite')
+            placer = self.placer.narrowed(req.near_m, req.far_m)
+            pl = placer.place(g, prim, sec, rng=self.rng, stations=stations)
         except (PlacementError, MapError) as exc:
             resp.message = str(exc)
             return resp

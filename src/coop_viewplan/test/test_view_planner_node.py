@@ -122,6 +122,19 @@ def test_services_fail_cleanly_then_plan(graph):
     assert r.best.collision_probability < 0.2            # the map's free voxels are 0.12
     assert r.best.angular_visibility > 0 and r.best.depth_of_field == 1.0
     assert r.best.pose.header.frame_id == 'map'
+    wide = np.array([p.x - 1.9, p.y - 5.5, p.z - 1.1])
+    # the task's own depth of field (what its image processing resolves) narrows the search
+    req.far_m = max(0.35, float(np.linalg.norm(wide)) - 0.1)
+    r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+    q = r.best.pose.pose.position
+    if r.success:
+        assert np.linalg.norm([q.x - 1.9, q.y - 5.5, q.z - 1.1]) <= req.far_m + 1e-9
+    else:
+        assert 'candidate' in r.message or 'visible' in r.message, r.message
+    req.near_m, req.far_m = 2.0, 1.0
+    r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+    assert not r.success and 'empty' in r.message
+    req.near_m = req.far_m = 0.0
     # a secondary target in unobserved space (and one against the box) is not rated; the
     # primary is still watched
     for x, y in ((7.5, 5.0), (1.95, 5.1)):
@@ -242,3 +255,24 @@ def test_hostile_targets_maps_and_parameters(graph):
     node.rng.random()
     assert node.set_parameters([Parameter('seed', value=7)])[0].successful
     assert node.rng.random() == np.random.default_rng(7).random()   # a new generator
+
+
+def test_task_stations_in_unknown_space_only_when_unknown_is_free(graph):
+    """task_unknown_occludes false takes unknown space as free for the task: the mast camera
+    may also stand where its voxel is unknown (the room's unseen east half), at P = p_empty / 2;
+    by default only over voxels seen free (the west half)."""
+    node, client, ex = graph
+    pub = client.create_publisher(VoxelMap, '/map/voxels', LATCHED_QOS)
+    pub.publish(_voxel_map())
+    wait_for(lambda: node.grid is not None, 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+             what='map received')
+    seen = node._task_stations(node.grid)
+    assert len(seen.positions) and seen.positions[:, 0].max() < 5.0
+    assert node.set_parameters([Parameter('task_unknown_occludes', value=False)])[0].successful
+    both = node._task_stations(node.grid)
+    east = both.positions[:, 0] > 5.0
+    assert east.any() and len(both.positions) > len(seen.positions)
+    np.testing.assert_allclose(both.collision_p[east], 0.5 * node.p['p_empty'])
+    before = {tuple(np.round(x, 6)): p for x, p in zip(seen.positions, seen.collision_p)}
+    after = {tuple(np.round(x, 6)): p for x, p in zip(both.positions, both.collision_p)}
+    assert all(after.get(x) == p for x, p in before.items())    # the seen ones unchanged
