@@ -28,7 +28,13 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, SENSOR_QOS
-from coop_common.rover_geometry import MAST_JOINTS, ReachError, camera_in_base, camera_mount
+from coop_common.rover_geometry import (
+    BASE_HEIGHT_M,
+    MAST_JOINTS,
+    ReachError,
+    camera_in_base,
+    camera_mount,
+)
 from coop_mapping.stereo import StereoCamera, StereoError
 from coop_mapping.stereo_node import image_to_array
 from coop_msgs.action import Insert
@@ -76,9 +82,21 @@ PARAMS = {
                                       'relative to site_position (map axes, m): in front of the '
                                       'marked faces and above the mouth, so that a camera aimed '
                                       "at it has the card's markers and the slot's in view"),
+    'marker_min_diameter_px': ParamSpec(6.0, "The smallest slot marker's image (px across) "
+                                        'the detector identifies reliably: with the focal '
+                                        "length it bounds the task's depth of field for the "
+                                        'optimal placement (thesis section 4.2.3.1)',
+                                        lo=2.0, hi=100.0),
     'target_radius_m': ParamSpec(0.03, "The primary target's extent (m)", lo=0.0, hi=1.0),
     'camera_height_m': ParamSpec(0.8, "The mast camera's height at rest (m), for random poses",
                                  lo=0.1, hi=3.0),
+    'secondary_weight': ParamSpec(0.5, "Weight of the secondary target (the site's marked "
+                                  'face at site_position, with target_sigma_m): watched when '
+                                  'the primary is occluded (Eq. 4-4)', lo=0.01, hi=1.0),
+    'replace_after_s': ParamSpec(3.0, 'Optimal placement: re-place the camera when the slave '
+                                 'servos and no fix came for this long (sim s)', lo=0.5,
+                                 hi=60.0),
+    'max_replacements': ParamSpec(2, 'Optimal placement: re-placements per goal', lo=0, hi=20),
     'seed': ParamSpec(0, 'Seed of the random placement', lo=0, hi=2**31 - 1),
     'place_timeout_s': ParamSpec(120.0, 'Give up placing the camera after this (sim s)',
                                  lo=1.0, hi=3600.0),
@@ -115,7 +133,11 @@ class MasterNode(Node):
         self.mast = (0.0, 0.0)
         self.odom: tuple[float, float, float] | None = None
         self._last_vision = -math.inf
+        self._image_t = -math.inf          # stamp of the last stereo pair (s)
+        self._fix_t = -math.inf            # stamp of the last published fix (s)
+        self.card_in_map: np.ndarray | None = None    # card markers' midpoint, last fix
         self.tracked = 0
+        self.replacements = 0
         self.rng = np.random.default_rng(int(self.p['seed']))
         for side in ('left', 'right'):
             self.create_subscription(Image, f'{r}/stereo/{side}/image_raw',
@@ -159,6 +181,7 @@ class MasterNode(Node):
             del self.frames[st]
             rate = self.p['vision_rate_hz']
             t = _stamp(msg)
+            self._image_t = max(self._image_t, t)
             if rate > 0 and t - self._last_vision < 1.0 / rate - 1e-6:
                 return
             self._last_vision = t
@@ -211,6 +234,16 @@ class MasterNode(Node):
         msg.up.x, msg.up.y, msg.up.z = (float(x) for x in lab.up)
         self.pub_markers.publish(msg)
         self.tracked += 1
+        self._fix_t = _stamp(left)
+        if self.odom is not None:
+            x, y, yaw = self.odom
+            base = np.eye(4)
+            base[:3, :3] = [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0],
+                            [0, 0, 1]]
+            base[:3, 3] = (x, y, BASE_HEIGHT_M)
+            cam = base @ camera_in_base(*self.mast)
+            mid = 0.5 * (lab.points[0] + lab.points[1])
+            self.card_in_map = cam[:3, :3] @ mid + cam[:3, 3]
 
     # -- driving ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
@@ -276,17 +309,83 @@ class MasterNode(Node):
 
     async def _run(self, handle) -> Insert.Result:
         goal = handle.request
+        self.replacements = 0
+        self.card_in_map = None
         self._feedback(handle, Insert.Feedback.PHASE_PLACE_CAMERA)
-        where = await self._choose_pose(goal.placement)
-        if isinstance(where, str):
+        failed = await self._place(handle, await self._choose_pose(goal.placement))
+        if failed:
+            return self._end(handle, failed)
+        # hand over to the slave
+        client = self._slaves.get(goal.slave)
+        if client is None:
+            client = ActionClient(self, Insert, f'{goal.slave}/insert_card')
+            self._slaves[goal.slave] = client
+        if not client.wait_for_server(timeout_sec=10.0):
+            return self._end(handle, f'no {goal.slave}/insert_card server')
+        sub = Insert.Goal(master=self.p['rover'], slave=goal.slave, placement=goal.placement,
+                          tolerance_m=goal.tolerance_m,
+                          angle_tolerance_rad=goal.angle_tolerance_rad,
+                          max_force_n=goal.max_force_n, timeout_s=goal.timeout_s)
+        phase = [Insert.Feedback.PHASE_PLACE_CAMERA]
+
+        def relay(fb) -> None:
+            phase[0] = fb.feedback.phase
+            handle.publish_feedback(fb.feedback)
+
+        sh = await client.send_goal_async(sub, feedback_callback=relay)
+        if not sh.accepted:
+            return self._end(handle, f'{goal.slave} rejected the task')
+        res_future = sh.get_result_async()
+        since = -math.inf          # the fix is judged lost from the start of the servo on
+        while not res_future.done():
+            await self._sleep_until_wake()
+            if handle.is_cancel_requested:
+                await sh.cancel_goal_async()
+                continue
+            if phase[0] != Insert.Feedback.PHASE_VISUAL_SERVO:
+                continue
+            if since == -math.inf:
+                since = self._image_t
+            lost = self._image_t - max(self._fix_t, since)
+            if (goal.placement == Insert.Goal.PLACEMENT_OPTIMAL and
+                    lost > self.p['replace_after_s'] and
+                    self.replacements < self.p['max_replacements']):
+                self.replacements += 1
+                self.get_logger().info(f'no fix for {lost:.1f} s while the slave servos: '
+                                       f're-placing the camera ({self.replacements})')
+                failed = await self._place(handle, await self._choose_pose(
+                    goal.placement, card=self.card_in_map))
+                if failed and handle.is_cancel_requested:
+                    await sh.cancel_goal_async()
+                elif failed:
+                    self.get_logger().warn(f're-placement: {failed}')
+                since = self._image_t
+        res = res_future.result().result
+        if handle.is_cancel_requested:
+            handle.canceled()
+        elif res.success:
+            handle.succeed()
+        else:
             handle.abort()
-            return Insert.Result(success=False, reason=where)
+        return res
+
+    @staticmethod
+    def _end(handle, reason: str) -> Insert.Result:
+        if handle.is_cancel_requested:
+            handle.canceled()
+        else:
+            handle.abort()
+        return Insert.Result(success=False, reason=reason)
+
+    async def _place(self, handle, where) -> str | None:
+        """Drive the rover to the camera pose `where` and tilt its mast; the reason on failure."""
+        if isinstance(where, str):
+            return where
         xy, yaw, pitch, how = where
         try:
             mount = camera_mount(xy, yaw, pitch)
         except ReachError as exc:
-            handle.abort()
-            return Insert.Result(success=False, reason=f'camera pose out of reach: {exc}')
+            return f'camera pose out of reach: {exc}'
         self.get_logger().info(f'placing the camera ({how}): base at ({mount.base_xy[0]:.2f}, '
                                f'{mount.base_xy[1]:.2f}) heading {mount.base_yaw:.2f}, '
                                f'tilt {mount.tilt:.2f}')
@@ -297,49 +396,31 @@ class MasterNode(Node):
         self._drive = GoToPose(mount.base_xy, mount.base_yaw,
                                max_speed_m_s=self.p['max_speed_m_s'])
         started = time.monotonic()
-        while self._drive is not None:
-            await self._sleep_until_wake()
-            if handle.is_cancel_requested:
-                self._drive = None
-                handle.canceled()
-                return Insert.Result(success=False, reason='canceled while placing the camera')
-            if time.monotonic() - started > self.p['place_timeout_s']:
-                self._drive = None
-                handle.abort()
-                return Insert.Result(success=False, reason='timed out placing the camera')
-        self.pub_cmd.publish(Twist())
-        # hand over to the slave
-        client = self._slaves.get(goal.slave)
-        if client is None:
-            client = ActionClient(self, Insert, f'{goal.slave}/insert_card')
-            self._slaves[goal.slave] = client
-        if not client.wait_for_server(timeout_sec=10.0):
-            handle.abort()
-            return Insert.Result(success=False, reason=f'no {goal.slave}/insert_card server')
-        sub = Insert.Goal(master=self.p['rover'], slave=goal.slave, placement=goal.placement,
-                          tolerance_m=goal.tolerance_m,
-                          angle_tolerance_rad=goal.angle_tolerance_rad,
-                          max_force_n=goal.max_force_n, timeout_s=goal.timeout_s)
-        sh = await client.send_goal_async(sub, feedback_callback=lambda fb:
-                                          handle.publish_feedback(fb.feedback))
-        if not sh.accepted:
-            handle.abort()
-            return Insert.Result(success=False, reason=f'{goal.slave} rejected the task')
-        res_future = sh.get_result_async()
-        while not res_future.done():
-            await self._sleep_until_wake()
-            if handle.is_cancel_requested:
-                await sh.cancel_goal_async()
-        res = res_future.result().result
-        if handle.is_cancel_requested:
-            handle.canceled()
-        elif res.success:
-            handle.succeed()
-        else:
-            handle.abort()
-        return res
+        try:
+            while self._drive is not None:
+                await self._sleep_until_wake()
+                if handle.is_cancel_requested:
+                    return 'canceled while placing the camera'
+                if time.monotonic() - started > self.p['place_timeout_s']:
+                    return 'timed out placing the camera'
+        finally:
+            self._drive = None
+            self.pub_cmd.publish(Twist())
+        return None
 
-    async def _choose_pose(self, placement: int):
+    def marker_range_m(self) -> float:
+        """The farthest range at which the slot's markers span marker_min_diameter_px: the
+        far limit of the task's depth of field, which the view planner's camera pose must keep
+        the markers within (the primary target's offset from them taken off)."""
+        li = self.info.get('left')
+        if li is None or li.p[0] <= 0:
+            raise InsertionError('no camera_info yet: the focal length sets the task range')
+        return 2 * self.model.slot_marker_radius_m * li.p[0] / self.p['marker_min_diameter_px']
+
+    async def _choose_pose(self, placement: int, *, card: np.ndarray | None = None):
+        """The camera pose (xy, yaw, pitch, how) or the reason there is none. Optimal: the
+        view planner's for the primary target (in front of the site; re-placing, half-way to
+        the card's last fix) with the site's marked face as the secondary."""
         site = np.asarray(self.p['site_position'], float)
         normal = np.asarray(self.p['site_normal'], float)
         normal /= np.linalg.norm(normal)
@@ -354,16 +435,34 @@ class MasterNode(Node):
             return xy, yaw, pitch, 'random'
         if not self.task_view.wait_for_service(timeout_sec=10.0):
             return 'no viewplan/task_view service'
-        req = TaskView.Request(robot=self.p['rover'], tolerance=0.1)
+        offset = np.asarray(self.p['view_target_offset_m'], float)
+        try:
+            far = self.marker_range_m() - float(np.linalg.norm(offset))
+        except InsertionError as exc:
+            return str(exc)
+        if far <= 0:
+            return (f'the slot markers are below {self.p["marker_min_diameter_px"]:g} px '
+                    'from every camera pose')
+        req = TaskView.Request(robot=self.p['rover'], tolerance=0.1, far_m=far)
         t = TaskTarget()
         t.header.frame_id = 'map'
-        target = site + np.asarray(self.p['view_target_offset_m'], float)
+        target = site + offset
+        if card is not None:
+            target = 0.5 * (target + card)
         t.position.x, t.position.y, t.position.z = (float(v) for v in target)
         t.normal.x, t.normal.y, t.normal.z = (float(v) for v in normal)
         t.radius_m = self.p['target_radius_m']
         t.position_sigma_m = self.p['target_sigma_m']
         t.weight = 1.0
         req.primary = t
+        sec = TaskTarget()
+        sec.header.frame_id = 'map'
+        sec.position.x, sec.position.y, sec.position.z = (float(v) for v in site)
+        sec.normal = t.normal
+        sec.radius_m = self.p['target_radius_m']
+        sec.position_sigma_m = self.p['target_sigma_m']
+        sec.weight = self.p['secondary_weight']
+        req.secondary = [sec]
         resp = await self.task_view.call_async(req)
         if not resp.success:
             return f'task_view: {resp.message}'

@@ -136,10 +136,12 @@ class InsertionRig(contextlib.AbstractContextManager):
                 # p_empty as the exploration study runs it (fig_3_25: the map's free voxels
                 # clamp at 0.12 and one miss gives 0.4); the site map's unknown pockets (never
                 # seen: under, behind and above the site) would hide the target from every
-                # nearby camera (docs/results/insertion.md)
+                # nearby camera (docs/results/insertion.md); the rover's clearance from its
+                # mast camera: the 0.5 x 0.36 m base, the mast 0.12 m behind and 0.10 m beside
+                # its centre, reaches 0.46 m
                 ('view_planner', 'coop_viewplan', 'view_planner',
                  ['-p', 'use_sim_time:=true', '-p', 'p_empty:=0.45', '-p',
-                  'task_unknown_occludes:=false']),
+                  'task_unknown_occludes:=false', '-p', 'clearance_m:=0.46']),
                 # rover 1's stereo feeds the mapper while it surveys the site (survey())
                 ('stereo', 'coop_mapping', 'stereo', ['-r', '__ns:=/rover1', '-p',
                                                       'use_sim_time:=true']),
