@@ -10,7 +10,7 @@ import numpy as np
 
 from .errors import InsertionError
 
-__all__ = ['GoToPose', 'DriveCommand', 'random_camera_pose', 'wrap']
+__all__ = ['GoToPose', 'FollowPath', 'DriveCommand', 'random_camera_pose', 'wrap']
 
 
 def wrap(a: float) -> float:
@@ -88,3 +88,47 @@ def random_camera_pose(site_xyz, rng: np.random.Generator, *, min_range_m: float
     yaw = math.atan2(s[1] - xy[1], s[0] - xy[0]) + rng.uniform(-aim_error_rad, aim_error_rad)
     pitch = math.atan2(camera_z - s[2], rng_m) + rng.uniform(-aim_error_rad, aim_error_rad)
     return xy, float(yaw), float(pitch)
+
+
+class FollowPath:
+    """Drive through waypoints (map xy) on odometry: turn on the spot while the bearing to the
+    next one is off by more than `turn_above_rad`, else drive with a proportional heading
+    correction; intermediate waypoints count as passed within `pass_m`, the last within
+    `position_tolerance_m`, then (if given) turn to `final_yaw`."""
+
+    def __init__(self, waypoints, final_yaw: float | None = None, *,
+                 max_speed_m_s: float = 0.2, max_yaw_rate_rad_s: float = 0.8,
+                 turn_above_rad: float = math.radians(20), pass_m: float = 0.25,
+                 position_tolerance_m: float = 0.08, yaw_tolerance_rad: float = 0.05) -> None:
+        w = np.asarray(waypoints, float).reshape(-1, 2)
+        if not len(w) or not np.all(np.isfinite(w)):
+            raise InsertionError('a path needs at least one finite (x, y) waypoint')
+        if final_yaw is not None and not math.isfinite(final_yaw):
+            raise InsertionError('final_yaw must be finite')
+        self.todo = list(w)
+        self.final_yaw = final_yaw
+        self.v_max, self.w_max = max_speed_m_s, max_yaw_rate_rad_s
+        self.turn_above, self.pass_m = turn_above_rad, pass_m
+        self.tol_p, self.tol_yaw = position_tolerance_m, yaw_tolerance_rad
+
+    def command(self, x: float, y: float, yaw: float) -> DriveCommand:
+        xy = np.array([x, y])
+        while self.todo and np.linalg.norm(self.todo[0] - xy) < (
+                self.tol_p if len(self.todo) == 1 else self.pass_m):
+            self.todo.pop(0)
+        if not self.todo:
+            if self.final_yaw is None:
+                return DriveCommand(0.0, 0.0, True, 'arrived')
+            e = wrap(self.final_yaw - yaw)
+            if abs(e) <= self.tol_yaw:
+                return DriveCommand(0.0, 0.0, True, 'arrived')
+            return DriveCommand(0.0, float(np.clip(1.5 * e, -self.w_max, self.w_max)), False,
+                                'turn')
+        d = self.todo[0] - xy
+        e = wrap(math.atan2(d[1], d[0]) - yaw)
+        if abs(e) > self.turn_above:
+            return DriveCommand(0.0, float(np.clip(2.5 * e, -self.w_max, self.w_max)), False,
+                                'face')
+        dist = float(np.linalg.norm(d)) + self.pass_m * (len(self.todo) - 1)
+        v = min(self.v_max, 0.8 * dist + 0.05)
+        return DriveCommand(v, float(np.clip(2.0 * e, -self.w_max, self.w_max)), False, 'drive')

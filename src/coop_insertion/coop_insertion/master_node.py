@@ -27,7 +27,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.params import ParamSpec
-from coop_common.qos import COMMAND_QOS, SENSOR_QOS
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
     BASE_HEIGHT_M,
     MAST_JOINTS,
@@ -38,8 +38,9 @@ from coop_common.rover_geometry import (
 from coop_mapping.stereo import StereoCamera, StereoError
 from coop_mapping.stereo_node import image_to_array
 from coop_msgs.action import Insert
-from coop_msgs.msg import MarkerObservation, TaskTarget
+from coop_msgs.msg import MarkerObservation, TaskTarget, ViewRating
 from coop_msgs.srv import TaskView
+from coop_viewplan.frames import optical_quaternion
 
 from .drive import GoToPose, random_camera_pose, wrap
 from .errors import InsertionError
@@ -148,6 +149,8 @@ class MasterNode(Node):
         self.create_subscription(Odometry, f'{r}/odom', self._on_odom, SENSOR_QOS)
         self.pub_markers = self.create_publisher(MarkerObservation, f'{r}/markers', SENSOR_QOS)
         self.pub_cmd = self.create_publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS)
+        self.pub_placement = self.create_publisher(ViewRating, f'{r}/camera_placement',
+                                                   LATCHED_QOS)
         self.pub_mast = self.create_publisher(JointTrajectory, f'{r}/mast/command', COMMAND_QOS)
         self.task_view = self.create_client(TaskView, 'viewplan/task_view')
         self._busy = False
@@ -432,6 +435,17 @@ class MasterNode(Node):
                 max_bearing_rad=math.radians(self.p['random_max_bearing_deg']),
                 aim_error_rad=math.radians(self.p['random_aim_error_deg']),
                 camera_z=self.p['camera_height_m'])
+            r = ViewRating(rating=math.nan, new_information_bits=math.nan, distance=math.nan,
+                           collision_probability=math.nan, depth_of_field=math.nan,
+                           resolution=math.nan, field_visibility=math.nan,
+                           angular_visibility=math.nan)
+            r.pose.header.frame_id = 'map'
+            r.pose.header.stamp = self.get_clock().now().to_msg()
+            pos = r.pose.pose.position
+            pos.x, pos.y, pos.z = float(xy[0]), float(xy[1]), float(self.p['camera_height_m'])
+            q = r.pose.pose.orientation
+            q.x, q.y, q.z, q.w = (float(v) for v in optical_quaternion(yaw, pitch))
+            self.pub_placement.publish(r)
             return xy, yaw, pitch, 'random'
         if not self.task_view.wait_for_service(timeout_sec=10.0):
             return 'no viewplan/task_view service'
@@ -466,6 +480,7 @@ class MasterNode(Node):
         resp = await self.task_view.call_async(req)
         if not resp.success:
             return f'task_view: {resp.message}'
+        self.pub_placement.publish(resp.best)
         pose = resp.best.pose.pose
         q = pose.orientation
         rot = _quat_matrix(q.x, q.y, q.z, q.w)

@@ -47,6 +47,13 @@ SLAVE_START_SHORT_M = 0.55
 MASTER_START = (2.2, 1.4, -1.0)
 
 
+#: the view planner's settings for the insertion (why: the comments in InsertionRig); the
+#: mast camera at a working tilt (0.2 to 0.5 rad) stands 0.79 to 0.77 m high, in the 0.1 m map's
+#: layer 7, the one its downward rays cross (at 0.8, layer 8, hardly any voxel is seen free)
+VIEW_PLANNER = {'p_empty': 0.45, 'task_unknown_occludes': False, 'clearance_m': 0.46,
+                'camera_height_m': 0.78}
+
+
 @dataclass
 class Attempt:
     slot_in: float
@@ -98,7 +105,11 @@ class InsertionRig(contextlib.AbstractContextManager):
                  slot_in: float = 5.0, log_dir: Path | None = None, domain_id: int | None = None,
                  image_width: int = 640, image_height: int = 480, stereo_rate_hz: float = 4.0,
                  real_time_factor: float = 0.0, site_map: Path | None = None,
-                 master_args: tuple[str, ...] = (), planner: bool = True) -> None:
+                 master_args: tuple[str, ...] = (), planner: bool = True,
+                 stereo_rovers: tuple[str, ...] = ('rover1',), rovers: int = 2,
+                 extra_procs: tuple[tuple[str, str, str, list[str]], ...] = ()) -> None:
+        """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
+        the map (with the planner); extra_procs: more (log name, package, executable, args)."""
         self.seed = seed
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix='insert_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -108,13 +119,15 @@ class InsertionRig(contextlib.AbstractContextManager):
             'insertion_world.yaml'
         self.slot_in = slot_in
         self.stack = contextlib.ExitStack()
-        sim_args = ['-p', 'rovers:=2', '-p', f'seed:={seed}', '-p',
+        self.nodes: dict[str, NodeProcess] = {}
+        self.feedback: Insert.Feedback | None = None    # the running goal's last feedback
+        sim_args = ['-p', f'rovers:={rovers}', '-p', f'seed:={seed}', '-p',
                     f'occlusion_density:={occlusion_density}', '-p',
                     f'slot_gap_m:={slot_in * INCH}', '-p', f'image_width:={image_width}',
                     '-p', f'image_height:={image_height}', '-p',
                     f'stereo_rate_hz:={stereo_rate_hz}', '-p', f'world_yaml:={world}',
                     '-p', f'real_time_factor:={real_time_factor}', '-p',
-                    'stereo_rovers:=[rover1]']
+                    f'stereo_rovers:=[{",".join(stereo_rovers)}]']
         map_args = []
         if site_map is not None:
             # the scenario's map, built by the mapping pipeline (coop_viewplan.fig_3_25 with
@@ -132,7 +145,8 @@ class InsertionRig(contextlib.AbstractContextManager):
         if planner:     # optimal placement: the team's map and view planner
             self.procs += [
                 ('mapper', 'coop_mapping', 'mapper', ['-p', 'use_sim_time:=true', '-p',
-                                                      'rovers:=[rover1]'] + map_args),
+                                                      f'rovers:=[{",".join(stereo_rovers)}]']
+                 + map_args),
                 # p_empty as the exploration study runs it (fig_3_25: the map's free voxels
                 # clamp at 0.12 and one miss gives 0.4); the site map's unknown pockets (never
                 # seen: under, behind and above the site) would hide the target from every
@@ -140,18 +154,20 @@ class InsertionRig(contextlib.AbstractContextManager):
                 # mast camera: the 0.5 x 0.36 m base, the mast 0.12 m behind and 0.10 m beside
                 # its centre, reaches 0.46 m
                 ('view_planner', 'coop_viewplan', 'view_planner',
-                 ['-p', 'use_sim_time:=true', '-p', 'p_empty:=0.45', '-p',
-                  'task_unknown_occludes:=false', '-p', 'clearance_m:=0.46']),
-                # rover 1's stereo feeds the mapper while it surveys the site (survey())
-                ('stereo', 'coop_mapping', 'stereo', ['-r', '__ns:=/rover1', '-p',
-                                                      'use_sim_time:=true']),
+                 ['-p', 'use_sim_time:=true'] + [a for k, v in VIEW_PLANNER.items()
+                                                 for a in ('-p', f'{k}:={v}'.lower())]),
             ]
+            # rover 1's stereo feeds the mapper while it surveys the site (survey())
+            self.procs += [(f'stereo_{r}' if r != 'rover1' else 'stereo', 'coop_mapping',
+                            'stereo', ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'])
+                           for r in stereo_rovers]
+        self.procs += list(extra_procs)
 
     def __enter__(self) -> InsertionRig:
         try:
             for name, pkg, exe, args in self.procs:
-                self.stack.enter_context(NodeProcess(pkg, exe, args,
-                                                     log_path=self.log_dir / f'{name}.log'))
+                self.nodes[name] = self.stack.enter_context(
+                    NodeProcess(pkg, exe, args, log_path=self.log_dir / f'{name}.log'))
             self.ctx = Context()
             rclpy.init(context=self.ctx)
             self.node = _Client(self.ctx)
@@ -168,6 +184,10 @@ class InsertionRig(contextlib.AbstractContextManager):
             self.__exit__(None, None, None)
             raise
         return self
+
+    def dead(self) -> list[str]:
+        """The processes of the graph that have ended (a node that died)."""
+        return [name for name, proc in self.nodes.items() if not proc.alive()]
 
     def _spin(self) -> None:
         while not self._stop.is_set():
@@ -243,13 +263,23 @@ class InsertionRig(contextlib.AbstractContextManager):
                 penetration_limit_mm: float = 0.5) -> Attempt:
         rng = np.random.default_rng(seed)
         self.place(slot_in, rng)
+        return self.insert(slot_in=slot_in, placement=placement, seed=seed,
+                           timeout_s=timeout_s, max_force_n=max_force_n,
+                           penetration_limit_mm=penetration_limit_mm)
+
+    def insert(self, *, slot_in: float, placement: str, seed: int = 0,
+               timeout_s: float = 120.0, max_force_n: float = 25.0,
+               penetration_limit_mm: float = 0.5) -> Attempt:
+        """One `insert` goal from wherever the rovers stand, judged by the simulator's
+        truth."""
         node = self.node
         node.contact_pen, node.seated = 0.0, False
+        self.feedback = None
         curves = {'t': [], 'phase': [], 'displacement_m': [], 'angle_rad': [], 'force': []}
         t_start = node.clock
 
         def on_fb(fb) -> None:
-            f = fb.feedback
+            f = self.feedback = fb.feedback
             curves['t'].append(node.clock - t_start)
             curves['phase'].append(int(f.phase))
             curves['displacement_m'].append(float(f.displacement_error_m))

@@ -108,37 +108,44 @@ def format_table(res: dict) -> str:
     return '\n'.join(lines)
 
 
-def plot(res: dict, out: Path) -> list[Path]:
-    """Figs. 5-13 / 5-14: displacement and angular error against time, and the F/T force after
-    contact, for the first attempt of the hardest row with each placement."""
+def plot_curves(c: dict, title: str, path: Path) -> Path:
+    """One attempt's Figs. 5-13 / 5-14 curves (an Attempt's `curves`): displacement and angular
+    error against time, and the F/T force after contact."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
+    t = c['t']
+    ax[0].plot(t, [1e3 * v for v in c['displacement_m']])
+    ax[0].set(xlabel='time (s)', ylabel='displacement error (mm)')
+    ax[1].plot(t, c['angle_rad'])
+    ax[1].set(xlabel='time (s)', ylabel='angular error (rad)')
+    contact = [k for k, ph in enumerate(c['phase']) if ph == 2]
+    if contact:
+        k0 = contact[0]
+        ax[2].plot(t[k0:], [f[1] for f in c['force'][k0:]], label='F_y')
+        ax[2].plot(t[k0:], [f[2] for f in c['force'][k0:]], label='F_z')
+        ax[2].legend()
+    ax[2].set(xlabel='time (s)', ylabel='F/T force after contact (N)')
+    fig.suptitle(title)
+    fig.tight_layout()
+    out = save_figure(fig, path)
+    plt.close(fig)
+    return out
+
+
+def plot(res: dict, out: Path) -> list[Path]:
+    """Figs. 5-13 / 5-14 for the first attempt of the hardest row with each placement."""
     row = res['rows'][-1]
     paths = []
     for placement in res['placements']:
         curves = row.get(f'{placement}_curves') or []
         if not curves:
             continue
-        c = curves[0]
-        fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
-        t = c['t']
-        ax[0].plot(t, [1e3 * v for v in c['displacement_m']])
-        ax[0].set(xlabel='time (s)', ylabel='displacement error (mm)')
-        ax[1].plot(t, c['angle_rad'])
-        ax[1].set(xlabel='time (s)', ylabel='angular error (rad)')
-        contact = [k for k, ph in enumerate(c['phase']) if ph == 2]
-        if contact:
-            k0 = contact[0]
-            ax[2].plot(t[k0:], [f[1] for f in c['force'][k0:]], label='F_y')
-            ax[2].plot(t[k0:], [f[2] for f in c['force'][k0:]], label='F_z')
-            ax[2].legend()
-        ax[2].set(xlabel='time (s)', ylabel='F/T force after contact (N)')
-        fig.suptitle(f'{row["label"]} ({row["slot_in"]} in), {placement} placement: '
-                     f'{"success" if row[f"{placement}_attempts"][0]["success"] else "failure"}')
-        fig.tight_layout()
-        paths.append(save_figure(fig, out / f'fig_5_13_{placement}.png'))
-        plt.close(fig)
+        ok = row[f'{placement}_attempts'][0]['success']
+        paths.append(plot_curves(
+            curves[0], f'{row["label"]} ({row["slot_in"]} in), {placement} placement: '
+            f'{"success" if ok else "failure"}', out / f'fig_5_13_{placement}.png'))
     return paths
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from coop_common.rover_geometry import card_in_base
-from coop_insertion.drive import GoToPose, random_camera_pose, wrap
+from coop_insertion.drive import FollowPath, GoToPose, random_camera_pose, wrap
 from coop_insertion.errors import InsertionError
 from coop_insertion.frames import homogeneous, invert, rot_z
 from coop_insertion.task import TaskModel, card_required_motion, label_markers
@@ -119,6 +119,31 @@ def test_go_to_pose_turns_drives_and_turns_on_a_unicycle():
     assert abs(wrap(yaw - math.pi / 2)) <= 0.02
     with pytest.raises(InsertionError):
         GoToPose((math.nan, 0.0), 0.0)
+
+
+def test_follow_path_passes_every_waypoint_and_ends_at_the_heading():
+    x, y, yaw = 0.0, 0.0, math.pi          # facing away from the path
+    wps = [(1.0, 0.0), (1.0, 1.0), (0.0, 1.5)]
+    drive = FollowPath(wps, -math.pi / 2)
+    dt, closest = 0.02, [math.inf] * 3
+    for _ in range(20000):
+        c = drive.command(x, y, yaw)
+        if c.arrived:
+            break
+        assert abs(c.linear_x) <= 0.2 + 1e-9
+        yaw = wrap(yaw + c.angular_z * dt)
+        x += c.linear_x * math.cos(yaw) * dt
+        y += c.linear_x * math.sin(yaw) * dt
+        closest = [min(d, math.hypot(x - wx, y - wy)) for d, (wx, wy) in zip(closest, wps)]
+    assert c.arrived
+    assert closest[0] <= 0.25 and closest[1] <= 0.25        # passed within pass_m
+    assert math.hypot(x, y - 1.5) <= 0.08                   # the last within tolerance
+    assert abs(wrap(yaw + math.pi / 2)) <= 0.05
+    for bad in ([], [(math.inf, 0.0)]):
+        with pytest.raises(InsertionError):
+            FollowPath(bad)
+    with pytest.raises(InsertionError):
+        FollowPath([(0.0, 0.0)], math.nan)
 
 
 def test_random_camera_poses_stay_within_their_bounds_and_face_the_site():

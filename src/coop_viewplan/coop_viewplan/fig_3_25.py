@@ -52,6 +52,7 @@ from .nbv import (
     NextBestViewPlanner,
     PlanningError,
     geodesic_path,
+    waypoints,
 )
 
 THESIS_CLAIM = ('Fig. 3-25 (§3.3.2, one stereo camera on the mobile manipulator): number of '
@@ -284,24 +285,6 @@ def planner_config(cfg: Fig325Config, mapper: SimMapper, camera_height_m: float)
                      raster_headings=cfg.raster_headings, free_gray=cfg.free_gray)
 
 
-def _waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
-    """Cell path -> map xy waypoints at its corners (and every ~1 m on long straights)."""
-    xy = grid.to_world(np.c_[cells, np.zeros(len(cells), np.int64)])[:, :2] \
-        if grid.ndim == 3 else grid.to_world(cells)
-    if len(xy) <= 2:
-        return [xy[-1]]
-    out = []
-    step = np.diff(cells, axis=0)
-    run = 0
-    for k in range(1, len(cells) - 1):
-        run += 1
-        if np.any(step[k] != step[k - 1]) or run * grid.resolution >= 1.0:
-            out.append(xy[k])
-            run = 0
-    out.append(xy[-1])
-    return out
-
-
 def run_strategy(strategy: str, cfg: Fig325Config, *, seed: int,
                  log=None, save_map: Path | None = None) -> dict:
     """One run of one strategy: mapped voxel counts after the initial scan and each of
@@ -365,7 +348,7 @@ def run_strategy(strategy: str, cfg: Fig325Config, *, seed: int,
                 nav[start[0], start[1]] = True
                 cells = geodesic_path(nav, tuple(start), tuple(goal),
                                       resolution=grid.resolution)
-                paths[i] = _waypoints(cells, grid) if len(cells) > 1 else []
+                paths[i] = waypoints(cells, grid) if len(cells) > 1 else []
                 aims[i] = (d.yaw, d.pitch)
             plan_s += time.perf_counter() - tp
             moved = sm.drive(paths)

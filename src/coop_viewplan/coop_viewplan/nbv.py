@@ -1109,5 +1109,23 @@ __all__ = ['STRATEGIES', 'UNKNOWN_OCCLUSIONS', 'Candidates', 'CameraState', 'Dec
            'NbvConfig', 'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores',
            'binary_entropy', 'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
            'configuration_distance', 'expected_information', 'geodesic_distance',
-           'geodesic_path', 'make_strategy',
+           'geodesic_path', 'make_strategy', 'waypoints',
            'max_information', 'plan_cameras', 'rating_function', 'score_views']
+
+
+def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
+    """Cell path -> map xy waypoints at its corners (and every ~1 m on long straights)."""
+    xy = grid.to_world(np.c_[cells, np.zeros(len(cells), np.int64)])[:, :2] \
+        if grid.ndim == 3 else grid.to_world(cells)
+    if len(xy) <= 2:
+        return [xy[-1]]
+    out = []
+    step = np.diff(cells, axis=0)
+    run = 0
+    for k in range(1, len(cells) - 1):
+        run += 1
+        if np.any(step[k] != step[k - 1]) or run * grid.resolution >= 1.0:
+            out.append(xy[k])
+            run = 0
+    out.append(xy[-1])
+    return out
