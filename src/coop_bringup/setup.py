@@ -20,5 +20,5 @@ setup(
     maintainer_email='maintainers@coop-field-robots.org',
     description='Launch files that bring up a team of cooperative rovers.',
     license='Apache-2.0',
-    entry_points={'console_scripts': []},
+    entry_points={'console_scripts': ['mission = coop_bringup.mission:main']},
 )

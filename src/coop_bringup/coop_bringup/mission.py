@@ -1,0 +1,713 @@
+"""`ros2 run coop_bringup mission` (and `make demo`): the thesis's whole cooperative mission
+(ch. 5.1, Fig. 4-2) through the nodes, judged by the simulator's truth.
+
+Brings up, on a private ROS domain, the simulator with the insertion site among rocks and drums,
+each rover's `identifier` and `stereo`, the team's `mapper` and `view_planner`, and the
+`master` and `slave` of `coop_insertion` (`coop_insertion.rig.InsertionRig`), then runs:
+
+1. identify: every rover identifies its base's dynamic parameters (`identify` action,
+   information-optimal excitation);
+2. map: the rovers map the work site together, each driving (on a path planned on the shared
+   map) to the camera pose the view planner's `next_best_view` answers (maximum information)
+   and looking from there, until the site's coverage reaches the target or `max_scans`;
+3. place and 4. insert: the staging poses are driven to, then one `insert` goal: the master
+   places its camera by `task_view` (phase 3) and the slave inserts the card (phase 4, the
+   slave's arm model from its identified parameters).
+
+Writes `report.md`, `report.json` and plots under `OUT/<run-id>/` (`coop_bringup.report`), with
+every node's log in `logs/`.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped, Twist
+from nav_msgs.msg import Odometry
+from rclpy.action import ActionClient
+from rclpy.node import Node
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from coop_common.cli import number
+from coop_common.dynparams import PARAM_NAMES, load_truth
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_common.rover_geometry import (
+    BASE_HEIGHT_M,
+    MAST_JOINTS,
+    ReachError,
+    camera_in_base,
+    camera_mount,
+    joint2_in_base,
+)
+from coop_common.testing import isolate_ros_environment, pick_domain_id
+from coop_insertion.drive import FollowPath
+from coop_insertion.errors import InsertionError
+from coop_insertion.rig import (
+    INCH,
+    MASTER_START,
+    SITE_XY,
+    SLAVE_START_SHORT_M,
+    VIEW_PLANNER,
+    InsertionRig,
+)
+from coop_msgs.action import Identify, Insert
+from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
+from coop_msgs.srv import MapFile, NextBestView
+from coop_viewplan.frames import camera_pose
+from coop_viewplan.grid import MapError, planning_grid
+from coop_viewplan.nbv import NextBestViewPlanner, PlanningError, geodesic_path, waypoints
+from coop_viewplan.offline import nbv_config
+from coop_viewplan.params import PARAMS as VP_PARAMS
+
+from .report import MissionError, identification_errors, site_coverage, top_view, write_report
+
+PHASES = ('identify', 'map', 'place', 'insert')
+#: a goal within an obstacle's clearance is reached by a straight last leg of at most this (m)
+SNAP_M = 1.0
+MASTER, SLAVE = 'rover1', 'rover2'
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    """The scenario and the phases' settings (the CLI flags of the same names)."""
+
+    seed: int = 1
+    occlusion_density: float = 0.05
+    slot_in: float = 4.5
+    rovers: int = 2
+    phases: tuple[str, ...] = PHASES
+    identify_s: float = 20.0
+    identify_strategy: str = 'information'
+    strategy: str = 'max_information'
+    coverage_target: float = 0.9
+    max_scans: int = 8
+    site_half_m: float = 1.5
+    insert_timeout_s: float = 60.0
+    max_force_n: float = 25.0
+    stereo_rate_hz: float = 4.0
+
+    def __post_init__(self) -> None:
+        bad = [p for p in self.phases if p not in PHASES]
+        if bad:
+            raise MissionError(f'unknown phases {bad}; choose from {", ".join(PHASES)}')
+        if self.rovers < 2:
+            raise MissionError('the mission needs a master and a slave: rovers >= 2')
+        if ('insert' in self.phases) != ('place' in self.phases):
+            raise MissionError("'place' and 'insert' run as one insert goal: both or neither")
+
+
+@dataclass
+class Phase:
+    name: str
+    status: str = 'skipped'
+    reason: str = ''
+    wall_s: float | None = None
+    sim_s: float | None = None
+
+
+class Progress:
+    """Phase, percent and ETA: a tqdm bar on a terminal, plain lines in a log."""
+
+    def __init__(self, *, stream=sys.stderr) -> None:
+        self.stream = stream
+        self.tty = hasattr(stream, 'isatty') and stream.isatty()
+        self.bar = None
+        self._last = (None, -1)
+
+    def start(self, phase: str) -> None:
+        self.close()
+        if self.tty:
+            from tqdm import tqdm
+            self.bar = tqdm(total=100, desc=phase, file=self.stream, unit='%',
+                            bar_format='{desc:>9}: {percentage:3.0f}%|{bar}| {postfix} '
+                                       '[{elapsed}<{remaining}]')
+        self._phase, self._t0 = phase, time.monotonic()
+
+    def update(self, fraction: float, note: str = '') -> None:
+        pct = int(round(100 * min(max(fraction, 0.0), 1.0)))
+        if self.bar is not None:
+            self.bar.n = pct
+            self.bar.set_postfix_str(note, refresh=True)
+            return
+        if (self._phase, pct // 10) == self._last:
+            return
+        self._last = (self._phase, pct // 10)
+        el = time.monotonic() - self._t0
+        eta = f'{el * (100 - pct) / pct:.0f} s' if pct > 0 else '?'
+        print(f'[{self._phase}] {pct:3d} % (ETA {eta}) {note}', file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+class _MissionClient(Node):
+    """The runner's view of the graph: odometry, masts, the map, truth, the actions."""
+
+    def __init__(self, ctx, rovers: list[str]) -> None:
+        super().__init__('mission', context=ctx)
+        self.rovers = rovers
+        self.lock = threading.Lock()
+        self.odom: dict[str, tuple[float, float, float]] = {}
+        self.mast: dict[str, tuple[float, float]] = {}
+        self.paths: dict[str, list] = {r: [] for r in rovers}
+        self.distance: dict[str, float] = dict.fromkeys(rovers, 0.0)
+        self.truth: dict[str, DynamicParameters] = {}
+        self.map: VoxelMap | None = None
+        self.placement: ViewRating | None = None
+        self.follow: dict[str, FollowPath] = {}
+        self.cmd = {r: self.create_publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS) for r in rovers}
+        self.mast_cmd = {r: self.create_publisher(JointTrajectory, f'{r}/mast/command',
+                                                  COMMAND_QOS) for r in rovers}
+        self.identify = {r: ActionClient(self, Identify, f'{r}/identifier/identify')
+                         for r in rovers}
+        self.nbv = self.create_client(NextBestView, 'viewplan/next_best_view')
+        self.save_map = self.create_client(MapFile, 'map/save')
+        for r in rovers:
+            self.create_subscription(Odometry, f'{r}/odom', lambda m, r=r: self._on_odom(r, m),
+                                     SENSOR_QOS)
+            self.create_subscription(JointState, f'{r}/joint_states',
+                                     lambda m, r=r: self._on_joints(r, m), SENSOR_QOS)
+            self.create_subscription(DynamicParameters, f'sim/{r}/parameters',
+                                     lambda m, r=r: self.truth.__setitem__(r, m), LATCHED_QOS)
+        self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
+        self.create_subscription(ViewRating, f'{MASTER}/camera_placement',
+                                 lambda m: setattr(self, 'placement', m), LATCHED_QOS)
+
+    def _on_map(self, m: VoxelMap) -> None:
+        self.map = m
+
+    def _on_joints(self, r: str, m: JointState) -> None:
+        idx = {n: i for i, n in enumerate(m.name)}
+        if all(n in idx for n in MAST_JOINTS) and len(m.position) == len(m.name):
+            self.mast[r] = tuple(float(m.position[idx[n]]) for n in MAST_JOINTS)
+
+    def _on_odom(self, r: str, m: Odometry) -> None:
+        q = m.pose.pose.orientation
+        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        x, y = m.pose.pose.position.x, m.pose.pose.position.y
+        with self.lock:
+            if r in self.odom:
+                self.distance[r] += math.hypot(x - self.odom[r][0], y - self.odom[r][1])
+            self.odom[r] = (x, y, yaw)
+            p = self.paths[r]
+            if not p or math.hypot(x - p[-1][0], y - p[-1][1]) > 0.05:
+                p.append((x, y))
+            f = self.follow.get(r)
+        if f is not None:
+            c = f.command(x, y, yaw)
+            t = Twist()
+            t.linear.x, t.angular.z = c.linear_x, c.angular_z
+            self.cmd[r].publish(t)
+            if c.arrived:
+                with self.lock:
+                    self.follow.pop(r, None)
+
+    def stop(self, r: str) -> None:
+        with self.lock:
+            self.follow.pop(r, None)
+        self.cmd[r].publish(Twist())
+
+    def camera_pose(self, r: str) -> PoseStamped:
+        """The camera's optical pose in the map from the rover's odometry and mast encoders."""
+        x, y, yaw = self.odom[r]
+        base = np.eye(4)
+        base[:3, :3] = Rotation.from_euler('z', yaw).as_matrix()
+        base[:3, 3] = (x, y, BASE_HEIGHT_M)
+        cam = base @ camera_in_base(*self.mast.get(r, (0.0, 0.0)))
+        msg = PoseStamped()
+        msg.header.frame_id = 'map'
+        p, q = msg.pose.position, msg.pose.orientation
+        p.x, p.y, p.z = (float(v) for v in cam[:3, 3])
+        q.x, q.y, q.z, q.w = (float(v) for v in Rotation.from_matrix(cam[:3, :3]).as_quat())
+        return msg
+
+    def aim(self, r: str, pan: float, tilt: float, seconds: float = 0.6) -> None:
+        tr = JointTrajectory(joint_names=list(MAST_JOINTS))
+        pt = JointTrajectoryPoint(positions=[float(pan), float(tilt)])
+        pt.time_from_start.sec, pt.time_from_start.nanosec = int(seconds), \
+            int((seconds % 1) * 1e9)
+        tr.points = [pt]
+        self.mast_cmd[r].publish(tr)
+
+
+class Mission:
+    """One run of the mission; `run()` returns the report's dict (also written to disk)."""
+
+    def __init__(self, cfg: MissionConfig, out: Path, *, run_id: str | None = None,
+                 domain_id: int | None = None, progress: Progress | None = None,
+                 log=print) -> None:
+        self.cfg = cfg
+        self.run_id = run_id or time.strftime('%Y%m%d-%H%M%S') + f'-{os.getpid()}'
+        self.out = Path(out) / self.run_id
+        self.out.mkdir(parents=True, exist_ok=False)
+        self.domain_id = domain_id if domain_id is not None else pick_domain_id()
+        self.progress = progress or Progress()
+        self.log = log
+        self.rovers = [f'rover{i + 1}' for i in range(cfg.rovers)]
+        self.phases = [Phase(p) for p in PHASES]
+        self.rep: dict = {'run_id': self.run_id, 'config': {**asdict(cfg),
+                                                           'phases': list(cfg.phases)},
+                          'domain_id': self.domain_id,
+                          'targets': {'identification_error': 0.15,
+                                      'coverage': cfg.coverage_target, 'penetration_mm': 0.5},
+                          'identification': {'mean_abs_rel_error': None},
+                          'mapping': {'coverage': None},
+                          'insertion': {'success': False, 'reason': 'not run'}}
+        self.extras: dict = {}
+        self.rig: InsertionRig | None = None
+
+    # -- plumbing -----------------------------------------------------------------------------
+    def _sim_t(self) -> float:
+        return self.rig.node.clock
+
+    def _wait(self, pred, timeout_s: float, what: str, tick=None) -> None:
+        """Wait (wall time) for pred(), failing at once when a node of the graph died."""
+        deadline = time.monotonic() + timeout_s
+        while not pred():
+            dead = self.rig.dead()
+            if dead:
+                raise MissionError(f'node {", ".join(dead)} died (logs in '
+                                   f'{self.out / "logs"})')
+            if time.monotonic() > deadline:
+                raise MissionError(f'timed out after {timeout_s:.0f} s waiting for {what}')
+            if tick is not None:
+                tick()
+            time.sleep(0.05)
+
+    def _sim_wait(self, seconds: float, what: str = 'sim time') -> None:
+        t0 = self._sim_t()
+        self._wait(lambda: self._sim_t() >= t0 + seconds, 60 + 20 * seconds, what)
+
+    # -- the run ------------------------------------------------------------------------------
+    def run(self) -> dict:
+        cfg = self.cfg
+        isolate_ros_environment(self.domain_id)
+        ident = ('identify' in cfg.phases)
+        extra = tuple((f'identifier_{r}', 'coop_id', 'identifier',
+                       ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'])
+                      for r in self.rovers) if ident else ()
+        t_all = time.monotonic()
+        failed = None
+        interrupted = []
+
+        def on_sigint(_sig, _frame) -> None:
+            # the first Ctrl-C stops the mission; more while the graph shuts down are ignored,
+            # so that every process started is stopped and the report written
+            if not interrupted:
+                interrupted.append(True)
+                raise KeyboardInterrupt
+            self.log('stopping the graph; the report follows')
+
+        main_thread = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, on_sigint) if main_thread else None
+        try:
+            self.log(f'mission {self.run_id}: bringing up the graph (domain {self.domain_id}, '
+                     f'logs in {self.out / "logs"})')
+            with InsertionRig(seed=cfg.seed, occlusion_density=cfg.occlusion_density,
+                              slot_in=cfg.slot_in, log_dir=self.out / 'logs',
+                              domain_id=self.domain_id, stereo_rate_hz=cfg.stereo_rate_hz,
+                              stereo_rovers=tuple(self.rovers), rovers=cfg.rovers,
+                              extra_procs=extra) as rig:
+                self.rig = rig
+                self.client = _MissionClient(rig.ctx, self.rovers)
+                rig.ex.add_node(self.client)
+                self._wait(lambda: all(r in self.client.odom for r in self.rovers), 60,
+                           "every rover's odometry")
+                for ph in self.phases:
+                    if ph.name not in cfg.phases:
+                        ph.reason = 'not asked for'
+                        continue
+                    if failed is not None:
+                        ph.reason = f'after {failed} failed'
+                        continue
+                    if ph.name == 'insert':
+                        continue               # run with 'place' as one goal
+                    self._run_phase(ph)
+                    if ph.status == 'failed':
+                        failed = ph.name
+                rig.ex.remove_node(self.client)
+                self.client.destroy_node()
+        except KeyboardInterrupt:
+            for ph in self.phases:
+                if ph.status == 'running':
+                    ph.status, ph.reason = 'failed', 'interrupted (Ctrl-C)'
+            self.rep['interrupted'] = True
+        except (InsertionError, MissionError, TimeoutError) as exc:
+            self.rep['error'] = str(exc)
+            for ph in self.phases:
+                if ph.status == 'running':
+                    ph.status, ph.reason = 'failed', str(exc)
+        finally:
+            self.progress.close()
+        self.rep['phases'] = [asdict(p) for p in self.phases]
+        try:
+            return self._finish(t_all)
+        finally:
+            if main_thread:
+                signal.signal(signal.SIGINT, previous)
+
+    def _finish(self, t_all: float) -> dict:
+        cfg = self.cfg
+        self.rep['wall_s'] = time.monotonic() - t_all
+        self.rep['success'] = all(p.status == 'ok' for p in self.phases
+                                  if p.name in cfg.phases)
+        md, _ = write_report(self.rep, self.out, **self.extras)
+        self.log(f'report: {md}')
+        return self.rep
+
+    def _run_phase(self, ph: Phase) -> None:
+        ph.status = 'running'
+        self.progress.start(ph.name)
+        w0, s0 = time.monotonic(), self._sim_t()
+        try:
+            if ph.name == 'identify':
+                self._identify()
+            elif ph.name == 'map':
+                self._map()
+            elif ph.name == 'place':
+                self._place_and_insert(ph)
+            ph.status = ph.status if ph.status == 'failed' else 'ok'
+        except (MissionError, InsertionError, TimeoutError) as exc:
+            ph.status, ph.reason = 'failed', str(exc)
+            self.log(f'{ph.name} failed: {exc}')
+        finally:
+            self.progress.close()
+            if ph.name != 'place':
+                ph.wall_s, ph.sim_s = time.monotonic() - w0, self._sim_t() - s0
+
+    # -- phase 1: identification ---------------------------------------------------------------
+    def _identify(self) -> None:
+        cfg, c = self.cfg, self.client
+        for r in self.rovers:
+            if not c.identify[r].wait_for_server(timeout_sec=60):
+                raise MissionError(f'no {r}/identifier/identify action server')
+        self._wait(lambda: all(r in c.truth for r in self.rovers), 60, "the sim's truth")
+        self._sim_wait(2.0, 'the rovers at rest')
+        futs = {r: c.identify[r].send_goal_async(Identify.Goal(
+            strategy=cfg.identify_strategy, duration_s=cfg.identify_s)) for r in self.rovers}
+        self._wait(lambda: all(f.done() for f in futs.values()), 30, 'the goals accepted')
+        handles = {r: f.result() for r, f in futs.items()}
+        for r, h in handles.items():
+            if not h.accepted:
+                raise MissionError(f'{r}: identify goal rejected')
+        res = {r: h.get_result_async() for r, h in handles.items()}
+        t0 = self._sim_t()
+        self._wait(lambda: all(f.done() for f in res.values()), 120 + 40 * cfg.identify_s,
+                   'the identification', tick=lambda: self.progress.update(
+                       (self._sim_t() - t0) / cfg.identify_s,
+                       f'{self._sim_t() - t0:.0f} of {cfg.identify_s:.0f} sim s'))
+        out, errs = {}, []
+        for r in self.rovers:
+            result = res[r].result().result
+            t, e = c.truth[r], result.estimate
+            row = identification_errors(
+                dict(zip(t.names, t.values)), dict(zip(e.names, e.values)),
+                dict(zip(e.names, e.std_devs)), dict(zip(e.names, e.information_bits)))
+            row.update(success=bool(result.success), message=result.message,
+                       samples=int(e.samples))
+            out[r] = row
+            if not result.success:
+                raise MissionError(f'{r}: identification failed: {result.message}')
+            errs.append(row['mean_abs_rel_error'])
+        mean = float(np.mean(errs))
+        self.rep['identification'] = {'rovers': out, 'mean_abs_rel_error': mean,
+                                      'duration_s': cfg.identify_s,
+                                      'strategy': cfg.identify_strategy,
+                                      'parameters': list(PARAM_NAMES)}
+        self.log('identify: mean abs. rel. error ' + ', '.join(
+            f'{r} {100 * out[r]["mean_abs_rel_error"]:.1f} %' for r in self.rovers))
+
+    # -- phase 2: mapping ----------------------------------------------------------------------
+    def _grid(self):
+        m = self.client.map
+        p = {k: s.default for k, s in VP_PARAMS.items()} | VIEW_PLANNER
+        keys = np.asarray(m.voxels.keys, np.int64)
+        grid = planning_grid(keys, np.asarray(m.voxels.occupancy), m.resolution_m,
+                             pad_m=p['pad_m'], ceiling_m=p['ceiling_m'],
+                             camera_height_m=p['camera_height_m'],
+                             max_cells=p['max_grid_cells'])
+        return grid, NextBestViewPlanner(nbv_config(p)).traversability(grid), p
+
+    def _coverage(self) -> float:
+        m = self.client.map
+        if m is None:
+            return 0.0
+        return site_coverage(np.asarray(m.voxels.keys), np.asarray(m.voxels.occupancy),
+                             m.resolution_m,
+                             centre_xy=SITE_XY, half_m=self.cfg.site_half_m)
+
+    def _path(self, r: str, goal_xy, grid, trav, others: list) -> list:
+        """Waypoints from rover r's base to goal_xy on the map, round the other rovers."""
+        clear = int(math.ceil(VIEW_PLANNER['clearance_m'] / grid.resolution))
+        for xy in others:
+            trav = trav.with_blocked_disk(grid.to_index(np.r_[xy, 0.0])[:2], clear + 2)
+        x, y, _ = self.client.odom[r]
+        start = grid.to_index(np.r_[x, y, 0.0])[:2]
+        goal = grid.to_index(np.r_[goal_xy, 0.0])[:2]
+        nav = trav.with_free_disk(start, clear).navigable.copy()
+        if not nav[tuple(goal)]:
+            # a goal inside the clearance of an obstacle (a base a little off its camera's
+            # column, a staging pose close to the site): the path goes to the nearest
+            # navigable cell within SNAP_M and the last leg straight on
+            r = int(math.ceil(SNAP_M / grid.resolution))
+            lo = np.maximum(goal - r, 0)
+            near = np.argwhere(nav[lo[0]:goal[0] + r + 1, lo[1]:goal[1] + r + 1]) + lo
+            if not len(near):
+                raise PlanningError(f'no navigable cell within {SNAP_M} m of the goal')
+            goal = near[np.argmin(np.hypot(*(near - goal).T))]
+        cells = geodesic_path(nav, tuple(start), tuple(goal), resolution=grid.resolution)
+        return [*waypoints(cells, grid)[:-1], np.asarray(goal_xy, float)] \
+            if len(cells) > 1 else [np.asarray(goal_xy, float)]
+
+    def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> None:
+        """Drive rovers along (waypoints, final heading) at once, on their odometry."""
+        c = self.client
+        length = 0.0
+        for r, (wps, yaw) in paths.items():
+            pts = np.vstack([c.odom[r][:2], *wps])
+            length = max(length, float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
+            with c.lock:
+                c.follow[r] = FollowPath(wps, yaw, max_speed_m_s=0.2)
+        t0 = self._sim_t()
+        limit = 30.0 + 3 * length / 0.2
+        try:
+            self._wait(lambda: not any(r in c.follow for r in paths) or
+                       self._sim_t() - t0 > limit, 120 + 30 * limit, what)
+        finally:
+            for r in paths:
+                c.stop(r)
+        late = [r for r in paths if math.hypot(*(np.asarray(c.odom[r][:2]) -
+                                                 paths[r][0][-1])) > 0.3]
+        if late:
+            self.log(f'{what}: {", ".join(late)} stopped short of the goal after {limit:.0f} s')
+
+    def _map(self) -> None:
+        cfg, c = self.cfg, self.client
+        if not c.nbv.wait_for_service(timeout_sec=60):
+            raise MissionError('no viewplan/next_best_view service')
+        for r in self.rovers:                     # look around the start before planning
+            c.aim(r, 0.0, 0.2)
+        self._sim_wait(3.0)
+        self._wait(lambda: c.map is not None, 60, 'the first map')
+        scans = [{'scan': 0, 'coverage': self._coverage(),
+                  'distance_m': float(sum(c.distance.values())),
+                  'voxels': len(c.map.voxels.occupancy)}]
+        self.progress.update(scans[0]['coverage'] / cfg.coverage_target, 'scan 0')
+        for k in range(1, cfg.max_scans + 1):
+            if scans[-1]['coverage'] >= cfg.coverage_target:
+                break
+            grid, trav, _ = self._grid()
+            plans: dict[str, tuple[list, float]] = {}
+            aims: dict[str, tuple[float, float]] = {}
+            goals: list = []
+            for r in self.rovers:
+                req = NextBestView.Request(robot=r, strategy=cfg.strategy,
+                                           current_pose=c.camera_pose(r))
+                fut = c.nbv.call_async(req)
+                self._wait(fut.done, 120, f'{r} next best view')
+                resp = fut.result()
+                if not resp.success:
+                    self.log(f'scan {k} {r}: no view ({resp.message}); panning')
+                    pan, tilt = c.mast.get(r, (0.0, 0.2))
+                    aims[r] = (pan + 0.7, tilt)
+                    continue
+                pos = resp.best.pose.pose.position
+                q = resp.best.pose.pose.orientation
+                xyz, yaw, pitch = camera_pose([pos.x, pos.y, pos.z], [q.x, q.y, q.z, q.w])
+                try:
+                    mount = camera_mount(xyz[:2], yaw, pitch)
+                    others = [c.odom[o][:2] for o in self.rovers if o != r] + goals
+                    wps = self._path(r, mount.base_xy, grid, trav, others)
+                except (ReachError, PlanningError, MapError) as exc:
+                    self.log(f'scan {k} {r}: view not reachable ({exc}); panning')
+                    pan, tilt = c.mast.get(r, (0.0, 0.2))
+                    aims[r] = (pan + 0.7, tilt)
+                    continue
+                goals.append(np.asarray(mount.base_xy))
+                plans[r] = (wps, mount.base_yaw)
+                aims[r] = (mount.pan, mount.tilt)
+            if plans:
+                self._drive(plans, f'scan {k} drive')
+            for r, (pan, tilt) in aims.items():
+                c.aim(r, pan, tilt)
+            seq = c.map.sequence
+            self._sim_wait(2.0, 'the scans')
+            self._wait(lambda s=seq: c.map.sequence > s, 60, 'the map fused')
+            scans.append({'scan': k, 'coverage': self._coverage(),
+                          'distance_m': float(sum(c.distance.values())),
+                          'voxels': len(c.map.voxels.occupancy)})
+            self.progress.update(scans[-1]['coverage'] / cfg.coverage_target,
+                                 f'scan {k}: {100 * scans[-1]["coverage"]:.0f} % seen')
+            self.log(f'map: scan {k}: coverage {100 * scans[-1]["coverage"]:.1f} %, '
+                     f'{scans[-1]["distance_m"]:.1f} m driven')
+        cov = scans[-1]['coverage']
+        m = c.map
+        self.rep['mapping'] = {'coverage': cov, 'target': cfg.coverage_target,
+                               'scans': scans, 'scans_taken': len(scans) - 1,
+                               'distance_m': scans[-1]['distance_m'],
+                               'strategy': cfg.strategy, 'site_centre': list(SITE_XY),
+                               'site_half_m': cfg.site_half_m, 'voxels': len(m.voxels.occupancy)}
+        keys = np.asarray(m.voxels.keys, np.int64).reshape(-1, 3)
+        occ = np.asarray(m.voxels.occupancy)
+        self.extras['top_view'] = top_view(keys, occ, m.resolution_m, centre_xy=SITE_XY,
+                                           half_m=cfg.site_half_m)
+        self.extras['occupied_points'] = (keys[occ >= 0.5] + 0.5) * m.resolution_m
+        fut = c.save_map.call_async(MapFile.Request(path=str((self.out / 'team.cmap')
+                                                             .resolve())))
+        self._wait(fut.done, 60, 'the map saved')
+        if not fut.result().success:
+            self.log(f'map/save: {fut.result().message}')
+        if cov < cfg.coverage_target:
+            raise MissionError(f'coverage {100 * cov:.1f} % after {cfg.max_scans} scans, '
+                               f'below the {100 * cfg.coverage_target:.0f} % target')
+
+    # -- phases 3 and 4: placement and insertion -----------------------------------------------
+    def _stage(self) -> None:
+        """Drive the slave to its start short of the slot and the master beside the site."""
+        c, rig = self.client, self.rig
+        if c.map is None:
+            raise MissionError('no map to plan the approach on (run the map phase)')
+        grid, trav, _ = self._grid()
+        j2 = joint2_in_base(load_truth().cg_to_arm)
+        gap = self.cfg.slot_in * INCH
+        slave_xy = (SITE_XY[0] + gap / 2 - 0.30 - j2[0] - SLAVE_START_SHORT_M, SITE_XY[1] - j2[1])
+        master_xy = MASTER_START[:2]
+        plans = {}
+        for r, xy, others, yaw in ((SLAVE, slave_xy, [c.odom[MASTER][:2], master_xy], 0.0),
+                                   (MASTER, master_xy, [slave_xy], MASTER_START[2])):
+            try:
+                plans[r] = (self._path(r, xy, grid, trav, others), yaw)
+            except PlanningError as exc:
+                raise MissionError(f'no path for {r} from {np.round(c.odom[r][:2], 2)} to '
+                                   f'its staging pose {np.round(xy, 2)}: {exc}') from exc
+        self._drive({SLAVE: plans[SLAVE]}, 'slave to its start')
+        self._drive({MASTER: plans[MASTER]}, 'master beside the site')
+        rig.set_slot(self.cfg.slot_in)
+
+    def _place_and_insert(self, place: Phase) -> None:
+        insert = next(p for p in self.phases if p.name == 'insert')
+        self.progress.update(0.0, 'to the staging poses')
+        self._stage()
+        w0, s0 = time.monotonic(), self._sim_t()
+        phase = {'insert_at': None}
+
+        def watch() -> None:
+            fb = self.rig.feedback
+            if fb is None:
+                return
+            if phase['insert_at'] is None and fb.phase > Insert.Feedback.PHASE_PLACE_CAMERA:
+                phase['insert_at'] = (time.monotonic(), self._sim_t())
+                self.progress.start('insert')
+            if phase['insert_at'] is None:
+                self.progress.update(0.5, 'placing the camera')
+            else:
+                self.progress.update(fb.phase / Insert.Feedback.PHASE_DONE,
+                                     f'error {1e3 * fb.displacement_error_m:.0f} mm')
+
+        attempt = self._run_insert(watch)
+        ins_w, ins_s = phase['insert_at'] or (time.monotonic(), self._sim_t())
+        place.wall_s, place.sim_s = ins_w - w0, ins_s - s0
+        insert.wall_s, insert.sim_s = time.monotonic() - ins_w, self._sim_t() - ins_s
+        pl = self.client.placement
+        if pl is not None:
+            p, q = pl.pose.pose.position, pl.pose.pose.orientation
+            _, yaw, pitch = camera_pose([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+            target = np.array([3.0572, 0.15, 0.5])
+            self.rep['placement'] = {
+                'position': [p.x, p.y, p.z], 'yaw_deg': math.degrees(yaw),
+                'pitch_deg': math.degrees(pitch),
+                'distance_to_target_m': float(np.linalg.norm(np.array([p.x, p.y, p.z]) -
+                                                             target)),
+                **{k: _finite(getattr(pl, k)) for k in (
+                    'rating', 'depth_of_field', 'resolution', 'field_visibility',
+                    'angular_visibility', 'collision_probability')}}
+        self.rep['insertion'] = {
+            'success': bool(attempt.success), 'action_success': attempt.action_success,
+            'reason': attempt.reason, 'seated': attempt.seated,
+            'max_penetration_mm': attempt.max_penetration_mm,
+            'peak_force_n': attempt.peak_force_n, 'sim_s': attempt.sim_s}
+        self.extras['insertion_curves'] = attempt.curves
+        self.extras['paths'] = {r: list(p) for r, p in self.client.paths.items()}
+        reached = phase['insert_at'] is not None
+        place.status = 'ok' if reached else 'failed'
+        place.reason = '' if reached else attempt.reason
+        insert.status = 'ok' if attempt.success else ('failed' if reached else 'skipped')
+        insert.reason = '' if attempt.success else (attempt.reason if reached else
+                                                    'after place failed')
+
+    def _run_insert(self, tick):
+        stop = threading.Event()
+
+        def ticker() -> None:
+            while not stop.wait(0.5):
+                tick()
+
+        th = threading.Thread(target=ticker, daemon=True)
+        th.start()
+        try:
+            return self.rig.insert(slot_in=self.cfg.slot_in, placement='optimal',
+                                   timeout_s=self.cfg.insert_timeout_s,
+                                   max_force_n=self.cfg.max_force_n)
+        finally:
+            stop.set()
+            th.join(timeout=2)
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog='mission', description=__doc__.split('\n\n')[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    d = MissionConfig()
+    p.add_argument('--out', type=Path, default=Path('out'),
+                   help='the report goes to OUT/<run-id>/ (default out)')
+    p.add_argument('--run-id', default=None, help='default: date-time-pid')
+    p.add_argument('--seed', type=number(int, lo=0), default=d.seed)
+    p.add_argument('--occlusion-density', type=number(float, lo=0.0, hi=0.5),
+                   default=d.occlusion_density)
+    p.add_argument('--slot-in', type=number(float, lo=4.26, hi=6.0), default=d.slot_in,
+                   help='slot width (in): 5.0 easy, 4.5 medium, 4.375 hard')
+    p.add_argument('--rovers', type=number(int, lo=2, hi=4), default=d.rovers)
+    p.add_argument('--phases', default=','.join(d.phases),
+                   help=f'comma-separated, of {",".join(PHASES)} (place and insert together)')
+    p.add_argument('--identify-s', type=number(float, lo=1.0), default=d.identify_s)
+    p.add_argument('--coverage', type=number(float, lo=0.0, hi=1.0),
+                   default=d.coverage_target, help='work-site coverage target')
+    p.add_argument('--max-scans', type=number(int, lo=0), default=d.max_scans)
+    p.add_argument('--strategy', default=d.strategy,
+                   help='exploration strategy of next_best_view (max_information, frontier, '
+                        '...)')
+    p.add_argument('--insert-timeout', type=number(float, lo=1.0), default=d.insert_timeout_s)
+    p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None)
+    a = p.parse_args(argv)
+    try:
+        cfg = MissionConfig(seed=a.seed, occlusion_density=a.occlusion_density,
+                            slot_in=a.slot_in, rovers=a.rovers,
+                            phases=tuple(x for x in a.phases.split(',') if x),
+                            identify_s=a.identify_s, coverage_target=a.coverage,
+                            max_scans=a.max_scans, strategy=a.strategy,
+                            insert_timeout_s=a.insert_timeout)
+        mission = Mission(cfg, a.out, run_id=a.run_id, domain_id=a.domain_id)
+    except (MissionError, FileExistsError) as exc:
+        p.error(str(exc))
+    rep = mission.run()
+    return 0 if rep['success'] else 1
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
