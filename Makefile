@@ -24,7 +24,7 @@ install/.built: $(VENV)/.lock.sha256 $(BUILD_INPUTS)
 	touch $@
 
 demo: build
-	$(ENV) && python tools/demo.py --out out
+	$(ENV) && python -m coop_bringup.mission --out out
 
 test: build
 	$(ENV) && python -m pytest $(PYTEST_ARGS)

@@ -39,7 +39,7 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.cli import number
-from coop_common.dynparams import PARAM_NAMES, load_truth
+from coop_common.dynparams import PARAM_NAMES
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
     BASE_HEIGHT_M,
@@ -47,19 +47,11 @@ from coop_common.rover_geometry import (
     ReachError,
     camera_in_base,
     camera_mount,
-    joint2_in_base,
 )
 from coop_common.testing import isolate_ros_environment, pick_domain_id
 from coop_insertion.drive import FollowPath
 from coop_insertion.errors import InsertionError
-from coop_insertion.rig import (
-    INCH,
-    MASTER_START,
-    SITE_XY,
-    SLAVE_START_SHORT_M,
-    VIEW_PLANNER,
-    InsertionRig,
-)
+from coop_insertion.rig import SITE_XY, VIEW_PLANNER, InsertionRig, staging_poses
 from coop_msgs.action import Identify, Insert
 from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
 from coop_msgs.srv import MapFile, NextBestView
@@ -95,6 +87,7 @@ class MissionConfig:
     insert_timeout_s: float = 60.0
     max_force_n: float = 25.0
     stereo_rate_hz: float = 4.0
+    near_start: bool = False          # the rovers start at their staging poses (short missions)
 
     def __post_init__(self) -> None:
         bad = [p for p in self.phases if p not in PHASES]
@@ -322,7 +315,9 @@ class Mission:
                               extra_procs=extra) as rig:
                 self.rig = rig
                 self.client = _MissionClient(rig.ctx, self.rovers)
-                rig.ex.add_node(self.client)
+                rig.add_node(self.client)
+                if cfg.near_start:
+                    rig.place(cfg.slot_in, np.random.default_rng(cfg.seed))
                 self._wait(lambda: all(r in self.client.odom for r in self.rovers), 60,
                            "every rover's odometry")
                 for ph in self.phases:
@@ -337,12 +332,12 @@ class Mission:
                     self._run_phase(ph)
                     if ph.status == 'failed':
                         failed = ph.name
-                rig.ex.remove_node(self.client)
-                self.client.destroy_node()
         except KeyboardInterrupt:
             for ph in self.phases:
                 if ph.status == 'running':
                     ph.status, ph.reason = 'failed', 'interrupted (Ctrl-C)'
+                elif ph.status == 'skipped' and ph.name in cfg.phases and not ph.reason:
+                    ph.reason = 'interrupted (Ctrl-C)'
             self.rep['interrupted'] = True
         except (InsertionError, MissionError, TimeoutError) as exc:
             self.rep['error'] = str(exc)
@@ -580,20 +575,18 @@ class Mission:
         if c.map is None:
             raise MissionError('no map to plan the approach on (run the map phase)')
         grid, trav, _ = self._grid()
-        j2 = joint2_in_base(load_truth().cg_to_arm)
-        gap = self.cfg.slot_in * INCH
-        slave_xy = (SITE_XY[0] + gap / 2 - 0.30 - j2[0] - SLAVE_START_SHORT_M, SITE_XY[1] - j2[1])
-        master_xy = MASTER_START[:2]
+        poses = staging_poses(self.cfg.slot_in)
+        slave_xy, master_xy = poses[SLAVE][:2], poses[MASTER][:2]
         plans = {}
-        for r, xy, others, yaw in ((SLAVE, slave_xy, [c.odom[MASTER][:2], master_xy], 0.0),
-                                   (MASTER, master_xy, [slave_xy], MASTER_START[2])):
+        for r, xy, others, yaw in ((SLAVE, slave_xy, [c.odom[MASTER][:2], master_xy],
+                                    poses[SLAVE][2]),
+                                   (MASTER, master_xy, [slave_xy], poses[MASTER][2])):
             try:
                 plans[r] = (self._path(r, xy, grid, trav, others), yaw)
             except PlanningError as exc:
                 raise MissionError(f'no path for {r} from {np.round(c.odom[r][:2], 2)} to '
                                    f'its staging pose {np.round(xy, 2)}: {exc}') from exc
-        self._drive({SLAVE: plans[SLAVE]}, 'slave to its start')
-        self._drive({MASTER: plans[MASTER]}, 'master beside the site')
+        self._drive(plans, 'to the staging poses')
         rig.set_slot(self.cfg.slot_in)
 
     def _place_and_insert(self, place: Phase) -> None:
@@ -693,6 +686,8 @@ def main(argv: list[str] | None = None) -> int:
                    help='exploration strategy of next_best_view (max_information, frontier, '
                         '...)')
     p.add_argument('--insert-timeout', type=number(float, lo=1.0), default=d.insert_timeout_s)
+    p.add_argument('--near-start', action='store_true',
+                   help='start the rovers at their staging poses by the site (a short mission)')
     p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None)
     a = p.parse_args(argv)
     try:
@@ -701,7 +696,7 @@ def main(argv: list[str] | None = None) -> int:
                             phases=tuple(x for x in a.phases.split(',') if x),
                             identify_s=a.identify_s, coverage_target=a.coverage,
                             max_scans=a.max_scans, strategy=a.strategy,
-                            insert_timeout_s=a.insert_timeout)
+                            insert_timeout_s=a.insert_timeout, near_start=a.near_start)
         mission = Mission(cfg, a.out, run_id=a.run_id, domain_id=a.domain_id)
     except (MissionError, FileExistsError) as exc:
         p.error(str(exc))

@@ -98,8 +98,11 @@ PARAMS = {
                                  'servos and no fix came for this long (sim s)', lo=0.5,
                                  hi=60.0),
     'max_replacements': ParamSpec(2, 'Optimal placement: re-placements per goal', lo=0, hi=20),
+    'replace_range_factor': ParamSpec(0.85, "Each re-placement shrinks the markers' range by "
+                                      'this factor (a closer view)', lo=0.3, hi=1.0),
     'seed': ParamSpec(0, 'Seed of the random placement', lo=0, hi=2**31 - 1),
-    'place_timeout_s': ParamSpec(120.0, 'Give up placing the camera after this (sim s)',
+    'place_timeout_s': ParamSpec(120.0, "Give up placing the camera after this (the node's "
+                                 'clock: sim s with use_sim_time)',
                                  lo=1.0, hi=3600.0),
 }
 
@@ -356,8 +359,13 @@ class MasterNode(Node):
                 self.replacements += 1
                 self.get_logger().info(f'no fix for {lost:.1f} s while the slave servos: '
                                        f're-placing the camera ({self.replacements})')
-                failed = await self._place(handle, await self._choose_pose(
-                    goal.placement, card=self.card_in_map))
+                where = await self._choose_pose(goal.placement, card=self.card_in_map,
+                                                closer=self.replacements)
+                if isinstance(where, str) and self.card_in_map is not None:
+                    # the target half-way to the card may lie in the card's (or the slave's)
+                    # voxels: the site's own target, nearer
+                    where = await self._choose_pose(goal.placement, closer=self.replacements)
+                failed = await self._place(handle, where)
                 if failed and handle.is_cancel_requested:
                     await sh.cancel_goal_async()
                 elif failed:
@@ -398,14 +406,15 @@ class MasterNode(Node):
         self.pub_mast.publish(tilt)
         self._drive = GoToPose(mount.base_xy, mount.base_yaw,
                                max_speed_m_s=self.p['max_speed_m_s'])
-        started = time.monotonic()
+        started = self.get_clock().now()
         try:
             while self._drive is not None:
                 await self._sleep_until_wake()
                 if handle.is_cancel_requested:
                     return 'canceled while placing the camera'
-                if time.monotonic() - started > self.p['place_timeout_s']:
-                    return 'timed out placing the camera'
+                if (self.get_clock().now() - started).nanoseconds * 1e-9 > \
+                        self.p['place_timeout_s']:
+                    return f'timed out placing the camera ({self.p["place_timeout_s"]:g} s)'
         finally:
             self._drive = None
             self.pub_cmd.publish(Twist())
@@ -420,10 +429,13 @@ class MasterNode(Node):
             raise InsertionError('no camera_info yet: the focal length sets the task range')
         return 2 * self.model.slot_marker_radius_m * li.p[0] / self.p['marker_min_diameter_px']
 
-    async def _choose_pose(self, placement: int, *, card: np.ndarray | None = None):
+    async def _choose_pose(self, placement: int, *, card: np.ndarray | None = None,
+                           closer: int = 0):
         """The camera pose (xy, yaw, pitch, how) or the reason there is none. Optimal: the
         view planner's for the primary target (in front of the site; re-placing, half-way to
-        the card's last fix) with the site's marked face as the secondary."""
+        the card's last fix) with the site's marked face as the secondary, within the range
+        where the slot markers span marker_min_diameter_px; `closer` re-placements shrink that
+        range by replace_range_factor each (the markers were not resolved from there)."""
         site = np.asarray(self.p['site_position'], float)
         normal = np.asarray(self.p['site_normal'], float)
         normal /= np.linalg.norm(normal)
@@ -451,7 +463,8 @@ class MasterNode(Node):
             return 'no viewplan/task_view service'
         offset = np.asarray(self.p['view_target_offset_m'], float)
         try:
-            far = self.marker_range_m() - float(np.linalg.norm(offset))
+            far = self.marker_range_m() * self.p['replace_range_factor'] ** closer - \
+                float(np.linalg.norm(offset))
         except InsertionError as exc:
             return str(exc)
         if far <= 0:

@@ -54,6 +54,20 @@ VIEW_PLANNER = {'p_empty': 0.45, 'task_unknown_occludes': False, 'clearance_m': 
                 'camera_height_m': 0.78}
 
 
+def staging_poses(slot_in: float, rng: np.random.Generator | None = None
+                  ) -> dict[str, tuple[float, float, float]]:
+    """Where an insertion starts, (x, y, heading) per rover: the master beside the site, the
+    slave with its card SLAVE_START_SHORT_M short of the slot; with `rng`, perturbed (the
+    slave by up to 3 cm along, 2 cm across and 0.05 rad)."""
+    j2 = joint2_in_base(load_truth().cg_to_arm)
+    sx = SITE_XY[0] + slot_in * INCH / 2
+    d = rng.uniform([-0.03, -0.02, -0.05], [0.03, 0.02, 0.05]) if rng is not None \
+        else np.zeros(3)
+    return {'rover1': MASTER_START,
+            'rover2': (float(sx - 0.30 - j2[0] - SLAVE_START_SHORT_M + d[0]),
+                       float(SITE_XY[1] - j2[1] + d[1]), float(d[2]))}
+
+
 @dataclass
 class Attempt:
     slot_in: float
@@ -120,6 +134,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         self.slot_in = slot_in
         self.stack = contextlib.ExitStack()
         self.nodes: dict[str, NodeProcess] = {}
+        self._extra_nodes: list[Node] = []
         self.feedback: Insert.Feedback | None = None    # the running goal's last feedback
         sim_args = ['-p', f'rovers:={rovers}', '-p', f'seed:={seed}', '-p',
                     f'occlusion_density:={occlusion_density}', '-p',
@@ -185,6 +200,12 @@ class InsertionRig(contextlib.AbstractContextManager):
             raise
         return self
 
+    def add_node(self, node: Node) -> None:
+        """Spin another node of this rig's context with its executor; destroyed on exit,
+        after the spinning stopped."""
+        self._extra_nodes.append(node)
+        self.ex.add_node(node)
+
     def dead(self) -> list[str]:
         """The processes of the graph that have ended (a node that died)."""
         return [name for name, proc in self.nodes.items() if not proc.alive()]
@@ -199,6 +220,8 @@ class InsertionRig(contextlib.AbstractContextManager):
             self._thread.join(timeout=5)
         if getattr(self, 'ctx', None) is not None:
             self.ex.shutdown()
+            for n in self._extra_nodes:
+                n.destroy_node()
             self.node.destroy_node()
             rclpy.try_shutdown(context=self.ctx)
         self.stack.close()
@@ -208,9 +231,12 @@ class InsertionRig(contextlib.AbstractContextManager):
         wait_for(fut.done, timeout_s, what=f"{client.srv_name}'s answer")
         return fut.result()
 
-    def _sim_sleep(self, seconds: float, timeout_s: float = 120.0) -> None:
+    def _sim_sleep(self, seconds: float) -> None:
+        """Wait `seconds` of sim time (up to 60 s + 20x that of wall time: a loaded machine
+        runs the rendering sim at a real-time factor near 0.1)."""
         t0 = self.node.clock
-        wait_for(lambda: self.node.clock >= t0 + seconds, timeout_s, what='sim time')
+        wait_for(lambda: self.node.clock >= t0 + seconds, 60.0 + 20.0 * seconds,
+                 what='sim time')
 
     def set_slot(self, slot_in: float) -> None:
         """The slave's task given for the next attempts: the slot's width."""
@@ -226,15 +252,11 @@ class InsertionRig(contextlib.AbstractContextManager):
 
     def place(self, slot_in: float, rng: np.random.Generator) -> None:
         """Reset the sim to the slot width with the rovers at their (perturbed) starts."""
-        truth = load_truth()
-        j2 = joint2_in_base(truth.cg_to_arm)
-        gap = slot_in * INCH
-        sx = SITE_XY[0] + gap / 2
-        bx = sx - 0.30 - j2[0] - SLAVE_START_SHORT_M + rng.uniform(-0.03, 0.03)
-        by = SITE_XY[1] - j2[1] + rng.uniform(-0.02, 0.02)
-        req = SimScenario.Request(slot_gap_m=gap, place_rovers=['rover1', 'rover2'],
-                                  place_x=[MASTER_START[0], bx], place_y=[MASTER_START[1], by],
-                                  place_yaw=[MASTER_START[2], rng.uniform(-0.05, 0.05)])
+        poses = staging_poses(slot_in, rng)
+        req = SimScenario.Request(slot_gap_m=slot_in * INCH, place_rovers=list(poses),
+                                  place_x=[p[0] for p in poses.values()],
+                                  place_y=[p[1] for p in poses.values()],
+                                  place_yaw=[p[2] for p in poses.values()])
         resp = self._call(self.node.reset, req)
         if not resp.success:
             raise InsertionError(f'sim/reset: {resp.message}')

@@ -164,10 +164,9 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
         for sa, sb in itertools.combinations([k for k in cand if k not in (ca, cb)], 2):
             es = spacing_error(sa, sb, 'slot')
             if abs(es) > 0.2:
-                why = "no slot pair at the slot markers' spacing"
                 continue
+            found['slot'] = True
             if sizes[ca] + sizes[cb] <= sizes[sa] + sizes[sb]:
-                why = 'the card pair is not the larger'
                 continue
             size_cost = sum(np.log(sizes[k] / kinds[kind][0]) ** 2 for kind, ks in
                             (('card', (ca, cb)), ('slot', (sa, sb))) for k in ks)

@@ -1,0 +1,52 @@
+"""The whole mission, shortened, end to end over DDS (issue #23): `coop_bringup.mission` with
+the rovers starting by the site, 4 s of identification and the map from where they stand (one
+next-best-view scan if the coverage needs it), each checked against the simulator's truth: the
+identified parameters, the site's jaws in the saved map. The insertion through the same nodes
+is `test_insertion_graph.py` (the master's camera pinned in front of the site); the placement
+by `task_view` at the markers' range resolves the 0.25 in slot markers only in some frames
+(docs/results/insertion.md), too seldom for a test that must not be flaky."""
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+pytestmark = pytest.mark.graph
+
+
+def test_a_short_mission_identifies_and_maps(tmp_path):
+    from coop_bringup.mission import Mission, MissionConfig
+    from coop_bringup.report import top_view
+
+    from coop_mapping.voxelmap import VoxelMap, unpack_keys
+
+    cfg = MissionConfig(seed=1, occlusion_density=0.05, slot_in=5.0, identify_s=4.0,
+                        coverage_target=0.5, max_scans=1, near_start=True,
+                        phases=('identify', 'map'))
+    rep = Mission(cfg, tmp_path, run_id='short', domain_id=int(os.environ['ROS_DOMAIN_ID']),
+                  log=print).run()
+    out = tmp_path / 'short'
+    print((out / 'report.md').read_text())
+    on_disk = json.loads((out / 'report.json').read_text())
+    assert on_disk['insertion']['success'] is False          # not run: false, never missing
+    status = {p['name']: (p['status'], p['reason']) for p in rep['phases']}
+    assert status['identify'][0] == 'ok' and status['map'][0] == 'ok', status
+    assert status['place'] == ('skipped', 'not asked for'), status
+    assert rep['success']
+    # identify: both rovers against the sim's truth (4 s of excitation: the inertias scatter,
+    # the mass and the c.g. do not)
+    for rover, r in rep['identification']['rovers'].items():
+        p = {q['name']: q for q in r['params']}
+        assert p['mass']['rel_error'] <= 0.05, (rover, p['mass'])
+        assert all(p[n]['rel_error'] <= 0.1 for n in ('cg_y', 'cg_z')), rover
+        assert r['mean_abs_rel_error'] <= 0.5, (rover, r['mean_abs_rel_error'])
+    # map: the coverage target, and the site's jaws (truth: x 2.9..3.23, |y| <= 0.1) stand in
+    # the saved map as obstacles
+    assert rep['mapping']['coverage'] >= 0.5
+    m = VoxelMap.load(out / 'team.cmap')
+    top = top_view(unpack_keys(m.keys), m.probability(), m.resolution, centre_xy=(3.05, 0.0),
+                   half_m=0.2)
+    assert (top[:, 1:3] == 1).sum() >= 3, top
+    for name in ('identification', 'coverage', 'map_top', 'map_3d'):
+        assert (out / on_disk['plots'][name]).exists()
