@@ -322,9 +322,11 @@ class InsertionRig(contextlib.AbstractContextManager):
         node.recording = True
         res_fut = handle.get_result_async()
         wait_for(res_fut.done, 3 * timeout_s + 600, what='the insert result')
-        node.recording = False
         res = res_fut.result().result
-        self._sim_sleep(0.1)
+        # the sim's contact state of the last instants (the slave ends its goal the moment it
+        # judges the card seated; the truth's message of that moment may still be in flight)
+        self._sim_sleep(0.2)
+        node.recording = False
         pen_mm = node.contact_pen * 1e3
         ok = bool(res.success and node.seated and pen_mm <= penetration_limit_mm)
         return Attempt(slot_in, placement, seed, ok, bool(res.success), res.reason,
