@@ -134,7 +134,7 @@ def format_summary(rep: dict) -> str:
              '|---|---|---|---|---|---|']
     for ph in rep.get('phases', []):
         res, tgt = results.get(ph['name'], ('', ''))
-        if ph['status'] != 'ok' and ph.get('reason'):
+        if ph['status'] != 'ok' and ph.get('reason') and ph['reason'] not in res:
             res = f'{res}; {ph["reason"]}' if ph['status'] == 'failed' else ph['reason']
         lines.append(f'| {ph["name"]} | {ph["status"]} | {res} | {tgt} | '
                      f'{_fmt(ph.get("wall_s"), ".0f")} | {_fmt(ph.get("sim_s"), ".1f")} |')
