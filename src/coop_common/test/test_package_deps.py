@@ -28,6 +28,7 @@ ROSDEP = {
     'mcap': 'python3-mcap-pip',
     'filterpy': 'python3-filterpy-pip',
     'pytest': 'python3-pytest',
+    'tqdm': 'python3-tqdm',
 }
 #: ROS packages imported under their own name (client library, message and project packages)
 ROS_PACKAGES = {
