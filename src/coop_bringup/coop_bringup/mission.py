@@ -42,11 +42,11 @@ from coop_common.cli import number
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
-    BASE_HEIGHT_M,
     MAST_JOINTS,
     ReachError,
-    camera_in_base,
+    camera_in_map,
     camera_mount,
+    yaw_of,
 )
 from coop_common.testing import isolate_ros_environment, pick_domain_id
 from coop_insertion.drive import FollowPath
@@ -188,7 +188,7 @@ class _MissionClient(Node):
 
     def _on_odom(self, r: str, m: Odometry) -> None:
         q = m.pose.pose.orientation
-        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        yaw = yaw_of(q.x, q.y, q.z, q.w)
         x, y = m.pose.pose.position.x, m.pose.pose.position.y
         with self.lock:
             if r in self.odom:
@@ -214,11 +214,7 @@ class _MissionClient(Node):
 
     def camera_pose(self, r: str) -> PoseStamped:
         """The camera's optical pose in the map from the rover's odometry and mast encoders."""
-        x, y, yaw = self.odom[r]
-        base = np.eye(4)
-        base[:3, :3] = Rotation.from_euler('z', yaw).as_matrix()
-        base[:3, 3] = (x, y, BASE_HEIGHT_M)
-        cam = base @ camera_in_base(*self.mast.get(r, (0.0, 0.0)))
+        cam = camera_in_map(*self.odom[r], *self.mast.get(r, (0.0, 0.0)))
         msg = PoseStamped()
         msg.header.frame_id = 'map'
         p, q = msg.pose.position, msg.pose.orientation

@@ -93,6 +93,20 @@ def card_fk(q2: float, q3: float, q4: float) -> tuple[float, float, float]:
 
 
 
+def yaw_of(qx: float, qy: float, qz: float, qw: float) -> float:
+    """Heading (rad) of a quaternion (x, y, z, w): its rotation about z (e.g. odometry's)."""
+    return float(np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)))
+
+
+def camera_in_map(x: float, y: float, yaw: float, pan: float, tilt: float) -> np.ndarray:
+    """4x4 pose of the left optical frame in the map (odometry) frame of a rover standing at
+    (x, y) with heading yaw on flat ground (its c.g. BASE_HEIGHT_M up), mast at pan and tilt."""
+    base = np.eye(4)
+    base[:3, :3] = _rot_z(yaw)
+    base[:3, 3] = (x, y, BASE_HEIGHT_M)
+    return base @ camera_in_base(pan, tilt)
+
+
 def _rot_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -29,11 +29,12 @@ from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
-    BASE_HEIGHT_M,
     MAST_JOINTS,
     ReachError,
     camera_in_base,
+    camera_in_map,
     camera_mount,
+    yaw_of,
 )
 from coop_mapping.stereo import StereoCamera, StereoError
 from coop_mapping.stereo_node import image_to_array
@@ -242,20 +243,15 @@ class MasterNode(Node):
         self.tracked += 1
         self._fix_t = _stamp(left)
         if self.odom is not None:
-            x, y, yaw = self.odom
-            base = np.eye(4)
-            base[:3, :3] = [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0],
-                            [0, 0, 1]]
-            base[:3, 3] = (x, y, BASE_HEIGHT_M)
-            cam = base @ camera_in_base(*self.mast)
+            cam = camera_in_map(*self.odom, *self.mast)
             mid = 0.5 * (lab.points[0] + lab.points[1])
             self.card_in_map = cam[:3, :3] @ mid + cam[:3, 3]
 
     # -- driving ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
         q = msg.pose.pose.orientation
-        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
-        self.odom = (msg.pose.pose.position.x, msg.pose.pose.position.y, yaw)
+        self.odom = (msg.pose.pose.position.x, msg.pose.pose.position.y,
+                     yaw_of(q.x, q.y, q.z, q.w))
         if self._drive is not None:
             c = self._drive.command(*self.odom)
             t = Twist()

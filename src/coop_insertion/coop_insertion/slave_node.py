@@ -27,7 +27,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
-from coop_common.rover_geometry import ARM_JOINTS, ReachError
+from coop_common.rover_geometry import ARM_JOINTS, ReachError, yaw_of
 from coop_msgs.action import Insert
 from coop_msgs.msg import DynamicParameters, MarkerObservation
 
@@ -135,7 +135,7 @@ class SlaveNode(Node):
     # -- sensing ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
         q = msg.pose.pose.orientation
-        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        yaw = yaw_of(q.x, q.y, q.z, q.w)
         self.odom = (msg.pose.pose.position.x, msg.pose.pose.position.y, yaw)
 
     def _on_wrench(self, msg: WrenchStamped) -> None:
