@@ -138,6 +138,10 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         try:
             node = factory()
         except (ValueError, InvalidParameterValueException, ParameterException) as exc:
+            if not rclpy.ok():
+                # Ctrl-C while the node was still being built (its next rcl call found the
+                # context shut down): a clean stop, not a failed start
+                return 0
             rclpy.logging.get_logger('startup').fatal(f'cannot start: {exc}')
             return 1
         if executor_factory is not None:

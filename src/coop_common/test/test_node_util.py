@@ -83,7 +83,23 @@ def test_run_node_exits_1_when_the_node_shut_itself_down_for_a_fatal_error():
         def _fail(self):
             raise RuntimeError('a real bug')
 
+    class InterruptedWhileBuilding(Node):    # Ctrl-C before the node's action server exists
+        def __init__(self):
+            super().__init__('building')
+            self.context.try_shutdown()
+            from rclpy.action import ActionServer
+
+            from coop_msgs.action import Identify
+            ActionServer(self, Identify, 'identify', lambda goal: None)
+
+    class BadParameter(Node):
+        def __init__(self):
+            super().__init__('bad')
+            raise ValueError('rate must be > 0')
+
     assert run_node(Dies, []) == 1
+    assert run_node(InterruptedWhileBuilding, []) == 0
+    assert run_node(BadParameter, []) == 1
     assert run_node(Stops, []) == 0
     assert run_node(PublishesAfterShutdown, []) == 0
     with pytest.raises(RuntimeError, match='a real bug'):
