@@ -20,5 +20,6 @@ setup(
     maintainer_email='maintainers@coop-field-robots.org',
     description='Launch files that bring up a team of cooperative rovers.',
     license='Apache-2.0',
-    entry_points={'console_scripts': ['mission = coop_bringup.mission:main']},
+    entry_points={'console_scripts': ['mission = coop_bringup.mission:main',
+                                      'live_view = coop_bringup.live_view:main']},
 )

@@ -29,12 +29,14 @@ ROSDEP = {
     'filterpy': 'python3-filterpy-pip',
     'pytest': 'python3-pytest',
     'tqdm': 'python3-tqdm',
+    'foxglove': 'python3-foxglove-sdk-pip',
+    'websockets': 'python3-websockets',
 }
 #: ROS packages imported under their own name (client library, message and project packages)
 ROS_PACKAGES = {
     'rclpy', 'rcl_interfaces', 'ament_index_python', 'builtin_interfaces', 'std_msgs',
     'std_srvs', 'geometry_msgs', 'sensor_msgs', 'nav_msgs', 'trajectory_msgs',
-    'visualization_msgs', 'rosgraph_msgs', 'coop_msgs',
+    'visualization_msgs', 'rosgraph_msgs', 'coop_msgs', 'action_msgs',
 } | {p.name for p in PACKAGES}
 
 

@@ -1,0 +1,282 @@
+"""The live view's core, without rclpy: the mission's state as Foxglove messages on a Foxglove
+WebSocket server (`foxglove-sdk`), rate-limited so the camera images never starve the small
+channels.
+
+`LiveView` owns a private `foxglove.Context` and its server; the node (`live_view_node`) only
+turns ROS messages into the numpy arrays and numbers its methods take. Images are JPEG-encoded
+(downscaled) at most `image_rate_hz` per rover and only while a client subscribes to them; the
+map, the identification and the insertion state are re-sent at `state_rate_hz`, since the
+WebSocket protocol has no latching and a client that connects late must still see them.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import foxglove
+import numpy as np
+from foxglove.channels import CompressedImageChannel, PointCloudChannel, PoseInFrameChannel
+from foxglove.messages import (
+    CompressedImage,
+    PackedElementField,
+    PackedElementFieldNumericType,
+    PointCloud,
+    Pose,
+    PoseInFrame,
+    Quaternion,
+    Timestamp,
+    Vector3,
+)
+
+__all__ = ['INSERT_PHASES', 'LiveView', 'LiveViewConfig', 'RateGate', 'channel_topics',
+           'encode_jpeg', 'voxel_cloud']
+
+#: coop_msgs/action/Insert feedback phases, by value
+INSERT_PHASES = ('place_camera', 'visual_servo', 'force_insert', 'done')
+#: action_msgs/GoalStatus codes
+GOAL_STATUS = ('unknown', 'accepted', 'executing', 'canceling', 'succeeded', 'canceled',
+               'aborted')
+_F32 = PackedElementFieldNumericType.Float32
+
+
+class RateGate:
+    """At most `rate_hz` openings per second of the monotonic clock (`ready(now)`)."""
+
+    def __init__(self, rate_hz: float) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f'rate_hz must be > 0, got {rate_hz}')
+        self.period_s = 1.0 / rate_hz
+        self._next = -math.inf
+
+    def ready(self, now_s: float | None = None) -> bool:
+        now = time.monotonic() if now_s is None else now_s
+        if now < self._next:
+            return False
+        # a late tick does not earn a burst: the next opening is one period after this one
+        self._next = now + self.period_s
+        return True
+
+
+def image_array(encoding: str, height: int, width: int, step: int, data) -> np.ndarray:
+    """A sensor_msgs/Image's pixels as an (h, w) or (h, w, 3) uint8 array (mono8, rgb8, bgr8);
+    ValueError for another encoding or a short buffer."""
+    channels = {'mono8': 1, '8UC1': 1, 'rgb8': 3, 'bgr8': 3}.get(encoding)
+    if channels is None:
+        raise ValueError(f'unsupported image encoding {encoding!r} (mono8, rgb8, bgr8)')
+    buf = np.frombuffer(data, np.uint8)
+    if step < width * channels or buf.size < step * height:
+        raise ValueError(f'image data of {buf.size} bytes too short for {height} x {step}')
+    img = buf[:step * height].reshape(height, step)[:, :width * channels]
+    img = img.reshape(height, width, channels) if channels == 3 else img
+    return img[..., ::-1] if encoding == 'rgb8' else img        # cv2 wants BGR
+
+
+def encode_jpeg(img: np.ndarray, *, quality: int = 70, scale: float = 0.5) -> bytes:
+    """`img` (uint8, mono or BGR) downscaled by `scale` (area averaging) as JPEG bytes."""
+    import cv2  # noqa: PLC0415 - the only user; keeps `import coop_bringup.live` light
+    if scale != 1.0:
+        h, w = img.shape[:2]
+        img = cv2.resize(img, (max(1, round(w * scale)), max(1, round(h * scale))),
+                         interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode('.jpg', np.ascontiguousarray(img),
+                           [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError('JPEG encoding failed')
+    return buf.tobytes()
+
+
+def voxel_cloud(keys: np.ndarray, occupancy: np.ndarray, resolution_m: float, *,
+                min_occupancy: float = 0.5) -> tuple[bytes, int]:
+    """The occupied voxels of a VoxelSet (flat int32 keys, 3 per voxel) as a packed cloud of
+    float32 (x, y, z, occupancy) at the voxel centres, 16 bytes a point; and the point count."""
+    keys = np.asarray(keys, np.int32).reshape(-1, 3)
+    occ = np.asarray(occupancy, np.float32)
+    if len(occ) != len(keys):
+        raise ValueError(f'{len(keys)} keys but {len(occ)} occupancies')
+    sel = occ >= min_occupancy
+    pts = np.empty((int(sel.sum()), 4), np.float32)
+    pts[:, :3] = (keys[sel] + 0.5) * resolution_m
+    pts[:, 3] = occ[sel]
+    return pts.tobytes(), len(pts)
+
+
+def _stamp(t_s: float) -> Timestamp:
+    sec = math.floor(t_s)
+    return Timestamp(int(sec), int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+
+
+def _pose(xyz: Sequence[float], quat_xyzw: Sequence[float]) -> Pose:
+    return Pose(position=Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
+                orientation=Quaternion(x=float(quat_xyzw[0]), y=float(quat_xyzw[1]),
+                                       z=float(quat_xyzw[2]), w=float(quat_xyzw[3])))
+
+
+def channel_topics(rovers: Sequence[str]) -> list[str]:
+    """Every Foxglove channel the live view advertises for these rovers."""
+    per = ('camera/compressed', 'pose', 'camera_pose', 'identification')
+    return ['/map', '/insertion', *(f'/{r}/{c}' for r in rovers for c in per)]
+
+
+@dataclass(frozen=True)
+class LiveViewConfig:
+    """The server's address and the rate limits (the node's parameters of the same names)."""
+
+    rovers: tuple[str, ...] = ('rover1', 'rover2')
+    host: str = '127.0.0.1'
+    port: int = 8765                  # 0: any free port (`LiveView.port` tells which)
+    image_rate_hz: float = 4.0        # per rover
+    image_scale: float = 0.5
+    jpeg_quality: int = 70
+    pose_rate_hz: float = 10.0        # per pose channel
+    state_rate_hz: float = 2.0        # map, identification, insertion re-sent
+    map_frame: str = 'map'
+    min_occupancy: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ('image_rate_hz', 'pose_rate_hz', 'state_rate_hz', 'image_scale'):
+            if not getattr(self, name) > 0:
+                raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f'jpeg_quality must be 1..100, got {self.jpeg_quality}')
+        if not self.rovers:
+            raise ValueError('no rovers')
+
+
+class LiveView:
+    """A Foxglove WebSocket server with the mission's channels; `close()` stops it.
+
+    Every `on_*` method may be called at any rate: it drops what its channel's rate limit does
+    not let through (returning False) and logs the rest (True)."""
+
+    def __init__(self, cfg: LiveViewConfig) -> None:
+        self.cfg = cfg
+        self.ctx = foxglove.Context()
+        c = self.ctx
+        self.images = {r: CompressedImageChannel(f'/{r}/camera/compressed', context=c)
+                       for r in cfg.rovers}
+        self.poses = {r: PoseInFrameChannel(f'/{r}/pose', context=c) for r in cfg.rovers}
+        self.cam_poses = {r: PoseInFrameChannel(f'/{r}/camera_pose', context=c)
+                          for r in cfg.rovers}
+        self.ident = {r: foxglove.Channel(f'/{r}/identification', context=c)
+                      for r in cfg.rovers}
+        self.map = PointCloudChannel('/map', context=c)
+        self.insertion = foxglove.Channel('/insertion', context=c)
+        self._gates = {('image', r): RateGate(cfg.image_rate_hz) for r in cfg.rovers}
+        self._gates.update({(k, r): RateGate(cfg.pose_rate_hz) for r in cfg.rovers
+                            for k in ('pose', 'camera_pose')})
+        self._last_map: PointCloud | None = None
+        self._last_ident: dict[str, dict] = {}
+        self._last_insertion: dict | None = None
+        self.sent: dict[str, int] = dict.fromkeys(channel_topics(cfg.rovers), 0)
+        self.map_points = 0
+        self.server = foxglove.start_server(name='coop mission', host=cfg.host, port=cfg.port,
+                                            context=c)
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    def close(self) -> None:
+        self.server.stop()
+
+    # -- streams: rate-limited ------------------------------------------------------------------
+    def on_image(self, rover: str, img: np.ndarray, stamp_s: float, frame_id: str,
+                 now_s: float | None = None) -> bool:
+        ch = self.images[rover]
+        # no client watching: not even the JPEG encoding is paid for
+        if not ch.has_sinks() or not self._gates[('image', rover)].ready(now_s):
+            return False
+        data = encode_jpeg(img, quality=self.cfg.jpeg_quality, scale=self.cfg.image_scale)
+        ch.log(CompressedImage(timestamp=_stamp(stamp_s), frame_id=frame_id, data=data,
+                               format='jpeg'))
+        self.sent[f'/{rover}/camera/compressed'] += 1
+        return True
+
+    def on_pose(self, rover: str, kind: str, xyz, quat_xyzw, stamp_s: float,
+                frame_id: str = '', now_s: float | None = None) -> bool:
+        """kind: 'pose' (the rover's base) or 'camera_pose' (its left optical frame)."""
+        ch = (self.poses if kind == 'pose' else self.cam_poses)[rover]
+        if not ch.has_sinks() or not self._gates[(kind, rover)].ready(now_s):
+            return False
+        ch.log(PoseInFrame(timestamp=_stamp(stamp_s), frame_id=frame_id or self.cfg.map_frame,
+                           pose=_pose(xyz, quat_xyzw)))
+        self.sent[f'/{rover}/{kind}'] += 1
+        return True
+
+    # -- state: kept and re-sent at state_rate_hz -------------------------------------------------
+    def on_map(self, keys, occupancy, resolution_m: float, stamp_s: float,
+               frame_id: str = '') -> None:
+        data, n = voxel_cloud(keys, occupancy, resolution_m,
+                              min_occupancy=self.cfg.min_occupancy)
+        fields = [PackedElementField(name=name, offset=4 * i, type=_F32)
+                  for i, name in enumerate(('x', 'y', 'z', 'occupancy'))]
+        self._last_map = PointCloud(timestamp=_stamp(stamp_s),
+                                    frame_id=frame_id or self.cfg.map_frame,
+                                    pose=_pose((0, 0, 0), (0, 0, 0, 1)), point_stride=16,
+                                    fields=fields, data=data)
+        self.map_points = n
+
+    def on_identification(self, rover: str, estimate: dict) -> None:
+        """estimate: `identification_state(...)`'s dict."""
+        self._last_ident[rover] = estimate
+        self.ident[rover].log(estimate)
+        self.sent[f'/{rover}/identification'] += 1
+
+    def on_insertion(self, state: dict) -> None:
+        """state: `insertion_state(...)`'s dict (merged into the last one)."""
+        self._last_insertion = {**(self._last_insertion or {}), **state}
+        self.insertion.log(self._last_insertion)
+        self.sent['/insertion'] += 1
+
+    def republish(self) -> None:
+        """Send the latest map, identification and insertion state again (call at
+        state_rate_hz): the protocol has no latching."""
+        if self._last_map is not None and self.map.has_sinks():
+            self.map.log(self._last_map)
+            self.sent['/map'] += 1
+        for r, est in self._last_ident.items():
+            if self.ident[r].has_sinks():
+                self.ident[r].log(est)
+                self.sent[f'/{r}/identification'] += 1
+        if self._last_insertion is not None and self.insertion.has_sinks():
+            self.insertion.log(self._last_insertion)
+            self.sent['/insertion'] += 1
+
+
+def identification_state(rover: str, names: Sequence[str], values: Sequence[float],
+                         std_devs: Sequence[float], information_bits: Sequence[float], *,
+                         samples: int, strategy: str, stamp_s: float) -> dict:
+    """A coop_msgs/DynamicParameters estimate as the JSON the Plot panel reads:
+    `params.<name>.value` / `.std` / `.bits` (e.g. `/rover1/identification.params.mass.value`)."""
+    def num(v: float) -> float | None:
+        return float(v) if math.isfinite(v) else None
+
+    params = {n: {'value': num(v), 'std': num(s), 'bits': num(b)}
+              for n, v, s, b in zip(names, values, std_devs, information_bits, strict=False)}
+    return {'rover': rover, 'stamp_s': stamp_s, 'samples': int(samples), 'strategy': strategy,
+            'params': params}
+
+
+def insertion_state(*, phase: int | None = None, displacement_error_m: float | None = None,
+                    angle_error_rad: float | None = None, force_n: Sequence[float] | None = None,
+                    goal_status: int | None = None, stamp_s: float | None = None) -> dict:
+    """The insertion's feedback / goal status as JSON (only the fields given)."""
+    out: dict = {}
+    if phase is not None:
+        out['phase'] = INSERT_PHASES[phase] if 0 <= phase < len(INSERT_PHASES) else str(phase)
+        out['phase_index'] = int(phase)
+    if displacement_error_m is not None:
+        out['displacement_error_mm'] = 1e3 * float(displacement_error_m)
+    if angle_error_rad is not None:
+        out['angle_error_deg'] = math.degrees(float(angle_error_rad))
+    if force_n is not None:
+        f = [float(v) for v in force_n]
+        out['force_n'] = {'x': f[0], 'y': f[1], 'z': f[2], 'norm': float(np.linalg.norm(f))}
+    if goal_status is not None:
+        out['goal_status'] = GOAL_STATUS[goal_status] if 0 <= goal_status < len(GOAL_STATUS) \
+            else str(goal_status)
+    if stamp_s is not None:
+        out['stamp_s'] = float(stamp_s)
+    return out
