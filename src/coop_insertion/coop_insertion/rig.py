@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import shutil
+import subprocess
 import tempfile
 import threading
 import time
@@ -55,6 +57,18 @@ SEATED_WINDOW_S = 0.5
 #: layer 7, the one its downward rays cross (at 0.8, layer 8, hardly any voxel is seen free)
 VIEW_PLANNER = {'p_empty': 0.45, 'task_unknown_occludes': False, 'clearance_m': 0.46,
                 'camera_height_m': 0.78}
+#: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
+#: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
+STALL_S = 90.0
+
+
+class SimStalled(InsertionError):
+    """The simulator's clock stopped advancing; `stack_file` holds its threads' stacks when
+    gdb could read them."""
+
+    def __init__(self, message: str, stack_file: Path | None = None) -> None:
+        super().__init__(message)
+        self.stack_file = stack_file
 
 
 def staging_poses(slot_in: float, rng: np.random.Generator | None = None
@@ -91,6 +105,7 @@ class _Client(Node):
     def __init__(self, ctx: Context) -> None:
         super().__init__('insertion_rig', context=ctx)
         self.clock = 0.0
+        self.clock_wall = time.monotonic()      # when the clock last advanced
         self.contact_pen = 0.0
         self.seated_at: list[tuple[float, bool]] = []     # (sim time, the truth's seated)
         self.recording = False
@@ -103,7 +118,10 @@ class _Client(Node):
         self.mast = self.create_publisher(JointTrajectory, 'rover1/mast/command', COMMAND_QOS)
 
     def _on_clock(self, m: Clock) -> None:
-        self.clock = m.clock.sec + 1e-9 * m.clock.nanosec
+        t = m.clock.sec + 1e-9 * m.clock.nanosec
+        if t > self.clock:
+            self.clock_wall = time.monotonic()
+        self.clock = t
 
     def _on_map(self, m: VoxelMap) -> None:
         self.map_voxels = int(sum(m.contributions))
@@ -229,17 +247,55 @@ class InsertionRig(contextlib.AbstractContextManager):
             rclpy.try_shutdown(context=self.ctx)
         self.stack.close()
 
+    def _wait(self, predicate, timeout_s: float, *, what: str) -> None:
+        """wait_for(predicate), failing early when a node of the graph died (InsertionError)
+        or the sim's clock stood still for STALL_S (SimStalled, with the sim's stacks)."""
+        def done() -> bool:
+            if predicate():
+                return True
+            self.check_alive(what)
+            return False
+        wait_for(done, timeout_s, what=what)
+
+    def check_alive(self, what: str = 'the graph') -> None:
+        dead = self.dead()
+        if dead:
+            raise InsertionError(f'{", ".join(dead)} died while waiting for {what} (logs in '
+                                 f'{self.log_dir})')
+        idle = time.monotonic() - self.node.clock_wall
+        if idle > STALL_S:
+            stack = self.dump_stack('sim')
+            raise SimStalled(f'the sim clock stood still for {idle:.0f} s while waiting for '
+                             f'{what}' + (f' (its stacks: {stack})' if stack else ''), stack)
+
+    def dump_stack(self, name: str) -> Path | None:
+        """Every thread's native and Python stack of process `name` into the log directory
+        (gdb, when installed), for the post-mortem of a stall."""
+        proc = self.nodes.get(name)
+        gdb = shutil.which('gdb')
+        if proc is None or proc.proc is None or not proc.alive() or gdb is None:
+            return None
+        path = self.log_dir / f'{name}_stack_{time.strftime("%H%M%S")}.txt'
+        with open(path, 'wb') as out:
+            try:
+                subprocess.run([gdb, '-p', str(proc.proc.pid), '-batch', '-ex',
+                                'thread apply all bt', '-ex', 'thread apply all py-bt'],
+                               stdout=out, stderr=subprocess.STDOUT, timeout=120, check=False)
+            except subprocess.TimeoutExpired:
+                return None
+        return path
+
     def _call(self, client, req, timeout_s: float = 30.0):
         fut = client.call_async(req)
-        wait_for(fut.done, timeout_s, what=f"{client.srv_name}'s answer")
+        self._wait(fut.done, timeout_s, what=f"{client.srv_name}'s answer")
         return fut.result()
 
     def _sim_sleep(self, seconds: float) -> None:
         """Wait `seconds` of sim time (up to 60 s + 20x that of wall time: a loaded machine
         runs the rendering sim at a real-time factor near 0.1)."""
         t0 = self.node.clock
-        wait_for(lambda: self.node.clock >= t0 + seconds, 60.0 + 20.0 * seconds,
-                 what='sim time')
+        self._wait(lambda: self.node.clock >= t0 + seconds, 60.0 + 20.0 * seconds,
+                   what='sim time')
 
     def set_slot(self, slot_in: float) -> None:
         """The slave's task given for the next attempts: the slot's width."""
@@ -324,7 +380,7 @@ class InsertionRig(contextlib.AbstractContextManager):
             raise InsertionError('insert goal rejected')
         node.recording = True
         res_fut = handle.get_result_async()
-        wait_for(res_fut.done, 3 * timeout_s + 600, what='the insert result')
+        self._wait(res_fut.done, 3 * timeout_s + 600, what='the insert result')
         res = res_fut.result().result
         t_end = node.clock
         node.recording = False

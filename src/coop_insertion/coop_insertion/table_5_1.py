@@ -17,7 +17,6 @@ survey of the site through the live stereo and mapper nodes.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import tempfile
 import time
@@ -28,7 +27,7 @@ import numpy as np
 from coop_common.cli import number, output_dir, output_path
 from coop_common.files import save_figure, write_json
 
-from .rig import InsertionRig, as_row
+from .rig import InsertionRig, SimStalled, as_row
 
 ROWS_IN = (5.0, 4.5, 4.375, 4.2925)
 THESIS = {5.0: (10, 7), 4.5: (10, 4), 4.375: (9, 2)}       # of 10: optimal, random
@@ -44,46 +43,130 @@ def build_site_map(path: Path, *, seed: int, occlusion_density: float, scans: in
     return path
 
 
+#: a run gives up after this many simulator restarts (stalls)
+MAX_RESTARTS = 6
+
+
+def _cell_key(slot_in: float, placement: str, seed: int) -> tuple[float, str, int]:
+    return (round(float(slot_in), 6), placement, int(seed))
+
+
+def _done_attempts(checkpoint: Path | None) -> dict:
+    """The attempts a previous run of the same settings saved in `checkpoint` (its --json):
+    (slot_in, placement, seed) -> (row, curves)."""
+    if checkpoint is None or not checkpoint.exists():
+        return {}
+    import json
+    try:
+        old = json.loads(checkpoint.read_text())
+    except (OSError, ValueError):
+        return {}
+    done = {}
+    for row in old.get('rows', []):
+        for placement in old.get('placements', []):
+            rows = row.get(f'{placement}_attempts') or []
+            curves = row.get(f'{placement}_curves') or [{}] * len(rows)
+            for a, c in zip(rows, curves):
+                done[_cell_key(a['slot_in'], placement, a['seed'])] = (a, c)
+    return done
+
+
 def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], seed: int,
         occlusion_density: float, timeout_s: float, max_force_n: float, site_map: Path | None,
-        log=print) -> dict:
+        checkpoint: Path | None = None, resume: bool = False, log=print) -> dict:
+    """The table. With `checkpoint`, the result so far is written there (atomically) after
+    every attempt, `complete` false until the end; `resume` reuses the attempts it holds. An
+    attempt the simulator stalled in (rig.SimStalled) is run again on a fresh graph, up to
+    MAX_RESTARTS per run; each restart is listed in `sim_restarts`."""
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix='table_5_1_'))
     if site_map is None:
         log(f'building the site map (seed {seed}, occlusion {occlusion_density})')
         site_map = build_site_map(work / 'site.cmap', seed=seed,
                                   occlusion_density=occlusion_density)
-    out_rows = []
-    with InsertionRig(seed=seed, occlusion_density=occlusion_density, slot_in=rows[0],
-                      log_dir=work / 'logs', site_map=site_map) as rig:
-        rig.place(rows[0], np.random.default_rng(seed))
-        scans = rig.survey()
-        log(f'site surveyed: {scans} scans in the map')
+    done = _done_attempts(checkpoint) if resume else {}
+    if done:
+        log(f'resuming: {len(done)} attempts from {checkpoint}')
+    res = {'attempts': attempts, 'seed': seed, 'occlusion_density': occlusion_density,
+           'placements': list(placements), 'rows': [], 'sim_restarts': [],
+           'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
+    rig: InsertionRig | None = None
+
+    def open_rig(slot_in: float) -> InsertionRig:
+        n = len(res['sim_restarts'])
+        r = InsertionRig(seed=seed, occlusion_density=occlusion_density, slot_in=slot_in,
+                         log_dir=work / 'logs' / f'graph_{n}', site_map=site_map).__enter__()
+        try:
+            r.place(slot_in, np.random.default_rng(seed))
+            log(f'site surveyed: {r.survey()} scans in the map')
+            r.set_slot(slot_in)
+        except BaseException:
+            r.__exit__(None, None, None)
+            raise
+        return r
+
+    try:
         for slot_in in rows:
-            rig.set_slot(slot_in)
             row = {'slot_in': slot_in, 'label': LABELS.get(slot_in, f'{slot_in} in'),
                    'attempts': attempts, 'thesis': THESIS.get(slot_in)}
+            res['rows'].append(row)
+            if rig is not None:
+                rig.set_slot(slot_in)
             for placement in placements:
-                results = []
+                got: list[dict] = []
+                curves: list[dict] = []
+                row[f'{placement}_attempts'] = got
+                row[f'{placement}_curves'] = curves
                 for k in range(attempts):
-                    a = rig.attempt(slot_in=slot_in, placement=placement,
-                                    seed=seed * 1000 + k, timeout_s=timeout_s,
-                                    max_force_n=max_force_n)
-                    results.append(a)
+                    key = _cell_key(slot_in, placement, seed * 1000 + k)
+                    if key in done:
+                        a, c = done[key]
+                    else:
+                        a, c = None, None
+                        while a is None:
+                            if rig is None:
+                                rig = open_rig(slot_in)
+                            try:
+                                at = rig.attempt(slot_in=slot_in, placement=placement,
+                                                 seed=key[2], timeout_s=timeout_s,
+                                                 max_force_n=max_force_n)
+                            except SimStalled as exc:
+                                res['sim_restarts'].append(
+                                    {'slot_in': slot_in, 'placement': placement,
+                                     'seed': key[2], 'reason': str(exc),
+                                     'stack_file': str(exc.stack_file or '')})
+                                log(f'{slot_in} in {placement} #{k + 1}: {exc}; '
+                                    'restarting the graph')
+                                rig.__exit__(None, None, None)
+                                rig = None
+                                if len(res['sim_restarts']) > MAX_RESTARTS:
+                                    raise
+                                continue
+                            a, c = as_row(at), at.curves
+                    got.append(a)
+                    curves.append(c)
                     log(f'{slot_in} in {placement} #{k + 1}: '
-                        f'{"success" if a.success else "failure"} ({a.reason}); '
-                        f'penetration {a.max_penetration_mm:.2f} mm, peak force '
-                        f'{a.peak_force_n:.1f} N, {a.sim_s:.0f} sim s, {a.duration_s:.0f} s')
-                row[f'{placement}_successes'] = sum(a.success for a in results)
-                row[f'{placement}_peak_force_n'] = max((a.peak_force_n for a in results
-                                                        if math.isfinite(a.peak_force_n)),
-                                                       default=None)
-                row[f'{placement}_attempts'] = [as_row(a) for a in results]
-                row[f'{placement}_curves'] = [a.curves for a in results]
-            out_rows.append(row)
-    return {'attempts': attempts, 'seed': seed, 'occlusion_density': occlusion_density,
-            'placements': list(placements), 'rows': out_rows,
-            'seconds': time.perf_counter() - t0, 'logs': str(work / 'logs')}
+                        f'{"success" if a["success"] else "failure"} ({a["reason"]}); '
+                        f'penetration {a["max_penetration_mm"]:.2f} mm, peak force '
+                        f'{_fmt(a["peak_force_n"])} N, {a["sim_s"]:.0f} sim s, '
+                        f'{a["duration_s"]:.0f} s')
+                    row[f'{placement}_successes'] = sum(bool(x['success']) for x in got)
+                    row[f'{placement}_peak_force_n'] = max(
+                        (x['peak_force_n'] for x in got if x['peak_force_n'] is not None),
+                        default=None)
+                    res['seconds'] = time.perf_counter() - t0
+                    if checkpoint is not None:
+                        write_json(checkpoint, res)
+    finally:
+        if rig is not None:
+            rig.__exit__(None, None, None)
+    res['complete'] = True
+    res['seconds'] = time.perf_counter() - t0
+    return res
+
+
+def _fmt(v: float | None) -> str:
+    return '-' if v is None else f'{v:.1f}'
 
 
 def format_table(res: dict) -> str:
@@ -104,6 +187,11 @@ def format_table(res: dict) -> str:
             f'{"-" if th is None else f"{th[0]}/10":>10s} '
             f'{"-" if th is None else f"{th[1]}/10":>10s} '
             f'{"-" if pk is None else f"{pk:.1f}":>15s}')
+    restarts = len(res.get('sim_restarts', []))
+    if restarts:
+        lines.append(f'{restarts} attempt(s) run again on a fresh graph after a simulator stall')
+    if not res.get('complete', True):
+        lines.append('incomplete: the run stopped before the last attempt')
     lines.append(f'{res["seconds"] / 60:.1f} min')
     return '\n'.join(lines)
 
@@ -162,7 +250,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--max-force', type=number(float, lo=1.0), default=25.0)
     p.add_argument('--site-map', type=Path, default=None,
                    help='a map file of the scenario (default: built by the mapping pipeline)')
-    p.add_argument('--json', type=output_path, default=None)
+    p.add_argument('--json', type=output_path, default=None,
+                   help='the result; written after every attempt (complete: false until the end)')
+    p.add_argument('--resume', action='store_true',
+                   help='reuse the attempts an interrupted run saved in --json')
     p.add_argument('--plots', type=output_dir, default=None)
     args = p.parse_args(argv)
     try:
@@ -171,13 +262,15 @@ def main(argv: list[str] | None = None) -> int:
         p.error('--rows: comma-separated slot widths in inches')
     if not all(4.25 < r <= 9.8 for r in rows):
         p.error('--rows: each slot must be wider than the 4.25 in card (and at most 9.8 in)')
+    if args.resume and not args.json:
+        p.error('--resume reads the attempts saved in --json: give --json')
     placements = tuple(x for x in args.placements.split(',') if x)
     if not placements or any(x not in ('optimal', 'random') for x in placements):
         p.error('--placements: optimal and/or random')
     res = run(attempts=args.attempts, rows=rows, placements=placements, seed=args.seed,
               occlusion_density=args.occlusion_density, timeout_s=args.timeout,
-              max_force_n=args.max_force, site_map=args.site_map,
-              log=lambda s: print(s, file=sys.stderr, flush=True))
+              max_force_n=args.max_force, site_map=args.site_map, checkpoint=args.json,
+              resume=args.resume, log=lambda s: print(s, file=sys.stderr, flush=True))
     print(format_table(res))
     if args.json:
         write_json(args.json, res)

@@ -1,0 +1,91 @@
+"""table_5_1's bookkeeping without the graph: an attempt the simulator stalled in runs again on a
+fresh graph, every attempt is checkpointed, and --resume reuses what a stopped run saved."""
+import json
+
+import pytest
+
+from coop_insertion import table_5_1
+from coop_insertion.rig import Attempt, SimStalled
+
+
+class FakeRig:
+    opened = 0
+    calls: list = []
+    stall_on: set = set()
+
+    def __init__(self, **kw):
+        self.kw = kw
+
+    def __enter__(self):
+        FakeRig.opened += 1
+        return self
+
+    def __exit__(self, *exc):
+        pass
+
+    def place(self, slot_in, rng):
+        pass
+
+    def survey(self):
+        return 7
+
+    def set_slot(self, slot_in):
+        self.slot_in = slot_in
+
+    def attempt(self, *, slot_in, placement, seed, timeout_s, max_force_n):
+        FakeRig.calls.append((slot_in, placement, seed))
+        if (slot_in, seed) in FakeRig.stall_on:
+            FakeRig.stall_on.discard((slot_in, seed))
+            raise SimStalled('the sim clock stood still for 91 s')
+        ok = seed % 2 == 0
+        return Attempt(slot_in, placement, seed, ok, ok, 'seated' if ok else 'timeout', ok,
+                       0.1, 8.0 + seed % 3, 10.0, 20.0, {'t': [0.0], 'phase': [1]})
+
+
+@pytest.fixture
+def fake_rig(monkeypatch):
+    monkeypatch.setattr(table_5_1, 'InsertionRig', FakeRig)
+    FakeRig.opened, FakeRig.calls, FakeRig.stall_on = 0, [], set()
+    return FakeRig
+
+
+def _run(tmp_path, **kw):
+    return table_5_1.run(attempts=3, rows=(5.0, 4.5), placements=('optimal',), seed=1,
+                         occlusion_density=0.05, timeout_s=45.0, max_force_n=25.0,
+                         site_map=tmp_path / 'site.cmap', checkpoint=tmp_path / 'r.json',
+                         log=lambda s: None, **kw)
+
+
+def test_a_stalled_attempt_runs_again_on_a_fresh_graph(tmp_path, fake_rig):
+    fake_rig.stall_on = {(4.5, 1001)}
+    res = _run(tmp_path)
+    assert fake_rig.opened == 2
+    assert fake_rig.calls.count((4.5, 'optimal', 1001)) == 2
+    assert [r['optimal_successes'] for r in res['rows']] == [2, 2]     # seeds 1000, 1002
+    assert [a['seed'] for a in res['rows'][1]['optimal_attempts']] == [1000, 1001, 1002]
+    assert len(res['sim_restarts']) == 1 and res['sim_restarts'][0]['seed'] == 1001
+    saved = json.loads((tmp_path / 'r.json').read_text())
+    assert saved['complete'] is False and len(saved['rows'][1]['optimal_attempts']) == 3
+    assert '1 attempt(s) run again' in table_5_1.format_table(res)
+
+
+def test_too_many_stalls_end_the_run_with_the_attempts_saved(tmp_path, fake_rig, monkeypatch):
+    monkeypatch.setattr(table_5_1, 'MAX_RESTARTS', 0)
+    fake_rig.stall_on = {(4.5, 1000)}
+    with pytest.raises(SimStalled):
+        _run(tmp_path)
+    saved = json.loads((tmp_path / 'r.json').read_text())
+    assert len(saved['rows'][0]['optimal_attempts']) == 3 and saved['complete'] is False
+    assert 'incomplete' in table_5_1.format_table(saved)
+
+
+def test_resume_reuses_the_saved_attempts(tmp_path, fake_rig, monkeypatch):
+    monkeypatch.setattr(table_5_1, 'MAX_RESTARTS', 0)
+    fake_rig.stall_on = {(4.5, 1001)}
+    with pytest.raises(SimStalled):
+        _run(tmp_path)
+    fake_rig.calls = []
+    res = _run(tmp_path, resume=True)
+    assert fake_rig.calls == [(4.5, 'optimal', 1001), (4.5, 'optimal', 1002)]
+    assert res['complete'] and [r['optimal_successes'] for r in res['rows']] == [2, 2]
+    assert len(res['rows'][0]['optimal_curves']) == 3
