@@ -1,10 +1,10 @@
 """The whole mission, shortened, end to end over DDS (issue #23): `coop_bringup.mission` with
 the rovers starting by the site, 4 s of identification and the map from where they stand (one
 next-best-view scan if the coverage needs it), each checked against the simulator's truth: the
-identified parameters, the site's jaws in the saved map. The insertion through the same nodes
-is `test_insertion_graph.py` (the master's camera pinned in front of the site; intermittent,
-deselected as a known issue); the placement
-by `task_view` at the markers' range resolves the 0.25 in slot markers only in some frames
+identified parameters, the site's jaws in the saved map; and the run's MCAP bag, read back. The
+insertion through the same nodes is `test_insertion_graph.py` (the master's camera pinned in
+front of the site; intermittent, deselected as a known issue); the placement by `task_view` at
+the markers' range resolves the 0.25 in slot markers only in some frames
 (docs/results/insertion.md), too seldom for a test that must not be flaky."""
 from __future__ import annotations
 
@@ -51,3 +51,19 @@ def test_a_short_mission_identifies_and_maps(tmp_path):
     assert (top[:, 1:3] == 1).sum() >= 3, top
     for name in ('identification', 'coverage', 'map_top', 'map_3d'):
         assert (out / on_disk['plots'][name]).exists()
+    # the bag of the run: closed by the runner, read offline, the mission's main topics in it
+    # (the bulk streams left out by default)
+    from rover_bag.bagio import read_messages
+    bag = on_disk['bag']
+    assert bag['closed'] and not bag['problems'] and bag['messages'] > 1000, bag
+    for topic in ('/clock', '/map/grid', '/rover1/odom', '/rover2/odom', '/rover1/imu',
+                  '/rover2/arm/wrench', '/rover1/dynamic_parameters',
+                  '/rover2/dynamic_parameters', '/rover1/stereo/pose', '/sim/rover1/base_pose'):
+        assert topic in bag['topics'], (topic, bag['topics'])
+    assert not any(t.endswith(('/image_raw', '/stereo/points', '/map/voxels')) for t in
+                   bag['topics'])
+    grids = [m for _, _, _, m in read_messages(out / 'bag', ['/map/grid'])]
+    assert grids and grids[-1].info.width * grids[-1].info.height > 0
+    assert (grids[-1].data != -1).sum() > 0                       # something seen
+    assert bag['size_mb'] < 50, bag['size_mb']
+    assert 'Bag: `bag/`' in (out / 'report.md').read_text()

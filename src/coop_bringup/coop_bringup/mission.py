@@ -15,7 +15,9 @@ each rover's `identifier` and `stereo`, the team's `mapper` and `view_planner`, 
    slave's arm model from its identified parameters).
 
 Writes `report.md`, `report.json` and plots under `OUT/<run-id>/` (`coop_bringup.report`), with
-every node's log in `logs/`.
+every node's log in `logs/` and an MCAP bag of the run in `bag/` (`rover_bag record`; images,
+stereo clouds and map snapshots only with `--bag-all`). `--live [PORT]` adds `coop_bringup
+live_view`, a Foxglove WebSocket server (connect Foxglove to ws://localhost:8765).
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ import argparse
 import math
 import os
 import signal
+import socket
 import sys
 import threading
 import time
@@ -67,6 +70,14 @@ PHASES = ('identify', 'map', 'place', 'insert')
 #: a goal within an obstacle's clearance is reached by a straight last leg of at most this (m)
 SNAP_M = 1.0
 MASTER, SLAVE = 'rover1', 'rover2'
+BAG_NEVER = ('/rosout', '/parameter_events')
+#: what the bag leaves out unless --bag-all: the bulk streams, each MBs a second. A short
+#: mission's 10 sim s held 183 + 162 MB of stereo clouds, 119 MB of map snapshots, 51 MB of map
+#: updates, 19 MB of map clouds (the raw pairs: 4.9 MB per sim s); everything else, 6 MB. The
+#: final map is team.cmap; /map/grid (the 2-D map) stays, as do sensors, poses and estimates.
+BAG_BULK = ('*/image_raw', '*/stereo/points', '/map/voxels', '/map/updates', '/map/surface',
+            '/map/occupied')
+LIVE_PORT = 8765
 
 
 @dataclass(frozen=True)
@@ -88,6 +99,9 @@ class MissionConfig:
     max_force_n: float = 25.0
     stereo_rate_hz: float = 4.0
     near_start: bool = False          # the rovers start at their staging poses (short missions)
+    bag: bool = True                  # record the run into OUT/<run-id>/bag (rover_bag record)
+    bag_all: bool = False             # ... with the bulk streams too (BAG_BULK)
+    live_port: int | None = None      # serve the live view (Foxglove WebSocket) on this port
 
     def __post_init__(self) -> None:
         bad = [p for p in self.phases if p not in PHASES]
@@ -287,6 +301,7 @@ class Mission:
         extra = tuple((f'identifier_{r}', 'coop_id', 'identifier',
                        ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'])
                       for r in self.rovers) if ident else ()
+        extra = self._recorder_and_live_view() + extra
         t_all = time.monotonic()
         failed = None
         interrupted = []
@@ -349,8 +364,47 @@ class Mission:
             if main_thread:
                 signal.signal(signal.SIGINT, previous)
 
+    def _recorder_and_live_view(self) -> tuple:
+        """The optional processes: the recorder (first, so that it is the first stopped and
+        its bag closed while the graph still runs) and the live view."""
+        cfg, procs = self.cfg, []
+        if cfg.bag:
+            exclude = BAG_NEVER + (() if cfg.bag_all else BAG_BULK)
+            procs.append(('record', 'rover_bag', 'record', [
+                '-p', f'output:={(self.out / "bag").resolve()}', '-p', 'use_sim_time:=true',
+                '-p', 'compression:=zstd',
+                '-p', 'exclude:=[' + ','.join(f"'{p}'" for p in exclude) + ']']))
+        if cfg.live_port is not None:
+            procs.append(('live_view', 'coop_bringup', 'live_view', [
+                '-p', 'use_sim_time:=true', '-p', f'port:={cfg.live_port}',
+                '-p', f'rovers:=[{",".join(self.rovers)}]']))
+            self.log(f'live view: connect Foxglove to ws://localhost:{cfg.live_port}')
+            self.rep['live_view'] = {'url': f'ws://localhost:{cfg.live_port}'}
+        return tuple(procs)
+
+    def _bag_summary(self) -> dict | None:
+        """What the recorder left in bag/ (read back with rover_bag.bagio), for the report."""
+        if not self.cfg.bag:
+            return None
+        path = self.out / 'bag'
+        if not path.exists():
+            return {'path': 'bag', 'error': 'no bag written (see logs/record.log)'}
+        from rover_bag.bagio import bag_info  # noqa: PLC0415 - only with a bag
+        try:
+            info = bag_info(path)
+        except Exception as exc:  # noqa: BLE001 - a broken bag is reported, not raised
+            return {'path': 'bag', 'error': f'{type(exc).__name__}: {exc}'}
+        size = sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
+        return {'path': 'bag', 'closed': (path / 'metadata.yaml').exists(),
+                'size_mb': size / 1e6, 'messages': info.message_count,
+                'topics': sorted(info.topics), 'duration_s': info.duration_s,
+                'all': self.cfg.bag_all, 'problems': list(info.problems)}
+
     def _finish(self, t_all: float) -> dict:
         cfg = self.cfg
+        bag = self._bag_summary()
+        if bag is not None:
+            self.rep['bag'] = bag
         self.rep['wall_s'] = time.monotonic() - t_all
         self.rep['success'] = all(p.status == 'ok' for p in self.phases
                                   if p.name in cfg.phases)
@@ -658,6 +712,15 @@ def _finite(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(('127.0.0.1', port))
+        except OSError:
+            return False
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog='mission', description=__doc__.split('\n\n')[0],
@@ -684,15 +747,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--insert-timeout', type=number(float, lo=1.0), default=d.insert_timeout_s)
     p.add_argument('--near-start', action='store_true',
                    help='start the rovers at their staging poses by the site (a short mission)')
+    p.add_argument('--no-bag', dest='bag', action='store_false',
+                   help='do not record the run into OUT/<run-id>/bag')
+    p.add_argument('--bag-all', action='store_true',
+                   help='record the images, stereo clouds and map snapshots too (tens of MB '
+                        'per sim second)')
+    p.add_argument('--live', nargs='?', type=number(int, lo=1, hi=65535), const=LIVE_PORT,
+                   default=None, metavar='PORT',
+                   help=f'serve the live view for Foxglove on ws://localhost:PORT '
+                        f'(default {LIVE_PORT})')
     p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None)
     a = p.parse_args(argv)
+    if a.live is not None and not _port_free(a.live):
+        p.error(f'--live: port {a.live} is in use (another live view?); give another PORT')
     try:
         cfg = MissionConfig(seed=a.seed, occlusion_density=a.occlusion_density,
                             slot_in=a.slot_in, rovers=a.rovers,
                             phases=tuple(x for x in a.phases.split(',') if x),
                             identify_s=a.identify_s, coverage_target=a.coverage,
                             max_scans=a.max_scans, strategy=a.strategy,
-                            insert_timeout_s=a.insert_timeout, near_start=a.near_start)
+                            insert_timeout_s=a.insert_timeout, near_start=a.near_start,
+                            bag=a.bag, bag_all=a.bag_all, live_port=a.live)
         mission = Mission(cfg, a.out, run_id=a.run_id, domain_id=a.domain_id)
     except (MissionError, FileExistsError) as exc:
         p.error(str(exc))

@@ -219,6 +219,27 @@ def _plots(rep: dict, out: Path, extras: dict) -> dict[str, str]:
     return files
 
 
+def _run_files(rep: dict) -> list[str]:
+    """The bag of the run and the live view, when the mission had them."""
+    lines = []
+    bag = rep.get('bag')
+    if bag and 'error' in bag:
+        lines.append(f'Bag: none usable in `{bag["path"]}/` ({bag["error"]}).')
+    elif bag:
+        state = 'closed cleanly' if bag['closed'] and not bag['problems'] else \
+            'not closed: ' + ('; '.join(bag['problems']) or 'no metadata.yaml')
+        lines.append(
+            f'Bag: `{bag["path"]}/`, {bag["messages"]} messages on {len(bag["topics"])} topics, '
+            f'{_fmt(bag["duration_s"], ".0f")} sim s, {_fmt(bag["size_mb"], ".1f")} MB'
+            f'{"" if bag["all"] else " (images, stereo clouds, map snapshots left out)"}, '
+            f'{state}; '
+            'replay it with `ros2 run rover_bag play` or read it with '
+            '`rover_bag.bagio.read_messages`.')
+    if rep.get('live_view'):
+        lines.append(f'Live view served on {rep["live_view"]["url"]}.')
+    return [*lines, ''] if lines else []
+
+
 def write_report(rep: dict, out: Path, **extras) -> tuple[Path, Path]:
     """report.json and report.md (with PNG plots) under `out`. extras: top_view (from
     `top_view`), paths {rover: (N, 2) odometry xy}, occupied_points (N, 3), insertion_curves
@@ -233,6 +254,7 @@ def write_report(rep: dict, out: Path, **extras) -> tuple[Path, Path]:
              f'{rep["config"]["rovers"]} rovers; phases {", ".join(rep["config"]["phases"])}. '
              f"Judged by the simulator's truth.", '',
              format_summary(rep), '']
+    lines += _run_files(rep)
     ident = rep.get('identification', {}).get('rovers', {})
     if ident:
         lines += ['## Identification (ch. 2)', '',
