@@ -251,7 +251,8 @@ class PtyEmulator:
         self.device = device
         self.link = Path(link) if link else None
         self.rate = rate
-        self._log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+        self._log = log or (lambda msg: print(f'[{time.time():.6f}] {msg}', file=sys.stderr,
+                                              flush=True))
         self.master: int | None = None
         self.slave: int | None = None
         self.slave_path = ''
