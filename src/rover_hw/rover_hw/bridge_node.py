@@ -161,7 +161,8 @@ class BridgeNode(LifecycleNode):
         self.published = 0
         self.last_publish_ns = 0       # monotonic ns of the last sensor publish (benchmark)
         self.last_frame_in_ns = 0
-        self.latency_ns: deque[int] = deque(maxlen=100_000)
+        self.latency_ns: deque[int] = deque(maxlen=100_000)      # bytes read -> all published
+        self.latency_first_ns: deque[int] = deque(maxlen=100_000)  # bytes read -> imu published
         self._pubs: dict = {}
         self._entities: list = []
         self.get_logger().info('bridge ready (unconfigured); port '
@@ -445,6 +446,7 @@ class BridgeNode(LifecycleNode):
                 imu.angular_velocity_covariance[4 * k] = vals['gyro_variance']
                 imu.linear_acceleration_covariance[4 * k] = vals['accel_variance']
             pubs['imu'].publish(imu)
+            self.latency_first_ns.append(time.monotonic_ns() - t_in)
         inc = Inclinometer()
         inc.header.stamp, inc.header.frame_id = stamp, base
         inc.roll = p.incl_angle(volts[0], vals['incl_roll_zero_v'],

@@ -7,9 +7,9 @@ import threading
 
 import pytest
 import serial
-from rover_hw.emulator import Device, Faults, PtyEmulator, make_world
 
 from rover_hw import protocol as p
+from rover_hw.emulator import Device, Faults, PtyEmulator, make_world
 
 
 @pytest.fixture(scope='module')

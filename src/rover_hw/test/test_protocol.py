@@ -5,9 +5,9 @@ import math
 import random
 
 import pytest
-from rover_hw.emulator import FaultInjector, Faults, corrupt
 
 from rover_hw import protocol as p
+from rover_hw.emulator import FaultInjector, Faults, corrupt
 
 
 def sensors(i: int = 0) -> p.Sensors:

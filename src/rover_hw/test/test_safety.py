@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import pytest
+
 from rover_hw.safety import (
     CommandRefused,
     Limits,
