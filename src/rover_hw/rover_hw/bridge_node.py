@@ -579,6 +579,7 @@ class BridgeNode(LifecycleNode):
             return
         why = self.safety.motors_stop_reason()
         if why:
+            # the wheels told to stand (the device's own e-stop holds everything else)
             self._send(p.DriveCommand(p.DriveMode.VELOCITY, (0.0, 0.0, 0.0, 0.0)))
             return
         now = self._now_s()

@@ -13,6 +13,7 @@ import math
 import os
 import random
 import select
+import signal
 import sys
 import termios
 import time
@@ -160,7 +161,9 @@ class Device:
         if isinstance(pl, (p.ArmCommand, p.MastCommand, p.DriveCommand)):
             values = [*getattr(pl, 'positions', ()), *getattr(pl, 'velocities', ()),
                       *getattr(pl, 'wheels', ())]
-            if self.estop or not all(math.isfinite(v) for v in values):
+            stop = isinstance(pl, p.DriveCommand) and not any(pl.wheels)
+            # a stop is never refused, not even while the e-stop is latched
+            if (self.estop and not stop) or not all(math.isfinite(v) for v in values):
                 self.refused += 1
                 return self.inject.frame(p.Ack(int(frame.type), frame.seq, p.AckStatus.REFUSED))
             self._apply(pl)
@@ -355,6 +358,9 @@ def main(argv: list[str] | None = None) -> int:
                         seed=args.fault_seed)
     except ValueError as exc:
         ap.error(str(exc))
+    # a stop on SIGINT and SIGTERM, also when started in the background (SIGINT ignored)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt)
     world = make_world(seed=args.seed, noise_fraction=args.noise_fraction,
                        truth_yaml=args.truth_yaml)
     emu = PtyEmulator(Device(world, faults=faults), link=args.link or None, rate=args.rate)
@@ -370,6 +376,10 @@ def main(argv: list[str] | None = None) -> int:
         world.close()
         print(f'emulator: {emu.device.inject.counts}', file=sys.stderr, flush=True)
     return 0
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def _strip_ros_args(argv: list[str]) -> list[str]:

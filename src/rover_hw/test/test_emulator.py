@@ -66,6 +66,7 @@ def test_estop_acked_within_one_cycle_and_commands_refused(world):
     assert world.odometry(0)[2] == 0.0            # commanded speed zeroed at once
     refused = list(p.Decoder().feed(dev.receive(drive(0.2))))
     assert refused[0].payload.status is p.AckStatus.REFUSED
+    assert dev.receive(drive(0.0)) == b''          # a stop is never refused
     dev.receive(p.encode(p.EStop(False), 78))
     assert not dev.estop
 
