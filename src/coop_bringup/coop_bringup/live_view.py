@@ -15,10 +15,11 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_action_status_default
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
 
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import LATCHED_QOS, SENSOR_QOS
+from coop_common.qos import LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_msgs.action import Insert
 from coop_msgs.msg import DynamicParameters, VoxelMap
 
@@ -29,6 +30,7 @@ from .live import (
     identification_state,
     image_array,
     insertion_state,
+    voxel_map_cdr,
 )
 
 PARAMS = {
@@ -42,9 +44,9 @@ PARAMS = {
     'image_scale': ParamSpec(0.5, 'images downscaled by this before JPEG encoding',
                              lo=0.1, hi=1.0, read_only=True),
     'jpeg_quality': ParamSpec(70, 'JPEG quality of the images', lo=10, hi=100, read_only=True),
-    'pose_rate_hz': ParamSpec(10.0, 'most poses sent per second and pose channel',
+    'pose_rate_hz': ParamSpec(5.0, 'most poses sent per second and pose channel',
                               lo=0.5, hi=50.0, read_only=True),
-    'state_rate_hz': ParamSpec(2.0, 'map, identification and insertion state re-sent at this '
+    'state_rate_hz': ParamSpec(2.5, 'map, identification and insertion state re-sent at this '
                                'rate (wall clock; the protocol has no latching)',
                                lo=0.2, hi=20.0, read_only=True),
     'pose_source': ParamSpec('truth', "poses from the sim's truth or the rovers' estimates "
@@ -59,6 +61,12 @@ PARAMS = {
 
 #: the action server's feedback topic: rclpy's default (reliable, volatile, depth 10)
 FEEDBACK_QOS = QoSProfile(depth=10)
+#: polled streams keep only the latest sample
+POLLED_QOS = with_depth(SENSOR_QOS, 1)
+
+
+def _ignore(_msg) -> None:
+    """The callback of a polled subscription (never run: no executor waits on it)."""
 
 
 def _t(stamp) -> float:
@@ -76,47 +84,79 @@ class LiveViewNode(Node):
             pose_rate_hz=p['pose_rate_hz'], state_rate_hz=p['state_rate_hz'],
             map_frame=p['map_frame'], min_occupancy=p['min_occupancy']))
         self.bad = BadInputCounter(self)
+        # Everything but the images is taken, the latest sample only, on wall-clock timers
+        # from a node no executor waits on: rclpy's executor costs ~1 ms of Python per message
+        # here, and the two 50 Hz truth poses alone cost 10 % of a core as callbacks
+        # (bench/live_view.py). Polled: (subscription, handler of the latest message).
+        self._poller = Node('live_view_poller', context=self.context)
+        self._poses: dict = {}
+        self._state: dict = {}
+        poll = self._poller.create_subscription
         for r in rovers:
+            # serialized: an image is deserialized only when it is to be sent
             self.create_subscription(Image, f'{r}/stereo/{p["camera"]}/image_raw',
-                                     lambda m, r=r: self._on_image(r, m), SENSOR_QOS)
+                                     lambda m, r=r: self._on_image(r, m), SENSOR_QOS,
+                                     raw=True)
             if p['pose_source'] == 'truth':
                 for kind in ('base_pose', 'camera_pose'):
-                    self.create_subscription(
-                        PoseStamped, f'sim/{r}/{kind}',
-                        lambda m, r=r, k=kind: self._on_pose(r, k, m.header, m.pose),
-                        SENSOR_QOS)
+                    self._poses[f'{r}/{kind}'] = (
+                        poll(PoseStamped, f'sim/{r}/{kind}', _ignore, POLLED_QOS),
+                        lambda m, r=r, k=kind: self._on_pose(r, k, m.header, m.pose))
             else:
-                self.create_subscription(
-                    Odometry, f'{r}/odom',
-                    lambda m, r=r: self._on_pose(r, 'base_pose', m.header, m.pose.pose),
-                    SENSOR_QOS)
-                self.create_subscription(
-                    PoseWithCovarianceStamped, f'{r}/stereo/pose',
-                    lambda m, r=r: self._on_pose(r, 'camera_pose', m.header, m.pose.pose),
-                    SENSOR_QOS)
-            self.create_subscription(DynamicParameters, f'{r}/dynamic_parameters',
-                                     lambda m, r=r: self._on_ident(r, m), LATCHED_QOS)
-        self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
-        self.create_subscription(Insert.Impl.FeedbackMessage, 'insert/_action/feedback',
-                                 self._on_feedback, FEEDBACK_QOS)
-        self.create_subscription(GoalStatusArray, 'insert/_action/status', self._on_status,
-                                 qos_profile_action_status_default)
+                self._poses[f'{r}/base_pose'] = (
+                    poll(Odometry, f'{r}/odom', _ignore, POLLED_QOS),
+                    lambda m, r=r: self._on_pose(r, 'base_pose', m.header, m.pose.pose))
+                self._poses[f'{r}/camera_pose'] = (
+                    poll(PoseWithCovarianceStamped, f'{r}/stereo/pose', _ignore, POLLED_QOS),
+                    lambda m, r=r: self._on_pose(r, 'camera_pose', m.header, m.pose.pose))
+            self._state[f'{r}/ident'] = (
+                poll(DynamicParameters, f'{r}/dynamic_parameters', _ignore, LATCHED_QOS),
+                lambda m, r=r: self._on_ident(r, m))
+        # serialized: only the keys and occupancies of the latest map are read, when a client
+        # is there to see it (rclpy would build every array of a 5.6 MB map each time)
+        self._map_raw: bytes | None = None
+        self._map_sub = poll(VoxelMap, 'map/voxels', _ignore, LATCHED_QOS, raw=True)
+        self._state['feedback'] = (
+            poll(Insert.Impl.FeedbackMessage, 'insert/_action/feedback', _ignore,
+                 FEEDBACK_QOS), self._on_feedback)
+        self._state['status'] = (
+            poll(GoalStatusArray, 'insert/_action/status', _ignore,
+                 qos_profile_action_status_default), self._on_status)
         # wall clock: a paused or slow sim must not stop a connected client's map
-        self.create_timer(1.0 / p['state_rate_hz'], self.view.republish,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(1.0 / p['state_rate_hz'], self._republish, clock=steady)
+        self.create_timer(1.0 / p['pose_rate_hz'], lambda: self._poll(self._poses),
+                          clock=steady)
         self.get_logger().info(
             f'live view on ws://{p["host"]}:{self.view.port} (connect Foxglove to it); '
             f'channels {", ".join(channel_topics(rovers))}')
 
-    def _on_image(self, rover: str, m: Image) -> None:
-        if not self.view.images[rover].has_sinks():
+    def _on_image(self, rover: str, raw: bytes) -> None:
+        if not self.view.image_due(rover):
             return
+        m = deserialize_message(raw, Image)
         try:
             img = image_array(m.encoding, m.height, m.width, m.step, m.data)
         except ValueError as exc:
             self.bad.reject('image', str(exc))
             return
-        self.view.on_image(rover, img, _t(m.header.stamp), m.header.frame_id)
+        self.view.log_image(rover, img, _t(m.header.stamp), m.header.frame_id)
+
+    @staticmethod
+    def _latest(sub):
+        """The newest message waiting on a polled subscription (the older ones dropped), or
+        None."""
+        last = None
+        with sub.handle:
+            while (got := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                last = got[0]
+        return last
+
+    def _poll(self, subs: dict) -> None:
+        for sub, handle in subs.values():
+            m = self._latest(sub)
+            if m is not None:
+                handle(m)
 
     def _on_pose(self, rover: str, kind: str, header, pose) -> None:
         q, p = pose.orientation, pose.position
@@ -129,14 +169,24 @@ class LiveViewNode(Node):
             rover, list(m.names), m.values, m.std_devs, m.information_bits,
             samples=m.samples, strategy=m.strategy, stamp_s=_t(m.header.stamp)))
 
-    def _on_map(self, m: VoxelMap) -> None:
-        try:
-            self.view.on_map(m.voxels.keys, m.voxels.occupancy, m.resolution_m,
-                             _t(m.header.stamp), m.header.frame_id)
-        except ValueError as exc:
-            self.bad.reject('map', str(exc))
-            return
-        self.get_logger().debug(f'map {m.sequence}: {self.view.map_points} occupied voxels')
+    def _republish(self) -> None:
+        self._poll(self._state)
+        new = self._latest(self._map_sub)
+        if new is not None:
+            self._map_raw = new                     # kept until a client is there to see it
+        if self._map_raw is not None and self.view.map.has_sinks():
+            raw, self._map_raw = self._map_raw, None
+            try:
+                stamp, frame, res, keys, occ = voxel_map_cdr(raw)
+            except ValueError:                       # another encoding: the slow way
+                m = deserialize_message(raw, VoxelMap)
+                stamp, frame, res = _t(m.header.stamp), m.header.frame_id, m.resolution_m
+                keys, occ = m.voxels.keys, m.voxels.occupancy
+            try:
+                self.view.on_map(keys, occ, res, stamp, frame)
+            except ValueError as exc:
+                self.bad.reject('map', str(exc))
+        self.view.republish()
 
     def _on_feedback(self, m) -> None:
         f = m.feedback
@@ -152,6 +202,7 @@ class LiveViewNode(Node):
 
     def destroy_node(self) -> None:
         self.view.close()
+        self._poller.destroy_node()
         super().destroy_node()
 
 
