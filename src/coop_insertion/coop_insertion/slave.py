@@ -19,9 +19,10 @@ knows into arm-joint and base-velocity commands through three phases:
    card's pose in the site frame (from the fused vision goal, odometry and encoders) and the
    tared F/T wrench in the task frame go to contact.ContactIdentifier, and
    contact.LeastResistance's bounded step moves the card's target (the base stands still).
-   SEATED, the card's lower edge at the slot's depth (within 1 mm), or stalled for `stall_s`
-   within 4 mm of it against the bottom ends it with success; a force above
-   `abort_force_factor` x `max_force_n` ends it with
+   SEATED, the card's lower edge at the slot's depth (within 1 mm; the higher corner of a
+   tilted card), or stalled for `stall_s` within 4 mm of it, flat, against the bottom ends it
+   with success; a force above
+   `abort_force_factor` x `max_force_n` in ABORT_SAMPLES consecutive readings ends it with
    failure, as does the caller's timeout.
 
 Frames: base = `<slave>/base_link` (c.g., x forward, z up); odom = `<slave>/odom` (wheel
@@ -118,6 +119,26 @@ class _State:
 class _Target:
     position: np.ndarray         # card centre, base frame
     pitch: float
+
+
+#: the contact force must exceed the abort limit in this many consecutive F/T readings
+ABORT_SAMPLES = 3
+
+
+def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, stalled: bool,
+                slot_depth_m: float, card_width_m: float, seat_angle_rad: float) -> bool:
+    """Whether the force-feedback insertion is done: the contact identified as SEATED, or the
+    card's estimated lower edge at the slot's depth (within 1 mm), or, stalled for the
+    controller's stall time, within 4 mm of it, flat and against the bottom. A card tilted in
+    the slot rests on one corner with the other higher by half its width x sin(tilt): seated
+    means both corners down, so the depth is the higher corner's."""
+    tilt = abs(tilt_rad)
+    depth_high = depth_m - card_width_m / 2 * math.sin(tilt)
+    at_floor = depth_high >= slot_depth_m - 0.001
+    near_floor = (depth_high >= slot_depth_m - 0.004 and stalled and tilt <= seat_angle_rad and
+                  state in (ContactState.CORNER_ON_BOTTOM, ContactState.SEATED,
+                            ContactState.TWO_POINT))
+    return state is ContactState.SEATED or at_floor or near_floor
 
 
 class SlaveController:
@@ -368,9 +389,13 @@ class SlaveController:
         tared = self._tared(s.wrench)
         force = float(np.linalg.norm(tared[:3]))
         self.peak_force_n = max(self.peak_force_n, force)
-        if force > self.abort_force_n:
-            self._finish(False, f'contact force {force:.1f} N above the abort limit '
-                                f'{self.abort_force_n:.1f} N')
+        # abort on a force sustained over the last ABORT_SAMPLES readings, not on one reading:
+        # a stiff contact's impact rings for a single physics step
+        last = [float(np.linalg.norm(self._tared(w)[:3]))
+                for _, w in list(self._recent)[-ABORT_SAMPLES:]]
+        if len(last) == ABORT_SAMPLES and min(last) > self.abort_force_n:
+            self._finish(False, f'contact force {min(last):.1f} N above the abort limit '
+                                f'{self.abort_force_n:.1f} N for {ABORT_SAMPLES} readings')
             return self._command(None, 0.0, 0.0)
         if t - self._last_force_step < self.force_period_s - 1e-9:
             return self._command(self._joints(), 0.0, 0.0)
@@ -396,12 +421,12 @@ class SlaveController:
             self._depths.popleft()
         stalled = (len(self._depths) > 1 and t - self._depths[0][0] >= 0.9 * self.stall_s and
                    max(d for _, d in self._depths) - min(d for _, d in self._depths) < 2e-4)
-        at_floor = depth >= m.slot_depth_m - 0.001
-        near_floor = depth >= m.slot_depth_m - 0.004 and stalled and ident.state in (
-            ContactState.CORNER_ON_BOTTOM, ContactState.SEATED, ContactState.TWO_POINT)
-        if ident.state is ContactState.SEATED or at_floor or near_floor:
+        if card_seated(ident.state, depth, pose.theta, stalled=stalled,
+                       slot_depth_m=m.slot_depth_m, card_width_m=m.card_width_m,
+                       seat_angle_rad=self.identifier.seat_angle_rad):
             self._finish(True, f'seated ({ident.state.value}): card edge {depth * 1e3:.1f} mm '
-                               f'into the slot, peak force {self.peak_force_n:.1f} N')
+                               f'into the slot, tilt {math.degrees(abs(pose.theta)):.1f} deg, '
+                               f'peak force {self.peak_force_n:.1f} N')
             return self._command(self._joints(), 0.0, 0.0)
         step = self.planner.step(ident, w, pose)
         planar_in_base = invert(base_in_planar)

@@ -96,3 +96,40 @@ def test_bad_inputs_are_refused():
         ctl.step(0.0)
     with pytest.raises(InsertionError):
         ctl.add_state(0.0, [0.0] * 3, [0.0] * 3, [0.0] * 6)
+
+
+def test_a_card_tilted_on_one_corner_is_not_seated():
+    from coop_insertion.contact import ContactState
+    from coop_insertion.slave import card_seated
+    geo = {'slot_depth_m': 0.030, 'card_width_m': 4.25 * INCH, 'seat_angle_rad': 0.02}
+    corner = ContactState.CORNER_ON_BOTTOM
+    # 29.2 mm at the lower edge's centre, tilted 2 deg: the higher corner is 27.3 mm down
+    assert not card_seated(corner, 0.0292, math.radians(2.0), stalled=True, **geo)
+    assert not card_seated(corner, 0.0295, -0.03, stalled=False, **geo)
+    # flat: at the floor within 1 mm, or stalled within 4 mm against the bottom
+    assert card_seated(corner, 0.0296, math.radians(0.5), stalled=False, **geo)
+    assert card_seated(corner, 0.0265, 0.0, stalled=True, **geo)
+    assert not card_seated(corner, 0.0265, 0.0, stalled=False, **geo)
+    assert not card_seated(ContactState.FREE, 0.0265, 0.0, stalled=True, **geo)
+    assert card_seated(ContactState.SEATED, 0.020, 0.0, stalled=False, **geo)
+
+
+def test_the_abort_needs_a_force_sustained_over_three_readings():
+    from coop_insertion.slave import ABORT_SAMPLES
+
+    def force_phase():
+        ctl = SlaveController(TaskModel(), [0.01, 0.3, 0.1], max_force_n=20.0)
+        ctl.phase, ctl._tare, ctl._last_force_step = Phase.FORCE_INSERT, np.zeros(6), 1e9
+        return ctl
+
+    q = [0.0, 0.6, -1.0, 0.4]
+    ctl = force_phase()       # one 73 N reading among small ones: an impact's ring, go on
+    for k, f in enumerate([1.0, 73.0, 1.0, 1.0]):
+        ctl.add_state(0.005 * k, q, [0.0] * 3, [0.0, 0.0, f, 0.0, 0.0, 0.0])
+        assert not ctl.step(0.005 * k).status.done
+    assert ctl.peak_force_n == 73.0
+    ctl = force_phase()       # three in a row above 1.5 x 20 N: abort
+    for k in range(ABORT_SAMPLES):
+        ctl.add_state(0.005 * k, q, [0.0] * 3, [0.0, 0.0, 40.0, 0.0, 0.0, 0.0])
+        st = ctl.step(0.005 * k).status
+    assert st.done and not st.success and 'abort limit 30.0 N' in st.reason
