@@ -315,7 +315,10 @@ class Mission:
             self.log('stopping the graph; the report follows')
 
         main_thread = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, on_sigint) if main_thread else None
+        # SIGTERM (`timeout`, a supervisor) as Ctrl-C: the nodes run in their own sessions and
+        # would outlive the runner, and the bag would stay unclosed
+        previous = {s: signal.signal(s, on_sigint) for s in (signal.SIGINT, signal.SIGTERM)} \
+            if main_thread else {}
         try:
             self.log(f'mission {self.run_id}: bringing up the graph (domain {self.domain_id}, '
                      f'logs in {self.out / "logs"})')
@@ -362,7 +365,8 @@ class Mission:
             return self._finish(t_all)
         finally:
             if main_thread:
-                signal.signal(signal.SIGINT, previous)
+                for sig, handler in previous.items():
+                    signal.signal(sig, handler)
 
     def _recorder_and_live_view(self) -> tuple:
         """The optional processes: the recorder (first, so that it is the first stopped and
