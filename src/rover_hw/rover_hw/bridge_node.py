@@ -67,7 +67,8 @@ PARAMS = {
     'heartbeat_timeout_s': ParamSpec(0.3, 'Every motor stops (and the link counts as down) when '
                                      'the device sent nothing valid for this long (s)',
                                      lo=0.05, hi=5.0),
-    'command_rate_hz': ParamSpec(100.0, 'Set-point frames to the device per second', lo=10.0,
+    'command_rate_hz': ParamSpec(200.0, 'Set-point frames to the device per second (its '
+                                 'control rate: slower set-points excite the base)', lo=10.0,
                                  hi=500.0, read_only=True),
     'odom_rate_hz': ParamSpec(50.0, 'Odometry rate (Hz), as rover_sim', lo=1.0, hi=200.0,
                               read_only=True),
@@ -99,22 +100,21 @@ def _stamp(t_ns: int):
 
 
 class ClockMap:
-    """Device time (us) -> ROS time (ns): the smallest offset seen over the last `window` frames
-    (transport delay only ever adds), so stamps keep the device's own spacing."""
+    """Device time (us) -> ROS time (ns): device time plus the smallest offset seen since the
+    link came up (transport delay only ever adds), so stamps keep the device's own spacing
+    exactly; the offset only moves when a faster frame shows it too large. (A device clock
+    slower than the host's would make stamps lag slowly: re-anchored on each reconnect.)"""
 
-    def __init__(self, window: int = 400) -> None:
-        self._offsets: deque[int] = deque(maxlen=window)
-        self._min = None
+    def __init__(self) -> None:
+        self._min: int | None = None
 
     def reset(self) -> None:
-        self._offsets.clear()
         self._min = None
 
     def map(self, device_us: int, now_ns: int) -> int:
         off = now_ns - device_us * 1000
-        self._offsets.append(off)
-        if self._min is None or off < self._min or len(self._offsets) == self._offsets.maxlen:
-            self._min = min(self._offsets)
+        if self._min is None or off < self._min:
+            self._min = off
         return device_us * 1000 + self._min
 
 

@@ -126,12 +126,13 @@ class Device:
     motor when the host falls silent for `host_timeout_s` or the e-stop is latched."""
 
     def __init__(self, world, *, faults: Faults | None = None, host_timeout_s: float = 0.25,
-                 heartbeat_hz: float = 10.0) -> None:
+                 heartbeat_hz: float = 10.0, setpoint_horizon_s: float = 0.005) -> None:
         self.world = world
         self.dt = world.dt
         self.inject = FaultInjector(faults or Faults())
         self.decoder = p.Decoder()
         self.host_timeout_s = host_timeout_s
+        self.setpoint_horizon_s = setpoint_horizon_s     # the host's set-point period
         self._hb_every = max(1, int(round(1.0 / (heartbeat_hz * self.dt))))
         self.estop = False
         self.last_host_s = -math.inf
@@ -171,14 +172,18 @@ class Device:
 
     def _apply(self, pl) -> None:
         w = self.world
+        h = self.setpoint_horizon_s
         if isinstance(pl, p.ArmCommand):
-            # a set-point stream: reach it one control period from now, at its velocity
+            # a set-point stream (position and velocity now): the controller interpolates
+            # towards the set-point extrapolated one host period ahead, so the reference moves
+            # smoothly between set-points instead of stepping and waiting
             from rover_sim.rover_model import ARM_JOINTS
-            w.command_arm(0, ARM_JOINTS, [self.dt], [list(pl.positions)],
-                          velocities=[list(pl.velocities)])
+            ahead = [q + v * h for q, v in zip(pl.positions, pl.velocities)]
+            w.command_arm(0, ARM_JOINTS, [h], [ahead], velocities=[list(pl.velocities)])
         elif isinstance(pl, p.MastCommand):
             from rover_sim.rover_model import MAST_JOINTS
-            w.command_mast(0, MAST_JOINTS, [self.dt], [list(pl.positions)])
+            ahead = [q + v * h for q, v in zip(pl.positions, pl.velocities)]
+            w.command_mast(0, MAST_JOINTS, [h], [ahead])
         elif isinstance(pl, p.DriveCommand):
             from .safety import Limits, wheels_to_twist
             wheels = list(pl.wheels)
