@@ -291,3 +291,48 @@ def test_unplug_replug_reconnects_within_a_second(tmp_path):
     print(f'\nunplug: bridge saw the device lost, reconnected {delay * 1e3:.0f} ms after the '
           'device returned')
     assert 0.0 <= delay < 1.0
+
+
+def _rover_topics(node, timeout_s: float, executor) -> dict[str, list[str]]:
+    """Topics under /rover1/ (published or subscribed) with their types, once they stop
+    changing."""
+    last: dict = {}
+    stable_since = time.monotonic()
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.1)
+        now = {t: sorted(ty) for t, ty in node.get_topic_names_and_types()
+               if t.startswith(f'{NS}/')}
+        if now != last:
+            last, stable_since = now, time.monotonic()
+        elif now and time.monotonic() - stable_since > 2.0:
+            break
+    return last
+
+
+def test_topics_and_frames_match_rover_sim(tmp_path):
+    """The sim's topic table is the contract: the same names and types under the rover's
+    namespace (stereo images excepted: a camera driver's) and the same frames."""
+    with Rig(tmp_path) as rig:
+        assert rig.transition(Transition.TRANSITION_CONFIGURE)
+        assert rig.transition(Transition.TRANSITION_ACTIVATE)
+        rig.probe.spin_until(lambda: all(rig.probe.msgs[t] for t in TOPICS), 30.0, 'topics')
+        hw = _rover_topics(rig.probe.node, 15.0, rig.probe.executor)
+        hw_frames = {t: rig.probe.msgs[t][-1].header.frame_id for t in TOPICS}
+    with NodeProcess('rover_sim', 'sim', ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=4.0'],
+                     log_path=tmp_path / 'sim.log'):
+        probe = Probe('sim_probe')
+        try:
+            for topic, (typ, _) in TOPICS.items():
+                probe.listen(typ, topic)
+            probe.spin_until(lambda: all(probe.msgs[t] for t in TOPICS), 60.0, 'sim topics')
+            sim = _rover_topics(probe.node, 15.0, probe.executor)
+            sim_frames = {t: probe.msgs[t][-1].header.frame_id for t in TOPICS}
+        finally:
+            probe.close()
+    images = {t for t in sim if '/image_raw' in t or '/camera_info' in t}
+    assert images, sim
+    # the lifecycle node's own ~/transition_event is the one addition
+    assert {t: ty for t, ty in sim.items() if t not in images} == {
+        t: ty for t, ty in hw.items() if not t.startswith(f'{NS}/bridge/')}
+    assert sim_frames == hw_frames
