@@ -71,6 +71,7 @@ def main() -> int:
     import tty
     tty.setraw(slave, termios.TCSANOW)
     path = os.ttyname(slave)
+    os.set_blocking(master, False)
 
     ctx_b, ctx_s = Context(), Context()
     rclpy.init(context=ctx_b)
@@ -113,6 +114,11 @@ def main() -> int:
                 e2e.clear()
             written[i] = time.monotonic_ns()
             os.write(master, enc.encode(sensors(i)))
+            try:                 # the device side reads the bridge's commands, as a device does
+                while os.read(master, 65536):
+                    pass
+            except BlockingIOError:
+                pass
             # spin the subscriber until the next frame is due
             while True:
                 left = t0 + (i + 1) * period - time.monotonic()

@@ -276,7 +276,7 @@ class BridgeNode(LifecycleNode):
     # ------------------------------------------------------------------ port
     def _open(self) -> None:
         self._port = serial.serial_for_url(self.values['port'], baudrate=self.values['baudrate'],
-                                           timeout=0.01, write_timeout=0.05)
+                                           timeout=0.01, write_timeout=0.01)
         self.decoder.resync()
         self.clock_map.reset()
         self._last_t_us = None
