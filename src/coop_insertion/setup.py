@@ -22,5 +22,6 @@ setup(
         'master = coop_insertion.master_node:main',
         'slave = coop_insertion.slave_node:main',
         'table_5_1 = coop_insertion.table_5_1:main',
+        'force_trials = coop_insertion.force_trials:main',
     ]},
 )

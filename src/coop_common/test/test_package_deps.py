@@ -31,12 +31,14 @@ ROSDEP = {
     'tqdm': 'python3-tqdm',
     'foxglove': 'python3-foxglove-sdk-pip',
     'websockets': 'python3-websockets',
+    'serial': 'python3-serial',
+    'cobs': 'python3-cobs-pip',
 }
 #: ROS packages imported under their own name (client library, message and project packages)
 ROS_PACKAGES = {
     'rclpy', 'rcl_interfaces', 'ament_index_python', 'builtin_interfaces', 'std_msgs',
     'std_srvs', 'geometry_msgs', 'sensor_msgs', 'nav_msgs', 'trajectory_msgs',
-    'visualization_msgs', 'rosgraph_msgs', 'coop_msgs', 'action_msgs',
+    'visualization_msgs', 'rosgraph_msgs', 'coop_msgs', 'action_msgs', 'lifecycle_msgs',
 } | {p.name for p in PACKAGES}
 
 

@@ -6,70 +6,18 @@ import math
 import numpy as np
 import pytest
 
-from coop_common.dynparams import load_truth
-from coop_common.rover_geometry import ARM_JOINTS, joint2_in_base
 from coop_insertion.errors import InsertionError
 from coop_insertion.slave import Phase, SlaveController
-from coop_insertion.task import LabelledMarkers, TaskModel
+from coop_insertion.task import TaskModel
 
 rover_sim = pytest.importorskip('rover_sim.world')
-from rover_sim.config import NoiseConfig, SimConfig  # noqa: E402
-from rover_sim.world import World  # noqa: E402
+from coop_insertion.force_trials import run_trial  # noqa: E402
 from rover_sim.worldgen import INCH  # noqa: E402
 
-SIGMA_DEPTH_M = 5e-4      # a 0.1 px disparity at 0.6 m with f = 850 px, b = 38 mm
 
-
-def _run(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 45.0):
-    gap = slot_in * INCH
-    cfg = SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
-                    seed=seed, noise=NoiseConfig(encoder_rad=0.0077))
-    rng = np.random.default_rng(seed)
-    with World(cfg, [load_truth()] * 2) as w:
-        model = TaskModel(slot_width_m=gap)
-        r2 = w.rovers[1].params.cg_to_arm
-        sx, sy, top = w.layout.site.slot_centre
-        j2 = joint2_in_base(r2)
-        w.place_rover(1, sx - 0.30 - j2[0] - 0.55 + rng.uniform(-0.03, 0.03),
-                      sy - j2[1] + rng.uniform(-0.02, 0.02), rng.uniform(-0.05, 0.05))
-        site = np.eye(4)
-        site[:3, 3] = (sx, sy, top)
-        ctl = SlaveController(model, r2, site_in_odom=site)
-        cam_p = np.array([sx, sy + 0.6, top + 0.35])
-        look = np.array([sx, sy, top]) - cam_p
-        look /= np.linalg.norm(look)
-        xc = np.cross(look, [0.0, 0.0, 1.0])
-        xc /= np.linalg.norm(xc)
-        r_wc = np.column_stack([xc, np.cross(look, xc), look])
-        var = np.array([SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2])
-        k, pen, phases = 0, 0.0, []
-        while w.time_s < sim_s:
-            w.step()
-            k += 1
-            rd = w.sense(1)
-            xy, yaw, _, _ = w.odometry(1)
-            ctl.add_state(w.time_s, rd.joint_positions[:4], [xy[0], xy[1], yaw],
-                          np.concatenate([rd.force, rd.torque]))
-            c, r = w.card_pose(1)
-            seen = abs(c[0] - sx) < 0.15      # the camera's field at the site
-            if vision and seen and k % 50 == 0:
-                pts = [c + r @ m for m in model.card_markers] + \
-                    [np.array(m) for m in w.layout.site.slot_markers]
-                pc = np.array([r_wc.T @ (p - cam_p) for p in pts])
-                pc += rng.normal(size=(4, 3)) * np.sqrt(var)
-                ctl.add_observation(w.time_s, LabelledMarkers(
-                    pc, np.array([np.diag(var)] * 4), r_wc.T @ np.array([0.0, 0.0, 1.0])))
-            cmd = ctl.step(w.time_s)
-            if cmd.arm_joints is not None and k % 2 == 0:
-                w.command_arm(1, ARM_JOINTS, [0.02], [list(cmd.arm_joints)])
-            w.command_velocity(1, cmd.base_linear_x, cmd.base_angular_z)
-            cs = w.contact(1)
-            pen = max(pen, cs.max_penetration_m if cs else 0.0)
-            if not phases or phases[-1] != cmd.status.phase:
-                phases.append(cmd.status.phase)
-            if cmd.status.done:
-                break
-        return cmd.status, w.seated(1), pen, phases, ctl
+def _run(slot_in: float, seed: int, **kw):
+    trial, st, phases, ctl = run_trial(slot_in, seed, **kw)
+    return st, trial.seated, trial.max_penetration_mm * 1e-3, phases, ctl
 
 
 def test_an_easy_insertion_seats_the_card_through_every_phase():

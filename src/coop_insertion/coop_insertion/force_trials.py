@@ -1,0 +1,166 @@
+"""The slave's insertion loop on rover_sim's world core, no DDS and no master: the force-feedback
+finish (app. A.4) measured apart from vision and camera placement.
+
+    python -m coop_insertion.force_trials --slots 5.0,4.5,4.375 --seeds 1-5 --json out/ft.json
+
+Each trial places the slave with the card 0.55 m short of the slot (perturbed by the seed, as
+`table_5_1` does) and runs `slave.SlaveController` at the physics rate on the world's own
+sensors (encoders, odometry, F/T). Its vision is ideal but honest in rate and noise: the true
+marker positions seen from a fixed camera 0.6 m from the site, with a 0.1 px-disparity depth
+noise, at 4 Hz, only while the card is in that camera's field. The simulator's truth judges each
+trial as `table_5_1` does: seated, penetration at most 0.5 mm.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from coop_common.cli import output_path
+from coop_common.dynparams import load_truth
+from coop_common.files import write_json
+from coop_common.rover_geometry import ARM_JOINTS, joint2_in_base
+
+from .slave import Phase, SlaveController, SlaveStatus
+from .task import LabelledMarkers, TaskModel
+
+#: the fixes' depth noise: a 0.1 px disparity at 0.6 m with f = 850 px, b = 38 mm
+SIGMA_DEPTH_M = 5e-4
+PENETRATION_LIMIT_M = 5e-4
+
+
+@dataclass
+class Trial:
+    slot_in: float
+    seed: int
+    success: bool               # the truth: seated, penetration within the limit
+    action_success: bool        # the slave's own verdict
+    seated: bool
+    max_penetration_mm: float
+    peak_force_n: float
+    sim_s: float
+    reason: str
+
+
+def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 45.0,
+              slave_options: dict | None = None
+              ) -> tuple[Trial, SlaveStatus, list[Phase], SlaveController]:
+    """One insertion from the perturbed start until the slave is done or `sim_s` passed."""
+    from rover_sim.config import NoiseConfig, SimConfig
+    from rover_sim.world import World
+    from rover_sim.worldgen import INCH
+    gap = slot_in * INCH
+    cfg = SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
+                    seed=seed, noise=NoiseConfig(encoder_rad=0.0077))
+    rng = np.random.default_rng(seed)
+    with World(cfg, [load_truth()] * 2) as w:
+        model = TaskModel(slot_width_m=gap)
+        r2 = w.rovers[1].params.cg_to_arm
+        sx, sy, top = w.layout.site.slot_centre
+        j2 = joint2_in_base(r2)
+        w.place_rover(1, sx - 0.30 - j2[0] - 0.55 + rng.uniform(-0.03, 0.03),
+                      sy - j2[1] + rng.uniform(-0.02, 0.02), rng.uniform(-0.05, 0.05))
+        site = np.eye(4)
+        site[:3, 3] = (sx, sy, top)
+        ctl = SlaveController(model, r2, site_in_odom=site, **(slave_options or {}))
+        cam_p = np.array([sx, sy + 0.6, top + 0.35])
+        look = np.array([sx, sy, top]) - cam_p
+        look /= np.linalg.norm(look)
+        xc = np.cross(look, [0.0, 0.0, 1.0])
+        xc /= np.linalg.norm(xc)
+        r_wc = np.column_stack([xc, np.cross(look, xc), look])
+        var = np.array([SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2])
+        k, pen, phases = 0, 0.0, []
+        fix_every = max(1, round(0.25 / w.dt))
+        while w.time_s < sim_s:
+            w.step()
+            k += 1
+            rd = w.sense(1)
+            xy, yaw, _, _ = w.odometry(1)
+            ctl.add_state(w.time_s, rd.joint_positions[:4], [xy[0], xy[1], yaw],
+                          np.concatenate([rd.force, rd.torque]))
+            c, r = w.card_pose(1)
+            seen = abs(c[0] - sx) < 0.15      # the camera's field at the site
+            if vision and seen and k % fix_every == 0:
+                pts = [c + r @ m for m in model.card_markers] + \
+                    [np.array(m) for m in w.layout.site.slot_markers]
+                pc = np.array([r_wc.T @ (p - cam_p) for p in pts])
+                pc += rng.normal(size=(4, 3)) * np.sqrt(var)
+                ctl.add_observation(w.time_s, LabelledMarkers(
+                    pc, np.array([np.diag(var)] * 4), r_wc.T @ np.array([0.0, 0.0, 1.0])))
+            cmd = ctl.step(w.time_s)
+            if cmd.arm_joints is not None and k % 2 == 0:
+                w.command_arm(1, ARM_JOINTS, [0.02], [list(cmd.arm_joints)])
+            w.command_velocity(1, cmd.base_linear_x, cmd.base_angular_z)
+            cs = w.contact(1)
+            pen = max(pen, cs.max_penetration_m if cs else 0.0)
+            if not phases or phases[-1] != cmd.status.phase:
+                phases.append(cmd.status.phase)
+            if cmd.status.done:
+                break
+        st = cmd.status
+        seated = w.seated(1)
+        ok = bool(st.done and st.success and seated and pen <= PENETRATION_LIMIT_M)
+        trial = Trial(slot_in, seed, ok, bool(st.success), bool(seated), pen * 1e3,
+                      float(ctl.peak_force_n), float(w.time_s),
+                      st.reason or f'not done after {sim_s:.0f} sim s ({st.phase.name})')
+        return trial, st, phases, ctl
+
+
+def _seeds(text: str) -> list[int]:
+    if '-' in text:
+        a, b = (int(v) for v in text.split('-'))
+        return list(range(a, b + 1))
+    return [int(v) for v in text.split(',')]
+
+
+def format_table(trials: list[Trial]) -> str:
+    lines = [f'{"slot (in)":>9s} {"trials":>6s} {"success":>8s} {"slave said":>10s} '
+             f'{"peak F median (N)":>17s} {"sim s median":>12s}']
+    for slot in sorted({t.slot_in for t in trials}, reverse=True):
+        ts = [t for t in trials if t.slot_in == slot]
+        lines.append(f'{slot:9.4g} {len(ts):6d} {sum(t.success for t in ts):8d} '
+                     f'{sum(t.action_success for t in ts):10d} '
+                     f'{np.median([t.peak_force_n for t in ts]):17.1f} '
+                     f'{np.median([t.sim_s for t in ts]):12.1f}')
+    return '\n'.join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog='force_trials', description=__doc__.split('\n\n')[0])
+    p.add_argument('--slots', default='5.0,4.5,4.375', help='slot widths in inches')
+    p.add_argument('--seeds', default='1-5', help='e.g. 1-5 or 1,4,7')
+    p.add_argument('--sim-s', type=float, default=45.0, help='sim seconds per trial')
+    p.add_argument('--json', type=output_path, default=None)
+    args = p.parse_args(argv)
+    try:
+        slots = [float(v) for v in args.slots.split(',')]
+        seeds = _seeds(args.seeds)
+    except ValueError:
+        p.error('--slots: comma-separated inches; --seeds: a-b or comma-separated integers')
+    if not all(4.25 < s <= 9.8 for s in slots):
+        p.error('--slots: each slot must be wider than the 4.25 in card (and at most 9.8 in)')
+    t0 = time.perf_counter()
+    trials = []
+    for slot in slots:
+        for seed in seeds:
+            trial = run_trial(slot, seed, sim_s=args.sim_s)[0]
+            trials.append(trial)
+            print(f'{slot} in seed {seed}: {"success" if trial.success else "failure"} '
+                  f'({trial.reason}); seated {trial.seated}, penetration '
+                  f'{trial.max_penetration_mm:.2f} mm, peak {trial.peak_force_n:.1f} N',
+                  file=sys.stderr, flush=True)
+    print(format_table(trials))
+    print(f'{(time.perf_counter() - t0) / 60:.1f} min')
+    if args.json:
+        write_json(args.json, {'slots': slots, 'seeds': seeds, 'sim_s': args.sim_s,
+                               'trials': [asdict(t) for t in trials],
+                               'seconds': time.perf_counter() - t0})
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
