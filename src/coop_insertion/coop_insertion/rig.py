@@ -339,6 +339,13 @@ class InsertionRig(contextlib.AbstractContextManager):
         self._sim_sleep(seconds + 1.0)
         return self.node.map_voxels
 
+    def stop_mapping(self) -> None:
+        """End the stereo ranging into the map (the map keeps what it has): the site is
+        mapped, and what the master's camera sees next is the slave's arm and card over the
+        slot, which a map kept live would remember there as an obstacle at the task."""
+        for name in [n for n in self.nodes if n == 'stereo' or n.startswith('stereo_')]:
+            self.nodes.pop(name).stop()
+
     def attempt(self, *, slot_in: float, placement: str, seed: int,
                 timeout_s: float = 120.0, max_force_n: float = 25.0,
                 penetration_limit_mm: float = 0.5) -> Attempt:

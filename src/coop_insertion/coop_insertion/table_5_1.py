@@ -99,6 +99,7 @@ def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], 
         try:
             r.place(slot_in, np.random.default_rng(seed))
             log(f'site surveyed: {r.survey()} scans in the map')
+            r.stop_mapping()
             r.set_slot(slot_in)
         except BaseException:
             r.__exit__(None, None, None)

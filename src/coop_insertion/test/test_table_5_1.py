@@ -29,6 +29,9 @@ class FakeRig:
     def survey(self):
         return 7
 
+    def stop_mapping(self):
+        pass
+
     def set_slot(self, slot_in):
         self.slot_in = slot_in
 
