@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 
 import pytest
 
@@ -22,9 +23,12 @@ def test_a_short_mission_identifies_and_maps(tmp_path):
 
     from coop_mapping.voxelmap import VoxelMap, unpack_keys
 
+    with socket.socket() as s:                # the live view on a free port
+        s.bind(('127.0.0.1', 0))
+        port = s.getsockname()[1]
     cfg = MissionConfig(seed=1, occlusion_density=0.05, slot_in=5.0, identify_s=4.0,
                         coverage_target=0.5, max_scans=1, near_start=True,
-                        phases=('identify', 'map'))
+                        phases=('identify', 'map'), live_port=port)
     rep = Mission(cfg, tmp_path, run_id='short', domain_id=int(os.environ['ROS_DOMAIN_ID']),
                   log=print).run()
     out = tmp_path / 'short'
@@ -67,3 +71,7 @@ def test_a_short_mission_identifies_and_maps(tmp_path):
     assert (grids[-1].data != -1).sum() > 0                       # something seen
     assert bag['size_mb'] < 50, bag['size_mb']
     assert 'Bag: `bag/`' in (out / 'report.md').read_text()
+    # the live view ran through the whole mission (a node that dies fails the phase it broke;
+    # what a client receives from it: test_live_view.py)
+    assert on_disk['live_view']['url'] == f'ws://localhost:{port}'
+    assert 'live view on ws://' in (out / 'logs' / 'live_view.log').read_text()
