@@ -129,15 +129,16 @@ def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, stalled
                 slot_depth_m: float, card_width_m: float, seat_angle_rad: float) -> bool:
     """Whether the force-feedback insertion is done: the contact identified as SEATED, or the
     card's estimated lower edge at the slot's depth (within 1 mm), or, stalled for the
-    controller's stall time, within 4 mm of it, flat and against the bottom. A card tilted in
+    controller's stall time, within 4 mm of it, flat and against the bottom on both corners
+    (a force on one corner of the bottom says the card is tilted, whatever the pose estimate
+    says). A card tilted in
     the slot rests on one corner with the other higher by half its width x sin(tilt): seated
     means both corners down, so the depth is the higher corner's."""
     tilt = abs(tilt_rad)
     depth_high = depth_m - card_width_m / 2 * math.sin(tilt)
     at_floor = depth_high >= slot_depth_m - 0.001
     near_floor = (depth_high >= slot_depth_m - 0.004 and stalled and tilt <= seat_angle_rad and
-                  state in (ContactState.CORNER_ON_BOTTOM, ContactState.SEATED,
-                            ContactState.TWO_POINT))
+                  state in (ContactState.SEATED, ContactState.TWO_POINT))
     return state is ContactState.SEATED or at_floor or near_floor
 
 

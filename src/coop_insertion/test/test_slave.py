@@ -56,7 +56,8 @@ def test_a_card_tilted_on_one_corner_is_not_seated():
     assert not card_seated(corner, 0.0295, -0.03, stalled=False, **geo)
     # flat: at the floor within 1 mm, or stalled within 4 mm against the bottom
     assert card_seated(corner, 0.0296, math.radians(0.5), stalled=False, **geo)
-    assert card_seated(corner, 0.0265, 0.0, stalled=True, **geo)
+    assert not card_seated(corner, 0.0265, 0.0, stalled=True, **geo)   # one corner: tilted
+    assert card_seated(ContactState.TWO_POINT, 0.0265, 0.0, stalled=True, **geo)
     assert not card_seated(corner, 0.0265, 0.0, stalled=False, **geo)
     assert not card_seated(ContactState.FREE, 0.0265, 0.0, stalled=True, **geo)
     assert card_seated(ContactState.SEATED, 0.020, 0.0, stalled=False, **geo)
