@@ -651,6 +651,9 @@ class Mission:
         insert = next(p for p in self.phases if p.name == 'insert')
         self.progress.update(0.0, 'to the staging poses')
         self._stage()
+        # the map is final: ranging on would map the slave's arm and card over the slot as an
+        # obstacle at the task (the master's re-placement asks task_view again mid-insertion)
+        self.rig.stop_mapping()
         w0, s0 = time.monotonic(), self._sim_t()
         phase = {'insert_at': None}
 
