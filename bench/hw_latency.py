@@ -42,6 +42,7 @@ def pct(ns: list[int]) -> dict:
 
 
 def format_table(result: dict) -> str:
+    """The table main prints, from its JSON result."""
     lines = [f'{"path":<46} {"n":>6} {"p50 us":>8} {"p99 us":>8} {"max us":>8}']
     for name, r in result['latency'].items():
         lines.append(f'{name:<46} {r["n"]:>6} {r["p50_us"]:>8.0f} {r["p99_us"]:>8.0f} '
@@ -49,6 +50,10 @@ def format_table(result: dict) -> str:
     lines.append(f'frames written {result["frames"]}, published {result["published"]}, '
                  f'bad {result["decoder"]["bad_crc"] + result["decoder"]["bad_cobs"]}; '
                  f'target p99 <= 2000 us')
+    if 'load_average' in result:
+        la = result['load_average']
+        lines.append(f'load average at the end {la[0]:.1f}, {la[1]:.1f}, {la[2]:.1f} '
+                     f'(1, 5, 15 min), {result.get("cpus", "?")} cores')
     return '\n'.join(lines)
 
 
@@ -141,6 +146,7 @@ def main() -> int:
             'decoder': bridge.decoder.counts(),
             'openblas_num_threads': os.environ.get('OPENBLAS_NUM_THREADS'),
             'load_average': os.getloadavg(),
+            'cpus': os.cpu_count(),
         }
     finally:
         if bridge._state_machine.current_state[0] == State.PRIMARY_STATE_ACTIVE:
@@ -154,7 +160,6 @@ def main() -> int:
         os.close(master)
         os.close(slave)
     print(format_table(result))
-    print(f'load average {result["load_average"][0]:.1f} (2 cores)')
     write_json(args.json, result, indent=1)
     return 0
 
