@@ -129,6 +129,12 @@ def format_table(trials: list[Trial]) -> str:
     return '\n'.join(lines)
 
 
+def format_result(res: dict) -> str:
+    """format_table of a --json result."""
+    return format_table([Trial(**t) for t in res['trials']]) + \
+        f'\n{res["seconds"] / 60:.1f} min'
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='force_trials', description=__doc__.split('\n\n')[0])
     p.add_argument('--slots', default='5.0,4.5,4.375', help='slot widths in inches')
@@ -153,12 +159,11 @@ def main(argv: list[str] | None = None) -> int:
                   f'({trial.reason}); seated {trial.seated}, penetration '
                   f'{trial.max_penetration_mm:.2f} mm, peak {trial.peak_force_n:.1f} N',
                   file=sys.stderr, flush=True)
-    print(format_table(trials))
-    print(f'{(time.perf_counter() - t0) / 60:.1f} min')
+    res = {'slots': slots, 'seeds': seeds, 'sim_s': args.sim_s,
+           'trials': [asdict(t) for t in trials], 'seconds': time.perf_counter() - t0}
+    print(format_result(res))
     if args.json:
-        write_json(args.json, {'slots': slots, 'seeds': seeds, 'sim_s': args.sim_s,
-                               'trials': [asdict(t) for t in trials],
-                               'seconds': time.perf_counter() - t0})
+        write_json(args.json, res)
     return 0
 
 
