@@ -210,6 +210,7 @@ class LiveView:
                             for k in ('pose', 'camera_pose')})
         self._last_map: PointCloud | None = None
         self._last_ident: dict[str, dict] = {}
+        self._fresh: set[str] = set()       # logged since the last republish()
         self._last_insertion: dict | None = None
         self.sent: dict[str, int] = dict.fromkeys(channel_topics(cfg.rovers), 0)
         self.map_points = 0
@@ -272,24 +273,29 @@ class LiveView:
         self._last_ident[rover] = estimate
         self.ident[rover].log(estimate)
         self.sent[f'/{rover}/identification'] += 1
+        self._fresh.add(f'/{rover}/identification')
 
     def on_insertion(self, state: dict) -> None:
         """state: `insertion_state(...)`'s dict (merged into the last one)."""
         self._last_insertion = {**(self._last_insertion or {}), **state}
         self.insertion.log(self._last_insertion)
         self.sent['/insertion'] += 1
+        self._fresh.add('/insertion')
 
     def republish(self) -> None:
         """Send the latest map, identification and insertion state again (call at
-        state_rate_hz): the protocol has no latching."""
+        state_rate_hz): the protocol has no latching. A state logged since the last call is
+        not sent twice."""
+        fresh, self._fresh = self._fresh, set()
         if self._last_map is not None and self.map.has_sinks():
             self.map.log(self._last_map)
             self.sent['/map'] += 1
         for r, est in self._last_ident.items():
-            if self.ident[r].has_sinks():
+            if self.ident[r].has_sinks() and f'/{r}/identification' not in fresh:
                 self.ident[r].log(est)
                 self.sent[f'/{r}/identification'] += 1
-        if self._last_insertion is not None and self.insertion.has_sinks():
+        if self._last_insertion is not None and self.insertion.has_sinks() and \
+                '/insertion' not in fresh:
             self.insertion.log(self._last_insertion)
             self.sent['/insertion'] += 1
 
