@@ -458,12 +458,11 @@ class LeastResistance:
             return (np.array([-s * 0.5 * step, -step, align[2]]),
                     'corner on a wall: slide along it, align')
         if st is ContactState.CORNER_ON_BOTTOM:
-            # pivot about the corner on the bottom until the leading face is flat. Corner s on
-            # the bottom means the card is tilted with the other corner up, whatever the pose
-            # estimate says: the turn that lowers that corner has the sign of s, at least
-            # a quarter of max_rotation_rad a step
+            # pivot about the corner on the bottom until the leading face is flat (by the
+            # estimate: a turn by the contact's side alone, at a quarter of max_rotation_rad a
+            # step, drove the other corner into the bottom at 38-71 N through the graph)
             c = ident.contacts[0].point
-            dth = s * max(-s * pose.theta, 0.25 * self.max_rotation_rad)
+            dth = -pose.theta
             r = pose.p - c
             dp = dth * np.array([-r[1], r[0]])
             return np.array([dp[0], dp[1], dth]), 'corner on the bottom: rotate flat about it'

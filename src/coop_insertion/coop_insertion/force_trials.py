@@ -46,9 +46,11 @@ class Trial:
 
 
 def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 45.0,
-              slave_options: dict | None = None
+              slave_options: dict | None = None, site_bias_m: tuple[float, float] = (0.0, 0.0)
               ) -> tuple[Trial, SlaveStatus, list[Phase], SlaveController]:
-    """One insertion from the perturbed start until the slave is done or `sim_s` passed."""
+    """One insertion from the perturbed start until the slave is done or `sim_s` passed.
+    site_bias_m: (near, far) slot markers seen this much higher than they are (m), a constant
+    error of the site frame as the master's stereo makes it (equal: depth; opposite: tilt)."""
     from rover_sim.config import NoiseConfig, SimConfig
     from rover_sim.world import World
     from rover_sim.worldgen import INCH
@@ -86,7 +88,8 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
             seen = abs(c[0] - sx) < 0.15      # the camera's field at the site
             if vision and seen and k % fix_every == 0:
                 pts = [c + r @ m for m in model.card_markers] + \
-                    [np.array(m) for m in w.layout.site.slot_markers]
+                    [np.array(m) + [0.0, 0.0, b]
+                     for m, b in zip(w.layout.site.slot_markers, site_bias_m)]
                 pc = np.array([r_wc.T @ (p - cam_p) for p in pts])
                 pc += rng.normal(size=(4, 3)) * np.sqrt(var)
                 ctl.add_observation(w.time_s, LabelledMarkers(
@@ -140,26 +143,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--slots', default='5.0,4.5,4.375', help='slot widths in inches')
     p.add_argument('--seeds', default='1-5', help='e.g. 1-5 or 1,4,7')
     p.add_argument('--sim-s', type=float, default=45.0, help='sim seconds per trial')
+    p.add_argument('--site-bias-mm', default='0,0',
+                   help='near,far slot markers seen this much higher (a biased site frame)')
     p.add_argument('--json', type=output_path, default=None)
     args = p.parse_args(argv)
     try:
         slots = [float(v) for v in args.slots.split(',')]
         seeds = _seeds(args.seeds)
+        bias = tuple(1e-3 * float(v) for v in args.site_bias_mm.split(','))
+        if len(bias) != 2:
+            raise ValueError
     except ValueError:
-        p.error('--slots: comma-separated inches; --seeds: a-b or comma-separated integers')
+        p.error('--slots: comma-separated inches; --seeds: a-b or comma-separated integers; '
+                '--site-bias-mm: near,far')
     if not all(4.25 < s <= 9.8 for s in slots):
         p.error('--slots: each slot must be wider than the 4.25 in card (and at most 9.8 in)')
     t0 = time.perf_counter()
     trials = []
     for slot in slots:
         for seed in seeds:
-            trial = run_trial(slot, seed, sim_s=args.sim_s)[0]
+            trial = run_trial(slot, seed, sim_s=args.sim_s, site_bias_m=bias)[0]
             trials.append(trial)
             print(f'{slot} in seed {seed}: {"success" if trial.success else "failure"} '
                   f'({trial.reason}); seated {trial.seated}, penetration '
                   f'{trial.max_penetration_mm:.2f} mm, peak {trial.peak_force_n:.1f} N',
                   file=sys.stderr, flush=True)
-    res = {'slots': slots, 'seeds': seeds, 'sim_s': args.sim_s,
+    res = {'slots': slots, 'seeds': seeds, 'sim_s': args.sim_s, 'site_bias_m': list(bias),
            'trials': [asdict(t) for t in trials], 'seconds': time.perf_counter() - t0}
     print(format_result(res))
     if args.json:
