@@ -381,7 +381,9 @@ class InsertionRig(contextlib.AbstractContextManager):
                            max_force_n=float(max_force_n), timeout_s=float(timeout_s))
         w0 = time.monotonic()
         fut = node.insert.send_goal_async(goal, feedback_callback=on_fb)
-        wait_for(fut.done, 30, what="the insert goal's acceptance")
+        # the master answers from an executor busy with 640x480 marker tracking: on a loaded
+        # machine that took over 30 s of wall time
+        self._wait(fut.done, 120, what="the insert goal's acceptance")
         handle = fut.result()
         if not handle.accepted:
             raise InsertionError('insert goal rejected')
