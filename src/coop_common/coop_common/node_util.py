@@ -17,7 +17,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from .params import ParamSpec, check_values
@@ -134,6 +134,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     """
     rclpy.init(args=args)
     node = None
+    # the executor first: built after a Ctrl-C has shut the context down, rclpy's Executor fails
+    # half-made and its __del__ prints a traceback ('no attribute _sigint_gc')
+    executor = executor_factory() if executor_factory is not None else SingleThreadedExecutor()
     try:
         try:
             node = factory()
@@ -144,12 +147,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
                 return 0
             rclpy.logging.get_logger('startup').fatal(f'cannot start: {exc}')
             return 1
-        if executor_factory is not None:
-            executor = executor_factory()
-            executor.add_node(node)
-            executor.spin()
-        else:
-            rclpy.spin(node)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
