@@ -302,8 +302,10 @@ def _rover_topics(node, timeout_s: float, executor) -> dict[str, list[str]]:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         executor.spin_once(timeout_sec=0.1)
+        # an action's topics are another node's (a previous test's identifier, still in the
+        # domain's discovery cache), never the sim's or the bridge's
         now = {t: sorted(ty) for t, ty in node.get_topic_names_and_types()
-               if t.startswith(f'{NS}/')}
+               if t.startswith(f'{NS}/') and '/_action/' not in t}
         if now != last:
             last, stable_since = now, time.monotonic()
         elif now and time.monotonic() - stable_since > 2.0:
