@@ -4,19 +4,14 @@ offline from the same bag with the same cores (coop_mapping.offline), and into t
 identifier gives the estimate of its core fed the same samples directly."""
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 
 from coop_common.qos import LATCHED_QOS
-from coop_common.testing import NodeProcess, wait_for
+from coop_common.testing import NodeProcess, Probe
 from coop_mapping.offline import MapSettings, StereoSettings, map_from_bag, stereo_topics
 from coop_mapping.voxelmap import FREE, OCCUPIED, pack_keys, state_agreement
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
@@ -32,50 +27,9 @@ def _bag(name: str) -> Path:
     return path
 
 
-class Probe:
-    """A node in its own context that keeps the messages of chosen topics."""
-
-    def __init__(self, name: str = 'replay_probe') -> None:
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = Node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.msgs: dict[str, list] = {}
-        self._lock = threading.Lock()
-
-    def listen(self, msg_type, topic: str, qos) -> None:
-        self.msgs[topic] = []
-
-        def cb(m, topic=topic):
-            with self._lock:
-                self.msgs[topic].append(m)
-        self.node.create_subscription(msg_type, topic, cb, qos)
-
-    def spin_until(self, predicate, timeout_s: float, what: str, procs=()) -> None:
-        def check() -> bool:
-            for p in procs:
-                if not p.alive():
-                    raise AssertionError(f'{p.cmd[0]} exited while waiting for {what}:\n'
-                                         + p.log_text())
-            return predicate()
-        wait_for(check, timeout_s, spin=lambda s: self.executor.spin_once(timeout_sec=s),
-                 what=what)
-
-    def spin_for(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
-
 @pytest.fixture
 def probe():
-    p = Probe()
+    p = Probe('replay_probe')
     yield p
     p.close()
 

@@ -5,26 +5,21 @@ from __future__ import annotations
 
 import math
 import re
-import threading
 import time
 from pathlib import Path
 
 import pytest
-import rclpy
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseWithCovarianceStamped, Twist, WrenchStamped
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from nav_msgs.msg import Odometry
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState
 from std_srvs.srv import SetBool
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.qos import COMMAND_QOS, SENSOR_QOS
-from coop_common.testing import NodeProcess, wait_for
+from coop_common.testing import NodeProcess, Probe, wait_for
 from coop_msgs.msg import Inclinometer
 from coop_msgs.srv import CalibrateInclinometer
 
@@ -43,36 +38,6 @@ TOPICS = {
 
 def t_of(header) -> float:
     return header.stamp.sec + header.stamp.nanosec * 1e-9
-
-
-class Probe:
-    """A node in its own context that records messages of chosen topics."""
-
-    def __init__(self, name: str) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = Node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.msgs: dict[str, list] = {}
-        self._lock = threading.Lock()
-
-    def listen(self, msg_type, topic: str, qos=SENSOR_QOS) -> None:
-        self.msgs[topic] = []
-
-        def cb(m, topic=topic):
-            with self._lock:
-                self.msgs[topic].append(m)
-        self.node.create_subscription(msg_type, topic, cb, qos)
-
-    def spin_until(self, predicate, timeout_s: float, what: str) -> None:
-        wait_for(predicate, timeout_s, spin=lambda s: self.executor.spin_once(timeout_sec=s),
-                 what=what)
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
 
 
 class Rig:

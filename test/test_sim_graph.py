@@ -5,18 +5,13 @@ from __future__ import annotations
 
 import math
 import subprocess
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from nav_msgs.msg import Odometry
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -25,7 +20,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import MarkerArray
 
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
-from coop_common.testing import NodeProcess, executable_path, wait_for
+from coop_common.testing import NodeProcess, Probe, executable_path, wait_for
 from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer
 from coop_msgs.srv import SimScenario
 
@@ -34,39 +29,6 @@ pytestmark = pytest.mark.graph
 
 def t_of(header) -> float:
     return header.stamp.sec + header.stamp.nanosec * 1e-9
-
-
-class Probe:
-    """A node in its own context that records messages of chosen topics."""
-
-    def __init__(self, name: str = 'probe', **node_kwargs) -> None:
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = Node(name, context=self.context, **node_kwargs)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.msgs: dict[str, list] = {}
-        self._lock = threading.Lock()
-
-    def listen(self, msg_type, topic: str, qos=SENSOR_QOS) -> None:
-        self.msgs[topic] = []
-
-        def cb(m, topic=topic):
-            with self._lock:
-                self.msgs[topic].append(m)
-        self.node.create_subscription(msg_type, topic, cb, qos)
-
-    def spin_until(self, predicate, timeout_s: float, what: str) -> None:
-        wait_for(predicate, timeout_s, spin=lambda s: self.executor.spin_once(timeout_sec=s),
-                 what=what)
-
-    def count(self, topic: str) -> int:
-        return len(self.msgs[topic])
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
 
 
 def sim_process(tmp_path: Path, *ros_args: str, name: str = 'sim') -> NodeProcess:

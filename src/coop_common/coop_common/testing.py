@@ -130,3 +130,69 @@ class NodeProcess:
         self.stop()
         if self._log is not None:
             self._log.close()
+
+
+class Probe:
+    """A node in its own context that keeps the messages of chosen topics, for whole-graph
+    tests (a context of its own, so it shuts down apart from the process under test)."""
+
+    def __init__(self, name: str = 'probe', **node_kwargs) -> None:
+        import threading
+
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = Node(name, context=self.context, **node_kwargs)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.msgs: dict[str, list] = {}
+        self._lock = threading.Lock()
+
+    def listen(self, msg_type, topic: str, qos=None) -> None:
+        """Keep every message of `topic` in `msgs[topic]` (sensor QoS unless told)."""
+        if qos is None:
+            from .qos import SENSOR_QOS
+            qos = SENSOR_QOS
+        self.msgs[topic] = []
+
+        def cb(m, topic=topic):
+            with self._lock:
+                self.msgs[topic].append(m)
+        self.node.create_subscription(msg_type, topic, cb, qos)
+
+    def count(self, topic: str) -> int:
+        return len(self.msgs[topic])
+
+    def spin_until(self, predicate: Callable[[], bool], timeout_s: float, what: str,
+                   procs: Sequence[NodeProcess] = ()) -> None:
+        """Spin until predicate() holds; fail at once, with its log, if one of `procs` exits."""
+        def check() -> bool:
+            for p in procs:
+                if not p.alive():
+                    raise AssertionError(f'{p.cmd[0]} exited while waiting for {what}:\n'
+                                         + p.log_text())
+            return predicate()
+        wait_for(check, timeout_s, spin=lambda s: self.executor.spin_once(timeout_sec=s),
+                 what=what)
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+    def __enter__(self) -> Probe:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
