@@ -232,21 +232,59 @@ def test_fault_injection_publishes_no_corrupt_reading(tmp_path):
     assert 'bad frames' in rig.bridge.log_text()
 
 
-def test_unplug_replug_reconnects_within_a_second(tmp_path):
-    with Rig(tmp_path, emu_args=['--unplug-at', '6', '--unplug-for', '1.5']) as rig:
+def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
+    """The device is unplugged while the arm follows a slow trajectory and the wheels turn:
+    the bridge reconnects within a second, the motors were stopped while it was down, and the
+    arm holds where it is measured to be (the old trajectory is not resumed) until a new one
+    comes, which starts from there."""
+    with Rig(tmp_path, emu_args=['--unplug-at', '8', '--unplug-for', '1.5']) as rig:
         assert rig.transition(Transition.TRANSITION_CONFIGURE)
         assert rig.transition(Transition.TRANSITION_ACTIVATE)
         arrivals: list[float] = []
         rig.probe.node.create_subscription(
             Imu, f'{NS}/imu', lambda m: arrivals.append(time.monotonic()), SENSOR_QOS)
-        rig.probe.spin_until(lambda: arrivals and time.monotonic() - arrivals[-1] > 0.5, 60.0,
-                             'the unplug')
+        rig.probe.spin_until(lambda: len(rig.msgs('joint_states')) > 50, 30.0, 'joint states')
+        rig.arm.publish(JointTrajectory(joint_names=['arm_joint_1'], points=[
+            JointTrajectoryPoint(positions=[0.8], time_from_start=Duration(sec=12))]))
+        # drive until the device goes away, then stop commanding
+        while not (arrivals and time.monotonic() - arrivals[-1] > 0.5):
+            assert time.monotonic() - (arrivals or [time.monotonic()])[-1] < 60.0
+            rig.cmd.publish(forward())
+            rig.spin(0.05)
+        before = list(rig.msgs('joint_states'))
+        rig.clear()
         rig.probe.spin_until(lambda: time.monotonic() - arrivals[-1] < 0.1, 60.0,
                              'data after the re-plug')
-        rig.spin(0.5)
+        rig.spin(1.0)
+        held = list(rig.msgs('joint_states'))
+        # a new trajectory to the same goal starts from the measured state
+        rig.clear()
+        rig.arm.publish(JointTrajectory(joint_names=['arm_joint_1'], points=[
+            JointTrajectoryPoint(positions=[0.8], time_from_start=Duration(sec=2))]))
+        rig.spin(3.0)
+        resumed = list(rig.msgs('joint_states'))
         assert rig.bridge.alive()
         assert rig.state() == 'active'
-        assert rig.msgs('imu')
+
+    def mean(msgs, f=lambda m: m.position[0]) -> float:     # the encoders' noise averaged
+        return sum(f(m) for m in msgs) / len(msgs)
+    n = 40
+    q_start, q_unplug = mean(before[:n]), mean(before[-n:])
+    q_back, q_held = mean(held[:n]), mean(held[-n:])
+    spin_back = mean(held[:20], lambda m: abs(wheel_speed(m)))
+    speed = max(mean(resumed[k:k + 20], lambda m: m.velocity[0])
+                for k in range(0, len(resumed) - 20, 10))
+    q_end = mean(resumed[-n:])
+    print(f'\nre-plug: arm_joint_1 (means of {n} readings) {q_unplug:.3f} rad at the unplug '
+          f'(moving since {q_start:.3f}), {q_back:.3f} on return, {q_held:.3f} after '
+          f'{len(held)} readings; wheels {spin_back:.2f} rad/s on return; the new trajectory '
+          f'peaked at {speed:.2f} rad/s and ended at {q_end:.3f} rad')
+    assert q_unplug - q_start > 0.05                      # the arm was moving at the unplug
+    assert abs(q_back - q_unplug) < 0.02                  # stopped while down
+    assert abs(q_held - q_back) < 0.02                    # held: the old trajectory dropped
+    assert spin_back < 0.5                                # the wheels stood while down
+    # (0.8 - q) / 2 s is under 0.25 rad/s on average, about 0.35 at its peak
+    assert speed < 0.5 and abs(q_end - 0.8) < 0.03
     # wall times from both logs: the emulator's [unix time] and the bridge's ROS log stamp
     log = rig.bridge.log_text()
     emu = re.search(r'\[(\d+\.\d+)\] emulator: plugged in again', rig.emu.log_text())
@@ -254,9 +292,17 @@ def test_unplug_replug_reconnects_within_a_second(tmp_path):
     back = re.search(r'\[(\d+\.\d+)\] \[rover1\.bridge\]: reconnected', log)
     assert emu and lost and back, log[-2000:]
     delay = float(back.group(1)) - float(emu.group(1))
-    print(f'\nunplug: bridge saw the device lost, reconnected {delay * 1e3:.0f} ms after the '
+    print(f'unplug: bridge saw the device lost, reconnected {delay * 1e3:.0f} ms after the '
           'device returned')
     assert 0.0 <= delay < 1.0
+
+
+def stamp_rate(msgs: list) -> float:
+    """A topic's rate by its stamps: one over the median interval (robust to the messages a
+    best-effort subscriber drops; 0 with fewer than 5)."""
+    stamps = sorted(t_of(m.header) for m in msgs)
+    dts = sorted(b - a for a, b in zip(stamps, stamps[1:]) if b > a)
+    return 1.0 / dts[len(dts) // 2] if len(dts) >= 4 else 0.0
 
 
 def _rover_topics(node, timeout_s: float, executor) -> dict[str, list[str]]:
@@ -280,13 +326,15 @@ def _rover_topics(node, timeout_s: float, executor) -> dict[str, list[str]]:
 
 def test_topics_and_frames_match_rover_sim(tmp_path):
     """The sim's topic table is the contract: the same names and types under the rover's
-    namespace (stereo images excepted: a camera driver's) and the same frames."""
+    namespace (stereo images excepted: a camera driver's), the same frames, and the same rates
+    by the stamps within 5 %."""
     with Rig(tmp_path) as rig:
         assert rig.transition(Transition.TRANSITION_CONFIGURE)
         assert rig.transition(Transition.TRANSITION_ACTIVATE)
         rig.probe.spin_until(lambda: all(rig.probe.msgs[t] for t in TOPICS), 30.0, 'topics')
         hw = _rover_topics(rig.probe.node, 15.0, rig.probe.executor)
         hw_frames = {t: rig.probe.msgs[t][-1].header.frame_id for t in TOPICS}
+        hw_rates = {t: stamp_rate(rig.probe.msgs[t]) for t in TOPICS}
     with NodeProcess('rover_sim', 'sim', ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=4.0'],
                      log_path=tmp_path / 'sim.log'):
         probe = Probe('sim_probe')
@@ -296,6 +344,7 @@ def test_topics_and_frames_match_rover_sim(tmp_path):
             probe.spin_until(lambda: all(probe.msgs[t] for t in TOPICS), 60.0, 'sim topics')
             sim = _rover_topics(probe.node, 15.0, probe.executor)
             sim_frames = {t: probe.msgs[t][-1].header.frame_id for t in TOPICS}
+            sim_rates = {t: stamp_rate(probe.msgs[t]) for t in TOPICS}
         finally:
             probe.close()
     images = {t for t in sim if '/image_raw' in t or '/camera_info' in t}
@@ -304,3 +353,9 @@ def test_topics_and_frames_match_rover_sim(tmp_path):
     assert {t: ty for t, ty in sim.items() if t not in images} == {
         t: ty for t, ty in hw.items() if not t.startswith(f'{NS}/bridge/')}
     assert sim_frames == hw_frames
+    print('\ntopic                          rover_sim Hz   bridge Hz   bridge/sim')
+    for t in TOPICS:
+        ratio = hw_rates[t] / sim_rates[t]
+        print(f'{t:30s} {sim_rates[t]:12.2f} {hw_rates[t]:11.2f} {ratio:12.3f}')
+    assert all(abs(hw_rates[t] / sim_rates[t] - 1.0) <= 0.05 for t in TOPICS), (sim_rates,
+                                                                               hw_rates)
