@@ -58,6 +58,8 @@ __all__ = ['ContactState', 'SlotGeometry', 'CardPose', 'Contact', 'Identificatio
            'planar_step_in_frame', 'INCH']
 
 INCH = 0.0254
+#: weight per newton of the contact forces in the fit (chi^2 units: 0.01 costs 0.0625 at 25 N)
+SQUEEZE_RIDGE = 0.01
 
 
 class ContactState(enum.Enum):
@@ -274,7 +276,13 @@ class ContactIdentifier:
     def _fit_points(self, w: np.ndarray, specs: list[_Spec], points: list[np.ndarray]
                     ) -> tuple[float, np.ndarray, list[np.ndarray]]:
         a = np.hstack([self._generators(pt, sp.normal) for pt, sp in zip(points, specs)])
-        lam, _ = nnls(a * self._scale[:, None], w * self._scale)
+        # the least contact forces that fit: two opposed contacts can squeeze the card with any
+        # force and leave the wrench unchanged, and a bare NNLS picked hundreds of newtons of
+        # such squeeze from a 0.8 N reading (then a 24 mm 'retreat' from it); the tiny ridge
+        # costs nothing where the fit is unique
+        ridge = SQUEEZE_RIDGE * np.eye(a.shape[1])
+        lam, _ = nnls(np.vstack([a * self._scale[:, None], ridge]),
+                      np.concatenate([w * self._scale, np.zeros(a.shape[1])]))
         r = (w - a @ lam) * self._scale
         ncol = a.shape[1] // len(specs)
         return float(r @ r), lam, [lam[k * ncol:(k + 1) * ncol] for k in range(len(specs))]
