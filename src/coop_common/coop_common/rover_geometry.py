@@ -93,6 +93,24 @@ def card_fk(q2: float, q3: float, q4: float) -> tuple[float, float, float]:
 
 
 
+def arm_gravity_moment(q, *, g: float = 9.81) -> np.ndarray:
+    """The moment of the arm's own weight (ARM_LINKS beyond the F/T sensor) that the sensor
+    reads at joint angles q (4, rad): base axes, about the sensor's origin, the base level.
+    Quasi-static (no link accelerations). The force part is the arm's weight whatever q is; the
+    moment moves with the links' centres of mass: mg (a_y, -a_x, 0) summed, a the centre's
+    horizontal offset from the sensor."""
+    q1, q2, q3, q4 = (float(v) for v in q)
+    l2, l3 = ARM_LINKS[1].length, ARM_LINKS[2].length
+    t2, t3, t4 = q2, q2 + q3, q2 + q3 + q4
+    # each link's c.o.m. along the arm's plane, from joint 1's vertical axis
+    reach = (ARM_LINKS[0].com[0],
+             ARM_LINKS[1].com[0] * np.cos(t2),
+             l2 * np.cos(t2) + ARM_LINKS[2].com[0] * np.cos(t3),
+             l2 * np.cos(t2) + l3 * np.cos(t3) + ARM_LINKS[3].com[0] * np.cos(t4))
+    first = sum(link.mass * x for link, x in zip(ARM_LINKS, reach))
+    return np.array([g * first * np.sin(q1), -g * first * np.cos(q1), 0.0])
+
+
 def yaw_of(qx: float, qy: float, qz: float, qw: float) -> float:
     """Heading (rad) of a quaternion (x, y, z, w): its rotation about z (e.g. odometry's)."""
     return float(np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)))

@@ -395,20 +395,23 @@ class LeastResistance:
     over the stiffness. The projection is the least-squares nearest feasible increment (rotation
     weighted by half the card width), then bounded by max_step_m / max_rotation_rad and so that
     no point of the card moves further than (force_limit_n - |F|) / stiffness: a contact the
-    identification missed cannot go over the limit in one step either.
+    identification missed cannot go over the limit in one step either. A retreat far beyond
+    what the excess force asks (conflicting constraints of a wedge) backs off along the card's
+    axis instead.
 
     Options (keyword-only): insert_step_m (nominal advance per step), max_step_m,
     max_rotation_rad, force_limit_n (default 25 N), stiffness_n_per_m (contact stiffness seen
     through the arm and base), contact_force_n (the light contact force kept while sliding;
     above it the step also lifts off), align_gain (fraction of the estimated lateral/tilt
     misalignment removed per step), entry_margin_m (how far inside the jaw edge a corner is
-    aimed when sliding off a mouth face; default a quarter of the clearance)."""
+    aimed when sliding off a mouth face; default a quarter of the clearance), level_rad (a card
+    SEATED by the wrench but tilted by more than this by the estimate is rotated flat)."""
 
     def __init__(self, geometry: SlotGeometry, *, insert_step_m: float = 0.0005,
                  max_step_m: float = 0.002, max_rotation_rad: float = 0.01,
                  force_limit_n: float = 25.0, stiffness_n_per_m: float = 2.0e4,
                  contact_force_n: float = 3.0, align_gain: float = 0.3,
-                 entry_margin_m: float | None = None) -> None:
+                 entry_margin_m: float | None = None, level_rad: float = 0.004) -> None:
         if not isinstance(geometry, SlotGeometry):
             raise InsertionError('geometry must be a SlotGeometry')
         self.geometry = geometry
@@ -427,6 +430,7 @@ class LeastResistance:
                                else _pos('entry_margin_m', entry_margin_m))
         if self.entry_margin_m >= geometry.clearance_m / 2:
             raise InsertionError('entry_margin_m must be below half the clearance')
+        self.level_rad = _pos('level_rad', level_rad, zero_ok=True)
         self._weight = np.array([1.0, 1.0, geometry.card_width_m / 2])
         self._reach = float(np.hypot(geometry.card_width_m / 2, geometry.card_height_m))
         self._budget = np.inf
@@ -443,7 +447,16 @@ class LeastResistance:
         if st is ContactState.FREE:
             return align + np.array([0.0, -step, 0.0]), 'free: advance along -y, align'
         if st is ContactState.SEATED:
-            return np.zeros(3), 'seated'
+            if abs(pose.theta) <= self.level_rad:
+                return np.zeros(3), 'seated'
+            # flat on the floor by the wrench, tilted by the estimate: level it about the
+            # lower corner (the corner on the bottom's rotation)
+            c = pose.corner(1 if pose.theta < 0 else -1, g.card_width_m)
+            dth = -pose.theta
+            r = pose.p - c
+            dp = dth * np.array([-r[1], r[0]])
+            return (np.array([dp[0], dp[1], dth]),
+                    'seated, tilted: rotate flat about the lower corner')
         if st is ContactState.CORNER_ON_MOUTH:
             # move the corner from where the wrench puts it to entry_margin inside the edge
             xc = ident.contacts[0].point[0]
@@ -525,8 +538,22 @@ class LeastResistance:
         retreat = any(b > 0 for _, b, _ in cons)
         if retreat:
             reason = 'force above the limit: retreat; ' + reason
+            d = self._sane_retreat(d, pose, max(b for _, b, _ in cons))
         return Step(float(d[0]), float(d[1]), float(d[2]), self._predict(ident, w, pose, d),
                     ident.state is ContactState.SEATED, retreat, reason)
+
+    def _sane_retreat(self, d: np.ndarray, pose: CardPose, need_m: float) -> np.ndarray:
+        """A retreat moves a contact point about as far as its excess force asks (need_m, the
+        largest (f - limit) / stiffness). Two nearly opposed contacts that both want relief (a
+        wedge) make the linear constraints conflict, and their least-squares answer can be
+        anything: a 122 mm, 44 deg 'retreat' into the slot in a 4.5 in trial. Such a retreat
+        (a card point moving more than twice the need and a step further) becomes a back-off
+        out of the slot along the card's axis u, by the need within the step bound."""
+        travel = float(np.hypot(d[0], d[1])) + abs(float(d[2])) * self._reach
+        if travel <= 2 * need_m + self.max_step_m:
+            return d
+        back = float(np.clip(need_m, self.insert_step_m, self.max_step_m))
+        return np.array([*(back * pose.u), 0.0])
 
     def _predict(self, ident: Identification, w: np.ndarray, pose: CardPose,
                  d: np.ndarray) -> float:
@@ -571,8 +598,8 @@ class LeastResistance:
     def _bound(self, d: np.ndarray, d_min: np.ndarray) -> np.ndarray:
         """Into the step bounds along the segment from d_min (the smallest feasible increment:
         0, or the retreat a force above the limit needs) to d; the feasible set is convex, so
-        the whole segment is feasible. A retreat larger than the bounds is kept whole: getting
-        under the force limit comes first."""
+        the whole segment is feasible. A retreat larger than the bounds is kept whole here
+        (getting under the force limit comes first), then checked by _sane_retreat."""
         def within(x: np.ndarray) -> bool:
             # and no card point moves further than an unforeseen contact could take before its
             # force reaches the limit (what the identification may have missed)

@@ -18,10 +18,13 @@ knows into arm-joint and base-velocity commands through three phases:
 3. FORCE_INSERT: when the tared force exceeds `contact_threshold_n`, every `force_period_s` the
    card's pose in the site frame (from the fused vision goal, odometry and encoders) and the
    tared F/T wrench in the task frame go to contact.ContactIdentifier, and
-   contact.LeastResistance's bounded step moves the card's target (the base stands still).
-   SEATED, the card's lower edge at the slot's depth (within 1 mm; the higher corner of a
-   tilted card), or stalled for `stall_s` within 4 mm of it, flat, against the bottom ends it
-   with success; a force above
+   contact.LeastResistance's bounded step moves the card's target (the base stands still). The
+   tare is taken when the descent starts; what the arm's own weight changes at the sensor as
+   its links move after that (rover_geometry.arm_gravity_moment) is taken out too. When the
+   floor pushes back, the card's depth is the floor's (floor_correction): the estimate's
+   lowest corner is put on it. The floor felt with the card's lower edge at the slot's depth
+   (the higher corner of a tilted card within 1 mm), or stalled for `stall_s` flat on both
+   corners within 2 mm, ends it with success (card_seated); a force above
    `abort_force_factor` x `max_force_n` in ABORT_SAMPLES consecutive readings ends it with
    failure, as does the caller's timeout.
 
@@ -42,6 +45,7 @@ import numpy as np
 from coop_common.rover_geometry import (
     BASE_HEIGHT_M,
     ReachError,
+    arm_gravity_moment,
     card_in_base,
     card_joints,
     joint2_in_base,
@@ -123,26 +127,52 @@ class _Target:
 
 #: the contact force must exceed the abort limit in this many consecutive F/T readings
 ABORT_SAMPLES = 3
+#: the floor felt corrects the site frame's depth only when the pose estimate puts the card's
+#: lowest corner within this of the floor (never a jaw's mouth, a slot depth away)
+FLOOR_GATE_M = 0.008
 
 
-def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, stalled: bool,
-                slot_depth_m: float, card_width_m: float, seat_angle_rad: float) -> bool:
-    """Whether the force-feedback insertion is done: the contact identified as SEATED; or the
-    card's estimated lower edge at the slot's depth (within 1 mm) with the bottom pushing back
-    (the pose estimate alone is off by millimetres in the graph: it put a free card 30.3 mm
-    in); or, stalled for the controller's stall time, within 4 mm of it, flat and on the
-    bottom at both corners (a force on one corner says the card is tilted, whatever the
-    estimate says). A card tilted in the slot rests on one corner with the other higher by
-    half its width x sin(tilt): seated means both corners down, so the depth is the higher
-    corner's."""
+def floor_felt(ident, min_force_n: float) -> bool:
+    """Whether the identified contact has the slot's floor pushing back on the card by more than
+    min_force_n: a corner on the bottom (alone or wedged) or the card seated."""
+    return any(c.kind in ('corner_on_bottom', 'seated') and c.normal_force_n > min_force_n
+               for c in ident.contacts)
+
+
+def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m: float,
+                     min_force_n: float, gate_m: float = FLOOR_GATE_M) -> float:
+    """How far to move the card pose's depth estimate (planar y, m) so that its lowest corner
+    lies on the slot's floor, when the floor is felt (floor_felt); 0 otherwise. The floor is
+    where the card stands: its depth is then measured by touch, not by the millimetre-off pose
+    that vision, odometry and encoders make."""
+    if not floor_felt(ident, min_force_n):
+        return 0.0
+    lowest = pose.y - card_width_m / 2 * abs(math.sin(pose.theta))
+    dy = -slot_depth_m - lowest
+    return dy if abs(dy) <= gate_m else 0.0
+
+
+def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, on_floor: bool,
+                stalled: bool, slot_depth_m: float, card_width_m: float,
+                seat_angle_rad: float) -> bool:
+    """Whether the force-feedback insertion is done: the floor felt (on_floor) and the card's
+    estimated lower edge at the slot's depth within 1 mm; or, stalled for the controller's
+    stall time on the floor at both corners or wedged there (SEATED, TWO_POINT), within 2 mm
+    of it and flat within seat_angle_rad. A card tilted in the slot rests on one corner with
+    the other higher: seated means both corners down, so the depth is the higher corner's,
+    half the card's width x sin(tilt) above the edge's centre. With the floor felt, the
+    controller has put the lowest corner on it (floor_correction), so the rule is one of
+    flatness: within 1 mm, 0.53 deg for the 4.25 in card. Without the floor pushing back it is
+    never seated, whatever the estimate says (it put a free card 30.3 mm in once, a wedged one
+    30.8 mm), and neither is a card the wrench calls SEATED at 1 deg (the truth's 2 mm is
+    1.06 deg)."""
     tilt = abs(tilt_rad)
     depth_high = depth_m - card_width_m / 2 * math.sin(tilt)
-    on_bottom = state in (ContactState.CORNER_ON_BOTTOM, ContactState.TWO_POINT,
-                          ContactState.SEATED)
-    at_floor = depth_high >= slot_depth_m - 0.001 and on_bottom
-    near_floor = (depth_high >= slot_depth_m - 0.004 and stalled and tilt <= seat_angle_rad and
-                  state in (ContactState.SEATED, ContactState.TWO_POINT))
-    return state is ContactState.SEATED or at_floor or near_floor
+    at_floor = on_floor and depth_high >= slot_depth_m - 0.001
+    near_floor = (on_floor and stalled and tilt <= seat_angle_rad and
+                  state in (ContactState.SEATED, ContactState.TWO_POINT) and
+                  depth_high >= slot_depth_m - 0.002)
+    return at_floor or near_floor
 
 
 class SlaveController:
@@ -214,6 +244,7 @@ class SlaveController:
         self._descending = False
         self._descent_start: float | None = None
         self._tare: np.ndarray | None = None
+        self._tare_moment = np.zeros(3)     # the arm's weight's moment at the tare
         self._recent: deque[tuple[float, np.ndarray]] = deque()
         self._last_force_step = -math.inf
         self._depths: deque[tuple[float, float]] = deque()
@@ -223,6 +254,7 @@ class SlaveController:
         self._contact_state = ''
         self._errors = (math.nan, math.nan)
         self._card_in_site: tuple[float, float, float] | None = None
+        self._floor_offset_m = 0.0      # the site's depth as the floor was felt (planar y)
         self.peak_force_n = 0.0
 
     # -- inputs -------------------------------------------------------------------------------
@@ -300,7 +332,13 @@ class SlaveController:
         return np.array([-math.sin(heading), math.cos(heading), 0.0])
 
     def _tared(self, w: np.ndarray) -> np.ndarray:
-        return w - self._tare if self._tare is not None else np.zeros(6)
+        """The F/T reading less the tare and less what the arm's own weight has changed in it
+        since the tare (its links moved: 0.1-0.2 N m at the sensor after a 30 mm descent, which
+        the contact identification read as a couple, a wedge)."""
+        if self._tare is None:
+            return np.zeros(6)
+        moved = arm_gravity_moment(self._state.q) - self._tare_moment
+        return w - self._tare - np.concatenate([np.zeros(3), moved])
 
     def _status(self) -> SlaveStatus:
         w = self._tared(self._state.wrench) if self._state is not None else np.zeros(6)
@@ -367,11 +405,12 @@ class SlaveController:
                 self._descending = True
                 self._descent_start = t
                 self._tare = np.mean([w for _, w in self._recent], axis=0)
+                self._tare_moment = arm_gravity_moment(s.q)
         if self._descending:
             arm_v[2] = -self.descent_speed
             tared = self._tared(s.wrench)
             force = float(np.linalg.norm(tared[:3]))
-            recent = np.mean([w for _, w in list(self._recent)[-4:]], axis=0) - self._tare
+            recent = self._tared(np.mean([w for _, w in list(self._recent)[-4:]], axis=0))
             if float(np.linalg.norm(recent[:3])) > self.contact_threshold_n:
                 self.phase = Phase.FORCE_INSERT
                 self._contact_since = t
@@ -410,12 +449,18 @@ class SlaveController:
         m = self.model
         lead = card[:3, 3] - card[:3, 2] * (m.card_height_m / 2)
         theta = math.atan2(card[1, 0], card[0, 0])
-        pose = CardPose(float(lead[0]), float(lead[1]), theta)
-        self._card_in_site = (pose.x, pose.y, pose.theta)
+        pose = CardPose(float(lead[0]), float(lead[1]) + self._floor_offset_m, theta)
         sensor = base_in_planar.copy()
         sensor[:3, 3] = base_in_planar[:3, :3] @ self.r2 + base_in_planar[:3, 3]
-        w = planar_wrench([task_wrench(s.wrench, sensor, tare=self._tare)])
+        w = planar_wrench([task_wrench(self._tared(s.wrench), sensor)])
         ident = self.identifier.identify(w, pose)
+        dy = floor_correction(ident, pose, slot_depth_m=m.slot_depth_m,
+                              card_width_m=m.card_width_m, min_force_n=self.contact_threshold_n)
+        if dy:
+            self._floor_offset_m += dy
+            pose = CardPose(pose.x, pose.y + dy, pose.theta)
+            ident = self.identifier.identify(w, pose)
+        self._card_in_site = (pose.x, pose.y, pose.theta)
         self._contact_state = ident.state.value
         # seated: identified so, or the card's edge at the floor's depth (within the pose
         # estimate's millimetre), or stalled near it with the floor pushing back
@@ -426,6 +471,7 @@ class SlaveController:
         stalled = (len(self._depths) > 1 and t - self._depths[0][0] >= 0.9 * self.stall_s and
                    max(d for _, d in self._depths) - min(d for _, d in self._depths) < 2e-4)
         if card_seated(ident.state, depth, pose.theta, stalled=stalled,
+                       on_floor=floor_felt(ident, self.contact_threshold_n),
                        slot_depth_m=m.slot_depth_m, card_width_m=m.card_width_m,
                        seat_angle_rad=self.identifier.seat_angle_rad):
             self._finish(True, f'seated ({ident.state.value}): card edge {depth * 1e3:.1f} mm '

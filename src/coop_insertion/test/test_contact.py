@@ -132,6 +132,21 @@ def test_a_wedge_fit_takes_the_least_squeeze_that_explains_the_wrench():
     assert np.hypot(step.dx, step.dy) <= planner.max_step_m * (1 + 1e-9)
 
 
+def test_a_retreat_goes_out_of_the_slot_and_is_bounded():
+    """Both contacts of a wedge over the force limit: their constraints conflict, and the
+    projection's answer for a 4.5 in trial's step was 122 mm and 44 deg into the slot (the fit
+    puts 127 N on each contact: a couple with little force that only a squeeze explains)."""
+    geo = SlotGeometry(slot_width_m=4.5 * INCH, slot_depth_m=0.030)
+    pose = CardPose(0.00268, -0.02621, 0.0811)
+    w = np.array([0.72, -1.86, 0.3])
+    ident = ContactIdentifier(geo).identify(w, pose)
+    planner = LeastResistance(geo)
+    step = planner.step(ident, w, pose)
+    assert step.dx * pose.u[0] + step.dy * pose.u[1] >= 0.0          # out, not in
+    assert np.hypot(step.dx, step.dy) <= planner.max_step_m * (1 + 1e-9)
+    assert abs(step.dtheta) <= planner.max_rotation_rad * (1 + 1e-9)
+
+
 CASES = [case_free, case_corner_on_mouth, case_edge_on_face, case_edge_on_side,
          case_corner_on_wall, case_corner_on_bottom, case_seated, case_two_point]
 

@@ -50,20 +50,60 @@ def test_a_card_tilted_on_one_corner_is_not_seated():
     from coop_insertion.contact import ContactState
     from coop_insertion.slave import card_seated
     geo = {'slot_depth_m': 0.030, 'card_width_m': 4.25 * INCH, 'seat_angle_rad': 0.02}
-    corner = ContactState.CORNER_ON_BOTTOM
+    corner, wedged = ContactState.CORNER_ON_BOTTOM, ContactState.TWO_POINT
+    floor = {'on_floor': True}
     # 29.2 mm at the lower edge's centre, tilted 2 deg: the higher corner is 27.3 mm down
-    assert not card_seated(corner, 0.0292, math.radians(2.0), stalled=True, **geo)
-    assert not card_seated(corner, 0.0295, -0.03, stalled=False, **geo)
+    assert not card_seated(corner, 0.0292, math.radians(2.0), stalled=True, **floor, **geo)
+    assert not card_seated(corner, 0.0295, -0.03, stalled=False, **floor, **geo)
     # flat: at the floor within 1 mm, or stalled within 4 mm against the bottom
-    assert card_seated(corner, 0.0296, math.radians(0.5), stalled=False, **geo)
-    assert not card_seated(corner, 0.0265, 0.0, stalled=True, **geo)   # one corner: tilted
-    assert card_seated(ContactState.TWO_POINT, 0.0265, 0.0, stalled=True, **geo)
-    assert not card_seated(corner, 0.0265, 0.0, stalled=False, **geo)
-    assert not card_seated(ContactState.FREE, 0.0265, 0.0, stalled=True, **geo)
-    assert card_seated(ContactState.SEATED, 0.020, 0.0, stalled=False, **geo)
-    # at the floor by the estimate, but nothing pushes back: the estimate is off, go on
-    assert not card_seated(ContactState.FREE, 0.0303, math.radians(0.8), stalled=False, **geo)
-    assert not card_seated(ContactState.CORNER_ON_WALL, 0.0300, 0.0, stalled=False, **geo)
+    assert card_seated(corner, 0.0296, math.radians(0.5), stalled=False, **floor, **geo)
+    assert not card_seated(corner, 0.0285, 0.0, stalled=True, **floor, **geo)   # one corner
+    assert card_seated(wedged, 0.0285, 0.0, stalled=True, **floor, **geo)
+    assert not card_seated(wedged, 0.0275, 0.0, stalled=True, **floor, **geo)   # 2.5 mm short
+    assert not card_seated(corner, 0.0285, 0.0, stalled=False, **floor, **geo)
+    seated = ContactState.SEATED
+    assert card_seated(seated, 0.0298, 0.0, stalled=False, **floor, **geo)
+    # the wrench says both corners are down, the estimate 1 deg with its lower corner on the
+    # floor (floor_correction): the higher corner is 1.9 mm up
+    centre = 0.030 - geo['card_width_m'] / 2 * math.sin(math.radians(1.0))
+    assert not card_seated(seated, centre, math.radians(1.0), stalled=False, **floor, **geo)
+    # at the floor by the estimate, but nothing pushes back from it: the estimate is off, go on
+    # (a free card; a card wedged between a wall and the other jaw, 30.8 mm in by the estimate)
+    for state in (ContactState.FREE, ContactState.CORNER_ON_WALL, wedged):
+        assert not card_seated(state, 0.0308, math.radians(0.8), stalled=True, on_floor=False,
+                               **geo)
+
+
+def test_the_floor_felt_sets_the_depth_of_the_cards_lowest_corner():
+    from coop_insertion.contact import CardPose, Contact, ContactState, Identification
+    from coop_insertion.slave import floor_correction
+    geo = {'slot_depth_m': 0.030, 'card_width_m': 4.25 * INCH, 'min_force_n': 1.5}
+
+    def ident(kind: str, force: float, state=ContactState.CORNER_ON_BOTTOM) -> Identification:
+        c = Contact(np.array([-0.05, -0.03]), np.array([0.0, 1.0]), force, 0.0, -1, kind)
+        return Identification(state, -1, (c,), 0.0, 0.0)
+
+    # the estimate put the edge's centre 32.7 mm down at 1.4 deg: its lowest corner 34.0 mm,
+    # through the floor; felt on the bottom, the lowest corner is at 30 mm, the other 27.4 mm
+    tilt = math.radians(1.4)
+    pose = CardPose(0.0, -0.0327, tilt)
+    dy = floor_correction(ident('corner_on_bottom', 6.0), pose, **geo)
+    lowest = pose.y + dy - geo['card_width_m'] / 2 * math.sin(tilt)
+    assert dy > 0 and lowest == pytest.approx(-0.030)
+    from coop_insertion.slave import card_seated
+    depth = -(pose.y + dy)
+    assert not card_seated(ContactState.CORNER_ON_BOTTOM, depth, tilt, stalled=True,
+                           on_floor=True, slot_depth_m=0.030, card_width_m=geo['card_width_m'],
+                           seat_angle_rad=0.02)
+    # seated flat 1 mm short of the floor by the estimate: moved down 1 mm
+    assert floor_correction(ident('seated', 4.0, ContactState.SEATED), CardPose(0.0, -0.029, 0.0),
+                            **geo) == pytest.approx(-0.001)
+    # no correction: a light touch, a contact that is not the floor, a floor 2 cm off the
+    # estimate (that is a jaw's mouth, whatever the identification says)
+    assert floor_correction(ident('corner_on_bottom', 1.0), pose, **geo) == 0.0
+    assert floor_correction(ident('corner_on_wall', 9.0), pose, **geo) == 0.0
+    assert floor_correction(ident('corner_on_bottom', 9.0), CardPose(0.0, -0.010, 0.0),
+                            **geo) == 0.0
 
 
 def test_the_abort_needs_a_force_sustained_over_three_readings():
