@@ -367,7 +367,8 @@ class ContactIdentifier:
 class Step:
     """One commanded increment of the card, in the site frame: (dx, dy) of the card's
     leading-edge centre and dtheta about it. predicted_force_n: the largest contact force the
-    stiffness model predicts after the step; done when SEATED; reason says why this step."""
+    stiffness model predicts after the step; done when SEATED and pressed to seat_force_n;
+    reason says why this step."""
 
     dx: float
     dy: float
@@ -404,14 +405,16 @@ class LeastResistance:
     through the arm and base), contact_force_n (the light contact force kept while sliding;
     above it the step also lifts off), align_gain (fraction of the estimated lateral/tilt
     misalignment removed per step), entry_margin_m (how far inside the jaw edge a corner is
-    aimed when sliding off a mouth face; default a quarter of the clearance), level_rad (a card
-    SEATED by the wrench but tilted by more than this by the estimate is rotated flat)."""
+    aimed when sliding off a mouth face; default a quarter of the clearance), level_rad (the
+    turn a step about a corner on the bottom when the estimate does not say which way),
+    seat_force_n (a SEATED card is pressed until the floor pushes back this hard)."""
 
     def __init__(self, geometry: SlotGeometry, *, insert_step_m: float = 0.0005,
                  max_step_m: float = 0.002, max_rotation_rad: float = 0.01,
                  force_limit_n: float = 25.0, stiffness_n_per_m: float = 2.0e4,
                  contact_force_n: float = 3.0, align_gain: float = 0.3,
-                 entry_margin_m: float | None = None, level_rad: float = 0.004) -> None:
+                 entry_margin_m: float | None = None, level_rad: float = 0.004,
+                 seat_force_n: float = 3.0) -> None:
         if not isinstance(geometry, SlotGeometry):
             raise InsertionError('geometry must be a SlotGeometry')
         self.geometry = geometry
@@ -430,7 +433,8 @@ class LeastResistance:
                                else _pos('entry_margin_m', entry_margin_m))
         if self.entry_margin_m >= geometry.clearance_m / 2:
             raise InsertionError('entry_margin_m must be below half the clearance')
-        self.level_rad = _pos('level_rad', level_rad, zero_ok=True)
+        self.level_rad = _pos('level_rad', level_rad)
+        self.seat_force_n = _pos('seat_force_n', seat_force_n, zero_ok=True)
         self._weight = np.array([1.0, 1.0, geometry.card_width_m / 2])
         self._reach = float(np.hypot(geometry.card_width_m / 2, geometry.card_height_m))
         self._budget = np.inf
@@ -447,16 +451,13 @@ class LeastResistance:
         if st is ContactState.FREE:
             return align + np.array([0.0, -step, 0.0]), 'free: advance along -y, align'
         if st is ContactState.SEATED:
-            if abs(pose.theta) <= self.level_rad:
+            # flat on the floor by the wrench: press until the floor pushes back by
+            # seat_force_n, where one corner's moment would stand clear of the noise
+            pressed = sum(c.normal_force_n for c in ident.contacts)
+            if pressed >= self.seat_force_n:
                 return np.zeros(3), 'seated'
-            # flat on the floor by the wrench, tilted by the estimate: level it about the
-            # lower corner (the corner on the bottom's rotation)
-            c = pose.corner(1 if pose.theta < 0 else -1, g.card_width_m)
-            dth = -pose.theta
-            r = pose.p - c
-            dp = dth * np.array([-r[1], r[0]])
-            return (np.array([dp[0], dp[1], dth]),
-                    'seated, tilted: rotate flat about the lower corner')
+            dy = min(step, (self.seat_force_n - pressed) / self.stiffness)
+            return np.array([0.0, -dy, 0.0]), 'seated: press to the seating force'
         if st is ContactState.CORNER_ON_MOUTH:
             # move the corner from where the wrench puts it to entry_margin inside the edge
             xc = ident.contacts[0].point[0]
@@ -479,11 +480,14 @@ class LeastResistance:
             return (np.array([-s * 0.5 * step, -step, align[2]]),
                     'corner on a wall: slide along it, align')
         if st is ContactState.CORNER_ON_BOTTOM:
-            # pivot about the corner on the bottom until the leading face is flat (by the
-            # estimate: a turn by the contact's side alone, at a quarter of max_rotation_rad a
-            # step, drove the other corner into the bottom at 38-71 N through the graph)
+            # pivot about the corner on the bottom until the other comes down too: by the
+            # estimate's tilt when it agrees with the wrench (corner s lowest turns the card
+            # towards sign s), else by level_rad a step the wrench's way (through the graph the
+            # estimate called a card flat that stood on one corner, tilted past its tolerance)
             c = ident.contacts[0].point
             dth = -pose.theta
+            if not (np.sign(dth) == s and abs(dth) > self.level_rad):
+                dth = s * self.level_rad
             r = pose.p - c
             dp = dth * np.array([-r[1], r[0]])
             return np.array([dp[0], dp[1], dth]), 'corner on the bottom: rotate flat about it'
@@ -540,7 +544,8 @@ class LeastResistance:
             reason = 'force above the limit: retreat; ' + reason
             d = self._sane_retreat(d, pose, max(b for _, b, _ in cons))
         return Step(float(d[0]), float(d[1]), float(d[2]), self._predict(ident, w, pose, d),
-                    ident.state is ContactState.SEATED, retreat, reason)
+                    ident.state is ContactState.SEATED and not retreat and not np.any(desired),
+                    retreat, reason)
 
     def _sane_retreat(self, d: np.ndarray, pose: CardPose, need_m: float) -> np.ndarray:
         """A retreat moves a contact point about as far as its excess force asks (need_m, the

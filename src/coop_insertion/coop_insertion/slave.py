@@ -22,9 +22,9 @@ knows into arm-joint and base-velocity commands through three phases:
    tare is taken when the descent starts; what the arm's own weight changes at the sensor as
    its links move after that (rover_geometry.arm_gravity_moment) is taken out too. When the
    floor pushes back, the card's depth is the floor's (floor_correction): the estimate's
-   lowest corner is put on it. The floor felt with the card's lower edge at the slot's depth
-   (the higher corner of a tilted card within 1 mm), or stalled for `stall_s` flat on both
-   corners within 2 mm, ends it with success (card_seated); a force above
+   lowest corner is put on it. On one corner, the card turns about it towards the other
+   (by the contact's side when the estimate disagrees); both corners on the floor by the
+   wrench (SEATED), pressed to `seat_force_n`, end it with success (card_seated); a force above
    `abort_force_factor` x `max_force_n` in ABORT_SAMPLES consecutive readings ends it with
    failure, as does the caller's timeout.
 
@@ -132,11 +132,16 @@ ABORT_SAMPLES = 3
 FLOOR_GATE_M = 0.008
 
 
+def floor_force(ident) -> float:
+    """The normal force of the slot's floor on the card in an identified contact (N): its
+    corners on the bottom, alone or wedged, or the card seated; 0 without."""
+    return float(sum(c.normal_force_n for c in ident.contacts
+                     if c.kind in ('corner_on_bottom', 'seated')))
+
+
 def floor_felt(ident, min_force_n: float) -> bool:
-    """Whether the identified contact has the slot's floor pushing back on the card by more than
-    min_force_n: a corner on the bottom (alone or wedged) or the card seated."""
-    return any(c.kind in ('corner_on_bottom', 'seated') and c.normal_force_n > min_force_n
-               for c in ident.contacts)
+    """Whether the slot's floor pushes back on the card by more than min_force_n."""
+    return floor_force(ident) > min_force_n
 
 
 def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m: float,
@@ -152,27 +157,19 @@ def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m
     return dy if abs(dy) <= gate_m else 0.0
 
 
-def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, on_floor: bool,
-                stalled: bool, slot_depth_m: float, card_width_m: float,
-                seat_angle_rad: float) -> bool:
-    """Whether the force-feedback insertion is done: the floor felt (on_floor) and the card's
-    estimated lower edge at the slot's depth within 1 mm; or, stalled for the controller's
-    stall time on the floor at both corners or wedged there (SEATED, TWO_POINT), within 2 mm
-    of it and flat within seat_angle_rad. A card tilted in the slot rests on one corner with
-    the other higher: seated means both corners down, so the depth is the higher corner's,
-    half the card's width x sin(tilt) above the edge's centre. With the floor felt, the
-    controller has put the lowest corner on it (floor_correction), so the rule is one of
-    flatness: within 1 mm, 0.53 deg for the 4.25 in card. Without the floor pushing back it is
-    never seated, whatever the estimate says (it put a free card 30.3 mm in once, a wedged one
-    30.8 mm), and neither is a card the wrench calls SEATED at 1 deg (the truth's 2 mm is
-    1.06 deg)."""
-    tilt = abs(tilt_rad)
-    depth_high = depth_m - card_width_m / 2 * math.sin(tilt)
-    at_floor = on_floor and depth_high >= slot_depth_m - 0.001
-    near_floor = (on_floor and stalled and tilt <= seat_angle_rad and
-                  state in (ContactState.SEATED, ContactState.TWO_POINT) and
-                  depth_high >= slot_depth_m - 0.002)
-    return at_floor or near_floor
+def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, floor_force_n: float,
+                seat_force_n: float, slot_depth_m: float, card_width_m: float) -> bool:
+    """Whether the force-feedback insertion is done: the wrench says both of the card's corners
+    are on the floor (SEATED) and the floor pushes back by at least seat_force_n, which is
+    where a single corner's moment (half the card's width x the force) stands clear of the
+    sensor's noise; the pose estimate only has to agree that the higher corner is within 4 mm
+    of the floor (half the card's width x sin(tilt) above the edge's centre). The estimate
+    alone decides nothing: it put a free card 30.3 mm in, a wedged one 30.8 mm, and through the
+    graph a card on one corner, 0.3 deg from flat, where the truth had it tilted by more than
+    the 1.06 deg its 2 mm allow."""
+    depth_high = depth_m - card_width_m / 2 * math.sin(abs(tilt_rad))
+    return (state is ContactState.SEATED and floor_force_n >= seat_force_n and
+            depth_high >= slot_depth_m - 0.004)
 
 
 class SlaveController:
@@ -182,7 +179,8 @@ class SlaveController:
     standoff_m override (else the model's), descent_speed_m_s, contact_threshold_n, max_force_n
     (the least-resistance force limit), abort_force_factor, force_period_s, carry_reach_m,
     carry_height_m, ready_s, servo (a VisualServo; default one with arm_home at the carry
-    pose), identifier / planner options through `contact_options` / `step_options`."""
+    pose), identifier / planner options through `contact_options` / `step_options`,
+    approach_speed_m_s, seat_force_n (the floor's push on both corners that ends it)."""
 
     def __init__(self, model: TaskModel, cg_to_arm, *, tolerance_m: float = 0.003,
                  angle_tolerance_rad: float = 0.03, yaw_tolerance_rad: float = 0.15,
@@ -193,7 +191,7 @@ class SlaveController:
                  carry_height_m: float = 0.0, ready_s: float = 2.0,
                  servo: VisualServo | None = None, contact_options: dict | None = None,
                  step_options: dict | None = None, site_in_odom=None,
-                 approach_speed_m_s: float = 0.1, stall_s: float = 2.0) -> None:
+                 approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0) -> None:
         if not isinstance(model, TaskModel):
             raise InsertionError('model must be a TaskModel')
         self.model = model
@@ -225,12 +223,15 @@ class SlaveController:
                                               np.all(np.isfinite(self.site_in_odom))):
             raise InsertionError('site_in_odom must be a finite 4x4 pose')
         self.approach_speed = float(approach_speed_m_s)
-        self.stall_s = float(stall_s)
+        if not 0 < seat_force_n < max_force_n:
+            raise InsertionError('seat_force_n must be in (0, max_force_n)')
+        self.seat_force_n = float(seat_force_n)
         self.servo = servo if servo is not None else VisualServo(
             arm_home_m=tuple(self.carry), max_arm_speed_m_s=0.04, base_deadband_m=0.04)
         geo = model.geometry
         self.identifier = ContactIdentifier(geo, **(contact_options or {}))
-        self.planner = LeastResistance(geo, force_limit_n=max_force_n, **(step_options or {}))
+        self.planner = LeastResistance(geo, force_limit_n=max_force_n,
+                                       seat_force_n=seat_force_n, **(step_options or {}))
         self.reset()
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -247,7 +248,6 @@ class SlaveController:
         self._tare_moment = np.zeros(3)     # the arm's weight's moment at the tare
         self._recent: deque[tuple[float, np.ndarray]] = deque()
         self._last_force_step = -math.inf
-        self._depths: deque[tuple[float, float]] = deque()
         self._done = False
         self._success = False
         self._reason = ''
@@ -462,21 +462,15 @@ class SlaveController:
             ident = self.identifier.identify(w, pose)
         self._card_in_site = (pose.x, pose.y, pose.theta)
         self._contact_state = ident.state.value
-        # seated: identified so, or the card's edge at the floor's depth (within the pose
-        # estimate's millimetre), or stalled near it with the floor pushing back
+        # seated: both corners on the floor by the wrench, pressed to seat_force_n
         depth = -pose.y
-        self._depths.append((t, depth))
-        while self._depths and self._depths[0][0] < t - self.stall_s:
-            self._depths.popleft()
-        stalled = (len(self._depths) > 1 and t - self._depths[0][0] >= 0.9 * self.stall_s and
-                   max(d for _, d in self._depths) - min(d for _, d in self._depths) < 2e-4)
-        if card_seated(ident.state, depth, pose.theta, stalled=stalled,
-                       on_floor=floor_felt(ident, self.contact_threshold_n),
-                       slot_depth_m=m.slot_depth_m, card_width_m=m.card_width_m,
-                       seat_angle_rad=self.identifier.seat_angle_rad):
-            self._finish(True, f'seated ({ident.state.value}): card edge {depth * 1e3:.1f} mm '
-                               f'into the slot, tilt {math.degrees(abs(pose.theta)):.1f} deg, '
-                               f'peak force {self.peak_force_n:.1f} N')
+        if card_seated(ident.state, depth, pose.theta, floor_force_n=floor_force(ident),
+                       seat_force_n=self.seat_force_n, slot_depth_m=m.slot_depth_m,
+                       card_width_m=m.card_width_m):
+            self._finish(True, f'seated: both corners on the floor at {floor_force(ident):.1f} N, '
+                               f'card edge {depth * 1e3:.1f} mm into the slot by the estimate, '
+                               f'tilt {math.degrees(abs(pose.theta)):.1f} deg, peak force '
+                               f'{self.peak_force_n:.1f} N')
             return self._command(self._joints(), 0.0, 0.0)
         step = self.planner.step(ident, w, pose)
         planar_in_base = invert(base_in_planar)

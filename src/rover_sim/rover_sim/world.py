@@ -715,9 +715,12 @@ class World:
         """The card's contacts over the last control step (None before the first step)."""
         return self.rovers[index].last_contact
 
-    def insertion_depth(self, index: int) -> float:
+    def insertion_depth(self, index: int, *, overlap_m: float = 5e-4) -> float:
         """How far the card's lower edge is into the slot below its mouth (m; negative: above
-        it), counted only while both lower corners are between the jaws (else -inf)."""
+        it), counted only while both lower corners are between the jaws (else -inf), a corner
+        against a jaw's wall counting as between them up to the contact solver's overlap
+        (`overlap_m`, the penetration an insertion is allowed: a card pressed against a wall
+        sits a few hundredths of a millimetre into it)."""
         site = self.layout.site
         pos, rot = self.card_pose(index)
         card = self.layout.card
@@ -728,7 +731,8 @@ class World:
         x1 = site.slot_centre[0] + site.gap_m / 2
         y0 = site.slot_centre[1] - site.jaws[2].half_extents[1]
         y1 = site.slot_centre[1] + site.jaws[2].half_extents[1]
-        if not all(x0 <= q[0] <= x1 and y0 <= q[1] <= y1 for q in lower):
+        if not all(x0 - overlap_m <= q[0] <= x1 + overlap_m and y0 <= q[1] <= y1
+                   for q in lower):
             return -math.inf
         return float(site.slot_centre[2] - max(q[2] for q in lower))
 
