@@ -163,6 +163,13 @@ class Identification:
     def in_contact(self) -> bool:
         return self.state is not ContactState.FREE
 
+    @property
+    def floor_force_n(self) -> float:
+        """The slot floor's normal force on the card (N): its corners on the bottom, alone or
+        wedged, or the card seated; 0 without."""
+        return float(sum(c.normal_force_n for c in self.contacts
+                         if c.kind in ('corner_on_bottom', 'seated')))
+
 
 def _check_wrench(w) -> np.ndarray:
     a = np.asarray(w, float)
@@ -453,7 +460,7 @@ class LeastResistance:
         if st is ContactState.SEATED:
             # flat on the floor by the wrench: press until the floor pushes back by
             # seat_force_n, where one corner's moment would stand clear of the noise
-            pressed = sum(c.normal_force_n for c in ident.contacts)
+            pressed = ident.floor_force_n
             if pressed >= self.seat_force_n:
                 return np.zeros(3), 'seated'
             dy = min(step, (self.seat_force_n - pressed) / self.stiffness)

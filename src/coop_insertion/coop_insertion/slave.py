@@ -132,25 +132,14 @@ ABORT_SAMPLES = 3
 FLOOR_GATE_M = 0.008
 
 
-def floor_force(ident) -> float:
-    """The normal force of the slot's floor on the card in an identified contact (N): its
-    corners on the bottom, alone or wedged, or the card seated; 0 without."""
-    return float(sum(c.normal_force_n for c in ident.contacts
-                     if c.kind in ('corner_on_bottom', 'seated')))
-
-
-def floor_felt(ident, min_force_n: float) -> bool:
-    """Whether the slot's floor pushes back on the card by more than min_force_n."""
-    return floor_force(ident) > min_force_n
-
-
 def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m: float,
                      min_force_n: float, gate_m: float = FLOOR_GATE_M) -> float:
     """How far to move the card pose's depth estimate (planar y, m) so that its lowest corner
-    lies on the slot's floor, when the floor is felt (floor_felt); 0 otherwise. The floor is
-    where the card stands: its depth is then measured by touch, not by the millimetre-off pose
-    that vision, odometry and encoders make."""
-    if not floor_felt(ident, min_force_n):
+    lies on the slot's floor, when the floor pushes back by more than min_force_n
+    (Identification.floor_force_n); 0 otherwise. The floor is where the card stands: its depth
+    is then measured by touch, not by the millimetre-off pose that vision, odometry and
+    encoders make."""
+    if ident.floor_force_n <= min_force_n:
         return 0.0
     lowest = pose.y - card_width_m / 2 * abs(math.sin(pose.theta))
     dy = -slot_depth_m - lowest
@@ -464,11 +453,12 @@ class SlaveController:
         self._contact_state = ident.state.value
         # seated: both corners on the floor by the wrench, pressed to seat_force_n
         depth = -pose.y
-        if card_seated(ident.state, depth, pose.theta, floor_force_n=floor_force(ident),
+        if card_seated(ident.state, depth, pose.theta, floor_force_n=ident.floor_force_n,
                        seat_force_n=self.seat_force_n, slot_depth_m=m.slot_depth_m,
                        card_width_m=m.card_width_m):
-            self._finish(True, f'seated: both corners on the floor at {floor_force(ident):.1f} N, '
-                               f'card edge {depth * 1e3:.1f} mm into the slot by the estimate, '
+            self._finish(True, f'seated: both corners on the floor at '
+                               f'{ident.floor_force_n:.1f} N, card edge {depth * 1e3:.1f} mm '
+                               f'into the slot by the estimate, '
                                f'tilt {math.degrees(abs(pose.theta)):.1f} deg, peak force '
                                f'{self.peak_force_n:.1f} N')
             return self._command(self._joints(), 0.0, 0.0)
