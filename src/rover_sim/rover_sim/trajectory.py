@@ -97,7 +97,9 @@ class JointTrajectoryFollower:
             if now >= t[-1]:
                 for j, i in enumerate(idx):
                     pos[i] = pts[-1][j]
-            elif now > t[0]:
+            elif now >= t[0]:
+                # at t[0] itself too: the first segment's start (a trajectory installed now is
+                # read at once; the hold there would drop the speed reference to zero)
                 k = bisect.bisect_right(t, now) - 1
                 span = t[k + 1] - t[k]
                 a = (now - t[k]) / span

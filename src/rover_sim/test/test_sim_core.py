@@ -117,6 +117,24 @@ def test_wheel_speeds_and_specific_force():
     assert specific_force(np.zeros(3), tilted)[0] == pytest.approx(-9.81 * math.sin(0.1))
 
 
+def test_trajectory_installed_now_is_read_at_once():
+    """Re-planned from where the reference is (its value and speed now), the path goes on
+    unchanged, also at the instant of the re-plan itself: the controller reads its first
+    reference there, and a hold (speed 0) would kick the joint at every re-plan (a device
+    re-planning at each set-point, 200 times a second)."""
+    f = JointTrajectoryFollower(('a',), np.zeros(1))
+    f.set(['a'], [0.1, 0.2], [[0.1], [0.2]], start_s=0.0, current=np.zeros(1),
+          velocities=[[1.0], [1.0]], current_velocity=np.ones(1))
+    q, qd = f.target(0.05)
+    np.testing.assert_allclose((q[0], qd[0]), (0.05, 1.0))
+    f.set(['a'], [0.05, 0.15], [[0.1], [0.2]], start_s=0.05, current=q, velocities=[[1.0], [1.0]],
+          current_velocity=qd)
+    np.testing.assert_allclose([v[0] for v in f.target(0.05)], (0.05, 1.0))
+    lin = JointTrajectoryFollower(('a',), np.zeros(1))
+    lin.set(['a'], [0.0, 0.1], [[0.0], [0.2]], start_s=1.0, current=np.zeros(1))
+    np.testing.assert_allclose([v[0] for v in lin.target(1.0)], (0.0, 2.0))
+
+
 def test_trajectory_follower_interpolates_and_holds():
     f = JointTrajectoryFollower(('a', 'b'), np.array([0.0, 1.0]))
     f.set(['b'], [1.0, 2.0], [[2.0], [4.0]], start_s=10.0, current=np.array([0.0, 1.0]))
