@@ -2,10 +2,9 @@
 behind the serial protocol) -> `rover_hw bridge` -> `coop_id identifier`, an `identify` goal
 (strategy information, 20 s, 10 % sensor noise), the estimate compared with the emulator's truth
 (Table 2-1): the figure and band `test_identification_graph.py` asserts through rover_sim
-directly. With set-points at the device's 200 Hz two runs gave 2.7 and 1.4 % (rover_sim
-directly, side by side: 2.2 %); at 100 Hz set-points the arm's reference stepped at 100 Hz, k_z
-came out 0 and the error 8-11 %, one run under a load of 9 on 2 cores failed (DDS losses, a
-0.19 s stall of the emulator). The emulator paces itself in real time on the wall clock."""
+directly. The emulator paces itself in real time on the wall clock and, sharing 2 cores with
+the graph, runs a little below it; the bridge's timed set-points keep the arm's path the one
+commanded (docs/results/hardware.md)."""
 from __future__ import annotations
 
 import time

@@ -67,9 +67,12 @@ PARAMS = {
     'heartbeat_timeout_s': ParamSpec(0.3, 'Every motor stops (and the link counts as down) when '
                                      'the device sent nothing valid for this long (s)',
                                      lo=0.05, hi=5.0),
-    'command_rate_hz': ParamSpec(200.0, 'Set-point frames to the device per second (its '
-                                 'control rate: slower set-points excite the base)', lo=10.0,
-                                 hi=500.0, read_only=True),
+    'command_rate_hz': ParamSpec(200.0, 'Command frames per second and the grid of device '
+                                 'instants arm and mast set-points are for (the control rate '
+                                 'of the device)', lo=10.0, hi=500.0, read_only=True),
+    'setpoint_lead_s': ParamSpec(0.1, 'Arm and mast set-points are sent this long ahead of the '
+                                 'device instant they are for (s): more than link delay and '
+                                 'host jitter, so each arrives in time', lo=0.005, hi=0.5),
     'odom_rate_hz': ParamSpec(50.0, 'Odometry rate (Hz), as rover_sim', lo=1.0, hi=200.0,
                               read_only=True),
     'stereo_pose_rate_hz': ParamSpec(4.0, 'stereo/pose rate (Hz): odometry + mast encoders; 0 '
@@ -100,21 +103,44 @@ def _stamp(t_ns: int):
 
 
 class ClockMap:
-    """Device time (us) -> ROS time (ns): device time plus the smallest offset seen since the
-    link came up (transport delay only ever adds), so stamps keep the device's own spacing
-    exactly; the offset only moves when a faster frame shows it too large. (A device clock
-    slower than the host's would make stamps lag slowly: re-anchored on each reconnect.)"""
+    """Device time (us) <-> the stamps' time (ns): device time plus the smallest offset seen
+    since the link came up (transport delay only ever adds), so stamps keep the device's own
+    spacing exactly; the offset only moves when a faster frame shows it too large. A device
+    clock slower than the host's makes stamps lag the host clock slowly (re-anchored on each
+    reconnect); commands are therefore timed on the stamps' clock, never on the host's, so
+    what the graph commands for a stamp happens at the device instant of that stamp."""
 
     def __init__(self) -> None:
         self._min: int | None = None
+        self._last: tuple[int, int] | None = None     # (device us, host ns) of the last frame
 
     def reset(self) -> None:
         self._min = None
+        self._last = None
 
     def map(self, device_us: int, now_ns: int) -> int:
         off = now_ns - device_us * 1000
         if self._min is None or off < self._min:
             self._min = off
+        self._last = (device_us, now_ns)
+        return device_us * 1000 + self._min
+
+    def now(self, now_ns: int) -> int | None:
+        """The stamps' clock now (ns): the last frame's stamp plus the host time since it came
+        (None before the first frame)."""
+        if self._min is None or self._last is None:
+            return None
+        device_us, host_ns = self._last
+        return device_us * 1000 + self._min + max(0, now_ns - host_ns)
+
+    def to_device_us(self, stamp_ns: int) -> int:
+        """The device time (us) of a time on the stamps' clock (after the first frame)."""
+        assert self._min is not None
+        return (stamp_ns - self._min) // 1000
+
+    def to_stamp_ns(self, device_us: int) -> int:
+        """The stamp of a device time (after the first frame)."""
+        assert self._min is not None
         return device_us * 1000 + self._min
 
 
@@ -147,6 +173,7 @@ class BridgeNode(LifecycleNode):
         self._enc_hist: deque = deque(maxlen=SEED_SAMPLES)
         self._seeded = False
         self._live = {'arm': False, 'mast': False}
+        self._next_us: dict[str, int | None] = {'arm': None, 'mast': None}
         self._arm = JointTrajectoryFollower(ARM_JOINTS, np.zeros(4))
         self._mast = JointTrajectoryFollower(MAST_JOINTS, np.zeros(2))
         self._wheels = (0.0, 0.0, 0.0, 0.0)
@@ -538,7 +565,7 @@ class BridgeNode(LifecycleNode):
             vels = ([list(pt.velocities) for pt in msg.points]
                     if all(len(pt.velocities) == len(names) for pt in msg.points) else None)
             start = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-            now = self._now_s()
+            now = self._stamp_now_s()
             with self._lock:
                 if not self._seeded:
                     raise CommandRefused('no measured state yet (device not streaming)')
@@ -564,8 +591,12 @@ class BridgeNode(LifecycleNode):
             self._wheels = wheels
         self.safety.drive_command()
 
-    def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+    def _stamp_now_s(self) -> float:
+        """Now on the stamps' clock (the device's, see ClockMap), the time base of trajectories;
+        the host clock before the first frame."""
+        host = self.get_clock().now().nanoseconds
+        t = self.clock_map.now(host)
+        return (host if t is None else t) * 1e-9
 
     def _on_control(self) -> None:
         """The command stream (command_rate_hz): set-points while allowed, a stop otherwise."""
@@ -582,21 +613,38 @@ class BridgeNode(LifecycleNode):
             # the wheels told to stand (the device's own e-stop holds everything else)
             self._send(p.DriveCommand(p.DriveMode.VELOCITY, (0.0, 0.0, 0.0, 0.0)))
             return
-        now = self._now_s()
+        lead_ns = int(round(self.values['setpoint_lead_s'] * 1e9))
+        period_us = int(round(1e6 / self.values['command_rate_hz']))
+        frames: list[p.Payload] = []
         with self._lock:
             if not self._seeded:
                 return
-            live = dict(self._live)
-            qa, va = self._arm.target(now)
-            qm, vm = self._mast.target(now)
+            # set-points on a grid of device instants, every one from the last sent up to
+            # `lead` ahead, each sent with the device time it is for: a late or skipped timer
+            # call sends the instants it missed, so the device's path never depends on when
+            # this callback ran (seeded means frames came, so the clock map has its offset)
+            now = self.clock_map.now(self.get_clock().now().nanoseconds)
+            if now is None:
+                return
+            first = -(-self.clock_map.to_device_us(now) // period_us) * period_us
+            last = self.clock_map.to_device_us(now + lead_ns)
+            for group, follower, kind in (('arm', self._arm, p.ArmCommand),
+                                          ('mast', self._mast, p.MastCommand)):
+                if not self._live[group]:
+                    self._next_us[group] = None
+                    continue
+                t_us = max(first, self._next_us[group] or first)
+                while t_us <= last:
+                    q, qd = follower.target(self.clock_map.to_stamp_ns(t_us) * 1e-9)
+                    frames.append(kind(tuple(float(x) for x in q),
+                                       tuple(float(x) for x in qd), t_us))
+                    t_us += period_us
+                self._next_us[group] = t_us
             if self.safety.drive_stop_reason():
                 self._wheels = (0.0, 0.0, 0.0, 0.0)
-            wheels = self._wheels
-        if live['arm']:
-            self._send(p.ArmCommand(tuple(float(x) for x in qa), tuple(float(x) for x in va)))
-        if live['mast']:
-            self._send(p.MastCommand(tuple(float(x) for x in qm), tuple(float(x) for x in vm)))
-        self._send(p.DriveCommand(p.DriveMode.VELOCITY, wheels))
+            frames.append(p.DriveCommand(p.DriveMode.VELOCITY, self._wheels))
+        for frame in frames:
+            self._send(frame)
 
     # ------------------------------------------------------------------ services
     def _wait_ack(self, seq: int | None, timeout_s: float = 0.25) -> p.Ack | None:

@@ -126,13 +126,15 @@ class Device:
     motor when the host falls silent for `host_timeout_s` or the e-stop is latched."""
 
     def __init__(self, world, *, faults: Faults | None = None, host_timeout_s: float = 0.25,
-                 heartbeat_hz: float = 10.0, setpoint_horizon_s: float = 0.005) -> None:
+                 heartbeat_hz: float = 10.0) -> None:
         self.world = world
         self.dt = world.dt
         self.inject = FaultInjector(faults or Faults())
         self.decoder = p.Decoder()
         self.host_timeout_s = host_timeout_s
-        self.setpoint_horizon_s = setpoint_horizon_s     # the host's set-point period
+        # timed set-points not yet reached, per group: [(t_s, positions, velocities)]
+        self._setpoints: dict[str, list[tuple[float, tuple, tuple]]] = {'arm': [], 'mast': []}
+        self.late_setpoints = 0         # timed set-points that came at or after their time
         self._hb_every = max(1, int(round(1.0 / (heartbeat_hz * self.dt))))
         self.estop = False
         self.last_host_s = -math.inf
@@ -172,18 +174,10 @@ class Device:
 
     def _apply(self, pl) -> None:
         w = self.world
-        h = self.setpoint_horizon_s
         if isinstance(pl, p.ArmCommand):
-            # a set-point stream (position and velocity now): the controller interpolates
-            # towards the set-point extrapolated one host period ahead, so the reference moves
-            # smoothly between set-points instead of stepping and waiting
-            from rover_sim.rover_model import ARM_JOINTS
-            ahead = [q + v * h for q, v in zip(pl.positions, pl.velocities)]
-            w.command_arm(0, ARM_JOINTS, [h], [ahead], velocities=[list(pl.velocities)])
+            self._follow('arm', pl)
         elif isinstance(pl, p.MastCommand):
-            from rover_sim.rover_model import MAST_JOINTS
-            ahead = [q + v * h for q, v in zip(pl.positions, pl.velocities)]
-            w.command_mast(0, MAST_JOINTS, [h], [ahead])
+            self._follow('mast', pl)
         elif isinstance(pl, p.DriveCommand):
             from .safety import Limits, wheels_to_twist
             wheels = list(pl.wheels)
@@ -194,8 +188,38 @@ class Device:
             v, yaw_rate = wheels_to_twist(wheels, Limits())
             w.command_velocity(0, v, yaw_rate)
 
+    def _follow(self, group: str, pl) -> None:
+        """A position-velocity-time set-point stream: the joint references pass through the
+        timed set-points still ahead, by cubic interpolation from where the reference is now.
+        Re-planned from the reference's own value and speed, the path is the same however a
+        set-point's arrival falls between control instants. A set-point at or past its time
+        is dropped while later ones are queued (the path goes on through them); otherwise it,
+        like an untimed one (t_us 0), is the target of the next control instant."""
+        from rover_sim.rover_model import ARM_JOINTS, MAST_JOINTS
+        now, w = self.time_s, self.world
+        t = pl.t_us * 1e-6
+        queue = self._setpoints[group]
+        if t <= now + 1e-9:
+            if pl.t_us:
+                self.late_setpoints += 1
+                if any(sp[0] > now for sp in queue):
+                    return
+            t = now + self.dt
+            queue.clear()
+        queue[:] = [sp for sp in queue if now < sp[0] < t][-16:]
+        queue.append((t, tuple(pl.positions), tuple(pl.velocities)))
+        times = [sp[0] - now for sp in queue]
+        positions = [list(sp[1]) for sp in queue]
+        if group == 'arm':
+            w.command_arm(0, ARM_JOINTS, times, positions,
+                          velocities=[list(sp[2]) for sp in queue])
+        else:
+            w.command_mast(0, MAST_JOINTS, times, positions)
+
     def _stop_motors(self) -> None:
         w = self.world
+        for queue in self._setpoints.values():
+            queue.clear()
         w.command_velocity(0, 0.0, 0.0)
         from rover_sim.rover_model import ARM_JOINTS, MAST_JOINTS
         # hold where the joints are (their encoders), not where the last set-point was
@@ -379,7 +403,9 @@ def main(argv: list[str] | None = None) -> int:
             with contextlib.suppress(OSError):
                 emu.link.unlink()
         world.close()
-        print(f'emulator: {emu.device.inject.counts}', file=sys.stderr, flush=True)
+        print(f'emulator: sent {emu.device.inject.counts}, late set-points '
+              f'{emu.device.late_setpoints}, refused {emu.device.refused}', file=sys.stderr,
+              flush=True)
     return 0
 
 

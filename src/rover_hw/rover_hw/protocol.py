@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from cobs import cobs
 
-VERSION = 1
+VERSION = 2
 DELIMITER = b'\x00'
 HEADER = struct.Struct('<BBHH')
 CRC = struct.Struct('<I')
@@ -81,8 +81,8 @@ I16 = 32767
 I32 = 2 ** 31 - 1
 
 _SENSORS = struct.Struct('<Q6i6i4hh2H6h3i3iB')
-_ARM = struct.Struct('<4f4f')
-_MAST = struct.Struct('<2f2f')
+_ARM = struct.Struct('<Q4f4f')
+_MAST = struct.Struct('<Q2f2f')
 _DRIVE = struct.Struct('<B4f')
 _ESTOP = struct.Struct('<B')
 _HEARTBEAT = struct.Struct('<BI')
@@ -107,14 +107,22 @@ class Sensors:
 
 @dataclass(frozen=True)
 class ArmCommand:
+    """A set-point for device time `t_us` (0: at once). The controller passes through its timed
+    set-points by cubic (position + velocity) interpolation at its own control instants, so
+    when a set-point arrives, within its lead, changes nothing in the path."""
+
     positions: tuple[float, float, float, float]
     velocities: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    t_us: int = 0
 
 
 @dataclass(frozen=True)
 class MastCommand:
+    """As ArmCommand, for the camera mast (pan, tilt)."""
+
     positions: tuple[float, float]
     velocities: tuple[float, float] = (0.0, 0.0)
+    t_us: int = 0
 
 
 @dataclass(frozen=True)
@@ -159,9 +167,9 @@ def _pack(p: Payload) -> tuple[FrameType, bytes]:
                 p.t_us, *p.encoders, *p.encoder_rates, *p.tachometers, p.pot, *p.incl, *p.ft,
                 *p.accel, *p.gyro, int(p.flags))
         if isinstance(p, ArmCommand):
-            return FrameType.ARM, _ARM.pack(*p.positions, *p.velocities)
+            return FrameType.ARM, _ARM.pack(p.t_us, *p.positions, *p.velocities)
         if isinstance(p, MastCommand):
-            return FrameType.MAST, _MAST.pack(*p.positions, *p.velocities)
+            return FrameType.MAST, _MAST.pack(p.t_us, *p.positions, *p.velocities)
         if isinstance(p, DriveCommand):
             return FrameType.DRIVE, _DRIVE.pack(int(p.mode), *p.wheels)
         if isinstance(p, EStop):
@@ -184,10 +192,10 @@ def _unpack(ftype: FrameType, data: bytes) -> Payload:
                            v[29:32], Flags(v[32]))
         if ftype is FrameType.ARM:
             v = _ARM.unpack(data)
-            return ArmCommand(v[:4], v[4:])
+            return ArmCommand(v[1:5], v[5:], v[0])
         if ftype is FrameType.MAST:
             v = _MAST.unpack(data)
-            return MastCommand(v[:2], v[2:])
+            return MastCommand(v[1:3], v[3:], v[0])
         if ftype is FrameType.DRIVE:
             v = _DRIVE.unpack(data)
             return DriveCommand(DriveMode(v[0]), v[1:])

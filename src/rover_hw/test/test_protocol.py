@@ -21,6 +21,8 @@ PAYLOADS = [
     sensors(3),
     p.ArmCommand((0.0, -0.5, 1.0, 0.25), (0.125, 0.0, -0.125, 0.0)),   # float32-exact
     p.MastCommand((0.5, -0.25)),
+    p.ArmCommand((0.5, 0.0, 0.0, 0.0), (0.0, 0.25, 0.0, 0.0), t_us=2**40 + 5),
+    p.MastCommand((0.5, -0.25), (0.0, 0.0), 123_456_789),
     p.DriveCommand(p.DriveMode.PWM, (0.5, -0.5, 0.5, -0.5)),
     p.EStop(True),
     p.Heartbeat(p.Flags.ESTOP, 123456),
@@ -67,7 +69,7 @@ def _body(version=p.VERSION, ftype=p.FrameType.ESTOP, seq=0, length=None, data=b
 
 @pytest.mark.parametrize('body, kind', [
     (_body(crc=1), p.Bad.BAD_CRC),
-    (_body(version=2), p.Bad.BAD_VERSION),
+    (_body(version=p.VERSION + 1), p.Bad.BAD_VERSION),
     (_body(ftype=0x7F), p.Bad.UNKNOWN_TYPE),
     (_body(length=5), p.Bad.BAD_LENGTH),
     (_body(data=b'\x01\x02'), p.Bad.BAD_LENGTH),      # ESTOP is one byte
