@@ -46,7 +46,7 @@ from coop_viewplan.frames import optical_quaternion
 from .drive import GoToPose, random_camera_pose, wrap
 from .errors import InsertionError
 from .markers import DETECTORS, make_detector
-from .task import LABELS, TaskModel, label_markers
+from .task import LABELS, SlotPair, TaskModel, find_slot, label_markers
 from .triangulate import triangulate_markers
 
 PARAMS = {
@@ -62,6 +62,10 @@ PARAMS = {
     'marker_min_contrast': ParamSpec(15.0, 'Default detector: least marker-to-surround contrast '
                                      '(grey levels; a 3-4 px slot marker shaded across its '
                                      'face measures 20-30)', lo=1.0, hi=254.0, read_only=True),
+    'remember_slot': ParamSpec(True, 'Label the card against the slot pair seen before while '
+                               'the camera stands still (the card hides or shades a slot '
+                               'marker as it comes to the mouth); dropped when the camera '
+                               'moves'),
     'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
                                 '(0: every frame)', lo=0.0, hi=100.0),
     'site_position': ParamSpec([3.0572, 0.0, 0.4], "The slot mouth's centre in the map "
@@ -142,7 +146,10 @@ class MasterNode(Node):
         self._fix_t = -math.inf            # stamp of the last published fix (s)
         self.card_in_map: np.ndarray | None = None    # card markers' midpoint, last fix
         self.tracked = 0
+        self.remembered = 0                # fixes labelled against the remembered slot pair
         self.replacements = 0
+        # the slot pair last seen since the camera was placed (dropped when it moves again)
+        self._slot: SlotPair | None = None
         self.rng = np.random.default_rng(int(self.p['seed']))
         for side in ('left', 'right'):
             self.create_subscription(Image, f'{r}/stereo/{side}/image_raw',
@@ -221,12 +228,23 @@ class MasterNode(Node):
         mr = self.detector.detect(image_to_array(right))
         st = triangulate_markers(ml, mr, self.camera)
         up = camera_in_base(*self.mast)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        radii = [ml[m.left].radius_px for m in st]
+        # the camera moves only when the master places it: a slot pair seen while it stands is
+        # where the slot is for as long as it stands
+        standing = self._drive is None
+        memory = self._slot if standing and self.p['remember_slot'] else None
         try:
-            lab = label_markers(st, [ml[m.left].radius_px for m in st], self.camera.fx, up,
-                                self.model)
+            lab = label_markers(st, radii, self.camera.fx, up, self.model, slot_memory=memory)
         except InsertionError as exc:
+            slot = find_slot(st, radii, self.camera.fx, up, self.model)
+            if slot is not None and standing:
+                self._slot = slot
             self.get_logger().info(f'markers: {exc}', throttle_duration_sec=5.0)
             return
+        if lab.slot_remembered:
+            self.remembered += 1
+        elif standing:
+            self._slot = lab.slot
         msg = MarkerObservation()
         msg.header = left.header
         msg.labels = list(LABELS)
@@ -389,6 +407,7 @@ class MasterNode(Node):
         if isinstance(where, str):
             return where
         xy, yaw, pitch, how = where
+        self._slot = None
         try:
             mount = camera_mount(xy, yaw, pitch)
         except ReachError as exc:
@@ -413,6 +432,7 @@ class MasterNode(Node):
                     return f'timed out placing the camera ({self.p["place_timeout_s"]:g} s)'
         finally:
             self._drive = None
+            self._slot = None
             self.pub_cmd.publish(Twist())
         return None
 

@@ -19,6 +19,9 @@ slave's base frame (frames.required_motion_from_points). The camera's own pose i
 `label_markers` turns a stereo frame's triangulated markers into the four labelled points: the
 card's two by their size (0.5 in across against the slot's 0.25 in, §5.3), each pair ordered
 along the site's x as the camera sees it (the vertical crossed with the viewing direction).
+The site does not move: a camera that stands still may label the card against the slot pair
+it saw before (`slot_memory`, from `find_slot` or an earlier labelling), when the card in
+front of the mouth hides a slot marker or shades it out of a marker's size.
 
 No rclpy here.
 """
@@ -34,7 +37,8 @@ from .errors import InsertionError
 from .frames import RequiredMotion, homogeneous, invert, required_motion_from_points, third_point
 from .triangulate import StereoMarker
 
-__all__ = ['TaskModel', 'LabelledMarkers', 'label_markers', 'card_required_motion', 'LABELS']
+__all__ = ['TaskModel', 'LabelledMarkers', 'SlotPair', 'label_markers', 'find_slot',
+           'card_required_motion', 'LABELS']
 
 LABELS = ('card_a', 'card_b', 'slot_a', 'slot_b')
 
@@ -114,6 +118,19 @@ class LabelledMarkers:
     points: np.ndarray          # (4, 3)
     covariances: np.ndarray     # (4, 3, 3)
     up: np.ndarray              # (3,)
+    slot_remembered: bool = False   # the slot rows are the slot_memory's, not this frame's
+
+    @property
+    def slot(self) -> SlotPair:
+        return SlotPair(self.points[2:], self.covariances[2:])
+
+
+@dataclass(frozen=True)
+class SlotPair:
+    """The slot's two markers in the camera frame (slot_a, slot_b) and their covariances."""
+
+    points: np.ndarray          # (2, 3)
+    covariances: np.ndarray     # (2, 3, 3)
 
 
 def _size_m(m: StereoMarker, radius_px: float, fx: float) -> float:
@@ -121,15 +138,19 @@ def _size_m(m: StereoMarker, radius_px: float, fx: float) -> float:
 
 
 def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
-                  model: TaskModel, *, size_tolerance: float = 0.6) -> LabelledMarkers:
+                  model: TaskModel, *, size_tolerance: float = 0.6,
+                  slot_memory: SlotPair | None = None,
+                  memory_gate_m: float = 0.02) -> LabelledMarkers:
     """The card's and the slot's markers among the triangulated ones. radii_px: each marker's
     radius in the left image; fx: the focal length (px); up: the vertical in the camera frame.
     Markers whose size (radius_px * Z / fx) is within a factor 1 + size_tolerance of either
     kind's are candidates (a fiducial or a glint is not; small markers look larger than they
     are: blur, shading). The labelling is the pair of disjoint candidate pairs whose distances
     apart match the card's and the slot's within 20 %, the card's pair the larger, with the
-    least squared spacing error; none: InsertionError (the caller holds and waits for the next
-    frame)."""
+    least squared spacing error. With no such pair of pairs and a `slot_memory` (the camera has
+    not moved since), the card's pair alone among the markers farther than `memory_gate_m`
+    from the remembered slot markers, labelled with the remembered slot rows. None of these:
+    InsertionError (the caller holds and waits for the next frame)."""
     u = np.asarray(up, float)
     if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
         raise InsertionError('up must be a finite non-zero 3-vector')
@@ -173,6 +194,16 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
             cost = ec * ec + es * es + 0.01 * size_cost
             if best is None or cost < best[0]:
                 best = (cost, (ca, cb), (sa, sb))
+    if best is None and slot_memory is not None:
+        near = [k for k in cand
+                if min(np.linalg.norm(pos[k] - q) for q in slot_memory.points) < memory_gate_m]
+        card = _best_pair([k for k in cand if k not in near], pos, sizes, *kinds['card'])
+        if card is not None:
+            found_c = sorted(card, key=lambda k: float(pos[k] @ across))
+            return LabelledMarkers(
+                np.vstack([np.array([pos[k] for k in found_c]), slot_memory.points]),
+                np.concatenate([np.array([markers[k].covariance for k in found_c]),
+                                slot_memory.covariances]), u, slot_remembered=True)
     if best is None:
         why = (f'no card pair {2 * model.card_marker_x_m:.3f} m apart' if not found['card'] else
                f'no slot pair {kinds["slot"][1]:.3f} m apart' if not found['slot'] else
@@ -185,6 +216,47 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
         points += [pos[k] for k in found]
         covs += [markers[k].covariance for k in found]
     return LabelledMarkers(np.array(points), np.array(covs), u)
+
+
+def _best_pair(cand: list[int], pos: list[np.ndarray], sizes: list[float], radius_m: float,
+               spacing_m: float) -> tuple[int, int] | None:
+    """The candidate pair whose distance apart matches spacing_m within 20 %, least squared
+    spacing error (size breaks ties); None when no pair does."""
+    best = None
+    for a, b in itertools.combinations(cand, 2):
+        e = float(np.linalg.norm(pos[a] - pos[b])) / spacing_m - 1.0
+        if abs(e) > 0.2:
+            continue
+        cost = e * e + 0.01 * sum(np.log(sizes[k] / radius_m) ** 2 for k in (a, b))
+        if best is None or cost < best[0]:
+            best = (cost, (a, b))
+    return None if best is None else best[1]
+
+
+def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
+              model: TaskModel, *, size_tolerance: float = 0.6) -> SlotPair | None:
+    """The slot's pair alone (the card not in view): markers of a slot marker's size within
+    `size_tolerance`, their distance apart the slot's within 20 %, ordered along the site's x
+    as in label_markers; None when no pair qualifies."""
+    u = np.asarray(up, float)
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        raise InsertionError('up must be a finite non-zero 3-vector')
+    if len(radii_px) != len(markers):
+        raise InsertionError('one radius per marker')
+    across = np.cross(u / np.linalg.norm(u), [0.0, 0.0, 1.0])
+    if np.linalg.norm(across) < 1e-6:
+        raise InsertionError('the camera looks straight down or up: the site x is undefined')
+    r = model.slot_marker_radius_m
+    sizes = [_size_m(m, rad, fx) for m, rad in zip(markers, radii_px)]
+    cand = [k for k, sz in enumerate(sizes) if r / (1 + size_tolerance) <= sz
+            <= r * (1 + size_tolerance)]
+    pos = [m.position for m in markers]
+    pair = _best_pair(cand, pos, sizes, r, model.slot_markers[1, 0] - model.slot_markers[0, 0])
+    if pair is None:
+        return None
+    order = sorted(pair, key=lambda k: float(pos[k] @ across))
+    return SlotPair(np.array([pos[k] for k in order]),
+                    np.array([markers[k].covariance for k in order]))
 
 
 def card_required_motion(obs: LabelledMarkers, t_base_card, model: TaskModel, *,

@@ -9,7 +9,7 @@ from coop_common.rover_geometry import card_in_base
 from coop_insertion.drive import FollowPath, GoToPose, random_camera_pose, wrap
 from coop_insertion.errors import InsertionError
 from coop_insertion.frames import homogeneous, invert, rot_z
-from coop_insertion.task import TaskModel, card_required_motion, label_markers
+from coop_insertion.task import TaskModel, card_required_motion, find_slot, label_markers
 from coop_insertion.triangulate import StereoMarker
 
 MODEL = TaskModel()
@@ -43,6 +43,36 @@ def _observe(cam, site_card, *, rng=None, sigma=0.0):
     order = [2, 0, 3, 1]                      # detection order is arbitrary
     up = invert(cam)[:3, :3] @ np.array([0.0, 0.0, 1.0])
     return [ms[i] for i in order], [rs[i] for i in order], up
+
+
+def test_a_remembered_slot_labels_the_card_when_a_slot_marker_is_hidden():
+    """The card in front of the mouth hides a slot marker: with the slot pair seen before
+    (the card out of view, find_slot), the card's pair is labelled against it; a slot marker
+    still in view is never taken for a card marker."""
+    cam = _camera()
+    ms, rs, up = _observe(cam, MODEL.card_goal(0.05))
+    full = label_markers(ms, rs, 850.0, up, MODEL)
+    slot_ix = [k for k, m in enumerate(ms) if m.left >= 2]     # detection order 2, 0, 3, 1
+    card_ix = [k for k in range(4) if k not in slot_ix]
+    memory = find_slot([ms[k] for k in slot_ix], [rs[k] for k in slot_ix], 850.0, up, MODEL)
+    assert memory is not None
+    np.testing.assert_allclose(memory.points, full.points[2:], atol=1e-12)
+    assert find_slot([ms[k] for k in card_ix], [rs[k] for k in card_ix], 850.0, up,
+                     MODEL) is None                               # the card's pair is no slot
+    seen = card_ix + slot_ix[:1]                                   # one slot marker hidden
+    with pytest.raises(InsertionError, match='no slot pair'):
+        label_markers([ms[k] for k in seen], [rs[k] for k in seen], 850.0, up, MODEL)
+    lab = label_markers([ms[k] for k in seen], [rs[k] for k in seen], 850.0, up, MODEL,
+                        slot_memory=memory)
+    assert lab.slot_remembered and not full.slot_remembered
+    np.testing.assert_allclose(lab.points, full.points, atol=1e-12)
+    # the visible slot marker and a stray marker at the card's spacing from it: the gate keeps
+    # the slot marker out of the card's candidates, so no false card pair
+    stray_pos = ms[slot_ix[0]].position + [2 * MODEL.card_marker_x_m, 0.0, 0.0]
+    stray = StereoMarker(8, 8, stray_pos, np.eye(3) * 1e-8, (0, 0), (0, 0))
+    with pytest.raises(InsertionError):
+        label_markers([ms[slot_ix[0]], stray], [rs[slot_ix[0]], rs[card_ix[0]]], 850.0, up,
+                      MODEL, slot_memory=memory)
 
 
 def test_labels_follow_size_and_the_site_x_whatever_the_detection_order():
