@@ -331,6 +331,7 @@ class MasterNode(Node):
         goal = handle.request
         self.replacements = 0
         self.card_in_map = None
+        fixes = (self.tracked, self.remembered)
         self._feedback(handle, Insert.Feedback.PHASE_PLACE_CAMERA)
         failed = await self._place(handle, await self._choose_pose(goal.placement))
         if failed:
@@ -386,6 +387,9 @@ class MasterNode(Node):
                     self.get_logger().warn(f're-placement: {failed}')
                 since = self._image_t
         res = res_future.result().result
+        self.get_logger().info(
+            f'goal ended ({res.reason}): {self.tracked - fixes[0]} fixes, '
+            f'{self.remembered - fixes[1]} of them against the remembered slot pair')
         if handle.is_cancel_requested:
             handle.canceled()
         elif res.success:

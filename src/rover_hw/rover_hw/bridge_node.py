@@ -359,8 +359,10 @@ class BridgeNode(LifecycleNode):
         self._mast = JointTrajectoryFollower(MAST_JOINTS, m[4:6])
         self._seeded = True
         # set-points stream again only once a trajectory comes: until then the device holds
-        # its joints itself (a set-point from noisy encoders would nudge the arm)
+        # its joints itself (a set-point from noisy encoders would nudge the arm); their grid
+        # starts again from the device's time then (a device that rebooted counts from 0)
         self._live = {'arm': False, 'mast': False}
+        self._next_us = {'arm': None, 'mast': None}
 
     def _read_loop(self) -> None:
         backoff = 0.02
