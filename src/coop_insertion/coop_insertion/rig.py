@@ -292,10 +292,11 @@ class InsertionRig(contextlib.AbstractContextManager):
 
     def _sim_sleep(self, seconds: float) -> None:
         """Wait `seconds` of sim time (up to 60 s + 20x that of wall time: a loaded machine
-        runs the rendering sim at a real-time factor near 0.1)."""
+        runs the rendering sim at a real-time factor near 0.1), and at least long enough for
+        a clock that stands still to be told a stall (SimStalled), not a timeout."""
         t0 = self.node.clock
-        self._wait(lambda: self.node.clock >= t0 + seconds, 60.0 + 20.0 * seconds,
-                   what='sim time')
+        self._wait(lambda: self.node.clock >= t0 + seconds,
+                   max(60.0 + 20.0 * seconds, STALL_S + 10.0), what='sim time')
 
     def set_slot(self, slot_in: float) -> None:
         """The slave's task given for the next attempts: the slot's width."""
