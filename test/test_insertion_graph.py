@@ -11,12 +11,7 @@ import os
 
 import pytest
 
-# Intermittent on this machine (open bug): the force finish seated the card in the last two runs,
-# but the master can lose sight of a slot marker, and the slave then waits in VISUAL_SERVO until
-# the timeout (one run of this test today; in table_5_1 the master saw one slot marker of two and
-# found no view to re-place its camera to). Deselected by `make test` until that is solved (run
-# with -m known_issue).
-pytestmark = [pytest.mark.graph, pytest.mark.known_issue]
+pytestmark = pytest.mark.graph
 
 
 def test_an_easy_insertion_through_sim_master_and_slave(tmp_path):

@@ -3,9 +3,8 @@ the rovers starting by the site, 4 s of identification and the map from where th
 next-best-view scan if the coverage needs it), each checked against the simulator's truth: the
 identified parameters, the site's jaws in the saved map; and the run's MCAP bag, read back. The
 insertion through the same nodes is `test_insertion_graph.py` (the master's camera pinned in
-front of the site; intermittent, deselected as a known issue); the placement by `task_view` at
-the markers' range resolves the 0.25 in slot markers only in some frames
-(docs/results/insertion.md), too seldom for a test that must not be flaky."""
+front of the site); the placement by `task_view` needs the map of a longer exploration than a
+test affords (`coop_insertion table_5_1`, docs/results/insertion.md)."""
 from __future__ import annotations
 
 import json
