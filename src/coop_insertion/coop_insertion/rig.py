@@ -106,6 +106,7 @@ class _Client(Node):
         super().__init__('insertion_rig', context=ctx)
         self.clock = 0.0
         self.clock_wall = time.monotonic()      # when the clock last advanced
+        self.elapsed = 0.0                      # sim s the clock advanced, across resets
         self.contact_pen = 0.0
         self.seated_at: list[tuple[float, bool]] = []     # (sim time, the truth's seated)
         self.recording = False
@@ -121,7 +122,8 @@ class _Client(Node):
         t = m.clock.sec + 1e-9 * m.clock.nanosec
         if t > self.clock:
             self.clock_wall = time.monotonic()
-        self.clock = t
+            self.elapsed += t - self.clock
+        self.clock = t          # a reset starts the clock again from 0
 
     def _on_map(self, m: VoxelMap) -> None:
         self.map_voxels = int(sum(m.contributions))
@@ -294,8 +296,8 @@ class InsertionRig(contextlib.AbstractContextManager):
         """Wait `seconds` of sim time (up to 60 s + 20x that of wall time: a loaded machine
         runs the rendering sim at a real-time factor near 0.1), and at least long enough for
         a clock that stands still to be told a stall (SimStalled), not a timeout."""
-        t0 = self.node.clock
-        self._wait(lambda: self.node.clock >= t0 + seconds,
+        t0 = self.node.elapsed      # not the clock: a reset may not have reached us yet
+        self._wait(lambda: self.node.elapsed >= t0 + seconds,
                    max(60.0 + 20.0 * seconds, STALL_S + 10.0), what='sim time')
 
     def set_slot(self, slot_in: float) -> None:
