@@ -25,6 +25,8 @@ from . import protocol as p
 from .protocol import Flags
 
 ENCODERS = 6
+#: timed set-points a joint group holds ahead (2.5 s at 200 Hz; the bridge sends 0.1 s ahead)
+MAX_SETPOINTS = 500
 
 
 @dataclass(frozen=True)
@@ -206,7 +208,10 @@ class Device:
                     return
             t = now + self.dt
             queue.clear()
-        queue[:] = [sp for sp in queue if now < sp[0] < t][-16:]
+        queue[:] = [sp for sp in queue if now < sp[0] < t]
+        if len(queue) >= MAX_SETPOINTS:
+            self.refused += 1           # a host that runs this far ahead: the nearest are kept
+            return
         queue.append((t, tuple(pl.positions), tuple(pl.velocities)))
         times = [sp[0] - now for sp in queue]
         positions = [list(sp[1]) for sp in queue]
