@@ -137,6 +137,21 @@ def _size_m(m: StereoMarker, radius_px: float, fx: float) -> float:
     return float(radius_px * m.position[2] / fx)
 
 
+def _site_axes(up, markers: list, radii_px: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The unit vertical and the site's x as the camera sees it (the vertical crossed with the
+    viewing direction), after checking the inputs (InsertionError)."""
+    u = np.asarray(up, float)
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        raise InsertionError('up must be a finite non-zero 3-vector')
+    u = u / np.linalg.norm(u)
+    if len(radii_px) != len(markers):
+        raise InsertionError('one radius per marker')
+    across = np.cross(u, [0.0, 0.0, 1.0])
+    if np.linalg.norm(across) < 1e-6:
+        raise InsertionError('the camera looks straight down or up: the site x is undefined')
+    return u, across / np.linalg.norm(across)
+
+
 def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
                   model: TaskModel, *, size_tolerance: float = 0.6,
                   slot_memory: SlotPair | None = None,
@@ -151,16 +166,7 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
     not moved since), the card's pair alone among the markers farther than `memory_gate_m`
     from the remembered slot markers, labelled with the remembered slot rows. None of these:
     InsertionError (the caller holds and waits for the next frame)."""
-    u = np.asarray(up, float)
-    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
-        raise InsertionError('up must be a finite non-zero 3-vector')
-    u = u / np.linalg.norm(u)
-    if len(radii_px) != len(markers):
-        raise InsertionError('one radius per marker')
-    across = np.cross(u, [0.0, 0.0, 1.0])     # the site's x as this camera sees it
-    if np.linalg.norm(across) < 1e-6:
-        raise InsertionError('the camera looks straight down or up: the site x is undefined')
-    across /= np.linalg.norm(across)
+    u, across = _site_axes(up, markers, radii_px)
     kinds = {'card': (model.card_marker_radius_m, 2 * model.card_marker_x_m),
              'slot': (model.slot_marker_radius_m,
                       model.slot_markers[1, 0] - model.slot_markers[0, 0])}
@@ -238,14 +244,7 @@ def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
     """The slot's pair alone (the card not in view): markers of a slot marker's size within
     `size_tolerance`, their distance apart the slot's within 20 %, ordered along the site's x
     as in label_markers; None when no pair qualifies."""
-    u = np.asarray(up, float)
-    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
-        raise InsertionError('up must be a finite non-zero 3-vector')
-    if len(radii_px) != len(markers):
-        raise InsertionError('one radius per marker')
-    across = np.cross(u / np.linalg.norm(u), [0.0, 0.0, 1.0])
-    if np.linalg.norm(across) < 1e-6:
-        raise InsertionError('the camera looks straight down or up: the site x is undefined')
+    _, across = _site_axes(up, markers, radii_px)
     r = model.slot_marker_radius_m
     sizes = [_size_m(m, rad, fx) for m, rad in zip(markers, radii_px)]
     cand = [k for k, sz in enumerate(sizes) if r / (1 + size_tolerance) <= sz
