@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from .errors import CoopCommonError
+
 #: Table 2-1 row order: mass, inertia (x, y, z, xz, yz, xy), c.g. (r_2), damping (x, y, z, pitch,
 #: roll, yaw), stiffness (same axes).
 PARAM_NAMES: tuple[str, ...] = (
@@ -38,7 +40,7 @@ PARAM_LABELS: dict[str, str] = {
 DEFAULT_TRUTH_PATH = Path(__file__).resolve().parent / 'data' / 'table_2_1_truth.yaml'
 
 
-class TruthFileError(ValueError):
+class TruthFileError(CoopCommonError):
     """A truth YAML is missing a field, has an unknown one, or a physically impossible value."""
 
 

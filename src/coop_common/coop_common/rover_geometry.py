@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import CoopCommonError
+
 #: the base's c.g. above flat ground at rest (the odometry frame's z = 0 is the ground)
 BASE_HEIGHT_M = 0.30
 
@@ -53,7 +55,7 @@ MAST_TILT_LIMITS_RAD = (-1.2, 1.2)
 OPTICAL_IN_TILT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-class ReachError(ValueError):
+class ReachError(CoopCommonError):
     """A card pose the arm cannot reach."""
 
 

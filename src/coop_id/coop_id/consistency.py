@@ -12,13 +12,14 @@ import numpy as np
 
 from coop_common.dynparams import PARAM_NAMES, BaseParameters, check_physical
 
+from .errors import CoopIdError
 from .model import B_R, B_TH, IDX, K_R, K_TH
 
 _NONNEG = [IDX[n] for n in (*B_R, *B_TH, *K_R, *K_TH)]
 Z95 = 1.959963984540054
 
 
-class ConsistencyError(ValueError):
+class ConsistencyError(CoopIdError):
     """Bad arguments."""
 
 

@@ -11,8 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
+from .errors import CoopIdError
 
-class EstimationError(ValueError):
+
+class EstimationError(CoopIdError):
     """Bad shapes or values handed to an estimator."""
 
 

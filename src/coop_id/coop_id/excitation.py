@@ -28,6 +28,7 @@ import numpy as np
 
 from coop_common.params import choice
 
+from .errors import CoopIdError
 from .information import mutual_information_bits
 from .model import GRAVITY, ArmModel, assemble_rows, cross, skew
 from .modelsim import MODE_AXES, Z_HAT, ArmKinematics, JointLimits, mode_geometry
@@ -55,7 +56,7 @@ class ConditionMatrix(StrEnum):
 STRATEGIES = tuple(Strategy)
 
 
-class ExcitationError(ValueError):
+class ExcitationError(CoopIdError):
     """Bad excitation arguments."""
 
 

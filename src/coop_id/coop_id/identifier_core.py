@@ -17,6 +17,7 @@ import numpy as np
 from coop_common.params import choice
 
 from .consistency import ChangeDetector, Report, make_report, project_physical
+from .errors import CoopIdError
 from .estimators import RecursiveEstimator
 from .excitation import (
     ConditionMatrix,
@@ -45,7 +46,7 @@ from .model import (
 )
 
 
-class IdentifierError(ValueError):
+class IdentifierError(CoopIdError):
     """Bad configuration or input."""
 
 

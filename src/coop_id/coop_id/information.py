@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
+from .errors import CoopIdError
 
-class InformationError(ValueError):
+
+class InformationError(CoopIdError):
     """Bad arguments to an information metric."""
 
 

@@ -27,6 +27,8 @@ from scipy import signal
 
 from coop_common.dynparams import PARAM_NAMES
 
+from .errors import CoopIdError
+
 GRAVITY = 9.81
 N_PARAMS = len(PARAM_NAMES)
 IDX = {n: i for i, n in enumerate(PARAM_NAMES)}
@@ -44,7 +46,7 @@ TRANSLATIONAL = ('mass', *B_R, *K_R)
 DEFAULT_PRIOR_PATH = Path(__file__).resolve().parent / 'data' / 'prior_ranges.yaml'
 
 
-class ModelError(ValueError):
+class ModelError(CoopIdError):
     """Bad shapes or values handed to the model."""
 
 

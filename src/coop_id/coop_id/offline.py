@@ -11,6 +11,7 @@ import numpy as np
 from coop_common.dynparams import PARAM_NAMES
 
 from .consistency import Report
+from .errors import CoopIdError
 from .identifier_core import Identifier, IdentifierConfig
 from .model import SensorNoise
 from .pairing import QUEUE_S, SamplePairer, stamp_ns
@@ -20,7 +21,7 @@ from .pairing import QUEUE_S, SamplePairer, stamp_ns
 SYNC_TOLERANCE_S, FT_FORCE_LIMIT_N, FT_TORQUE_LIMIT_NM = 0.002, 200.0, 50.0
 
 
-class BagError(ValueError):
+class BagError(CoopIdError):
     """The bag holds no identification stream for the rover."""
 
 

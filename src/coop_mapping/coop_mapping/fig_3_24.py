@@ -34,6 +34,7 @@ from coop_common.cli import figure_path, number, output_path
 from coop_common.files import save_figure, write_json
 from coop_common.params import choice
 
+from .errors import MappingError
 from .fiducial_odometry import FiducialOdometry, OdometryConfig, PoseMethod
 from .render import Box, TexturedScene, look_at
 from .stereo import (
@@ -120,7 +121,7 @@ def search_range(cam: StereoCamera, z_near: float, margin: float = 0.2) -> int:
     return int(16 * np.ceil((1.0 + margin) * cam.fx * cam.baseline / z_near / 16))
 
 
-class ConfigError(ValueError):
+class ConfigError(MappingError, ValueError):
     """A trial setting the rig cannot run (found before any trial)."""
 
 

@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import MappingError
+
 #: Index of the 6 unique terms in a row-major 3x3 matrix.
 SYM6 = np.array([0, 1, 2, 4, 5, 8])
 
 
-class NotPositiveDefinite(ValueError):
+class NotPositiveDefinite(MappingError, ValueError):
     """A covariance that should be positive definite is not."""
 
 

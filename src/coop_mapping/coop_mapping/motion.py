@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .errors import MappingError
 from .gauss import skew
 
 __all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_contrast',
@@ -26,7 +27,7 @@ __all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_con
            'camera_pose_covariance', 'RecursivePoseStats', 'ekf_point_update', 'MotionError']
 
 
-class MotionError(ValueError):
+class MotionError(MappingError, ValueError):
     """Too few or degenerate correspondences, bad shapes."""
 
 

@@ -14,13 +14,14 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from coop_msgs.msg import VoxelSet
 
+from .errors import MappingError
 from .gauss import sym6_from_cholesky
 from .voxelmap import LOGODDS_SCALE, VoxelMap, unpack_keys
 
 CLOUD_FIELDS = ('x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_xz', 'cov_yy', 'cov_yz', 'cov_zz')
 
 
-class CloudFormatError(ValueError):
+class CloudFormatError(MappingError, ValueError):
     """A PointCloud2 this package cannot read."""
 
 

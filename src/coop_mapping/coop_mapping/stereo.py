@@ -14,6 +14,7 @@ import numpy as np
 
 from coop_common.params import choice
 
+from .errors import MappingError
 from .gauss import rotate_sym6
 
 __all__ = ['SUBPIXEL_MODES', 'Subpixel', 'SUBPIXEL_DEFAULT', 'FULL_WIDTH_DEFAULT', 'StereoCamera',
@@ -39,7 +40,7 @@ FULL_WIDTH_DEFAULT = True
 _PHASES = {'shift2': 2, 'shift4': 4}
 
 
-class StereoError(ValueError):
+class StereoError(MappingError, ValueError):
     """Bad stereo input (shape, dtype, mismatched pair, bad calibration)."""
 
 

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from .errors import MappingError
 from .gauss import mat_from_sym6, skew, sym6_from_mat
 from .stereo import ErrorModel, StereoCamera
 
@@ -37,7 +38,7 @@ __all__ = ['TargetFrameError', 'TargetGeometry', 'PoseFix', 'solve_pose', 'locat
            'InitialisationStep', 'Initialiser']
 
 
-class TargetFrameError(ValueError):
+class TargetFrameError(MappingError, ValueError):
     """Too few or degenerate marker observations, bad shapes, no consistent assignment."""
 
 

@@ -59,6 +59,7 @@ import numpy as np
 
 from coop_common.files import write_atomic
 
+from .errors import MappingError
 from .gauss import (
     NotPositiveDefinite,
     sym6_cholesky,
@@ -84,7 +85,7 @@ SURFACE_BANDWIDTH, SURFACE_RADIUS = 0.8, 2
 _EYE6 = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])     # the identity as xx xy xz yy yz zz
 
 
-class MapInputError(ValueError):
+class MapInputError(MappingError, ValueError):
     """Bad scan given to the map (NaN, wrong shape, out of the key range...)."""
 
 
@@ -126,7 +127,7 @@ class ScanLimits:
                                                f'max_range_m {self.max_range_m}')
 
 
-class MapFileError(RuntimeError):
+class MapFileError(MappingError, RuntimeError):
     """A map file that cannot be read: missing, truncated, corrupted, wrong version."""
 
 

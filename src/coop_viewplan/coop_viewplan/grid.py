@@ -13,8 +13,10 @@ from enum import StrEnum
 import numpy as np
 from scipy import ndimage
 
+from .errors import ViewplanError
 
-class MapError(ValueError):
+
+class MapError(ViewplanError, ValueError):
     """The map cannot be used for planning (empty, malformed, inconsistent)."""
 
 

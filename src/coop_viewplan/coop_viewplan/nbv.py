@@ -71,6 +71,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from coop_common.params import choice
 
+from .errors import ViewplanError
 from .grid import (
     FreeGray,
     MapError,
@@ -142,7 +143,7 @@ STRATEGIES = tuple(StrategyName)
 UNKNOWN_OCCLUSIONS = tuple(UnknownOcclusion)
 
 
-class PlanningError(RuntimeError):
+class PlanningError(ViewplanError, RuntimeError):
     """No admissible view (no free reachable candidate, camera outside the map, ...)."""
 
 

@@ -34,6 +34,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from coop_common.params import choice
 
+from .errors import ViewplanError
 from .grid import OccupancyGrid
 
 # A target whose grown shape only touches an expanded occluder (a part resting on the ground, a
@@ -52,7 +53,7 @@ TOUCH_M = 1e-9
 MAX_WEIGHT = 1e6
 
 
-class PlacementError(ValueError):
+class PlacementError(ViewplanError, ValueError):
     """The placement request cannot be served (target inside an obstacle, no free candidate)."""
 
 

@@ -32,15 +32,13 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 from ruamel.yaml import YAML
 
+from .errors import BagError
+
 #: Interface packages of this project whose .msg files are registered in every typestore.
 PROJECT_INTERFACE_PACKAGES: tuple[str, ...] = ('coop_msgs',)
 _MCAP_MAGIC = b'\x89MCAP0\r\n'
 #: MCAP chunk compression choices of BagWriter
 COMPRESSIONS: tuple[str, ...] = ('none', 'zstd')
-
-
-class BagError(Exception):
-    """Base of every error this module raises about a bag."""
 
 
 class BagNotFoundError(BagError, FileNotFoundError):

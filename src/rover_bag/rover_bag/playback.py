@@ -9,6 +9,8 @@ from typing import Any, NamedTuple
 
 from rosbags.interfaces import Qos, QosDurability, QosReliability
 
+from .errors import BagError
+
 
 @dataclass(frozen=True)
 class QosChoice:
@@ -58,7 +60,7 @@ def select_topics(available: Iterable[str], *, include: Sequence[str] = (),
     return sorted(out)
 
 
-class RemapError(ValueError):
+class RemapError(BagError, ValueError):
     """A remap rule is not 'from:=to' with absolute names."""
 
 

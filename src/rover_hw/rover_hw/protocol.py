@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 from cobs import cobs
 
+from .errors import HardwareError
+
 VERSION = 2
 DELIMITER = b'\x00'
 HEADER = struct.Struct('<BBHH')
@@ -31,7 +33,7 @@ MAX_FRAME_BYTES = 512
 DEG = math.pi / 180.0
 
 
-class ProtocolError(ValueError):
+class ProtocolError(HardwareError):
     """A frame or value that cannot be encoded or decoded; the message says why."""
 
 

@@ -13,10 +13,12 @@ from coop_common.rover_geometry import (
     MAST_TILT_LIMITS_RAD,
 )
 
+from .errors import HardwareError
+
 WHEEL_NAMES = ('wheel_fl', 'wheel_fr', 'wheel_rl', 'wheel_rr')
 
 
-class CommandRefused(ValueError):
+class CommandRefused(HardwareError):
     """A command the bridge will not pass on; the message is the reason."""
 
 

@@ -9,10 +9,11 @@ from typing import Any
 
 import yaml
 
+from .errors import SimError
 from .worldgen import CARD_WIDTH_M, TABLE_5_1_GAPS_M
 
 
-class ConfigError(ValueError):
+class ConfigError(SimError):
     """A world/params YAML or value that the simulator cannot use; the message names the field."""
 
 

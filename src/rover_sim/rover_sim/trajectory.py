@@ -14,8 +14,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .errors import SimError
 
-class TrajectoryError(ValueError):
+
+class TrajectoryError(SimError):
     """A trajectory that cannot be followed (unknown joint, NaN, times not increasing)."""
 
 

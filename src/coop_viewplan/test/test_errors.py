@@ -1,0 +1,41 @@
+"""One domain error per package: every exception class a coop_viewplan module defines derives from
+ViewplanError (`coop_viewplan.errors`), so a caller catches one class; a new unrelated error
+class fails here. It derives from Exception: the package mixes ValueError and RuntimeError
+errors and each keeps its builtin base, checked below."""
+import importlib
+import inspect
+import pkgutil
+
+import coop_viewplan
+from coop_viewplan.errors import ViewplanError
+
+#: the error classes known today and the builtin base their callers catch
+KNOWN = {
+    'coop_viewplan.nbv.PlanningError': RuntimeError,
+    'coop_viewplan.grid.MapError': ValueError,
+    'coop_viewplan.grid.EmptyMapError': ValueError,
+    'coop_viewplan.placement.PlacementError': ValueError,
+}
+
+
+def error_classes() -> dict[str, type]:
+    """Every exception class (warnings aside) defined in a module of the package, by name."""
+    out = {}
+    for info in pkgutil.walk_packages(coop_viewplan.__path__, 'coop_viewplan.'):
+        module = importlib.import_module(info.name)
+        for cls in vars(module).values():
+            if (inspect.isclass(cls) and issubclass(cls, BaseException)
+                    and not issubclass(cls, Warning) and cls.__module__ == module.__name__):
+                out[f'{module.__name__}.{cls.__qualname__}'] = cls
+    return out
+
+
+def test_every_error_derives_from_the_root():
+    found = error_classes()
+    assert set(KNOWN) <= set(found)
+    assert [name for name, cls in found.items() if not issubclass(cls, ViewplanError)] == []
+
+
+def test_known_errors_keep_their_builtin_base():
+    found = error_classes()
+    assert [name for name, base in KNOWN.items() if not issubclass(found[name], base)] == []
