@@ -54,7 +54,13 @@ from coop_common.rover_geometry import (
 from coop_common.testing import isolate_ros_environment, pick_domain_id
 from coop_insertion.drive import FollowPath
 from coop_insertion.errors import InsertionError
-from coop_insertion.rig import SITE_XY, VIEW_PLANNER, InsertionRig, staging_poses
+from coop_insertion.rig import (
+    SITE_XY,
+    VIEW_PLANNER,
+    InsertionRig,
+    mast_sweep,
+    staging_poses,
+)
 from coop_msgs.action import Identify, Insert
 from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
 from coop_msgs.srv import MapFile, NextBestView
@@ -94,6 +100,7 @@ class MissionConfig:
     strategy: str = 'max_information'
     coverage_target: float = 0.9
     max_scans: int = 8
+    sweep_s: float = 8.0              # scan 0: each rover sweeps its mast over its view (sim s)
     site_half_m: float = 1.5
     insert_timeout_s: float = 60.0
     max_force_n: float = 25.0
@@ -447,6 +454,7 @@ class Mission:
             if not c.identify[r].wait_for_server(timeout_sec=60):
                 raise MissionError(f'no {r}/identifier/identify action server')
         self._wait(lambda: all(r in c.truth for r in self.rovers), 60, "the sim's truth")
+        self.rig.render((), 0.0)                  # no one looks while the arms shake
         self._sim_wait(2.0, 'the rovers at rest')
         futs = {r: c.identify[r].send_goal_async(Identify.Goal(
             strategy=cfg.identify_strategy, duration_s=cfg.identify_s)) for r in self.rovers}
@@ -550,9 +558,12 @@ class Mission:
         cfg, c = self.cfg, self.client
         if not c.nbv.wait_for_service(timeout_sec=60):
             raise MissionError('no viewplan/next_best_view service')
-        for r in self.rovers:                     # look around the start before planning
-            c.aim(r, 0.0, 0.2)
-        self._sim_wait(3.0)
+        # the cameras range while the rovers stand and look (thesis §3.3: a scan from each
+        # chosen configuration), not while they drive: rendering is most of the sim's cost
+        self.rig.render(tuple(self.rovers), cfg.stereo_rate_hz)
+        for r in self.rovers:             # scan 0: sweep the mast across the view at the start
+            c.mast_cmd[r].publish(mast_sweep(cfg.sweep_s))
+        self._sim_wait(cfg.sweep_s + 1.0, 'the first sweep')
         self._wait(lambda: c.map is not None, 60, 'the first map')
         scans = [{'scan': 0, 'coverage': self._coverage(),
                   'distance_m': float(sum(c.distance.values())),
@@ -592,7 +603,9 @@ class Mission:
                 plans[r] = (wps, mount.base_yaw)
                 aims[r] = (mount.pan, mount.tilt)
             if plans:
+                self.rig.render((), 0.0)
                 self._drive(plans, f'scan {k} drive')
+                self.rig.render(tuple(self.rovers), cfg.stereo_rate_hz)
             for r, (pan, tilt) in aims.items():
                 c.aim(r, pan, tilt)
             seq = c.map.sequence
@@ -650,10 +663,12 @@ class Mission:
     def _place_and_insert(self, place: Phase) -> None:
         insert = next(p for p in self.phases if p.name == 'insert')
         self.progress.update(0.0, 'to the staging poses')
+        self.rig.render((), 0.0)
         self._stage()
         # the map is final: ranging on would map the slave's arm and card over the slot as an
         # obstacle at the task (the master's re-placement asks task_view again mid-insertion)
         self.rig.stop_mapping()
+        self.rig.render((MASTER,), self.cfg.stereo_rate_hz)      # the master watches the task
         w0, s0 = time.monotonic(), self._sim_t()
         phase = {'insert_at': None}
 

@@ -71,6 +71,22 @@ class SimStalled(InsertionError):
         self.stack_file = stack_file
 
 
+def mast_sweep(seconds: float) -> JointTrajectory:
+    """A mast trajectory over `seconds` that pans across the view twice: looking down (the
+    ground and the site) and nearly level (the layer a master's camera stands in, in front of
+    the site), for the map a camera is placed in."""
+    tr = JointTrajectory(joint_names=list(MAST_JOINTS))
+    n = 6
+    sweep = [(-0.8 + 1.6 * k / n, 0.35) for k in range(n + 1)] + \
+        [(0.8 - 1.6 * k / n, 0.08) for k in range(n + 1)]
+    for k, pos in enumerate(sweep):
+        pt = JointTrajectoryPoint(positions=list(pos))
+        t = seconds * (k + 0.5) / len(sweep)
+        pt.time_from_start.sec, pt.time_from_start.nanosec = int(t), int((t % 1) * 1e9)
+        tr.points.append(pt)
+    return tr
+
+
 def staging_poses(slot_in: float, rng: np.random.Generator | None = None
                   ) -> dict[str, tuple[float, float, float]]:
     """Where an insertion starts, (x, y, heading) per rover: the master beside the site, the
@@ -300,17 +316,29 @@ class InsertionRig(contextlib.AbstractContextManager):
         self._wait(lambda: self.node.elapsed >= t0 + seconds,
                    max(60.0 + 20.0 * seconds, STALL_S + 10.0), what='sim time')
 
-    def set_slot(self, slot_in: float) -> None:
-        """The slave's task given for the next attempts: the slot's width."""
+    def set_parameters(self, node: str, **values) -> None:
+        """Set parameters of one node of the graph (InsertionError with the node's reason
+        when it refuses one)."""
         from rclpy.parameter import Parameter
         from rclpy.parameter_client import AsyncParameterClient
-        client = AsyncParameterClient(self.node, 'slave')
-        client.wait_for_services(timeout_sec=10.0)
-        fut = client.set_parameters([Parameter('slot_width_m', value=slot_in * INCH)])
-        wait_for(fut.done, 10.0, what="the slave's slot_width_m")
-        res = fut.result().results[0]
-        if not res.successful:
-            raise InsertionError(f'slot_width_m refused: {res.reason}')
+        client = AsyncParameterClient(self.node, node)
+        if not client.wait_for_services(timeout_sec=10.0):
+            raise InsertionError(f'no {node} parameter services')
+        fut = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        self._wait(fut.done, 10.0, what=f"{node}'s {', '.join(values)}")
+        for name, res in zip(values, fut.result().results):
+            if not res.successful:
+                raise InsertionError(f'{node}: {name} refused: {res.reason}')
+
+    def set_slot(self, slot_in: float) -> None:
+        """The slave's task given for the next attempts: the slot's width."""
+        self.set_parameters('slave', slot_width_m=slot_in * INCH)
+
+    def render(self, rovers: tuple[str, ...], rate_hz: float) -> None:
+        """Which rovers' stereo pairs the sim renders, at what rate (rendering is most of the
+        sim's cost: off while no one looks). `rovers` empty with rate 0: none."""
+        self.set_parameters('rover_sim', stereo_rate_hz=float(rate_hz),
+                            stereo_rovers=list(rovers) or [''])
 
     def place(self, slot_in: float, rng: np.random.Generator) -> None:
         """Reset the sim to the slot width with the rovers at their (perturbed) starts."""
@@ -327,18 +355,7 @@ class InsertionRig(contextlib.AbstractContextManager):
     def survey(self, *, seconds: float = 20.0) -> int:
         """Rover 1 pans its mast over the site from its start so that the mapper builds the map
         the view planner places the camera in. Returns the map's voxel count."""
-        tr = JointTrajectory(joint_names=list(MAST_JOINTS))
-        n = 6
-        # a sweep looking down (the ground and the site) and one nearly level (the layer the
-        # master's camera will stand in, in front of the site)
-        sweep = [(-0.8 + 1.6 * k / n, 0.35) for k in range(n + 1)] + \
-            [(0.8 - 1.6 * k / n, 0.08) for k in range(n + 1)]
-        for k, pos in enumerate(sweep):
-            pt = JointTrajectoryPoint(positions=list(pos))
-            t = seconds * (k + 0.5) / len(sweep)
-            pt.time_from_start.sec, pt.time_from_start.nanosec = int(t), int((t % 1) * 1e9)
-            tr.points.append(pt)
-        self.node.mast.publish(tr)
+        self.node.mast.publish(mast_sweep(seconds))
         self._sim_sleep(seconds + 1.0)
         return self.node.map_voxels
 

@@ -72,11 +72,12 @@ PARAMS = {
                                   lo=0, hi=200, read_only=True),
     'sensor_rate_hz': ParamSpec(200.0, 'IMU, inclinometer, F/T and joint state rate (Hz)',
                                 lo=1.0, hi=200.0, read_only=True),
-    'stereo_rate_hz': ParamSpec(4.0, 'Stereo pair rate (Hz); 0 disables rendering', lo=0.0,
-                                hi=30.0, read_only=True),
+    'stereo_rate_hz': ParamSpec(4.0, 'Stereo pair rate (Hz); 0 pauses rendering (settable '
+                                'while running: rendering is most of the cost, so a mission '
+                                'turns it off while no one looks)', lo=0.0, hi=30.0),
     'stereo_rovers': ParamSpec([''], 'Rovers whose stereo pair is rendered and published '
                                "(e.g. [rover1]: the master watching an insertion); [''] or "
-                               'empty: all', read_only=True),
+                               'empty: all; settable while running'),
     'odom_rate_hz': ParamSpec(50.0, 'Odometry, stereo/pose-free truth pose rate (Hz)', lo=1.0,
                               hi=200.0, read_only=True),
     'image_width': ParamSpec(320, 'Image width (px)', lo=32, hi=1920, read_only=True),
@@ -95,13 +96,23 @@ PARAMS = {
 }
 
 
+def _unknown_rovers(chosen: list[str], rovers: int) -> str | None:
+    known = [f'rover{i + 1}' for i in range(rovers)]
+    unknown = [r for r in chosen if r and r not in known]
+    return f'stereo_rovers: {unknown} not among {known}' if unknown else None
+
+
 class SimNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('rover_sim', **kwargs)
-        self.values = declare_parameters(self, PARAMS, on_change=self._on_param_change)
+        self.values = declare_parameters(self, PARAMS, on_change=self._on_param_change,
+                                         check_all=self._check_params)
         self._rtf = float(self.values['real_time_factor'])
         self._cmd_timeout = float(self.values['cmd_vel_timeout_s'])
         self.config = self._make_config()         # raises ValueError (logged by run_node)
+        # what the sim thread renders, changed while running (_on_param_change)
+        self._stereo_hz = self.config.stereo_rate_hz
+        self._stereo_rovers = tuple(r for r in self.values['stereo_rovers'] if r)
         self.truth_path = self.values['truth_yaml'] or None
         try:
             truth = load_truth(self.truth_path)
@@ -143,10 +154,9 @@ class SimNode(Node):
                 changes['noise'] = NoiseConfig(**{**base.noise.__dict__,
                                                   'fraction': v['noise_fraction']})
             config = base.replace(real_time_factor=self._rtf, **changes)
-            known = [f'rover{i + 1}' for i in range(config.rovers)]
-            unknown = [r for r in v['stereo_rovers'] if r and r not in known]
-            if unknown:
-                raise ConfigError(f'stereo_rovers: {unknown} not among {known}')
+            reason = _unknown_rovers(v['stereo_rovers'], config.rovers)
+            if reason:
+                raise ConfigError(reason)
             return config
         except ConfigError as exc:
             raise ValueError(str(exc)) from exc
@@ -188,7 +198,16 @@ class SimNode(Node):
         self.world_pub = self.create_publisher(MarkerArray, 'sim/world', LATCHED_QOS)
         self.create_service(SimScenario, 'sim/reset', self._on_reset)
 
+    def _check_params(self, values: dict) -> str | None:
+        """Between parameters, while running: the rendered rovers exist."""
+        world = getattr(self, 'world', None)
+        return _unknown_rovers(values['stereo_rovers'], len(world.rovers)) if world else None
+
     def _on_param_change(self, changed: dict) -> None:
+        if 'stereo_rate_hz' in changed:
+            self._stereo_hz = float(changed['stereo_rate_hz'])
+        if 'stereo_rovers' in changed:
+            self._stereo_rovers = tuple(r for r in changed['stereo_rovers'] if r)
         if 'real_time_factor' in changed:
             with self._lock:       # the sim thread reads both together (_pace)
                 self._rtf = float(changed['real_time_factor'])
@@ -371,7 +390,7 @@ class SimNode(Node):
         self.clock_pub.publish(Clock(clock=t))
         sensors = self._every(self.config.sensor_rate_hz)
         odom = self._every(self.values['odom_rate_hz'])
-        stereo = self._every(self.config.stereo_rate_hz)
+        stereo = self._every(self._stereo_hz)
         for i, r in enumerate(w.rovers):
             pubs = self.pubs[i]
             if sensors:
@@ -384,7 +403,7 @@ class SimNode(Node):
                 self._publish_stereo(i, r.name, pubs, t)
 
     def _renders(self, name: str) -> bool:
-        chosen = [r for r in self.values['stereo_rovers'] if r]
+        chosen = self._stereo_rovers
         return not chosen or name in chosen
 
     def _publish_sensors(self, i: int, name: str, pubs: dict, t: Time) -> None:
@@ -454,6 +473,13 @@ class SimNode(Node):
         ps.header.stamp, ps.header.frame_id = t, self.values['map_frame']
         _pose(ps.pose, tr.base_position, tr.base_rotation)
         pubs['truth_base'].publish(ps)
+        # the camera's truth at the odometry's rate, rendered or not (a viewer shows where
+        # each camera looks while the sim renders no pair)
+        cp, cr = self.world.camera_pose(i)
+        ps = PoseStamped()
+        ps.header.stamp, ps.header.frame_id = t, self.values['map_frame']
+        _pose(ps.pose, cp, cr)
+        pubs['truth_cam'].publish(ps)
 
     def _camera_info(self, t: Time, frame: str, right: bool) -> CameraInfo:
         k = self.world.intrinsics()
@@ -488,11 +514,6 @@ class SimNode(Node):
         _pose(est.pose.pose, pos, rot)
         est.pose.covariance = [float(v) for v in cov.ravel()]
         pubs['cam_est'].publish(est)
-        cp, cr = self.world.camera_pose(i)
-        ps = PoseStamped()
-        ps.header.stamp, ps.header.frame_id = t, self.values['map_frame']
-        _pose(ps.pose, cp, cr)
-        pubs['truth_cam'].publish(ps)
 
     def _publish_latched(self) -> None:
         t = stamp(self.world.time_s)

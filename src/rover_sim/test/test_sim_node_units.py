@@ -67,3 +67,30 @@ def test_a_dying_simulation_thread_stops_the_node():
         threading.excepthook = hook
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+def test_rendering_is_chosen_while_running():
+    """stereo_rate_hz and stereo_rovers are set while the sim runs (a mission renders only
+    while someone looks): validated first (an unknown rover is refused, nothing changes),
+    applied after."""
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = SimNode(context=ctx, parameter_overrides=[
+        Parameter('rovers', value=2), Parameter('stereo_rate_hz', value=0.0),
+        Parameter('image_width', value=64), Parameter('image_height', value=48),
+        Parameter('real_time_factor', value=0.0)])
+    try:
+        assert node._stereo_hz == 0.0 and node._renders('rover1') and node._renders('rover2')
+        res = node.set_parameters([Parameter('stereo_rate_hz', value=4.0),
+                                   Parameter('stereo_rovers', value=['rover1'])])
+        assert all(r.successful for r in res), res
+        assert node._stereo_hz == 4.0
+        assert node._renders('rover1') and not node._renders('rover2')
+        res = node.set_parameters([Parameter('stereo_rovers', value=['rover3'])])
+        assert not res[0].successful and 'rover3' in res[0].reason
+        assert not node._renders('rover2')                       # unchanged
+        res = node.set_parameters([Parameter('stereo_rovers', value=[''])])
+        assert res[0].successful and node._renders('rover2')     # [''] is all again
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
