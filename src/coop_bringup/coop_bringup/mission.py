@@ -31,6 +31,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, Twist
@@ -43,6 +44,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.cli import number
 from coop_common.dynparams import PARAM_NAMES
+from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
     MAST_JOINTS,
@@ -52,6 +54,7 @@ from coop_common.rover_geometry import (
     yaw_of,
 )
 from coop_common.testing import isolate_ros_environment, pick_domain_id
+from coop_id.excitation import Strategy
 from coop_insertion.drive import FollowPath
 from coop_insertion.errors import InsertionError
 from coop_insertion.rig import (
@@ -66,7 +69,13 @@ from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
 from coop_msgs.srv import MapFile, NextBestView
 from coop_viewplan.frames import camera_pose
 from coop_viewplan.grid import MapError, planning_grid
-from coop_viewplan.nbv import NextBestViewPlanner, PlanningError, geodesic_path, waypoints
+from coop_viewplan.nbv import (
+    NextBestViewPlanner,
+    PlanningError,
+    StrategyName,
+    geodesic_path,
+    waypoints,
+)
 from coop_viewplan.offline import nbv_config
 from coop_viewplan.params import PARAMS as VP_PARAMS
 
@@ -96,8 +105,8 @@ class MissionConfig:
     rovers: int = 2
     phases: tuple[str, ...] = PHASES
     identify_s: float = 20.0
-    identify_strategy: str = 'information'
-    strategy: str = 'max_information'
+    identify_strategy: Strategy = Strategy.INFORMATION
+    strategy: StrategyName = StrategyName.MAX_INFORMATION
     coverage_target: float = 0.9
     max_scans: int = 8
     sweep_s: float = 8.0              # scan 0: each rover sweeps its mast over its view (sim s)
@@ -111,6 +120,10 @@ class MissionConfig:
     live_port: int | None = None      # serve the live view (Foxglove WebSocket) on this port
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, 'identify_strategy', choice(
+            Strategy, self.identify_strategy, 'identify_strategy', error=MissionError))
+        object.__setattr__(self, 'strategy', choice(StrategyName, self.strategy, 'strategy',
+                                                    error=MissionError))
         bad = [p for p in self.phases if p not in PHASES]
         if bad:
             raise MissionError(f'unknown phases {bad}; choose from {", ".join(PHASES)}')
@@ -123,7 +136,7 @@ class MissionConfig:
 @dataclass
 class Phase:
     name: str
-    status: str = 'skipped'
+    status: Literal['skipped', 'running', 'ok', 'failed'] = 'skipped'
     reason: str = ''
     wall_s: float | None = None
     sim_s: float | None = None
@@ -767,9 +780,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--coverage', type=number(float, lo=0.0, hi=1.0),
                    default=d.coverage_target, help='work-site coverage target')
     p.add_argument('--max-scans', type=number(int, lo=0), default=d.max_scans)
-    p.add_argument('--strategy', default=d.strategy,
-                   help='exploration strategy of next_best_view (max_information, frontier, '
-                        '...)')
+    p.add_argument('--strategy', default=d.strategy.value,
+                   choices=[m.value for m in StrategyName],
+                   help='exploration strategy of next_best_view')
     p.add_argument('--insert-timeout', type=number(float, lo=1.0), default=d.insert_timeout_s)
     p.add_argument('--near-start', action='store_true',
                    help='start the rovers at their staging poses by the site (a short mission)')
