@@ -571,8 +571,10 @@ class Mission:
         cfg, c = self.cfg, self.client
         if not c.nbv.wait_for_service(timeout_sec=60):
             raise MissionError('no viewplan/next_best_view service')
-        # the cameras range while the rovers stand and look (thesis §3.3: a scan from each
-        # chosen configuration), not while they drive: rendering is most of the sim's cost
+        # both cameras range from here on, while the rovers drive too: with the pairs off on
+        # the drives, three next-best-view scans of the default mission added nothing to the
+        # site's coverage (75.9 % after scan 0, 1, 2 and 3): the views chosen look away from
+        # the site, and what the site's coverage gained came from the drives past it
         self.rig.render(tuple(self.rovers), cfg.stereo_rate_hz)
         for r in self.rovers:             # scan 0: sweep the mast across the view at the start
             c.mast_cmd[r].publish(mast_sweep(cfg.sweep_s))
@@ -616,9 +618,7 @@ class Mission:
                 plans[r] = (wps, mount.base_yaw)
                 aims[r] = (mount.pan, mount.tilt)
             if plans:
-                self.rig.render((), 0.0)
                 self._drive(plans, f'scan {k} drive')
-                self.rig.render(tuple(self.rovers), cfg.stereo_rate_hz)
             for r, (pan, tilt) in aims.items():
                 c.aim(r, pan, tilt)
             seq = c.map.sequence

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import struct
+import threading
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -34,8 +35,9 @@ class Received:
 
 
 async def _receive(url: str, topics: Iterable[str] | None, duration_s: float,
-                   until_each: bool) -> Received:
+                   until_each: bool, stop: threading.Event | None) -> Received:
     import websockets  # noqa: PLC0415 - only the test and the bench use the client
+    from websockets.exceptions import ConnectionClosed  # noqa: PLC0415
 
     want = set(topics) if topics is not None else None
     got = Received()
@@ -44,9 +46,13 @@ async def _receive(url: str, topics: Iterable[str] | None, duration_s: float,
                                   open_timeout=20) as ws:
         t_end = time.monotonic() + duration_s
         while (left := t_end - time.monotonic()) > 0:
+            if stop is not None and stop.is_set():
+                break
             try:
-                frame = await asyncio.wait_for(ws.recv(), timeout=left)
+                frame = await asyncio.wait_for(ws.recv(), timeout=min(left, 0.5))
             except TimeoutError:
+                continue
+            except ConnectionClosed:           # the server went away: what came is the result
                 break
             if isinstance(frame, str):
                 msg = json.loads(frame)
@@ -77,7 +83,8 @@ async def _receive(url: str, topics: Iterable[str] | None, duration_s: float,
 
 
 def receive(url: str, *, topics: Iterable[str] | None = None, duration_s: float = 10.0,
-            until_each: bool = False) -> Received:
-    """Connect to `url`, subscribe to `topics` (all when None) and record for `duration_s`;
-    with `until_each`, return as soon as every topic got a message."""
-    return asyncio.run(_receive(url, topics, duration_s, until_each))
+            until_each: bool = False, stop: threading.Event | None = None) -> Received:
+    """Connect to `url`, subscribe to `topics` (all when None) and record for `duration_s`,
+    until `stop` is set or the server closes; with `until_each`, return as soon as every
+    topic got a message."""
+    return asyncio.run(_receive(url, topics, duration_s, until_each, stop))
