@@ -14,7 +14,8 @@ centre, over the same voxels for both: every voxel occupied in both maps, the on
 true surface passes through, and those of the latter where the predicted stereo sigma is below
 the voxel size; see surface_errors; pooled over several placements of the scene in the grid,
 see grid_offsets; the stereo surface voxels also by range from the nearest camera), and two
-rovers' maps fused vs every scan in one map.
+rovers' maps fused vs every scan in one map. The printed tables are `format_table` of the JSON
+`--json` writes.
 
     bench/map_vs_octomap.py --json out/bench/map_vs_octomap.json
 """
@@ -299,6 +300,81 @@ def fused_vs_single(scans, res) -> float:
     return float(np.mean(fused.state_of_keys(keys) != single.state_of_keys(keys)))
 
 
+def format_table(res: dict) -> str:
+    """The tables main prints, from its JSON result."""
+    w, h = res['image']
+    ss = res.get('supersample', 1)
+    lines = [f"stereo: {res['stereo_frames']} frames {w}x{h} (sub-pixel: {res['subpixel']}"
+             f"{', full width' if res['full_width'] else ', without the left 64 columns'}"
+             f"{f', rendered {ss}x{ss} per pixel' if ss != 1 else ''}), "
+             f"{res['stereo_points']} points; synthetic: {res['synthetic_scans']} scans, "
+             f"{res['synthetic_points']} points; best of {res['repeats']}",
+             f'{"res m":>6} {"data":>9} {"ours Mpt/s":>10} {"octo Mpt/s":>10} {"speedup":>7} '
+             f'{"agree":>7} {"B/voxel":>7} {"frame ms":>8}']
+    for k, rec in res['resolutions'].items():
+        for name, r in (('synthetic', rec['synthetic']), ('stereo', rec['stereo']),
+                        ('all', rec)):
+            lines.append(f'{k:>6} {name:>9} {r["ours_points_per_s"] / 1e6:10.3f} '
+                         f'{r["octomap_points_per_s"] / 1e6:10.3f} {r["speedup"]:7.2f} '
+                         f'{r["state_agreement"]:7.4f} {r["bytes_per_known_voxel"]:7.1f} '
+                         f'{r["frame_latency_ms"]:8.1f}')
+    kern = res['kernel']
+    lines.append('surface error: RMS distance to the true surface of the estimate of each map '
+                 '(ours: merged Gaussian mean; octo: voxel centre; lit: ours with Eq. 3-10 on '
+                 'raw point covariances), same voxels for both, pooled over '
+                 f"{res['grid_offsets']} placements of the scene in the grid (seeded random "
+                 'offsets); ratio range: per placement; kern: the kernel surface query '
+                 f"(VoxelMap.surface_points, bandwidth {kern['bandwidth_voxels']:g} voxel, "
+                 f"radius {kern['radius_voxels']}), its ratio to octo; octo kern: the same "
+                 "kernel over OctoMap's occupied leaf centres")
+    lines.append(f'{"res m":>6} {"data":>9} {"voxels":>8} {"n":>7} {"ours mm":>8} '
+                 f'{"octo mm":>8} {"ratio":>6} {"ratio range":>11} {"lit mm":>7} '
+                 f'{"lit ratio":>9} {"kern mm":>7} {"kern ratio":>10} {"kern range":>10} '
+                 f'{"octo kern mm":>12}')
+    for k, r in res['resolutions'].items():
+        for name in ('synthetic', 'stereo'):
+            for vs in ('all', 'surface', 'near'):
+                q = r[name]['surface_error'][vs]
+                rr = q['ratio_per_offset']
+                rng_s = f'{min(rr):.2f}-{max(rr):.2f}' if rr else '-'
+                rk = q['kernel_ratio_per_offset']
+                rng_k = f'{min(rk):.2f}-{max(rk):.2f}' if rk else '-'
+                lines.append(
+                    f'{k:>6} {name:>9} {vs:>8} {q["voxels"]:7d} '
+                    f'{1e3 * q["rms_ours_m"]:8.1f} {1e3 * q["rms_octomap_m"]:8.1f} '
+                    f'{q["ratio"]:6.2f} {rng_s:>11} {1e3 * q["rms_ours_literal_eq_3_10_m"]:7.1f} '
+                    f'{q["rms_ours_literal_eq_3_10_m"] / q["rms_octomap_m"]:9.2f} '
+                    f'{1e3 * q["rms_ours_kernel_m"]:7.1f} {q["kernel_ratio"]:10.2f} '
+                    f'{rng_k:>10} {1e3 * q["rms_octomap_kernel_m"]:12.1f}')
+    lines.append('stereo surface voxels by range from the nearest camera (the same voxels as '
+                 "the 'surface' rows): voxels, ours / octo / kern mm, ratio, kern ratio")
+    bands = [b['range_m'] for b in next(iter(res['resolutions'].values()))[
+        'stereo']['surface_error']['surface']['by_range']]
+    lines.append(f'{"res m":>6} ' + ' '.join(f'{f"{lo:g}-{hi:g} m":>34}' for lo, hi in bands))
+    for k, r in res['resolutions'].items():
+        cells = []
+        for b in r['stereo']['surface_error']['surface']['by_range']:
+            cells.append(f'{b["voxels"]:6d} {1e3 * b["rms_ours_m"]:5.1f}/'
+                         f'{1e3 * b["rms_octomap_m"]:4.1f}/{1e3 * b["rms_ours_kernel_m"]:4.1f} '
+                         f'{b["ratio"]:4.2f} {b["kernel_ratio"]:4.2f}')
+        lines.append(f'{k:>6} ' + ' '.join(f'{c:>34}' for c in cells))
+    lines.append(f'{"res m":>6} {"data":>9} {"off-surface share of all-voxel MSE":>36} '
+                 f'{"fused!=single":>13} {"octo B/leaf":>11}')
+    for k, r in res['resolutions'].items():
+        for name in ('synthetic', 'stereo'):
+            q = r[name]
+            share = q['surface_error']['all']['off_surface_share_of_octomap_mse']
+            lines.append(f'{k:>6} {name:>9} {100 * share:35.1f}% '
+                         f'{100 * r["fused_vs_single_differ"]:12.3f}% '
+                         f'{q["octomap_bytes_per_leaf"]:11.1f}')
+    lines.append(f'{"res m":>6} {"ray_subdivision":>15} {"ours Mpt/s":>10} {"agree":>7}')
+    for key, r in res['ray_subdivision'].items():
+        k, sub = key.split('/')
+        lines.append(f'{k:>6} {int(sub):>15d} {r["ours_points_per_s"] / 1e6:10.3f} '
+                     f'{r["state_agreement"]:7.4f}')
+    return '\n'.join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--json', type=output_path, help='write the results here')
@@ -333,7 +409,10 @@ def main(argv: list[str] | None = None) -> int:
            'stereo_frames': len(st), 'image': [args.width, args.height], 'subpixel': args.subpixel,
            'full_width': args.full_width, 'supersample': args.supersample,
            'resolutions': {}}
-    rows = []
+    out |= {'repeats': args.repeats, 'grid_offsets': args.grid_offsets,
+            'stereo_points': sum(len(sc[0]) for sc in st), 'synthetic_scans': len(syn),
+            'synthetic_points': sum(len(sc[0]) for sc in syn),
+            'kernel': {'bandwidth_voxels': KERNEL_BANDWIDTH, 'radius_voxels': KERNEL_RADIUS}}
     for res in args.resolutions:
         r_syn, _, _ = compare(syn, res, args.repeats, with_cov=True)
         offsets = grid_offsets(res, args.grid_offsets)
@@ -365,65 +444,7 @@ def main(argv: list[str] | None = None) -> int:
             'synthetic': r_syn, 'stereo': r_st,
         }
         out['resolutions'][f'{res:g}'] = rec
-        for name, r in (('synthetic', r_syn), ('stereo', r_st), ('all', rec)):
-            rows.append((f'{res:g}', name, r['ours_points_per_s'] / 1e6,
-                         r['octomap_points_per_s'] / 1e6, r['speedup'], r['state_agreement'],
-                         r['bytes_per_known_voxel'], r['frame_latency_ms']))
-    print(f'stereo: {len(st)} frames {args.width}x{args.height} (sub-pixel: {args.subpixel}'
-          f'{", full width" if args.full_width else ", without the left 64 columns"}), '
-          f'{sum(len(s[0]) for s in st)} points; synthetic: {len(syn)} scans, '
-          f'{sum(len(s[0]) for s in syn)} points; best of {args.repeats}')
-    print(f'{"res m":>6} {"data":>9} {"ours Mpt/s":>10} {"octo Mpt/s":>10} {"speedup":>7} '
-          f'{"agree":>7} {"B/voxel":>7} {"frame ms":>8}')
-    for r in rows:
-        print(f'{r[0]:>6} {r[1]:>9} {r[2]:10.3f} {r[3]:10.3f} {r[4]:7.2f} {r[5]:7.4f} '
-              f'{r[6]:7.1f} {r[7]:8.1f}')
-    print('surface error: RMS distance to the true surface of the estimate of each map (ours: '
-          'merged Gaussian mean; octo: voxel centre; lit: ours with Eq. 3-10 on raw point '
-          f'covariances), same voxels for both, pooled over {args.grid_offsets} placements of '
-          'the scene in the grid (seeded random offsets); ratio range: per placement; '
-          f'kern: the kernel surface query (VoxelMap.surface_points, bandwidth '
-          f'{KERNEL_BANDWIDTH:g} voxel, radius {KERNEL_RADIUS}), its ratio to octo; octo kern: '
-          "the same kernel over OctoMap's occupied leaf centres")
-    print(f'{"res m":>6} {"data":>9} {"voxels":>8} {"n":>7} {"ours mm":>8} {"octo mm":>8} '
-          f'{"ratio":>6} {"ratio range":>11} {"lit mm":>7} {"lit ratio":>9} {"kern mm":>7} '
-          f'{"kern ratio":>10} {"kern range":>10} {"octo kern mm":>12}')
-    for k, r in out['resolutions'].items():
-        for name in ('synthetic', 'stereo'):
-            for vs in ('all', 'surface', 'near'):
-                q = r[name]['surface_error'][vs]
-                rr = q['ratio_per_offset']
-                rng_s = f'{min(rr):.2f}-{max(rr):.2f}' if rr else '-'
-                rk = q['kernel_ratio_per_offset']
-                rng_k = f'{min(rk):.2f}-{max(rk):.2f}' if rk else '-'
-                print(f'{k:>6} {name:>9} {vs:>8} {q["voxels"]:7d} {1e3 * q["rms_ours_m"]:8.1f} '
-                      f'{1e3 * q["rms_octomap_m"]:8.1f} {q["ratio"]:6.2f} {rng_s:>11} '
-                      f'{1e3 * q["rms_ours_literal_eq_3_10_m"]:7.1f} '
-                      f'{q["rms_ours_literal_eq_3_10_m"] / q["rms_octomap_m"]:9.2f} '
-                      f'{1e3 * q["rms_ours_kernel_m"]:7.1f} {q["kernel_ratio"]:10.2f} '
-                      f'{rng_k:>10} {1e3 * q["rms_octomap_kernel_m"]:12.1f}')
-    print('stereo surface voxels by range from the nearest camera (the same voxels as the '
-          "'surface' rows): voxels, ours / octo / kern mm, ratio, kern ratio")
-    bands = SURFACE_RANGE_BANDS_M
-    print(f'{"res m":>6} ' + ' '.join(f'{f"{lo:g}-{hi:g} m":>34}' for lo, hi in bands))
-    for k, r in out['resolutions'].items():
-        cells = []
-        for b in r['stereo']['surface_error']['surface']['by_range']:
-            cells.append(f'{b["voxels"]:6d} {1e3 * b["rms_ours_m"]:5.1f}/'
-                         f'{1e3 * b["rms_octomap_m"]:4.1f}/{1e3 * b["rms_ours_kernel_m"]:4.1f} '
-                         f'{b["ratio"]:4.2f} {b["kernel_ratio"]:4.2f}')
-        print(f'{k:>6} ' + ' '.join(f'{c:>34}' for c in cells))
-    print(f'{"res m":>6} {"data":>9} {"off-surface share of all-voxel MSE":>36} '
-          f'{"fused!=single":>13} {"octo B/leaf":>11}')
-    for k, r in out['resolutions'].items():
-        for name in ('synthetic', 'stereo'):
-            q = r[name]
-            print(f'{k:>6} {name:>9} '
-                  f'{100 * q["surface_error"]["all"]["off_surface_share_of_octomap_mse"]:35.1f}% '
-                  f'{100 * r["fused_vs_single_differ"]:12.3f}% '
-                  f'{q["octomap_bytes_per_leaf"]:11.1f}')
     # the ray_subdivision trade-off on the stereo frames (one run each)
-    print(f'{"res m":>6} {"ray_subdivision":>15} {"ours Mpt/s":>10} {"agree":>7}')
     out['ray_subdivision'] = {}
     for res in args.resolutions:
         tree, _ = run_octomap(st, res)
@@ -433,10 +454,10 @@ def main(argv: list[str] | None = None) -> int:
             for sc in st:
                 vm.insert_scan(sc[0], sc[1], covariances=sc[3])
             rate = sum(len(sc[0]) for sc in st) / (time.perf_counter() - t0)
-            agree = agreement(vm, tree, res)
             out['ray_subdivision'][f'{res:g}/{sub}'] = {'ours_points_per_s': rate,
-                                                       'state_agreement': agree}
-            print(f'{res:>6g} {sub:>15d} {rate / 1e6:10.3f} {agree:7.4f}')
+                                                       'state_agreement':
+                                                           agreement(vm, tree, res)}
+    print(format_table(out))
     if args.json:
         write_json(args.json, out, indent=2)
     return 0

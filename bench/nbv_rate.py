@@ -2,6 +2,7 @@
 """Benchmark of coop_viewplan: 3-D NI scoring rate (candidate poses/s), next-best-view decision
 time, and task-placement time (2-D study scene; 3-D map as the view planner node serves it);
 batched scoring is compared with scoring one pose at a time (the peer) in the same run.
+The printed table is `format_table` of the JSON `--json` writes.
 Usage: bench/nbv_rate.py --json OUT"""
 from __future__ import annotations
 
@@ -55,6 +56,22 @@ def timed(fn, repeat: int = 3) -> float:
         fn()
         best = min(best, time.perf_counter() - t)
     return best
+
+
+def format_table(result: dict) -> str:
+    """The table main prints, from its JSON result."""
+    nan = float('nan')
+    lines = [f"{'benchmark':78s} {'poses/s':>9s} {'peer/s':>8s} {'ratio':>6s} {'seconds':>8s}"]
+    for r in result['rows']:
+        lines.append(f"{r['what']:78s} {r.get('poses_per_s', nan):9.0f} "
+                     f"{r.get('peer_one_at_a_time_poses_per_s', nan):8.0f} "
+                     f"{r.get('speedup', nan):6.1f} {r.get('seconds', nan):8.3f}")
+    lines.append(f"task placement 3-D outcomes: {result['task_placement_3d_outcomes']}")
+    if 'load_average' in result:
+        la = result['load_average']
+        lines.append(f'load average at the end {la[0]:.1f}, {la[1]:.1f}, {la[2]:.1f} '
+                     f'(1, 5, 15 min), {result.get("cpus", "?")} cores')
+    return '\n'.join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -162,14 +179,11 @@ def main(argv: list[str] | None = None) -> int:
                  'seconds': float(np.median(times)), 'max_seconds': float(np.max(times)),
                  'outcomes': outcomes})
     rows.append({'what': '  ... and the slowest', 'seconds': float(np.max(times))})
-    print(f"{'benchmark':78s} {'poses/s':>9s} {'peer/s':>8s} {'ratio':>6s} {'seconds':>8s}")
-    for r in rows:
-        print(f"{r['what']:78s} {r.get('poses_per_s', float('nan')):9.0f} "
-              f"{r.get('peer_one_at_a_time_poses_per_s', float('nan')):8.0f} "
-              f"{r.get('speedup', float('nan')):6.1f} {r.get('seconds', float('nan')):8.3f}")
-    print('task placement 3-D outcomes:', outcomes)
+    result = {'rows': rows, 'task_placement_3d_outcomes': outcomes, 'poses': args.poses,
+              'load_average': list(os.getloadavg()), 'cpus': os.cpu_count()}
+    print(format_table(result))
     if args.json is not None:
-        write_json(args.json, {'rows': rows}, indent=1)
+        write_json(args.json, result, indent=1)
     return 0
 
 

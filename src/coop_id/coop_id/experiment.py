@@ -1,6 +1,9 @@
 """The thesis scenario end to end on the model-level simulation (§2.6.1; no rclpy).
 
-    python -m coop_id.experiment --seeds 20          # the +20 % mass step scenario (drift)
+    python -m coop_id.experiment --seeds 20 --json out.json   # the +20 % mass step (drift)
+
+The printed table is `format_json` of the JSON `--json` writes (docs/results makes its table
+from that JSON the same way).
 """
 from __future__ import annotations
 
@@ -10,8 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from coop_common.cli import number
+from coop_common.cli import number, output_path
 from coop_common.dynparams import BaseParameters, load_truth
+from coop_common.files import write_json
 
 from .excitation import STRATEGIES, Excitation, constant_excitation
 from .identifier_core import Identifier, IdentifierConfig
@@ -195,6 +199,31 @@ def format_tracking(runs: list[StepTracking], *, tol: float = 0.05, delay_s: flo
     return '\n'.join(lines)
 
 
+def tracking_json(runs: list[StepTracking], *, drift_per_s: float,
+                  drift_parameters: tuple[str, ...], strategy: str, fraction: float,
+                  duration_s: float) -> dict:
+    """The JSON of a mass-step run: the settings and each seed's series (what format_json
+    prints from)."""
+    return {'scenario': 'mass_step', 'drift_per_s': drift_per_s,
+            'drift_parameters': list(drift_parameters), 'strategy': strategy,
+            'fraction': fraction, 'duration_s': duration_s,
+            'step_s': runs[0].step_s, 'mass_before': runs[0].mass_before,
+            'mass_after': runs[0].mass_after,
+            'runs': [{'seed': r.seed, 'times': [float(t) for t in r.times],
+                      'mass': [float(m) for m in r.mass],
+                      'mean_error': [float(e) for e in r.mean_error]} for r in runs]}
+
+
+def format_json(doc: dict) -> str:
+    """The printed table of a mass-step run, from the JSON `--json` writes."""
+    runs = [StepTracking(r['seed'], np.asarray(r['times'], float), np.asarray(r['mass'], float),
+                         np.asarray(r['mean_error'], float), doc['mass_before'],
+                         doc['mass_after'], doc['step_s']) for r in doc['runs']]
+    return (f'drift_per_s {doc["drift_per_s"]:g} on '
+            f'{",".join(doc["drift_parameters"]) or "nothing"}, strategy {doc["strategy"]}\n'
+            + format_tracking(runs))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='coop_id.experiment',
                                  description='the +20 % mass step (drift) scenario')
@@ -211,13 +240,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--fraction', type=number(float, lo=-1.0, lo_open=True, hi=10.0),
                     default=0.2, help='the mass step as a fraction of the mass')
     ap.add_argument('--strategy', default='information', choices=STRATEGIES)
+    ap.add_argument('--json', type=output_path, default=None,
+                    help='write the result here (the printed table is made from it)')
     args = ap.parse_args(argv)
     names = tuple(n for n in args.drift_parameters.split(',') if n)
     unknown = [n for n in names if n not in IDX]
     if unknown:
         ap.error(f'--drift-parameters: unknown {unknown}; of {",".join(IDX)}')
-    if not args.step < args.duration:
-        ap.error(f'--step ({args.step:g} s) must come before the end (--duration '
+    if not args.step + 2.0 <= args.duration:     # the table reads from 2 s after the step
+        ap.error(f'--step ({args.step:g} s) must come at least 2 s before the end (--duration '
                  f'{args.duration:g} s)')
 
     def factory() -> IdentifierConfig:
@@ -227,9 +258,12 @@ def main(argv: list[str] | None = None) -> int:
                               config_factory=factory, step_s=args.step,
                               duration_s=args.duration, fraction=args.fraction,
                               strategy=args.strategy)
-    print(f'drift_per_s {args.drift:g} on {",".join(names) or "nothing"}, strategy '
-          f'{args.strategy}')
-    print(format_tracking(runs))
+    doc = tracking_json(runs, drift_per_s=args.drift, drift_parameters=names,
+                        strategy=args.strategy, fraction=args.fraction,
+                        duration_s=args.duration)
+    print(format_json(doc))
+    if args.json is not None:
+        write_json(args.json, doc, indent=1)
     return 0
 
 

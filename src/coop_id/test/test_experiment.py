@@ -91,7 +91,8 @@ def test_a_duration_without_a_window_is_refused(scenario):
 
 @pytest.mark.parametrize('args, reason', [
     (['--drift-parameters', 'mass,weight'], "unknown ['weight']"),
-    (['--step', '20', '--duration', '14'], 'must come before the end'),
+    (['--step', '20', '--duration', '14'], 'must come at least 2 s before the end'),
+    (['--step', '13', '--duration', '14'], 'must come at least 2 s before the end'),
     (['--fraction', '-1'], '--fraction: -1.0 must be > -1.0'),
     (['--strategy', 'magic'], "invalid choice: 'magic'"),
     (['--duration', 'nan'], "'nan' is not finite"),
@@ -100,3 +101,34 @@ def test_mass_step_cli_refuses_before_any_run(capsys, args, reason):
     from coop_common.testing import usage_error
     from coop_id.experiment import main
     assert reason in usage_error(main, args, capsys)
+
+
+def test_cli_prints_the_table_of_its_json(tmp_path, capsys):
+    """`coop_id.experiment --json` writes what it printed: the table is format_json(JSON), the
+    function docs/results/identification.md makes the drift table with."""
+    import json
+
+    from coop_id.experiment import format_json, main
+    out = tmp_path / 'drift.json'
+    assert main(['--seeds', '1', '--step', '1.2', '--duration', '3.2', '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    assert text == format_json(doc) + '\n'
+    assert text.startswith('drift_per_s 0.01 on mass, strategy information\nmass step 3 -> 3.6 kg')
+    assert [r['seed'] for r in doc['runs']] == [0]
+    assert len(doc['runs'][0]['times']) == len(doc['runs'][0]['mass'])
+
+
+def test_format_json_of_a_hand_built_run():
+    from coop_id.experiment import format_json
+    doc = {'drift_per_s': 0.01, 'drift_parameters': ['mass'], 'strategy': 'information',
+           'step_s': 1.0, 'mass_before': 3.0, 'mass_after': 3.6,
+           'runs': [{'seed': 7, 'times': [0.4, 0.8, 1.2, 1.6, 2.0, 2.4, 2.8, 3.2],
+                     'mass': [3.0, 3.0, 3.3, 3.5, 3.58, 3.6, 3.61, 3.6],
+                     'mean_error': [0.05, 0.05, 0.08, 0.06, 0.05, 0.04, 0.04, 0.04]}]}
+    lines = format_json(doc).splitlines()
+    assert lines[0] == 'drift_per_s 0.01 on mass, strategy information'
+    # nearest windows to 1, 2, 3 and 5 s; settled from the 1.6 s window; errors from 3 s on
+    assert lines[3].split() == ['7', '3.000', '3.580', '3.610', '3.600', '3.600', '0.6',
+                                '0.0%', '4.0%']
+    assert lines[4].startswith('mass within 5 % of the new mass from 2 s after the step: 1/1')

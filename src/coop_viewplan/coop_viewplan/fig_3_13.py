@@ -197,7 +197,14 @@ def format_json(result: dict) -> str:
              + (f" distance={r['distance']}" if r['distance'] != 'configuration' else '')
              + (f" k_rel={r['k_rel']:g}" if r['k_rel'] != NbvConfig.k_rel else '')
              + (f" candidates={r['candidates']}" if r['candidates'] != NbvConfig.n_positions
-                else '')]
+                else '')
+             + (f" angle_weight={r['angle_weight']:g}"
+                if r.get('angle_weight', NbvConfig.alpha[3]) != NbvConfig.alpha[3] else '')
+             + (f" entropy_weight={r['entropy_weight']}"
+                if r.get('entropy_weight', NbvConfig.entropy_weight) != NbvConfig.entropy_weight
+                else '')
+             + (f" ni_measure={r['ni_measure']}"
+                if r.get('ni_measure', NbvConfig.ni_measure) != NbvConfig.ni_measure else '')]
     lines.append(f"{'strategy':16s} {'scans to 90% [95% CI]':>24s} {'reached':>8s} "
                  f"{'distance to 90% m [95% CI]':>30s} {'final frac':>10s} {'final dist m':>12s}")
     for name, v in strat.items():

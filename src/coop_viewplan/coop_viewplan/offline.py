@@ -7,6 +7,7 @@ saved map or on the map `coop_mapping.offline.map_from_bag` fuses from a bag (no
 
 The cameras are each rover's last `stereo/pose` in the bag; the rovers ask in name order, each
 claiming the cells its view is expected to see for the next (as the node does on one map).
+`--json OUT` writes the answers; the printed listing is `format_table` of that JSON.
 """
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from coop_common.cli import output_path
+from coop_common.files import write_json
 from coop_common.params import check_values, choice, parse_value
 
 from .frames import camera_pose
@@ -131,6 +134,35 @@ def plan_team(grid: OccupancyGrid, cameras: dict[str, CameraState], params: dict
     return out
 
 
+def answer_json(ans: Answer) -> dict:
+    """One rover's answer as `--json` writes it: the chosen view and its terms, or the reason."""
+    d = ans.decision
+    if d is None:
+        return {'rover': ans.rover, 'success': False, 'message': ans.message}
+    c, i = d.candidates, d.index
+    return {'rover': ans.rover, 'success': True, 'message': ans.message,
+            'position_m': [float(v) for v in d.position], 'yaw_deg': math.degrees(d.yaw),
+            'ni_bits': float(d.scores.ni[i]), 'distance_m': float(c.distance[i]),
+            'path_m': float(d.path_length), 'collision_p': float(c.collision_p[i]),
+            'rating': float(d.rating[i])}
+
+
+def format_table(res: dict) -> str:
+    """The printed listing of a run, from the JSON `--json` writes."""
+    lines = [f"{res['source']}: {res['voxels']} voxels at {res['resolution_m']} m; poses: last "
+             f"stereo/pose in {res['bag']}"]
+    for a in res['answers']:
+        if not a['success']:
+            lines.append(f"{a['rover']}: none ({a['message']})")
+            continue
+        p = a['position_m']
+        lines.append(f"{a['rover']}: {a['message']}, camera at ({p[0]:+.2f}, {p[1]:+.2f}, "
+                     f"{p[2]:+.2f}) m yaw {a['yaw_deg']:+.0f} deg, NI {a['ni_bits']:.3f} bits, "
+                     f"d {a['distance_m']:.2f} m, path {a['path_m']:.2f} m, "
+                     f"P {a['collision_p']:.3f}, RF {a['rating']:.3f}")
+    return '\n'.join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="next best views on a bag's map, without DDS")
     ap.add_argument('bag', type=Path, help='bag with <rover>/stereo/* (poses, and the map '
@@ -140,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
                     choices=list(STRATEGIES))
     ap.add_argument('-p', action='append', default=[], metavar='NAME=VALUE',
                     help='node parameter override, e.g. -p camera_height_m=0.75')
+    ap.add_argument('--json', type=output_path, default=None,
+                    help='write the answers here (the printed listing is made from it)')
     a = ap.parse_args(argv)
     try:
         params = node_parameters(a.p)
@@ -162,18 +196,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:       # MapError included: what the node refuses
         print(f'{src}: {exc}', file=sys.stderr)
         return 1
-    print(f'{src}: {len(vm)} voxels at {vm.resolution} m; poses: last stereo/pose in {a.bag}')
-    for ans in plan_team(grid, cameras, params, strategy=a.strategy):
-        d = ans.decision
-        if d is None:
-            print(f'{ans.rover}: none ({ans.message})')
-            continue
-        c = d.candidates
-        p = d.position
-        print(f'{ans.rover}: {ans.message}, camera at ({p[0]:+.2f}, {p[1]:+.2f}, {p[2]:+.2f}) m '
-              f'yaw {math.degrees(d.yaw):+.0f} deg, NI {d.scores.ni[d.index]:.3f} bits, '
-              f'd {c.distance[d.index]:.2f} m, path {d.path_length:.2f} m, '
-              f'P {c.collision_p[d.index]:.3f}, RF {d.rating[d.index]:.3f}')
+    res = {'source': src, 'bag': str(a.bag), 'map': None if a.map is None else str(a.map),
+           'voxels': len(vm), 'resolution_m': vm.resolution, 'strategy': str(a.strategy),
+           'overrides': list(a.p),
+           'answers': [answer_json(ans)
+                       for ans in plan_team(grid, cameras, params, strategy=a.strategy)]}
+    print(format_table(res))
+    if a.json is not None:
+        write_json(a.json, res, indent=1)
     return 0
 
 

@@ -149,3 +149,27 @@ def test_verdict_ranks_unreached_runs_by_final_fraction():
     assert v['distance_to_90pct_rank_of_max_information'] == 1
     assert v['scans_to_90pct_order'][2:] == ['min_mapped', 'random', 'raster']
     assert v['distance_to_90pct_max_information_over_frontier'] == 2.0
+
+
+def test_the_printed_header_names_every_setting_off_the_defaults():
+    """format_json (the printed table and the docs/results blocks): a run's header line names
+    the planner settings that differ from NbvConfig's defaults, and only those."""
+    cell = {'mean': 99.4, 'ci95': [88.5, 110.3], 'reached': 5}
+    r = {'figure': 'Fig. 3-13', 'world': 'unstructured', 'cameras': 1, 'fov_deg': 90.0,
+         'depth_m': 15.0, 'seeds': 5, 'scans': 200, 'resolution_m': 1.0,
+         'k_rel': NbvConfig.k_rel, 'distance': 'configuration',
+         'candidates': NbvConfig.n_positions, 'near_fraction': 0.0, 'angle_weight': 1.0,
+         'entropy_weight': 'plogp', 'ni_measure': 'histogram', 'unknown_occlusion': 'none',
+         'occlusion_prior': 'density', 'ni_floor': 0.0,
+         'strategies': {'max_information': {
+             'scans_to_90pct_detail': cell,
+             'distance_to_90pct_detail': {'mean': 1977.0, 'ci95': [1855.0, 2099.0]},
+             'final_fraction': 0.967, 'final_distance_m': 3217.0}},
+         'verdict': {}}
+    head = fig_3_13.format_json(r).splitlines()[0]
+    assert head.endswith('scans=200 res=1.0 m')
+    r |= {'ni_measure': 'predictor5', 'angle_weight': 0.0, 'entropy_weight': 'binary'}
+    head = fig_3_13.format_json(r).splitlines()[0]
+    assert head.endswith('res=1.0 m angle_weight=0 entropy_weight=binary ni_measure=predictor5')
+    assert fig_3_13.format_json(r).splitlines()[2].split()[:4] == ['max_information', '99.4',
+                                                                   '[88.5,', '110.3]']

@@ -209,3 +209,42 @@ def test_node_and_offline_share_the_map_guards():
             planning_grid(*args, pad_m=0.5, **kw)
     with pytest.raises(EmptyMapError, match='empty map'):
         planning_grid(np.zeros((0, 3), int), np.zeros(0), 0.1, pad_m=0.5)
+
+
+def test_offline_listing_of_a_hand_built_result():
+    from coop_viewplan import offline
+    res = {'source': 'out/x.cmap', 'voxels': 1200, 'resolution_m': 0.1, 'bag': 'bags/b',
+           'answers': [{'rover': 'rover1', 'success': True,
+                        'message': 'max_information: 320 candidates',
+                        'position_m': [-1.35, -0.85, 0.8], 'yaw_deg': 270.0, 'ni_bits': 0.9612,
+                        'distance_m': 1.3, 'path_m': 0.0, 'collision_p': 0.119, 'rating': 0.826},
+                       {'rover': 'rover2', 'success': False,
+                        'message': 'no free reachable candidate'}]}
+    assert offline.format_table(res).splitlines() == [
+        'out/x.cmap: 1200 voxels at 0.1 m; poses: last stereo/pose in bags/b',
+        'rover1: max_information: 320 candidates, camera at (-1.35, -0.85, +0.80) m yaw +270 '
+        'deg, NI 0.961 bits, d 1.30 m, path 0.00 m, P 0.119, RF 0.826',
+        'rover2: none (no free reachable candidate)']
+
+
+@pytest.mark.skipif(not BAG.is_dir(), reason='sample bag not present')
+def test_offline_cli_prints_the_table_of_its_json(tmp_path, capsys):
+    """`coop_viewplan.offline --json` writes what it printed (docs/results/exploration.md makes
+    its listing from that JSON with format_table): a small saved map, the bag's poses."""
+    import json
+
+    pytest.importorskip('rover_bag.bagio')
+    from coop_mapping.voxelmap import VoxelMap
+    from coop_viewplan import offline
+    vm = VoxelMap(0.1)
+    xy = np.mgrid[-4:2:0.05, -3:3:0.05].reshape(2, -1).T
+    vm.insert_scan(np.c_[xy, np.zeros(len(xy))], np.array([-1.0, 0.0, 0.8]))
+    vm.save(tmp_path / 'm.cmap')
+    out = tmp_path / 'answers.json'
+    assert offline.main([str(BAG), '--map', str(tmp_path / 'm.cmap'), '-p', 'candidates=8',
+                         '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    res = json.loads(out.read_text())
+    assert text == offline.format_table(res) + '\n'
+    assert [a['rover'] for a in res['answers']] == ['rover1', 'rover2']
+    assert res['voxels'] == len(vm) and res['overrides'] == ['candidates=8']
