@@ -8,7 +8,15 @@ live_view process's CPU time (user + system, every thread and child) is read fro
 the client connected and without one. Targets (issue #23): map, both images and poses >= 2 Hz
 to a connected client; <= 10 % of one core.
 
+With `--mission`, the same client watches a real mission instead (`coop_bringup.mission`
+with the live view on; `--near-start` etc. as the mission's flags): per phase, what each
+channel delivered to the client beside what the graph published (a subscriber in the
+mission's process counts the sources), and the live_view process's CPU. In a mission the
+sources run on the simulator's clock, so an image channel can reach the client no faster than
+the sim renders (4 Hz of sim time times the real-time factor).
+
 Usage: bench/live_view.py --json OUT [--seconds S]
+       bench/live_view.py --json OUT --mission [--near-start] [--slot-in IN] [--max-scans N]
 """
 from __future__ import annotations
 
@@ -183,12 +191,165 @@ def format_table(result: dict) -> str:
     return '\n'.join(lines)
 
 
+#: live view channel -> the graph topic it is made from (mission mode's source counts)
+def _sources(rovers) -> dict[str, str]:
+    out = {'/map': 'map/voxels', '/insertion': 'insert/_action/feedback'}
+    for r in rovers:
+        out |= {f'/{r}/camera/compressed': f'{r}/stereo/left/image_raw',
+                f'/{r}/pose': f'sim/{r}/base_pose', f'/{r}/camera_pose': f'sim/{r}/camera_pose',
+                f'/{r}/identification': f'{r}/dynamic_parameters'}
+    return out
+
+
+def _source_type(topic: str):
+    """The message type and QoS of a source topic (as the live view subscribes)."""
+    if topic == 'map/voxels':
+        return VoxelMap, LATCHED_QOS
+    if topic.startswith('insert/'):
+        return Insert.Impl.FeedbackMessage, FEEDBACK_QOS
+    if topic.endswith('image_raw'):
+        return Image, SENSOR_QOS
+    if topic.endswith('dynamic_parameters'):
+        return DynamicParameters, LATCHED_QOS
+    return PoseStamped, SENSOR_QOS
+
+
+def _rate(times: list[float], t0: float, t1: float) -> float:
+    return sum(t0 <= t < t1 for t in times) / (t1 - t0) if t1 > t0 else 0.0
+
+
+def run_mission(args) -> dict:
+    """A mission with the live view on and a client connected from the start (see the
+    module's text); returns the JSON result."""
+    from coop_bringup.mission import Mission, MissionConfig, Progress  # noqa: PLC0415
+
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        port = s.getsockname()[1]
+    cfg = MissionConfig(seed=args.seed, slot_in=args.slot_in, near_start=args.near_start,
+                        identify_s=args.identify_s, coverage_target=args.coverage,
+                        max_scans=args.max_scans, live_port=port, bag=False)
+    out = Path(tempfile.mkdtemp(prefix='live_view_mission_'))
+    rovers = tuple(f'rover{i + 1}' for i in range(cfg.rovers))
+    sources = _sources(rovers)
+    marks: list[tuple[str, float]] = []
+    arrivals: dict[str, list[float]] = {t: [] for t in sources.values()}
+    cpu: list[tuple[float, float]] = []
+    stop = threading.Event()
+    got: dict = {}
+    threads: list[threading.Thread] = []
+    mission: Mission | None = None
+
+    def count(topic: str):
+        return lambda _m: arrivals[topic].append(time.monotonic())
+
+    def watch(pid: int) -> None:
+        while not stop.wait(1.0):
+            if not Path(f'/proc/{pid}').exists():      # the graph stopped: no more samples
+                return
+            cpu.append((time.monotonic(), cpu_seconds(pid)))
+
+    def client() -> None:
+        while not stop.is_set():                    # until the server listens
+            try:
+                got['r'] = receive(f'ws://127.0.0.1:{port}', topics=channel_topics(rovers),
+                                   duration_s=1e6, stop=stop)
+                return
+            except OSError:
+                stop.wait(1.0)
+
+    class Marks(Progress):
+        def start(self, phase: str) -> None:
+            marks.append((phase, time.monotonic()))
+            if not threads:                         # the graph is up: counters and client
+                rig = mission.rig
+                node = Node('live_view_bench_counter', context=rig.ctx)
+                for topic in sources.values():
+                    msg_type, qos = _source_type(topic)
+                    node.create_subscription(msg_type, topic, count(topic), qos, raw=True)
+                rig.add_node(node)
+                threads.extend([
+                    threading.Thread(target=watch, args=(rig.nodes['live_view'].proc.pid,),
+                                     daemon=True),
+                    threading.Thread(target=client, daemon=True)])
+                for t in threads:
+                    t.start()
+            super().start(phase)
+
+    loadavg = os.getloadavg()
+    mission = Mission(cfg, out, run_id='live', progress=Marks(), log=print)
+    rep = mission.run()
+    t_end = time.monotonic()
+    stop.set()
+    for t in threads:
+        t.join(timeout=30)
+    received = got.get('r')
+    windows = []
+    bounds = marks + [('end', t_end)]
+    for (phase, t0), (_, t1) in zip(bounds, bounds[1:]):
+        c = [(t, v) for t, v in cpu if t0 <= t <= t1]
+        frac = (c[-1][1] - c[0][1]) / (c[-1][0] - c[0][0]) if len(c) > 1 and \
+            c[-1][0] > c[0][0] else None
+        chans = {}
+        for ch, topic in sources.items():
+            arr = [t for t, _ in received.arrivals.get(ch, [])] if received else []
+            chans[ch] = {'client_hz': _rate(arr, t0, t1),
+                         'source_hz': _rate(arrivals[topic], t0, t1)}
+        windows.append({'phase': phase, 'wall_s': t1 - t0, 'cpu': frac, 'channels': chans})
+    return {'mode': 'mission', 'config': {k: getattr(cfg, k) for k in (
+                'seed', 'slot_in', 'near_start', 'identify_s', 'coverage_target',
+                'max_scans', 'stereo_rate_hz')},
+            'phases': rep['phases'], 'mission_success': rep['success'],
+            'windows': windows, 'cpu_samples': cpu,
+            'loadavg': [round(v, 2) for v in loadavg],
+            'openblas_num_threads': os.environ.get('OPENBLAS_NUM_THREADS')}
+
+
+def format_mission_table(result: dict) -> str:
+    """The table `--mission` prints, from its JSON result: per phase, each targeted channel's
+    rate at the client (and what the graph published, in brackets), and live_view's CPU."""
+    short = {'/map': 'map'}
+    for ch in TARGETED[1:]:
+        r, kind = ch.strip('/').split('/', 1)
+        short[ch] = f'{r[-1]}:' + {'camera/compressed': 'image', 'pose': 'pose',
+                                   'camera_pose': 'cam pose'}[kind]
+    head = f'{"phase":<9} {"wall s":>6} {"CPU":>6} ' + ' '.join(f'{short[c]:>14}'
+                                                            for c in TARGETED)
+    lines = ['client Hz (graph Hz) per phase; CPU: live_view, % of one core', head]
+    for w in result['windows']:
+        cells = []
+        for c in TARGETED:
+            x = w['channels'][c]
+            cells.append(f'{x["client_hz"]:5.2f} ({x["source_hz"]:5.1f})')
+        cpu = f'{100 * w["cpu"]:5.1f}%' if w['cpu'] is not None else '     -'
+        lines.append(f'{w["phase"]:<9} {w["wall_s"]:>6.0f} {cpu:>6} ' +
+                     ' '.join(f'{c:>14}' for c in cells))
+    status = ', '.join(f'{p["name"]} {p["status"]}' for p in result['phases'])
+    lines += [f'mission: {status}; seed {result["config"]["seed"]}, slot '
+              f'{result["config"]["slot_in"]} in, near start {result["config"]["near_start"]}; '
+              f'load average at start {result["loadavg"]}']
+    return '\n'.join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--json', type=output_path, required=True)
     ap.add_argument('--seconds', type=number(float, lo=2.0, hi=600.0), default=20.0,
                     help='wall seconds of each measurement (client connected; no client)')
+    ap.add_argument('--mission', action='store_true',
+                    help='watch a real mission (coop_bringup.mission) instead of the source')
+    ap.add_argument('--seed', type=number(int, lo=0), default=1)
+    ap.add_argument('--slot-in', type=number(float, lo=4.26, hi=6.0), default=4.5)
+    ap.add_argument('--near-start', action='store_true')
+    ap.add_argument('--identify-s', type=number(float, lo=1.0), default=20.0)
+    ap.add_argument('--coverage', type=number(float, lo=0.0, hi=1.0), default=0.9)
+    ap.add_argument('--max-scans', type=number(int, lo=0), default=8)
     args = ap.parse_args(argv)
+    if args.mission:
+        result = run_mission(args)
+        write_json(args.json, result)
+        print(format_mission_table(result))
+        return 0
     isolate_ros_environment()
     with socket.socket() as s:
         s.bind(('127.0.0.1', 0))
