@@ -40,17 +40,37 @@ class Launch:
     def __init__(self, ros2: str, *args: str) -> None:
         self.log = Path(tempfile.mkstemp(prefix='launch_', suffix='.log')[1])
         self._out = self.log.open('w')
+        # a fatal signal makes launch print every thread's stack (see wait())
+        env = {**os.environ, 'PYTHONFAULTHANDLER': '1'}
         self.proc = subprocess.Popen([ros2, 'launch', 'coop_bringup', 'team.launch.py', *args],
-                                     stdout=self._out, stderr=subprocess.STDOUT,
+                                     stdout=self._out, stderr=subprocess.STDOUT, env=env,
                                      start_new_session=True)
 
     def text(self) -> str:
         return self.log.read_text(errors='replace')
 
-    def interrupt(self, timeout_s: float = 30.0) -> int:
+    def interrupt(self) -> None:
         """Ctrl-C as a terminal sends it: SIGINT to the whole process group."""
         os.killpg(self.proc.pid, signal.SIGINT)
-        return self.proc.wait(timeout=timeout_s)
+
+    def wait(self, timeout_s: float = 30.0) -> int:
+        """launch's exit code; on a timeout, what it printed and which of its processes live."""
+        try:
+            return self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            try:
+                ps = subprocess.run(['ps', '-o', 'pid,stat,etime,args', '--sid',
+                                     str(self.proc.pid)],
+                                    capture_output=True, text=True, check=False).stdout
+            except OSError as e:
+                ps = str(e)
+            os.kill(self.proc.pid, signal.SIGABRT)  # its stacks, to the log
+            try:
+                self.proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                pass
+            raise AssertionError(f'launch still running {timeout_s} s after Ctrl-C; its '
+                                 f'processes:\n{ps}\nits output:\n{self.text()[-8000:]}') from None
 
     def close(self) -> None:
         try:
@@ -120,7 +140,8 @@ def test_team_launch_brings_up_the_graph_and_ctrl_c_ends_it_cleanly(ros2, graph_
         services = {s for s, _ in graph_node.get_service_names_and_types()}
         assert {f'{ns}/viewplan/next_best_view', f'{ns}/map/save', f'{ns}/sim/reset'} <= services
 
-        code = launch.interrupt()
+        launch.interrupt()
+        code = launch.wait()
         text = launch.text()
         assert code == 0, text[-3000:]
         finished = set(re.findall(r'\[INFO\] \[([\w-]+)\]: process has finished cleanly', text))
@@ -201,8 +222,10 @@ def test_two_teams_in_one_domain_do_not_cross_talk(ros2, graph_node):
             wait_for(lambda: got, 30.0, spin=spin, what=f'{t}/sim/world')
             worlds[t] = len(got[-1].markers)
         assert worlds['team_a'] != worlds['team_b'], worlds
+        for launch in launches:  # Ctrl-C in both terminals, then each ends
+            launch.interrupt()
         for launch in launches:
-            assert launch.interrupt() == 0, launch.text()[-3000:]
+            assert launch.wait() == 0, launch.text()[-3000:]
     finally:
         for launch in launches:
             launch.close()
