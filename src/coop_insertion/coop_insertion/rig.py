@@ -56,7 +56,7 @@ SEATED_WINDOW_S = 0.5
 #: mast camera at a working tilt (0.2 to 0.5 rad) stands 0.79 to 0.77 m high, in the 0.1 m map's
 #: layer 7, the one its downward rays cross (at 0.8, layer 8, hardly any voxel is seen free)
 VIEW_PLANNER = {'p_empty': 0.45, 'task_unknown_occludes': False, 'clearance_m': 0.46,
-                'camera_height_m': 0.78}
+                'camera_height_m': 0.78, 'task_primary_space': 'free'}
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
 #: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
 STALL_S = 90.0
@@ -206,7 +206,9 @@ class InsertionRig(contextlib.AbstractContextManager):
                 # seen: under, behind and above the site) would hide the target from every
                 # nearby camera (docs/results/insertion.md); the rover's clearance from its
                 # mast camera: the 0.5 x 0.36 m base, the mast 0.12 m behind and 0.10 m beside
-                # its centre, reaches 0.46 m
+                # its centre, reaches 0.46 m; the primary target's own cells as free (it
+                # stands a voxel above the slot's mouth: range noise off the site's top edge
+                # can occupy the voxel that, grown by the target's radius, holds it)
                 ('view_planner', 'coop_viewplan', 'view_planner',
                  ['-p', 'use_sim_time:=true'] + [a for k, v in VIEW_PLANNER.items()
                                                  for a in ('-p', f'{k}:={v}'.lower())]),

@@ -6,6 +6,7 @@ from coop_common.params import ParamSpec
 
 from .grid import FREE_GRAYS
 from .nbv import NI_MEASURES
+from .placement import PrimarySpace
 
 __all__ = ['PARAMS', 'check_params']
 
@@ -72,6 +73,13 @@ PARAMS = {
     'task_unknown_occludes': ParamSpec(True, 'task placement: unknown voxels occlude the '
                                        'target and bar a camera station (else only occupied '
                                        'ones; a station in unknown space has P = p_empty / 2)'),
+    # The insertion's primary target stands in front of the site, a voxel above its mouth:
+    # range noise off the site's edges can occupy a voxel that, grown by the target's radius,
+    # holds it ('free': such cells are not occluders of the primary; placement.PrimarySpace).
+    'task_primary_space': ParamSpec('refuse', "task placement: occluder cells holding the "
+                                    "primary target refuse the request (the thesis), or are "
+                                    "taken as free ('free'; counted in the reply)",
+                                    choices=tuple(PrimarySpace)),
     'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
 }
 

@@ -782,6 +782,44 @@ class Search(StrEnum):
 SEARCHES = tuple(Search)
 
 
+def _freed(grid: OccupancyGrid, cells: np.ndarray) -> OccupancyGrid:
+    """A copy of the grid with `cells` (K, ndim) known and free."""
+    if len(cells) == 0:
+        return grid
+    idx = tuple(np.asarray(cells, np.int64).T)
+    prob, known = grid.prob.copy(), grid.known.copy()
+    prob[idx], known[idx] = 0.0, True
+    return replace(grid, prob=prob, known=known)
+
+
+class PrimarySpace(StrEnum):
+    """What TaskPlacer makes of the grid's occluder cells that hold the primary target (its own
+    cell, or one grown by the target's radius that reaches it): 'refuse' the request (the
+    thesis's rule: a target against an occluder cannot be wholly seen), or take them as 'free'
+    (a task whose primary target it defines in free space, e.g. just in front of a known site:
+    occupied cells there are range noise off the site's edges, or the task's own objects, and
+    do not hide the target from itself; counted in `Placement.extras['freed_cells']`). Every
+    other cell occludes as before, so a target walled in is still never seen."""
+
+    REFUSE = 'refuse'
+    FREE = 'free'
+
+
+def cells_holding(grid: OccupancyGrid, position: np.ndarray, radius: float) -> np.ndarray:
+    """(K, ndim) indices of the grid cells that, grown by `radius` (as TaskPlacer grows its
+    occluders), hold `position` deeper than TOUCH_M, within the grid."""
+    rel = (np.asarray(position, float) - grid.origin) / grid.resolution
+    reach = (radius - TOUCH_M) / grid.resolution
+    # cell i, spanning [i, i + 1) in cells, grown: i - reach < rel < i + 1 + reach
+    lo = np.maximum(np.floor(rel - 1 - reach).astype(np.int64) + 1, 0)
+    hi = np.minimum(np.ceil(rel + reach).astype(np.int64), np.asarray(grid.shape))
+    axes = [np.arange(a, b) for a, b in zip(lo, hi)]
+    axes = [a[(a - reach < r) & (r < a + 1 + reach)] for a, r in zip(axes, rel)]
+    if any(len(a) == 0 for a in axes):
+        return np.zeros((0, grid.ndim), np.int64)
+    return np.stack(np.meshgrid(*axes, indexing='ij'), axis=-1).reshape(-1, grid.ndim)
+
+
 class TaskPlacer:
     """Optimum camera placement for watching a primary target, with optional secondary targets
     (§4.2.3), on an occupancy grid. The camera axis always points at the watched target."""
@@ -791,12 +829,16 @@ class TaskPlacer:
                  max_candidates: int = 4000, n_dirs: int = 720,
                  unknown_occludes: bool = True,
                  search: Search | str = Search.BOUNDED,
+                 primary_space: PrimarySpace | str = PrimarySpace.REFUSE,
                  cache_fields: int = 0) -> None:
         """cache_fields: keep the visibility fields of this many (target position, radius)
         for the grid last placed on, so a repeated request on the same map skips building
         them (the node's case; a grid changed in place would be served stale fields, so the
-        experiments, which move objects in their grids, leave it 0)."""
+        experiments, which move objects in their grids, leave it 0). primary_space: see
+        PrimarySpace."""
         self.search = choice(Search, search, 'search', error=PlacementError)
+        self.primary_space = choice(PrimarySpace, primary_space, 'primary_space',
+                                    error=PlacementError)
         self.camera = camera or CameraModel()
         self.exponents = exponents
         self.p_empty = p_empty
@@ -869,10 +911,12 @@ class TaskPlacer:
             raise PlacementError('no free candidate within the depth of field of any target')
         return pos[keep], p[keep]
 
-    def _grid_field(self, grid: OccupancyGrid, t: Target) -> VisibilityField:
+    def _grid_field(self, grid: OccupancyGrid, t: Target, *, free_own: bool = False
+                    ) -> VisibilityField:
         """The visibility field of target t from the grid's occluders (cached, see
-        cache_fields). Raises PlacementError if t is inside an expanded occluder."""
-        key = (t.position.tobytes(), float(t.radius))
+        cache_fields). Raises PlacementError if t is inside an expanded occluder; with
+        free_own, the cells that hold t (cells_holding) are not occluders of it."""
+        key = (t.position.tobytes(), float(t.radius), free_own)
         if self.cache_fields:
             if grid is not self._cache_grid:
                 self._cache_grid, self._cache = grid, {}
@@ -881,6 +925,8 @@ class TaskPlacer:
                 if isinstance(f, PlacementError):
                     raise PlacementError(str(f))
                 return f
+        if free_own:
+            grid = _freed(grid, cells_holding(grid, t.position, t.radius))
         # Distance bounding: occluders beyond the depth of field cannot hide the target from
         # any admissible camera (only the grid within reach is cut into them).
         reach = self.camera.far_m + t.radius + grid.resolution * np.sqrt(grid.ndim)
@@ -955,10 +1001,12 @@ class TaskPlacer:
                     raise PlacementError('target outside the map')
                 continue                    # a secondary there cannot be rated: skipped
             if grid.known[tuple(cell)] and grid.prob[tuple(cell)] >= 0.5:
-                if k == 0:
+                if k == 0 and self.primary_space is PrimarySpace.REFUSE:
                     raise PlacementError('target is inside an obstacle')
-                continue
+                if k > 0:
+                    continue
             active.append(k)
+        free_primary = self.primary_space is PrimarySpace.FREE
         pcol = self.collision_probability(grid) if stations is None else None
         act = [targets[k] for k in active]
         if self.search is Search.RANDOM:
@@ -992,7 +1040,7 @@ class TaskPlacer:
             elif hulls is not None:
                 f = VisibilityField(t.position, hulls, n_dirs=self.n_dirs)
             else:
-                f = self._grid_field(grid, t)
+                f = self._grid_field(grid, t, free_own=k == 0 and free_primary)
             cache[k] = f
             return f
 
@@ -1025,6 +1073,11 @@ class TaskPlacer:
             extras.update(evaluated=pos, pairs=len(order),
                           exact=bool(pos >= len(order) or flat[order[pos]] <= best))
         extras['unrated'] = sorted(unrated)
+        if free_primary:
+            held = tuple(cells_holding(grid, primary.position, primary.radius).T)
+            known = grid.known[held]
+            occ = (known & (grid.prob[held] >= 0.5)) | (~known & self.unknown_occludes)
+            extras['freed_cells'] = int(occ.sum())
         seen = ~np.all(np.isnan(ratings), axis=0)
         r_all = np.where(np.isnan(ratings), -np.inf, ratings)
         best_t = np.argmax(r_all, axis=0)                   # ties: the lowest index (primary)

@@ -61,7 +61,8 @@ class ViewPlannerNode(Node):
                                              near_m=p['task_near_m'], far_m=p['task_far_m']),
                                  clearance_m=p['clearance_m'], p_empty=p['p_empty'],
                                  max_candidates=p['task_candidates'], cache_fields=16,
-                                 unknown_occludes=p['task_unknown_occludes'])
+                                 unknown_occludes=p['task_unknown_occludes'],
+                                 primary_space=p['task_primary_space'])
         self._stations = (None, None)       # (grid, its mast stations)
 
     def _on_map(self, msg: VoxelMap) -> None:
@@ -246,6 +247,9 @@ class ViewPlannerNode(Node):
         which = 'primary' if pl.target_index == 0 else f'secondary {pl.target_index - 1}'
         dist = float(np.linalg.norm(pl.position - watched.position))
         resp.message = f'watching the {which} target at {dist:.2f} m'
+        if pl.extras.get('freed_cells'):
+            resp.message += (f"; {pl.extras['freed_cells']} occupied cell(s) at the primary "
+                             'taken as free')
         return resp
 
 

@@ -496,3 +496,26 @@ def test_search_and_experiment_modes_are_checked_at_construction():
     assert Fig325Config(pose_source='odometry').pose_source is PoseSource.ODOMETRY
     with pytest.raises(ValueError, match='pose_source must be one of'):
         Fig325Config(pose_source='gps')
+
+
+def test_a_primary_taken_in_free_space_sees_past_the_cells_that_hold_it():
+    """PrimarySpace.FREE: the occluder cells that hold the primary (grown by its radius: range
+    noise at a target the task defines in free space) are not occluders of it; the rest are."""
+    g = _room()
+    g.prob[44:47, 29:32] = 1.0                                   # a box
+    beside = Target(np.array([47.2, 30.5]), np.array([1.0, 0.0]), radius=0.5)
+    cam = CameraModel(near_m=2, far_m=20)
+    with pytest.raises(PlacementError, match='primary target is inside an'):
+        TaskPlacer(cam).place(g, beside, rng=np.random.default_rng(0))
+    pl = TaskPlacer(cam, primary_space='free').place(g, beside, rng=np.random.default_rng(0))
+    assert pl.target_index == 0 and pl.terms['tfv'] > 0
+    assert pl.extras['freed_cells'] == 1                         # the box's cell (46, 30)
+    assert pl.position[0] > 47.2                                 # seen from its free side
+    # walled in: the cells about it still hide it from every candidate
+    g.prob[45:50, 28:34] = 1.0
+    g.prob[46:49, 29:33] = 0.0
+    inside = Target(np.array([47.5, 30.5]), np.array([1.0, 0.0]), radius=0.5)
+    with pytest.raises(PlacementError, match='no candidate sees'):
+        TaskPlacer(cam, primary_space='free').place(g, inside, rng=np.random.default_rng(0))
+    with pytest.raises(PlacementError, match='primary_space'):
+        TaskPlacer(primary_space='ignore')
