@@ -151,13 +151,16 @@ class _Client(Node):
 
 
 class InsertionRig(contextlib.AbstractContextManager):
-    """The graph for insertion attempts. rate: the sim's real-time factor (0: as fast as it
-    goes); image size: the master's stereo (the 0.25 in slot markers need 640 x 480)."""
+    """The graph for insertion attempts. real_time_factor: the sim's pace, sim seconds per wall
+    second (1: the nodes see the sensors' streams as a rover's; a sim let run faster than the
+    nodes keep up with, 0, drops their samples: the identifier's excitation and the slave's
+    200 Hz servo then answer late in sim time); image size: the master's stereo (the 0.25 in
+    slot markers need 640 x 480)."""
 
     def __init__(self, *, seed: int = 1, occlusion_density: float = 0.05,
                  slot_in: float = 5.0, log_dir: Path | None = None, domain_id: int | None = None,
                  image_width: int = 640, image_height: int = 480, stereo_rate_hz: float = 4.0,
-                 real_time_factor: float = 0.0, site_map: Path | None = None,
+                 real_time_factor: float = 1.0, site_map: Path | None = None,
                  master_args: tuple[str, ...] = (), planner: bool = True,
                  stereo_rovers: tuple[str, ...] = ('rover1',), rovers: int = 2,
                  extra_procs: tuple[tuple[str, str, str, list[str]], ...] = ()) -> None:
