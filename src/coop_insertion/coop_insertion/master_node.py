@@ -99,8 +99,9 @@ PARAMS = {
     'secondary_weight': ParamSpec(0.5, "Weight of the secondary target (the site's marked "
                                   'face at site_position, with target_sigma_m): watched when '
                                   'the primary is occluded (Eq. 4-4)', lo=0.01, hi=1.0),
-    'replace_after_s': ParamSpec(3.0, 'Optimal placement: re-place the camera when the slave '
-                                 'servos and no fix came for this long (sim s)', lo=0.5,
+    'replace_after_s': ParamSpec(3.0, 'Optimal placement: re-place the camera when no fix '
+                                 'came for this long (sim s) once the card should be in view '
+                                 "(the slave's approach done, or a fix came)", lo=0.5,
                                  hi=60.0),
     'max_replacements': ParamSpec(2, 'Optimal placement: re-placements per goal', lo=0, hi=20),
     'replace_range_factor': ParamSpec(0.85, "Each re-placement shrinks the markers' range by "
@@ -348,16 +349,21 @@ class MasterNode(Node):
                           angle_tolerance_rad=goal.angle_tolerance_rad,
                           max_force_n=goal.max_force_n, timeout_s=goal.timeout_s)
         phase = [Insert.Feedback.PHASE_PLACE_CAMERA]
+        awaiting = [False]
 
         def relay(fb) -> None:
             phase[0] = fb.feedback.phase
+            awaiting[0] = fb.feedback.awaiting_fix
             handle.publish_feedback(fb.feedback)
 
         sh = await client.send_goal_async(sub, feedback_callback=relay)
         if not sh.accepted:
             return self._end(handle, f'{goal.slave} rejected the task')
         res_future = sh.get_result_async()
-        since = -math.inf          # the fix is judged lost from the start of the servo on
+        # the fix is judged lost from when the card should be in view: the slave's coarse
+        # approach done (it holds for the first fix), or a fix of this goal had come; while
+        # the card is still on its way the camera stays where it was placed
+        since, started = -math.inf, self._image_t
         while not res_future.done():
             await self._sleep_until_wake()
             if handle.is_cancel_requested:
@@ -366,6 +372,8 @@ class MasterNode(Node):
             if phase[0] != Insert.Feedback.PHASE_VISUAL_SERVO:
                 continue
             if since == -math.inf:
+                if not (awaiting[0] or self._fix_t > started):
+                    continue
                 since = self._image_t
             lost = self._image_t - max(self._fix_t, since)
             if (goal.placement == Insert.Goal.PLACEMENT_OPTIMAL and

@@ -101,6 +101,7 @@ class SlaveStatus:
     reason: str
     descending: bool = False
     card_in_site: tuple[float, float, float] | None = None   # planar (x, y, theta) estimate
+    awaiting_fix: bool = False         # VISUAL_SERVO, no fix yet, the coarse approach done
 
 
 @dataclass(frozen=True)
@@ -242,6 +243,7 @@ class SlaveController:
         self._reason = ''
         self._contact_state = ''
         self._errors = (math.nan, math.nan)
+        self._awaiting_fix = False
         self._card_in_site: tuple[float, float, float] | None = None
         self._floor_offset_m = 0.0      # the site's depth as the floor was felt (planar y)
         self.peak_force_n = 0.0
@@ -333,7 +335,7 @@ class SlaveController:
         w = self._tared(self._state.wrench) if self._state is not None else np.zeros(6)
         return SlaveStatus(self.phase, self._errors[0], self._errors[1], w,
                            self._contact_state, self._done, self._success, self._reason,
-                           self._descending, self._card_in_site)
+                           self._descending, self._card_in_site, self._awaiting_fix)
 
     def _command(self, joints, v: float, w: float) -> SlaveCommand:
         return SlaveCommand(joints, float(v), float(w), self._status())
@@ -362,7 +364,8 @@ class SlaveController:
         # the arm takes the card to the pre-insertion height on the way (20 mm/s)
         dz = float(np.clip(e[2], -0.02 / 200.0, 0.02 / 200.0))
         joints = self._move_target(np.array([0.0, 0.0, dz]), 0.0)
-        if abs(e[0]) < 0.02 and abs(e[1]) < 0.05:
+        self._awaiting_fix = bool(abs(e[0]) < 0.02 and abs(e[1]) < 0.05)
+        if self._awaiting_fix:
             return self._command(joints, 0.0, 0.0)
         v = float(np.clip(1.0 * e[0], -self.approach_speed, self.approach_speed))
         w = float(np.clip(0.8 * math.atan2(e[1], max(abs(e[0]), 0.3)), -0.3, 0.3))
@@ -371,6 +374,8 @@ class SlaveController:
     def _visual(self, t: float, s: _State) -> SlaveCommand:
         if self.servo.goal is None and self.site_in_odom is not None:
             return self._approach(s)
+        # no map to approach by: the slave holds for the first fix from where it stands
+        self._awaiting_fix = self.servo.goal is None
         cmd = self.servo.command(t)
         self._errors = (cmd.displacement_error_m, cmd.angle_error_rad) \
             if math.isfinite(cmd.vision_age_s) else (math.nan, math.nan)

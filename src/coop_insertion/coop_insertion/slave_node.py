@@ -277,7 +277,8 @@ class SlaveNode(Node):
                 fb = Insert.Feedback(phase=int(min(st.phase, Phase.DONE)) if st.phase !=
                                      Phase.READY else Insert.Feedback.PHASE_VISUAL_SERVO,
                                      displacement_error_m=st.displacement_error_m,
-                                     angle_error_rad=st.angle_error_rad)
+                                     angle_error_rad=st.angle_error_rad,
+                                     awaiting_fix=bool(st.awaiting_fix))
                 w = st.wrench
                 fb.wrench.force.x, fb.wrench.force.y, fb.wrench.force.z = (float(v) for v in w[:3])
                 fb.wrench.torque.x, fb.wrench.torque.y, fb.wrench.torque.z = \

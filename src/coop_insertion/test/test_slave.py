@@ -23,7 +23,7 @@ def _run(slot_in: float, seed: int, **kw):
 def test_an_easy_insertion_seats_the_card_through_every_phase():
     st, seated, pen, phases, ctl = _run(5.0, 1)
     assert st.done and st.success, st.reason
-    assert seated
+    assert seated and not st.awaiting_fix
     assert pen <= 5e-4
     assert phases == [Phase.READY, Phase.VISUAL_SERVO, Phase.FORCE_INSERT, Phase.DONE]
     assert 0.0 < ctl.peak_force_n <= 25.0
@@ -32,6 +32,7 @@ def test_an_easy_insertion_seats_the_card_through_every_phase():
 def test_without_vision_the_slave_stops_short_and_never_descends():
     st, seated, pen, phases, ctl = _run(5.0, 2, vision=False, sim_s=20.0)
     assert not st.done and not st.descending and not seated
+    assert st.awaiting_fix          # the approach done: what tells the master to re-place
     assert Phase.FORCE_INSERT not in phases
     assert pen == 0.0
 
