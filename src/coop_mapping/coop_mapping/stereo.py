@@ -159,7 +159,13 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
     pixel's own disparity (SGBM on the mirrored pair: one more SGBM run). Without that check a
     pixel whose true match lies left of the right image takes a wrong match inside it (the
     unweighted Eq. 3-18 fit of fig_3_24 broke down on them at 0.35 m); bench/stereo_subpixel.py
-    measures the recovered columns."""
+    measures the recovered columns.
+
+    A pixel whose whole block_size x block_size block is clipped white (255: rover_sim's empty
+    background above the horizon, an over-exposed sky) gets no disparity: nothing in it can be
+    matched, and SGBM's smoothness term fills such a region with the disparity of the textured
+    edge it borders (a band of sky at a nearby rock's range: ghost surfaces near camera height
+    that no later ray crosses)."""
     _check_pair(left, right)
     if num_disparities <= 0 or num_disparities % 16:
         raise StereoError('num_disparities must be a positive multiple of 16')
@@ -204,7 +210,14 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
         back = d_right[rows, x_r]
         bad = ~((back > 0) & (np.abs(back - band[rows, cols]) <= 1.0))
         band[rows[bad], cols[bad]] = np.nan
+    d[_clipped_blocks(left, block_size)] = np.nan
     return equalize_subpixel(d) if subpixel == 'equalise' else d
+
+
+def _clipped_blocks(img: np.ndarray, block_size: int) -> np.ndarray:
+    """(H, W) bool: the pixels whose block_size x block_size block is all 255 (clipped)."""
+    clipped = (img == 255).astype(np.uint8)
+    return cv2.erode(clipped, np.ones((block_size, block_size), np.uint8)).astype(bool)
 
 
 def shift_columns(img: np.ndarray, s: float) -> np.ndarray:

@@ -68,6 +68,19 @@ def test_sgbm_recovers_known_shift():
         compute_disparity(left.astype(np.float32), right)
 
 
+def test_no_disparity_in_a_clipped_white_region():
+    # a textured band under a clipped white "sky": SGBM carries the band's disparity up into
+    # the sky; only the band and the block-wide rim of sky next to it keep one
+    rng = np.random.default_rng(1)
+    tex = cv2.GaussianBlur(rng.integers(0, 230, (120, 400)).astype(np.uint8), (0, 0), 1.0)
+    tex[:60] = 255
+    left, right = tex[:, 0:300].copy(), tex[:, 12:312].copy()
+    d = compute_disparity(left, right, num_disparities=32, block_size=5)
+    assert not np.isfinite(d[:58]).any()
+    assert np.mean(np.isfinite(d[62:, 40:-10])) > 0.9
+    assert np.nanmedian(d[62:]) == pytest.approx(12, abs=0.1)
+
+
 def test_disparity_to_points_pinhole():
     cam = StereoCamera(100.0, 100.0, 1.0, 1.0, 0.2, 3, 3)
     d = np.full((3, 3), 10.0)            # Z = 100 * 0.2 / 10 = 2 m
