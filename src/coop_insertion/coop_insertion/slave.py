@@ -374,7 +374,7 @@ class SlaveController:
     def _visual(self, t: float, s: _State) -> SlaveCommand:
         if self.servo.goal is None and self.site_in_odom is not None:
             return self._approach(s)
-        # no map to approach by: the slave holds for the first fix from where it stands
+        # guided by the fixes; before the first with no map to approach by, it holds there
         self._awaiting_fix = self.servo.goal is None
         cmd = self.servo.command(t)
         self._errors = (cmd.displacement_error_m, cmd.angle_error_rad) \
