@@ -66,6 +66,10 @@ PARAMS = {
                                'the camera stands still (the card hides or shades a slot '
                                'marker as it comes to the mouth); dropped when the camera '
                                'moves'),
+    'slot_wait_s': ParamSpec(5.0, 'Once the camera stands, wait up to this long (sim s) for '
+                             'the slot pair alone in view before the slave brings the card (the '
+                             'pair remember_slot labels against); 0: hand over at once',
+                             lo=0.0, hi=60.0),
     'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
                                 '(0: every frame)', lo=0.0, hi=100.0),
     'site_position': ParamSpec([3.0572, 0.0, 0.4], "The slot mouth's centre in the map "
@@ -337,6 +341,15 @@ class MasterNode(Node):
         failed = await self._place(handle, await self._choose_pose(goal.placement))
         if failed:
             return self._end(handle, failed)
+        # the site's markers while the view is clear: the card, once at the mouth, may hide one
+        if self.p['remember_slot']:
+            if await self._see_slot(handle, self.p['slot_wait_s']):
+                self.get_logger().info('slot pair seen from where the camera stands')
+            elif handle.is_cancel_requested:
+                return self._end(handle, 'canceled while looking for the slot')
+            else:
+                self.get_logger().info(f'no slot pair seen in {self.p["slot_wait_s"]:g} s '
+                                       'standing: the card is brought without it')
         # hand over to the slave
         client = self._slaves.get(goal.slave)
         if client is None:
@@ -405,6 +418,18 @@ class MasterNode(Node):
         else:
             handle.abort()
         return res
+
+    async def _see_slot(self, handle, seconds: float) -> bool:
+        """Wait up to `seconds` of sim time for the slot pair seen from where the camera
+        stands (it is then remembered); False on the timeout or a cancel."""
+        started = self.get_clock().now()
+        while self._slot is None:
+            if (self.get_clock().now() - started).nanoseconds * 1e-9 >= seconds:
+                return False
+            await self._sleep_until_wake()
+            if handle.is_cancel_requested:
+                return False
+        return True
 
     @staticmethod
     def _end(handle, reason: str) -> Insert.Result:
