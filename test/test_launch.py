@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -64,7 +65,26 @@ class Launch:
                                     capture_output=True, text=True, check=False).stdout
             except OSError as e:
                 ps = str(e)
-            os.kill(self.proc.pid, signal.SIGABRT)  # its stacks, to the log
+            # the stacks, to the log: first of the nodes still alive (launch relays their
+            # output), then of launch itself
+            stuck = [int(line.split()[0]) for line in ps.splitlines()[1:]
+                     if line.split() and int(line.split()[0]) != self.proc.pid]
+            for pid in stuck:           # how each treats SIGINT (ignored, caught: bit 2)
+                try:
+                    status = Path(f'/proc/{pid}/status').read_text()
+                    ps += f'{pid}: ' + ' '.join(ln for ln in status.splitlines()
+                                                if ln.startswith(('SigBlk', 'SigIgn',
+                                                                  'SigCgt'))) + '\n'
+                except OSError:
+                    pass
+            for pid in stuck:
+                try:
+                    os.kill(pid, signal.SIGABRT)
+                except ProcessLookupError:
+                    pass
+            if stuck:
+                time.sleep(2.0)      # a fixed grace for launch to relay what they print
+            os.kill(self.proc.pid, signal.SIGABRT)
             try:
                 self.proc.wait(timeout=5.0)
             except subprocess.TimeoutExpired:

@@ -124,6 +124,23 @@ def rover_frame(namespace: str, frame: str) -> str:
     return f'{rover}/{frame}' if rover else frame
 
 
+def _interrupt(signum: int, _frame) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def _python_stop_handlers() -> None:
+    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, before rclpy.init.
+
+    rclpy's own handler (installed by init) stops the node from a helper thread that shuts the
+    context down, and chains to the handler it found. A process started with SIGINT ignored
+    (launched from the background of a script) has no Python handler to chain to, and that
+    helper alone now and then leaves a node spinning after Ctrl-C. With these, the executor's
+    wake-up (rclpy triggers its guard condition) returns into Python, which raises: the path a
+    terminal's Ctrl-C takes, for SIGTERM too (launch's escalation, a service manager's stop)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt)
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None,
              executor_factory: Callable[[], Any] | None = None) -> int:
     """The Jazzy main() idiom: init, spin, clean shutdown on Ctrl-C or external shutdown.
@@ -132,6 +149,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     does one that shut its context down itself after setting `fatal_error` (a worker thread it
     cannot run without died).
     """
+    _python_stop_handlers()
     rclpy.init(args=args)
     node = None
     # the executor first: built after a Ctrl-C has shut the context down, rclpy's Executor fails
@@ -158,8 +176,12 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
             raise
     finally:
         # `ros2 launch` signals the whole process group and then each child: a second SIGINT
-        # in the middle of the clean-up would raise inside destroy_node (a traceback, exit -2)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        # in the middle of the clean-up would raise inside destroy_node (a traceback, exit -2);
+        # its SIGTERM, 5 s on, would kill a process still exiting (rclpy has put the default
+        # action back by then: exit -15) on a loaded machine. Stopping already, it ignores
+        # both; SIGKILL stays the last word.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

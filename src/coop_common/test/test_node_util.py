@@ -1,9 +1,21 @@
 """coop_common.node_util.BadInputCounter: counts every rejection, warns once per period per
 reason (a flood of one reason does not hide the first of another)."""
+import signal
+
 import pytest
 
 from coop_common import node_util
 from coop_common.node_util import BadInputCounter
+
+
+@pytest.fixture(autouse=True)
+def _stop_signals_restored():
+    """run_node leaves SIGINT and SIGTERM ignored (its clean-up): put back what the test
+    session had, or every process a later test starts would inherit them ignored."""
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for s, handler in before.items():
+        signal.signal(s, handler)
 
 
 class _Logger:
@@ -104,6 +116,32 @@ def test_run_node_exits_1_when_the_node_shut_itself_down_for_a_fatal_error():
     assert run_node(PublishesAfterShutdown, []) == 0
     with pytest.raises(RuntimeError, match='a real bug'):
         run_node(Fails, [])
+
+
+def test_run_node_stops_on_sigterm_when_started_with_the_stop_signals_ignored():
+    """Started from the background of a script, a node inherits SIGINT ignored: run_node gives
+    SIGINT and SIGTERM a Python handler (rclpy chains to it) that raises KeyboardInterrupt."""
+    import os
+
+    from rclpy.node import Node
+
+    from coop_common.node_util import run_node
+    from coop_common.testing import isolate_ros_environment
+    isolate_ros_environment()
+    seen = {}
+
+    class Terminated(Node):
+        def __init__(self):
+            super().__init__('terminated')
+            seen.update({s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)})
+            self.create_timer(0.01, lambda: os.kill(os.getpid(), signal.SIGTERM))
+
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_IGN)
+    assert run_node(Terminated, []) == 0
+    for s, handler in seen.items():
+        with pytest.raises(KeyboardInterrupt, match=signal.Signals(s).name):
+            handler(s, None)
 
 
 def test_rover_frame_takes_the_last_part_of_the_namespace():
