@@ -32,7 +32,8 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
                   log=print).run()
     out = tmp_path / 'short'
     print((out / 'report.md').read_text())
-    for name in ('master', 'slave'):         # what a failure's output needs: placements, phases
+    # what a failure's output needs: what each identifier skipped, placements, phases
+    for name in ('identifier_rover1', 'identifier_rover2', 'master', 'slave'):
         lines = [ln for ln in (out / 'logs' / f'{name}.log').read_text().splitlines()
                  if 'markers not labelled' not in ln and ']: error ' not in ln]
         print(f'--- logs/{name}.log, {len(lines)} lines without the periodic ones', *lines[-30:],

@@ -44,6 +44,9 @@ MODES = (('arm_joint_1', 0.0, None), ('arm_joint_2', 0.0, None),
 
 #: Spacing of the arm trajectory points (>= 20 points per period up to 30 rad/s).
 TRAJECTORY_STEP_S = 0.01
+#: Seconds of samples each sensor subscription queues (its depth at rate_hz): the largest
+#: lag behind the clock the node catches up from, and makes up for in its arm commands
+SAMPLE_QUEUE_S = 10.0
 
 SPECS = {
     'strategy': ParamSpec('information', 'default excitation strategy (goal may override)',
@@ -63,7 +66,8 @@ SPECS = {
     'mode_period_s': ParamSpec(2.0, 'seconds per arm rotation mode (z, y, x cycle)',
                                lo=0.4, hi=60.0),
     'command_lead_s': ParamSpec(0.3, 'a new arm trajectory departs from the old one this long '
-                                'after the last sample (covers processing + transport delay)',
+                                'after the last sample (covers processing + transport delay), '
+                                'plus the lag of the samples behind the clock',
                                 lo=0.0, hi=2.0),
     'sync_tolerance_s': ParamSpec(SYNC_TOLERANCE_S, 'max stamp difference when pairing '
                                   'sensors (below half the sample period)', lo=0.0005, hi=0.1),
@@ -115,13 +119,17 @@ class IdentifierNode(Node):
         self._windows = 0
         self._exc_t0 = 0.0
         self._ref = ArmReference(MODES)
-        # best effort as the publishers, but a 2 s queue: a window's processing (the excitation
-        # optimisation) must not drop the samples that arrive meanwhile
-        deep = with_depth(SENSOR_QOS, 400)
+        # best effort as the publishers, but a deep queue: a window's processing (the excitation
+        # optimisation), or a loaded machine that starves this process, must not drop the
+        # samples that arrive meanwhile
+        deep = with_depth(SENSOR_QOS, int(SAMPLE_QUEUE_S * self.p['rate_hz']))
         self.create_subscription(Imu, 'imu', self._on_imu, deep)
         self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, deep)
         self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep)
-        self.create_subscription(JointState, 'joint_states', self._on_joints, SENSOR_QOS)
+        # only the latest joint positions matter (the pose an excitation starts from): a
+        # backlog of them would only cost callbacks
+        self.create_subscription(JointState, 'joint_states', self._on_joints,
+                                 with_depth(SENSOR_QOS, 1))
         self.pub_params = self.create_publisher(DynamicParameters, 'dynamic_parameters',
                                                 LATCHED_QOS)
         self.pub_cmd = self.create_publisher(JointTrajectory, 'arm/joint_command', COMMAND_QOS)
@@ -265,10 +273,29 @@ class IdentifierNode(Node):
         now = self._t_now
         mode = int((now - self._t0) // self.p['mode_period_s']) % 3
         exc: Excitation = self._current_exc
-        horizon = 3.0 * self.p['window_s']     # margin for a late next window
+        # A node that has fallen behind its sample stream (a loaded machine: the samples wait
+        # in the queue) commands from a past instant. The new reference leaves the old one only
+        # after the arm can have it (lead + lag), and reaches as far past the present as ever:
+        # otherwise the arm holds at the old command's last point, and then jumps to the new
+        # one (a whip, far outside the model) when it comes.
+        lag = self._lag()
+        horizon = 3.0 * self.p['window_s'] + lag     # margin for a late next window
         self._ref.update(now, mode, exc, self._exc_t0, self._joints_here(), horizon,
-                         lead_s=self.p['command_lead_s'])
+                         lead_s=self.p['command_lead_s'] + lag)
         self._send_reference(now, horizon)
+
+    def _lag(self) -> float:
+        """Seconds the last sample absorbed lies behind the node's clock (sim time on
+        use_sim_time), capped at SAMPLE_QUEUE_S; 0 where the clock is not the sensors' time base
+        (ahead of it, or further behind than any queue)."""
+        lag = self.get_clock().now().nanoseconds * 1e-9 - self._t_now
+        if not 0.0 < lag < SAMPLE_QUEUE_S:
+            return 0.0
+        if lag > self.p['command_lead_s']:
+            self.get_logger().warn(f'the samples lag the clock by {lag:.2f} s (more than '
+                                   f'command_lead_s): arm commands lead by that much more',
+                                   throttle_duration_sec=5.0)
+        return lag
 
     def _stop_arm(self) -> None:
         """At a goal's end: blend the arm from its excitation into standing still at the pose
@@ -276,7 +303,8 @@ class IdentifierNode(Node):
         if self._t0 is None:
             return                              # never commanded
         now = self._t_now
-        t_rest = self._ref.rest(now, self._joints_here(), lead_s=self.p['command_lead_s'])
+        t_rest = self._ref.rest(now, self._joints_here(),
+                                lead_s=self.p['command_lead_s'] + self._lag())
         self._send_reference(now, t_rest - now + 2 * TRAJECTORY_STEP_S)
 
     def _joints_here(self) -> np.ndarray:

@@ -17,7 +17,7 @@ from trajectory_msgs.msg import JointTrajectory
 from coop_common.dynparams import load_truth
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import pick_domain_id, wait_for
-from coop_id.excitation import constant_excitation
+from coop_id.excitation import Excitation, constant_excitation
 from coop_id.identifier_node import IdentifierNode
 from coop_id.modelsim import ThesisRover, stack_frames
 from coop_msgs.action import Identify
@@ -186,3 +186,39 @@ def test_a_goal_ends_when_the_sensors_fall_silent_or_time_jumps_back(graph):
     wait_for(res.done, 10, what='the aborted result')
     r = res.result().result
     assert not r.success and 'jumped back' in r.message
+
+
+def test_arm_commands_make_up_for_samples_that_lag_the_clock(graph):
+    """A node behind its sample stream (its samples queued on a loaded machine) commands from
+    a past instant: the trajectory still reaches 3 windows past the clock's present, and a
+    new excitation departs from the old one only lead + lag after the last sample, where the
+    arm can have it (not a hold at the old command's end, then a jump)."""
+    node, _ = graph
+    sent = []
+    node.pub_cmd.publish = sent.append
+    lag, window, lead = 1.0, node.p['window_s'], node.p['command_lead_s']
+    now = node.get_clock().now().nanoseconds * 1e-9
+    node._t0 = node._exc_t0 = node._t_now = now - lag
+    node._current_exc = constant_excitation()
+    node._command_arm()
+
+    def span(traj):
+        t0 = traj.header.stamp.sec + traj.header.stamp.nanosec * 1e-9
+        return [t0 + p.time_from_start.sec + p.time_from_start.nanosec * 1e-9
+                for p in traj.points]
+
+    assert span(sent[-1])[-1] >= now + 3 * window - 0.02
+    old = sent[-1]
+    node._t_now += 0.4                           # the next window, still behind the clock
+    node._exc_t0 = node._t_now                   # with a new excitation
+    node._current_exc = Excitation(0.5, np.pi / 2, np.pi / 4)
+    now = node.get_clock().now().nanoseconds * 1e-9
+    node._command_arm()
+    new = sent[-1]
+    t_old, t_new = span(old), span(new)
+    same = [k for k, t in enumerate(t_new) if t < now + lead - 0.01]
+    assert len(same) > 100 * (now + lead - node._t_now) - 5
+    for k in same:
+        j = min(range(len(t_old)), key=lambda i: abs(t_old[i] - t_new[k]))
+        np.testing.assert_allclose(new.points[k].positions, old.points[j].positions, atol=1e-5)
+    assert not np.allclose(new.points[-1].positions, old.points[-1].positions)
