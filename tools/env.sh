@@ -14,7 +14,9 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 # A 16 MB Fast DDS shared-memory segment (default 0.5 MB): a 640x480 stereo pair fills the default
 # one and every best-effort sample queued behind it is dropped, 200 Hz IMU included
-# (bench/bag_rate.py measures both). Graph-wide, so every process uses it.
+# (bench/bag_rate.py measures both); 8192 messages per receiving port (default 512), which a
+# process starved of CPU for 0.3 s overflows (bench/dds_stall.py). Graph-wide, so every process
+# uses it.
 export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$_coop_root/src/rover_bag/config/fastdds_large_shm.xml}"
 # Two BLAS threads on two cores make small solves 5-20x slower (platform.md).
 export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
