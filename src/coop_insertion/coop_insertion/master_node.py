@@ -66,9 +66,10 @@ PARAMS = {
                                'the camera stands still (the card hides or shades a slot '
                                'marker as it comes to the mouth); dropped when the camera '
                                'moves'),
-    'slot_wait_s': ParamSpec(5.0, 'Once the camera stands, wait up to this long (sim s) for '
-                             'the slot pair alone in view before the slave brings the card (the '
-                             'pair remember_slot labels against); 0: hand over at once',
+    'slot_wait_s': ParamSpec(5.0, 'Once the camera stands, look at this long (s, by the '
+                             "frames' stamps) of its frames for the slot pair alone in view "
+                             'before the slave brings the card (the pair remember_slot labels '
+                             'against); 0: hand over at once',
                              lo=0.0, hi=60.0),
     'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
                                 '(0: every frame)', lo=0.0, hi=100.0),
@@ -155,6 +156,10 @@ class MasterNode(Node):
         self.replacements = 0
         # the slot pair last seen since the camera was placed (dropped when it moves again)
         self._slot: SlotPair | None = None
+        # stamp of the odometry at which the rover stopped at its camera pose (inf while it
+        # drives): a frame is taken standing by its stamp, not by when it is processed (a
+        # master behind its image queue processes frames from the drive after the stop)
+        self._stood_t = math.inf
         self.rng = np.random.default_rng(int(self.p['seed']))
         for side in ('left', 'right'):
             self.create_subscription(Image, f'{r}/stereo/{side}/image_raw',
@@ -236,7 +241,7 @@ class MasterNode(Node):
         radii = [ml[m.left].radius_px for m in st]
         # the camera moves only when the master places it: a slot pair seen while it stands is
         # where the slot is for as long as it stands
-        standing = self._drive is None
+        standing = _stamp(left) >= self._stood_t
         memory = self._slot if standing and self.p['remember_slot'] else None
         try:
             lab = label_markers(st, radii, self.camera.fx, up, self.model, slot_memory=memory)
@@ -282,6 +287,7 @@ class MasterNode(Node):
             self.pub_cmd.publish(t)
             if c.arrived:
                 self._drive = None
+                self._stood_t = _stamp(msg)
                 self._wakeup()
 
     def _poke(self) -> None:
@@ -420,11 +426,14 @@ class MasterNode(Node):
         return res
 
     async def _see_slot(self, handle, seconds: float) -> bool:
-        """Wait up to `seconds` of sim time for the slot pair seen from where the camera
-        stands (it is then remembered); False on the timeout or a cancel."""
+        """Look at `seconds` of the frames taken standing (by their stamps: a master behind
+        its image queue still looks at as many) for the slot pair (it is then remembered);
+        False once they are seen without it, after 4 x `seconds` of the clock without them,
+        or on a cancel."""
         started = self.get_clock().now()
         while self._slot is None:
-            if (self.get_clock().now() - started).nanoseconds * 1e-9 >= seconds:
+            if self._image_t >= self._stood_t + seconds or \
+                    (self.get_clock().now() - started).nanoseconds * 1e-9 >= 4 * seconds:
                 return False
             await self._sleep_until_wake()
             if handle.is_cancel_requested:
@@ -445,6 +454,7 @@ class MasterNode(Node):
             return where
         xy, yaw, pitch, how = where
         self._slot = None
+        self._stood_t = math.inf
         try:
             mount = camera_mount(xy, yaw, pitch)
         except ReachError as exc:
