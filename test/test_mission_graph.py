@@ -1,5 +1,5 @@
 """The whole mission, shortened, end to end over DDS (issue #23): `coop_bringup.mission` with
-the rovers starting by the site, 4 s of identification, the map from where they stand (a sweep
+the rovers starting by the site, 6 s of identification, the map from where they stand (a sweep
 of each mast; one next-best-view scan if the coverage needs it), the master's camera placed by
 `task_view` and the easy (5.0 in) slot; each phase checked against the simulator's truth: the
 identified parameters, the site's jaws in the saved map, the camera where the placement put it,
@@ -26,7 +26,7 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     with socket.socket() as s:                # the live view on a free port
         s.bind(('127.0.0.1', 0))
         port = s.getsockname()[1]
-    cfg = MissionConfig(seed=1, occlusion_density=0.05, slot_in=5.0, identify_s=4.0,
+    cfg = MissionConfig(seed=1, occlusion_density=0.05, slot_in=5.0, identify_s=6.0,
                         coverage_target=0.5, max_scans=1, near_start=True, live_port=port)
     rep = Mission(cfg, tmp_path, run_id='short', domain_id=int(os.environ['ROS_DOMAIN_ID']),
                   log=print).run()
@@ -43,8 +43,10 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     assert all(status[p][0] == 'ok' for p in ('identify', 'map', 'place')), status
     assert status['insert'][0] in ('ok', 'failed'), status          # ran to an end
     assert isinstance(on_disk['insertion']['success'], bool)
-    # identify: both rovers against the sim's truth (4 s of excitation: the inertias scatter,
-    # the mass and the c.g. do not)
+    # identify: both rovers against the sim's truth (6 s of excitation, one turn of the z, y,
+    # x modes of 2 s each; 4 s never turn the arm about x, and an identifier behind its
+    # samples starts the excitation later: Ixx, Iyy at 1 bit, mean error 65 % in one CI run.
+    # The inertias still scatter, the mass and the c.g. do not)
     for rover, r in rep['identification']['rovers'].items():
         p = {q['name']: q for q in r['params']}
         assert p['mass']['rel_error'] <= 0.05, (rover, p['mass'])
