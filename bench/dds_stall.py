@@ -81,6 +81,7 @@ def run(profile: Path, topics: int, stall: float, seconds: float, domain: int) -
     env = {**os.environ, 'FASTRTPS_DEFAULT_PROFILES_FILE': str(profile),
            'ROS_DOMAIN_ID': str(domain), 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     me = [sys.executable, __file__]
+    pub = None
     sub = subprocess.Popen([*me, '--role', 'sub', '--topics', str(topics), '--seconds',
                             str(seconds + 5)], env=env, stdout=subprocess.PIPE, text=True)
     try:
@@ -98,7 +99,7 @@ def run(profile: Path, topics: int, stall: float, seconds: float, domain: int) -
         pub_out = pub.communicate(timeout=60)[0]
         sub_out = sub.communicate(timeout=60)[0]
     finally:
-        for p in (sub, locals().get('pub')):
+        for p in (sub, pub):
             if p is not None and p.poll() is None:
                 os.kill(p.pid, signal.SIGCONT)
                 p.kill()

@@ -69,18 +69,14 @@ class Launch:
             # output), then of launch itself
             stuck = [int(line.split()[0]) for line in ps.splitlines()[1:]
                      if line.split() and int(line.split()[0]) != self.proc.pid]
-            for pid in stuck:           # how each treats SIGINT (ignored, caught: bit 2)
+            for pid in stuck:   # how each treats SIGINT (signal 2: bit 1 of the masks)
                 try:
                     status = Path(f'/proc/{pid}/status').read_text()
                     ps += f'{pid}: ' + ' '.join(ln for ln in status.splitlines()
                                                 if ln.startswith(('SigBlk', 'SigIgn',
                                                                   'SigCgt'))) + '\n'
-                except OSError:
-                    pass
-            for pid in stuck:
-                try:
                     os.kill(pid, signal.SIGABRT)
-                except ProcessLookupError:
+                except OSError:
                     pass
             if stuck:
                 time.sleep(2.0)      # a fixed grace for launch to relay what they print

@@ -44,9 +44,8 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     assert status['insert'][0] in ('ok', 'failed'), status          # ran to an end
     assert isinstance(on_disk['insertion']['success'], bool)
     # identify: both rovers against the sim's truth (6 s of excitation, one turn of the z, y,
-    # x modes of 2 s each; 4 s never turn the arm about x, and an identifier behind its
-    # samples starts the excitation later: Ixx, Iyy at 1 bit, mean error 65 % in one CI run.
-    # The inertias still scatter, the mass and the c.g. do not)
+    # x modes of 2 s each: fewer never turn the arm about x, and an identifier behind its
+    # samples starts the excitation later; the inertias scatter, the mass and the c.g. do not)
     for rover, r in rep['identification']['rovers'].items():
         p = {q['name']: q for q in r['params']}
         assert p['mass']['rel_error'] <= 0.05, (rover, p['mass'])
