@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import signal
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -124,7 +125,13 @@ def rover_frame(namespace: str, frame: str) -> str:
     return f'{rover}/{frame}' if rover else frame
 
 
+#: set once SIGINT or SIGTERM arrived: whatever a callback raises after it is the stop (a
+#: KeyboardInterrupt raised inside a pybind11 call comes out as a RuntimeError)
+_STOP_REQUESTED = threading.Event()
+
+
 def _interrupt(signum: int, _frame) -> None:
+    _STOP_REQUESTED.set()
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
@@ -149,6 +156,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     does one that shut its context down itself after setting `fatal_error` (a worker thread it
     cannot run without died).
     """
+    _STOP_REQUESTED.clear()
     _python_stop_handlers()
     rclpy.init(args=args)
     node = None
@@ -171,8 +179,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         pass
     except Exception:
         # Ctrl-C shuts the context down under a callback in flight, whose next publish then
-        # raises (RCLError: the publisher's context is invalid): that is a clean stop too
-        if rclpy.ok():
+        # raises (RCLError: the publisher's context is invalid), or interrupts a call into
+        # rclpy's C++ (RuntimeError): that is a clean stop too
+        if rclpy.ok() and not _STOP_REQUESTED.is_set():
             raise
     finally:
         # `ros2 launch` signals the whole process group and then each child: a second SIGINT

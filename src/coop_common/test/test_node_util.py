@@ -122,6 +122,7 @@ def test_run_node_stops_on_sigterm_when_started_with_the_stop_signals_ignored():
     """Started from the background of a script, a node inherits SIGINT ignored: run_node gives
     SIGINT and SIGTERM a Python handler (rclpy chains to it) that raises KeyboardInterrupt."""
     import os
+    import time
 
     from rclpy.node import Node
 
@@ -136,9 +137,22 @@ def test_run_node_stops_on_sigterm_when_started_with_the_stop_signals_ignored():
             seen.update({s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)})
             self.create_timer(0.01, lambda: os.kill(os.getpid(), signal.SIGTERM))
 
+    class InterruptedInsideRclpy(Node):      # the signal lands inside a pybind11 call
+        def __init__(self):
+            super().__init__('inside')
+            self.create_timer(0.01, self._stop)
+
+        def _stop(self):
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(1.0)
+            except KeyboardInterrupt:
+                raise RuntimeError('Unable to convert call argument') from None
+
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, signal.SIG_IGN)
     assert run_node(Terminated, []) == 0
+    assert run_node(InterruptedInsideRclpy, []) == 0
     for s, handler in seen.items():
         with pytest.raises(KeyboardInterrupt, match=signal.Signals(s).name):
             handler(s, None)
