@@ -30,7 +30,7 @@ from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer
 from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat, rpy_to_matrix
-from .config import ConfigError, NoiseConfig, SimConfig, load_config
+from .config import ConfigError, Integrator, NoiseConfig, SimConfig, load_config
 from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
 from .trajectory import TrajectoryError
 from .world import World
@@ -67,9 +67,14 @@ PARAMS = {
                             lo=0.108, hi=0.25, read_only=True),
     'contact_friction': ParamSpec(0.4, 'Coulomb friction coefficient of the card on the site, '
                                   'obstacles and ground', lo=0.0, hi=2.0, read_only=True),
+    'integrator': ParamSpec(Integrator.EXPLICIT.value, 'How the base compliance and arm PD are '
+                            'integrated: explicit forces at every sub-step, or implicit, solved '
+                            'with the mass matrix once per engine step (faster, less faithful: '
+                            'docs/results/simulator.md)',
+                            choices=[i.value for i in Integrator], read_only=True),
     'physics_substeps': ParamSpec(0, 'Physics sub-steps per 5 ms step; 0 = the stability minimum '
-                                  '(more: closer to the continuous Eq. B-3 dynamics, slower)',
-                                  lo=0, hi=200, read_only=True),
+                                  '(explicit; implicit: 1) (more: closer to the continuous '
+                                  'Eq. B-3 dynamics, slower)', lo=0, hi=200, read_only=True),
     'sensor_rate_hz': ParamSpec(200.0, 'IMU, inclinometer, F/T and joint state rate (Hz)',
                                 lo=1.0, hi=200.0, read_only=True),
     'stereo_rate_hz': ParamSpec(4.0, 'Stereo pair rate (Hz); 0 pauses rendering (settable '
@@ -132,7 +137,8 @@ class SimNode(Node):
             f'{self.config.rovers} rovers, seed {self.config.seed}, '
             f'{len(self.world.layout.obstacles)} obstacles, '
             f'physics {self.config.physics_rate_hz:g} '
-            f'Hz x {self.world.substeps} sub-steps, stereo {self.config.stereo_rate_hz:g} Hz '
+            f'Hz x {self.world.substeps} {self.config.integrator.value} sub-steps, '
+            f'stereo {self.config.stereo_rate_hz:g} Hz '
             f'{self.config.image_width}x{self.config.image_height}'
             + (f' ({self.config.supersample}x{self.config.supersample} samples per pixel)'
                if self.config.supersample > 1 else '') + f', rtf {self._rtf:g}')
@@ -141,8 +147,8 @@ class SimNode(Node):
     # ------------------------------------------------------------------ set-up
     #: node parameter -> SimConfig field
     _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_gap_m', 'contact_friction',
-                      'physics_substeps', 'sensor_rate_hz', 'stereo_rate_hz', 'image_width',
-                      'image_height', 'supersample')
+                      'integrator', 'physics_substeps', 'sensor_rate_hz', 'stereo_rate_hz',
+                      'image_width', 'image_height', 'supersample')
 
     def _make_config(self) -> SimConfig:
         """Defaults <- world_yaml <- every parameter set away from its default."""

@@ -32,7 +32,8 @@ from .compliance import (
     rpy_to_matrix,
     static_preload,
 )
-from .config import SimConfig
+from .config import Integrator, SimConfig
+from .implicit import BaseKinematics, ImplicitSolver
 from .rover_model import (
     ARM_EFFORT_NM,
     ARM_JOINTS,
@@ -61,6 +62,9 @@ ARM_HOME = np.array([0.0, -0.6, 1.2, 0.0])
 # for every configuration.
 PD_OMEGA = 2 * np.pi * 15.0
 PD_HOLD = 2
+# The mast's motors (the engine's velocity constraint, reference speed fed forward) correct a
+# position error at this rate (1/s), whatever the engine's step
+MAST_BANDWIDTH = 100.0
 
 
 @dataclass
@@ -154,6 +158,9 @@ class _Rover:
     odom_xy: np.ndarray
     odom_yaw: float
     fast: FastCompliance | None = None
+    implicit: ImplicitSolver | None = None
+    movable: list[int] | None = None      # every non-fixed joint, in the mass matrix's order
+    mass_index: np.ndarray | None = None  # base + arm rows of the mass matrix (mast locked)
     actuated: list[int] | None = None
     mast_joints: list[int] | None = None
     tau: list[float] = dataclasses.field(default_factory=lambda: [0.0] * 4)
@@ -196,8 +203,13 @@ class World:
             raise ValueError(f'expected {config.rovers} truth parameter sets, got {len(truths)}')
         self.config = config
         self.dt = 1.0 / config.physics_rate_hz
-        # never below the stability minimum; more buys accuracy (README: sub-steps vs fidelity)
-        self.substeps = max(substeps_for(truths, self.dt), config.physics_substeps)
+        self.integrator = config.integrator
+        if self.integrator is Integrator.IMPLICIT:
+            self.substeps = max(1, config.physics_substeps)
+        else:
+            # never below the stability minimum; more buys accuracy (README: sub-steps vs
+            # fidelity)
+            self.substeps = max(substeps_for(truths, self.dt), config.physics_substeps)
         self.time_s = 0.0
         self.steps = 0
         self.rng = np.random.default_rng(config.seed)
@@ -214,8 +226,11 @@ class World:
             seed=config.seed, occlusion_density=config.occlusion_density,
             extent_m=config.extent_m, slot_gap_m=config.slot_gap_m,
             keep_clear=tuple((x, y, 0.9) for x, y in starts))
-        self._textures = self._make_textures()
-        self._build_static()
+        self._texture_files = self._write_textures()
+        self.ground, self.obstacle_bodies, self.site_bodies = self._build_static(self.client)
+        self._body_kind: dict[int, str] = {self.ground: 'ground'}
+        self._body_kind.update({b: 'obstacle' for b in self.obstacle_bodies})
+        self._body_kind.update(zip(self.site_bodies, ('jaw_near', 'jaw_far', 'floor')))
         noise = config.noise
         self.incl_model = InclinometerModel(
             noise=WhiteNoise(noise.fraction, noise.inclinometer_rad))
@@ -239,7 +254,7 @@ class World:
             self.rovers.append(self._spawn(f'rover{i + 1}', params, x, y, with_card=(i == 1)))
 
     # ----------------------------------------------------------------- construction
-    def _make_textures(self) -> dict[str, int]:
+    def _write_textures(self) -> dict[str, Path]:
         rng = np.random.default_rng(self.config.seed + 7919)
         out = {}
         for name, size, blur in (('ground', 1024, 3), ('rock', 256, 3)):
@@ -248,33 +263,34 @@ class World:
             img = cv2.normalize(img, None, 40, 230, cv2.NORM_MINMAX)
             path = self._tmp / f'{name}.png'
             cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
-            out[name] = pb.loadTexture(str(path), physicsClientId=self.client)
+            out[name] = path
         return out
 
-    def _static_body(self, shape: int, position, orientation=(0, 0, 0, 1), *,
+    def _static_body(self, client: int, shape: int, position, orientation=(0, 0, 0, 1), *,
                      collision: int = -1) -> int:
         body = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
                                   baseCollisionShapeIndex=collision, basePosition=position,
-                                  baseOrientation=orientation, physicsClientId=self.client)
+                                  baseOrientation=orientation, physicsClientId=client)
         if collision >= 0:
             pb.changeDynamics(body, -1, lateralFriction=self.config.contact_friction,
-                              physicsClientId=self.client)
+                              physicsClientId=client)
         return body
 
-    def _build_static(self) -> None:
-        """Ground, obstacles and the insertion site, each with a collision shape (only the card
-        touches them: no other link of a rover has one), and the site's markers (visual)."""
-        c = self.client
+    def _build_static(self, client: int) -> tuple[int, list[int], list[int]]:
+        """Ground, obstacles and the insertion site in `client`, each with a collision shape
+        (only the card touches them: no other link of a rover has one), and the site's markers
+        (visual): (ground, obstacles, the site's near jaw, far jaw and floor)."""
+        c = client
+        textures = {name: pb.loadTexture(str(path), physicsClientId=c)
+                    for name, path in self._texture_files.items()}
         half = self.config.extent_m
-        ground = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half, half, 0.005],
-                                      rgbaColor=[0.75, 0.7, 0.6, 1], physicsClientId=c)
-        self.ground = self._static_body(
-            ground, [0, 0, -0.005], collision=pb.createCollisionShape(
+        ground_shape = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half, half, 0.005],
+                                            rgbaColor=[0.75, 0.7, 0.6, 1], physicsClientId=c)
+        ground = self._static_body(
+            c, ground_shape, [0, 0, -0.005], collision=pb.createCollisionShape(
                 pb.GEOM_BOX, halfExtents=[half, half, 0.005], physicsClientId=c))
-        pb.changeVisualShape(self.ground, -1, textureUniqueId=self._textures['ground'],
-                             physicsClientId=c)
-        self._body_kind: dict[int, str] = {self.ground: 'ground'}
-        self.obstacle_bodies = []
+        pb.changeVisualShape(ground, -1, textureUniqueId=textures['ground'], physicsClientId=c)
+        obstacle_bodies = []
         for ob in self.layout.obstacles:
             s = ob.shade
             if ob.kind == 'rock':
@@ -287,21 +303,17 @@ class World:
                                            rgbaColor=[s * 0.6, s * 0.7, s, 1], physicsClientId=c)
                 col = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=ob.radius,
                                               height=ob.height, physicsClientId=c)
-            body = self._static_body(vis, ob.position, collision=col)
-            pb.changeVisualShape(body, -1, textureUniqueId=self._textures['rock'],
-                                 physicsClientId=c)
-            self.obstacle_bodies.append(body)
-            self._body_kind[body] = 'obstacle'
+            body = self._static_body(c, vis, ob.position, collision=col)
+            pb.changeVisualShape(body, -1, textureUniqueId=textures['rock'], physicsClientId=c)
+            obstacle_bodies.append(body)
         site = self.layout.site
-        self.site_bodies = []
-        for kind, box in zip(('jaw_near', 'jaw_far', 'floor'), site.jaws):
+        site_bodies = []
+        for box in site.jaws:
             vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
                                        rgbaColor=[0.25, 0.25, 0.3, 1], physicsClientId=c)
             col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
                                           physicsClientId=c)
-            body = self._static_body(vis, list(box.centre), collision=col)
-            self.site_bodies.append(body)
-            self._body_kind[body] = kind
+            site_bodies.append(self._static_body(c, vis, list(box.centre), collision=col))
         # fiducials face -x (disc axis along x, 2 mm discs half in the face); the slot markers
         # face +y as painted discs (0.4 mm, 0.3 mm proud of the face: a thicker disc shows its
         # rim at an oblique view, which at 3 px radius is not an ellipse any more)
@@ -312,7 +324,8 @@ class World:
             for m in centres:
                 vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=radius, length=length,
                                            rgbaColor=[1, 1, 1, 1], physicsClientId=c)
-                self._static_body(vis, np.add(m, out), pb.getQuaternionFromEuler(rpy))
+                self._static_body(c, vis, np.add(m, out), pb.getQuaternionFromEuler(rpy))
+        return ground, obstacle_bodies, site_bodies
 
     def _spawn(self, name: str, params: BaseParameters, x: float, y: float,
                with_card: bool) -> _Rover:
@@ -322,8 +335,9 @@ class World:
         # (rover_model.base_link_inertial), the translational damper is evaluated at t_n
         # (FastCompliance midpoint_damper): the simulated body's effective mass, inertia and
         # damping are the truth's
+        explicit = self.integrator is Integrator.EXPLICIT
         urdf.write_text(rover_urdf(name, params, with_card=with_card,
-                                   damper_lag_s=0.5 * self.substep_s))
+                                   damper_lag_s=0.5 * self.substep_s if explicit else 0.0))
         body = pb.loadURDF(str(urdf), [x, y, NOMINAL_HEIGHT_M], [0, 0, 0, 1],
                            flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
         joints = {}
@@ -373,6 +387,12 @@ class World:
                                      forces=[0.0] * len(rover.actuated), physicsClientId=c)
         rover.fast = FastCompliance(params.stiffness, params.damping, rover.preload, q_in,
                                     rover.com_offset, midpoint_damper=True)
+        rover.movable = [j for j in sorted(joints.values())
+                         if pb.getJointInfo(body, j, physicsClientId=c)[2] != pb.JOINT_FIXED]
+        rover.mass_index = np.array(list(range(6))
+                                    + [6 + rover.movable.index(j) for j in rover.actuated])
+        rover.implicit = ImplicitSolver(params.stiffness, params.damping, rover.preload,
+                                        len(rover.actuated))
         rover.arm_prev = self._arm_momentum(rover)
         q0 = pb.getBasePositionAndOrientation(body, physicsClientId=c)[1]
         rover.prev_quat = rover.last_sub_quat = rover.prev_sub_quat = q0
@@ -588,6 +608,8 @@ class World:
         q = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)[1]
         r.prev_quat = r.last_sub_quat = r.prev_sub_quat = q
         r.contact = _Contact()
+        r.fast.reset()
+        r.implicit.reset()
 
     def command_velocity(self, index: int, v: float, w: float) -> None:
         """Skid-steer body speed (m/s) and yaw rate (rad/s), clipped to the rover's limits."""
@@ -601,10 +623,12 @@ class World:
 
     # ----------------------------------------------------------------- stepping
     def step(self) -> None:
-        """Advance one control period (1 / physics_rate_hz) with the compliance applied at every
-        physics sub-step."""
+        """Advance one control period (1 / physics_rate_hz): the compliance and the arm's PD
+        solved implicitly with each engine step (Integrator.IMPLICIT) or applied as forces at
+        every physics sub-step (EXPLICIT)."""
         c = self.client
         h = self.dt / self.substeps
+        implicit = self.integrator is Integrator.IMPLICIT
         targets = []
         for r in self.rovers:
             mp, mv = r.mast.target(self.time_s)
@@ -612,16 +636,85 @@ class World:
             inertia = arm_joint_inertias(np.array(q_arm))
             # the arm reference at the PD's own instants: held over a whole control step, its
             # speed would step at 200 Hz and kick the base at the sensors' own rate
+            hold = 1 if implicit else PD_HOLD
             q_ref, qd_ref = r.arm.targets([self.time_s + h * sub
-                                           for sub in range(0, self.substeps, PD_HOLD)])
+                                           for sub in range(0, self.substeps, hold)])
             targets.append((q_ref, qd_ref,
                             (inertia * PD_OMEGA ** 2).tolist(),
                             (2.0 * inertia * PD_OMEGA).tolist()))
             # the mast does not load the arm's F/T sensor: the engine's motors hold it
             pb.setJointMotorControlArray(r.body, r.mast_joints, pb.POSITION_CONTROL,
                                          targetPositions=mp.tolist(), targetVelocities=mv.tolist(),
-                                         positionGains=[0.05] * 2, velocityGains=[1.0] * 2,
+                                         positionGains=[MAST_BANDWIDTH * h] * 2,
+                                         velocityGains=[1.0] * 2,
                                          forces=[5.0, 5.0], physicsClientId=c)
+        if implicit:
+            self._implicit_steps(targets, h)
+        else:
+            self._explicit_substeps(targets, h)
+        self._finish_step()
+
+    def _implicit_steps(self, targets: list, h: float) -> None:
+        """The engine steps of one control period, each with the compliance wrench and the arm
+        torques of the linearly implicit solve (rover_sim.implicit)."""
+        c = self.client
+        effort = np.array(ARM_EFFORT_NM)
+        for sub in range(self.substeps):
+            before = []
+            for r, (q_refs, qd_refs, kp, kd) in zip(self.rovers, targets):
+                states = pb.getJointStates(r.body, r.movable, physicsClientId=c)
+                q_all = [st[0] for st in states]
+                mass = np.array(pb.calculateMassMatrix(r.body, q_all, physicsClientId=c))
+                mass = mass[np.ix_(r.mass_index, r.mass_index)]
+                arm = r.mass_index[6:] - 6
+                q = np.array([q_all[i] for i in arm])
+                qd = np.array([states[i][1] for i in arm])
+                com, quat = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+                vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
+                rot = quat_to_matrix(quat)
+                rot_link = rot @ r.inertial_rot.T
+                off = rot_link @ r.com_offset              # c.o.m. - link origin, world
+                com, vel, ang = np.array(com), np.array(vel), np.array(ang)
+                origin = com - off
+                pa, ra, va, wa = self._anchor(r)
+                d = deflection(origin, rot_link, vel - np.cross(ang, off), ang, pa, ra, va, wa)
+                kin = BaseKinematics(rot=rot, rot_anchor=ra, offset=-off,
+                                     deflection=np.concatenate([d.dr, d.dtheta]),
+                                     rate=np.concatenate([d.dv, d.domega]))
+                u = np.concatenate([rot.T @ ang, rot.T @ vel, qd])
+                wrench, tau = r.implicit.solve(
+                    h, mass, kin, u, np.asarray(q_refs[sub]) - q, np.asarray(qd_refs[sub]) - qd,
+                    np.asarray(kp), np.asarray(kd), effort)
+                pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL,
+                                             forces=tau.tolist(), physicsClientId=c)
+                pb.applyExternalForce(r.body, -1, (ra @ wrench[:3]).tolist(), origin.tolist(),
+                                      pb.WORLD_FRAME, physicsClientId=c)
+                pb.applyExternalTorque(r.body, -1, (ra @ wrench[3:]).tolist(), pb.WORLD_FRAME,
+                                       physicsClientId=c)
+                before.append(rot)
+                if sub == self.substeps - 1:
+                    r.last_sub_quat = quat
+            pb.stepSimulation(physicsClientId=c)
+            for r, rot in zip(self.rovers, before):
+                vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
+                qd = [st[1] for st in pb.getJointStates(r.body, r.actuated, physicsClientId=c)]
+                r.implicit.observe(h, np.concatenate([rot.T @ np.array(ang),
+                                                      rot.T @ np.array(vel), qd]))
+                if r.card_index is not None:
+                    self._accumulate_contact(r)
+                self._move_anchor(r, h)
+
+    def _move_anchor(self, r: _Rover, h: float) -> None:
+        v, w = r.cmd
+        if v != 0.0 or w != 0.0:
+            r.anchor_yaw += w * h
+            r.anchor_xy[0] += h * v * math.cos(r.anchor_yaw)
+            r.anchor_xy[1] += h * v * math.sin(r.anchor_yaw)
+
+    def _explicit_substeps(self, targets: list, h: float) -> None:
+        """The physics sub-steps of one control period, the compliance and the arm's PD
+        applied as explicit forces at each."""
+        c = self.client
         last = self.substeps - 1
         for sub in range(self.substeps):
             for r, (q_refs, qd_refs, kp, kd) in zip(self.rovers, targets):
@@ -650,11 +743,11 @@ class World:
             for r in self.rovers:
                 if r.card_index is not None:
                     self._accumulate_contact(r)
-                v, w = r.cmd
-                if v != 0.0 or w != 0.0:
-                    r.anchor_yaw += w * h
-                    r.anchor_xy[0] += h * v * math.cos(r.anchor_yaw)
-                    r.anchor_xy[1] += h * v * math.sin(r.anchor_yaw)
+                self._move_anchor(r, h)
+
+    def _finish_step(self) -> None:
+        """The control period's sensor means, odometry and clock."""
+        c = self.client
         self.time_s = (self.steps + 1) * self.dt
         self.steps += 1
         for r in self.rovers:

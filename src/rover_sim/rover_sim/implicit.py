@@ -1,0 +1,140 @@
+"""Linearly implicit integration of the stiff forces the world adds to PyBullet's step: the base
+compliance of Eq. B-3 and the arm joints' PD. No rclpy, no pybullet: numpy in and out.
+
+Why: the thesis's rotational damping is heavy (b / I = 2000 1/s on every axis), so the
+spring-damper applied as an explicit force needs >= 10 engine steps per 5 ms control step to be
+stable (`world.substeps_for`). Here it is solved once per engine step of any length h, together
+with the engine's own integration (Featherstone, semi-implicit Euler: u+ = u + h M^-1 Q, then
+the positions move with u+; the force is a kick at the step's starting instant):
+
+    F = F0 - E (Y du),      du = du_free + h A Y^T F,
+
+F the stacked compliance wrench (anchor axes: force at the sprung c.g., torque) and arm joint
+torques, Y the map from the generalised velocities u (base angular and linear velocity in the
+base's principal axes, arm joint rates) to the spring-dampers' rates (deflection rate, joint
+rates), A the inverse of the engine's mass matrix (mast locked: its motors hold it), and
+
+    F0 = -k x - b x_dot + preload,   E = theta b   (arm: kp e + kd e_dot, E = theta kd).
+
+With theta = 1/2 each damper acts on the mean of the rates before and after the kick, the rate
+at the kick's instant (the trapezoid: A-stable, second order, no lag); springs act on the
+instant's position (leapfrog, stable while sqrt(k / I) h < 2). du_free, the velocity change of
+everything else (gravity, Coriolis, contacts, the mast motors), is extrapolated from the last two
+steps, each recovered exactly from what the step did (linearity: du_free = du - h A Y^T F).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: weight of the kick's after-rate in each damper (0.5: the trapezoid, centred on the instant the
+#: engine applies the force at; 1: backward Euler, half a step ahead of it)
+DAMPER_THETA = 0.5
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x, so that skew(v) @ w = v x w."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@dataclass(frozen=True)
+class BaseKinematics:
+    """What the solve needs of one rover's sprung base at the start of an engine step."""
+
+    rot: np.ndarray          # base principal-axes frame in the world (PyBullet's base frame)
+    rot_anchor: np.ndarray   # anchor (chassis) frame in the world
+    offset: np.ndarray       # sprung c.g. (link origin) minus the base c.o.m., world frame
+    deflection: np.ndarray   # (dr, dtheta), anchor axes
+    rate: np.ndarray         # (dv, domega), anchor axes
+
+
+def rate_jacobian(k: BaseKinematics) -> np.ndarray:
+    """6x6 T with (dv, domega) = T (omega_b, v_b) + anchor terms: the deflection rates of the
+    sprung c.g. from the base's generalised velocity (principal axes, angular first as in
+    PyBullet's mass matrix). Its transpose maps an anchor-axes wrench at the c.g. to the
+    generalised force."""
+    ra_t = k.rot_anchor.T
+    t = np.zeros((6, 6))
+    ra_t_rot = ra_t @ k.rot
+    # v_origin = v_com + w x offset = v_com - [offset]x w, offset = origin - com
+    t[0:3, 0:3] = -ra_t @ skew(k.offset) @ k.rot
+    t[0:3, 3:6] = ra_t_rot
+    t[3:6, 0:3] = ra_t_rot
+    return t
+
+
+class ImplicitSolver:
+    """The linearly implicit step of one rover: spring-damper constants, the arm's PD gains per
+    step, and the free velocity change carried from the last step (see the module doc)."""
+
+    def __init__(self, stiffness: np.ndarray, damping: np.ndarray, preload: np.ndarray,
+                 n_arm: int) -> None:
+        self.k = np.asarray(stiffness, dtype=float)
+        self.b = np.asarray(damping, dtype=float)
+        self.preload = np.asarray(preload, dtype=float)
+        self.n_arm = int(n_arm)
+        self.du_free: np.ndarray | None = None
+        self._du_free_prev: np.ndarray | None = None
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def reset(self) -> None:
+        """Forget the free motion carried over (after the base is placed by hand)."""
+        self.du_free = None
+        self._du_free_prev = None
+        self._last = None
+
+    def solve(self, h: float, mass_matrix: np.ndarray, base: BaseKinematics, u: np.ndarray,
+              arm_position_error: np.ndarray, arm_rate_error: np.ndarray, kp: np.ndarray,
+              kd: np.ndarray, effort: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(wrench (force, torque) in anchor axes at the sprung c.g., arm joint torques) for the
+        engine step of length h starting at generalised velocity u (6 base + n_arm).
+
+        arm_position_error: q_ref(mid-step) - q; arm_rate_error: qd_ref(mid-step) - qd; torques
+        beyond `effort` are clipped (the joint's actuator limit)."""
+        n = 6 + self.n_arm
+        a = np.linalg.inv(mass_matrix)
+        y = np.zeros((n, n))
+        y[:6, :6] = rate_jacobian(base)
+        y[6:, 6:] = np.eye(self.n_arm)
+        x, xd = base.deflection, base.rate
+        f0 = np.empty(n)
+        e = np.empty(n)
+        f0[:6] = -self.k * x - self.b * xd + self.preload
+        e[:6] = DAMPER_THETA * self.b
+        f0[6:] = kp * arm_position_error + kd * arm_rate_error
+        e[6:] = DAMPER_THETA * kd
+        s = h * (y @ a @ y.T)
+        lhs = np.eye(n) + e[:, None] * s
+        rhs = f0.copy()
+        if self.du_free is not None:
+            free = self.du_free
+            if self._du_free_prev is not None:
+                free = 2.0 * free - self._du_free_prev
+            rhs -= e * (y @ free)
+        f = np.linalg.solve(lhs, rhs)
+        # a joint at its actuator's limit holds that torque whatever the step's rates: its row
+        # becomes the limit and the rest are solved again, so the base's wrench is the one
+        # for the torques the arm really gets (a joint may leave the limit as others join it)
+        for _ in range(self.n_arm):
+            over = np.abs(f[6:]) > effort * (1.0 + 1e-9)
+            if not over.any():
+                break
+            rows = 6 + np.flatnonzero(over)
+            lhs[rows, :] = 0.0
+            lhs[rows, rows] = 1.0
+            rhs[rows] = np.clip(f[rows], -effort[rows - 6], effort[rows - 6])
+            f = np.linalg.solve(lhs, rhs)
+        tau = np.clip(f[6:], -effort, effort)
+        f[6:] = tau
+        self._last = (u.copy(), a, y, f)
+        return f[:6], tau
+
+    def observe(self, h: float, u_after: np.ndarray) -> None:
+        """The generalised velocity the engine reached (in the step's starting base axes):
+        keeps the free velocity change of that step for the next solve."""
+        if self._last is None:
+            return
+        u0, a, y, f = self._last
+        self._du_free_prev = self.du_free
+        self.du_free = (u_after - u0) - h * (a @ (y.T @ f))
