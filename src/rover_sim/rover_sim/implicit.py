@@ -21,6 +21,11 @@ at the kick's instant (the trapezoid: A-stable, second order, no lag); springs a
 instant's position (leapfrog, stable while sqrt(k / I) h < 2). du_free, the velocity change of
 everything else (gravity, Coriolis, contacts, the mast motors), is extrapolated from the last two
 steps, each recovered exactly from what the step did (linearity: du_free = du - h A Y^T F).
+
+What it costs: at one step per 5 ms the rate signals (F/T, accelerometer, gyro) are 5-8 % off
+the 200-sub-step explicit reference, and the identifier's moment rows, where the inertia term is
+1-6 % of a row, do not balance on them (their residual halves with each halving of h);
+docs/results/simulator.md.
 """
 from __future__ import annotations
 
@@ -31,6 +36,9 @@ import numpy as np
 #: weight of the kick's after-rate in each damper (0.5: the trapezoid, centred on the instant the
 #: engine applies the force at; 1: backward Euler, half a step ahead of it)
 DAMPER_THETA = 0.5
+#: degree of the polynomial the free velocity change is extrapolated with (1: linear; 2 was
+#: no better on the identification's moment rows, bench/sim_substeps.py)
+EXTRAPOLATION_ORDER = 1
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -74,14 +82,12 @@ class ImplicitSolver:
         self.b = np.asarray(damping, dtype=float)
         self.preload = np.asarray(preload, dtype=float)
         self.n_arm = int(n_arm)
-        self.du_free: np.ndarray | None = None
-        self._du_free_prev: np.ndarray | None = None
+        self._free: list[np.ndarray] = []    # the last steps' free velocity changes, newest first
         self._last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def reset(self) -> None:
         """Forget the free motion carried over (after the base is placed by hand)."""
-        self.du_free = None
-        self._du_free_prev = None
+        self._free = []
         self._last = None
 
     def solve(self, h: float, mass_matrix: np.ndarray, base: BaseKinematics, u: np.ndarray,
@@ -107,10 +113,8 @@ class ImplicitSolver:
         s = h * (y @ a @ y.T)
         lhs = np.eye(n) + e[:, None] * s
         rhs = f0.copy()
-        if self.du_free is not None:
-            free = self.du_free
-            if self._du_free_prev is not None:
-                free = 2.0 * free - self._du_free_prev
+        free = self.predicted_free()
+        if free is not None:
             rhs -= e * (y @ free)
         f = np.linalg.solve(lhs, rhs)
         # a joint at its actuator's limit holds that torque whatever the step's rates: its row
@@ -136,5 +140,17 @@ class ImplicitSolver:
         if self._last is None:
             return
         u0, a, y, f = self._last
-        self._du_free_prev = self.du_free
-        self.du_free = (u_after - u0) - h * (a @ (y.T @ f))
+        free = (u_after - u0) - h * (a @ (y.T @ f))
+        self._free = [free, *self._free[:EXTRAPOLATION_ORDER]]
+
+    def predicted_free(self) -> np.ndarray | None:
+        """The free velocity change of the coming step, extrapolated (polynomial of up to
+        EXTRAPOLATION_ORDER) from the last steps' (None before the first step)."""
+        f = self._free
+        if not f:
+            return None
+        if len(f) == 1:
+            return f[0]
+        if len(f) == 2:
+            return 2.0 * f[0] - f[1]
+        return 3.0 * f[0] - 3.0 * f[1] + f[2]

@@ -21,6 +21,7 @@ from coop_common.rover_geometry import BASE_HEIGHT_M
 
 from .compliance import (
     FastCompliance,
+    cross3,
     deflection,
     matrix_to_quat,
     matrix_to_rpy,
@@ -512,7 +513,7 @@ class World:
             f_c, m_c = self._close_contact_step(r)
             force = force - f_c
             p = self._sensor_origin(r)
-            torque = torque - (m_c - np.cross(p, f_c))
+            torque = torque - (m_c - cross3(p, f_c))
         rot = 0.5 * (new.sensor_rotation + old.sensor_rotation)
         return np.concatenate([rot.T @ force, rot.T @ torque])
 
@@ -544,7 +545,7 @@ class World:
         centre = np.array(pb.getLinkState(r.body, r.card_index, computeForwardKinematics=1,
                                           physicsClientId=self.client)[4])
         r.last_contact = ContactState(
-            stamp_s=self.time_s, force=f, torque=m - np.cross(centre, f), points=acc.points,
+            stamp_s=self.time_s, force=f, torque=m - cross3(centre, f), points=acc.points,
             max_penetration_m=acc.penetration, bodies=tuple(sorted(acc.bodies)))
         r.contact = _Contact()
         return f, m
@@ -677,7 +678,7 @@ class World:
                 com, vel, ang = np.array(com), np.array(vel), np.array(ang)
                 origin = com - off
                 pa, ra, va, wa = self._anchor(r)
-                d = deflection(origin, rot_link, vel - np.cross(ang, off), ang, pa, ra, va, wa)
+                d = deflection(origin, rot_link, vel - cross3(ang, off), ang, pa, ra, va, wa)
                 kin = BaseKinematics(rot=rot, rot_anchor=ra, offset=-off,
                                      deflection=np.concatenate([d.dr, d.dtheta]),
                                      rate=np.concatenate([d.dv, d.domega]))
