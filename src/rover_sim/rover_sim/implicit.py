@@ -19,12 +19,16 @@ rates), A the inverse of the engine's mass matrix (mast locked: its motors hold 
 With theta = 1/2 each damper acts on the mean of the rates before and after the kick, the rate
 at the kick's instant (the trapezoid: A-stable, second order, no lag); springs act on the
 instant's position (leapfrog, stable while sqrt(k / I) h < 2). du_free, the velocity change of
-everything else (gravity, Coriolis, contacts, the mast motors), is extrapolated from the last two
-steps, each recovered exactly from what the step did (linearity: du_free = du - h A Y^T F).
+everything else (gravity, Coriolis, the mast motors) over the
+step, is the step taken first without them in a probe world of the rovers alone (the engine's
+step is linear in the applied forces: A Y^T F is exact to rounding); contacts, which only the
+world has, act after, in the engine's own constraint solve.
 
-What it costs: at one step per 5 ms the rate signals (F/T, accelerometer, gyro) are 5-8 % off
-the 200-sub-step explicit reference, and the identifier's moment rows, where the inertia term is
-1-6 % of a row, do not balance on them (their residual halves with each halving of h);
+What it costs: at one step per 5 ms the rate signals (F/T, accelerometer, gyro) are 5-9 % off
+the 200-sub-step explicit reference (explicit 10 sub-steps: about 1 %), from the trapezoid's
+own discretisation of the 15 Hz arm servo and the stiff damper; the identifier's moment rows
+balance on them (coop_id test_sim_residual.py). The world's F/T sensor reads the arm's momentum
+at the last kick's positions (World._probe_kick_state) for the same reason. Numbers:
 docs/results/simulator.md.
 """
 from __future__ import annotations
@@ -36,10 +40,6 @@ import numpy as np
 #: weight of the kick's after-rate in each damper (0.5: the trapezoid, centred on the instant the
 #: engine applies the force at; 1: backward Euler, half a step ahead of it)
 DAMPER_THETA = 0.5
-#: degree of the polynomial the free velocity change is extrapolated with (1: linear; 2 was
-#: no better on the identification's moment rows, bench/sim_substeps.py)
-EXTRAPOLATION_ORDER = 1
-
 
 def skew(v: np.ndarray) -> np.ndarray:
     """[v]x, so that skew(v) @ w = v x w."""
@@ -73,8 +73,7 @@ def rate_jacobian(k: BaseKinematics) -> np.ndarray:
 
 
 class ImplicitSolver:
-    """The linearly implicit step of one rover: spring-damper constants, the arm's PD gains per
-    step, and the free velocity change carried from the last step (see the module doc)."""
+    """The linearly implicit step of one rover's spring-dampers (see the module doc)."""
 
     def __init__(self, stiffness: np.ndarray, damping: np.ndarray, preload: np.ndarray,
                  n_arm: int) -> None:
@@ -82,22 +81,17 @@ class ImplicitSolver:
         self.b = np.asarray(damping, dtype=float)
         self.preload = np.asarray(preload, dtype=float)
         self.n_arm = int(n_arm)
-        self._free: list[np.ndarray] = []    # the last steps' free velocity changes, newest first
-        self._last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
-
-    def reset(self) -> None:
-        """Forget the free motion carried over (after the base is placed by hand)."""
-        self._free = []
-        self._last = None
 
     def solve(self, h: float, mass_matrix: np.ndarray, base: BaseKinematics, u: np.ndarray,
-              arm_position_error: np.ndarray, arm_rate_error: np.ndarray, kp: np.ndarray,
-              kd: np.ndarray, effort: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+              du_free: np.ndarray, arm_position_error: np.ndarray,
+              arm_rate_error: np.ndarray, kp: np.ndarray, kd: np.ndarray, effort: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
         """(wrench (force, torque) in anchor axes at the sprung c.g., arm joint torques) for the
-        engine step of length h starting at generalised velocity u (6 base + n_arm).
+        engine step of length h starting at generalised velocity u (6 base + n_arm), du_free
+        the step's velocity change without them.
 
-        arm_position_error: q_ref(mid-step) - q; arm_rate_error: qd_ref(mid-step) - qd; torques
-        beyond `effort` are clipped (the joint's actuator limit)."""
+        arm_position_error: q_ref - q; arm_rate_error: qd_ref - qd at the step's instant;
+        torques beyond `effort` are clipped (the joint's actuator limit)."""
         n = 6 + self.n_arm
         a = np.linalg.inv(mass_matrix)
         y = np.zeros((n, n))
@@ -112,10 +106,7 @@ class ImplicitSolver:
         e[6:] = DAMPER_THETA * kd
         s = h * (y @ a @ y.T)
         lhs = np.eye(n) + e[:, None] * s
-        rhs = f0.copy()
-        free = self.predicted_free()
-        if free is not None:
-            rhs -= e * (y @ free)
+        rhs = f0 - e * (y @ du_free)
         f = np.linalg.solve(lhs, rhs)
         # a joint at its actuator's limit holds that torque whatever the step's rates: its row
         # becomes the limit and the rest are solved again, so the base's wrench is the one
@@ -131,26 +122,4 @@ class ImplicitSolver:
             f = np.linalg.solve(lhs, rhs)
         tau = np.clip(f[6:], -effort, effort)
         f[6:] = tau
-        self._last = (u.copy(), a, y, f)
         return f[:6], tau
-
-    def observe(self, h: float, u_after: np.ndarray) -> None:
-        """The generalised velocity the engine reached (in the step's starting base axes):
-        keeps the free velocity change of that step for the next solve."""
-        if self._last is None:
-            return
-        u0, a, y, f = self._last
-        free = (u_after - u0) - h * (a @ (y.T @ f))
-        self._free = [free, *self._free[:EXTRAPOLATION_ORDER]]
-
-    def predicted_free(self) -> np.ndarray | None:
-        """The free velocity change of the coming step, extrapolated (polynomial of up to
-        EXTRAPOLATION_ORDER) from the last steps' (None before the first step)."""
-        f = self._free
-        if not f:
-            return None
-        if len(f) == 1:
-            return f[0]
-        if len(f) == 2:
-            return 2.0 * f[0] - f[1]
-        return 3.0 * f[0] - 3.0 * f[1] + f[2]

@@ -179,6 +179,8 @@ class _Rover:
     arm_inertias: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
     arm_prev: ArmMomentum | None = None
     card_index: int | None = None     # the card's link (the one link that collides), if carried
+    probe_body: int | None = None     # its copy in the implicit step's probe world
+    gravity_start: np.ndarray | None = None  # the arm's gravity moment at the period's start
     contact: _Contact = dataclasses.field(default_factory=_Contact)
     last_contact: ContactState | None = None
 
@@ -221,6 +223,15 @@ class World:
         pb.setPhysicsEngineParameter(fixedTimeStep=self.dt / self.substeps, numSubSteps=0,
                                      deterministicOverlappingPairs=1,
                                      physicsClientId=self.client)
+        # implicit: a world of the rovers alone, in which each step is first taken without the
+        # stiff forces, for the velocity change of everything else (rover_sim.implicit)
+        self.probe_client: int | None = None
+        if self.integrator is Integrator.IMPLICIT:
+            self.probe_client = pb.connect(pb.DIRECT)
+            pb.setGravity(0, 0, -9.81, physicsClientId=self.probe_client)
+            pb.setPhysicsEngineParameter(fixedTimeStep=self.dt / self.substeps, numSubSteps=0,
+                                         deterministicOverlappingPairs=1,
+                                         physicsClientId=self.probe_client)
         n = config.rovers
         starts = [(-2.0, 1.5 * (i - (n - 1) / 2.0)) for i in range(n)]
         self.layout: WorldLayout = generate_world(
@@ -395,6 +406,18 @@ class World:
         rover.implicit = ImplicitSolver(params.stiffness, params.damping, rover.preload,
                                         len(rover.actuated))
         rover.arm_prev = self._arm_momentum(rover)
+        if self.probe_client is not None:
+            pc = self.probe_client
+            rover.probe_body = pb.loadURDF(str(urdf), [x, y, NOMINAL_HEIGHT_M], [0, 0, 0, 1],
+                                           flags=pb.URDF_USE_INERTIA_FROM_FILE,
+                                           physicsClientId=pc)
+            for j in [-1, *joints.values()]:
+                pb.changeDynamics(rover.probe_body, j, linearDamping=0, angularDamping=0,
+                                  physicsClientId=pc)
+                if j >= 0:
+                    pb.changeDynamics(rover.probe_body, j, jointDamping=0, physicsClientId=pc)
+            pb.setJointMotorControlArray(rover.probe_body, rover.actuated, pb.VELOCITY_CONTROL,
+                                         forces=[0.0] * len(rover.actuated), physicsClientId=pc)
         q0 = pb.getBasePositionAndOrientation(body, physicsClientId=c)[1]
         rover.prev_quat = rover.last_sub_quat = rover.prev_sub_quat = q0
         # at rest: the sensor carries the arm's weight
@@ -445,15 +468,20 @@ class World:
         _, rot_a, _, _ = self._anchor(r)
         return static_preload(np.array(masses), np.array(coms), pos, rot_a)
 
-    def _arm_momentum(self, r: _Rover) -> ArmMomentum:
+    def _arm_momentum(self, r: _Rover, *, probe: bool = False) -> ArmMomentum:
         """Momentum state of the links beyond the F/T sensor (positions at the end of the last
         sub-step, velocities of that sub-step: the engine's semi-implicit update). Scalar
-        Python: numpy's per-call overhead on a handful of 3-vectors costs ~5x more here."""
-        sts = pb.getLinkStates(r.body, r.arm_links, computeLinkVelocity=1,
-                               computeForwardKinematics=1, physicsClientId=self.client)
+        Python: numpy's per-call overhead on a handful of 3-vectors costs ~5x more here.
+
+        probe: of the rover's copy in the probe world, posed by _probe_kick_state (the
+        implicit step: positions of the last kick, its velocities), no shift of the gravity
+        moment (it is the kick's own)."""
+        client, body = (self.probe_client, r.probe_body) if probe else (self.client, r.body)
+        sts = pb.getLinkStates(body, r.arm_links, computeLinkVelocity=1,
+                               computeForwardKinematics=1, physicsClientId=client)
         px, py, pz = sts[0][4]                   # sensor origin (= its link's c.o.m.)
         qx, qy, qz = sts[0][6]                   # its velocity
-        half = 0.5 * self.substep_s
+        half = 0.0 if probe else 0.5 * self.substep_s
         g = GRAVITY_VEC[2]
         mom = [0.0, 0.0, 0.0]
         ang = [0.0, 0.0, 0.0]
@@ -500,13 +528,20 @@ class World:
         computed in its constraint pass, velocity-product terms included), while the base
         moves exactly as the arm's momentum says; the inertia term is only 1-6 % of a moment
         row, and that reaction alone put I_x at 0.05 instead of 0.15 and I_xy at -0.06."""
-        new, old = self._arm_momentum(r), r.arm_prev
+        implicit = self.integrator is Integrator.IMPLICIT
+        new, old = self._arm_momentum(r, probe=implicit), r.arm_prev
         r.arm_prev = new
         dt = self.dt
         force = (new.momentum - old.momentum) / dt - r.arm_masses.sum() * GRAVITY_VEC
+        if implicit:
+            # the kicks' gravity moments, from the period's first (at its start) to its last
+            start = r.gravity_start if r.gravity_start is not None else new.gravity_moment
+            r.gravity_start = self._arm_momentum(r).gravity_moment
+            gravity = 0.5 * (new.gravity_moment + start)
+        else:
+            gravity = 0.5 * (new.gravity_moment + old.gravity_moment)
         torque = ((new.ang_momentum - old.ang_momentum) / dt
-                  + 0.5 * (new.transport + old.transport)
-                  - 0.5 * (new.gravity_moment + old.gravity_moment))
+                  + 0.5 * (new.transport + old.transport) - gravity)
         if r.card_index is not None:
             # what the site and ground push on the card is not the base's: the sensor reads
             # the momentum change less the mean contact wrench, about the sensor's origin
@@ -606,11 +641,11 @@ class World:
                                targetVelocity=0.0, physicsClientId=c)
         r.prev_velocity = np.zeros(3)
         r.arm_prev = self._arm_momentum(r)
+        r.gravity_start = None
         q = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)[1]
         r.prev_quat = r.last_sub_quat = r.prev_sub_quat = q
         r.contact = _Contact()
         r.fast.reset()
-        r.implicit.reset()
 
     def command_velocity(self, index: int, v: float, w: float) -> None:
         """Skid-steer body speed (m/s) and yaw rate (rad/s), clipped to the rover's limits."""
@@ -644,11 +679,12 @@ class World:
                             (inertia * PD_OMEGA ** 2).tolist(),
                             (2.0 * inertia * PD_OMEGA).tolist()))
             # the mast does not load the arm's F/T sensor: the engine's motors hold it
-            pb.setJointMotorControlArray(r.body, r.mast_joints, pb.POSITION_CONTROL,
-                                         targetPositions=mp.tolist(), targetVelocities=mv.tolist(),
-                                         positionGains=[MAST_BANDWIDTH * h] * 2,
-                                         velocityGains=[1.0] * 2,
-                                         forces=[5.0, 5.0], physicsClientId=c)
+            for client, body in ((c, r.body), (self.probe_client, r.probe_body)):
+                if body is not None:
+                    pb.setJointMotorControlArray(
+                        body, r.mast_joints, pb.POSITION_CONTROL, targetPositions=mp.tolist(),
+                        targetVelocities=mv.tolist(), positionGains=[MAST_BANDWIDTH * h] * 2,
+                        velocityGains=[1.0] * 2, forces=[5.0, 5.0], physicsClientId=client)
         if implicit:
             self._implicit_steps(targets, h)
         else:
@@ -658,20 +694,31 @@ class World:
     def _implicit_steps(self, targets: list, h: float) -> None:
         """The engine steps of one control period, each with the compliance wrench and the arm
         torques of the linearly implicit solve (rover_sim.implicit)."""
-        c = self.client
+        c, pc = self.client, self.probe_client
         effort = np.array(ARM_EFFORT_NM)
         for sub in range(self.substeps):
-            before = []
-            for r, (q_refs, qd_refs, kp, kd) in zip(self.rovers, targets):
+            # the probe: each rover's step alone, free of the stiff forces
+            starts = []
+            for r in self.rovers:
                 states = pb.getJointStates(r.body, r.movable, physicsClientId=c)
+                com, quat = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+                vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
+                pb.resetBasePositionAndOrientation(r.probe_body, com, quat, physicsClientId=pc)
+                pb.resetBaseVelocity(r.probe_body, vel, ang, physicsClientId=pc)
+                pb.resetJointStatesMultiDof(r.probe_body, r.movable,
+                                            [[st[0]] for st in states],
+                                            targetVelocities=[[st[1]] for st in states],
+                                            physicsClientId=pc)
+                starts.append((states, com, quat, vel, ang))
+            pb.stepSimulation(physicsClientId=pc)
+            for r, (q_refs, qd_refs, kp, kd), (states, com, quat, vel, ang) in zip(
+                    self.rovers, targets, starts):
                 q_all = [st[0] for st in states]
                 mass = np.array(pb.calculateMassMatrix(r.body, q_all, physicsClientId=c))
                 mass = mass[np.ix_(r.mass_index, r.mass_index)]
                 arm = r.mass_index[6:] - 6
                 q = np.array([q_all[i] for i in arm])
                 qd = np.array([states[i][1] for i in arm])
-                com, quat = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
-                vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
                 rot = quat_to_matrix(quat)
                 rot_link = rot @ r.inertial_rot.T
                 off = rot_link @ r.com_offset              # c.o.m. - link origin, world
@@ -683,27 +730,43 @@ class World:
                                      deflection=np.concatenate([d.dr, d.dtheta]),
                                      rate=np.concatenate([d.dv, d.domega]))
                 u = np.concatenate([rot.T @ ang, rot.T @ vel, qd])
+                pv, pw = pb.getBaseVelocity(r.probe_body, physicsClientId=pc)
+                pqd = [st[1] for st in pb.getJointStates(r.probe_body, r.actuated,
+                                                         physicsClientId=pc)]
+                free = np.concatenate([rot.T @ np.array(pw), rot.T @ np.array(pv), pqd]) - u
                 wrench, tau = r.implicit.solve(
-                    h, mass, kin, u, np.asarray(q_refs[sub]) - q, np.asarray(qd_refs[sub]) - qd,
-                    np.asarray(kp), np.asarray(kd), effort)
+                    h, mass, kin, u, free, np.asarray(q_refs[sub]) - q,
+                    np.asarray(qd_refs[sub]) - qd, np.asarray(kp), np.asarray(kd), effort)
                 pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL,
                                              forces=tau.tolist(), physicsClientId=c)
                 pb.applyExternalForce(r.body, -1, (ra @ wrench[:3]).tolist(), origin.tolist(),
                                       pb.WORLD_FRAME, physicsClientId=c)
                 pb.applyExternalTorque(r.body, -1, (ra @ wrench[3:]).tolist(), pb.WORLD_FRAME,
                                        physicsClientId=c)
-                before.append(rot)
                 if sub == self.substeps - 1:
                     r.last_sub_quat = quat
             pb.stepSimulation(physicsClientId=c)
-            for r, rot in zip(self.rovers, before):
-                vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
-                qd = [st[1] for st in pb.getJointStates(r.body, r.actuated, physicsClientId=c)]
-                r.implicit.observe(h, np.concatenate([rot.T @ np.array(ang),
-                                                      rot.T @ np.array(vel), qd]))
+            if sub == self.substeps - 1:
+                for r, start in zip(self.rovers, starts):
+                    self._probe_kick_state(r, start)
+            for r in self.rovers:
                 if r.card_index is not None:
                     self._accumulate_contact(r)
                 self._move_anchor(r, h)
+
+    def _probe_kick_state(self, r: _Rover, start: tuple) -> None:
+        """Pose the rover's probe copy at the positions of the last kick with the velocities it
+        gave: the arm's momentum there telescopes over the kicks to exactly their impulses
+        (momentum at the end positions would mix two configurations, an O(h) error at one
+        engine step per period)."""
+        c, pc = self.client, self.probe_client
+        states, com, quat, _, _ = start
+        vel, ang = pb.getBaseVelocity(r.body, physicsClientId=c)
+        qd = [[st[1]] for st in pb.getJointStates(r.body, r.movable, physicsClientId=c)]
+        pb.resetBasePositionAndOrientation(r.probe_body, com, quat, physicsClientId=pc)
+        pb.resetBaseVelocity(r.probe_body, vel, ang, physicsClientId=pc)
+        pb.resetJointStatesMultiDof(r.probe_body, r.movable, [[st[0]] for st in states],
+                                    targetVelocities=qd, physicsClientId=pc)
 
     def _move_anchor(self, r: _Rover, h: float) -> None:
         v, w = r.cmd
@@ -928,6 +991,12 @@ class World:
 
     # ----------------------------------------------------------------- life cycle
     def close(self) -> None:
+        if self.probe_client is not None:
+            try:
+                pb.disconnect(physicsClientId=self.probe_client)
+            except pb.error:
+                pass
+            self.probe_client = None
         if self.client is not None and self.client >= 0:
             try:
                 pb.disconnect(physicsClientId=self.client)
