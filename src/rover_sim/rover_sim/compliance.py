@@ -209,11 +209,11 @@ class FastCompliance:
         """Forget the velocity history (after the base is placed by hand)."""
         self._dv_prev = None
 
-    def wrench(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
-               anchor_w: float) -> tuple[list[float], list[float], list[float]]:
-        """(force, torque, point) in the world frame: the compliance wrench acts at the sprung
-        body's c.g. (the base link origin); com, com_vel, quat are PyBullet's base link c.o.m.
-        position, velocity and principal-axes orientation."""
+    def state(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
+              anchor_w: float) -> tuple[tuple, tuple, tuple, tuple, tuple, tuple]:
+        """(sprung c.g. position (world), c.o.m. minus c.g. (world), dr, dtheta, dv, domega
+        (anchor axes)) from PyBullet's base link c.o.m. position, principal-axes orientation,
+        velocity and angular velocity: the deflection of Eq. B-3 and its rates."""
         q_link = _qmul(tuple(quat), self.q_in_inv)
         ox, oy, oz = _rotate(q_link, self.com_offset)
         pos = (com[0] - ox, com[1] - oy, com[2] - oz)
@@ -236,6 +236,16 @@ class FastCompliance:
         n = math.sqrt(qx * qx + qy * qy + qz * qz)
         scale = 2.0 if n < 1e-9 else 2.0 * math.atan2(n, qw) / n
         dth = (scale * qx, scale * qy, scale * qz)
+        return pos, (ox, oy, oz), dr, dth, dv, dw
+
+    def wrench(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
+               anchor_w: float) -> tuple[list[float], list[float], list[float]]:
+        """(force, torque, point) in the world frame: the compliance wrench acts at the sprung
+        body's c.g. (the base link origin); com, com_vel, quat are PyBullet's base link c.o.m.
+        position, velocity and principal-axes orientation."""
+        pos, _, dr, dth, dv, dw = self.state(com, quat, com_vel, ang, anchor_pos, anchor_yaw,
+                                             anchor_vel, anchor_w)
+        c, s = math.cos(anchor_yaw), math.sin(anchor_yaw)
         k, b, pre = self.k, self.b, self.pre
         if self.midpoint_damper:
             prev = self._dv_prev if self._dv_prev is not None else dv

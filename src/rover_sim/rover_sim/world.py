@@ -533,7 +533,9 @@ class World:
         r.arm_prev = new
         dt = self.dt
         force = (new.momentum - old.momentum) / dt - r.arm_masses.sum() * GRAVITY_VEC
-        if implicit:
+        if implicit and self.substeps == 1:
+            gravity = new.gravity_moment              # the one kick's
+        elif implicit:
             # the kicks' gravity moments, from the period's first (at its start) to its last
             start = r.gravity_start if r.gravity_start is not None else new.gravity_moment
             r.gravity_start = self._arm_momentum(r).gravity_moment
@@ -720,15 +722,14 @@ class World:
                 q = np.array([q_all[i] for i in arm])
                 qd = np.array([states[i][1] for i in arm])
                 rot = quat_to_matrix(quat)
-                rot_link = rot @ r.inertial_rot.T
-                off = rot_link @ r.com_offset              # c.o.m. - link origin, world
-                com, vel, ang = np.array(com), np.array(vel), np.array(ang)
-                origin = com - off
-                pa, ra, va, wa = self._anchor(r)
-                d = deflection(origin, rot_link, vel - cross3(ang, off), ang, pa, ra, va, wa)
-                kin = BaseKinematics(rot=rot, rot_anchor=ra, offset=-off,
-                                     deflection=np.concatenate([d.dr, d.dtheta]),
-                                     rate=np.concatenate([d.dv, d.domega]))
+                v, w = r.cmd
+                cy, sy = math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)
+                origin, off, dr, dth, dv, dw = r.fast.state(
+                    com, quat, vel, ang, (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
+                    r.anchor_yaw, (v * cy, v * sy, 0.0), w)
+                ra = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+                kin = BaseKinematics(rot=rot, rot_anchor=ra, offset=-np.array(off),
+                                     deflection=np.array(dr + dth), rate=np.array(dv + dw))
                 u = np.concatenate([rot.T @ ang, rot.T @ vel, qd])
                 pv, pw = pb.getBaseVelocity(r.probe_body, physicsClientId=pc)
                 pqd = [st[1] for st in pb.getJointStates(r.probe_body, r.actuated,
@@ -739,7 +740,7 @@ class World:
                     np.asarray(qd_refs[sub]) - qd, np.asarray(kp), np.asarray(kd), effort)
                 pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL,
                                              forces=tau.tolist(), physicsClientId=c)
-                pb.applyExternalForce(r.body, -1, (ra @ wrench[:3]).tolist(), origin.tolist(),
+                pb.applyExternalForce(r.body, -1, (ra @ wrench[:3]).tolist(), origin,
                                       pb.WORLD_FRAME, physicsClientId=c)
                 pb.applyExternalTorque(r.body, -1, (ra @ wrench[3:]).tolist(), pb.WORLD_FRAME,
                                        physicsClientId=c)
