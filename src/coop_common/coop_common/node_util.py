@@ -128,10 +128,19 @@ def rover_frame(namespace: str, frame: str) -> str:
 #: set once SIGINT or SIGTERM arrived: whatever a callback raises after it is the stop (a
 #: KeyboardInterrupt raised inside a pybind11 call comes out as a RuntimeError)
 _STOP_REQUESTED = threading.Event()
+#: the stop signals this run_node has already raised for
+_STOP_SIGNALS: set[int] = set()
 
 
 def _interrupt(signum: int, _frame) -> None:
     _STOP_REQUESTED.set()
+    if signum in _STOP_SIGNALS:
+        # the same signal again: `ros2 launch` signals the process group, then each child, and
+        # the second can land between the first's KeyboardInterrupt and the clean-up's
+        # SIG_IGN, where raising would break the clean-up (a traceback, exit -2). The stop is
+        # under way; a SIGTERM after a SIGINT still raises (launch's escalation)
+        return
+    _STOP_SIGNALS.add(signum)
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
@@ -157,6 +166,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     cannot run without died).
     """
     _STOP_REQUESTED.clear()
+    _STOP_SIGNALS.clear()
     _python_stop_handlers()
     rclpy.init(args=args)
     node = None
@@ -194,4 +204,5 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        _STOP_SIGNALS.clear()
     return 1 if getattr(node, 'fatal_error', None) is not None else 0

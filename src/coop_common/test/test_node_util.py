@@ -245,3 +245,17 @@ def test_a_change_another_callback_rejects_is_not_applied():
     finally:
         node.destroy_node()
         ctx.try_shutdown()
+
+
+def test_a_repeated_stop_signal_does_not_interrupt_the_stop_under_way():
+    """launch signals the process group, then each child: the second SIGINT, landing between
+    the first's KeyboardInterrupt and the clean-up's SIG_IGN, must not raise again (it broke
+    a team launch's Ctrl-C: a traceback from signal.signal, exit -2); SIGTERM after it still
+    raises, as launch's escalation."""
+    node_util._STOP_SIGNALS.clear()
+    with pytest.raises(KeyboardInterrupt, match='SIGINT'):
+        node_util._interrupt(signal.SIGINT, None)
+    assert node_util._interrupt(signal.SIGINT, None) is None
+    with pytest.raises(KeyboardInterrupt, match='SIGTERM'):
+        node_util._interrupt(signal.SIGTERM, None)
+    node_util._STOP_SIGNALS.clear()
