@@ -238,11 +238,8 @@ class World:
             seed=config.seed, occlusion_density=config.occlusion_density,
             extent_m=config.extent_m, slot_gap_m=config.slot_gap_m,
             keep_clear=tuple((x, y, 0.9) for x, y in starts))
-        self._texture_files = self._write_textures()
-        self.ground, self.obstacle_bodies, self.site_bodies = self._build_static(self.client)
-        self._body_kind: dict[int, str] = {self.ground: 'ground'}
-        self._body_kind.update({b: 'obstacle' for b in self.obstacle_bodies})
-        self._body_kind.update(zip(self.site_bodies, ('jaw_near', 'jaw_far', 'floor')))
+        self._textures = self._make_textures()
+        self._build_static()
         noise = config.noise
         self.incl_model = InclinometerModel(
             noise=WhiteNoise(noise.fraction, noise.inclinometer_rad))
@@ -266,7 +263,7 @@ class World:
             self.rovers.append(self._spawn(f'rover{i + 1}', params, x, y, with_card=(i == 1)))
 
     # ----------------------------------------------------------------- construction
-    def _write_textures(self) -> dict[str, Path]:
+    def _make_textures(self) -> dict[str, int]:
         rng = np.random.default_rng(self.config.seed + 7919)
         out = {}
         for name, size, blur in (('ground', 1024, 3), ('rock', 256, 3)):
@@ -275,34 +272,33 @@ class World:
             img = cv2.normalize(img, None, 40, 230, cv2.NORM_MINMAX)
             path = self._tmp / f'{name}.png'
             cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
-            out[name] = path
+            out[name] = pb.loadTexture(str(path), physicsClientId=self.client)
         return out
 
-    def _static_body(self, client: int, shape: int, position, orientation=(0, 0, 0, 1), *,
+    def _static_body(self, shape: int, position, orientation=(0, 0, 0, 1), *,
                      collision: int = -1) -> int:
         body = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
                                   baseCollisionShapeIndex=collision, basePosition=position,
-                                  baseOrientation=orientation, physicsClientId=client)
+                                  baseOrientation=orientation, physicsClientId=self.client)
         if collision >= 0:
             pb.changeDynamics(body, -1, lateralFriction=self.config.contact_friction,
-                              physicsClientId=client)
+                              physicsClientId=self.client)
         return body
 
-    def _build_static(self, client: int) -> tuple[int, list[int], list[int]]:
-        """Ground, obstacles and the insertion site in `client`, each with a collision shape
-        (only the card touches them: no other link of a rover has one), and the site's markers
-        (visual): (ground, obstacles, the site's near jaw, far jaw and floor)."""
-        c = client
-        textures = {name: pb.loadTexture(str(path), physicsClientId=c)
-                    for name, path in self._texture_files.items()}
+    def _build_static(self) -> None:
+        """Ground, obstacles and the insertion site, each with a collision shape (only the card
+        touches them: no other link of a rover has one), and the site's markers (visual)."""
+        c = self.client
         half = self.config.extent_m
-        ground_shape = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half, half, 0.005],
-                                            rgbaColor=[0.75, 0.7, 0.6, 1], physicsClientId=c)
-        ground = self._static_body(
-            c, ground_shape, [0, 0, -0.005], collision=pb.createCollisionShape(
+        ground = pb.createVisualShape(pb.GEOM_BOX, halfExtents=[half, half, 0.005],
+                                      rgbaColor=[0.75, 0.7, 0.6, 1], physicsClientId=c)
+        self.ground = self._static_body(
+            ground, [0, 0, -0.005], collision=pb.createCollisionShape(
                 pb.GEOM_BOX, halfExtents=[half, half, 0.005], physicsClientId=c))
-        pb.changeVisualShape(ground, -1, textureUniqueId=textures['ground'], physicsClientId=c)
-        obstacle_bodies = []
+        pb.changeVisualShape(self.ground, -1, textureUniqueId=self._textures['ground'],
+                             physicsClientId=c)
+        self._body_kind: dict[int, str] = {self.ground: 'ground'}
+        self.obstacle_bodies = []
         for ob in self.layout.obstacles:
             s = ob.shade
             if ob.kind == 'rock':
@@ -315,17 +311,21 @@ class World:
                                            rgbaColor=[s * 0.6, s * 0.7, s, 1], physicsClientId=c)
                 col = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=ob.radius,
                                               height=ob.height, physicsClientId=c)
-            body = self._static_body(c, vis, ob.position, collision=col)
-            pb.changeVisualShape(body, -1, textureUniqueId=textures['rock'], physicsClientId=c)
-            obstacle_bodies.append(body)
+            body = self._static_body(vis, ob.position, collision=col)
+            pb.changeVisualShape(body, -1, textureUniqueId=self._textures['rock'],
+                                 physicsClientId=c)
+            self.obstacle_bodies.append(body)
+            self._body_kind[body] = 'obstacle'
         site = self.layout.site
-        site_bodies = []
-        for box in site.jaws:
+        self.site_bodies = []
+        for kind, box in zip(('jaw_near', 'jaw_far', 'floor'), site.jaws):
             vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
                                        rgbaColor=[0.25, 0.25, 0.3, 1], physicsClientId=c)
             col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
                                           physicsClientId=c)
-            site_bodies.append(self._static_body(c, vis, list(box.centre), collision=col))
+            body = self._static_body(vis, list(box.centre), collision=col)
+            self.site_bodies.append(body)
+            self._body_kind[body] = kind
         # fiducials face -x (disc axis along x, 2 mm discs half in the face); the slot markers
         # face +y as painted discs (0.4 mm, 0.3 mm proud of the face: a thicker disc shows its
         # rim at an oblique view, which at 3 px radius is not an ellipse any more)
@@ -336,8 +336,7 @@ class World:
             for m in centres:
                 vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=radius, length=length,
                                            rgbaColor=[1, 1, 1, 1], physicsClientId=c)
-                self._static_body(c, vis, np.add(m, out), pb.getQuaternionFromEuler(rpy))
-        return ground, obstacle_bodies, site_bodies
+                self._static_body(vis, np.add(m, out), pb.getQuaternionFromEuler(rpy))
 
     def _spawn(self, name: str, params: BaseParameters, x: float, y: float,
                with_card: bool) -> _Rover:
