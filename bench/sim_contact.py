@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from coop_common.cli import number, output_path  # noqa: E402
 from coop_common.dynparams import load_truth  # noqa: E402
 from coop_common.files import write_json  # noqa: E402
-from rover_sim.config import NoiseConfig, SimConfig  # noqa: E402
+from rover_sim.config import Integrator, NoiseConfig, SimConfig  # noqa: E402
 from rover_sim.scenarios import card_over_slot, lower_card  # noqa: E402
 from rover_sim.world import World  # noqa: E402
 from rover_sim.worldgen import INCH, TABLE_5_1_GAPS_M  # noqa: E402
@@ -30,10 +30,11 @@ from rover_sim.worldgen import INCH, TABLE_5_1_GAPS_M  # noqa: E402
 OFFSETS_MM = (0.0, 1.0, 2.0, 4.0)
 
 
-def insertion(gap: float, offset_m: float, hold_s: float, *, away_m: float = 0.0) -> dict:
+def insertion(gap: float, offset_m: float, hold_s: float, *, away_m: float = 0.0,
+              integrator: Integrator = Integrator.EXPLICIT) -> dict:
     """One scripted insertion (away_m: the same arm motion that far from the site)."""
     cfg = SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
-                    noise=NoiseConfig(fraction=0.0))
+                    noise=NoiseConfig(fraction=0.0), integrator=integrator)
     with World(cfg, [load_truth()] * 2) as w:
         start = card_over_slot(w, 1, offset_m=offset_m, away_m=away_m)
         depth = start.clearance_m + w.layout.site.seat_depth_m + 0.005
@@ -52,7 +53,8 @@ def insertion(gap: float, offset_m: float, hold_s: float, *, away_m: float = 0.0
 
 def format_table(result: dict) -> str:
     """The table main prints, from its JSON result (docs/results pages are made with it)."""
-    lines = [f'{"slot (in)":>9} {"offset (mm)":>11} {"seated":>7} {"depth (mm)":>10} '
+    lines = [f'integrator: {result.get("integrator", "explicit")}',
+             f'{"slot (in)":>9} {"offset (mm)":>11} {"seated":>7} {"depth (mm)":>10} '
              f'{"max pen. (mm)":>13} {"peak F (N)":>10}  touched']
     for r in result['cases']:
         depth = f'{r["depth_mm"]:10.1f}' if math.isfinite(r['depth_mm']) else f'{"-":>10}'
@@ -71,12 +73,15 @@ def main() -> int:
     ap.add_argument('--json', type=output_path, required=True)
     ap.add_argument('--hold-s', type=number(float, lo=0.0, hi=60.0), default=2.0,
                     help='sim seconds held after the lowering')
+    ap.add_argument('--integrator', type=Integrator, default=Integrator.EXPLICIT,
+                    choices=list(Integrator), help="the simulator's (rover_sim.config)")
     args = ap.parse_args()
-    cases = [insertion(gap, mm * 1e-3, args.hold_s) for gap in TABLE_5_1_GAPS_M
-             for mm in OFFSETS_MM]
-    free = insertion(TABLE_5_1_GAPS_M[2], 0.004, args.hold_s, away_m=2.0)
+    cases = [insertion(gap, mm * 1e-3, args.hold_s, integrator=args.integrator)
+             for gap in TABLE_5_1_GAPS_M for mm in OFFSETS_MM]
+    free = insertion(TABLE_5_1_GAPS_M[2], 0.004, args.hold_s, away_m=2.0,
+                     integrator=args.integrator)
     contact = next(c for c in cases if c['offset_mm'] == 4.0 and c['gap_in'] == 4.375)
-    result = {'hold_s': args.hold_s, 'cases': cases,
+    result = {'hold_s': args.hold_s, 'integrator': args.integrator.value, 'cases': cases,
               'rate': {'contact': contact['rtf_cpu'], 'free': free['rtf_cpu']},
               'clock': 'rtf: sim seconds per CPU second of this process, world core only'}
     print(format_table(result))

@@ -27,17 +27,19 @@ from coop_msgs.msg import DynamicParameters
 
 def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
                            settle_s: float = 3.0, timeout_s: float = 600.0,
-                           domain_id: int | None = None, log_dir: Path | None = None) -> dict:
+                           domain_id: int | None = None, log_dir: Path | None = None,
+                           integrator: str = 'explicit') -> dict:
     """domain_id: the ROS domain of the run (default: $COOP_SIM_DOMAIN_ID, else one from the
     pid); the processes started inherit it. log_dir: where the nodes' logs go (default: a new
-    temporary directory)."""
+    temporary directory). integrator: the simulator's (rover_sim `integrator` parameter)."""
     if domain_id is None:
         domain_id = int(os.environ.get('COOP_SIM_DOMAIN_ID', '0')) or None
     isolate_ros_environment(domain_id)
     logs = Path(log_dir) if log_dir is not None else Path(
         tempfile.mkdtemp(prefix='coop_id_sim_'))
     logs.mkdir(parents=True, exist_ok=True)
-    sim_args = ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=0.0', '-p', f'noise_fraction:={noise}']
+    sim_args = ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=0.0', '-p', f'noise_fraction:={noise}',
+                '-p', f'integrator:={integrator}']
     with NodeProcess('rover_sim', 'sim', sim_args, log_path=logs / 'sim.log'), \
             NodeProcess('coop_id', 'identifier', ['-r', '__ns:=/rover1'],
                         log_path=logs / 'identifier.log'):

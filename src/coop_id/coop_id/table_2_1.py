@@ -204,7 +204,7 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
 _MODE_OPTIONS = {
     'model': ('truth', 'seeds', 'first_seed', 'duration', 'noise', 'strategies',
               'no_accelerometer', 'no_bias_compensation', 'plots'),
-    'sim': ('duration', 'noise', 'strategies'),
+    'sim': ('duration', 'noise', 'strategies', 'integrator'),
     'bag': ('bag', 'rover', 'no_accelerometer', 'no_bias_compensation'),
 }
 
@@ -262,6 +262,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument('--sim', action='store_true',
                     help='identification end to end through rover_sim + identifier, one run '
                          'per listed strategy')
+    ap.add_argument('--integrator', choices=('explicit', 'implicit'), default='explicit',
+                    help="with --sim: the simulator's integrator (rover_sim parameter)")
     ap.add_argument('--bag', type=_existing, default=None,
                     help='identify from a recorded bag instead (no DDS; the core as the node)')
     ap.add_argument('--rover', default='rover1', help='rover namespace in --bag')
@@ -283,8 +285,9 @@ def format_sim(doc: dict) -> str:
     the simulator latched, * where the identifier flagged the parameter unobservable."""
     strategies = list(doc['strategies'])
     runs = doc['strategies']
-    lines = [f'end to end through rover_sim + identifier: {doc["duration_s"]} s, noise '
-             f'{doc["noise"]}; estimate (std), * = flagged unobservable',
+    lines = [f'end to end through rover_sim ({doc.get("integrator", "explicit")} integrator) + '
+             f'identifier: {doc["duration_s"]} s, noise {doc["noise"]}; estimate (std), * = '
+             'flagged unobservable',
              f'{"Parameter":16s}{"True":>9s}' + ''.join(f'{s:>22s}' for s in strategies),
              '-' * (25 + 22 * len(strategies))]
     for p in PARAM_NAMES:
@@ -314,12 +317,14 @@ def _main_sim(args: argparse.Namespace) -> int:
     for strategy in strategies:
         try:
             results[strategy] = run_sim_identification(duration_s=args.duration,
-                                                       strategy=strategy, noise=args.noise)
+                                                       strategy=strategy, noise=args.noise,
+                                                       integrator=args.integrator)
         except (RuntimeError, FileNotFoundError) as exc:
             print(f'table_2_1 --sim ({strategy}): {exc}', file=sys.stderr)
             return 1
     doc = {
         'mode': 'sim', 'duration_s': args.duration, 'noise': args.noise,
+        'integrator': args.integrator,
         'strategies': {s: {
             'success': r['success'], 'message': r['message'],
             'mean_abs_rel_error': r['mean_abs_rel_error'],
