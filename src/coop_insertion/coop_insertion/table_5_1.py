@@ -47,6 +47,23 @@ def build_site_map(path: Path, *, seed: int, occlusion_density: float, scans: in
 MAX_RESTARTS = 6
 
 
+def open_rig(*, seed: int, occlusion_density: float, slot_in: float, log_dir: Path,
+             site_map: Path, log=print) -> InsertionRig:
+    """The attempts' graph, ready: the rovers placed for the row, the master's survey of the
+    site fused into the map, the stereo ranging stopped (the map is the scenario's)."""
+    r = InsertionRig(seed=seed, occlusion_density=occlusion_density, slot_in=slot_in,
+                     log_dir=log_dir, site_map=site_map).__enter__()
+    try:
+        r.place(slot_in, np.random.default_rng(seed))
+        log(f'site surveyed: {r.survey()} scans in the map')
+        r.stop_mapping()
+        r.set_slot(slot_in)
+    except BaseException:
+        r.__exit__(None, None, None)
+        raise
+    return r
+
+
 def _cell_key(slot_in: float, placement: str, seed: int) -> tuple[float, str, int]:
     return (round(float(slot_in), 6), placement, int(seed))
 
@@ -92,20 +109,6 @@ def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], 
            'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
     rig: InsertionRig | None = None
 
-    def open_rig(slot_in: float) -> InsertionRig:
-        n = len(res['sim_restarts'])
-        r = InsertionRig(seed=seed, occlusion_density=occlusion_density, slot_in=slot_in,
-                         log_dir=work / 'logs' / f'graph_{n}', site_map=site_map).__enter__()
-        try:
-            r.place(slot_in, np.random.default_rng(seed))
-            log(f'site surveyed: {r.survey()} scans in the map')
-            r.stop_mapping()
-            r.set_slot(slot_in)
-        except BaseException:
-            r.__exit__(None, None, None)
-            raise
-        return r
-
     try:
         for slot_in in rows:
             row = {'slot_in': slot_in, 'label': LABELS.get(slot_in, f'{slot_in} in'),
@@ -126,7 +129,10 @@ def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], 
                         a, c = None, None
                         while a is None:
                             if rig is None:
-                                rig = open_rig(slot_in)
+                                rig = open_rig(
+                                    seed=seed, occlusion_density=occlusion_density,
+                                    slot_in=slot_in, site_map=site_map, log=log,
+                                    log_dir=work / 'logs' / f'graph_{len(res["sim_restarts"])}')
                             try:
                                 at = rig.attempt(slot_in=slot_in, placement=placement,
                                                  seed=key[2], timeout_s=timeout_s,

@@ -1,0 +1,112 @@
+#!/usr/bin/env python3
+"""Wall time of Table 5-1 attempts end to end: the insertion graph over DDS (coop_insertion.rig:
+rover_sim, mapper with the scenario's site map, view_planner, master, slave), the medium slot
+(4.5 in) by default, the master's camera placed by `task_view` (optimal) or at random; each
+attempt as `coop_insertion table_5_1` runs it (the simulator reset to the slot with the slave's
+start perturbed by the attempt's seed, one `insert` goal, the truth's verdict). The graph's
+set-up (start, the master's survey) is timed apart.
+
+Usage: bench/attempt_rate.py --json OUT --site-map MAP [--attempts 10] [--slot 4.5]
+       [--placement optimal]
+
+MAP: the scenario's site map (`coop_insertion.table_5_1.build_site_map`, seed 1, occlusion
+0.05; without it the command builds one first, a few minutes).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+
+import numpy as np  # noqa: E402
+
+from coop_common.cli import number, output_path  # noqa: E402
+from coop_common.files import write_json  # noqa: E402
+
+SEED = 1
+OCCLUSION = 0.05
+
+
+def format_table(result: dict) -> str:
+    """The table main prints, from its JSON result (docs/results pages are made with it)."""
+    rows = (('attempt wall (s)', result['attempt_wall_s'], '<= 40', '.1f'),
+            ('goal wall (s)', result['goal_wall_s'], '-', '.1f'),
+            ('goal sim (s)', result['attempt_sim_s'], '-', '.1f'),
+            ('goal sim s per wall s', result['sim_per_wall'], '-', '.2f'))
+    n = len(result['attempt_wall_s']['values'])
+    lines = [f'{result["placement"]} placement, {result["slot_in"]} in slot, {n} attempts '
+             f'(seeds from {result["first_seed"]})',
+             f'{"":24}{"median":>9}{"min":>9}{"max":>9}{"target":>9}']
+    for name, st, target, fmt in rows:
+        lines.append(f'{name:24}' + ''.join(f'{st[k]:>9{fmt}}' for k in ('median', 'min', 'max'))
+                     + f'{target:>9}')
+    lines.append(f'successes {result["successes"]}/{n}; graph set-up and the master\'s survey '
+                 f'{result["setup_wall_s"]:.0f} s')
+    return '\n'.join(lines)
+
+
+def _stats(values: list[float]) -> dict:
+    v = np.asarray(values, float)
+    return {'median': float(np.median(v)), 'min': float(v.min()), 'max': float(v.max()),
+            'values': [float(x) for x in v]}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--json', type=output_path, required=True)
+    ap.add_argument('--site-map', type=Path, default=None,
+                    help='the scenario site map (.cmap); default: build one first')
+    ap.add_argument('--attempts', type=number(int, lo=1, hi=100), default=10)
+    ap.add_argument('--slot', type=number(float, lo=4.26, hi=9.0), default=4.5,
+                    help='slot width (in); Table 5-1: 5.0, 4.5, 4.375')
+    ap.add_argument('--placement', choices=('optimal', 'random'), default='optimal')
+    ap.add_argument('--timeout', type=number(float, lo=5.0, hi=600.0), default=45.0,
+                    help='sim seconds an insert goal may take')
+    args = ap.parse_args()
+    from coop_insertion.table_5_1 import build_site_map, open_rig
+
+    work = Path(tempfile.mkdtemp(prefix='attempt_rate_'))
+    site_map = args.site_map
+    if site_map is None:
+        print('building the site map (seed 1, occlusion 0.05)', flush=True)
+        site_map = build_site_map(work / 'site.cmap', seed=SEED, occlusion_density=OCCLUSION)
+    elif not site_map.is_file():
+        ap.error(f'--site-map {site_map}: no such file')
+    t0 = time.monotonic()
+    rig = open_rig(seed=SEED, occlusion_density=OCCLUSION, slot_in=args.slot,
+                   log_dir=work / 'logs', site_map=site_map)
+    walls, goals, sims, ok = [], [], [], 0
+    try:
+        setup = time.monotonic() - t0
+        for k in range(args.attempts):
+            w0 = time.monotonic()
+            a = rig.attempt(slot_in=args.slot, placement=args.placement, seed=SEED * 1000 + k,
+                            timeout_s=args.timeout)
+            walls.append(time.monotonic() - w0)
+            goals.append(a.duration_s)
+            sims.append(a.sim_s)
+            ok += bool(a.success)
+            print(f'attempt {k + 1}: {"success" if a.success else "failure"} ({a.reason}); '
+                  f'goal {a.sim_s:.1f} sim s in {a.duration_s:.1f} s, attempt {walls[-1]:.1f} s',
+                  flush=True)
+    finally:
+        rig.__exit__(None, None, None)
+    result = {'slot_in': args.slot, 'placement': args.placement, 'first_seed': SEED * 1000,
+              'attempt_wall_s': _stats(walls), 'attempt_sim_s': _stats(sims),
+              'goal_wall_s': _stats(goals),
+              'sim_per_wall': _stats([s / w for s, w in zip(sims, goals)]),
+              'successes': ok, 'setup_wall_s': setup, 'logs': str(work / 'logs'),
+              'clock': 'attempt_wall_s: the reset and the goal; goal_wall_s, attempt_sim_s: the '
+                       'insert goal alone (time.monotonic, the simulator clock)'}
+    print(format_table(result))
+    write_json(args.json, result, indent=2)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
