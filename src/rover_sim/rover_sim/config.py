@@ -73,6 +73,7 @@ class SimConfig:
     image_height: int = 240
     hfov_deg: float = 41.2
     supersample: int = 1                 # n x n render samples averaged per pixel (odd)
+    render_workers: int = 0              # 1: the right eye drawn by a second process
     real_time_factor: float = 1.0        # 0: as fast as possible
     max_linear_speed_m_s: float = 0.25   # app. D: about 25 cm/s
     max_yaw_rate_rad_s: float = 1.0
@@ -100,6 +101,7 @@ class SimConfig:
             ('image_width', 32 <= self.image_width <= 1920, 'must be in [32, 1920]'),
             ('image_height', 24 <= self.image_height <= 1440, 'must be in [24, 1440]'),
             ('hfov_deg', 5.0 <= self.hfov_deg <= 120.0, 'must be in [5, 120]'),
+            ('render_workers', self.render_workers in (0, 1), 'must be 0 or 1'),
             ('supersample', isinstance(self.supersample, int)
              and not isinstance(self.supersample, bool) and self.supersample in (1, 3, 5, 7),
              'must be the integer 1, 3, 5 or 7'),

@@ -72,6 +72,10 @@ PARAMS = {
                             'with the mass matrix once per engine step (faster, less faithful: '
                             'docs/results/simulator.md)',
                             choices=[i.value for i in Integrator], read_only=True),
+    'render_workers': ParamSpec(1, 'Processes beside the simulator that render (1: the right eye '
+                                'of each stereo pair in a second process, the same images in '
+                                'about half the wall time where a core is free; 0: none)',
+                                lo=0, hi=1, read_only=True),
     'physics_substeps': ParamSpec(0, 'Physics sub-steps per 5 ms step; 0 = the stability minimum '
                                   '(explicit; implicit: 1) (more: closer to the continuous '
                                   'Eq. B-3 dynamics, slower)', lo=0, hi=200, read_only=True),
@@ -159,7 +163,9 @@ class SimNode(Node):
             if v['noise_fraction'] != PARAMS['noise_fraction'].default:
                 changes['noise'] = NoiseConfig(**{**base.noise.__dict__,
                                                   'fraction': v['noise_fraction']})
-            config = base.replace(real_time_factor=self._rtf, **changes)
+            # how it renders is the process's, not the world's: always the node's parameter
+            config = base.replace(real_time_factor=self._rtf,
+                                  render_workers=v['render_workers'], **changes)
             reason = _unknown_rovers(v['stereo_rovers'], config.rovers)
             if reason:
                 raise ConfigError(reason)
@@ -504,6 +510,10 @@ class SimNode(Node):
 
     def _publish_stereo(self, i: int, name: str, pubs: dict, t: Time) -> None:
         left, right = self.world.render_stereo(i)
+        note = self.world.render_note
+        if note is not None and note != getattr(self, '_render_note_logged', None):
+            self._render_note_logged = note
+            self.get_logger().warn(note)
         for key, img, frame, is_right in (('left', left, 'left', False),
                                           ('right', right, 'right', True)):
             msg = Image()

@@ -35,6 +35,7 @@ from .compliance import (
 )
 from .config import Integrator, SimConfig
 from .implicit import BaseKinematics, ImplicitSolver
+from .render_worker import RenderWorker, RenderWorkerError
 from .rover_model import (
     ARM_EFFORT_NM,
     ARM_JOINTS,
@@ -205,6 +206,11 @@ class World:
         if len(truths) != config.rovers:
             raise ValueError(f'expected {config.rovers} truth parameter sets, got {len(truths)}')
         self.config = config
+        self._truths = list(truths)
+        # the right eye's renderer in a second process (config.render_workers), started at the
+        # first picture; None: both eyes here. render_note: why it stopped, if it did
+        self._render_worker: RenderWorker | None = None
+        self.render_note: str | None = None
         self.dt = 1.0 / config.physics_rate_hz
         self.integrator = config.integrator
         if self.integrator is Integrator.IMPLICIT:
@@ -402,10 +408,10 @@ class World:
                          if pb.getJointInfo(body, j, physicsClientId=c)[2] != pb.JOINT_FIXED]
         rover.mass_index = np.array(list(range(6))
                                     + [6 + rover.movable.index(j) for j in rover.actuated])
-        rover.implicit = ImplicitSolver(params.stiffness, params.damping, rover.preload,
-                                        len(rover.actuated))
         rover.arm_prev = self._arm_momentum(rover)
         if self.probe_client is not None:
+            rover.implicit = ImplicitSolver(params.stiffness, params.damping, rover.preload,
+                                            len(rover.actuated))
             pc = self.probe_client
             rover.probe_body = pb.loadURDF(str(urdf), [x, y, NOMINAL_HEIGHT_M], [0, 0, 0, 1],
                                            flags=pb.URDF_USE_INERTIA_FROM_FILE,
@@ -971,26 +977,69 @@ class World:
         """Left and right mono8 images of a stereo pair whose left optical frame is at `pos`
         with orientation `rot` (columns: optical x right, y down, z forward) in the world;
         config.supersample n > 1 renders n x n samples per pixel and averages them (pixel
-        integration, coop_common.rendering; n^2 times the rendering cost)."""
+        integration, coop_common.rendering; n^2 times the rendering cost). With
+        config.render_workers the right eye is drawn by a second process meanwhile
+        (render_worker), the same images; should it fail, both are drawn here from then on
+        and `render_note` says why."""
+        pos, rot = np.asarray(pos, dtype=float), np.asarray(rot, dtype=float)
+        worker = self._worker()
+        if worker is not None:
+            try:
+                worker.request(self.poses(), pos, rot, STEREO_BASELINE_M)
+                left = self.render_eye(pos, rot, 0.0)
+                return left, worker.result()
+            except RenderWorkerError as exc:
+                self._stop_worker(f'{exc}: both eyes rendered in the simulator from now on')
+        return self.render_eye(pos, rot, 0.0), self.render_eye(pos, rot, STEREO_BASELINE_M)
+
+    def render_eye(self, pos: np.ndarray, rot: np.ndarray, offset: float) -> np.ndarray:
+        """One mono8 image of the camera `offset` m along optical x from the left optical frame
+        at `pos`, `rot` (render_stereo_at)."""
         n = self.config.supersample
         w, h = n * self.config.image_width, n * self.config.image_height
         proj = projection_matrix(fine_intrinsics(self.intrinsics(), n), w, h, 0.05, 60.0)
         pos, rot = np.asarray(pos, dtype=float), np.asarray(rot, dtype=float)
-        images = []
-        for offset in (0.0, STEREO_BASELINE_M):
-            eye = pos + rot[:, 0] * offset
-            view = pb.computeViewMatrix(eye.tolist(), (eye + rot[:, 2]).tolist(),
-                                        (-rot[:, 1]).tolist())
-            _, _, rgba, _, _ = pb.getCameraImage(w, h, view, proj, renderer=pb.ER_TINY_RENDERER,
-                                                 flags=pb.ER_NO_SEGMENTATION_MASK,
-                                                 physicsClientId=self.client)
-            rgb = np.reshape(np.asarray(rgba, dtype=np.uint8), (h, w, 4))[:, :, :3]
-            images.append(pixel_average(cv2.cvtColor(np.ascontiguousarray(rgb),
-                                                     cv2.COLOR_RGB2GRAY), n))
-        return images[0], images[1]
+        eye = pos + rot[:, 0] * offset
+        view = pb.computeViewMatrix(eye.tolist(), (eye + rot[:, 2]).tolist(),
+                                    (-rot[:, 1]).tolist())
+        _, _, rgba, _, _ = pb.getCameraImage(w, h, view, proj, renderer=pb.ER_TINY_RENDERER,
+                                             flags=pb.ER_NO_SEGMENTATION_MASK,
+                                             physicsClientId=self.client)
+        rgb = np.reshape(np.asarray(rgba, dtype=np.uint8), (h, w, 4))[:, :, :3]
+        return pixel_average(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), n)
+
+    def poses(self) -> list[tuple]:
+        """Every rover's pose as the renderer sees it: base (position, orientation) and the
+        positions of its moving joints (set_poses puts a copy of the world there)."""
+        c = self.client
+        return [(*pb.getBasePositionAndOrientation(r.body, physicsClientId=c),
+                 [st[0] for st in pb.getJointStates(r.body, r.movable, physicsClientId=c)])
+                for r in self.rovers]
+
+    def set_poses(self, poses: Sequence[tuple]) -> None:
+        """Pose this world's rovers as `poses` (another World's `poses()`), for a picture."""
+        c = self.client
+        for r, (pos, orn, joints) in zip(self.rovers, poses):
+            pb.resetBasePositionAndOrientation(r.body, pos, orn, physicsClientId=c)
+            pb.resetJointStatesMultiDof(r.body, r.movable, [[q] for q in joints],
+                                        physicsClientId=c)
+
+    def _worker(self) -> RenderWorker | None:
+        if self.config.render_workers < 1 or self.render_note is not None:
+            return None
+        if self._render_worker is None:
+            self._render_worker = RenderWorker(self.config, self._truths)
+        return self._render_worker
+
+    def _stop_worker(self, note: str | None) -> None:
+        if self._render_worker is not None:
+            self._render_worker.close()
+            self._render_worker = None
+        self.render_note = note
 
     # ----------------------------------------------------------------- life cycle
     def close(self) -> None:
+        self._stop_worker(self.render_note)
         if self.probe_client is not None:
             try:
                 pb.disconnect(physicsClientId=self.probe_client)

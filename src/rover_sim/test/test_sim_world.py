@@ -244,3 +244,30 @@ def test_sprung_body_has_exactly_the_true_mass_cg_and_inertia():
         np.testing.assert_allclose(cg, origin, atol=1e-9)
         lag = 0.5 * w.substep_s * np.diag(truth.damping[3:])
         np.testing.assert_allclose(rot.T @ inertia @ rot, truth.inertia + lag, atol=1e-6)
+
+
+def test_the_render_worker_draws_the_same_pair_and_is_replaced_when_it_dies():
+    """render_workers 1: the right eye comes from a second process posed as this world is, the
+    pair pixel for pixel the one-process pair; a worker killed mid-run leaves the simulator
+    drawing both eyes itself, with render_note saying why."""
+    pairs = {}
+    for workers in (0, 1):
+        cfg = SimConfig(rovers=2, noise=QUIET, image_width=160, image_height=120,
+                        render_workers=workers)
+        with World(cfg, [load_truth()] * 2) as w:
+            w.command_velocity(0, 0.2, 0.3)
+            w.command_arm(1, ['arm_joint_2'], [0.5], [[0.4]])
+            w.command_mast(0, ['mast_pan'], [0.5], [[0.3]])
+            for _ in range(120):
+                w.step()
+            pairs[workers] = [w.render_stereo(i) for i in (0, 1)]
+            if workers:
+                assert w.render_note is None
+                w._render_worker._proc.kill()
+                w._render_worker._proc.wait()
+                again = w.render_stereo(0)
+                assert 'render worker' in w.render_note
+                np.testing.assert_array_equal(again[1], pairs[1][0][1])
+    for (l0, r0), (l1, r1) in zip(pairs[0], pairs[1]):
+        np.testing.assert_array_equal(l0, l1)
+        np.testing.assert_array_equal(r0, r1)
