@@ -40,7 +40,8 @@ def format_table(result: dict) -> str:
             ('goal sim s per wall s', result['sim_per_wall'], '-', '.2f'))
     n = len(result['attempt_wall_s']['values'])
     lines = [f'{result["placement"]} placement, {result["slot_in"]} in slot, {n} attempts '
-             f'(seeds from {result["first_seed"]})',
+             f'(seeds from {result["first_seed"]}), render workers '
+             f'{result.get("render_workers", 0)}',
              f'{"":24}{"median":>9}{"min":>9}{"max":>9}{"target":>9}']
     for name, st, target, fmt in rows:
         lines.append(f'{name:24}' + ''.join(f'{st[k]:>9{fmt}}' for k in ('median', 'min', 'max'))
@@ -67,6 +68,8 @@ def main() -> int:
     ap.add_argument('--placement', choices=('optimal', 'random'), default='optimal')
     ap.add_argument('--timeout', type=number(float, lo=5.0, hi=600.0), default=45.0,
                     help='sim seconds an insert goal may take')
+    ap.add_argument('--render-workers', type=number(int, lo=0, hi=1), default=1,
+                    help="the simulator's render_workers (0: both eyes in the simulator)")
     args = ap.parse_args()
     from coop_insertion.table_5_1 import build_site_map, open_rig
 
@@ -79,7 +82,7 @@ def main() -> int:
         ap.error(f'--site-map {site_map}: no such file')
     t0 = time.monotonic()
     rig = open_rig(seed=SEED, occlusion_density=OCCLUSION, slot_in=args.slot,
-                   log_dir=work / 'logs', site_map=site_map)
+                   log_dir=work / 'logs', site_map=site_map, render_workers=args.render_workers)
     walls, goals, sims, ok = [], [], [], 0
     try:
         setup = time.monotonic() - t0
@@ -97,6 +100,7 @@ def main() -> int:
     finally:
         rig.__exit__(None, None, None)
     result = {'slot_in': args.slot, 'placement': args.placement, 'first_seed': SEED * 1000,
+              'render_workers': args.render_workers,
               'attempt_wall_s': _stats(walls), 'attempt_sim_s': _stats(sims),
               'goal_wall_s': _stats(goals),
               'sim_per_wall': _stats([s / w for s, w in zip(sims, goals)]),

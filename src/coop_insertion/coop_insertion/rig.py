@@ -163,9 +163,11 @@ class InsertionRig(contextlib.AbstractContextManager):
                  real_time_factor: float = 1.0, site_map: Path | None = None,
                  master_args: tuple[str, ...] = (), planner: bool = True,
                  stereo_rovers: tuple[str, ...] = ('rover1',), rovers: int = 2,
-                 extra_procs: tuple[tuple[str, str, str, list[str]], ...] = ()) -> None:
+                 extra_procs: tuple[tuple[str, str, str, list[str]], ...] = (),
+                 render_workers: int = 1) -> None:
         """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
-        the map (with the planner); extra_procs: more (log name, package, executable, args)."""
+        the map (with the planner); extra_procs: more (log name, package, executable, args);
+        render_workers: the sim's (1: the right eye drawn by a second process)."""
         self.seed = seed
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix='insert_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -184,7 +186,8 @@ class InsertionRig(contextlib.AbstractContextManager):
                     '-p', f'image_height:={image_height}', '-p',
                     f'stereo_rate_hz:={stereo_rate_hz}', '-p', f'world_yaml:={world}',
                     '-p', f'real_time_factor:={real_time_factor}', '-p',
-                    f'stereo_rovers:=[{",".join(stereo_rovers)}]']
+                    f'stereo_rovers:=[{",".join(stereo_rovers)}]', '-p',
+                    f'render_workers:={render_workers}']
         map_args = []
         if site_map is not None:
             # the scenario's map, built by the mapping pipeline (coop_viewplan.fig_3_25 with
