@@ -50,7 +50,10 @@ def test_sim_mode_prints_its_json(tmp_path, capsys, monkeypatch):
     truth = load_truth().to_vector()
     n = len(PARAM_NAMES)
 
-    def fake(*, duration_s, strategy, noise):
+    integrators = []
+
+    def fake(*, duration_s, strategy, noise, integrator):
+        integrators.append(integrator)
         est = truth * (1.1 if strategy == 'constant' else 1.01) + 0.001
         return {'success': True, 'message': f'{strategy}: 22/22 observable', 'truth': truth,
                 'estimate': est, 'std': np.full(n, 0.002),
@@ -66,6 +69,11 @@ def test_sim_mode_prints_its_json(tmp_path, capsys, monkeypatch):
     assert k_yaw.endswith('*') and text.count('*') == 2 + 1     # + the header's legend
     assert doc['strategies']['constant']['per_parameter']['mass']['estimate'] == \
         pytest.approx(3.301)
+    assert integrators == ['explicit', 'explicit'] and doc['integrator'] == 'explicit'
+    assert main(['--sim', '--strategies', 'information', '--integrator', 'implicit', '--json',
+                 str(out)]) == 0
+    assert integrators[-1] == 'implicit' and json.loads(out.read_text())['integrator'] == \
+        'implicit'
 
 
 def test_cli_rejects_bad_arguments(tmp_path):
