@@ -73,7 +73,11 @@ class RenderWorker:
         self._first = True
         self._reply: list = []
         self._got = threading.Event()
-        _send(self._proc.stdin, (config, list(truths)))
+        try:
+            _send(self._proc.stdin, (config, list(truths)))
+        except OSError as exc:
+            self.close()
+            raise RenderWorkerError(f'render worker gone at its start: {exc}') from exc
 
     def request(self, poses: list, pos: np.ndarray, rot: np.ndarray, offset: float) -> None:
         """Ask for one image (render_eye's arguments, with the rovers' poses)."""

@@ -1028,7 +1028,12 @@ class World:
         if self.config.render_workers < 1 or self.render_note is not None:
             return None
         if self._render_worker is None:
-            self._render_worker = RenderWorker(self.config, self._truths)
+            try:
+                self._render_worker = RenderWorker(self.config, self._truths)
+            except (OSError, RenderWorkerError) as exc:
+                self.render_note = (f'render worker did not start ({exc}): both eyes rendered '
+                                    'in the simulator')
+                return None
         return self._render_worker
 
     def _stop_worker(self, note: str | None) -> None:

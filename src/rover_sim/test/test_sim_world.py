@@ -271,3 +271,13 @@ def test_the_render_worker_draws_the_same_pair_and_is_replaced_when_it_dies():
     for (l0, r0), (l1, r1) in zip(pairs[0], pairs[1]):
         np.testing.assert_array_equal(l0, l1)
         np.testing.assert_array_equal(r0, r1)
+
+
+def test_a_render_worker_that_cannot_start_leaves_both_eyes_to_the_simulator(monkeypatch):
+    import rover_sim.render_worker as rw
+    monkeypatch.setattr(rw.sys, 'executable', '/nonexistent/python')
+    cfg = SimConfig(rovers=1, noise=QUIET, image_width=64, image_height=48, render_workers=1)
+    with World(cfg, [load_truth()]) as w:
+        left, right = w.render_stereo(0)
+        assert 'did not start' in w.render_note
+        assert left.shape == right.shape == (48, 64) and left.std() > 0
