@@ -82,13 +82,13 @@ class ImplicitSolver:
         self.preload = np.asarray(preload, dtype=float)
         self.n_arm = int(n_arm)
 
-    def solve(self, h: float, mass_matrix: np.ndarray, base: BaseKinematics, u: np.ndarray,
+    def solve(self, h: float, mass_matrix: np.ndarray, base: BaseKinematics,
               du_free: np.ndarray, arm_position_error: np.ndarray,
               arm_rate_error: np.ndarray, kp: np.ndarray, kd: np.ndarray, effort: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray]:
         """(wrench (force, torque) in anchor axes at the sprung c.g., arm joint torques) for the
-        engine step of length h starting at generalised velocity u (6 base + n_arm), du_free
-        the step's velocity change without them.
+        engine step of length h; du_free: the step's change of the generalised velocity (6
+        base + n_arm) without them.
 
         arm_position_error: q_ref - q; arm_rate_error: qd_ref - qd at the step's instant;
         torques beyond `effort` are clipped (the joint's actuator limit)."""

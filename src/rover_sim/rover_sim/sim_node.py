@@ -132,6 +132,7 @@ class SimNode(Node):
         self._pending: deque = deque()
         self._lock = threading.Lock()
         self._last_cmd_vel: dict[int, float] = {}
+        self._render_note_logged: str | None = None   # the world's render_note, logged once
         self._make_interfaces()
         self._publish_latched()
         self._stop = threading.Event()
@@ -511,7 +512,7 @@ class SimNode(Node):
     def _publish_stereo(self, i: int, name: str, pubs: dict, t: Time) -> None:
         left, right = self.world.render_stereo(i)
         note = self.world.render_note
-        if note is not None and note != getattr(self, '_render_note_logged', None):
+        if note is not None and note != self._render_note_logged:
             self._render_note_logged = note
             self.get_logger().warn(note)
         for key, img, frame, is_right in (('left', left, 'left', False),

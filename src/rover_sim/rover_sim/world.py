@@ -741,7 +741,7 @@ class World:
                                                          physicsClientId=pc)]
                 free = np.concatenate([rot.T @ np.array(pw), rot.T @ np.array(pv), pqd]) - u
                 wrench, tau = r.implicit.solve(
-                    h, mass, kin, u, free, np.asarray(q_refs[sub]) - q,
+                    h, mass, kin, free, np.asarray(q_refs[sub]) - q,
                     np.asarray(qd_refs[sub]) - qd, np.asarray(kp), np.asarray(kd), effort)
                 pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL,
                                              forces=tau.tolist(), physicsClientId=c)

@@ -37,8 +37,7 @@ def test_one_damped_axis_matches_the_trapezoid_in_closed_form():
     damping = np.array([0.0, 0.0, b, 0.0, 0.0, 0.0])
     solver = ImplicitSolver(k, damping, np.zeros(6), n_arm=1)
     mass = np.diag([1.0, 1.0, 1.0, m, m, m, 1.0])
-    u = np.array([0, 0, 0, 0, 0, 0.2, 0.0])
-    wrench, tau = solver.solve(h, mass, _kin(rate=[0, 0, 0.2, 0, 0, 0]), u, np.zeros(7),
+    wrench, tau = solver.solve(h, mass, _kin(rate=[0, 0, 0.2, 0, 0, 0]), np.zeros(7),
                                np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.ones(1))
     f = -b * 0.2 / (1.0 + 0.5 * h * b / m)
     assert wrench[2] == pytest.approx(f)
@@ -50,7 +49,7 @@ def test_one_damped_axis_matches_the_trapezoid_in_closed_form():
 def test_arm_torque_at_its_limit_is_held_and_the_rest_solved_for_it():
     solver = ImplicitSolver(np.zeros(6), np.zeros(6), np.zeros(6), n_arm=2)
     mass = np.diag([1.0] * 6 + [0.01, 0.01])
-    wrench, tau = solver.solve(0.005, mass, _kin(), np.zeros(8), np.zeros(8),
+    wrench, tau = solver.solve(0.005, mass, _kin(), np.zeros(8),
                                np.array([1.0, 0.01]),
                                np.zeros(2), np.array([100.0, 100.0]), np.array([1.0, 1.0]),
                                np.array([4.0, 4.0]))
