@@ -346,7 +346,7 @@ class Mission:
                               slot_in=cfg.slot_in, log_dir=self.out / 'logs',
                               domain_id=self.domain_id, stereo_rate_hz=cfg.stereo_rate_hz,
                               stereo_rovers=tuple(self.rovers), rovers=cfg.rovers,
-                              extra_procs=extra) as rig:
+                              extra_procs=extra, lockstep=False) as rig:
                 self.rig = rig
                 self.client = _MissionClient(rig.ctx, self.rovers)
                 rig.add_node(self.client)

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 import rclpy
+from builtin_interfaces.msg import Time
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -23,7 +24,14 @@ from rclpy.node import Node
 
 from .params import ParamSpec, check_values
 
-__all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'run_node']
+__all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'run_node', 'stamp']
+
+
+def stamp(t_s: float) -> Time:
+    """Seconds -> builtin_interfaces/Time, rounded to the nanosecond (a time just below a
+    whole second carries into sec rather than wrapping nanosec to 0)."""
+    ns = int(round(t_s * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:

@@ -25,7 +25,8 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from coop_common.node_util import BadInputCounter, declare_parameters, run_node
+from coop_common.lockstep_node import Lockstep
+from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
@@ -112,6 +113,10 @@ PARAMS = {
     'replace_range_factor': ParamSpec(0.85, "Each re-placement shrinks the markers' range by "
                                       'this factor (a closer view)', lo=0.3, hi=1.0),
     'seed': ParamSpec(0, 'Seed of the random placement', lo=0, hi=2**31 - 1),
+    'lockstep': ParamSpec(False, "Answer rover_sim's lockstep rounds (a participant in its "
+                          'lockstep_participants): frames, odometry and the action advance '
+                          'round by round, so the outcome does not depend on load',
+                          read_only=True),
     'place_timeout_s': ParamSpec(120.0, "Give up placing the camera after this (the node's "
                                  'clock: sim s with use_sim_time)',
                                  lo=1.0, hi=3600.0),
@@ -161,24 +166,32 @@ class MasterNode(Node):
         # master behind its image queue processes frames from the drive after the stop)
         self._stood_t = math.inf
         self.rng = np.random.default_rng(int(self.p['seed']))
+        # in lockstep a round's messages come in stamp order, and within one stamp in the
+        # order of these subscriptions: the camera's info before its images
+        self.ls = Lockstep(self, self.p['lockstep'])
         for side in ('left', 'right'):
-            self.create_subscription(Image, f'{r}/stereo/{side}/image_raw',
-                                     lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
-            self.create_subscription(CameraInfo, f'{r}/stereo/{side}/camera_info',
-                                     lambda m, s=side: self.info.__setitem__(s, m), SENSOR_QOS)
-        self.create_subscription(JointState, f'{r}/joint_states', self._on_joints, SENSOR_QOS)
-        self.create_subscription(Odometry, f'{r}/odom', self._on_odom, SENSOR_QOS)
-        self.pub_markers = self.create_publisher(MarkerObservation, f'{r}/markers', SENSOR_QOS)
-        self.pub_cmd = self.create_publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS)
+            self.ls.subscription(CameraInfo, f'{r}/stereo/{side}/camera_info',
+                                 lambda m, s=side: self.info.__setitem__(s, m), SENSOR_QOS)
+        self.ls.subscription(JointState, f'{r}/joint_states', self._on_joints, SENSOR_QOS)
+        self.ls.subscription(Odometry, f'{r}/odom', self._on_odom, SENSOR_QOS)
+        for side in ('left', 'right'):
+            self.ls.subscription(Image, f'{r}/stereo/{side}/image_raw',
+                                 lambda m, s=side: self._on_image(s, m), SENSOR_QOS)
+        self.pub_markers = self.ls.publisher(MarkerObservation, f'{r}/markers', SENSOR_QOS)
+        self.pub_cmd = self.ls.publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS)
         self.pub_placement = self.create_publisher(ViewRating, f'{r}/camera_placement',
                                                    LATCHED_QOS)
-        self.pub_mast = self.create_publisher(JointTrajectory, f'{r}/mast/command', COMMAND_QOS)
+        self.pub_mast = self.ls.publisher(JointTrajectory, f'{r}/mast/command', COMMAND_QOS)
         self.task_view = self.create_client(TaskView, 'viewplan/task_view')
         self._busy = False
         self._drive: GoToPose | None = None
         self._wake: Future | None = None
         self._slaves: dict[str, ActionClient] = {}
-        self.create_timer(0.25, self._poke, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # the action looks again at every round in lockstep, else four times a second
+        if self.ls.enabled:
+            self.ls.on_round(self._wakeup)
+        else:
+            self.create_timer(0.25, self._wakeup, clock=Clock(clock_type=ClockType.STEADY_TIME))
         ActionServer(self, Insert, 'insert', execute_callback=self._execute,
                      goal_callback=self._on_goal,
                      cancel_callback=lambda _g: CancelResponse.ACCEPT)
@@ -290,12 +303,13 @@ class MasterNode(Node):
                 self._stood_t = _stamp(msg)
                 self._wakeup()
 
-    def _poke(self) -> None:
-        self._wakeup()
-
     def _wakeup(self) -> None:
         if self._wake is not None and not self._wake.done():
             self._wake.set_result(None)
+
+    def _now_s(self) -> float:
+        """Sim time as this node knows it: the round's stamp in lockstep, else its clock."""
+        return self.ls.now_s(lambda: self.get_clock().now().nanoseconds * 1e-9)
 
     async def _sleep_until_wake(self) -> None:
         self._wake = Future()
@@ -325,7 +339,8 @@ class MasterNode(Node):
         except Exception as exc:     # noqa: BLE001  an action must end with a result
             self.get_logger().error(f'insert failed: {exc!r}')
             handle.abort()
-            res = Insert.Result(success=False, reason=f'master error: {exc}')
+            res = Insert.Result(success=False, reason=f'master error: {exc}',
+                                ended=stamp(self._now_s()))
         finally:
             self._busy = False
             self._drive = None
@@ -366,7 +381,8 @@ class MasterNode(Node):
         sub = Insert.Goal(master=self.p['rover'], slave=goal.slave, placement=goal.placement,
                           tolerance_m=goal.tolerance_m,
                           angle_tolerance_rad=goal.angle_tolerance_rad,
-                          max_force_n=goal.max_force_n, timeout_s=goal.timeout_s)
+                          max_force_n=goal.max_force_n, timeout_s=goal.timeout_s,
+                          stamp=stamp(self._now_s()))
         phase = [Insert.Feedback.PHASE_PLACE_CAMERA]
         awaiting = [False]
 
@@ -375,7 +391,7 @@ class MasterNode(Node):
             awaiting[0] = fb.feedback.awaiting_fix
             handle.publish_feedback(fb.feedback)
 
-        sh = await client.send_goal_async(sub, feedback_callback=relay)
+        sh = await self.ls.hold(client.send_goal_async(sub, feedback_callback=relay))
         if not sh.accepted:
             return self._end(handle, f'{goal.slave} rejected the task')
         res_future = sh.get_result_async()
@@ -386,7 +402,7 @@ class MasterNode(Node):
         while not res_future.done():
             await self._sleep_until_wake()
             if handle.is_cancel_requested:
-                await sh.cancel_goal_async()
+                await self.ls.hold(sh.cancel_goal_async())
                 continue
             if phase[0] != Insert.Feedback.PHASE_VISUAL_SERVO:
                 continue
@@ -409,7 +425,7 @@ class MasterNode(Node):
                     where = await self._choose_pose(goal.placement, closer=self.replacements)
                 failed = await self._place(handle, where)
                 if failed and handle.is_cancel_requested:
-                    await sh.cancel_goal_async()
+                    await self.ls.hold(sh.cancel_goal_async())
                 elif failed:
                     self.get_logger().warn(f're-placement: {failed}')
                 since = self._image_t
@@ -430,23 +446,22 @@ class MasterNode(Node):
         its image queue still looks at as many) for the slot pair (it is then remembered);
         False once they are seen without it, after 4 x `seconds` of the clock without them,
         or on a cancel."""
-        started = self.get_clock().now()
+        started = self._now_s()
         while self._slot is None:
             if self._image_t >= self._stood_t + seconds or \
-                    (self.get_clock().now() - started).nanoseconds * 1e-9 >= 4 * seconds:
+                    self._now_s() - started >= 4 * seconds:
                 return False
             await self._sleep_until_wake()
             if handle.is_cancel_requested:
                 return False
         return True
 
-    @staticmethod
-    def _end(handle, reason: str) -> Insert.Result:
+    def _end(self, handle, reason: str) -> Insert.Result:
         if handle.is_cancel_requested:
             handle.canceled()
         else:
             handle.abort()
-        return Insert.Result(success=False, reason=reason)
+        return Insert.Result(success=False, reason=reason, ended=stamp(self._now_s()))
 
     async def _place(self, handle, where) -> str | None:
         """Drive the rover to the camera pose `where` and tilt its mast; the reason on failure."""
@@ -468,14 +483,13 @@ class MasterNode(Node):
         self.pub_mast.publish(tilt)
         self._drive = GoToPose(mount.base_xy, mount.base_yaw,
                                max_speed_m_s=self.p['max_speed_m_s'])
-        started = self.get_clock().now()
+        started = self._now_s()
         try:
             while self._drive is not None:
                 await self._sleep_until_wake()
                 if handle.is_cancel_requested:
                     return 'canceled while placing the camera'
-                if (self.get_clock().now() - started).nanoseconds * 1e-9 > \
-                        self.p['place_timeout_s']:
+                if self._now_s() - started > self.p['place_timeout_s']:
                     return f'timed out placing the camera ({self.p["place_timeout_s"]:g} s)'
         finally:
             self._drive = None
@@ -553,7 +567,7 @@ class MasterNode(Node):
         sec.position_sigma_m = self.p['target_sigma_m']
         sec.weight = self.p['secondary_weight']
         req.secondary = [sec]
-        resp = await self.task_view.call_async(req)
+        resp = await self.ls.hold(self.task_view.call_async(req))
         if not resp.success:
             return f'task_view: {resp.message}'
         self.pub_placement.publish(resp.best)

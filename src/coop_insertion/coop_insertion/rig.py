@@ -26,10 +26,12 @@ from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.task import Future
 from rosgraph_msgs.msg import Clock
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import load_truth
+from coop_common.lockstep_node import Lockstep, stamp_of
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, joint2_in_base
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
@@ -57,6 +59,10 @@ SEATED_WINDOW_S = 0.5
 #: layer 7, the one its downward rays cross (at 0.8, layer 8, hardly any voxel is seen free)
 VIEW_PLANNER = {'p_empty': 0.45, 'task_unknown_occludes': False, 'clearance_m': 0.46,
                 'camera_height_m': 0.78, 'task_primary_space': 'free'}
+#: lockstep: the sim time of one round (the sim's lockstep_period_s), the participants that
+#: close loops in an attempt (this rig's client holds the sim between its steps)
+ROUND_S = 0.01
+PARTICIPANTS = ('master', 'slave', 'insertion_rig')
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
 #: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
 STALL_S = 90.0
@@ -87,17 +93,19 @@ def mast_sweep(seconds: float) -> JointTrajectory:
     return tr
 
 
-def staging_poses(slot_in: float, rng: np.random.Generator | None = None
+def staging_poses(slot_in: float, rng: np.random.Generator | None = None, *,
+                  master: tuple[float, float, float] = MASTER_START,
+                  slave_short_m: float = SLAVE_START_SHORT_M
                   ) -> dict[str, tuple[float, float, float]]:
-    """Where an insertion starts, (x, y, heading) per rover: the master beside the site, the
-    slave with its card SLAVE_START_SHORT_M short of the slot; with `rng`, perturbed (the
-    slave by up to 3 cm along, 2 cm across and 0.05 rad)."""
+    """Where an insertion starts, (x, y, heading) per rover: the master at `master` (beside
+    the site), the slave with its card `slave_short_m` short of the slot; with `rng`,
+    perturbed (the slave by up to 3 cm along, 2 cm across and 0.05 rad)."""
     j2 = joint2_in_base(load_truth().cg_to_arm)
     sx = SITE_XY[0] + slot_in * INCH / 2
     d = rng.uniform([-0.03, -0.02, -0.05], [0.03, 0.02, 0.05]) if rng is not None \
         else np.zeros(3)
-    return {'rover1': MASTER_START,
-            'rover2': (float(sx - 0.30 - j2[0] - SLAVE_START_SHORT_M + d[0]),
+    return {'rover1': master,
+            'rover2': (float(sx - 0.30 - j2[0] - slave_short_m + d[0]),
                        float(SITE_XY[1] - j2[1] + d[1]), float(d[2]))}
 
 
@@ -118,21 +126,48 @@ class Attempt:
 
 
 class _Client(Node):
-    def __init__(self, ctx: Context) -> None:
+    def __init__(self, ctx: Context, lockstep: bool) -> None:
         super().__init__('insertion_rig', context=ctx)
         self.clock = 0.0
         self.clock_wall = time.monotonic()      # when the clock last advanced
         self.elapsed = 0.0                      # sim s the clock advanced, across resets
-        self.contact_pen = 0.0
-        self.seated_at: list[tuple[float, bool]] = []     # (sim time, the truth's seated)
+        # the truth while an attempt runs: (stamp, seated, deepest penetration m)
+        self.contact: list[tuple[float, bool, float]] = []
         self.recording = False
         self.map_voxels = 0
+        self.ls = Lockstep(self, lockstep)
+        # lockstep: rounds to answer before holding the sim (inf: until told), and the hold
+        self._rounds_left: float = 0
+        self._pause: Future | None = None
+        self.ls.on_round(self._on_round)
         self.create_subscription(Clock, '/clock', self._on_clock, 10)
-        self.create_subscription(ContactState, 'sim/rover2/contact', self._on_contact, SENSOR_QOS)
+        self.ls.subscription(ContactState, 'sim/rover2/contact', self._on_contact, SENSOR_QOS)
         self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
         self.reset = self.create_client(SimScenario, 'sim/reset')
         self.insert = ActionClient(self, Insert, 'insert')
-        self.mast = self.create_publisher(JointTrajectory, 'rover1/mast/command', COMMAND_QOS)
+        self.mast = self.ls.publisher(JointTrajectory, 'rover1/mast/command', COMMAND_QOS)
+
+    # -- lockstep: the rig holds the sim between the steps of an experiment ------------------
+    def _on_round(self) -> None:
+        if self._rounds_left > 0:
+            self._rounds_left -= 1
+        elif self._pause is None:
+            self._pause = self.ls.hold(Future())
+
+    @property
+    def paused(self) -> bool:
+        """The sim stands at a round this client has not answered."""
+        return self._pause is not None
+
+    def run_rounds(self, rounds: float) -> None:
+        """Let the sim step `rounds` more rounds (math.inf: until stop_rounds), then hold."""
+        self._rounds_left = rounds
+        pause, self._pause = self._pause, None
+        if pause is not None:
+            pause.set_result(None)
+
+    def stop_rounds(self) -> None:
+        self._rounds_left = 0
 
     def _on_clock(self, m: Clock) -> None:
         t = m.clock.sec + 1e-9 * m.clock.nanosec
@@ -146,8 +181,7 @@ class _Client(Node):
 
     def _on_contact(self, m: ContactState) -> None:
         if self.recording:
-            self.contact_pen = max(self.contact_pen, float(m.max_penetration_m))
-            self.seated_at.append((self.clock, bool(m.seated)))
+            self.contact.append((stamp_of(m), bool(m.seated), float(m.max_penetration_m)))
 
 
 class InsertionRig(contextlib.AbstractContextManager):
@@ -161,14 +195,22 @@ class InsertionRig(contextlib.AbstractContextManager):
                  slot_in: float = 5.0, log_dir: Path | None = None, domain_id: int | None = None,
                  image_width: int = 640, image_height: int = 480, stereo_rate_hz: float = 4.0,
                  real_time_factor: float = 1.0, site_map: Path | None = None,
-                 master_args: tuple[str, ...] = (), planner: bool = True,
+                 master_args: tuple[str, ...] = (), slave_args: tuple[str, ...] = (),
+                 planner: bool = True,
                  stereo_rovers: tuple[str, ...] = ('rover1',), rovers: int = 2,
                  extra_procs: tuple[tuple[str, str, str, list[str]], ...] = (),
-                 render_workers: int = 1) -> None:
+                 render_workers: int = 1, lockstep: bool = True,
+                 master_start: tuple[float, float, float] = MASTER_START,
+                 slave_start_short_m: float = SLAVE_START_SHORT_M) -> None:
         """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
         the map (with the planner); extra_procs: more (log name, package, executable, args);
-        render_workers: the sim's (1: the right eye drawn by a second process)."""
+        render_workers: the sim's (1: the right eye drawn by a second process); lockstep: the
+        sim steps no round before the master, the slave and this rig have answered the last
+        (docs/design.md): the same attempt on an idle and on a busy machine; master_start,
+        slave_start_short_m: where place() stands the rovers (staging_poses)."""
         self.seed = seed
+        self.lockstep = lockstep
+        self.starts = {'master': master_start, 'slave_short_m': slave_start_short_m}
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix='insert_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         isolate_ros_environment(domain_id)
@@ -188,6 +230,11 @@ class InsertionRig(contextlib.AbstractContextManager):
                     '-p', f'real_time_factor:={real_time_factor}', '-p',
                     f'stereo_rovers:=[{",".join(stereo_rovers)}]', '-p',
                     f'render_workers:={render_workers}']
+        node_args = ['-p', 'use_sim_time:=true']
+        if lockstep:
+            sim_args += ['-p', f'lockstep_participants:=[{",".join(PARTICIPANTS)}]',
+                         '-p', f'lockstep_period_s:={ROUND_S}']
+            node_args += ['-p', 'lockstep:=true']
         map_args = []
         if site_map is not None:
             # the scenario's map, built by the mapping pipeline (coop_viewplan.fig_3_25 with
@@ -197,10 +244,11 @@ class InsertionRig(contextlib.AbstractContextManager):
             map_args = ['-p', f'map_file:={local}']
         self.procs = [
             ('sim', 'rover_sim', 'sim', sim_args),
-            ('master', 'coop_insertion', 'master', ['-p', 'use_sim_time:=true', '-p',
-                                                    f'seed:={seed}', *master_args]),
-            ('slave', 'coop_insertion', 'slave', ['-p', 'use_sim_time:=true', '-p',
-                                                  f'slot_width_m:={slot_in * INCH}']),
+            ('master', 'coop_insertion', 'master', [*node_args, '-p', f'seed:={seed}',
+                                                    *master_args]),
+            ('slave', 'coop_insertion', 'slave', [*node_args, '-p',
+                                                  f'slot_width_m:={slot_in * INCH}',
+                                                  *slave_args]),
         ]
         if planner:     # optimal placement: the team's map and view planner
             self.procs += [
@@ -232,7 +280,7 @@ class InsertionRig(contextlib.AbstractContextManager):
                     NodeProcess(pkg, exe, args, log_path=self.log_dir / f'{name}.log'))
             self.ctx = Context()
             rclpy.init(context=self.ctx)
-            self.node = _Client(self.ctx)
+            self.node = _Client(self.ctx, self.lockstep)
             self.ex = SingleThreadedExecutor(context=self.ctx)
             self.ex.add_node(self.node)
             self._stop = threading.Event()
@@ -319,10 +367,21 @@ class InsertionRig(contextlib.AbstractContextManager):
     def _sim_sleep(self, seconds: float) -> None:
         """Wait `seconds` of sim time (up to 60 s + 20x that of wall time: a loaded machine
         runs the rendering sim at a real-time factor near 0.1), and at least long enough for
-        a clock that stands still to be told a stall (SimStalled), not a timeout."""
+        a clock that stands still to be told a stall (SimStalled), not a timeout. In lockstep:
+        let the sim step that many rounds, then hold it."""
+        timeout = max(60.0 + 20.0 * seconds, STALL_S + 10.0)
+        if self.lockstep:
+            self.node.run_rounds(math.ceil(seconds / ROUND_S - 1e-9))
+            self._wait(lambda: self.node.paused, timeout, what='sim time')
+            return
         t0 = self.node.elapsed      # not the clock: a reset may not have reached us yet
-        self._wait(lambda: self.node.elapsed >= t0 + seconds,
-                   max(60.0 + 20.0 * seconds, STALL_S + 10.0), what='sim time')
+        self._wait(lambda: self.node.elapsed >= t0 + seconds, timeout, what='sim time')
+
+    def _hold(self) -> None:
+        """Lockstep: hold the sim at its next round (the world changes between rounds)."""
+        if self.lockstep:
+            self.node.stop_rounds()
+            self._wait(lambda: self.node.paused, STALL_S, what='the sim held')
 
     def set_parameters(self, node: str, **values) -> None:
         """Set parameters of one node of the graph (InsertionError with the node's reason
@@ -350,7 +409,8 @@ class InsertionRig(contextlib.AbstractContextManager):
 
     def place(self, slot_in: float, rng: np.random.Generator) -> None:
         """Reset the sim to the slot width with the rovers at their (perturbed) starts."""
-        poses = staging_poses(slot_in, rng)
+        poses = staging_poses(slot_in, rng, **self.starts)
+        self._hold()
         req = SimScenario.Request(slot_gap_m=slot_in * INCH, place_rovers=list(poses),
                                   place_x=[p[0] for p in poses.values()],
                                   place_y=[p[1] for p in poses.values()],
@@ -389,10 +449,11 @@ class InsertionRig(contextlib.AbstractContextManager):
         """One `insert` goal from wherever the rovers stand, judged by the simulator's
         truth."""
         node = self.node
-        node.contact_pen, node.seated_at = 0.0, []
+        self._hold()
+        node.contact = []
         self.feedback = None
         curves = {'t': [], 'phase': [], 'displacement_m': [], 'angle_rad': [], 'force': []}
-        t_start = node.clock
+        t_start = node.ls.now_s(lambda: node.clock)
 
         def on_fb(fb) -> None:
             f = self.feedback = fb.feedback
@@ -417,19 +478,26 @@ class InsertionRig(contextlib.AbstractContextManager):
             raise InsertionError('insert goal rejected')
         node.recording = True
         res_fut = handle.get_result_async()
+        if self.lockstep:
+            node.run_rounds(math.inf)
         self._wait(res_fut.done, 3 * timeout_s + 600, what='the insert result')
         res = res_fut.result().result
-        t_end = node.clock
+        # the goal's end by the stamp of the state it ended on (the sim may have run on while
+        # the result came), else by this client's clock
+        ended = res.ended.sec + 1e-9 * res.ended.nanosec
+        t_end = ended if ended > 0 else node.clock
+        node.stop_rounds()
         node.recording = False
         # seated: the truth said so within the goal's last SEATED_WINDOW_S (the slave ends the
         # goal the moment it judges the card seated, and relaxes its push after; the truth's
         # last message may predate the seating by a contact period)
-        seated = any(s for t, s in node.seated_at if t >= t_end - SEATED_WINDOW_S)
-        pen_mm = node.contact_pen * 1e3
+        during = [c for c in node.contact if c[0] <= t_end]
+        seated = any(s for t, s, _ in during if t >= t_end - SEATED_WINDOW_S)
+        pen_mm = max((p for *_, p in during), default=0.0) * 1e3
         ok = bool(res.success and seated and pen_mm <= penetration_limit_mm)
         return Attempt(slot_in, placement, seed, ok, bool(res.success), res.reason,
                        seated, pen_mm, float(res.peak_force_n),
-                       time.monotonic() - w0, node.clock - t_start, curves)
+                       time.monotonic() - w0, t_end - t_start, curves)
 
 
 def as_row(a: Attempt) -> dict:

@@ -24,7 +24,8 @@ from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from coop_common.node_util import BadInputCounter, declare_parameters, run_node
+from coop_common.lockstep_node import Lockstep
+from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_common.rover_geometry import ARM_JOINTS, ReachError, yaw_of
@@ -38,7 +39,11 @@ from .task import LABELS, LabelledMarkers, TaskModel
 PARAMS = {
     'rover': ParamSpec('rover2', 'The slave rover (its topics are <rover>/...)',
                        read_only=True),
-    'master': ParamSpec('rover1', 'The master rover whose <master>/markers guide the card'),
+    'master': ParamSpec('rover1', 'The master rover whose <master>/markers guide the card '
+                        '(a goal naming another is rejected)', read_only=True),
+    'lockstep': ParamSpec(False, "Answer rover_sim's lockstep rounds (a participant in its "
+                          'lockstep_participants): the sensors of each round, then the '
+                          'commands, so the outcome does not depend on load', read_only=True),
     'slot_width_m': ParamSpec(0.1143, "The slot's width (the task's given; Table 5-1: 5.0, "
                               '4.5, 4.375 in)', lo=0.1080, hi=0.25),
     'site_position': ParamSpec([3.0572, 0.0, 0.4], "The slot mouth's centre in the map frame "
@@ -93,17 +98,26 @@ class SlaveNode(Node):
         self._last_cmd = -math.inf
         self._wake: Future | None = None
         self._busy = False
-        self._marker_sub = None
-        self.create_subscription(JointState, f'{r}/joint_states', self._on_joints,
-                                 with_depth(SENSOR_QOS, 50))
-        self.create_subscription(Odometry, f'{r}/odom', self._on_odom, SENSOR_QOS)
-        self.create_subscription(WrenchStamped, f'{r}/arm/wrench', self._on_wrench,
-                                 with_depth(SENSOR_QOS, 50))
+        self._status_t = 0.0           # stamp of the joint state the last status is of
+        # the goal's stamp: its task starts with the first joint state after it (in lockstep
+        # the goal can arrive before or after the round it was sent in is handed out here;
+        # states and fixes up to its stamp are left out either way)
+        self._given_t = -math.inf
+        self._started = False
+        # in lockstep a round's odometry, wrench and markers come before its joint state,
+        # which steps the controller (the order of these subscriptions)
+        self.ls = Lockstep(self, self.p['lockstep'])
+        self.ls.subscription(Odometry, f'{r}/odom', self._on_odom, SENSOR_QOS)
+        self.ls.subscription(WrenchStamped, f'{r}/arm/wrench', self._on_wrench,
+                             with_depth(SENSOR_QOS, 50))
+        self.ls.subscription(MarkerObservation, f'{self.p["master"]}/markers', self._on_markers,
+                             SENSOR_QOS)
+        self.ls.subscription(JointState, f'{r}/joint_states', self._on_joints,
+                             with_depth(SENSOR_QOS, 50))
         self.create_subscription(DynamicParameters, f'{r}/dynamic_parameters', self._on_params_id,
                                  LATCHED_QOS)
-        self.pub_arm = self.create_publisher(JointTrajectory, f'{r}/arm/joint_command',
-                                             COMMAND_QOS)
-        self.pub_cmd = self.create_publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS)
+        self.pub_arm = self.ls.publisher(JointTrajectory, f'{r}/arm/joint_command', COMMAND_QOS)
+        self.pub_cmd = self.ls.publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS)
         self.create_timer(0.2, self._wakeup, clock=Clock(clock_type=ClockType.STEADY_TIME))
         ActionServer(self, Insert, f'{r}/insert_card', execute_callback=self._execute,
                      goal_callback=self._on_goal,
@@ -147,7 +161,7 @@ class SlaveNode(Node):
             self.bad.reject('wrench', 'non-finite')
 
     def _on_markers(self, msg: MarkerObservation) -> None:
-        if self.ctl is None:
+        if self.ctl is None or not self._started:
             return
         n = len(msg.positions)
         if list(msg.labels) != list(LABELS) or len(msg.covariances) != 9 * n:
@@ -170,6 +184,9 @@ class SlaveNode(Node):
             return
         q = np.array([msg.position[idx[n]] for n in ARM_JOINTS])
         t = _stamp(msg)
+        if t <= self._given_t:
+            return
+        self._started = True
         if self._goal_t0 is None:
             self._goal_t0 = t
         try:
@@ -207,7 +224,7 @@ class SlaveNode(Node):
                                f'{st.angle_error_rad:.3f} rad, |F| '
                                f'{np.linalg.norm(st.wrench[:3]):.1f} N',
                                throttle_duration_sec=5.0)
-        self._status = st
+        self._status, self._status_t = st, t
         if st.done:
             self._wakeup()
 
@@ -221,6 +238,10 @@ class SlaveNode(Node):
             self.get_logger().warn('insert_card: a goal is running; rejected')
             return GoalResponse.REJECT
         if goal.slave and goal.slave != self.p['rover']:
+            return GoalResponse.REJECT
+        if goal.master and goal.master != self.p['master']:
+            self.get_logger().warn(f'insert_card: guided by {self.p["master"]} (parameter '
+                                   f'master), not {goal.master}; rejected')
             return GoalResponse.REJECT
         for v in (goal.tolerance_m, goal.angle_tolerance_rad, goal.max_force_n, goal.timeout_s):
             if not (math.isfinite(v) and v >= 0):
@@ -236,14 +257,11 @@ class SlaveNode(Node):
             self.ctl = None
             self._busy = False
             self.pub_cmd.publish(Twist())
-            if self._marker_sub is not None:
-                self.destroy_subscription(self._marker_sub)
-                self._marker_sub = None
 
     async def _run(self, handle, t0: float) -> Insert.Result:
         g = handle.request
         p = self.p
-        master = g.master or p['master']
+        master = p['master']
         model = TaskModel(slot_width_m=p['slot_width_m'])
         self.ctl = SlaveController(
             model, self.r2, tolerance_m=g.tolerance_m or p['tolerance_m'],
@@ -254,10 +272,11 @@ class SlaveNode(Node):
             site_in_odom=_site_pose(p['site_position'], p['site_yaw']))
         self._timeout = g.timeout_s or p['timeout_s']
         self._goal_t0 = None
+        given = g.stamp.sec + 1e-9 * g.stamp.nanosec
+        self._given_t = given if given > 0 else -math.inf
+        self._started = False
         self._last_cmd = -math.inf
         self._status = None
-        self._marker_sub = self.create_subscription(MarkerObservation, f'{master}/markers',
-                                                    self._on_markers, SENSOR_QOS)
         self.get_logger().info(f'inserting: guided by {master}/markers, r_2 '
                                f'{np.round(self.r2, 4).tolist()} ({self.r2_source}), slot '
                                f'{model.slot_width_m * 1e3:.1f} mm')
@@ -292,6 +311,7 @@ class SlaveNode(Node):
 
     def _result(self, ok: bool, reason: str, t0: float, st=None) -> Insert.Result:
         r = Insert.Result(success=bool(ok), reason=reason, duration_s=time.monotonic() - t0)
+        r.ended = stamp(self._status_t)
         if st is not None:
             r.displacement_error_m = float(st.displacement_error_m)
             r.angle_error_rad = float(st.angle_error_rad)

@@ -1,22 +1,22 @@
 """rclpy node publishing the PyBullet world (`rover_sim.world.World`).
 
 A dedicated thread steps the physics and publishes (paced by `real_time_factor`, 0 = as fast as
-possible); the executor thread only receives commands and services, which are handed to the sim
-thread and applied between steps, so the physics never races a callback.
+possible, and in lockstep mode by the participants' answers); the executor thread only receives
+commands and services, which are handed to the sim thread and applied between steps, so the
+physics never races a callback.
 """
 from __future__ import annotations
 
 import math
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Twist, WrenchStamped
 from nav_msgs.msg import Odometry
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
@@ -24,9 +24,18 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from coop_common.dynparams import PARAM_NAMES, TruthFileError, load_truth
-from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
+from coop_common.lockstep import Gate, Inbox, LockstepError
+from coop_common.lockstep_node import (
+    ACK_TOPIC,
+    ROUND_QOS,
+    TICK_TOPIC,
+    CountingPublisher,
+    reliable,
+    stamp_of,
+)
+from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node, stamp
 from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
-from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer
+from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer, LockstepAck, LockstepTick
 from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat, rpy_to_matrix
@@ -37,11 +46,10 @@ from .world import World
 from .worldgen import TABLE_5_1_GAPS_M
 
 
-def stamp(t_s: float) -> Time:
-    """Seconds -> builtin_interfaces/Time, rounded to the nanosecond (a time just below a
-    whole second carries into sec rather than wrapping nanosec to 0)."""
-    ns = int(round(t_s * 1e9))
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+def _listened(pub) -> bool:
+    """Someone subscribes to `pub`: a message nobody takes is not built (the world's readings
+    are still taken, so their noise does not depend on who listens)."""
+    return pub.get_subscription_count() > 0
 
 
 def _pose(msg_pose, position: np.ndarray, rotation: np.ndarray) -> None:
@@ -102,6 +110,15 @@ PARAMS = {
     'cmd_vel_timeout_s': ParamSpec(0.5, 'Stop a rover whose cmd_vel is older than this (sim s)',
                                    lo=0.05, hi=10.0),
     'map_frame': ParamSpec('map', 'Common world frame id (REP 105)', read_only=True),
+    'lockstep_participants': ParamSpec(
+        [''], 'Lockstep mode: the nodes (relative names resolve in this namespace) that close '
+        'loops on the simulator; it steps no round before each has answered the last one '
+        "(docs/design.md). [''] or empty: none, real-time pacing alone", read_only=True),
+    'lockstep_period_s': ParamSpec(0.01, 'Lockstep: sim time per round (rounded to whole '
+                                   'physics steps)', lo=0.005, hi=1.0, read_only=True),
+    'lockstep_timeout_s': ParamSpec(10.0, 'Lockstep: say which nodes have not answered after '
+                                    'this long (wall s), and again as often; it keeps waiting',
+                                    lo=0.5, hi=600.0),
 }
 
 
@@ -131,6 +148,17 @@ class SimNode(Node):
         self.bad = BadInputCounter(self)
         self._pending: deque = deque()
         self._lock = threading.Lock()
+        # lockstep (docs/design.md): the participants' answers, and the commands that came
+        # ahead of the round they act in; both under _round_cv, which the sim thread waits on
+        participants = [n if n.startswith('/') else
+                        f'{self.get_namespace().rstrip("/")}/{n}'
+                        for n in self.values['lockstep_participants'] if n]
+        self._gate = Gate(participants) if participants else None
+        self._inbox = Inbox()
+        self._round_cv = threading.Condition()
+        self._counts: Counter = Counter()       # what the sim published in this round
+        self._count_lock = threading.Lock()
+        self._lockstep_timeout = float(self.values['lockstep_timeout_s'])
         self._last_cmd_vel: dict[int, float] = {}
         self._render_note_logged: str | None = None   # the world's render_note, logged once
         self._make_interfaces()
@@ -146,7 +174,9 @@ class SimNode(Node):
             f'stereo {self.config.stereo_rate_hz:g} Hz '
             f'{self.config.image_width}x{self.config.image_height}'
             + (f' ({self.config.supersample}x{self.config.supersample} samples per pixel)'
-               if self.config.supersample > 1 else '') + f', rtf {self._rtf:g}')
+               if self.config.supersample > 1 else '') + f', rtf {self._rtf:g}'
+            + (f', lockstep with {", ".join(self._gate.participants)} every '
+               f'{self._round_steps()} steps' if self._gate else ''))
         self._thread.start()
 
     # ------------------------------------------------------------------ set-up
@@ -174,42 +204,66 @@ class SimNode(Node):
         except ConfigError as exc:
             raise ValueError(str(exc)) from exc
 
+    def _publisher(self, msg_type, topic: str, qos):
+        """A publisher; in lockstep a reliable one, counted in the round's tick."""
+        if self._gate is None:
+            return self.create_publisher(msg_type, topic, qos)
+        return CountingPublisher(self.create_publisher(msg_type, topic, reliable(qos, 20)),
+                                 self._counts, self._count_lock)
+
+    def _command(self, msg_type, topic: str, handler) -> None:
+        """Subscribe to a command topic: `handler(msg)` gives the pending item or None (a
+        rejected message); in lockstep the item waits in the inbox for its round."""
+        qos = COMMAND_QOS if self._gate is None else reliable(COMMAND_QOS)
+        name = self.resolve_topic_name(topic)
+        if self._gate is not None:
+            self._inbox.listen(name)
+
+        def on_msg(msg) -> None:
+            item = handler(msg)
+            if self._gate is not None:
+                with self._round_cv:
+                    self._inbox.put(name, stamp_of(msg), item)
+                    self._round_cv.notify_all()
+            elif item is not None:
+                with self._lock:
+                    self._pending.append(item)
+        self.create_subscription(msg_type, topic, on_msg, qos)
+
     def _make_interfaces(self) -> None:
-        self.clock_pub = self.create_publisher(Clock, '/clock', CLOCK_QOS)
+        pub = self._publisher
+        self.clock_pub = pub(Clock, '/clock', CLOCK_QOS)
         self.pubs = []
         for i, r in enumerate(self.world.rovers):
             n = r.name
             pubs = {
-                'imu': self.create_publisher(Imu, f'{n}/imu', SENSOR_QOS),
-                'incl': self.create_publisher(Inclinometer, f'{n}/inclinometer', SENSOR_QOS),
-                'wrench': self.create_publisher(WrenchStamped, f'{n}/arm/wrench', SENSOR_QOS),
-                'joints': self.create_publisher(JointState, f'{n}/joint_states', SENSOR_QOS),
-                'left': self.create_publisher(Image, f'{n}/stereo/left/image_raw', SENSOR_QOS),
-                'right': self.create_publisher(Image, f'{n}/stereo/right/image_raw', SENSOR_QOS),
-                'left_info': self.create_publisher(CameraInfo, f'{n}/stereo/left/camera_info',
-                                                   SENSOR_QOS),
-                'right_info': self.create_publisher(CameraInfo, f'{n}/stereo/right/camera_info',
-                                                    SENSOR_QOS),
-                'cam_est': self.create_publisher(PoseWithCovarianceStamped, f'{n}/stereo/pose',
-                                                 SENSOR_QOS),
-                'odom': self.create_publisher(Odometry, f'{n}/odom', SENSOR_QOS),
-                'truth_base': self.create_publisher(PoseStamped, f'sim/{n}/base_pose', SENSOR_QOS),
-                'truth_cam': self.create_publisher(PoseStamped, f'sim/{n}/camera_pose',
-                                                   SENSOR_QOS),
-                'card_pose': self.create_publisher(PoseStamped, f'sim/{n}/card_pose', SENSOR_QOS),
-                'contact': self.create_publisher(ContactState, f'sim/{n}/contact', SENSOR_QOS),
-                'truth_params': self.create_publisher(DynamicParameters, f'sim/{n}/parameters',
-                                                      LATCHED_QOS),
+                'imu': pub(Imu, f'{n}/imu', SENSOR_QOS),
+                'incl': pub(Inclinometer, f'{n}/inclinometer', SENSOR_QOS),
+                'wrench': pub(WrenchStamped, f'{n}/arm/wrench', SENSOR_QOS),
+                'joints': pub(JointState, f'{n}/joint_states', SENSOR_QOS),
+                'left': pub(Image, f'{n}/stereo/left/image_raw', SENSOR_QOS),
+                'right': pub(Image, f'{n}/stereo/right/image_raw', SENSOR_QOS),
+                'left_info': pub(CameraInfo, f'{n}/stereo/left/camera_info', SENSOR_QOS),
+                'right_info': pub(CameraInfo, f'{n}/stereo/right/camera_info', SENSOR_QOS),
+                'cam_est': pub(PoseWithCovarianceStamped, f'{n}/stereo/pose', SENSOR_QOS),
+                'odom': pub(Odometry, f'{n}/odom', SENSOR_QOS),
+                'truth_base': pub(PoseStamped, f'sim/{n}/base_pose', SENSOR_QOS),
+                'truth_cam': pub(PoseStamped, f'sim/{n}/camera_pose', SENSOR_QOS),
+                'card_pose': pub(PoseStamped, f'sim/{n}/card_pose', SENSOR_QOS),
+                'contact': pub(ContactState, f'sim/{n}/contact', SENSOR_QOS),
+                'truth_params': pub(DynamicParameters, f'sim/{n}/parameters', LATCHED_QOS),
             }
             self.pubs.append(pubs)
-            self.create_subscription(JointTrajectory, f'{n}/arm/joint_command',
-                                     lambda m, i=i: self._on_traj(i, m, 'arm'), COMMAND_QOS)
-            self.create_subscription(JointTrajectory, f'{n}/mast/command',
-                                     lambda m, i=i: self._on_traj(i, m, 'mast'), COMMAND_QOS)
-            self.create_subscription(Twist, f'{n}/cmd_vel', lambda m, i=i: self._on_twist(i, m),
-                                     COMMAND_QOS)
-        self.world_pub = self.create_publisher(MarkerArray, 'sim/world', LATCHED_QOS)
+            self._command(JointTrajectory, f'{n}/arm/joint_command',
+                          lambda m, i=i: self._on_traj(i, m, 'arm'))
+            self._command(JointTrajectory, f'{n}/mast/command',
+                          lambda m, i=i: self._on_traj(i, m, 'mast'))
+            self._command(Twist, f'{n}/cmd_vel', lambda m, i=i: self._on_twist(i, m))
+        self.world_pub = pub(MarkerArray, 'sim/world', LATCHED_QOS)
         self.create_service(SimScenario, 'sim/reset', self._on_reset)
+        if self._gate is not None:
+            self.tick_pub = self.create_publisher(LockstepTick, TICK_TOPIC, ROUND_QOS)
+            self.create_subscription(LockstepAck, ACK_TOPIC, self._on_ack, ROUND_QOS)
 
     def _check_params(self, values: dict) -> str | None:
         """Between parameters, while running: the rendered rovers exist."""
@@ -227,28 +281,30 @@ class SimNode(Node):
                 self._pace_origin = None
         if 'cmd_vel_timeout_s' in changed:
             self._cmd_timeout = float(changed['cmd_vel_timeout_s'])
+        if 'lockstep_timeout_s' in changed:
+            self._lockstep_timeout = float(changed['lockstep_timeout_s'])
 
     # ------------------------------------------------------------------ commands (executor)
-    def _on_traj(self, index: int, msg: JointTrajectory, group: str) -> None:
+    def _on_traj(self, index: int, msg: JointTrajectory, group: str) -> tuple | None:
         rover = self.world.rovers[index].name
         known = ARM_JOINTS if group == 'arm' else MAST_JOINTS
         if msg.header.frame_id not in ('', f'{rover}/base_link'):
             self.bad.reject('trajectory frame',
                             f'{msg.header.frame_id!r} is not {rover}/base_link')
-            return
+            return None
         names = list(msg.joint_names)
         if not names or any(n not in known for n in names) or len(set(names)) != len(names):
             self.bad.reject('trajectory joints', f'{names} not a subset of {list(known)}')
-            return
+            return None
         if not msg.points:
             self.bad.reject('trajectory empty')
-            return
+            return None
         times, positions = [], []
         for p in msg.points:
             if len(p.positions) != len(names):
                 self.bad.reject('trajectory joint count',
                                 f'{len(p.positions)} positions for {len(names)} joints')
-                return
+                return None
             times.append(p.time_from_start.sec + p.time_from_start.nanosec * 1e-9)
             positions.append(list(p.positions))
         # cubic when every point carries velocities (joint_trajectory_controller semantics)
@@ -257,19 +313,16 @@ class SimNode(Node):
         if not (np.all(np.isfinite(positions)) and np.all(np.isfinite(times))
                 and (velocities is None or np.all(np.isfinite(velocities)))):
             self.bad.reject('trajectory NaN')
-            return
+            return None
         start = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        with self._lock:
-            self._pending.append(('traj', index, group, names, times, positions, velocities,
-                                  start))
+        return 'traj', index, group, names, times, positions, velocities, start
 
-    def _on_twist(self, index: int, msg: Twist) -> None:
+    def _on_twist(self, index: int, msg: Twist) -> tuple | None:
         v, w = msg.linear.x, msg.angular.z
         if not (math.isfinite(v) and math.isfinite(w)):
             self.bad.reject('cmd_vel NaN')
-            return
-        with self._lock:
-            self._pending.append(('twist', index, v, w))
+            return None
+        return 'twist', index, v, w
 
     def _on_reset(self, request: SimScenario.Request, response: SimScenario.Response):
         changes = {}
@@ -317,10 +370,15 @@ class SimNode(Node):
         return out
 
     # ------------------------------------------------------------------ sim thread
-    def _apply_pending(self) -> None:
+    def _apply_pending(self) -> bool:
+        """Apply what the executor handed over; True when the world was reset."""
         with self._lock:
             items = list(self._pending)
             self._pending.clear()
+        return self._apply(items)
+
+    def _apply(self, items) -> bool:
+        reset = False
         for item in items:
             kind = item[0]
             if kind == 'traj':
@@ -351,20 +409,30 @@ class SimNode(Node):
                 self._publish_latched()
                 self.get_logger().info(f'reset to seed {config.seed}')
                 done.set()
+                reset = True
+        return reset
+
+    def _running(self) -> bool:
+        return not self._stop.is_set() and rclpy.ok(context=self.context)
+
+    def _step(self) -> None:
+        w = self.world
+        for i, t in list(self._last_cmd_vel.items()):
+            if w.time_s - t > self._cmd_timeout:
+                w.command_velocity(i, 0.0, 0.0)
+                del self._last_cmd_vel[i]
+        w.step()
+        self._publish_step()
+        self._pace()
 
     def _run(self) -> None:
         self._pace_origin = None
         try:
-            while not self._stop.is_set() and rclpy.ok(context=self.context):
+            if self._gate is not None:
+                self._run_rounds()
+            while self._running():
                 self._apply_pending()
-                w = self.world
-                for i, t in list(self._last_cmd_vel.items()):
-                    if w.time_s - t > self._cmd_timeout:
-                        w.command_velocity(i, 0.0, 0.0)
-                        del self._last_cmd_vel[i]
-                w.step()
-                self._publish_step()
-                self._pace()
+                self._step()
         except Exception as exc:  # noqa: BLE001 - the node must report, not die silently
             # on Ctrl-C the context goes invalid under a publish in flight: a clean stop
             if self._stop.is_set() or not rclpy.ok(context=self.context):
@@ -375,6 +443,78 @@ class SimNode(Node):
             self.get_logger().fatal(f'simulation thread stopped: {exc!r}; shutting down')
             self.context.try_shutdown()
             raise
+
+    # ------------------------------------------------------------------ lockstep
+    def _round_steps(self) -> int:
+        return max(1, int(round(self.values['lockstep_period_s'] * self.config.physics_rate_hz)))
+
+    def _on_ack(self, msg: LockstepAck) -> None:
+        try:
+            with self._round_cv:
+                self._gate.answer(msg.node, int(msg.round), dict(zip(msg.topics, msg.counts)))
+                self._round_cv.notify_all()
+        except LockstepError as exc:
+            self.bad.reject('lockstep ack', str(exc))
+
+    def _tick(self, round_: int, forwarded: dict[str, int]) -> None:
+        """Round `round_` is stepped: tell the participants what went out for it."""
+        with self._count_lock:
+            counts = {} if round_ == 0 else dict(self._counts)
+            self._counts.clear()
+        counts.update(forwarded)
+        self.tick_pub.publish(LockstepTick(round=round_, stamp=stamp(self.world.time_s),
+                                           topics=list(counts),
+                                           counts=[int(c) for c in counts.values()]))
+
+    def _run_rounds(self) -> None:
+        """Lockstep: step a round, tick, wait for every participant's answer and for the
+        commands they count, apply those, step the next round (docs/design.md)."""
+        n = self._round_steps()
+        m = 0
+        self._tick(0, {})
+        while self._running():
+            answer = self._await_answers(m)
+            if answer is None:
+                return
+            due, reset = answer
+            with self._round_cv:
+                items = self._inbox.take(due)
+            if not reset:       # a reset drops the round's commands: meant for the old world
+                self._apply([item for _, item in items if item is not None])
+            for _ in range(n):
+                self._step()
+            m += 1
+            self._tick(m, due)
+
+    def _await_answers(self, round_: int) -> tuple[dict[str, int], bool] | None:
+        """What the participants published for `round_`, once all have answered it and the
+        commands among it have arrived, and whether the world was reset meanwhile (a
+        participant holds the round while it resets the world); every lockstep_timeout_s the
+        wait is logged with the nodes or messages it waits for. None when the node stops."""
+        due: dict[str, int] | None = None
+        reset = False
+        since = last_tick = time.monotonic()
+        warned = since
+        while self._running():
+            with self._round_cv:
+                waiting = self._gate.waiting_for(round_)
+                if not waiting and due is None:
+                    due = self._gate.published(round_)
+                missing = self._inbox.missing(due) if due is not None else {}
+                if due is not None and not missing:
+                    return due, reset
+                self._round_cv.wait(0.05)
+            reset = self._apply_pending() or reset
+            now = time.monotonic()
+            if round_ == 0 and now - last_tick > 0.5:
+                self._tick(0, {})          # a participant that came up late has missed it
+                last_tick = now
+            if now - warned > self._lockstep_timeout:
+                warned = now
+                what = (f'no answer to round {round_} from {", ".join(waiting)}' if waiting
+                        else f'commands of round {round_} still on their way: {missing}')
+                self.get_logger().warn(f'lockstep: {what} after {now - since:.0f} s; waiting')
+        return None
 
     def _pace(self) -> None:
         with self._lock:           # a parameter change sets both on the executor thread
@@ -420,7 +560,34 @@ class SimNode(Node):
         return not chosen or name in chosen
 
     def _publish_sensors(self, i: int, name: str, pubs: dict, t: Time) -> None:
-        s = self.world.sense(i)
+        s = self.world.sense(i)       # always: its noise draws do not depend on who listens
+        if _listened(pubs['imu']):
+            self._publish_imu(s, name, pubs['imu'], t)
+        if _listened(pubs['incl']):
+            inc = Inclinometer()
+            inc.header.stamp, inc.header.frame_id = t, f'{name}/base_link'
+            inc.roll, inc.pitch = float(s.incl_angles[0]), float(s.incl_angles[1])
+            inc.roll_variance = inc.pitch_variance = float(s.incl_variance)
+            inc.raw_roll_volts, inc.raw_pitch_volts = (float(s.incl_volts[0]),
+                                                       float(s.incl_volts[1]))
+            inc.saturated = s.incl_saturated
+            pubs['incl'].publish(inc)
+        if _listened(pubs['wrench']):
+            wr = WrenchStamped()
+            wr.header.stamp, wr.header.frame_id = t, f'{name}/ft_sensor_link'
+            wr.wrench.force.x, wr.wrench.force.y, wr.wrench.force.z = (float(v) for v in s.force)
+            wr.wrench.torque.x, wr.wrench.torque.y, wr.wrench.torque.z = (float(v)
+                                                                          for v in s.torque)
+            pubs['wrench'].publish(wr)
+        if _listened(pubs['joints']):
+            js = JointState()
+            js.header.stamp = t
+            js.name = list(s.joint_names)
+            js.position = [float(v) for v in s.joint_positions]
+            js.velocity = [float(v) for v in s.joint_velocities]
+            pubs['joints'].publish(js)
+
+    def _publish_imu(self, s, name: str, pub, t: Time) -> None:
         imu = Imu()
         imu.header.stamp, imu.header.frame_id = t, f'{name}/base_link'
         imu.orientation_covariance[0] = -1.0
@@ -432,34 +599,17 @@ class SimNode(Node):
         for k in range(3):
             imu.angular_velocity_covariance[4 * k] = nz['gyro'].variance
             imu.linear_acceleration_covariance[4 * k] = nz['accel'].variance
-        pubs['imu'].publish(imu)
-        inc = Inclinometer()
-        inc.header.stamp, inc.header.frame_id = t, f'{name}/base_link'
-        inc.roll, inc.pitch = float(s.incl_angles[0]), float(s.incl_angles[1])
-        inc.roll_variance = inc.pitch_variance = float(s.incl_variance)
-        inc.raw_roll_volts, inc.raw_pitch_volts = float(s.incl_volts[0]), float(s.incl_volts[1])
-        inc.saturated = s.incl_saturated
-        pubs['incl'].publish(inc)
-        wr = WrenchStamped()
-        wr.header.stamp, wr.header.frame_id = t, f'{name}/ft_sensor_link'
-        wr.wrench.force.x, wr.wrench.force.y, wr.wrench.force.z = (float(v) for v in s.force)
-        wr.wrench.torque.x, wr.wrench.torque.y, wr.wrench.torque.z = (float(v) for v in s.torque)
-        pubs['wrench'].publish(wr)
-        js = JointState()
-        js.header.stamp = t
-        js.name = list(s.joint_names)
-        js.position = [float(v) for v in s.joint_positions]
-        js.velocity = [float(v) for v in s.joint_velocities]
-        pubs['joints'].publish(js)
+        pub.publish(imu)
 
     def _publish_card(self, i: int, pubs: dict, t: Time) -> None:
         frame = self.values['map_frame']
-        ps = PoseStamped()
-        ps.header.stamp, ps.header.frame_id = t, frame
-        _pose(ps.pose, *self.world.card_pose(i))
-        pubs['card_pose'].publish(ps)
+        if _listened(pubs['card_pose']):
+            ps = PoseStamped()
+            ps.header.stamp, ps.header.frame_id = t, frame
+            _pose(ps.pose, *self.world.card_pose(i))
+            pubs['card_pose'].publish(ps)
         cs = self.world.contact(i)
-        if cs is None:
+        if cs is None or not _listened(pubs['contact']):
             return
         msg = ContactState()
         msg.header.stamp, msg.header.frame_id = t, frame
@@ -475,24 +625,32 @@ class SimNode(Node):
 
     def _publish_odom(self, i: int, name: str, pubs: dict, t: Time) -> None:
         xy, yaw, v, w = self.world.odometry(i)
+        if _listened(pubs['odom']):
+            self._send_odom(name, pubs['odom'], t, xy, yaw, v, w)
+        frame = self.values['map_frame']
+        if _listened(pubs['truth_base']):
+            tr = self.world.truth(i)
+            ps = PoseStamped()
+            ps.header.stamp, ps.header.frame_id = t, frame
+            _pose(ps.pose, tr.base_position, tr.base_rotation)
+            pubs['truth_base'].publish(ps)
+        # the camera's truth at the odometry's rate, rendered or not (a viewer shows where
+        # each camera looks while the sim renders no pair)
+        if _listened(pubs['truth_cam']):
+            cp, cr = self.world.camera_pose(i)
+            ps = PoseStamped()
+            ps.header.stamp, ps.header.frame_id = t, frame
+            _pose(ps.pose, cp, cr)
+            pubs['truth_cam'].publish(ps)
+
+    @staticmethod
+    def _send_odom(name: str, pub, t: Time, xy, yaw: float, v: float, w: float) -> None:
         od = Odometry()
         od.header.stamp, od.header.frame_id = t, f'{name}/odom'
         od.child_frame_id = f'{name}/base_link'
         _pose(od.pose.pose, np.array([xy[0], xy[1], 0.0]), rpy_to_matrix(0.0, 0.0, yaw))
         od.twist.twist.linear.x, od.twist.twist.angular.z = float(v), float(w)
-        pubs['odom'].publish(od)
-        tr = self.world.truth(i)
-        ps = PoseStamped()
-        ps.header.stamp, ps.header.frame_id = t, self.values['map_frame']
-        _pose(ps.pose, tr.base_position, tr.base_rotation)
-        pubs['truth_base'].publish(ps)
-        # the camera's truth at the odometry's rate, rendered or not (a viewer shows where
-        # each camera looks while the sim renders no pair)
-        cp, cr = self.world.camera_pose(i)
-        ps = PoseStamped()
-        ps.header.stamp, ps.header.frame_id = t, self.values['map_frame']
-        _pose(ps.pose, cp, cr)
-        pubs['truth_cam'].publish(ps)
+        pub.publish(od)
 
     def _camera_info(self, t: Time, frame: str, right: bool) -> CameraInfo:
         k = self.world.intrinsics()
@@ -510,6 +668,9 @@ class SimNode(Node):
         return info
 
     def _publish_stereo(self, i: int, name: str, pubs: dict, t: Time) -> None:
+        if not any(_listened(pubs[k]) for k in ('left', 'right', 'left_info', 'right_info',
+                                                  'cam_est')):
+            return          # rendering is most of the cost; its picture draws no noise
         left, right = self.world.render_stereo(i)
         note = self.world.render_note
         if note is not None and note != self._render_note_logged:
@@ -607,7 +768,10 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(SimNode, args, executor_factory=lambda: MultiThreadedExecutor(num_threads=2))
+    # one executor thread: rclpy's multi-threaded executor hands a callback over to its pool
+    # through the GIL that the sim thread holds while it steps (a lockstep ack took 4-650 ms
+    # to reach its callback, 0.7 ms with this one)
+    return run_node(SimNode, args)
 
 
 if __name__ == '__main__':
