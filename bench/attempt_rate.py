@@ -4,10 +4,13 @@ rover_sim, mapper with the scenario's site map, view_planner, master, slave), th
 (4.5 in) by default, the master's camera placed by `task_view` (optimal) or at random; each
 attempt as `coop_insertion table_5_1` runs it (the simulator reset to the slot with the slave's
 start perturbed by the attempt's seed, one `insert` goal, the truth's verdict). The graph's
-set-up (start, the master's survey) is timed apart.
+set-up (start, the master's survey) is timed apart. The simulator runs in lockstep with the
+master, the slave and the rig (--no-lockstep: paced by the clock); --busy-too runs the same
+seeds again on a fresh graph beside a process that keeps one core busy and compares the
+outcomes (lockstep's claim: the same successes, the same peak forces).
 
 Usage: bench/attempt_rate.py --json OUT --site-map MAP [--attempts 10] [--slot 4.5]
-       [--placement optimal]
+       [--placement optimal] [--busy-too] [--no-lockstep]
 
 MAP: the scenario's site map (`coop_insertion.table_5_1.build_site_map`, seed 1, occlusion
 0.05; without it the command builds one first, a few minutes).
@@ -15,7 +18,9 @@ MAP: the scenario's site map (`coop_insertion.table_5_1.build_site_map`, seed 1,
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -32,6 +37,69 @@ SEED = 1
 OCCLUSION = 0.05
 
 
+def format_load_table(result: dict) -> str:
+    """The idle/busy comparison --busy-too prints."""
+    idle, busy = result['outcomes'], result['busy']['outcomes']
+    lines = [f'{"seed":>6} {"idle":>8} {"busy":>8} {"peak F idle (N)":>16} '
+             f'{"peak F busy (N)":>16} {"rel. diff":>10}']
+    for a, b in zip(idle, busy):
+        rel = abs(a['peak_force_n'] - b['peak_force_n']) / max(abs(a['peak_force_n']), 1e-9)
+        lines.append(f'{a["seed"]:>6} {("seated" if a["success"] else "failed"):>8} '
+                     f'{("seated" if b["success"] else "failed"):>8} '
+                     f'{a["peak_force_n"]:>16.6f} {b["peak_force_n"]:>16.6f} {rel:>10.2e}')
+    lines.append(f'identical success lists: {result["identical_successes"]}; largest peak-force '
+                 f'difference {result["peak_force_max_rel_diff"]:.2e} (target: identical, '
+                 f'within 5 %)')
+    return '\n'.join(lines)
+
+
+@contextlib.contextmanager
+def _busy_core(on: bool):
+    """A process spinning on one core while the block runs (nothing when `on` is False)."""
+    if not on:
+        yield
+        return
+    proc = subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+    try:
+        yield
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def run_attempts(args, site_map: Path, work: Path, *, busy: bool) -> dict:
+    """One graph, `args.attempts` attempts; wall times and each attempt's outcome."""
+    from coop_insertion.table_5_1 import open_rig
+    with _busy_core(busy):
+        t0 = time.monotonic()
+        rig = open_rig(seed=SEED, occlusion_density=OCCLUSION, slot_in=args.slot,
+                       log_dir=work / ('logs_busy' if busy else 'logs'), site_map=site_map,
+                       render_workers=args.render_workers, lockstep=args.lockstep)
+        walls, goals, sims, outcomes = [], [], [], []
+        try:
+            setup = time.monotonic() - t0
+            for k in range(args.attempts):
+                w0 = time.monotonic()
+                a = rig.attempt(slot_in=args.slot, placement=args.placement,
+                                seed=SEED * 1000 + k, timeout_s=args.timeout)
+                walls.append(time.monotonic() - w0)
+                goals.append(a.duration_s)
+                sims.append(a.sim_s)
+                outcomes.append({'seed': a.seed, 'success': bool(a.success),
+                                 'reason': a.reason, 'peak_force_n': float(a.peak_force_n)})
+                print(f'attempt {k + 1}{" (busy)" if busy else ""}: '
+                      f'{"success" if a.success else "failure"} ({a.reason}); goal '
+                      f'{a.sim_s:.1f} sim s in {a.duration_s:.1f} s, attempt {walls[-1]:.1f} s',
+                      flush=True)
+        finally:
+            rig.__exit__(None, None, None)
+    return {'attempt_wall_s': _stats(walls), 'attempt_sim_s': _stats(sims),
+            'goal_wall_s': _stats(goals),
+            'sim_per_wall': _stats([s / w for s, w in zip(sims, goals)]),
+            'successes': sum(o['success'] for o in outcomes), 'outcomes': outcomes,
+            'setup_wall_s': setup}
+
+
 def format_table(result: dict) -> str:
     """The table main prints, from its JSON result (docs/results pages are made with it)."""
     rows = (('attempt wall (s)', result['attempt_wall_s'], '<= 40', '.1f'),
@@ -41,7 +109,8 @@ def format_table(result: dict) -> str:
     n = len(result['attempt_wall_s']['values'])
     lines = [f'{result["placement"]} placement, {result["slot_in"]} in slot, {n} attempts '
              f'(seeds from {result["first_seed"]}), render workers '
-             f'{result.get("render_workers", 0)}',
+             f'{result.get("render_workers", 0)}, '
+             + ('lockstep' if result.get('lockstep') else 'paced by the clock'),
              f'{"":24}{"median":>9}{"min":>9}{"max":>9}{"target":>9}']
     for name, st, target, fmt in rows:
         lines.append(f'{name:24}' + ''.join(f'{st[k]:>9{fmt}}' for k in ('median', 'min', 'max'))
@@ -70,8 +139,12 @@ def main() -> int:
                     help='sim seconds an insert goal may take')
     ap.add_argument('--render-workers', type=number(int, lo=0, hi=1), default=1,
                     help="the simulator's render_workers (0: both eyes in the simulator)")
+    ap.add_argument('--busy-too', action='store_true',
+                    help='run the attempts again beside a busy core and compare the outcomes')
+    ap.add_argument('--no-lockstep', dest='lockstep', action='store_false',
+                    help='pace the simulator by the clock instead of lockstep')
     args = ap.parse_args()
-    from coop_insertion.table_5_1 import build_site_map, open_rig
+    from coop_insertion.table_5_1 import build_site_map
 
     work = Path(tempfile.mkdtemp(prefix='attempt_rate_'))
     site_map = args.site_map
@@ -80,34 +153,22 @@ def main() -> int:
         site_map = build_site_map(work / 'site.cmap', seed=SEED, occlusion_density=OCCLUSION)
     elif not site_map.is_file():
         ap.error(f'--site-map {site_map}: no such file')
-    t0 = time.monotonic()
-    rig = open_rig(seed=SEED, occlusion_density=OCCLUSION, slot_in=args.slot,
-                   log_dir=work / 'logs', site_map=site_map, render_workers=args.render_workers)
-    walls, goals, sims, ok = [], [], [], 0
-    try:
-        setup = time.monotonic() - t0
-        for k in range(args.attempts):
-            w0 = time.monotonic()
-            a = rig.attempt(slot_in=args.slot, placement=args.placement, seed=SEED * 1000 + k,
-                            timeout_s=args.timeout)
-            walls.append(time.monotonic() - w0)
-            goals.append(a.duration_s)
-            sims.append(a.sim_s)
-            ok += bool(a.success)
-            print(f'attempt {k + 1}: {"success" if a.success else "failure"} ({a.reason}); '
-                  f'goal {a.sim_s:.1f} sim s in {a.duration_s:.1f} s, attempt {walls[-1]:.1f} s',
-                  flush=True)
-    finally:
-        rig.__exit__(None, None, None)
     result = {'slot_in': args.slot, 'placement': args.placement, 'first_seed': SEED * 1000,
-              'render_workers': args.render_workers,
-              'attempt_wall_s': _stats(walls), 'attempt_sim_s': _stats(sims),
-              'goal_wall_s': _stats(goals),
-              'sim_per_wall': _stats([s / w for s, w in zip(sims, goals)]),
-              'successes': ok, 'setup_wall_s': setup, 'logs': str(work / 'logs'),
+              'render_workers': args.render_workers, 'lockstep': args.lockstep,
+              **run_attempts(args, site_map, work, busy=False), 'logs': str(work),
               'clock': 'attempt_wall_s: the reset and the goal; goal_wall_s, attempt_sim_s: the '
                        'insert goal alone (time.monotonic, the simulator clock)'}
+    if args.busy_too:
+        busy = run_attempts(args, site_map, work, busy=True)
+        result['busy'] = busy
+        result['identical_successes'] = [o['success'] for o in result['outcomes']] == \
+            [o['success'] for o in busy['outcomes']]
+        result['peak_force_max_rel_diff'] = max(
+            abs(a['peak_force_n'] - b['peak_force_n']) / max(abs(a['peak_force_n']), 1e-9)
+            for a, b in zip(result['outcomes'], busy['outcomes']))
     print(format_table(result))
+    if args.busy_too:
+        print(format_load_table(result))
     write_json(args.json, result, indent=2)
     return 0
 

@@ -57,6 +57,48 @@ def raw_pybullet_rtf(seconds: float, substeps: int) -> tuple[float, float]:
         return seconds / (time.perf_counter() - t0), seconds / (time.process_time() - c0)
 
 
+def node_lockstep_rtf(seconds: float, *, lockstep: bool) -> float | None:
+    """The installed node at real_time_factor 0 without rendering, measured from the sim time
+    a subscriber of rover2's 200 Hz joint states sees advance: paced by nothing, or in lockstep
+    with that subscriber as its one participant (each round's states taken, the round acked)."""
+    try:
+        import rclpy
+        from rclpy.node import Node
+        from sensor_msgs.msg import JointState
+
+        from coop_common.lockstep_node import Lockstep
+        from coop_common.qos import SENSOR_QOS
+        from coop_common.testing import NodeProcess, isolate_ros_environment
+    except ImportError:
+        return None
+    isolate_ros_environment()
+    rclpy.init()
+    node = Node('sim_rate_bench')
+    ls = Lockstep(node, lockstep)
+    stamps: list[tuple[float, float]] = []
+    ls.subscription(JointState, 'rover2/joint_states', lambda m: stamps.append(
+        (time.perf_counter(), m.header.stamp.sec + m.header.stamp.nanosec * 1e-9)), SENSOR_QOS)
+    args = ['-p', 'real_time_factor:=0.0', '-p', 'stereo_rate_hz:=0.0']
+    if lockstep:
+        args += ['-p', 'lockstep_participants:=[sim_rate_bench]']
+    try:
+        with NodeProcess('rover_sim', 'sim', args):
+            deadline = time.perf_counter() + 60
+            while (not stamps or stamps[-1][1] < 1.0) and time.perf_counter() < deadline:
+                rclpy.spin_once(node, timeout_sec=0.05)
+            start = len(stamps)
+            t_end = time.perf_counter() + seconds
+            while time.perf_counter() < t_end:
+                rclpy.spin_once(node, timeout_sec=0.05)
+            (w0, s0), (w1, s1) = stamps[start], stamps[-1]
+            return (s1 - s0) / (w1 - w0)
+    except (FileNotFoundError, IndexError, subprocess.SubprocessError):
+        return None
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+
+
 def node_rtf(seconds: float) -> float | None:
     """The installed node at real_time_factor 0, stereo 4 Hz 320x240, measured from /clock."""
     try:
@@ -110,10 +152,14 @@ def format_table(result: dict) -> str:
         tgt = f'>= {target:g}x' if target else '-'
         lines.append(f'{name.format(substeps=result["substeps"]):<52} {result[key]:>9.2f}x '
                      f'{result["wall"][key]:>10.2f}x {tgt:>8}')
-    node = result['wall']['rtf_node_over_dds']
-    if node is not None:
-        lines.append(f'{"node over DDS, stereo 4 Hz 320x240, all topics":<52} {"-":>10} '
-                     f'{node:>10.2f}x {">= 1x":>8}')
+    for key, name, target in (
+            ('rtf_node_over_dds', 'node over DDS, stereo 4 Hz 320x240, all topics', '>= 1x'),
+            ('rtf_node_no_render', 'node, no rendering, one 200 Hz subscriber', '-'),
+            ('rtf_node_lockstep', 'the same in lockstep, the subscriber its participant',
+             '-')):
+        node = result['wall'].get(key)
+        if node is not None:
+            lines.append(f'{name:<52} {"-":>10} {node:>10.2f}x {target:>8}')
     lines.append(f'{"ours / peer, CPU (no rendering)":<52} {result["ratio_to_peer"]:>9.2f}')
     if 'rtf_stereo_4hz_640x480_worker' in result:
         lines.append('(*) its CPU figure leaves out the worker process: compare the wall column')
@@ -135,6 +181,8 @@ def main() -> int:
                       render_workers=1)
     peer = raw_pybullet_rtf(args.seconds, substeps)
     node = node_rtf(args.seconds)
+    node_free = node_lockstep_rtf(args.seconds, lockstep=False)
+    node_lockstep = node_lockstep_rtf(args.seconds, lockstep=True)
     result = {
         'rtf_no_render': none[1], 'rtf_no_render_implicit': implicit[1],
         'rtf_stereo_4hz_320x240': s320[1],
@@ -144,7 +192,14 @@ def main() -> int:
                  'rtf_stereo_4hz_320x240': s320[0],
                  'rtf_stereo_4hz_640x480': s640[0], 'rtf_stereo_4hz_640x480_worker': s640w[0],
                  'rtf_peer_pybullet_only': peer[0],
-                 'rtf_node_over_dds': node},
+                 'rtf_node_over_dds': node, 'rtf_node_no_render': node_free,
+                 'rtf_node_lockstep': node_lockstep},
+        # the issue's names for the same figures (CPU real-time factors; per renderer)
+        'rtf_cpu': {'no_render': none[1], 'no_render_implicit': implicit[1],
+                    'stereo_320': s320[1], 'stereo_640': s640[1]},
+        'renderers': {'tinyrenderer': {'stereo_640': s640[1], 'stereo_640_wall': s640[0]},
+                      'tinyrenderer_worker': {'stereo_640_wall': s640w[0]}},
+        'peer_ratio': none[1] / peer[1],
         'ratio_to_peer': none[1] / peer[1], 'substeps': substeps, 'sim_seconds': args.seconds,
         'clock': 'rtf_* are sim seconds per CPU second of this process (with the render worker: '
                  'not counting the worker); wall.* per wall second',

@@ -199,7 +199,10 @@ class Lockstep:
                 + [p.topic_name for p in self._publishers if not p.get_subscription_count()])
 
     def _ack_when_idle(self) -> None:
-        if self._unacked is None or self._holds:
+        if self._holds:
+            return
+        if self._unacked is None:       # a hold between rounds ended: the next may be due
+            self._advance()
             return
         with self._lock:
             counts = dict(self._counts)

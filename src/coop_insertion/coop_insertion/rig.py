@@ -63,6 +63,8 @@ VIEW_PLANNER = {'p_empty': 0.45, 'task_unknown_occludes': False, 'clearance_m': 
 #: close loops in an attempt (this rig's client holds the sim between its steps)
 ROUND_S = 0.01
 PARTICIPANTS = ('master', 'slave', 'insertion_rig')
+#: lockstep: the survey's frames are all in the map once it has not changed for this long (s)
+MAP_QUIET_S = 3.0
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
 #: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
 STALL_S = 90.0
@@ -430,7 +432,19 @@ class InsertionRig(contextlib.AbstractContextManager):
     def stop_mapping(self) -> None:
         """End the stereo ranging into the map (the map keeps what it has): the site is
         mapped, and what the master's camera sees next is the slave's arm and card over the
-        slot, which a map kept live would remember there as an obstacle at the task."""
+        slot, which a map kept live would remember there as an obstacle at the task. In
+        lockstep the sim is held until the map has taken in every frame already rendered (the
+        stereo node and the mapper are not participants: stopped early, a busy machine's map
+        would lack the frames they had not reached, and the camera placed in it differ)."""
+        if self.lockstep:
+            self._hold()
+            seen = [self.node.map_voxels, time.monotonic()]
+
+            def settled() -> bool:
+                if self.node.map_voxels != seen[0]:
+                    seen[:] = [self.node.map_voxels, time.monotonic()]
+                return time.monotonic() - seen[1] >= MAP_QUIET_S
+            self._wait(settled, STALL_S, what='the map to take in the survey')
         for name in [n for n in self.nodes if n == 'stereo' or n.startswith('stereo_')]:
             self.nodes.pop(name).stop()
 
