@@ -56,3 +56,14 @@ def test_lockstep_gives_the_same_attempt_beside_a_busy_core(tmp_path):
         a.curves.clear()       # the feedback is sampled by wall time; the outcome is not
         a.duration_s = 0.0
     assert busy == idle
+
+
+def test_a_participant_that_never_answers_holds_the_sim_and_is_named(tmp_path):
+    from coop_common.testing import NodeProcess, wait_for
+    args = ['-p', 'lockstep_participants:=[ghost]', '-p', 'lockstep_timeout_s:=1.0',
+            '-p', 'stereo_rate_hz:=0.0']
+    with NodeProcess('rover_sim', 'sim', args, log_path=tmp_path / 'sim.log') as sim:
+        # the simulator stays at round 0 (it never runs ahead) and says whom it waits for
+        wait_for(lambda: sim.log_text().count('no answer to round 0 from /ghost') >= 2, 60,
+                 what="the simulator's second word on /ghost")
+        assert sim.alive()
