@@ -161,12 +161,13 @@ class Lockstep:
 
     def _on_tick(self, tick: LockstepTick) -> None:
         last = self._last_ack
-        if last is not None and tick.round <= last.round:
-            if tick.round == last.round:        # round 0 again: the simulator missed the ack
-                self._ack_pub.publish(last)
-            return
-        if self._ticks and tick.round <= self._ticks[-1].round:
-            self._advance()             # round 0 again: are the topics connected now?
+        if last is not None and tick.round == last.round:
+            self._ack_pub.publish(last)         # round 0 again: the simulator missed the ack
+        if tick.round <= self.round or (self._ticks and tick.round <= self._ticks[-1].round):
+            # a repeated round 0, handed out already or waiting: never handed out twice (a
+            # round held while the simulator repeats its tick would be), but its topics may
+            # be connected now
+            self._advance()
             return
         if not self._ticks and self._unacked is None:
             self._since = time.monotonic()

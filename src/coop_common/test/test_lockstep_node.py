@@ -53,6 +53,13 @@ def test_rounds_acks_order_and_holds(graph):
         seen.append((ls.round, m.header.stamp.nanosec))
         cmd_pub.publish(JointState())
     ls.subscription(JointState, 'state', on_state, SENSOR_QOS)
+    rounds, held = [], {}
+
+    def on_round():
+        rounds.append(ls.round)
+        if ls.round == 3:           # held while handing out round 3, as the rig holds the sim
+            held[3] = ls.hold(Future())
+    ls.on_round(on_round)
     tick_pub = sim.create_publisher(LockstepTick, TICK_TOPIC, ROUND_QOS)
     sim.create_subscription(LockstepAck, ACK_TOPIC, acks.append, ROUND_QOS)
     sim.create_subscription(JointState, 'cmd', cmds.append, ROUND_QOS)
@@ -72,6 +79,10 @@ def test_rounds_acks_order_and_holds(graph):
     tick(0, {})                               # the simulator repeats round 0
     spin_until(ex, lambda: len(acks) == 1)
     assert (acks[0].node, acks[0].round, list(acks[0].counts)) == ('/participant', 0, [])
+    tick(0, {})                               # and again: acked again, not handed out again
+    spin_until(ex, lambda: len(acks) == 2)
+    assert acks[1].round == 0 and rounds == [0]
+    del acks[1]
 
     # round 1: two states sent late first, one of round 2 already among them
     for ns in (10_000_000, 5_000_000, 15_000_000):
@@ -93,3 +104,16 @@ def test_rounds_acks_order_and_holds(graph):
     request.set_result(None)
     spin_until(ex, lambda: len(acks) == 3)
     assert seen[-1] == (2, 15_000_000) and acks[2].round == 2
+
+    # a round held while the simulator repeats its tick is handed out once
+    tick(3, {})
+    spin_until(ex, lambda: 3 in held)
+    tick(3, {})
+    for _ in range(20):
+        ex.spin_once(timeout_sec=0.02)
+    assert len(acks) == 3
+    held[3].set_result(None)
+    spin_until(ex, lambda: len(acks) == 4)
+    for _ in range(20):
+        ex.spin_once(timeout_sec=0.02)
+    assert rounds == [0, 1, 2, 3] and len(acks) == 4
