@@ -201,17 +201,19 @@ class InsertionRig(contextlib.AbstractContextManager):
                  planner: bool = True,
                  stereo_rovers: tuple[str, ...] = ('rover1',), rovers: int = 2,
                  extra_procs: tuple[tuple[str, str, str, list[str]], ...] = (),
-                 render_workers: int = 1, lockstep: bool = True,
+                 render_workers: int = 1, lockstep: bool = True, round_s: float = ROUND_S,
                  master_start: tuple[float, float, float] = MASTER_START,
                  slave_start_short_m: float = SLAVE_START_SHORT_M) -> None:
         """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
         the map (with the planner); extra_procs: more (log name, package, executable, args);
         render_workers: the sim's (1: the right eye drawn by a second process); lockstep: the
         sim steps no round before the master, the slave and this rig have answered the last
-        (docs/design.md): the same attempt on an idle and on a busy machine; master_start,
+        (docs/design.md): the same attempt on an idle and on a busy machine, in rounds of
+        round_s (the slave's command period by default); master_start,
         slave_start_short_m: where place() stands the rovers (staging_poses)."""
         self.seed = seed
         self.lockstep = lockstep
+        self.round_s = round_s
         self.starts = {'master': master_start, 'slave_short_m': slave_start_short_m}
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix='insert_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -235,7 +237,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         node_args = ['-p', 'use_sim_time:=true']
         if lockstep:
             sim_args += ['-p', f'lockstep_participants:=[{",".join(PARTICIPANTS)}]',
-                         '-p', f'lockstep_period_s:={ROUND_S}']
+                         '-p', f'lockstep_period_s:={round_s}']
             node_args += ['-p', 'lockstep:=true']
         map_args = []
         if site_map is not None:
@@ -373,7 +375,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         let the sim step that many rounds, then hold it."""
         timeout = max(60.0 + 20.0 * seconds, STALL_S + 10.0)
         if self.lockstep:
-            self.node.run_rounds(math.ceil(seconds / ROUND_S - 1e-9))
+            self.node.run_rounds(math.ceil(seconds / self.round_s - 1e-9))
             self._wait(lambda: self.node.paused, timeout, what='sim time')
             return
         t0 = self.node.elapsed      # not the clock: a reset may not have reached us yet
