@@ -31,6 +31,7 @@ from rclpy.task import Future
 from coop_msgs.msg import LockstepAck, LockstepTick
 
 from .lockstep import Inbox
+from .qos import reliable
 
 TICK_TOPIC = 'sim/lockstep/tick'
 ACK_TOPIC = 'sim/lockstep/ack'
@@ -44,13 +45,6 @@ ROUND_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
 #: by the round-0 wait instead (Lockstep._unconnected)
 QUIET_SUB = SubscriptionEventCallbacks(use_default_callbacks=False)
 QUIET_PUB = PublisherEventCallbacks(use_default_callbacks=False)
-
-
-def reliable(qos: QoSProfile, depth: int = 100) -> QoSProfile:
-    """`qos` made reliable with a deeper queue: a lockstep stream may not drop a message (a
-    reliable writer still serves best-effort readers)."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(depth, qos.depth),
-                      reliability=ReliabilityPolicy.RELIABLE, durability=qos.durability)
 
 
 def stamp_of(msg: Any) -> float:

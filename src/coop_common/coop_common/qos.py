@@ -30,3 +30,10 @@ def with_depth(q: QoSProfile, depth: int) -> QoSProfile:
     """`q` with another queue depth (a subscriber's buffer; matching is unaffected)."""
     return QoSProfile(history=q.history, depth=depth, reliability=q.reliability,
                       durability=q.durability)
+
+
+def reliable(qos: QoSProfile, depth: int = 100) -> QoSProfile:
+    """`qos` made reliable with a deeper queue: a lockstep stream may not drop a message (a
+    reliable writer still serves best-effort readers)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(depth, qos.depth),
+                      reliability=ReliabilityPolicy.RELIABLE, durability=qos.durability)

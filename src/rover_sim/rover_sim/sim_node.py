@@ -30,11 +30,10 @@ from coop_common.lockstep_node import (
     ROUND_QOS,
     TICK_TOPIC,
     CountingPublisher,
-    reliable,
     stamp_of,
 )
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node, stamp
-from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
+from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, reliable
 from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer, LockstepAck, LockstepTick
 from coop_msgs.srv import SimScenario
 
