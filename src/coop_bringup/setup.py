@@ -21,5 +21,6 @@ setup(
     description='Launch files that bring up a team of cooperative rovers.',
     license='Apache-2.0',
     entry_points={'console_scripts': ['mission = coop_bringup.mission:main',
-                                      'live_view = coop_bringup.live_view:main']},
+                                      'live_view = coop_bringup.live_view:main',
+                                      'compose = coop_bringup.compose:main']},
 )

@@ -24,7 +24,8 @@ from rclpy.node import Node
 
 from .params import ParamSpec, check_values
 
-__all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'run_node', 'stamp']
+__all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'NodeFailed', 'run_node',
+           'run_nodes', 'stamp']
 
 
 def stamp(t_s: float) -> Time:
@@ -173,34 +174,75 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     does one that shut its context down itself after setting `fatal_error` (a worker thread it
     cannot run without died).
     """
+    return run_nodes([factory], args, executor_factory)
+
+
+class NodeFailed(RuntimeError):
+    """A callback of one node of a composed process raised: `node` names it."""
+
+    def __init__(self, node: str, exc: BaseException) -> None:
+        super().__init__(f'{node}: {type(exc).__name__}: {exc}')
+        self.node = node
+
+
+def _raised_in(exc: BaseException, nodes: list[Node]) -> Node | None:
+    """The node of `nodes` whose method the traceback of `exc` passed through last (the
+    innermost frame whose `self` is one of them), None when none."""
+    found = None
+    tb = exc.__traceback__
+    while tb is not None:
+        owner = tb.tb_frame.f_locals.get('self')
+        if any(owner is n for n in nodes):
+            found = owner
+        tb = tb.tb_next
+    return found
+
+
+def run_nodes(factories: list[Callable[[], Node]], args: list[str] | None = None,
+              executor_factory: Callable[[], Any] | None = None) -> int:
+    """run_node for several nodes in one process and one executor (a composed bring-up):
+    built in order, spun together, destroyed in reverse. Parameters and remappings aimed at
+    one node use ROS's own forms (a `--params-file` keyed `/**/<node>:`, `-r <node>:a:=b`).
+
+    One node that cannot be built stops the process with that node's reason (return 1);
+    one whose callback raises stops it with that node's name and the exception (NodeFailed,
+    after the clean-up)."""
     _STOP_REQUESTED.clear()
     _STOP_SIGNALS.clear()
     _python_stop_handlers()
     rclpy.init(args=args)
-    node = None
+    nodes: list[Node] = []
     # the executor first: built after a Ctrl-C has shut the context down, rclpy's Executor fails
     # half-made and its __del__ prints a traceback ('no attribute _sigint_gc')
     executor = executor_factory() if executor_factory is not None else SingleThreadedExecutor()
     try:
-        try:
-            node = factory()
-        except (ValueError, InvalidParameterValueException, ParameterException) as exc:
-            if not rclpy.ok():
-                # Ctrl-C while the node was still being built (its next rcl call found the
-                # context shut down): a clean stop, not a failed start
-                return 0
-            rclpy.logging.get_logger('startup').fatal(f'cannot start: {exc}')
-            return 1
-        executor.add_node(node)
+        for factory in factories:
+            try:
+                nodes.append(factory())
+            except (ValueError, InvalidParameterValueException, ParameterException) as exc:
+                if not rclpy.ok():
+                    # Ctrl-C while the node was still being built (its next rcl call found the
+                    # context shut down): a clean stop, not a failed start
+                    return 0
+                what = getattr(factory, '__name__', 'node')
+                rclpy.logging.get_logger('startup').fatal(
+                    f'cannot start{"" if len(factories) == 1 else " " + what}: {exc}')
+                return 1
+            executor.add_node(nodes[-1])
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except Exception:
+    except Exception as exc:
         # Ctrl-C shuts the context down under a callback in flight, whose next publish then
         # raises (RCLError: the publisher's context is invalid), or interrupts a call into
         # rclpy's C++ (RuntimeError): that is a clean stop too
         if rclpy.ok() and not _STOP_REQUESTED.is_set():
-            raise
+            culprit = _raised_in(exc, nodes) if len(nodes) > 1 else None
+            if culprit is None:
+                raise
+            name = culprit.get_fully_qualified_name()
+            culprit.get_logger().fatal(f'stops the process: {type(exc).__name__}: {exc}')
+            raise NodeFailed(name, exc) from exc
     finally:
         # `ros2 launch` signals the whole process group and then each child: a second SIGINT
         # in the middle of the clean-up would raise inside destroy_node (a traceback, exit -2);
@@ -209,8 +251,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         # both; SIGKILL stays the last word.
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, signal.SIG_IGN)
-        if node is not None:
+        for node in reversed(nodes):
             node.destroy_node()
         rclpy.try_shutdown()
         _STOP_SIGNALS.clear()
-    return 1 if getattr(node, 'fatal_error', None) is not None else 0
+    return 1 if any(getattr(n, 'fatal_error', None) is not None for n in nodes) else 0
