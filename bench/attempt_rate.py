@@ -7,10 +7,13 @@ start perturbed by the attempt's seed, one `insert` goal, the truth's verdict). 
 set-up (start, the master's survey) is timed apart. The simulator runs in lockstep with the
 master, the slave and the rig (--no-lockstep: paced by the clock); --busy-too runs the same
 seeds again on a fresh graph beside a process that keeps one core busy and compares the
-outcomes (lockstep's claim: the same successes, the same peak forces).
+outcomes (lockstep's claim: the same successes, the same peak forces). --composed runs the
+master, the slave, the mapper and the view planner in one process (`coop_bringup compose`);
+--composed-too runs the same seeds again so composed, on a fresh graph, and compares.
 
 Usage: bench/attempt_rate.py --json OUT --site-map MAP [--attempts 10] [--slot 4.5]
        [--placement optimal] [--busy-too] [--no-lockstep]
+       [--composed | --composed-too]
 
 MAP: the scenario's site map (`coop_insertion.table_5_1.build_site_map`, seed 1, occlusion
 0.05; without it the command builds one first, a few minutes).
@@ -18,9 +21,7 @@ MAP: the scenario's site map (`coop_insertion.table_5_1.build_site_map`, seed 1,
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -35,6 +36,24 @@ from coop_common.files import write_json  # noqa: E402
 
 SEED = 1
 OCCLUSION = 0.05
+
+
+def format_compose_table(result: dict) -> str:
+    """The one-process-per-node / composed comparison --composed-too prints."""
+    runs = (('one process per node', result), ('composed', result['composed_run']))
+    lines = [f'{"layout":24}{"attempt wall (s)":>18}{"goal sim s/wall s":>19}{"set-up (s)":>12}'
+             f'{"successes":>11}']
+    for name, r in runs:
+        n = len(r['attempt_wall_s']['values'])
+        lines.append(f'{name:24}{r["attempt_wall_s"]["median"]:>18.1f}'
+                     f'{r["sim_per_wall"]["median"]:>19.2f}{r["setup_wall_s"]:>12.0f}'
+                     f'{r["successes"]:>8}/{n}')
+    same = [(o['success'], o['peak_force_n']) for o in result['outcomes']] == \
+        [(o['success'], o['peak_force_n']) for o in result['composed_run']['outcomes']]
+    lines.append(f'composed / one per node, median attempt wall: '
+                 f'{result["composed_wall_ratio"]:.2f}; the same outcomes and peak forces: '
+                 f'{same}')
+    return '\n'.join(lines)
 
 
 def format_load_table(result: dict) -> str:
@@ -53,28 +72,17 @@ def format_load_table(result: dict) -> str:
     return '\n'.join(lines)
 
 
-@contextlib.contextmanager
-def _busy_core(on: bool):
-    """A process spinning on one core while the block runs (nothing when `on` is False)."""
-    if not on:
-        yield
-        return
-    proc = subprocess.Popen([sys.executable, '-c', 'while True: pass'])
-    try:
-        yield
-    finally:
-        proc.kill()
-        proc.wait()
-
-
-def run_attempts(args, site_map: Path, work: Path, *, busy: bool) -> dict:
+def run_attempts(args, site_map: Path, work: Path, *, busy: bool, composed: bool) -> dict:
     """One graph, `args.attempts` attempts; wall times and each attempt's outcome."""
     from coop_insertion.table_5_1 import open_rig
-    with _busy_core(busy):
+    logs = 'logs' + ('_busy' if busy else '') + ('_composed' if composed else '')
+    from coop_common.testing import busy_core
+    with busy_core(busy):
         t0 = time.monotonic()
         rig = open_rig(seed=SEED, occlusion_density=OCCLUSION, slot_in=args.slot,
-                       log_dir=work / ('logs_busy' if busy else 'logs'), site_map=site_map,
-                       render_workers=args.render_workers, lockstep=args.lockstep)
+                       log_dir=work / logs, site_map=site_map,
+                       render_workers=args.render_workers, lockstep=args.lockstep,
+                       composed=composed)
         walls, goals, sims, outcomes = [], [], [], []
         try:
             setup = time.monotonic() - t0
@@ -87,7 +95,8 @@ def run_attempts(args, site_map: Path, work: Path, *, busy: bool) -> dict:
                 sims.append(a.sim_s)
                 outcomes.append({'seed': a.seed, 'success': bool(a.success),
                                  'reason': a.reason, 'peak_force_n': float(a.peak_force_n)})
-                print(f'attempt {k + 1}{" (busy)" if busy else ""}: '
+                print(f'attempt {k + 1}{" (busy)" if busy else ""}'
+                      f'{" (composed)" if composed else ""}: '
                       f'{"success" if a.success else "failure"} ({a.reason}); goal '
                       f'{a.sim_s:.1f} sim s in {a.duration_s:.1f} s, attempt {walls[-1]:.1f} s',
                       flush=True)
@@ -110,7 +119,8 @@ def format_table(result: dict) -> str:
     lines = [f'{result["placement"]} placement, {result["slot_in"]} in slot, {n} attempts '
              f'(seeds from {result["first_seed"]}), render workers '
              f'{result.get("render_workers", 0)}, '
-             + ('lockstep' if result.get('lockstep') else 'paced by the clock'),
+             + ('lockstep' if result.get('lockstep') else 'paced by the clock')
+             + (', composed' if result.get('composed') else ''),
              f'{"":24}{"median":>9}{"min":>9}{"max":>9}{"target":>9}']
     for name, st, target, fmt in rows:
         lines.append(f'{name:24}' + ''.join(f'{st[k]:>9{fmt}}' for k in ('median', 'min', 'max'))
@@ -143,6 +153,12 @@ def main() -> int:
                     help='run the attempts again beside a busy core and compare the outcomes')
     ap.add_argument('--no-lockstep', dest='lockstep', action='store_false',
                     help='pace the simulator by the clock instead of lockstep')
+    layout = ap.add_mutually_exclusive_group()
+    layout.add_argument('--composed', action='store_true',
+                        help='the master, the slave, the mapper and the view planner in one '
+                             'process')
+    layout.add_argument('--composed-too', action='store_true',
+                        help='run the attempts again composed and compare')
     args = ap.parse_args()
     from coop_insertion.table_5_1 import build_site_map
 
@@ -155,20 +171,29 @@ def main() -> int:
         ap.error(f'--site-map {site_map}: no such file')
     result = {'slot_in': args.slot, 'placement': args.placement, 'first_seed': SEED * 1000,
               'render_workers': args.render_workers, 'lockstep': args.lockstep,
-              **run_attempts(args, site_map, work, busy=False), 'logs': str(work),
+              'composed': args.composed,
+              **run_attempts(args, site_map, work, busy=False, composed=args.composed),
+              'logs': str(work),
               'clock': 'attempt_wall_s: the reset and the goal; goal_wall_s, attempt_sim_s: the '
                        'insert goal alone (time.monotonic, the simulator clock)'}
     if args.busy_too:
-        busy = run_attempts(args, site_map, work, busy=True)
+        busy = run_attempts(args, site_map, work, busy=True, composed=args.composed)
         result['busy'] = busy
         result['identical_successes'] = [o['success'] for o in result['outcomes']] == \
             [o['success'] for o in busy['outcomes']]
         result['peak_force_max_rel_diff'] = max(
             abs(a['peak_force_n'] - b['peak_force_n']) / max(abs(a['peak_force_n']), 1e-9)
             for a, b in zip(result['outcomes'], busy['outcomes']))
+    if args.composed_too:
+        together = run_attempts(args, site_map, work, busy=False, composed=True)
+        result['composed_run'] = together
+        result['composed_wall_ratio'] = (together['attempt_wall_s']['median']
+                                         / result['attempt_wall_s']['median'])
     print(format_table(result))
     if args.busy_too:
         print(format_load_table(result))
+    if args.composed_too:
+        print(format_compose_table(result))
     write_json(args.json, result, indent=2)
     return 0
 

@@ -1,14 +1,13 @@
 """Lockstep (issue #32): the simulator steps no round before the master, the slave and the
 rig have answered the last, so an attempt's outcome does not depend on how busy the machine
-is. The same short insertion twice through the installed nodes, the second beside a process
-that keeps a core busy: the same result to the last digit of its peak force."""
+is, nor on how its nodes share processes. The same short insertion twice through the
+installed nodes, the second beside a process that keeps a core busy and with the master and the
+slave composed in one process (`coop_bringup compose`): the same result to the last digit of
+its peak force."""
 from __future__ import annotations
 
-import contextlib
 import math
 import os
-import subprocess
-import sys
 
 import pytest
 
@@ -23,18 +22,7 @@ PINNED = ('-p', 'random_max_bearing_deg:=0.0', '-p', 'random_min_range_m:=0.5',
           '-p', 'slot_wait_s:=0.5')
 
 
-@contextlib.contextmanager
-def busy_core():
-    """A process spinning on one core for as long as the block runs."""
-    proc = subprocess.Popen([sys.executable, '-c', 'while True: pass'])
-    try:
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait()
-
-
-def short_attempt(log_dir):
+def short_attempt(log_dir, *, composed=False):
     from coop_common.rover_geometry import camera_mount
     from coop_insertion.rig import InsertionRig
     # the master starts where its pinned placement puts it (the camera 0.5 m off the target,
@@ -45,14 +33,15 @@ def short_attempt(log_dir):
                       master_args=PINNED, slave_args=('-p', 'descent_speed_m_s:=0.015'),
                       log_dir=log_dir, lockstep=True, round_s=ROUND_S,
                       master_start=(*mount.base_xy, mount.base_yaw), slave_start_short_m=0.1,
-                      domain_id=int(os.environ['ROS_DOMAIN_ID'])) as rig:
+                      composed=composed, domain_id=int(os.environ['ROS_DOMAIN_ID'])) as rig:
         return rig.attempt(slot_in=5.0, placement='random', seed=3, timeout_s=40.0)
 
 
-def test_lockstep_gives_the_same_attempt_beside_a_busy_core(tmp_path):
+def test_lockstep_gives_the_same_attempt_beside_a_busy_core_and_composed(tmp_path):
+    from coop_common.testing import busy_core
     idle = short_attempt(tmp_path / 'idle')
     with busy_core():
-        busy = short_attempt(tmp_path / 'busy')
+        busy = short_attempt(tmp_path / 'busy', composed=True)
     print(f'idle: {idle.duration_s:.0f} s wall, busy: {busy.duration_s:.0f} s wall')
     assert idle.success, idle.reason            # a check that can fail: the attempt seats
     for a in (idle, busy):

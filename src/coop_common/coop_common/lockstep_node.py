@@ -47,6 +47,13 @@ QUIET_SUB = SubscriptionEventCallbacks(use_default_callbacks=False)
 QUIET_PUB = PublisherEventCallbacks(use_default_callbacks=False)
 
 
+def remap_args(sim_namespace: str = '') -> list[str]:
+    """The `--ros-args` remappings that point a participant in another namespace than the
+    simulator's (a rover's node under /rover1) at the simulator's tick and ack topics."""
+    base = '/' + sim_namespace.strip('/') if sim_namespace.strip('/') else ''
+    return [a for topic in (TICK_TOPIC, ACK_TOPIC) for a in ('-r', f'{topic}:={base}/{topic}')]
+
+
 def stamp_of(msg: Any) -> float:
     """The message header's stamp (s), -inf for a message without a header."""
     header = getattr(msg, 'header', None)
@@ -229,3 +236,38 @@ class Lockstep:
             what = f'messages of round {tick.round}: ' + str(
                 self._inbox.missing(dict(zip(tick.topics, tick.counts))))
         self.node.get_logger().warn(f'lockstep: waiting {now - self._since:.0f} s for {what}')
+
+
+class Pacer:
+    """The participant that runs an experiment: it holds the simulator at a round until told
+    to let it step `n` more (`run`), so that the experiment's own steps (a reset, a goal sent,
+    a result read) fall between the same two rounds on any machine. Its `run` and `stop` may
+    be called from another thread than the node's executor."""
+
+    def __init__(self, ls: Lockstep) -> None:
+        self._ls = ls
+        self._left: float = 0                # rounds to answer before holding (inf: until told)
+        self._pause: Future | None = None
+        ls.on_round(self._on_round)
+
+    def _on_round(self) -> None:
+        if self._left > 0:
+            self._left -= 1
+        elif self._pause is None:
+            self._pause = self._ls.hold(Future())
+
+    @property
+    def paused(self) -> bool:
+        """The simulator stands at a round this participant has not answered."""
+        return self._pause is not None
+
+    def run(self, rounds: float = math.inf) -> None:
+        """Let the simulator step `rounds` more rounds (math.inf: until `stop`), then hold."""
+        self._left = rounds
+        pause, self._pause = self._pause, None
+        if pause is not None:
+            pause.set_result(None)
+
+    def stop(self) -> None:
+        """Hold the simulator at its next round."""
+        self._left = 0

@@ -2,13 +2,15 @@
 installed executables the way `ros2 run` finds them, and waiting on conditions, not sleeping."""
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from ament_index_python.packages import get_package_prefix
@@ -64,6 +66,21 @@ def usage_error(main: Callable[[list[str]], object], argv: Sequence[str], capsys
             raise AssertionError(f'{argv}: exit {exc.code}, not a usage error') from None
         return capsys.readouterr().err
     raise AssertionError(f'{argv}: ran without a usage error')
+
+
+@contextlib.contextmanager
+def busy_core(on: bool = True) -> Iterator[None]:
+    """A process spinning on one core while the block runs (nothing when `on` is False): the
+    load under which lockstep's outcomes must not change."""
+    if not on:
+        yield
+        return
+    proc = subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+    try:
+        yield
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, *, poll_s: float = 0.02,

@@ -26,12 +26,11 @@ from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.task import Future
 from rosgraph_msgs.msg import Clock
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import load_truth
-from coop_common.lockstep_node import Lockstep, stamp_of
+from coop_common.lockstep_node import Lockstep, Pacer, stamp_of
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, joint2_in_base
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
@@ -68,6 +67,34 @@ MAP_QUIET_S = 3.0
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
 #: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
 STALL_S = 90.0
+
+
+#: composed: the nodes that share one process (the simulator and the stereo node keep theirs:
+#: the one steps on its own thread, the other is stopped after the survey)
+COMPOSED = ('master', 'slave', 'mapper', 'view_planner')
+
+
+def compose(procs: list[tuple], names: tuple[str, ...], params_file: Path) -> list[tuple]:
+    """`procs` (log name, package, executable, ROS args[, other args]) with those named in
+    `names` run by one `coop_bringup compose` process ('nodes'); their `-p name:=value`
+    arguments move into `params_file`, keyed by node, as ROS's own per-node parameters."""
+    import yaml
+    together = [p for p in procs if p[0] in names]
+    params: dict[str, dict] = {}
+    for name, _, exe, args, *_ in together:
+        if len(args) % 2 or any(flag != '-p' for flag in args[::2]):
+            raise InsertionError(f'{name}: only -p arguments compose, not {args}')
+        own = params.setdefault(f'/**/{exe}', {'ros__parameters': {}})['ros__parameters']
+        for assignment in args[1::2]:
+            key, _, value = assignment.partition(':=')
+            own[key] = yaml.safe_load(value)
+    tmp = params_file.with_suffix('.tmp')
+    tmp.write_text(yaml.safe_dump(params))
+    tmp.replace(params_file)
+    specs = [f'{pkg}/{exe}' for _, pkg, exe, *_ in together]
+    return ([p for p in procs if p[0] not in names]
+            + [('nodes', 'coop_bringup', 'compose', ['--params-file', str(params_file)],
+                specs)])
 
 
 class SimStalled(InsertionError):
@@ -138,38 +165,14 @@ class _Client(Node):
         self.recording = False
         self.map_voxels = 0
         self.ls = Lockstep(self, lockstep)
-        # lockstep: rounds to answer before holding the sim (inf: until told), and the hold
-        self._rounds_left: float = 0
-        self._pause: Future | None = None
-        self.ls.on_round(self._on_round)
+        # lockstep: the rig holds the sim between the steps of an experiment
+        self.pacer = Pacer(self.ls)
         self.create_subscription(Clock, '/clock', self._on_clock, 10)
         self.ls.subscription(ContactState, 'sim/rover2/contact', self._on_contact, SENSOR_QOS)
         self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
         self.reset = self.create_client(SimScenario, 'sim/reset')
         self.insert = ActionClient(self, Insert, 'insert')
         self.mast = self.ls.publisher(JointTrajectory, 'rover1/mast/command', COMMAND_QOS)
-
-    # -- lockstep: the rig holds the sim between the steps of an experiment ------------------
-    def _on_round(self) -> None:
-        if self._rounds_left > 0:
-            self._rounds_left -= 1
-        elif self._pause is None:
-            self._pause = self.ls.hold(Future())
-
-    @property
-    def paused(self) -> bool:
-        """The sim stands at a round this client has not answered."""
-        return self._pause is not None
-
-    def run_rounds(self, rounds: float) -> None:
-        """Let the sim step `rounds` more rounds (math.inf: until stop_rounds), then hold."""
-        self._rounds_left = rounds
-        pause, self._pause = self._pause, None
-        if pause is not None:
-            pause.set_result(None)
-
-    def stop_rounds(self) -> None:
-        self._rounds_left = 0
 
     def _on_clock(self, m: Clock) -> None:
         t = m.clock.sec + 1e-9 * m.clock.nanosec
@@ -203,14 +206,17 @@ class InsertionRig(contextlib.AbstractContextManager):
                  extra_procs: tuple[tuple[str, str, str, list[str]], ...] = (),
                  render_workers: int = 1, lockstep: bool = True, round_s: float = ROUND_S,
                  master_start: tuple[float, float, float] = MASTER_START,
-                 slave_start_short_m: float = SLAVE_START_SHORT_M) -> None:
+                 slave_start_short_m: float = SLAVE_START_SHORT_M,
+                 composed: bool = False) -> None:
         """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
         the map (with the planner); extra_procs: more (log name, package, executable, args);
         render_workers: the sim's (1: the right eye drawn by a second process); lockstep: the
         sim steps no round before the master, the slave and this rig have answered the last
         (docs/design.md): the same attempt on an idle and on a busy machine, in rounds of
         round_s (the slave's command period by default); master_start,
-        slave_start_short_m: where place() stands the rovers (staging_poses)."""
+        slave_start_short_m: where place() stands the rovers (staging_poses); composed: the
+        master, the slave, the mapper and the view planner in one process (`coop_bringup
+        compose`), not one each."""
         self.seed = seed
         self.lockstep = lockstep
         self.round_s = round_s
@@ -275,13 +281,16 @@ class InsertionRig(contextlib.AbstractContextManager):
             self.procs += [(f'stereo_{r}' if r != 'rover1' else 'stereo', 'coop_mapping',
                             'stereo', ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'])
                            for r in stereo_rovers]
+        if composed:
+            self.procs = compose(self.procs, COMPOSED, self.log_dir / 'composed.yaml')
         self.procs += list(extra_procs)
 
     def __enter__(self) -> InsertionRig:
         try:
-            for name, pkg, exe, args in self.procs:
+            for name, pkg, exe, ros_args, *args in self.procs:
                 self.nodes[name] = self.stack.enter_context(
-                    NodeProcess(pkg, exe, args, log_path=self.log_dir / f'{name}.log'))
+                    NodeProcess(pkg, exe, ros_args, args=args[0] if args else (),
+                                log_path=self.log_dir / f'{name}.log'))
             self.ctx = Context()
             rclpy.init(context=self.ctx)
             self.node = _Client(self.ctx, self.lockstep)
@@ -375,8 +384,8 @@ class InsertionRig(contextlib.AbstractContextManager):
         let the sim step that many rounds, then hold it."""
         timeout = max(60.0 + 20.0 * seconds, STALL_S + 10.0)
         if self.lockstep:
-            self.node.run_rounds(math.ceil(seconds / self.round_s - 1e-9))
-            self._wait(lambda: self.node.paused, timeout, what='sim time')
+            self.node.pacer.run(math.ceil(seconds / self.round_s - 1e-9))
+            self._wait(lambda: self.node.pacer.paused, timeout, what='sim time')
             return
         t0 = self.node.elapsed      # not the clock: a reset may not have reached us yet
         self._wait(lambda: self.node.elapsed >= t0 + seconds, timeout, what='sim time')
@@ -384,8 +393,8 @@ class InsertionRig(contextlib.AbstractContextManager):
     def _hold(self) -> None:
         """Lockstep: hold the sim at its next round (the world changes between rounds)."""
         if self.lockstep:
-            self.node.stop_rounds()
-            self._wait(lambda: self.node.paused, STALL_S, what='the sim held')
+            self.node.pacer.stop()
+            self._wait(lambda: self.node.pacer.paused, STALL_S, what='the sim held')
 
     def set_parameters(self, node: str, **values) -> None:
         """Set parameters of one node of the graph (InsertionError with the node's reason
@@ -495,14 +504,14 @@ class InsertionRig(contextlib.AbstractContextManager):
         node.recording = True
         res_fut = handle.get_result_async()
         if self.lockstep:
-            node.run_rounds(math.inf)
+            node.pacer.run()
         self._wait(res_fut.done, 3 * timeout_s + 600, what='the insert result')
         res = res_fut.result().result
         # the goal's end by the stamp of the state it ended on (the sim may have run on while
         # the result came), else by this client's clock
         ended = res.ended.sec + 1e-9 * res.ended.nanosec
         t_end = ended if ended > 0 else node.clock
-        node.stop_rounds()
+        node.pacer.stop()
         node.recording = False
         # seated: the truth said so within the goal's last SEATED_WINDOW_S (the slave ends the
         # goal the moment it judges the card seated, and relaxes its push after; the truth's

@@ -49,13 +49,14 @@ MAX_RESTARTS = 6
 
 def open_rig(*, seed: int, occlusion_density: float, slot_in: float, log_dir: Path,
              site_map: Path, log=print, render_workers: int = 1,
-             lockstep: bool = True) -> InsertionRig:
+             lockstep: bool = True, composed: bool = False) -> InsertionRig:
     """The attempts' graph, ready: the rovers placed for the row, the master's survey of the
     site fused into the map, the stereo ranging stopped (the map is the scenario's); in
-    lockstep with the simulator unless told otherwise."""
+    lockstep with the simulator unless told otherwise; composed: the nodes that are not the
+    simulator's or the stereo's in one process (InsertionRig)."""
     r = InsertionRig(seed=seed, occlusion_density=occlusion_density, slot_in=slot_in,
                      log_dir=log_dir, site_map=site_map, render_workers=render_workers,
-                     lockstep=lockstep).__enter__()
+                     lockstep=lockstep, composed=composed).__enter__()
     try:
         r.place(slot_in, np.random.default_rng(seed))
         log(f'site surveyed: {r.survey()} scans in the map')
