@@ -117,3 +117,47 @@ def test_rounds_acks_order_and_holds(graph):
     for _ in range(20):
         ex.spin_once(timeout_sec=0.02)
     assert rounds == [0, 1, 2, 3] and len(acks) == 4
+
+
+def test_a_pacer_holds_the_sim_between_the_runs_it_allows(graph):
+    from coop_common.lockstep_node import Pacer
+    sim, part, ex = graph
+    pacer = Pacer(Lockstep(part, True))
+    acks = []
+    tick_pub = sim.create_publisher(LockstepTick, TICK_TOPIC, ROUND_QOS)
+    sim.create_subscription(LockstepAck, ACK_TOPIC, acks.append, ROUND_QOS)
+    spin_until(ex, lambda: tick_pub.get_subscription_count() > 0)
+
+    def step(r):          # the stand-in simulator: tick round r (after round r-1 was acked)
+        tick_pub.publish(LockstepTick(round=r, stamp=stamp(0.01 * r)))
+
+    step(0)
+    spin_until(ex, lambda: pacer.paused)          # held at round 0: not answered
+    for _ in range(10):
+        ex.spin_once(timeout_sec=0.02)
+    assert acks == []
+    pacer.run(2)                                  # round 0 answered, then rounds 1 and 2
+    for r in (1, 2, 3):
+        spin_until(ex, lambda r=r: len(acks) == r)
+        step(r)
+    spin_until(ex, lambda: pacer.paused)
+    for _ in range(10):
+        ex.spin_once(timeout_sec=0.02)
+    assert [a.round for a in acks] == [0, 1, 2]   # round 3 held
+    pacer.run()                                   # until told
+    for r in (4, 5):
+        spin_until(ex, lambda r=r: len(acks) == r)
+        step(r)
+    pacer.stop()                                  # before round 5 is handed out: held there
+    spin_until(ex, lambda: pacer.paused)
+    for _ in range(10):
+        ex.spin_once(timeout_sec=0.02)
+    assert [a.round for a in acks] == [0, 1, 2, 3, 4]
+
+
+def test_remap_args_point_a_namespaced_node_at_the_simulators_rounds():
+    from coop_common.lockstep_node import remap_args
+    assert remap_args() == ['-r', 'sim/lockstep/tick:=/sim/lockstep/tick',
+                            '-r', 'sim/lockstep/ack:=/sim/lockstep/ack']
+    assert remap_args('/team_a/') == ['-r', 'sim/lockstep/tick:=/team_a/sim/lockstep/tick',
+                                      '-r', 'sim/lockstep/ack:=/team_a/sim/lockstep/ack']

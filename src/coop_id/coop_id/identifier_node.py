@@ -22,6 +22,7 @@ from sensor_msgs.msg import Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import PARAM_NAMES
+from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import (
     BadInputCounter,
     ParamSpec,
@@ -89,6 +90,10 @@ SPECS = {
                                    'noise covariances of the messages', read_only=True),
     'base_frame': ParamSpec('', "frame id of the estimates; empty: '<rover>/base_link' with "
                             "<rover> the last part of the node's namespace", read_only=True),
+    'lockstep': ParamSpec(False, "answer rover_sim's lockstep rounds (a participant in its "
+                          'lockstep_participants; remap sim/lockstep/tick and ack to the '
+                          "simulator's): each round's samples, then the arm's commands, so the "
+                          'excitation does not depend on load', read_only=True),
 }
 
 
@@ -122,17 +127,20 @@ class IdentifierNode(Node):
         # best effort as the publishers, but a deep queue: a window's processing (the excitation
         # optimisation), or a loaded machine that starves this process, must not drop the
         # samples that arrive meanwhile
+        # In lockstep (docs/design.md) each round's samples are handed over before the round is
+        # answered, and the arm's commands act in the next round, on an idle or a busy machine
         deep = with_depth(SENSOR_QOS, int(SAMPLE_QUEUE_S * self.p['rate_hz']))
-        self.create_subscription(Imu, 'imu', self._on_imu, deep)
-        self.create_subscription(Inclinometer, 'inclinometer', self._on_incl, deep)
-        self.create_subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep)
+        self.ls = Lockstep(self, self.p['lockstep'])
+        self.ls.subscription(Imu, 'imu', self._on_imu, deep)
+        self.ls.subscription(Inclinometer, 'inclinometer', self._on_incl, deep)
+        self.ls.subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep)
         # only the latest joint positions matter (the pose an excitation starts from): a
         # backlog of them would only cost callbacks
-        self.create_subscription(JointState, 'joint_states', self._on_joints,
-                                 with_depth(SENSOR_QOS, 1))
+        self.ls.subscription(JointState, 'joint_states', self._on_joints,
+                             with_depth(SENSOR_QOS, 1))
         self.pub_params = self.create_publisher(DynamicParameters, 'dynamic_parameters',
                                                 LATCHED_QOS)
-        self.pub_cmd = self.create_publisher(JointTrajectory, 'arm/joint_command', COMMAND_QOS)
+        self.pub_cmd = self.ls.publisher(JointTrajectory, 'arm/joint_command', COMMAND_QOS)
         # One thread runs every callback, in arrival order (the pairing needs each stream in
         # stamp order): the goal is a coroutine that awaits windows; a steady-clock timer wakes
         # it to see a cancel or a silent stream when no window comes (sim time may stand still).
@@ -288,7 +296,7 @@ class IdentifierNode(Node):
         """Seconds the last sample absorbed lies behind the node's clock (sim time on
         use_sim_time), capped at SAMPLE_QUEUE_S; 0 where the clock is not the sensors' time base
         (ahead of it, or further behind than any queue)."""
-        lag = self.get_clock().now().nanoseconds * 1e-9 - self._t_now
+        lag = self.ls.now_s(lambda: self.get_clock().now().nanoseconds * 1e-9) - self._t_now
         if not 0.0 < lag < SAMPLE_QUEUE_S:
             return 0.0
         if lag > self.p['command_lead_s']:

@@ -19,19 +19,27 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from coop_common.dynparams import PARAM_NAMES
+from coop_common.lockstep_node import Lockstep, Pacer, remap_args
 from coop_common.qos import LATCHED_QOS
 from coop_common.testing import NodeProcess, isolate_ros_environment
 from coop_msgs.action import Identify
 from coop_msgs.msg import DynamicParameters
 
+#: this client's node name (a lockstep participant), and rover_sim's lockstep round (s)
+CLIENT = 'table_2_1_sim'
+ROUND_S = 0.01
+
 
 def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
                            settle_s: float = 3.0, timeout_s: float = 600.0,
                            domain_id: int | None = None, log_dir: Path | None = None,
-                           integrator: str = 'explicit') -> dict:
+                           integrator: str = 'explicit', lockstep: bool = False) -> dict:
     """domain_id: the ROS domain of the run (default: $COOP_SIM_DOMAIN_ID, else one from the
     pid); the processes started inherit it. log_dir: where the nodes' logs go (default: a new
-    temporary directory). integrator: the simulator's (rover_sim `integrator` parameter)."""
+    temporary directory). integrator: the simulator's (rover_sim `integrator` parameter).
+    lockstep: the simulator steps no round before the identifier and this client have answered
+    the last (docs/design.md), and the client holds it while the goal is sent: the same
+    estimate on an idle and on a busy machine."""
     if domain_id is None:
         domain_id = int(os.environ.get('COOP_SIM_DOMAIN_ID', '0')) or None
     isolate_ros_environment(domain_id)
@@ -40,35 +48,49 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
     logs.mkdir(parents=True, exist_ok=True)
     sim_args = ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=0.0', '-p', f'noise_fraction:={noise}',
                 '-p', f'integrator:={integrator}']
+    ident_args = ['-r', '__ns:=/rover1']
+    if lockstep:
+        # as fast as the identifier answers: nothing else closes a loop on the simulator
+        sim_args += ['-p', f'lockstep_participants:=[rover1/identifier,{CLIENT}]',
+                     '-p', f'lockstep_period_s:={ROUND_S}', '-p', 'real_time_factor:=0.0']
+        ident_args += ['-p', 'lockstep:=true', '-p', 'use_sim_time:=true', *remap_args()]
     with NodeProcess('rover_sim', 'sim', sim_args, log_path=logs / 'sim.log'), \
-            NodeProcess('coop_id', 'identifier', ['-r', '__ns:=/rover1'],
-                        log_path=logs / 'identifier.log'):
+            NodeProcess('coop_id', 'identifier', ident_args, log_path=logs / 'identifier.log'):
         ctx = Context()
         rclpy.init(context=ctx)
-        node = Node('table_2_1_sim', context=ctx)
+        node = Node(CLIENT, context=ctx)
+        pacer = Pacer(Lockstep(node, lockstep))
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         truth: list[DynamicParameters] = []
         node.create_subscription(DynamicParameters, '/sim/rover1/parameters', truth.append,
                                  LATCHED_QOS)
         client = ActionClient(node, Identify, '/rover1/identifier/identify')
+
+        def spin_until(done, seconds: float, what: str) -> None:
+            t0 = time.monotonic()
+            while not done():
+                ex.spin_once(timeout_sec=0.05)
+                if time.monotonic() - t0 > seconds:
+                    raise RuntimeError(f'no {what} in {seconds:g} s (logs in {logs})')
         try:
             if not client.wait_for_server(timeout_sec=60):
                 raise RuntimeError(f'identifier action server not found (logs in {logs})')
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < settle_s or not truth:   # rest before the goal
-                ex.spin_once(timeout_sec=0.05)
-                if time.monotonic() - t0 > 60:
-                    raise RuntimeError(f'no /sim/rover1/parameters (logs in {logs})')
+            spin_until(lambda: truth, 60, '/sim/rover1/parameters')
+            if lockstep:        # rest before the goal, then hold the sim while it is sent
+                pacer.run(round(settle_s / ROUND_S))
+                spin_until(lambda: pacer.paused, 60 + 20 * settle_s, 'rest before the goal')
+            else:
+                t0 = time.monotonic()
+                spin_until(lambda: time.monotonic() - t0 >= settle_s, settle_s + 1, 'rest')
             fut = client.send_goal_async(Identify.Goal(strategy=strategy, duration_s=duration_s))
-            ex.spin_until_future_complete(fut, timeout_sec=30)
+            spin_until(fut.done, 30, 'answer to the goal')
             handle = fut.result()
             if handle is None or not handle.accepted:
                 raise RuntimeError('goal rejected')
             res_fut = handle.get_result_async()
-            ex.spin_until_future_complete(res_fut, timeout_sec=timeout_s)
-            if not res_fut.done():
-                raise RuntimeError('identification did not finish in time')
+            pacer.run()
+            spin_until(res_fut.done, timeout_s, 'identification in time')
             res = res_fut.result().result
         finally:
             ex.shutdown()

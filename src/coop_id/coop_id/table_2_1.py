@@ -204,7 +204,7 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
 _MODE_OPTIONS = {
     'model': ('truth', 'seeds', 'first_seed', 'duration', 'noise', 'strategies',
               'no_accelerometer', 'no_bias_compensation', 'plots'),
-    'sim': ('duration', 'noise', 'strategies', 'integrator'),
+    'sim': ('duration', 'noise', 'strategies', 'integrator', 'lockstep', 'busy_too'),
     'bag': ('bag', 'rover', 'no_accelerometer', 'no_bias_compensation'),
 }
 
@@ -264,6 +264,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                          'per listed strategy')
     ap.add_argument('--integrator', choices=('explicit', 'implicit'), default='explicit',
                     help="with --sim: the simulator's integrator (rover_sim parameter)")
+    ap.add_argument('--lockstep', action='store_true',
+                    help='with --sim: the simulator in lockstep with the identifier')
+    ap.add_argument('--busy-too', action='store_true',
+                    help='with --sim --lockstep: each run again beside a busy core, compared')
     ap.add_argument('--bag', type=_existing, default=None,
                     help='identify from a recorded bag instead (no DDS; the core as the node)')
     ap.add_argument('--rover', default='rover1', help='rover namespace in --bag')
@@ -271,6 +275,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     given = _given(ap, argv if argv is not None else sys.argv[1:])
     if args.sim and args.bag is not None:
         ap.error('--sim and --bag are two different sources: give one')
+    if args.busy_too and not args.lockstep:
+        ap.error('--busy-too compares lockstep runs: give --lockstep too')
     mode = 'sim' if args.sim else 'bag' if args.bag is not None else 'model'
     ignored = [f'--{k.replace("_", "-")}' for k in vars(args)
                if k not in ('json', 'sim') and k not in _MODE_OPTIONS[mode] and k in given]
@@ -285,7 +291,8 @@ def format_sim(doc: dict) -> str:
     the simulator latched, * where the identifier flagged the parameter unobservable."""
     strategies = list(doc['strategies'])
     runs = doc['strategies']
-    lines = [f'end to end through rover_sim ({doc.get("integrator", "explicit")} integrator) + '
+    lines = [f'end to end through rover_sim ({doc.get("integrator", "explicit")} integrator'
+             + (', lockstep' if doc.get('lockstep') else '') + ') + '
              f'identifier: {doc["duration_s"]} s, noise {doc["noise"]}; estimate (std), * = '
              'flagged unobservable',
              f'{"Parameter":16s}{"True":>9s}' + ''.join(f'{s:>22s}' for s in strategies),
@@ -307,26 +314,9 @@ def format_sim(doc: dict) -> str:
     return '\n'.join(lines)
 
 
-def _main_sim(args: argparse.Namespace) -> int:
-    """Every listed strategy end to end, each in its own fresh sim + identifier (the same seed,
-    so the same noise draws where the commands agree): one table, estimates side by side."""
-    from .sim_mode import run_sim_identification  # noqa: PLC0415 - rclpy, only --sim
-
-    strategies = args.strategies
-    results = {}
-    for strategy in strategies:
-        try:
-            results[strategy] = run_sim_identification(duration_s=args.duration,
-                                                       strategy=strategy, noise=args.noise,
-                                                       integrator=args.integrator)
-        except (RuntimeError, FileNotFoundError) as exc:
-            print(f'table_2_1 --sim ({strategy}): {exc}', file=sys.stderr)
-            return 1
-    doc = {
-        'mode': 'sim', 'duration_s': args.duration, 'noise': args.noise,
-        'integrator': args.integrator,
-        'strategies': {s: {
-            'success': r['success'], 'message': r['message'],
+def _sim_run(r: dict) -> dict:
+    """One --sim run as its JSON."""
+    return {'success': r['success'], 'message': r['message'],
             'mean_abs_rel_error': r['mean_abs_rel_error'],
             'samples': r['samples'], 'rejected': r['rejected'], 'logs': r['logs'],
             'per_parameter': {p: {'estimate': float(r['estimate'][i]),
@@ -334,8 +324,54 @@ def _main_sim(args: argparse.Namespace) -> int:
                                   'observable': bool(r['observable'][i]),
                                   'truth': float(r['truth'][i])}
                               for i, p in enumerate(PARAM_NAMES)}}
-            for s, r in results.items()}}
+
+
+def format_sim_load(doc: dict) -> str:
+    """`--sim --lockstep --busy-too`'s comparison: each strategy idle and beside a busy core."""
+    lines = [f'{"strategy":14s}{"error idle %":>14s}{"error busy %":>14s}{"samples":>16s}'
+             f'{"largest estimate difference":>30s}']
+    for s, idle in doc['strategies'].items():
+        busy = doc['busy'][s]
+        diff = max(abs(idle['per_parameter'][p]['estimate'] - busy['per_parameter'][p]['estimate'])
+                   / max(abs(idle['per_parameter'][p]['estimate']), 1e-12)
+                   for p in PARAM_NAMES)
+        lines.append(f'{s:14s}{100 * idle["mean_abs_rel_error"]:>14.2f}'
+                     f'{100 * busy["mean_abs_rel_error"]:>14.2f}'
+                     f'{idle["samples"]:>8d}/{busy["samples"]:<7d}{diff:>30.2e}')
+    return '\n'.join(lines)
+
+
+def _main_sim(args: argparse.Namespace) -> int:
+    """Every listed strategy end to end, each in its own fresh sim + identifier (the same seed,
+    so the same noise draws where the commands agree): one table, estimates side by side."""
+    from coop_common.testing import busy_core  # noqa: PLC0415 - only --sim
+
+    from .sim_mode import run_sim_identification  # noqa: PLC0415 - rclpy, only --sim
+
+    def run(strategy: str, busy: bool) -> dict:
+        with busy_core(busy):
+            return run_sim_identification(duration_s=args.duration, strategy=strategy,
+                                          noise=args.noise, integrator=args.integrator,
+                                          lockstep=args.lockstep)
+
+    results, busy = {}, {}
+    for strategy in args.strategies:
+        try:
+            results[strategy] = run(strategy, busy=False)
+            if args.busy_too:
+                busy[strategy] = run(strategy, busy=True)
+        except (RuntimeError, FileNotFoundError) as exc:
+            print(f'table_2_1 --sim ({strategy}): {exc}', file=sys.stderr)
+            return 1
+    doc = {
+        'mode': 'sim', 'duration_s': args.duration, 'noise': args.noise,
+        'integrator': args.integrator, 'lockstep': args.lockstep,
+        'strategies': {s: _sim_run(r) for s, r in results.items()}}
+    if args.busy_too:
+        doc['busy'] = {s: _sim_run(r) for s, r in busy.items()}
     print(format_sim(doc))
+    if args.busy_too:
+        print(format_sim_load(doc))
     if args.json is not None:
         write_json(args.json, doc, indent=1)
     return 0

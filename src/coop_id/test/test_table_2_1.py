@@ -52,7 +52,7 @@ def test_sim_mode_prints_its_json(tmp_path, capsys, monkeypatch):
 
     integrators = []
 
-    def fake(*, duration_s, strategy, noise, integrator):
+    def fake(*, duration_s, strategy, noise, integrator, lockstep):
         integrators.append(integrator)
         est = truth * (1.1 if strategy == 'constant' else 1.01) + 0.001
         return {'success': True, 'message': f'{strategy}: 22/22 observable', 'truth': truth,
