@@ -44,6 +44,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.cli import number
 from coop_common.dynparams import PARAM_NAMES
+from coop_common.lockstep_node import Lockstep, remap_args
 from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
@@ -118,6 +119,7 @@ class MissionConfig:
     bag: bool = True                  # record the run into OUT/<run-id>/bag (rover_bag record)
     bag_all: bool = False             # ... with the bulk streams too (BAG_BULK)
     live_port: int | None = None      # serve the live view (Foxglove WebSocket) on this port
+    lockstep: bool = False            # the sim in lockstep with the nodes that close loops
 
     def __post_init__(self) -> None:
         object.__setattr__(self, 'identify_strategy', choice(
@@ -182,8 +184,11 @@ class Progress:
 class _MissionClient(Node):
     """The runner's view of the graph: odometry, masts, the map, truth, the actions."""
 
-    def __init__(self, ctx, rovers: list[str]) -> None:
+    def __init__(self, ctx, rovers: list[str], lockstep: bool = False) -> None:
         super().__init__('mission', context=ctx)
+        # in lockstep the drive's loop (odometry in, cmd_vel out) and the masts' commands
+        # act in the simulator's rounds (docs/design.md)
+        self.ls = Lockstep(self, lockstep)
         self.rovers = rovers
         self.lock = threading.Lock()
         self.odom: dict[str, tuple[float, float, float]] = {}
@@ -194,18 +199,18 @@ class _MissionClient(Node):
         self.map: VoxelMap | None = None
         self.placement: ViewRating | None = None
         self.follow: dict[str, FollowPath] = {}
-        self.cmd = {r: self.create_publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS) for r in rovers}
-        self.mast_cmd = {r: self.create_publisher(JointTrajectory, f'{r}/mast/command',
-                                                  COMMAND_QOS) for r in rovers}
+        self.cmd = {r: self.ls.publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS) for r in rovers}
+        self.mast_cmd = {r: self.ls.publisher(JointTrajectory, f'{r}/mast/command',
+                                              COMMAND_QOS) for r in rovers}
         self.identify = {r: ActionClient(self, Identify, f'{r}/identifier/identify')
                          for r in rovers}
         self.nbv = self.create_client(NextBestView, 'viewplan/next_best_view')
         self.save_map = self.create_client(MapFile, 'map/save')
         for r in rovers:
-            self.create_subscription(Odometry, f'{r}/odom', lambda m, r=r: self._on_odom(r, m),
-                                     SENSOR_QOS)
-            self.create_subscription(JointState, f'{r}/joint_states',
-                                     lambda m, r=r: self._on_joints(r, m), SENSOR_QOS)
+            self.ls.subscription(Odometry, f'{r}/odom', lambda m, r=r: self._on_odom(r, m),
+                                 SENSOR_QOS)
+            self.ls.subscription(JointState, f'{r}/joint_states',
+                                 lambda m, r=r: self._on_joints(r, m), SENSOR_QOS)
             self.create_subscription(DynamicParameters, f'sim/{r}/parameters',
                                      lambda m, r=r: self.truth.__setitem__(r, m), LATCHED_QOS)
         self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
@@ -295,8 +300,12 @@ class Mission:
     def _sim_t(self) -> float:
         return self.rig.node.clock
 
-    def _wait(self, pred, timeout_s: float, what: str, tick=None) -> None:
-        """Wait (wall time) for pred(), failing at once when a node of the graph died."""
+    def _wait(self, pred, timeout_s: float, what: str, tick=None, *, run: bool = True) -> None:
+        """Wait (wall time) for pred(), failing at once when a node of the graph died. In
+        lockstep the sim steps on meanwhile unless `run` is False (it stays where it is, held
+        or running)."""
+        if run and self.cfg.lockstep:
+            self.rig.node.pacer.run()
         deadline = time.monotonic() + timeout_s
         while not pred():
             dead = self.rig.dead()
@@ -310,17 +319,28 @@ class Mission:
             time.sleep(0.05)
 
     def _sim_wait(self, seconds: float, what: str = 'sim time') -> None:
+        """Let `seconds` of sim time pass; in lockstep that many rounds, then hold the sim."""
+        if self.cfg.lockstep:
+            self.rig.sim_sleep(seconds)
+            return
         t0 = self._sim_t()
         self._wait(lambda: self._sim_t() >= t0 + seconds, 60 + 20 * seconds, what)
+
+    def _hold(self) -> None:
+        """In lockstep: hold the sim while the runner decides (its next goal, a view)."""
+        if self.cfg.lockstep:
+            self.rig.hold()
 
     # -- the run ------------------------------------------------------------------------------
     def run(self) -> dict:
         cfg = self.cfg
         isolate_ros_environment(self.domain_id)
         ident = ('identify' in cfg.phases)
+        lockstep = (['-p', 'lockstep:=true', *remap_args()] if cfg.lockstep else [])
         extra = tuple((f'identifier_{r}', 'coop_id', 'identifier',
-                       ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'])
+                       ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true', *lockstep])
                       for r in self.rovers) if ident else ()
+        participants = ('mission', *(f'{r}/identifier' for r in self.rovers if ident))
         extra = self._recorder_and_live_view() + extra
         t_all = time.monotonic()
         failed = None
@@ -346,9 +366,10 @@ class Mission:
                               slot_in=cfg.slot_in, log_dir=self.out / 'logs',
                               domain_id=self.domain_id, stereo_rate_hz=cfg.stereo_rate_hz,
                               stereo_rovers=tuple(self.rovers), rovers=cfg.rovers,
-                              extra_procs=extra, lockstep=False) as rig:
+                              extra_procs=extra, lockstep=cfg.lockstep,
+                              participants=participants) as rig:
                 self.rig = rig
-                self.client = _MissionClient(rig.ctx, self.rovers)
+                self.client = _MissionClient(rig.ctx, self.rovers, cfg.lockstep)
                 rig.add_node(self.client)
                 if cfg.near_start:
                     rig.place(cfg.slot_in, np.random.default_rng(cfg.seed))
@@ -471,7 +492,8 @@ class Mission:
         self._sim_wait(2.0, 'the rovers at rest')
         futs = {r: c.identify[r].send_goal_async(Identify.Goal(
             strategy=cfg.identify_strategy, duration_s=cfg.identify_s)) for r in self.rovers}
-        self._wait(lambda: all(f.done() for f in futs.values()), 30, 'the goals accepted')
+        self._wait(lambda: all(f.done() for f in futs.values()), 30, 'the goals accepted',
+                   run=False)
         handles = {r: f.result() for r, f in futs.items()}
         for r, h in handles.items():
             if not h.accepted:
@@ -591,11 +613,12 @@ class Mission:
             plans: dict[str, tuple[list, float]] = {}
             aims: dict[str, tuple[float, float]] = {}
             goals: list = []
+            self._hold()
             for r in self.rovers:
                 req = NextBestView.Request(robot=r, strategy=cfg.strategy,
                                            current_pose=c.camera_pose(r))
                 fut = c.nbv.call_async(req)
-                self._wait(fut.done, 120, f'{r} next best view')
+                self._wait(fut.done, 120, f'{r} next best view', run=False)
                 resp = fut.result()
                 if not resp.success:
                     self.log(f'scan {k} {r}: no view ({resp.message}); panning')
@@ -795,6 +818,9 @@ def main(argv: list[str] | None = None) -> int:
                    default=None, metavar='PORT',
                    help=f'serve the live view for Foxglove on ws://localhost:PORT '
                         f'(default {LIVE_PORT})')
+    p.add_argument('--lockstep', action='store_true',
+                   help='the simulator in lockstep with the nodes that close loops on it: the '
+                        'same outcome on an idle and on a busy machine (docs/design.md)')
     p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None)
     a = p.parse_args(argv)
     if a.live is not None and not _port_free(a.live):
@@ -806,7 +832,8 @@ def main(argv: list[str] | None = None) -> int:
                             identify_s=a.identify_s, coverage_target=a.coverage,
                             max_scans=a.max_scans, strategy=a.strategy,
                             insert_timeout_s=a.insert_timeout, near_start=a.near_start,
-                            bag=a.bag, bag_all=a.bag_all, live_port=a.live)
+                            bag=a.bag, bag_all=a.bag_all, live_port=a.live,
+                            lockstep=a.lockstep)
         mission = Mission(cfg, a.out, run_id=a.run_id, domain_id=a.domain_id)
     except (MissionError, FileExistsError) as exc:
         p.error(str(exc))

@@ -207,7 +207,7 @@ class InsertionRig(contextlib.AbstractContextManager):
                  render_workers: int = 1, lockstep: bool = True, round_s: float = ROUND_S,
                  master_start: tuple[float, float, float] = MASTER_START,
                  slave_start_short_m: float = SLAVE_START_SHORT_M,
-                 composed: bool = False) -> None:
+                 composed: bool = False, participants: tuple[str, ...] = ()) -> None:
         """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
         the map (with the planner); extra_procs: more (log name, package, executable, args);
         render_workers: the sim's (1: the right eye drawn by a second process); lockstep: the
@@ -216,7 +216,8 @@ class InsertionRig(contextlib.AbstractContextManager):
         round_s (the slave's command period by default); master_start,
         slave_start_short_m: where place() stands the rovers (staging_poses); composed: the
         master, the slave, the mapper and the view planner in one process (`coop_bringup
-        compose`), not one each."""
+        compose`), not one each; participants: more lockstep participants than the master,
+        the slave and this rig (the extra processes' or nodes' that close loops)."""
         self.seed = seed
         self.lockstep = lockstep
         self.round_s = round_s
@@ -242,7 +243,8 @@ class InsertionRig(contextlib.AbstractContextManager):
                     f'render_workers:={render_workers}']
         node_args = ['-p', 'use_sim_time:=true']
         if lockstep:
-            sim_args += ['-p', f'lockstep_participants:=[{",".join(PARTICIPANTS)}]',
+            sim_args += ['-p', 'lockstep_participants:=['
+                         + ','.join((*PARTICIPANTS, *participants)) + ']',
                          '-p', f'lockstep_period_s:={round_s}']
             node_args += ['-p', 'lockstep:=true']
         map_args = []
@@ -377,7 +379,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         self._wait(fut.done, timeout_s, what=f"{client.srv_name}'s answer")
         return fut.result()
 
-    def _sim_sleep(self, seconds: float) -> None:
+    def sim_sleep(self, seconds: float) -> None:
         """Wait `seconds` of sim time (up to 60 s + 20x that of wall time: a loaded machine
         runs the rendering sim at a real-time factor near 0.1), and at least long enough for
         a clock that stands still to be told a stall (SimStalled), not a timeout. In lockstep:
@@ -390,7 +392,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         t0 = self.node.elapsed      # not the clock: a reset may not have reached us yet
         self._wait(lambda: self.node.elapsed >= t0 + seconds, timeout, what='sim time')
 
-    def _hold(self) -> None:
+    def hold(self) -> None:
         """Lockstep: hold the sim at its next round (the world changes between rounds)."""
         if self.lockstep:
             self.node.pacer.stop()
@@ -423,7 +425,7 @@ class InsertionRig(contextlib.AbstractContextManager):
     def place(self, slot_in: float, rng: np.random.Generator) -> None:
         """Reset the sim to the slot width with the rovers at their (perturbed) starts."""
         poses = staging_poses(slot_in, rng, **self.starts)
-        self._hold()
+        self.hold()
         req = SimScenario.Request(slot_gap_m=slot_in * INCH, place_rovers=list(poses),
                                   place_x=[p[0] for p in poses.values()],
                                   place_y=[p[1] for p in poses.values()],
@@ -431,13 +433,13 @@ class InsertionRig(contextlib.AbstractContextManager):
         resp = self._call(self.node.reset, req)
         if not resp.success:
             raise InsertionError(f'sim/reset: {resp.message}')
-        self._sim_sleep(0.5)
+        self.sim_sleep(0.5)
 
     def survey(self, *, seconds: float = 20.0) -> int:
         """Rover 1 pans its mast over the site from its start so that the mapper builds the map
         the view planner places the camera in. Returns the map's voxel count."""
         self.node.mast.publish(mast_sweep(seconds))
-        self._sim_sleep(seconds + 1.0)
+        self.sim_sleep(seconds + 1.0)
         return self.node.map_voxels
 
     def stop_mapping(self) -> None:
@@ -448,7 +450,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         stereo node and the mapper are not participants: stopped early, a busy machine's map
         would lack the frames they had not reached, and the camera placed in it differ)."""
         if self.lockstep:
-            self._hold()
+            self.hold()
             seen = [self.node.map_voxels, time.monotonic()]
 
             def settled() -> bool:
@@ -474,7 +476,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         """One `insert` goal from wherever the rovers stand, judged by the simulator's
         truth."""
         node = self.node
-        self._hold()
+        self.hold()
         node.contact = []
         self.feedback = None
         curves = {'t': [], 'phase': [], 'displacement_m': [], 'angle_rad': [], 'force': []}
