@@ -396,11 +396,15 @@ class SimNode(Node):
                 self._last_cmd_vel[i] = self.world.time_s
             elif kind == 'reset':
                 _, config, truth, truth_yaml, places, done = item
+                # the same scene (an insertion rig's next attempt: the rovers placed anew):
+                # the render worker stays, rather than a new process building its copy
+                truths = [truth] * config.rovers
+                worker = self.world.hand_over_renderer(config, truths)
                 self.world.close()
                 self.config = config
                 if truth_yaml:
                     self.truth_path = truth_yaml
-                self.world = World(config, [truth] * config.rovers)
+                self.world = World(config, truths, render_worker=worker)
                 for name, x, y, yaw in places:
                     self.world.place_rover(self.world.rover_index(name), x, y, yaw)
                 self._last_cmd_vel.clear()

@@ -202,14 +202,17 @@ def substeps_for(params: Sequence[BaseParameters], dt: float) -> int:
 class World:
     """The simulated site. Deterministic for a given config (seed) and command sequence."""
 
-    def __init__(self, config: SimConfig, truths: Sequence[BaseParameters]) -> None:
+    def __init__(self, config: SimConfig, truths: Sequence[BaseParameters], *,
+                 render_worker: RenderWorker | None = None) -> None:
+        """render_worker: one that an earlier world of the same scene handed over
+        (`hand_over_renderer`), kept rather than started again."""
         if len(truths) != config.rovers:
             raise ValueError(f'expected {config.rovers} truth parameter sets, got {len(truths)}')
         self.config = config
         self._truths = list(truths)
         # the right eye's renderer in a second process (config.render_workers), started at the
         # first picture; None: both eyes here. render_note: why it stopped, if it did
-        self._render_worker: RenderWorker | None = None
+        self._render_worker: RenderWorker | None = render_worker
         self.render_note: str | None = None
         self.dt = 1.0 / config.physics_rate_hz
         self.integrator = config.integrator
@@ -1035,6 +1038,19 @@ class World:
                                     'in the simulator')
                 return None
         return self._render_worker
+
+    def hand_over_renderer(self, config: SimConfig, truths: Sequence[BaseParameters]
+                           ) -> RenderWorker | None:
+        """This world's render worker for a new world of `config` and `truths`, when that is the
+        same scene (the worker holds a copy of the scene and is told the rovers' poses with
+        each picture, so where they stand does not matter); None otherwise. Handed over, it is
+        no longer this world's (close leaves it running)."""
+        same = config == self.config and len(truths) == len(self._truths) and all(
+            np.array_equal(a.to_vector(), b.to_vector()) for a, b in zip(truths, self._truths))
+        if not same:
+            return None
+        worker, self._render_worker = self._render_worker, None
+        return worker
 
     def _stop_worker(self, note: str | None) -> None:
         if self._render_worker is not None:

@@ -273,6 +273,27 @@ def test_the_render_worker_draws_the_same_pair_and_is_replaced_when_it_dies():
         np.testing.assert_array_equal(r0, r1)
 
 
+def test_a_world_of_the_same_scene_keeps_the_render_worker_and_draws_as_a_fresh_one():
+    """A reset to the same scene (the rovers placed anew) hands the render worker over to the
+    new world; the pictures are those of a world given a worker of its own; a reset to another
+    scene starts a new worker."""
+    cfg = SimConfig(rovers=1, noise=QUIET, image_width=96, image_height=72, render_workers=1)
+    truths = [load_truth()]
+    w = World(cfg, truths)
+    w.render_stereo(0)
+    worker = w._render_worker
+    assert w.hand_over_renderer(cfg.replace(slot_gap_m=0.12), truths) is None
+    kept = w.hand_over_renderer(cfg, truths)
+    assert kept is worker and w._render_worker is None
+    w.close()                                   # the worker handed over outlives its world
+    with World(cfg, truths, render_worker=kept) as again, World(cfg, truths) as fresh:
+        for world in (again, fresh):
+            world.place_rover(0, 0.5, 0.2, 0.3)
+        pair, expected = again.render_stereo(0), fresh.render_stereo(0)
+        assert again._render_worker is kept and again.render_note is None
+        np.testing.assert_array_equal(pair[1], expected[1])
+
+
 def test_a_render_worker_that_cannot_start_leaves_both_eyes_to_the_simulator(monkeypatch):
     import rover_sim.render_worker as rw
     monkeypatch.setattr(rw.sys, 'executable', '/nonexistent/python')
