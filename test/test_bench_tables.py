@@ -96,3 +96,30 @@ def test_map_vs_octomap_prints_the_table_of_its_json(tmp_path, capsys):
     assert printed == format_table(res) + '\n'
     assert set(res['resolutions']) == {'0.5'} and len(res['ray_subdivision']) == 4
     assert math.isclose(res['resolutions']['0.5']['bytes_per_known_voxel'], 32.0)
+
+
+def test_attempt_rate_compose_table_of_a_hand_built_result():
+    from bench.attempt_rate import format_compose_table
+
+    def run(walls, rate, setup, peaks):
+        return {'attempt_wall_s': {'median': sorted(walls)[len(walls) // 2], 'values': walls},
+                'sim_per_wall': {'median': rate}, 'setup_wall_s': setup,
+                'successes': len(peaks),
+                'outcomes': [{'success': True, 'peak_force_n': f} for f in peaks]}
+    res = run([80.0, 90.0, 70.0], 0.4, 60.0, [5.7, 5.6, 5.1])
+    res['composed_run'] = run([72.0, 81.0, 63.0], 0.45, 55.0, [5.7, 5.6, 5.1])
+    res['composed_wall_ratio'] = 0.9
+    lines = format_compose_table(res).splitlines()
+    assert lines[1].split()[-4:] == ['80.0', '0.40', '60', '3/3']
+    assert lines[2].split()[-4:] == ['72.0', '0.45', '55', '3/3']
+    assert lines[3].endswith('0.90; the same outcomes and peak forces: True')
+
+
+def test_sim_reset_table_of_a_hand_built_result():
+    from bench.sim_reset import format_table
+    res = {'kept_worker': {'median': 0.31, 'max': 0.4}, 'new_worker': {'median': 1.24, 'max': 1.5},
+           'ratio': 0.25, 'resets': 5}
+    lines = format_table(res).splitlines()
+    assert lines[1].split()[-2:] == ['0.310', '0.400']
+    assert lines[2].split()[-2:] == ['1.240', '1.500']
+    assert lines[3] == 'handed over / new, median: 0.25 (5 resets each)'

@@ -26,8 +26,10 @@ from rclpy.node import Node
 
 from coop_common.node_util import NodeFailed, run_nodes
 
+from .report import MissionError
 
-class ComposeError(ValueError):
+
+class ComposeError(MissionError):
     """A node spec that names no composable node."""
 
 

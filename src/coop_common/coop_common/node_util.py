@@ -22,6 +22,7 @@ from rclpy.exceptions import InvalidParameterValueException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
+from .errors import CoopCommonError
 from .params import ParamSpec, check_values
 
 __all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'NodeFailed', 'run_node',
@@ -177,7 +178,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     return run_nodes([factory], args, executor_factory)
 
 
-class NodeFailed(RuntimeError):
+class NodeFailed(CoopCommonError):
     """A callback of one node of a composed process raised: `node` names it."""
 
     def __init__(self, node: str, exc: BaseException) -> None:
