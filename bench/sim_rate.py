@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """Simulator real-time factor: 2 rovers without rendering, with stereo at 4 Hz (320x240 and
-640x480), and the node publishing everything over DDS; beside it, the peer: PyBullet stepping the
+640x480; TinyRenderer in the simulator, with a render worker, and PyBullet's EGL plugin), and
+the node publishing everything over DDS; beside it, the peer: PyBullet stepping the
 same bodies with no compliance or sensors (the engine's own ceiling), measured in the same run.
 
 Usage: bench/sim_rate.py --json OUT [--seconds S]
@@ -45,6 +46,24 @@ def world_rtf(seconds: float, **cfg) -> tuple[float, float, int]:
                     w.render_stereo(i)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         return seconds / wall, seconds / cpu, w.substeps
+
+
+def renderer_agreement() -> dict:
+    """The same 640x480 left image of the insertion site (rover 1 at the master's start) from
+    TinyRenderer and from the EGL plugin: mean absolute grey-level difference, and the share of
+    pixels more than 10 levels apart (None where EGL does not load)."""
+    import numpy as np
+    images = {}
+    for renderer in ('tiny', 'egl'):
+        config = SimConfig(rovers=2, image_width=640, image_height=480, renderer=renderer)
+        with World(config, [load_truth()] * 2) as w:
+            if w.renderer.value != renderer:
+                return {'egl_loaded': False, 'note': w.renderer_note}
+            w.place_rover(0, 2.2, 1.4, -1.0)
+            images[renderer] = w.render_stereo(0)[0].astype(float)
+    d = np.abs(images['tiny'] - images['egl'])
+    return {'egl_loaded': True, 'mean_abs_diff': float(d.mean()),
+            'share_over_10': float((d > 10).mean())}
 
 
 def raw_pybullet_rtf(seconds: float, substeps: int) -> tuple[float, float]:
@@ -116,6 +135,7 @@ _CASES = (('rtf_no_render', 'world, 2 rovers, no rendering'),
           ('rtf_stereo_4hz_320x240', 'world, 2 rovers, stereo 4 Hz 320x240'),
           ('rtf_stereo_4hz_640x480', 'world, 2 rovers, stereo 4 Hz 640x480'),
           ('rtf_stereo_4hz_640x480_worker', 'the same, right eye in a render worker (*)'),
+          ('rtf_stereo_4hz_640x480_egl', 'the same, EGL plugin, one process'),
           ('rtf_peer_pybullet_only', 'peer: pb.stepSimulation only ({substeps} sub-steps)'))
 
 
@@ -141,6 +161,13 @@ def format_table(result: dict) -> str:
     lines.append(f'{"ours / peer, CPU (no rendering)":<52} {result["ratio_to_peer"]:>9.2f}')
     if 'rtf_stereo_4hz_640x480_worker' in result:
         lines.append('(*) its CPU figure leaves out the worker process: compare the wall column')
+    egl = result.get('renderers', {}).get('egl')
+    if egl and egl.get('egl_loaded'):
+        lines.append(f'EGL against TinyRenderer, the same 640x480 view of the site: mean '
+                     f'|difference| {egl["mean_abs_diff"]:.1f} grey levels, '
+                     f'{100 * egl["share_over_10"]:.0f} % of pixels over 10 apart')
+    elif egl:
+        lines.append(f'EGL: {egl.get("note")}')
     return '\n'.join(lines)
 
 
@@ -157,6 +184,9 @@ def main() -> int:
     s640 = world_rtf(args.seconds / 2, stereo_rate_hz=4.0, image_width=640, image_height=480)
     s640w = world_rtf(args.seconds / 2, stereo_rate_hz=4.0, image_width=640, image_height=480,
                       render_workers=1)
+    s640egl = world_rtf(args.seconds / 2, stereo_rate_hz=4.0, image_width=640, image_height=480,
+                        renderer='egl')
+    agreement = renderer_agreement()
     peer = raw_pybullet_rtf(args.seconds, substeps)
     node = node_rtf(args.seconds, stereo_hz=4.0, every_topic=True)
     node_free = node_rtf(args.seconds, stereo_hz=0.0, every_topic=False)
@@ -165,10 +195,12 @@ def main() -> int:
         'rtf_no_render': none[1], 'rtf_no_render_implicit': implicit[1],
         'rtf_stereo_4hz_320x240': s320[1],
         'rtf_stereo_4hz_640x480': s640[1], 'rtf_stereo_4hz_640x480_worker': s640w[1],
+        'rtf_stereo_4hz_640x480_egl': s640egl[1],
         'rtf_peer_pybullet_only': peer[1],
         'wall': {'rtf_no_render': none[0], 'rtf_no_render_implicit': implicit[0],
                  'rtf_stereo_4hz_320x240': s320[0],
                  'rtf_stereo_4hz_640x480': s640[0], 'rtf_stereo_4hz_640x480_worker': s640w[0],
+                 'rtf_stereo_4hz_640x480_egl': s640egl[0],
                  'rtf_peer_pybullet_only': peer[0],
                  'rtf_node_over_dds': node, 'rtf_node_no_render': node_free,
                  'rtf_node_lockstep': node_lockstep},
@@ -176,14 +208,16 @@ def main() -> int:
         'rtf_cpu': {'no_render': none[1], 'no_render_implicit': implicit[1],
                     'stereo_320': s320[1], 'stereo_640': s640[1]},
         'renderers': {'tinyrenderer': {'stereo_640': s640[1], 'stereo_640_wall': s640[0]},
-                      'tinyrenderer_worker': {'stereo_640_wall': s640w[0]}},
+                      'tinyrenderer_worker': {'stereo_640_wall': s640w[0]},
+                      'egl': {'stereo_640': s640egl[1], 'stereo_640_wall': s640egl[0],
+                              **agreement}},
         'peer_ratio': none[1] / peer[1],
         'ratio_to_peer': none[1] / peer[1], 'substeps': substeps, 'sim_seconds': args.seconds,
         'clock': 'rtf_* are sim seconds per CPU second of this process (with the render worker: '
                  'not counting the worker); wall.* per wall second',
         'targets': {'rtf_no_render': 8.0, 'rtf_no_render_implicit': 8.0,
                     'rtf_stereo_4hz_320x240': 1.0, 'rtf_stereo_4hz_640x480': 2.0,
-                    'rtf_stereo_4hz_640x480_worker': 2.0},
+                    'rtf_stereo_4hz_640x480_worker': 2.0, 'rtf_stereo_4hz_640x480_egl': 2.0},
     }
     print(format_table(result))
     write_json(args.json, result, indent=2)

@@ -51,6 +51,16 @@ class Integrator(str, enum.Enum):
     EXPLICIT = 'explicit'
 
 
+class Renderer(str, enum.Enum):
+    """Which of PyBullet's renderers draws the stereo pairs."""
+
+    #: PyBullet's software rasteriser, in the simulator's own thread (every image validated on)
+    TINY = 'tiny'
+    #: PyBullet's EGL plugin (OpenGL through EGL: a GPU's driver, or Mesa's llvmpipe on the
+    #: CPU); where it cannot load, TINY, with the reason in World.renderer_note
+    EGL = 'egl'
+
+
 #: image_width x image_height x supersample^2: TinyRenderer's RGBA and depth buffers of one image
 MAX_RENDERED_PIXELS = 16_000_000
 
@@ -74,18 +84,20 @@ class SimConfig:
     hfov_deg: float = 41.2
     supersample: int = 1                 # n x n render samples averaged per pixel (odd)
     render_workers: int = 0              # 1: the right eye drawn by a second process
+    renderer: Renderer = Renderer.TINY
     real_time_factor: float = 1.0        # 0: as fast as possible
     max_linear_speed_m_s: float = 0.25   # app. D: about 25 cm/s
     max_yaw_rate_rad_s: float = 1.0
     noise: NoiseConfig = field(default_factory=NoiseConfig)
 
     def __post_init__(self) -> None:
-        try:
-            object.__setattr__(self, 'integrator', Integrator(self.integrator))
-        except ValueError:
-            known = ', '.join(i.value for i in Integrator)
-            raise ConfigError(f'integrator: must be one of {known}, got {self.integrator!r}'
-                              ) from None
+        for name, kind in (('integrator', Integrator), ('renderer', Renderer)):
+            try:
+                object.__setattr__(self, name, kind(getattr(self, name)))
+            except ValueError:
+                known = ', '.join(i.value for i in kind)
+                raise ConfigError(f'{name}: must be one of {known}, got '
+                                  f'{getattr(self, name)!r}') from None
         checks = [
             ('rovers', 1 <= self.rovers <= 8, 'must be 1..8'),
             ('occlusion_density', 0.0 <= self.occlusion_density <= 0.5, 'must be in [0, 0.5]'),

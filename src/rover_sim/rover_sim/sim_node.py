@@ -38,7 +38,7 @@ from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer, Lockste
 from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat, rpy_to_matrix
-from .config import ConfigError, Integrator, NoiseConfig, SimConfig, load_config
+from .config import ConfigError, Integrator, NoiseConfig, Renderer, SimConfig, load_config
 from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
 from .trajectory import TrajectoryError
 from .world import World
@@ -83,6 +83,10 @@ PARAMS = {
                                 'of each stereo pair in a second process, the same images in '
                                 'about half the wall time where a core is free; 0: none)',
                                 lo=0, hi=1, read_only=True),
+    'renderer': ParamSpec(Renderer.TINY.value, "Who draws the stereo pairs: PyBullet's "
+                          'TinyRenderer, or its EGL plugin (a GPU, or Mesa on the CPU; '
+                          'TinyRenderer where it cannot load: docs/results/simulator.md)',
+                          choices=[r.value for r in Renderer], read_only=True),
     'physics_substeps': ParamSpec(0, 'Physics sub-steps per 5 ms step; 0 = the stability minimum '
                                   '(explicit; implicit: 1) (more: closer to the continuous '
                                   'Eq. B-3 dynamics, slower)', lo=0, hi=200, read_only=True),
@@ -165,13 +169,16 @@ class SimNode(Node):
         self._stop = threading.Event()
         self.fatal_error: Exception | None = None     # what stopped the simulation thread
         self._thread = threading.Thread(target=self._run, name='sim', daemon=True)
+        if self.world.renderer_note:
+            self.get_logger().warn(self.world.renderer_note)
         self.get_logger().info(
             f'{self.config.rovers} rovers, seed {self.config.seed}, '
             f'{len(self.world.layout.obstacles)} obstacles, '
             f'physics {self.config.physics_rate_hz:g} '
             f'Hz x {self.world.substeps} {self.config.integrator.value} sub-steps, '
             f'stereo {self.config.stereo_rate_hz:g} Hz '
-            f'{self.config.image_width}x{self.config.image_height}'
+            f'{self.config.image_width}x{self.config.image_height} '
+            f'({self.world.renderer.value})'
             + (f' ({self.config.supersample}x{self.config.supersample} samples per pixel)'
                if self.config.supersample > 1 else '') + f', rtf {self._rtf:g}'
             + (f', lockstep with {", ".join(self._gate.participants)} every '
@@ -195,7 +202,8 @@ class SimNode(Node):
                                                   'fraction': v['noise_fraction']})
             # how it renders is the process's, not the world's: always the node's parameter
             config = base.replace(real_time_factor=self._rtf,
-                                  render_workers=v['render_workers'], **changes)
+                                  render_workers=v['render_workers'],
+                                  renderer=v['renderer'], **changes)
             reason = _unknown_rovers(v['stereo_rovers'], config.rovers)
             if reason:
                 raise ConfigError(reason)

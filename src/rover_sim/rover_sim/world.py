@@ -4,6 +4,7 @@ the card and the insertion site. No rclpy: `World` steps, senses and renders; th
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 import shutil
 import tempfile
@@ -33,7 +34,7 @@ from .compliance import (
     rpy_to_matrix,
     static_preload,
 )
-from .config import Integrator, SimConfig
+from .config import Integrator, Renderer, SimConfig
 from .implicit import BaseKinematics, ImplicitSolver
 from .render_worker import RenderWorker, RenderWorkerError
 from .rover_model import (
@@ -199,6 +200,19 @@ def substeps_for(params: Sequence[BaseParameters], dt: float) -> int:
     return max(1, int(math.ceil(rate * dt)))
 
 
+def load_egl(client: int) -> tuple[int, str | None]:
+    """PyBullet's EGL renderer plugin (in the pybullet wheel) into physics client `client`:
+    (plugin id, None), or (-1, why it did not load)."""
+    spec = importlib.util.find_spec('eglRenderer')
+    if spec is None or spec.origin is None:
+        return -1, 'EGL renderer: no eglRenderer module in the pybullet wheel; TinyRenderer draws'
+    plugin = pb.loadPlugin(spec.origin, '_eglRendererPlugin', physicsClientId=client)
+    if plugin < 0:
+        return -1, ('EGL renderer: the plugin did not load (no EGL: install libegl1, '
+                    'libegl-mesa0 and libgl1-mesa-dri, or a GPU driver); TinyRenderer draws')
+    return plugin, None
+
+
 class World:
     """The simulated site. Deterministic for a given config (seed) and command sequence."""
 
@@ -228,6 +242,14 @@ class World:
         self._tmp = Path(tempfile.mkdtemp(prefix='rover_sim_'))
         self.client = pb.connect(pb.DIRECT)
         pb.resetSimulation(physicsClientId=self.client)
+        # EGL: loaded before any body is made (the plugin draws the shapes made after it);
+        # where it cannot load, TinyRenderer, and renderer_note says why
+        self.renderer, self.renderer_note = Renderer.TINY, None
+        self._egl_plugin = -1
+        if config.renderer is Renderer.EGL:
+            self._egl_plugin, self.renderer_note = load_egl(self.client)
+            if self._egl_plugin >= 0:
+                self.renderer = Renderer.EGL
         pb.setGravity(0, 0, -9.81, physicsClientId=self.client)
         pb.setPhysicsEngineParameter(fixedTimeStep=self.dt / self.substeps, numSubSteps=0,
                                      deterministicOverlappingPairs=1,
@@ -1005,7 +1027,9 @@ class World:
         eye = pos + rot[:, 0] * offset
         view = pb.computeViewMatrix(eye.tolist(), (eye + rot[:, 2]).tolist(),
                                     (-rot[:, 1]).tolist())
-        _, _, rgba, _, _ = pb.getCameraImage(w, h, view, proj, renderer=pb.ER_TINY_RENDERER,
+        renderer = (pb.ER_BULLET_HARDWARE_OPENGL if self.renderer is Renderer.EGL
+                    else pb.ER_TINY_RENDERER)
+        _, _, rgba, _, _ = pb.getCameraImage(w, h, view, proj, renderer=renderer,
                                              flags=pb.ER_NO_SEGMENTATION_MASK,
                                              physicsClientId=self.client)
         rgb = np.reshape(np.asarray(rgba, dtype=np.uint8), (h, w, 4))[:, :, :3]
@@ -1069,6 +1093,8 @@ class World:
             self.probe_client = None
         if self.client is not None and self.client >= 0:
             try:
+                if self._egl_plugin >= 0:
+                    pb.unloadPlugin(self._egl_plugin, physicsClientId=self.client)
                 pb.disconnect(physicsClientId=self.client)
             except pb.error:
                 pass

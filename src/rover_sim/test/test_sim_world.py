@@ -302,3 +302,19 @@ def test_a_render_worker_that_cannot_start_leaves_both_eyes_to_the_simulator(mon
         left, right = w.render_stereo(0)
         assert 'did not start' in w.render_note
         assert left.shape == right.shape == (48, 64) and left.std() > 0
+
+
+def test_an_egl_renderer_that_cannot_load_leaves_the_pictures_to_tinyrenderer(monkeypatch):
+    import importlib.util
+
+    from rover_sim.config import ConfigError, Renderer
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, 'find_spec',
+                        lambda name, *a: None if name == 'eglRenderer' else real(name, *a))
+    cfg = SimConfig(rovers=1, noise=QUIET, image_width=64, image_height=48, renderer='egl')
+    with World(cfg, [load_truth()]) as w:
+        assert w.renderer is Renderer.TINY and 'TinyRenderer draws' in w.renderer_note
+        left, right = w.render_stereo(0)
+        assert left.shape == (48, 64) and left.std() > 0
+    with pytest.raises(ConfigError, match='renderer: must be one of tiny, egl'):
+        SimConfig(renderer='opengl')
