@@ -66,6 +66,28 @@ def renderer_agreement() -> dict:
             'share_over_10': float((d > 10).mean())}
 
 
+def pair_cpu_without_obstacles() -> dict:
+    """CPU seconds of one 640x480 TinyRenderer pair of the insertion site from rover 1 at the
+    master's start, with every body, and with the obstacles (rocks, drums) out of the scene:
+    the most that rendering only the bodies that can appear would save."""
+    config = SimConfig(rovers=2, image_width=640, image_height=480)
+    with World(config, [load_truth()] * 2) as w:
+        w.place_rover(0, 2.2, 1.4, -1.0)
+
+        def per_pair() -> float:
+            w.render_stereo(0)
+            c0 = time.process_time()
+            for _ in range(3):
+                w.render_stereo(0)
+            return (time.process_time() - c0) / 3
+        every = per_pair()
+        for body in w.obstacle_bodies:
+            pb.resetBasePositionAndOrientation(body, [0.0, 0.0, -100.0], [0, 0, 0, 1],
+                                               physicsClientId=w.client)
+        return {'pair_cpu_s': every, 'pair_cpu_s_no_obstacles': per_pair(),
+                'obstacles': len(w.obstacle_bodies)}
+
+
 def raw_pybullet_rtf(seconds: float, substeps: int) -> tuple[float, float]:
     """The peer: pb.stepSimulation alone on the same world at the same sub-step."""
     with World(SimConfig(rovers=2, stereo_rate_hz=0.0), [load_truth()] * 2) as w:
@@ -161,6 +183,11 @@ def format_table(result: dict) -> str:
     lines.append(f'{"ours / peer, CPU (no rendering)":<52} {result["ratio_to_peer"]:>9.2f}')
     if 'rtf_stereo_4hz_640x480_worker' in result:
         lines.append('(*) its CPU figure leaves out the worker process: compare the wall column')
+    tiny = result.get('renderers', {}).get('tinyrenderer', {})
+    if 'pair_cpu_s_no_obstacles' in tiny:
+        lines.append(f'TinyRenderer, one 640x480 pair of the site: {tiny["pair_cpu_s"]:.3f} CPU s '
+                     f'with every body, {tiny["pair_cpu_s_no_obstacles"]:.3f} without its '
+                     f'{tiny["obstacles"]} obstacles')
     egl = result.get('renderers', {}).get('egl')
     if egl and egl.get('egl_loaded'):
         lines.append(f'EGL against TinyRenderer, the same 640x480 view of the site: mean '
@@ -187,6 +214,7 @@ def main() -> int:
     s640egl = world_rtf(args.seconds / 2, stereo_rate_hz=4.0, image_width=640, image_height=480,
                         renderer='egl')
     agreement = renderer_agreement()
+    culled = pair_cpu_without_obstacles()
     peer = raw_pybullet_rtf(args.seconds, substeps)
     node = node_rtf(args.seconds, stereo_hz=4.0, every_topic=True)
     node_free = node_rtf(args.seconds, stereo_hz=0.0, every_topic=False)
@@ -207,7 +235,8 @@ def main() -> int:
         # the issue's names for the same figures (CPU real-time factors; per renderer)
         'rtf_cpu': {'no_render': none[1], 'no_render_implicit': implicit[1],
                     'stereo_320': s320[1], 'stereo_640': s640[1]},
-        'renderers': {'tinyrenderer': {'stereo_640': s640[1], 'stereo_640_wall': s640[0]},
+        'renderers': {'tinyrenderer': {'stereo_640': s640[1], 'stereo_640_wall': s640[0],
+                                       **culled},
                       'tinyrenderer_worker': {'stereo_640_wall': s640w[0]},
                       'egl': {'stereo_640': s640egl[1], 'stereo_640_wall': s640egl[0],
                               **agreement}},
