@@ -231,6 +231,7 @@ class SlaveController:
         self._state: _State | None = None
         self._start_t: float | None = None
         self._target: _Target | None = None
+        self._last_t: float | None = None     # the last visual-servo step's time
         self._settled_since: float | None = None
         self._descending = False
         self._descent_start: float | None = None
@@ -379,10 +380,12 @@ class SlaveController:
         cmd = self.servo.command(t)
         self._errors = (cmd.displacement_error_m, cmd.angle_error_rad) \
             if math.isfinite(cmd.vision_age_s) else (math.nan, math.nan)
+        # the period since the last step, held or not: a hold's steps count (integrating the
+        # arm's velocity over a whole hold at the first step after it would jump the card)
+        dt = 1.0 / 200.0 if self._last_t is None else max(0.0, t - self._last_t)
+        self._last_t = t
         if cmd.held:
             return self._command(self._joints(), 0.0, 0.0)
-        dt = 1.0 / 200.0 if not hasattr(self, '_last_t') else max(0.0, t - self._last_t)
-        self._last_t = t
         arm_v = cmd.arm_linear.copy()
         if not self._descending:
             # the arm turns the card about its plane's normal only (4 DOF): the rest of the

@@ -110,3 +110,35 @@ def test_the_abort_needs_a_force_sustained_over_three_readings():
         ctl.add_state(0.005 * k, q, [0.0] * 3, [0.0, 0.0, 40.0, 0.0, 0.0, 0.0])
         st = ctl.step(0.005 * k).status
     assert st.done and not st.success and 'abort limit 30.0 N' in st.reason
+
+
+def test_the_first_step_after_a_vision_hold_moves_the_arm_one_period_not_the_whole_hold():
+    """A hold (vision older than the servo's timeout) must not leave the next step to integrate
+    the arm's velocity over the whole hold: that is a jump of the card, not a command."""
+    from types import SimpleNamespace
+
+    from coop_insertion.servo import ServoCommand
+    ctl = SlaveController(TaskModel(), [0.01, 0.3, 0.1])
+    q = [0.0, 0.6, -1.0, 0.4]
+    arm_v = np.array([0.01, 0.0, 0.0])          # 10 mm/s forward, the card's own direction
+    held = {'now': False}
+
+    def command(_t):
+        return ServoCommand(0.0, 0.0, arm_v if not held['now'] else np.zeros(3), np.zeros(3),
+                            np.full(3, 0.05), np.zeros(3), held['now'],
+                            'vision too old' if held['now'] else '', 0.1)
+    ctl.servo = SimpleNamespace(goal=object(), command=command,
+                                add_odometry=lambda *_: None)
+    ctl.phase = Phase.VISUAL_SERVO
+    t = 0.0
+    moves = []
+    for k in range(400):                         # 0.5 s moving, 1 s held, 0.5 s moving
+        t = 0.005 * k
+        held['now'] = 0.5 <= t < 1.5
+        ctl.add_state(t, q, [0.0] * 3, [0.0] * 6)
+        before = ctl._target.position.copy() if ctl._target is not None else None
+        ctl.step(t)
+        if before is not None:
+            moves.append(float(np.linalg.norm(ctl._target.position - before)))
+    # every step moves the card at most one 5 ms period at 10 mm/s (0.05 mm)
+    assert max(moves) <= 0.01 * 0.005 + 1e-9, max(moves)
