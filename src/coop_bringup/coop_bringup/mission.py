@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import Odometry
 from rclpy.action import ActionClient
@@ -45,6 +46,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from coop_common.cli import number
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.lockstep_node import Lockstep, remap_args
+from coop_common.node_util import stamp
 from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
@@ -490,8 +492,11 @@ class Mission:
         self._wait(lambda: all(r in c.truth for r in self.rovers), 60, "the sim's truth")
         self.rig.render((), 0.0)                  # no one looks while the arms shake
         self._sim_wait(2.0, 'the rovers at rest')
+        # in lockstep the goals carry the round the rig holds the sim at (they are given there)
+        given = stamp(self.rig.node.ls.stamp_s) if cfg.lockstep else Time()
         futs = {r: c.identify[r].send_goal_async(Identify.Goal(
-            strategy=cfg.identify_strategy, duration_s=cfg.identify_s)) for r in self.rovers}
+            strategy=cfg.identify_strategy, duration_s=cfg.identify_s, stamp=given))
+            for r in self.rovers}
         self._wait(lambda: all(f.done() for f in futs.values()), 30, 'the goals accepted',
                    run=False)
         handles = {r: f.result() for r, f in futs.items()}

@@ -119,6 +119,9 @@ class IdentifierNode(Node):
         self._busy = False         # a goal is accepted or running
         self._wake: Future | None = None    # the running goal awaits it (window done, poke)
         self._t0 = None
+        # the running goal's stamp: its excitation starts with the first sample after it (in
+        # lockstep a goal and the round it was given in can reach the node in either order)
+        self._goal_stamp = -math.inf
         self._t_now = 0.0
         self._t_estimate = 0.0     # stamp of the last sample in the estimate
         self._windows = 0
@@ -131,6 +134,9 @@ class IdentifierNode(Node):
         # answered, and the arm's commands act in the next round, on an idle or a busy machine
         deep = with_depth(SENSOR_QOS, int(SAMPLE_QUEUE_S * self.p['rate_hz']))
         self.ls = Lockstep(self, self.p['lockstep'])
+        # in lockstep the running goal looks at every round's end (whether its time is up), so
+        # it ends at the same round on any machine, not at whichever one a wall-clock poke hits
+        self.ls.on_round(self._poke)
         self.ls.subscription(Imu, 'imu', self._on_imu, deep)
         self.ls.subscription(Inclinometer, 'inclinometer', self._on_incl, deep)
         self.ls.subscription(WrenchStamped, 'arm/wrench', self._on_wrench, deep)
@@ -180,7 +186,7 @@ class IdentifierNode(Node):
                 self.joint_positions[name] = pos
 
     def _on_sample(self, t: float, row: np.ndarray) -> None:
-        if not self._active or self.ident is None:
+        if not self._active or self.ident is None or t <= self._goal_stamp:
             return
         last = self._last_sample
         if last is not None and t - last[0] > self.p['stale_timeout_s']:
@@ -384,6 +390,8 @@ class IdentifierNode(Node):
         self._t0 = None
         self._windows = 0
         self._ref = ArmReference(MODES)
+        given = goal.stamp.sec + 1e-9 * goal.stamp.nanosec
+        self._goal_stamp = given if given > 0 else -math.inf
         self.get_logger().info(f'identifying with {cfg.strategy} for {goal.duration_s} s')
         self._active = True
         self._time_reset = False

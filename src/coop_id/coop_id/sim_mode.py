@@ -20,14 +20,16 @@ from rclpy.node import Node
 
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.lockstep_node import Lockstep, Pacer, remap_args
+from coop_common.node_util import stamp
 from coop_common.qos import LATCHED_QOS
 from coop_common.testing import NodeProcess, isolate_ros_environment
 from coop_msgs.action import Identify
 from coop_msgs.msg import DynamicParameters
 
-#: this client's node name (a lockstep participant), and rover_sim's lockstep round (s)
+#: this client's node name (a lockstep participant), and rover_sim's lockstep round (s): 20 ms,
+#: half the round trips of 10 ms (the arm's commands lead their time by command_lead_s)
 CLIENT = 'table_2_1_sim'
-ROUND_S = 0.01
+ROUND_S = 0.02
 
 
 def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
@@ -59,7 +61,8 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
         ctx = Context()
         rclpy.init(context=ctx)
         node = Node(CLIENT, context=ctx)
-        pacer = Pacer(Lockstep(node, lockstep))
+        pacer_ls = Lockstep(node, lockstep)
+        pacer = Pacer(pacer_ls)
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         truth: list[DynamicParameters] = []
@@ -83,7 +86,11 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
             else:
                 t0 = time.monotonic()
                 spin_until(lambda: time.monotonic() - t0 >= settle_s, settle_s + 1, 'rest')
-            fut = client.send_goal_async(Identify.Goal(strategy=strategy, duration_s=duration_s))
+            # in lockstep the goal carries the round it is given in (the sim held there)
+            goal = Identify.Goal(strategy=strategy, duration_s=duration_s)
+            if lockstep:
+                goal.stamp = stamp(pacer_ls.stamp_s)
+            fut = client.send_goal_async(goal)
             spin_until(fut.done, 30, 'answer to the goal')
             handle = fut.result()
             if handle is None or not handle.accepted:
