@@ -26,13 +26,13 @@ def short_attempt(log_dir, *, composed=False):
     from coop_common.rover_geometry import camera_mount
     from coop_insertion.rig import InsertionRig
     # the master starts where its pinned placement puts it (the camera 0.5 m off the target,
-    # looking back at it), the slave's card 0.1 m short of the slot, descending at 1.5 cm/s:
+    # looking back at it), the slave's card 0.05 m short of the slot, descending at 3 cm/s:
     # a short attempt
     mount = camera_mount((3.0572, 0.65), -math.pi / 2, math.atan2(0.8 - 0.5, 0.5))
     with InsertionRig(seed=1, slot_in=5.0, occlusion_density=0.0, planner=False,
-                      master_args=PINNED, slave_args=('-p', 'descent_speed_m_s:=0.015'),
+                      master_args=PINNED, slave_args=('-p', 'descent_speed_m_s:=0.03'),
                       log_dir=log_dir, lockstep=True, round_s=ROUND_S,
-                      master_start=(*mount.base_xy, mount.base_yaw), slave_start_short_m=0.1,
+                      master_start=(*mount.base_xy, mount.base_yaw), slave_start_short_m=0.05,
                       composed=composed, domain_id=int(os.environ['ROS_DOMAIN_ID'])) as rig:
         return rig.attempt(slot_in=5.0, placement='random', seed=3, timeout_s=40.0)
 

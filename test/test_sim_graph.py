@@ -275,9 +275,10 @@ def test_reset_places_a_rover_and_the_card_is_published(live):
     assert contact.points == 0 and not contact.seated and contact.max_penetration_m == 0.0
 
 
-def _first_imus(tmp_path: Path, seed: int, n: int = 100, name: str = 'det') -> dict:
-    """IMU readings keyed by stamp for the first n steps after /sim/reset to `seed`: a late
-    subscriber misses the start of a run, so every run is restarted at t = 0 once connected."""
+def _first_imus(tmp_path: Path, seeds: list[int], n: int = 100, name: str = 'det') -> list:
+    """IMU readings keyed by stamp for the first n steps after each /sim/reset to one of
+    `seeds`, in turn, in one simulator process: a late subscriber misses the start of a run, so
+    every run is restarted at t = 0 once connected."""
     # its own namespace: the module's live simulator publishes /rover1/imu meanwhile
     with sim_process(tmp_path, '-r', '__ns:=/det', '-p', 'seed:=1', '-p', 'stereo_rate_hz:=0.0',
                      '-p', 'real_time_factor:=0.5', name=name):
@@ -288,29 +289,35 @@ def _first_imus(tmp_path: Path, seed: int, n: int = 100, name: str = 'det') -> d
             probe.spin_until(lambda: probe.count('/det/rover1/imu') >= 300, 60.0, 'imu messages')
             client = probe.node.create_client(SimScenario, '/det/sim/reset')
             assert client.wait_for_service(timeout_sec=10.0)
-            future = client.call_async(SimScenario.Request(seed=seed, occlusion_density=-1.0,
-                                                           slot_gap_m=0.0, truth_yaml=''))
-            probe.spin_until(future.done, 30.0, 'the reset')
-            assert future.result().success
-            msgs = probe.msgs['/det/rover1/imu']
-            msgs.clear()
-            probe.spin_until(lambda: sum(t_of(m.header) < 1.0 for m in msgs) >= n, 60.0,
-                             'imu messages after the reset')
-            return {round(t_of(m.header), 4): (m.linear_acceleration.x, m.angular_velocity.y)
-                    for m in msgs if t_of(m.header) < 1.0}
+            out = []
+            for seed in seeds:
+                future = client.call_async(SimScenario.Request(
+                    seed=seed, occlusion_density=-1.0, slot_gap_m=0.0, truth_yaml=''))
+                probe.spin_until(future.done, 30.0, 'the reset')
+                assert future.result().success
+                msgs = probe.msgs['/det/rover1/imu']
+                msgs.clear()
+                probe.spin_until(lambda: sum(t_of(m.header) < 1.0 for m in msgs) >= n, 60.0,
+                                 'imu messages after the reset')
+                out.append({round(t_of(m.header), 4): (m.linear_acceleration.x,
+                                                       m.angular_velocity.y)
+                            for m in msgs if t_of(m.header) < 1.0})
+            return out
         finally:
             probe.close()
 
 
 def test_same_seed_gives_identical_readings(tmp_path):
-    a = _first_imus(tmp_path, 5, name='a')
-    b = _first_imus(tmp_path, 5, name='b')
-    c = _first_imus(tmp_path, 6, name='c')
-    common = sorted(set(a) & set(b))
-    assert len(common) >= 50
-    assert all(a[t] == b[t] for t in common)
-    other = sorted(set(a) & set(c))
-    assert any(a[t] != c[t] for t in other)
+    # two processes, and within one a reset to seed 5 after one to seed 6: a run depends on
+    # its seed, not on the process or on what ran before it
+    a, c, a_again = _first_imus(tmp_path, [5, 6, 5], name='a')
+    (b,) = _first_imus(tmp_path, [5], name='b')
+    for other in (b, a_again):
+        common = sorted(set(a) & set(other))
+        assert len(common) >= 50
+        assert all(a[t] == other[t] for t in common)
+    different = sorted(set(a) & set(c))
+    assert any(a[t] != c[t] for t in different)
 
 
 def test_namespace_and_params_file(tmp_path):

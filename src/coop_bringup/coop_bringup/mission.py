@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import Odometry
 from rclpy.action import ActionClient
@@ -492,11 +491,10 @@ class Mission:
         self._wait(lambda: all(r in c.truth for r in self.rovers), 60, "the sim's truth")
         self.rig.render((), 0.0)                  # no one looks while the arms shake
         self._sim_wait(2.0, 'the rovers at rest')
-        # in lockstep the goals carry the round the rig holds the sim at (they are given there)
-        given = stamp(self.rig.node.ls.stamp_s) if cfg.lockstep else Time()
-        futs = {r: c.identify[r].send_goal_async(Identify.Goal(
-            strategy=cfg.identify_strategy, duration_s=cfg.identify_s, stamp=given))
-            for r in self.rovers}
+        goal = Identify.Goal(strategy=cfg.identify_strategy, duration_s=cfg.identify_s)
+        if cfg.lockstep:    # the round the rig holds the sim at: the goals are given there
+            goal.stamp = stamp(self.rig.node.ls.stamp_s)
+        futs = {r: c.identify[r].send_goal_async(goal) for r in self.rovers}
         self._wait(lambda: all(f.done() for f in futs.values()), 30, 'the goals accepted',
                    run=False)
         handles = {r: f.result() for r, f in futs.items()}
