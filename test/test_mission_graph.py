@@ -1,6 +1,6 @@
 """The whole mission, shortened, end to end over DDS (issue #23): `coop_bringup.mission` with
-the rovers starting by the site, 6 s of identification, the map from where they stand (a 5 s
-sweep of each mast; one next-best-view scan if the coverage needs it), the master's camera
+the rovers starting by the site, 6 s of identification, the map from where they stand (a sweep
+of each mast; one next-best-view scan if the coverage needs it), the master's camera
 placed by `task_view` and the easy (5.0 in) slot; each phase checked against the simulator's
 truth: the identified parameters, the site's jaws in the saved map, the camera where the
 placement put it, the card in the slot without penetrating the jaws; and the run's MCAP bag,
@@ -28,8 +28,7 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
         s.bind(('127.0.0.1', 0))
         port = s.getsockname()[1]
     cfg = MissionConfig(seed=1, occlusion_density=0.05, slot_in=5.0, identify_s=6.0,
-                        coverage_target=0.5, max_scans=1, near_start=True, live_port=port,
-                        sweep_s=5.0)
+                        coverage_target=0.5, max_scans=1, near_start=True, live_port=port)
     rep = Mission(cfg, tmp_path, run_id='short', domain_id=int(os.environ['ROS_DOMAIN_ID']),
                   log=print).run()
     out = tmp_path / 'short'
