@@ -6,9 +6,10 @@ Three detectors behind one interface (`MarkerDetector.detect(image) -> list[Mark
   the Eq. 5-6 Laplacian, a 3x3 low pass, a threshold at the histogram peak - 5, the Tracking
   Hough Transform on three-point circles (Eq. 5-7..5-9, distance-D and d-theta = pi/6 rules,
   > 35 % of the circumference) and a region-growing centroid.
-- `EllipseDetector` (the default, `make_detector('default')`): candidate blobs from a local
-  (adaptive) threshold, sub-pixel edge points where the image crosses the level half-way between
-  the marker's and its surround's planar-fitted brightness, a direct least-squares ellipse fit
+- `EllipseDetector` (the default, `make_detector('default')`): candidate blobs from local
+  thresholds on a two-level pyramid with an isolation test, sub-pixel edge points where the
+  image crosses the level half-way between the marker's and its surround's planar-fitted
+  brightness, a direct least-squares ellipse fit
   (Fitzgibbon, cv2.fitEllipseDirect) with outlier trimming (partial occlusion), and, given the
   camera intrinsics, the perspective bias of the ellipse centre removed (`circle_candidates`).
 - `HoughDetector`: cv2.HoughCircles, the usual off-the-shelf baseline.
@@ -413,25 +414,31 @@ class ThesisDetector:
 class EllipseDetector:
     """Sub-pixel ellipse fit with the perspective correction (the default detector).
 
-    1. Candidates: the image halved (area mean), a local threshold (mean over a window about
-       4 marker radii wide, offset by `min_contrast` / 2), external contours with an area for
-       `radius_px`, convex and ellipse-like (contour area / fitted ellipse area in [0.75, 1.1],
-       which admits a partly occluded rim).
+    1. Candidates (`candidates`): on the image halved (radii up to 12 px) and quartered, the
+       level minus its local mean thresholded at `min_contrast` / 2 and 2 `min_contrast`,
+       connected components of a marker's size, an isolation test for all at once (brighter
+       by `min_contrast` than all but one of 16 samples on a ring round it), then a
+       full-resolution threshold half-way between the blob and its ring, whose region must be
+       a filled ellipse (its second moments give the coarse ellipse).
     2. Edge points: in a window round each candidate at full resolution, the level
        L(u, v) = (inner(u, v) + outer(u, v)) / 2 from planes fitted to the pixels well inside and
-       well outside the coarse ellipse (uneven lighting), then every crossing of L between
-       horizontal and between vertical neighbours (linear interpolation) within 2.5 px of the
-       coarse ellipse, the scan direction within 45 degrees of the ellipse normal.
+       well outside the coarse ellipse (uneven lighting), then every crossing of L from bright
+       to dark outwards between horizontal and between vertical neighbours (linear
+       interpolation) within 2.5 px of the coarse ellipse (0.45 radii for small markers), the
+       scan direction within 45 degrees of the ellipse normal. The contrast, less the 90th
+       percentile of the surround's residual from its plane (bright texture), must reach
+       `min_contrast`.
     3. cv2.fitEllipseDirect, twice trimmed to points within 3 sigma (occluder edges go); the
-       marker is kept when at least `min_coverage` of the rim carries edge points, the RMS
+       marker is kept when at least `min_coverage` of the rim (in sectors about 2 px long,
+       12 to 72) carries edge points, the RMS
        residual is below `max_residual_px` and the contrast above `min_contrast`.
     4. With `K`, the perspective candidates of `circle_candidates`, resolved by `normal_hint`
        or coplanar markers (`resolve_coplanar`); unresolved markers keep the ellipse centre.
     """
 
-    def __init__(self, *, radius_px: tuple[float, float] = (4.0, 80.0),
+    def __init__(self, *, radius_px: tuple[float, float] = (2.5, 80.0),
                  polarity: Polarity | str = Polarity.BRIGHT, K: np.ndarray | None = None,
-                 normal_hint: np.ndarray | None = None, min_contrast: float = 25.0,
+                 normal_hint: np.ndarray | None = None, min_contrast: float = 40.0,
                  min_coverage: float = 0.6, max_residual_px: float = 0.5,
                  max_axis_ratio: float = 3.0,
                  ambiguity: Literal['coplanar', 'none'] = 'coplanar') -> None:
@@ -463,31 +470,66 @@ class EllipseDetector:
 
     # -- stage 1
     def candidates(self, image: np.ndarray) -> list[tuple[float, float, float, float, float]]:
-        """Coarse ellipses (cx, cy, a, b, angle) in full-resolution pixels."""
+        """Coarse ellipses (cx, cy, a, b, angle) in full-resolution pixels.
+
+        Per pyramid level (`_LEVELS`: the image halved for radii up to 12 px, quartered
+        above), the level minus its local mean over about three of the level's largest
+        radii, thresholded at `min_contrast` / 2 and at 2 `min_contrast` (a disc that touches
+        bright texture at the low level stands alone at the high one), connected components
+        of a disc's area, bounding box and fill. Then, for all at once, the isolation test:
+        the median of 7 full-resolution samples inside the blob minus the second brightest of
+        16 on a ring at 1.8 radii + 1.5 px must reach `min_contrast` (a speck of texture is not
+        brighter than the rest of its surround's texture; a marker is).
+        Survivors closer than half a radius to a larger one go; each of the rest is thresholded
+        again at full resolution, half-way between its inside and its ring, and its ellipse is
+        the second moments of the region at its centre, kept when the region is a filled
+        ellipse (area / (4 pi sqrt(det second moments)) in [0.8, 1.2])."""
         img = image if self.polarity is Polarity.BRIGHT else 255 - image
-        small = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2),
-                           interpolation=cv2.INTER_AREA)
-        block = int(2 * round(self.r_max) + 1) | 1
-        block = max(block, 11)
-        bw = cv2.adaptiveThreshold(small, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY,
-                                   block, -self.min_contrast / 2)
-        contours, _ = cv2.findContours(bw, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        a_min = math.pi * (self.r_min / 2) ** 2 * 0.5
-        a_max = math.pi * (self.r_max / 2) ** 2 * 1.3
-        out = []
-        for c in contours:
-            if len(c) < 6:
+        rows = []
+        level, cur = img, 1
+        for s, lo, hi in _LEVELS:
+            lo, hi = max(lo, self.r_min), min(hi, self.r_max)
+            if lo > hi:
                 continue
-            area = cv2.contourArea(c)
-            if not (a_min <= area <= a_max):
+            while cur < s:
+                level = cv2.resize(level, (level.shape[1] // 2, level.shape[0] // 2),
+                                   interpolation=cv2.INTER_AREA)
+                cur *= 2
+            win = 2 * math.ceil(1.5 * hi / s) + 1
+            diff = cv2.subtract(level, cv2.blur(level, (win, win)))
+            a_min = math.pi * (lo / s) ** 2 * 0.3
+            a_max = math.pi * (hi / s) ** 2 * 1.3
+            for off in (0.5, 2.0):
+                _, bw = cv2.threshold(diff, off * self.min_contrast, 1, cv2.THRESH_BINARY)
+                _, _, st, cen = cv2.connectedComponentsWithStats(bw, connectivity=8,
+                                                                 ltype=cv2.CV_32S)
+                area, w, h = st[:, 4], st[:, 2], st[:, 3]
+                ok = (area >= a_min) & (area <= a_max) & (area > 0.4 * w * h) \
+                    & (np.maximum(w, h) <= self.max_axis_ratio * np.minimum(w, h) + 2)
+                ok[0] = False
+                idx = np.flatnonzero(ok)
+                if not len(idx):
+                    continue
+                r = s * np.sqrt(area[idx] / math.pi)
+                rows.append(np.stack([s * (cen[idx, 0] + 0.5) - 0.5,
+                                      s * (cen[idx, 1] + 0.5) - 0.5, r], -1))
+        if not rows:
+            return []
+        c = np.concatenate(rows)
+        inner, ring = _isolation(img, c)
+        keep = np.flatnonzero(inner - ring >= self.min_contrast)
+        out: list[tuple[float, float, float, float, float]] = []
+        taken: list[tuple[float, float, float]] = []
+        for k in keep[np.argsort(-c[keep, 2], kind='stable')]:
+            cx, cy, r = c[k, :3]
+            if any(math.hypot(cx - u, cy - v) < 0.5 * max(r, q) for u, v, q in taken):
                 continue
-            (cx, cy), (w, h), ang = cv2.fitEllipse(c)
-            if w <= 0 or h <= 0:
+            ell = _blob_ellipse(img, cx, cy, r, 0.5 * (inner[k] + ring[k]))
+            if ell is None:
                 continue
-            ratio = area / (math.pi * w * h / 4)
-            if not (0.75 <= ratio <= 1.1) or max(w, h) > self.max_axis_ratio * min(w, h):
-                continue
-            out.append((2 * cx + 0.5, 2 * cy + 0.5, w, h, math.radians(ang)))
+            taken.append((cx, cy, r))
+            if max(ell[2], ell[3]) <= self.max_axis_ratio * min(ell[2], ell[3]):
+                out.append(ell)
         return out
 
     # -- stages 2-3
@@ -502,7 +544,7 @@ class EllipseDetector:
             pts, contrast = edge
             keep = np.ones(len(pts), bool)
             for _ in range(2):
-                if keep.sum() < 12:
+                if keep.sum() < 10:
                     return None
                 (ex, ey), (ew, eh), eang = cv2.fitEllipseDirect(pts[keep].astype(np.float32))
                 if not (ew > 0 and eh > 0):
@@ -524,8 +566,9 @@ class EllipseDetector:
         ca, sa = math.cos(ell[4]), math.sin(ell[4])
         phi = np.arctan2((-sa * d[:, 0] + ca * d[:, 1]) / ell[3],
                          (ca * d[:, 0] + sa * d[:, 1]) / ell[2])
-        sectors = np.zeros(72, bool)
-        sectors[((phi + math.pi) * (72 / (2 * math.pi))).astype(np.intp) % 72] = True
+        ns = int(np.clip(round(math.pi * mr), 12, 72))     # sectors about 2 px of rim long
+        sectors = np.zeros(ns, bool)
+        sectors[((phi + math.pi) * (ns / (2 * math.pi))).astype(np.intp) % ns] = True
         coverage = float(sectors.mean())
         if coverage < self.min_coverage:
             return None
@@ -558,22 +601,29 @@ class EllipseDetector:
         ny = B * qx + C * qy
         q = qx * nx + qy * ny
         rho = (np.sqrt(q) - 1.0) * np.float32(math.sqrt(a * b))   # ~ signed distance (px)
-        inner = rho < -2.5
-        outer = (rho > 2.5) & (rho < 6.0)
+        e = np.float32(min(2.5, max(1.2, 0.45 * math.sqrt(a * b))))  # small discs: narrower
+        inner = rho < -e
+        outer = (rho > e) & (rho < e + 3.5)
         n_in, n_out = np.count_nonzero(inner), np.count_nonzero(outer)
         if n_in < 4 or n_out < 12:
             return None
-        lvl_in, m_in = _plane_fit(inner, roi, qx, qy)
-        lvl_out, m_out = _plane_fit(outer, roi, qx, qy)
+        lvl_in, m_in, _ = _plane_fit(inner, roi, qx, qy)
+        lvl_out, m_out, rough = _plane_fit(outer, roi, qx, qy)
         contrast = m_in - m_out
-        if contrast < self.min_contrast:
+        if contrast - rough < self.min_contrast:
             return None
         g = roi - 0.5 * (lvl_in + lvl_out)
-        band = np.abs(rho) < 2.5
+        band = np.abs(rho) < e
         horiz = np.abs(nx) >= np.abs(ny)
+        # a crossing from the bright inside to the dark outside along the rim's normal only
+        # (texture crossing the level the other way goes)
         sg = g > 0
-        hx = band[:, :-1] & band[:, 1:] & horiz[:, :-1] & (sg[:, :-1] != sg[:, 1:])
-        vy = band[:-1, :] & band[1:, :] & ~horiz[:-1, :] & (sg[:-1, :] != sg[1:, :])
+        out_x = nx[:, :-1] > 0
+        out_y = ny[:-1, :] > 0
+        hx = band[:, :-1] & band[:, 1:] & horiz[:, :-1] & (sg[:, :-1] != sg[:, 1:]) \
+            & (sg[:, :-1] == out_x)
+        vy = band[:-1, :] & band[1:, :] & ~horiz[:-1, :] & (sg[:-1, :] != sg[1:, :]) \
+            & (sg[:-1, :] == out_y)
         r, cc = np.nonzero(hx)
         g0 = g[r, cc]
         t = g0 / (g0 - g[r, cc + 1])
@@ -583,7 +633,7 @@ class EllipseDetector:
         t = g0 / (g0 - g[r + 1, cc])
         pv = np.stack([x0 + cc.astype(np.float32), y0 + r + t], -1)
         pts = np.concatenate([ph, pv]).astype(np.float64)
-        if len(pts) < 12:
+        if len(pts) < 10:
             return None
         return pts, contrast
 
@@ -613,11 +663,68 @@ class EllipseDetector:
         return resolve_coplanar(corrected, normal_hint=self.normal_hint)
 
 
+#: pyramid levels of the candidate stage: (scale, smallest, largest radius in full-res px)
+_LEVELS = ((2, 2.0, 12.0), (4, 10.0, 500.0))
+_RING = np.linspace(0.0, 2 * math.pi, 16, endpoint=False)[None, :]
+_INNER = np.concatenate([[0.0], np.linspace(0.0, 2 * math.pi, 6, endpoint=False)])[None, :]
+
+
+def _isolation(img: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Per blob (rows of c: cx, cy, r in full-res px): the median of the image at the centre
+    and 6 points at 0.35 r, minus the second brightest of 16 points on the circle 1.8 r + 1.5
+    (one bright point, a vein or a speck, is let through)."""
+    h, w = img.shape
+
+    def sample(rad: np.ndarray, phi: np.ndarray) -> np.ndarray:
+        u = np.rint(c[:, :1] + rad * np.cos(phi)).astype(np.intp).clip(0, w - 1)
+        v = np.rint(c[:, 1:2] + rad * np.sin(phi)).astype(np.intp).clip(0, h - 1)
+        return img[v, u].astype(np.float32)
+
+    r = c[:, 2:3]
+    inner = sample(np.where(np.arange(7)[None, :] == 0, 0.0, 0.35 * r), _INNER)
+    ring = sample(1.8 * r + 1.5, _RING)
+    return np.median(inner, axis=1), np.partition(ring, 14, axis=1)[:, 14]
+
+
+def _blob_ellipse(img: np.ndarray, cx: float, cy: float, r: float, level: float
+                  ) -> tuple[float, float, float, float, float] | None:
+    """The ellipse (cx, cy, a, b, angle) of the region above `level` at (cx, cy) in a window
+    of 1.8 r + 3 px round it, from its second moments; None when that region is not a filled
+    ellipse or touches the window's edge."""
+    h, w = img.shape
+    m = 1.8 * r + 3
+    x0, y0 = max(int(cx - m), 0), max(int(cy - m), 0)
+    x1, y1 = min(int(cx + m) + 2, w), min(int(cy + m) + 2, h)
+    _, bw = cv2.threshold(img[y0:y1, x0:x1], level, 1, cv2.THRESH_BINARY)
+    n, lab, st, cen = cv2.connectedComponentsWithStats(bw, connectivity=8, ltype=cv2.CV_32S)
+    if n < 2:
+        return None
+    d = np.hypot(cen[1:, 0] + x0 - cx, cen[1:, 1] + y0 - cy)
+    i = 1 + int(np.argmin(d))
+    bx, by, bw_, bh, area = st[i]
+    if d[i - 1] > 0.5 * r + 1 or area < 5 or bx == 0 or by == 0 or bx + bw_ == x1 - x0 \
+            or by + bh == y1 - y0:
+        return None
+    mo = cv2.moments((lab[by:by + bh, bx:bx + bw_] == i).view(np.uint8), binaryImage=True)
+    mu20 = mo['mu20'] / mo['m00'] + 1 / 12
+    mu02 = mo['mu02'] / mo['m00'] + 1 / 12
+    mu11 = mo['mu11'] / mo['m00']
+    det = mu20 * mu02 - mu11 ** 2
+    if det <= 0 or not (0.8 <= mo['m00'] / (4 * math.pi * math.sqrt(det)) <= 1.2):
+        return None
+    dd = math.sqrt((mu20 - mu02) ** 2 / 4 + mu11 ** 2)
+    a = 2 * math.sqrt((mu20 + mu02) / 2 + dd)
+    b = 2 * math.sqrt(max((mu20 + mu02) / 2 - dd, 1e-6))
+    return (x0 + bx + mo['m10'] / mo['m00'], y0 + by + mo['m01'] / mo['m00'], a, b,
+            0.5 * math.atan2(2 * mu11, mu20 - mu02))
+
+
 def _plane_fit(mask: np.ndarray, z: np.ndarray, qx: np.ndarray, qy: np.ndarray,
-               max_samples: int = 256) -> tuple[np.ndarray, float]:
+               max_samples: int = 256) -> tuple[np.ndarray, float, float]:
     """Least-squares plane z = p0 + p1 qx + p2 qy through (at most `max_samples`, evenly
     strided) pixels of `mask`, evaluated on the whole window (qx a row, qy a column of offsets),
-    and the samples' mean."""
+    the samples' mean and the 90th percentile of their residuals from the plane (how far the
+    surround's bright texture stands above it)."""
     r, c = np.nonzero(mask)
     step = max(1, len(r) // max_samples)
     r, c = r[::step], c[::step]
@@ -627,7 +734,9 @@ def _plane_fit(mask: np.ndarray, z: np.ndarray, qx: np.ndarray, qy: np.ndarray,
         p = np.linalg.solve(A.T @ A, A.T @ v)
     except np.linalg.LinAlgError:
         p = np.array([float(v.mean()), 0.0, 0.0])
-    return np.float32(p[0]) + np.float32(p[1]) * qx + np.float32(p[2]) * qy, float(v.mean())
+    rough = float(np.percentile(v - A @ p, 90))
+    return (np.float32(p[0]) + np.float32(p[1]) * qx + np.float32(p[2]) * qy, float(v.mean()),
+            rough)
 
 
 def _ellipse_residual(pts: np.ndarray, ell) -> np.ndarray:
