@@ -11,13 +11,16 @@ that range and incidence on a random side of the normal (the incidence's plane w
 15 deg of horizontal) and looks at a point near the marker, so the marker falls at a random
 place in the middle of the image; the two slot markers are aimed at in turn. A marker is
 detected when `make_detector('default', K=K)` returns a marker within max(1, r_px / 2) px of
-the projection of its centre; any detection near no marker of the site is a false one.
+the projection of its centre; any detection near no marker of the site (the slot markers,
+or within its radius of one of the site's two fiducials) is a false one.
 
-From the table: `min_diameter_px`, the smallest diameter from which on every larger diameter
-of the grid is detected in at least `rate` of the renders straight on (incidence 0), and
-`max_incidence_deg`, the largest incidence up to which every cell at `min_diameter_px` or
-larger reaches `rate`; `min_diameter_px_by_incidence` the same smallest diameter per
-incidence (None where no diameter of the grid reaches it).
+From the table: `min_diameter_px_by_incidence`, per incidence the smallest diameter from
+which on every larger diameter of the grid is detected in at least `rate` of the renders
+(None where not even the largest is); `min_diameter_px`, that diameter straight on
+(incidence 0); `max_incidence_deg`, the largest incidence up to which every incidence of the
+grid has one. A placement is inside the limit when its incidence is at most
+`max_incidence_deg` and its marker diameter at least the entry for the next larger incidence
+of the grid.
 """
 from __future__ import annotations
 
@@ -134,7 +137,10 @@ def measure(*, diameters_px: tuple[float, ...] = DIAMETERS_PX,
                     r_px[len(slot):] = np.where(vis[len(slot):], fx * site.marker_radius_m
                                                 / np.maximum(pc[len(slot):, 2], 1e-9), 0.0)
                     aimed = k % len(slot)
+                    # the site's fiducials are 1 mm proud discs: seen obliquely, their lit rim
+                    # moves the fitted centre, within their radius
                     tol = np.maximum(1.0, 0.5 * r_px)
+                    tol[len(slot):] = np.maximum(1.0, r_px[len(slot):])
                     hit = False
                     for m in dets:
                         dist = np.hypot(uv[:, 0] - m.u, uv[:, 1] - m.v)
@@ -176,12 +182,10 @@ def derive_limits(cells: list[CellResult], *, rate: float = 0.97) -> dict:
     by_inc = {f'{inc:g}': smallest(inc) for inc in incs}
     dmin = by_inc[f'{incs[0]:g}'] if incs and incs[0] == 0.0 else None
     max_inc = None
-    if dmin is not None:
-        for inc in incs:
-            if all(table.get((d, inc), 0.0) >= rate for d in ds if d >= dmin):
-                max_inc = inc
-            else:
-                break
+    for inc in incs:
+        if by_inc[f'{inc:g}'] is None:
+            break
+        max_inc = inc
     return {'rate': rate, 'min_diameter_px': dmin, 'max_incidence_deg': max_inc,
             'min_diameter_px_by_incidence': by_inc}
 

@@ -110,14 +110,14 @@ def test_derive_limits_and_table():
             cells.append(cell(d, i, 20 if ok else (20 if (d, i) == (3.0, 0.0) else 12)))
     lim = derive_limits(cells, rate=0.97)
     assert lim['min_diameter_px'] == 5.0        # 3 px passes, 4 px does not: from 5 on
-    assert lim['max_incidence_deg'] == 45.0
+    assert lim['max_incidence_deg'] == 60.0     # 6 px and larger still pass at 60 deg
     assert lim['min_diameter_px_by_incidence'] == {'0': 5.0, '30': 5.0, '45': 5.0,
                                                    '60': 6.0, '75': None}
     result = {'settings': {'width': 640, 'height': 480, 'fx': 851.0, 'per_cell': 20,
                            'slot_marker_diameter_m': 0.00635},
               'cells': [c.__dict__ for c in cells], 'limits': lim}
     text = format_table(result)
-    assert 'min_diameter_px 5 px, max_incidence_deg 45 deg' in text
+    assert 'min_diameter_px 5 px, max_incidence_deg 60 deg' in text
     assert len(text.splitlines()) == 2 + 5 + 2
 
 
