@@ -90,12 +90,15 @@ class Target:
 
 @dataclass(frozen=True)
 class CameraModel:
-    """Field of view (deg), pixels along the detector axis, depth of field [near, far] (m)."""
+    """Field of view (deg), pixels along the detector axis, depth of field [near, far] (m),
+    and the largest incidence (deg, between the view ray and the target's face normal) at
+    which the task's image processing still finds the target (90: the face's edge)."""
 
     fov_deg: float = 60.0
     pixels: int = 640
     near_m: float = 1.0
     far_m: float = 30.0
+    max_incidence_deg: float = 90.0
 
 
 @dataclass(frozen=True)
@@ -692,11 +695,16 @@ def resolution_term(d: np.ndarray, camera: CameraModel, st_error: float = 0.0) -
     return 1.0 / np.maximum(r + st_error, 1e-12)
 
 
-def angular_visibility(cameras: np.ndarray, target: Target) -> np.ndarray:
-    """Eq. 4-3: cos(beta) for a one-sided target, 0 behind it."""
+def angular_visibility(cameras: np.ndarray, target: Target, *,
+                       max_incidence_deg: float = 90.0) -> np.ndarray:
+    """Eq. 4-3: cos(beta) for a one-sided target, 0 behind it and where beta exceeds
+    max_incidence_deg (what the image processing handles)."""
     rel = np.asarray(cameras, float) - target.position
     u = rel / np.maximum(np.linalg.norm(rel, axis=1), 1e-12)[:, None]
-    return np.clip(u @ target.normal, 0.0, 1.0)
+    c = np.clip(u @ target.normal, 0.0, 1.0)
+    if max_incidence_deg < 90.0:
+        c = np.where(c >= np.cos(np.radians(max_incidence_deg)) - 1e-12, c, 0.0)
+    return c
 
 
 def depth_of_field(d: np.ndarray, camera: CameraModel) -> np.ndarray:
@@ -726,7 +734,7 @@ def rate(cameras: np.ndarray, target: Target, field_: VisibilityField, camera: C
     dof = depth_of_field(d, camera)
     res = resolution_term(d, camera, target.sigma)
     tfv = field_.tfv(cams)
-    tav = angular_visibility(cams, target)
+    tav = angular_visibility(cams, target, max_incidence_deg=camera.max_incidence_deg)
     e = exponents
     p = np.asarray(collision_p, float)
     with np.errstate(invalid='ignore', over='ignore'):
@@ -792,6 +800,16 @@ def _freed(grid: OccupancyGrid, cells: np.ndarray) -> OccupancyGrid:
     return replace(grid, prob=prob, known=known)
 
 
+class Choose(StrEnum):
+    """Which rated candidate TaskPlacer.place returns: the 'best' (Eq. 4-1's maximum), or one
+    drawn uniformly from every 'feasible' one, rating > 0 (free, within the depth of field
+    and the incidence the image processing handles, the target not occluded): the fair
+    random placement of §5.4, from the same set the best is searched in."""
+
+    BEST = 'best'
+    RANDOM = 'random'
+
+
 class PrimarySpace(StrEnum):
     """What TaskPlacer makes of the grid's occluder cells that hold the primary target (its own
     cell, or one grown by the target's radius that reaches it): 'refuse' the request (the
@@ -851,20 +869,28 @@ class TaskPlacer:
         self._cache: dict[tuple, VisibilityField] = {}
         self.unknown_occludes = unknown_occludes
 
-    def narrowed(self, near_m: float = 0.0, far_m: float = 0.0) -> TaskPlacer:
+    def narrowed(self, near_m: float = 0.0, far_m: float = 0.0, *,
+                 max_incidence_deg: float = 0.0) -> TaskPlacer:
         """This placer for a task whose depth of field (§4.2.3.1: what focus and the image
-        processing allow) is [near_m, far_m] within the camera's; 0 keeps the camera's limit.
-        Only narrows (a field is built out to the far limit). The narrowed placer keeps no
-        cache: its fields, cut at the nearer limit, must not serve the wider one."""
+        processing allow) is [near_m, far_m] within the camera's, and whose image processing
+        finds the target up to max_incidence_deg off its face normal; 0 keeps the camera's
+        limit. Only narrows (a field is built out to the far limit). A placer narrowed in depth
+        keeps no cache: its fields, cut at the nearer limit, must not serve the wider one (the
+        incidence limit does not enter the fields: one narrowed in it alone shares them)."""
         near = max(self.camera.near_m, near_m)
         far = min(self.camera.far_m, far_m) if far_m > 0 else self.camera.far_m
+        inc = self.camera.max_incidence_deg
+        if max_incidence_deg > 0:
+            inc = min(inc, max_incidence_deg)
         if not near < far:
             raise PlacementError(f'depth of field [{near:g}, {far:g}] m is empty')
-        if (near, far) == (self.camera.near_m, self.camera.far_m):
+        if (near, far, inc) == (self.camera.near_m, self.camera.far_m,
+                                self.camera.max_incidence_deg):
             return self
         other = copy.copy(self)
-        other.camera = replace(self.camera, near_m=near, far_m=far)
-        other.cache_fields, other._cache_grid, other._cache = 0, None, {}
+        other.camera = replace(self.camera, near_m=near, far_m=far, max_incidence_deg=inc)
+        if (near, far) != (self.camera.near_m, self.camera.far_m):
+            other.cache_fields, other._cache_grid, other._cache = 0, None, {}
         return other
 
     def collision_probability(self, grid: OccupancyGrid) -> np.ndarray:
@@ -980,8 +1006,11 @@ class TaskPlacer:
     def place(self, grid: OccupancyGrid, primary: Target, secondary: list[Target] = (), *,
               rng: np.random.Generator, hulls: list[np.ndarray] | None = None,
               fields: list[VisibilityField] | None = None,
-              stations: Stations | None = None) -> Placement:
-        """Maximise Eq. 4-1 over the candidates, for the primary and every secondary target;
+              stations: Stations | None = None,
+              choose: Choose | str = Choose.BEST) -> Placement:
+        """Maximise Eq. 4-1 over the candidates, for the primary and every secondary target
+        (choose='random': draw one of the feasible candidates, rating > 0, uniformly with
+        `rng`, every candidate rated; `extras['feasible']` counts them);
         raises PlacementError on bad input (primary target inside an obstacle, no free
         candidate). A secondary target inside an obstacle or an expanded occluder (covered by a
         moving object, in unobserved space, closer to a wall than its radius; one that only
@@ -990,6 +1019,7 @@ class TaskPlacer:
         inside an obstacle or outside the map is skipped the same way, before any rating.
         stations: the camera positions a robot can take and their P (a rover's mast over the
         ground it may stand on), instead of every free cell of the grid."""
+        choose = choice(Choose, choose, 'choose', error=PlacementError)
         targets = [primary, *secondary]
         active = []
         for k, t in enumerate(targets):
@@ -1047,7 +1077,7 @@ class TaskPlacer:
         m = len(cams)
         ratings = np.full((len(targets), m), np.nan)       # nan: not evaluated
         extras = {'search': self.search, 'candidates': m}
-        if self.search is Search.RANDOM:
+        if self.search is Search.RANDOM or choose is Choose.RANDOM:
             for k in active:
                 ratings[k] = rating_of(k, slice(None))
             extras.update(evaluated=m * len(active), exact=True)
@@ -1084,7 +1114,12 @@ class TaskPlacer:
         best_rf = r_all[best_t, np.arange(m)]
         if not np.any(best_rf > 0):
             raise PlacementError('no candidate sees any target (all ratings are 0)')
-        i = int(np.argmax(best_rf))
+        if choose is Choose.RANDOM:
+            feasible = np.flatnonzero(best_rf > 0)
+            extras.update(choose=choose, feasible=len(feasible))
+            i = int(rng.choice(feasible))
+        else:
+            i = int(np.argmax(best_rf))
         k = int(best_t[i])
         tr = rate(cams[i:i + 1], targets[k], field_for(k), self.camera, p[i:i + 1],
                   exponents=self.exponents)

@@ -25,7 +25,18 @@ from .grid import EmptyMapError, MapError, OccupancyGrid, planning_grid
 from .nbv import CameraState, NextBestViewPlanner, PlanningError, StrategyName
 from .offline import nbv_config
 from .params import PARAMS, check_params
-from .placement import CameraModel, PlacementError, Target, TaskPlacer, mast_stations
+from .placement import (
+    CameraModel,
+    Choose,
+    PlacementError,
+    Target,
+    TaskPlacer,
+    mast_stations,
+)
+
+#: TaskView.Request.choose -> the placer's Choose
+CHOOSE = {TaskView.Request.CHOOSE_BEST: Choose.BEST,
+          TaskView.Request.CHOOSE_RANDOM: Choose.RANDOM}
 
 
 class ViewPlannerNode(Node):
@@ -229,8 +240,17 @@ class ViewPlannerNode(Node):
                 stations = self._stations[1]
             if not (math.isfinite(req.near_m) and math.isfinite(req.far_m)):
                 raise PlacementError('near_m and far_m must be finite')
-            placer = self.placer.narrowed(req.near_m, req.far_m)
-            pl = placer.place(g, prim, sec, rng=self.rng, stations=stations)
+            if not 0.0 <= req.max_incidence_deg <= 90.0:      # nan fails too
+                raise PlacementError('max_incidence_deg must be in [0, 90]')
+            if req.choose not in CHOOSE:
+                raise PlacementError(f'choose must be one of {sorted(CHOOSE)}, not '
+                                     f'{req.choose}')
+            choose = CHOOSE[req.choose]
+            placer = self.placer.narrowed(req.near_m, req.far_m,
+                                          max_incidence_deg=req.max_incidence_deg)
+            # a random draw is the request's seed's: the same request, the same pose
+            rng = np.random.default_rng(req.seed) if choose is Choose.RANDOM else self.rng
+            pl = placer.place(g, prim, sec, rng=rng, stations=stations, choose=choose)
         except (PlacementError, MapError) as exc:
             resp.message = str(exc)
             return resp
@@ -243,10 +263,13 @@ class ViewPlannerNode(Node):
         r.field_visibility, r.angular_visibility = t['tfv'], t['tav']
         r.collision_probability = t['collision_p']
         resp.best = r
+        resp.feasible = int(pl.extras.get('feasible', np.count_nonzero(pl.ratings > 0)))
         resp.success = True
         which = 'primary' if pl.target_index == 0 else f'secondary {pl.target_index - 1}'
         dist = float(np.linalg.norm(pl.position - watched.position))
         resp.message = f'watching the {which} target at {dist:.2f} m'
+        if choose is Choose.RANDOM:
+            resp.message += f' (drawn from {resp.feasible} feasible poses)'
         if pl.extras.get('freed_cells'):
             resp.message += (f"; {pl.extras['freed_cells']} occupied cell(s) at the primary "
                              'taken as free')

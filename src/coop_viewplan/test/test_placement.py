@@ -519,3 +519,40 @@ def test_a_primary_taken_in_free_space_sees_past_the_cells_that_hold_it():
         TaskPlacer(cam, primary_space='free').place(g, inside, rng=np.random.default_rng(0))
     with pytest.raises(PlacementError, match='primary_space'):
         TaskPlacer(primary_space='ignore')
+
+
+def test_incidence_limit_and_the_fair_random_draw_share_the_feasible_set():
+    from coop_viewplan.placement import Choose
+    g = _room()
+    g.prob[28:33, 36:38] = 1.0      # a wall in front of the target's face
+    t = Target(np.array([30.5, 30.5]), np.array([0.0, 1.0]), radius=0.25)
+    placer = TaskPlacer(CameraModel(near_m=2, far_m=12), max_candidates=20000)
+    narrow = placer.narrowed(max_incidence_deg=30.0)
+    assert narrow.camera.max_incidence_deg == 30.0 and narrow.camera.far_m == 12
+    assert placer.narrowed(max_incidence_deg=0.0) is placer        # 0: the camera's own
+    best = narrow.place(g, t, rng=np.random.default_rng(0))
+    feasible = None
+    draws = []
+    for seed in range(40):
+        pl = narrow.place(g, t, rng=np.random.default_rng(seed), choose='random')
+        feasible = pl.extras['feasible'] if feasible is None else feasible
+        assert pl.extras['feasible'] == feasible
+        draws.append(pl.position)
+        rel = pl.position - t.position
+        # every draw within the depth of field and the incidence, and rated (seen)
+        assert 2 <= np.hypot(*rel) <= 12
+        assert np.degrees(np.arccos(rel[1] / np.hypot(*rel))) <= 30.0 + 1e-6
+        s = np.linspace(0, 1, 200)[:, None] * rel + t.position
+        assert not g.prob[tuple(np.floor(s).astype(int).T)].any()
+    # a draw is the seed's; the draws spread over the feasible set, the best is the maximum
+    again = narrow.place(g, t, rng=np.random.default_rng(3), choose=Choose.RANDOM)
+    np.testing.assert_array_equal(again.position, draws[3])
+    assert feasible >= 10 and len({tuple(d) for d in draws}) >= 0.6 * feasible
+    assert best.terms['rating'] >= max(
+        narrow.place(g, t, rng=np.random.default_rng(s), choose='random').terms['rating']
+        for s in range(5))
+    # wider incidence, more feasible poses; a bad choice is refused
+    wide = placer.place(g, t, rng=np.random.default_rng(0), choose='random')
+    assert wide.extras['feasible'] > feasible
+    with pytest.raises(PlacementError, match='choose'):
+        placer.place(g, t, rng=np.random.default_rng(0), choose='worst')

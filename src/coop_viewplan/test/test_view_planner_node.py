@@ -135,6 +135,26 @@ def test_services_fail_cleanly_then_plan(graph):
     r = _call(client, ex, TaskView, '/viewplan/task_view', req)
     assert not r.success and 'empty' in r.message
     req.near_m = req.far_m = 0.0
+    # the fair random placement: a draw from the same feasible poses, the seed's; within the
+    # incidence limit asked for; a bad choice or limit refused with the reason
+    req.choose, req.max_incidence_deg = TaskView.Request.CHOOSE_RANDOM, 30.0
+    draws = []
+    for seed in (1, 2, 1):
+        req.seed = seed
+        r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+        assert r.success and 'drawn from' in r.message, r.message
+        q = r.best.pose.pose.position
+        draws.append((q.x, q.y, q.z))
+        rel = np.array([q.x - 1.9, q.y - 5.5, q.z - 1.1])
+        assert np.degrees(np.arccos(-rel[0] / np.linalg.norm(rel))) <= 30.0 + 1e-6
+        assert r.best.rating > 0 and r.feasible > 1
+    assert draws[0] == draws[2] and draws[0] != draws[1]
+    for choose, inc, why in ((7, 0.0, 'choose'), (0, 95.0, 'max_incidence_deg'),
+                             (0, math.nan, 'max_incidence_deg')):
+        req.choose, req.max_incidence_deg = choose, inc
+        r = _call(client, ex, TaskView, '/viewplan/task_view', req)
+        assert not r.success and why in r.message, r.message
+    req.choose, req.max_incidence_deg, req.seed = 0, 0.0, 0
     # a secondary target in unobserved space (and one against the box) is not rated; the
     # primary is still watched
     for x, y in ((7.5, 5.0), (1.95, 5.1)):
