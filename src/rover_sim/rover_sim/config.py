@@ -17,6 +17,27 @@ from .worldgen import CARD_WIDTH_M, TABLE_5_1_GAPS_M
 class ConfigError(SimError):
     """A world/params YAML or value that the simulator cannot use; the message names the field."""
 
+#: the simulator's ground truth: per rover on `sim/<rover>/<name>` for these names, and the
+#: world on WORLD_TOPIC; for scoring and viewing only: no node that closes a loop reads them
+TRUTH_NAMES = ('base_pose', 'camera_pose', 'card_pose', 'contact', 'parameters')
+WORLD_TOPIC = 'sim/world'
+
+
+def truth_topic(rover: str, name: str) -> str:
+    """The (relative) name of one of rover `rover`'s truth topics (TRUTH_NAMES)."""
+    if name not in TRUTH_NAMES:
+        raise ConfigError(f'no truth topic {name!r}: one of {", ".join(TRUTH_NAMES)}')
+    return f'sim/{rover}/{name}'
+
+
+def is_truth_topic(topic: str) -> bool:
+    """Whether a topic name (relative, or resolved in any namespace) is the simulator's
+    truth."""
+    parts = topic.strip('/').split('/')
+    return (parts[-2:] == WORLD_TOPIC.split('/') or
+            len(parts) >= 3 and parts[-3] == 'sim' and parts[-1] in TRUTH_NAMES)
+
+
 
 @dataclass(frozen=True)
 class NoiseConfig:
@@ -37,7 +58,8 @@ class NoiseConfig:
     encoder_rad: float = 0.7
     tach_rad_s: float = 5.0
     pot_rad: float = 0.3
-    odom_drift: float = 0.02          # fraction of travelled distance / turned angle
+    odom_drift: float = 0.02          # odometry's random walk: 1-sigma m (and rad) per sqrt(m)
+                                      # of the wheels' travel
 
 
 class Integrator(str, enum.Enum):

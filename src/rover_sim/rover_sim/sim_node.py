@@ -38,7 +38,16 @@ from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer, Lockste
 from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat, rpy_to_matrix
-from .config import ConfigError, Integrator, NoiseConfig, Renderer, SimConfig, load_config
+from .config import (
+    WORLD_TOPIC,
+    ConfigError,
+    Integrator,
+    NoiseConfig,
+    Renderer,
+    SimConfig,
+    load_config,
+    truth_topic,
+)
 from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
 from .trajectory import TrajectoryError
 from .world import World
@@ -254,11 +263,11 @@ class SimNode(Node):
                 'right_info': pub(CameraInfo, f'{n}/stereo/right/camera_info', SENSOR_QOS),
                 'cam_est': pub(PoseWithCovarianceStamped, f'{n}/stereo/pose', SENSOR_QOS),
                 'odom': pub(Odometry, f'{n}/odom', SENSOR_QOS),
-                'truth_base': pub(PoseStamped, f'sim/{n}/base_pose', SENSOR_QOS),
-                'truth_cam': pub(PoseStamped, f'sim/{n}/camera_pose', SENSOR_QOS),
-                'card_pose': pub(PoseStamped, f'sim/{n}/card_pose', SENSOR_QOS),
-                'contact': pub(ContactState, f'sim/{n}/contact', SENSOR_QOS),
-                'truth_params': pub(DynamicParameters, f'sim/{n}/parameters', LATCHED_QOS),
+                'truth_base': pub(PoseStamped, truth_topic(n, 'base_pose'), SENSOR_QOS),
+                'truth_cam': pub(PoseStamped, truth_topic(n, 'camera_pose'), SENSOR_QOS),
+                'card_pose': pub(PoseStamped, truth_topic(n, 'card_pose'), SENSOR_QOS),
+                'contact': pub(ContactState, truth_topic(n, 'contact'), SENSOR_QOS),
+                'truth_params': pub(DynamicParameters, truth_topic(n, 'parameters'), LATCHED_QOS),
             }
             self.pubs.append(pubs)
             self._command(JointTrajectory, f'{n}/arm/joint_command',
@@ -266,7 +275,7 @@ class SimNode(Node):
             self._command(JointTrajectory, f'{n}/mast/command',
                           lambda m, i=i: self._on_traj(i, m, 'mast'))
             self._command(Twist, f'{n}/cmd_vel', lambda m, i=i: self._on_twist(i, m))
-        self.world_pub = pub(MarkerArray, 'sim/world', LATCHED_QOS)
+        self.world_pub = pub(MarkerArray, WORLD_TOPIC, LATCHED_QOS)
         self.create_service(SimScenario, 'sim/reset', self._on_reset)
         if self._gate is not None:
             self.tick_pub = self.create_publisher(LockstepTick, TICK_TOPIC, ROUND_QOS)
