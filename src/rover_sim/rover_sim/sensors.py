@@ -6,6 +6,7 @@ expected to sense (configured per sensor group).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,6 +86,20 @@ def wheel_speeds(v: float, w: float, *, track_m: float, radius_m: float) -> np.n
     left = (v - 0.5 * track_m * w) / radius_m
     right = (v + 0.5 * track_m * w) / radius_m
     return np.array([left, right, left, right])
+
+
+def odometry_step(xy: np.ndarray, yaw: np.ndarray | float, v: float, w: float, dt: float, *,
+                  drift: float, track_m: float, noise: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray | float]:
+    """Dead reckoning over one step of the commanded (v, w), drifting as a random walk in the
+    wheels' travel d = (|v| + |w| track / 2) dt: a 1-sigma error of drift sqrt(d x 1 m) per
+    position axis and drift sqrt(d / 1 m) rad of heading (2 cm and 0.02 rad after a metre with
+    drift 0.02, 4 cm after four). noise: standard normals (..., 3) for (x, y, heading); xy
+    (..., 2) and yaw (...) broadcast with it, for one rover or many."""
+    e = math.sqrt((abs(v) + abs(w) * track_m / 2) * dt) * drift * np.asarray(noise, float)
+    yaw = yaw + w * dt + e[..., 2]
+    heading = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
+    return xy + dt * v * heading + e[..., :2], yaw
 
 
 def specific_force(accel_world: np.ndarray, r_base: np.ndarray) -> np.ndarray:

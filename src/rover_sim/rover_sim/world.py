@@ -51,7 +51,14 @@ from .rover_model import (
     base_link_inertial,
     rover_urdf,
 )
-from .sensors import DEG, InclinometerModel, WhiteNoise, specific_force, wheel_speeds
+from .sensors import (
+    DEG,
+    InclinometerModel,
+    WhiteNoise,
+    odometry_step,
+    specific_force,
+    wheel_speeds,
+)
 from .trajectory import JointTrajectoryFollower
 from .worldgen import WorldLayout, generate_world
 
@@ -866,15 +873,10 @@ class World:
             r.prev_quat, r.prev_sub_quat = quat, r.last_sub_quat
             v, w = r.cmd
             r.wheel_rates = wheel_speeds(v, w, track_m=TRACK_M, radius_m=WHEEL_RADIUS_M)
-            # odometry drifts as a random walk in the wheels' travel: over d metres its
-            # position error has a 1-sigma of odom_drift sqrt(d x 1 m) per axis and its heading
-            # odom_drift sqrt(d / 1 m) rad (2 cm and 0.02 rad after a metre, 4 cm after four)
-            step = math.sqrt((abs(v) + abs(w) * TRACK_M / 2) * self.dt) * \
-                self.config.noise.odom_drift
-            e = step * self.rng.standard_normal(3)
-            r.odom_yaw += w * self.dt + e[2]
-            r.odom_xy += self.dt * v * np.array([math.cos(r.odom_yaw), math.sin(r.odom_yaw)]) \
-                + e[:2]
+            r.odom_xy, r.odom_yaw = odometry_step(
+                r.odom_xy, r.odom_yaw, v, w, self.dt, drift=self.config.noise.odom_drift,
+                track_m=TRACK_M, noise=self.rng.standard_normal(3))
+            r.odom_yaw = float(r.odom_yaw)
 
     # ----------------------------------------------------------------- sensing
     def camera_pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:

@@ -275,3 +275,41 @@ def test_substeps_respect_the_stability_minimum():
     assert stiff.physics_substeps == 25
     with pytest.raises(ConfigError, match='physics_substeps'):
         SimConfig(physics_substeps=-1)
+
+
+def test_odometry_drifts_as_a_random_walk_in_the_wheels_travel():
+    from rover_sim.config import NoiseConfig
+    from rover_sim.sensors import odometry_step
+    drift, dt, n = NoiseConfig().odom_drift, 0.005, 4000
+    rng = np.random.default_rng(0)
+    xy, yaw = np.zeros((n, 2)), np.zeros(n)
+    errors = {}
+    for k in range(1, 1001):              # 5 s at 0.2 m/s: a metre, 4000 rovers at once
+        xy, yaw = odometry_step(xy, yaw, 0.2, 0.0, dt, drift=drift, track_m=0.4,
+                                noise=rng.standard_normal((n, 3)))
+        if k in (250, 1000):
+            errors[k] = (xy[:, 0] - 0.2 * k * dt, yaw)
+    # heading drift sqrt(d / 1 m) rad, along-track drift sqrt(d x 1 m): 2 cm after a metre,
+    # half that after a quarter (not a quarter: a random walk, not a scale error)
+    along, head = errors[1000]
+    assert np.std(head) == pytest.approx(drift, rel=0.05)
+    assert np.std(along) == pytest.approx(drift, rel=0.05)
+    assert np.std(errors[250][0]) == pytest.approx(drift / 2, rel=0.05)
+    assert abs(np.mean(along)) < 3 * drift / np.sqrt(n)
+    # turning on the spot drifts by the wheels' travel too; standing still does not drift
+    xy2, yaw2 = odometry_step(np.zeros(2), 0.0, 0.0, 1.0, dt, drift=drift, track_m=0.4,
+                              noise=np.ones(3))
+    assert yaw2 == pytest.approx(dt + drift * np.sqrt(0.2 * dt))
+    assert np.allclose(odometry_step(np.zeros(2), 0.3, 0.0, 0.0, dt, drift=drift, track_m=0.4,
+                                     noise=np.ones(3))[0], 0.0)
+
+
+def test_truth_topics_are_named_in_one_place():
+    from rover_sim.config import is_truth_topic, truth_topic
+    assert truth_topic('rover2', 'contact') == 'sim/rover2/contact'
+    assert all(is_truth_topic(t) for t in ('/sim/rover2/card_pose', 'sim/world',
+                                           '/team_a/sim/rover1/base_pose'))
+    assert not any(is_truth_topic(t) for t in ('/sim/lockstep/tick', '/rover1/odom',
+                                               '/sim/reset', '/rover1/sim/stereo'))
+    with pytest.raises(ConfigError):
+        truth_topic('rover1', 'odom')
