@@ -26,6 +26,10 @@ Fig. A-6's: sum F = 0 = F_x + F_y + sum (f_n + f_fr), sum M = 0 = M + sum r x (f
 - CORNER_ON_BOTTOM: a card corner on the slot bottom (card tilted); -f_x/f_y = tan alpha.
 - TWO_POINT: a corner on one wall (or the bottom) and the other jaw's edge on the card's side
   face, wedged / jammed; one alpha and one theta contact (A-6 d/e).
+- CORNER_AND_SIDE: a corner on the slot bottom and the card held up off it by a jaw: its other
+  corner on the other jaw's wall, or its own side face on its own jaw's mouth edge (the card
+  leaning that way). The card on one corner that a floor reading alone can take for SEATED:
+  the wall's or edge's friction carries the load the missing corner would.
 - SEATED: the leading face flat on the slot bottom; -f_x/f_y = tan alpha at both corners.
 
 The figure panels themselves are not in the thesis text this project has, only their equations;
@@ -37,8 +41,32 @@ non-negative least squares over the friction-cone edges of its contacts (noise-w
 force_noise_n and moment_noise_nm), adds the squared distance, in pose_sigma_m, between each
 fitted contact point and where the estimated card pose puts that feature, and a penalty per
 contact; the least score wins. FREE is the hypothesis with no contact, so a wrench inside the
-noise is FREE. As the thesis notes, the contact points of a two-point state are not unique; the
-motion plan does not need them to be.
+noise is FREE.
+
+Friction is not known: the card's mu on the site is somewhere in friction_range (default 0.2 to
+0.6), and every cone is fitted at the range's top, so a contact is never denied for friction a
+mu in the range allows (fitted at a fixed 0.3, a corner sliding at 0.6 is not a single
+contact). What the fit needed is reported (Identification.friction_needed: the largest
+friction-to-normal ratio of a loaded contact), a lower bound on the site's mu.
+
+SEATED is the one state whose call ends the insertion, and a single wrench cannot always tell
+it from a card on one corner held up by a jaw (CORNER_AND_SIDE). seat_check decides it by the
+wrench, the pose estimate only placing the features (it called such a card flat and deep):
+the seated fit (both corners on the floor, the pair shifted within 3 pose sigmas) must give
+each corner at least seat_corner_force_n, and every one-corner rival must fit the wrench worse
+by seat_margin (chi^2), its cones at the widest friction. The rivals: a corner alone on the
+bottom (within 3 pose sigmas of the estimate's corner); a corner in the floor-wall corner; and
+the two CORNER_AND_SIDE pairs as the geometry allows them, the other corner h up (from
+seat_depth_m, below which the card counts as seated, to 3 pose sigmas above the estimate's
+height of it) either on the other wall, the card spanning the slot from it, or with side face
+s on jaw s's edge, the card leaning by asin(h / w), each where its corner on the floor is
+within 3 pose sigmas of the estimate's (the estimate's depth and tilt are what it gets wrong,
+not where across the slot the card is). At mu 0.6 a jaw's friction can carry
+about a third of the other corner's share, so a seated card passes only with its corners
+loaded alike; the planner's probe (LeastResistance) evens them.
+
+As the thesis notes, the contact points of a two-point state are not unique; the motion plan
+does not need them to be.
 
 No rclpy here.
 """
@@ -53,7 +81,7 @@ from scipy.optimize import nnls
 
 from .errors import InsertionError
 
-__all__ = ['ContactState', 'SlotGeometry', 'CardPose', 'Contact', 'Identification',
+__all__ = ['ContactState', 'SlotGeometry', 'CardPose', 'Contact', 'Identification', 'SeatCheck',
            'ContactIdentifier', 'Step', 'LeastResistance', 'task_wrench', 'planar_wrench',
            'planar_step_in_frame', 'INCH']
 
@@ -70,6 +98,7 @@ class ContactState(enum.Enum):
     CORNER_ON_WALL = 'corner_on_wall'
     CORNER_ON_BOTTOM = 'corner_on_bottom'
     TWO_POINT = 'two_point'
+    CORNER_AND_SIDE = 'corner_and_side'
     SEATED = 'seated'
 
 
@@ -147,10 +176,34 @@ class Contact:
 
 
 @dataclass(frozen=True)
+class SeatCheck:
+    """seat_check's verdict on one wrench: the seated fit's normal force at the left and right
+    corner (N) and its chi^2; the best one-corner rival (its name) and its chi^2; margin = rival
+    chi^2 - seated chi^2; passed: each corner carries at least the identifier's
+    seat_corner_force_n and the margin is at least its seat_margin."""
+
+    corner_forces_n: tuple[float, float]
+    seated_chi2: float
+    rival: str
+    rival_chi2: float
+    passed: bool
+
+    @property
+    def margin(self) -> float:
+        return self.rival_chi2 - self.seated_chi2
+
+    @property
+    def lighter_side(self) -> int:
+        """-1 if the left corner carries less, else +1."""
+        return -1 if self.corner_forces_n[0] < self.corner_forces_n[1] else 1
+
+
+@dataclass(frozen=True)
 class Identification:
     """The winning hypothesis: state, side (-1 / +1; 0 for FREE, SEATED and two-point states
     name the side of the corner), fitted contacts, the noise-weighted wrench residual (chi^2),
-    the total score, and every hypothesis's score (for diagnostics)."""
+    the total score, every hypothesis's score (for diagnostics), and for SEATED the seat check
+    (ContactIdentifier.seat_check) of the same wrench, else None."""
 
     state: ContactState
     side: int
@@ -158,6 +211,14 @@ class Identification:
     wrench_chi2: float
     score: float
     scores: dict[str, float] = field(default_factory=dict)
+    seat: SeatCheck | None = None
+
+    @property
+    def friction_needed(self) -> float:
+        """The largest friction-to-normal ratio among the contacts loaded beyond 0.5 N: the
+        least mu that explains the wrench with them (0 without)."""
+        return max((abs(c.friction_force_n) / c.normal_force_n for c in self.contacts
+                    if c.normal_force_n > 0.5), default=0.0)
 
     @property
     def in_contact(self) -> bool:
@@ -195,24 +256,41 @@ class ContactIdentifier:
     """Contact-state identification (app. A.4, Fig. A-6) from the summed wrench of all rovers.
 
     Options (keyword-only): force_noise_n and moment_noise_nm (1-sigma noise of the summed
-    planar wrench: a wrench within a few of these is FREE), friction (Coulomb mu of the card on
-    the jaws), pose_sigma_m (1-sigma of the card pose estimate, weighting how far a fitted
-    contact may lie from the feature the pose puts there), contact_penalty (score per contact,
+    planar wrench: a wrench within a few of these is FREE), friction_range (the interval the
+    card's Coulomb mu on the site lies in, not known closer: cones are fitted at its top),
+    friction (a mu known exactly: the range (friction, friction)), pose_sigma_m (1-sigma of
+    the card pose estimate, weighting how far a fitted contact may lie from the feature the
+    pose puts there), contact_penalty (score per contact,
     in chi^2 units), seat_angle_rad and seat_depth_m (how flat and how deep a card on the bottom
     must be to count as SEATED rather than CORNER_ON_BOTTOM), samples (points tried along a
-    segment locus, within 3 pose sigmas of the pose's feature, in the two-point fits)."""
+    segment locus, within 3 pose sigmas of the pose's feature, in the two-point fits),
+    seat_corner_force_n and seat_margin (seat_check: the least normal force on each corner of a
+    seated card, and how much worse (chi^2) every one-corner rival must fit the wrench)."""
 
     def __init__(self, geometry: SlotGeometry, *, force_noise_n: float = 0.5,
-                 moment_noise_nm: float = 0.02, friction: float = 0.3,
+                 moment_noise_nm: float = 0.02,
+                 friction_range: tuple[float, float] = (0.2, 0.6),
+                 friction: float | None = None,
                  pose_sigma_m: float = 0.003, contact_penalty: float = 9.0,
                  seat_angle_rad: float = 0.02, seat_depth_m: float = 0.002,
-                 samples: int = 9) -> None:
+                 samples: int = 9, seat_corner_force_n: float = 1.0,
+                 seat_margin: float = 9.0) -> None:
         if not isinstance(geometry, SlotGeometry):
             raise InsertionError('geometry must be a SlotGeometry')
         self.geometry = geometry
         self.force_noise_n = _pos('force_noise_n', force_noise_n)
         self.moment_noise_nm = _pos('moment_noise_nm', moment_noise_nm)
-        self.friction = _pos('friction', friction, zero_ok=True)
+        if friction is not None:
+            friction_range = (friction, friction)
+        fr = np.asarray(friction_range, float).ravel()
+        if fr.size != 2 or not fr[0] <= fr[1]:
+            raise InsertionError(f'friction_range must be (low, high), got {friction_range}')
+        lo, hi = (_pos('friction', v, zero_ok=True) for v in fr)
+        self.friction_range = (lo, hi)
+        #: the cone every contact is fitted with: the widest the range allows
+        self.friction = hi
+        self.seat_corner_force_n = _pos('seat_corner_force_n', seat_corner_force_n)
+        self.seat_margin = _pos('seat_margin', seat_margin, zero_ok=True)
         self.pose_sigma_m = _pos('pose_sigma_m', pose_sigma_m)
         self.contact_penalty = _pos('contact_penalty', contact_penalty, zero_ok=True)
         self.seat_angle_rad = _pos('seat_angle_rad', seat_angle_rad)
@@ -264,6 +342,12 @@ class ContactIdentifier:
             side_o = _Spec(-other * v, e_o, None, c_o + eta_o * u, other, 'edge_on_side')
             hyps[(ContactState.TWO_POINT, s)] = [wall, side_o]
             hyps[(ContactState.TWO_POINT, 2 * s)] = [bottom, side_o]
+            # on corner s, held up by a jaw: the other corner on the other jaw's wall, or side
+            # face s on jaw s's mouth edge (the card leaning towards s)
+            wall_o = _Spec(-other * lat, np.array([other * half, 0.0]),
+                           np.array([other * half, -d]), c_o, other, 'corner_on_wall')
+            hyps[(ContactState.CORNER_AND_SIDE, s)] = [bottom, wall_o]
+            hyps[(ContactState.CORNER_AND_SIDE, 2 * s)] = [bottom, edge_on_side]
         c_l, c_r = pose.corner(-1, g.card_width_m), pose.corner(1, g.card_width_m)
         hyps[(ContactState.SEATED, 0)] = [
             _Spec(up, np.array([np.clip(c[0], -half, half), -d]), None, c, k, 'seated')
@@ -308,22 +392,30 @@ class ContactIdentifier:
             else:
                 # points within +-3 pose sigmas of the feature's projection (further ones cost
                 # more than a contact in the geometric term)
-                seg = sp.b - sp.a
-                length = float(np.sqrt(seg @ seg))
-                proj = float(np.dot(sp.feature - sp.a, seg)) / length
-                lo = max(0.0, proj - 3 * self.pose_sigma_m)
-                hi = min(length, proj + 3 * self.pose_sigma_m)
-                ss = (np.linspace(lo, hi, self.samples) if hi > lo else
-                      np.array([min(max(proj, 0.0), length)]))
-                choices.append([sp.a + s / length * seg for s in ss])
+                choices.append(self._locus(sp))
+        combos = itertools.product(*choices)
+        if [sp.kind for sp in specs] == ['corner_on_bottom', 'corner_on_wall'] and \
+                specs[0].side == -specs[1].side:
+            # the card spans the slot from the other corner, h up the other wall, to its corner
+            # on the floor sqrt(w^2 - h^2) across: one point fixes the other
+            combos = [(self._spanned(wall_pt, specs[1].side), wall_pt)
+                      for wall_pt in choices[1]]
         best = None
-        for pts in itertools.product(*choices):
+        for pts in combos:
             chi2, _, lams = self._fit_points(w, specs, list(pts))
             geo = sum(float(np.sum((pt - sp.feature) ** 2)) for pt, sp in zip(pts, specs))
             geo /= self.pose_sigma_m ** 2
             if best is None or chi2 + geo < best[0] + best[1]:
                 best = (chi2, geo, list(zip(pts, lams)))
         return best
+
+    def _spanned(self, wall_pt: np.ndarray, wall_side: int) -> np.ndarray:
+        """The floor point of the card's corner when its other corner is at wall_pt on the
+        wall of side wall_side (the card spans the slot between them)."""
+        g = self.geometry
+        h = float(np.clip(wall_pt[1] + g.slot_depth_m, 0.0, g.card_width_m))
+        return np.array([wall_pt[0] - wall_side * np.sqrt(g.card_width_m ** 2 - h ** 2),
+                         -g.slot_depth_m])
 
     def _single_point(self, w: np.ndarray, sp: _Spec) -> np.ndarray:
         """The point of a segment locus on the measured line of action (moment balance
@@ -336,6 +428,106 @@ class ContactIdentifier:
         else:
             s = (w[2] - (sp.a[0] * f[1] - sp.a[1] * f[0])) / den
         return sp.a + float(np.clip(s, 0.0, 1.0)) * d
+
+    def seat_check(self, wrench, pose: CardPose) -> SeatCheck:
+        """Whether the wrench says both corners carry the card on the floor, by a margin over
+        every one-corner rival (see the module notes). Only the wrench's chi^2 compares: the
+        pose estimate sets where the features may be (within 3 pose sigmas), not which
+        hypothesis wins."""
+        w = _check_wrench(wrench)
+        if not isinstance(pose, CardPose):
+            raise InsertionError('pose must be a CardPose')
+        g = self.geometry
+        half, d = g.slot_width_m / 2, g.slot_depth_m
+        up = np.array([0.0, 1.0])
+        span = 3 * self.pose_sigma_m
+        shifts = np.linspace(-span, span, self.samples)
+
+        def floor_at(x: float) -> np.ndarray:
+            return np.array([float(np.clip(x, -half, half)), -d])
+
+        corners = {s: pose.corner(s, g.card_width_m) for s in (-1, 1)}
+        floor = {s: _Spec(up, floor_at(corners[s][0]), None, corners[s], s, 'seated')
+                 for s in (-1, 1)}
+        best_seat = None
+        for dx in shifts:
+            # the pair where the wrench and the estimate agree best (many shifts fit a wrench
+            # alike; the corner loads are read at the likeliest)
+            pts = [floor_at(corners[-1][0] + dx), floor_at(corners[1][0] + dx)]
+            chi2, _, lams = self._fit_points(w, [floor[-1], floor[1]], pts)
+            cost = chi2 + 2 * (dx / self.pose_sigma_m) ** 2
+            if best_seat is None or cost < best_seat[0]:
+                best_seat = (cost, chi2, lams)
+        _, seated_chi2, lams = best_seat
+        loads = (float(lams[0].sum()), float(lams[1].sum()))
+
+        # (pairs: the specs, and the point sets tried together, one point per spec)
+        rivals: dict[str, tuple[list[_Spec], list[list[np.ndarray]]]] = {}
+        wc = g.card_width_m
+        for s in (-1, 1):
+            bottom = floor[s]
+            rivals[f'corner_on_bottom:{s:+d}'] = (
+                [bottom], [[floor_at(corners[s][0] + dx)] for dx in shifts])
+            # the corner in the floor-wall corner: the floor and the wall at one point
+            wall_pt = np.array([s * half, -d])
+            rivals[f'corner_in_corner:{s:+d}'] = (
+                [bottom, _Spec(np.array([-s, 0.0]), wall_pt, None, corners[s], s,
+                               'corner_on_wall')], [[wall_pt, wall_pt]])
+            # the other corner h up the other jaw's wall, h from seat_depth_m (lower, the card
+            # is seated) within 3 pose sigmas of where the estimate puts that corner; the card
+            # spans the slot from it, so corner s is on the floor sqrt(w^2 - h^2) across
+            h_est = max(self.seat_depth_m, corners[-s][1] + d)
+            heights = np.linspace(max(self.seat_depth_m, h_est - span), h_est + span,
+                                  self.samples)
+            wall = _Spec(np.array([s, 0.0]), np.array([-s * half, 0.0]), None, corners[-s], -s,
+                         'corner_on_wall')
+            # (each only where the estimate's corner is within 3 pose sigmas of where the
+            # rival puts it: in a wide slot a centred card spans no jaw to jaw)
+            sets = [[self._spanned(np.array([-s * half, -d + h]), -s),
+                     np.array([-s * half, -d + h])] for h in heights]
+            sets = [p for p in sets if abs(p[0][0] - corners[s][0]) <= span]
+            if sets:
+                rivals[f'corner_and_side:{s:+d}'] = ([bottom, wall], sets)
+            # side face s on jaw s's mouth edge, the card leaning towards s by phi (the other
+            # corner h = w sin(phi) up, over the same heights): corner s is D tan(phi) in from
+            # the wall, and the edge pushes along -v of the card's tilt -s phi
+            sets, specs = [], None
+            for h in heights:
+                phi = float(np.arcsin(min(h / wc, 1.0)))
+                v = np.array([np.cos(phi), -s * np.sin(phi)])
+                edge = _Spec(-s * v, self._edge(s), None, corners[s], s, 'edge_on_side')
+                x_s = s * (half - d * np.tan(phi))
+                if abs(x_s - corners[s][0]) <= span:
+                    sets.append((edge, [np.array([x_s, -d]), self._edge(s)]))
+            if sets:
+                rivals[f'corner_and_side:{2 * s:+d}'] = ([bottom, sets[0][0]], sets)
+        rival, rival_chi2 = '', np.inf
+        for name, (specs, point_sets) in rivals.items():
+            for item in point_sets:
+                if isinstance(item, tuple):         # a spec that changes with the points
+                    sp, pts = [specs[0], item[0]], item[1]
+                else:
+                    sp, pts = specs, item
+                chi2 = self._fit_points(w, sp, list(pts))[0]
+                if chi2 < rival_chi2:
+                    rival, rival_chi2 = name, chi2
+        passed = (min(loads) >= self.seat_corner_force_n and
+                  rival_chi2 - seated_chi2 >= self.seat_margin)
+        return SeatCheck(loads, float(seated_chi2), rival, float(rival_chi2), bool(passed))
+
+    def _locus(self, sp: _Spec) -> list[np.ndarray]:
+        """The points tried for a contact: its fixed point, or samples of its segment within 3
+        pose sigmas of the feature's projection."""
+        if sp.b is None:
+            return [sp.a]
+        seg = sp.b - sp.a
+        length = float(np.sqrt(seg @ seg))
+        proj = float(np.dot(sp.feature - sp.a, seg)) / length
+        lo = max(0.0, proj - 3 * self.pose_sigma_m)
+        hi = min(length, proj + 3 * self.pose_sigma_m)
+        ss = (np.linspace(lo, hi, self.samples) if hi > lo else
+              np.array([min(max(proj, 0.0), length)]))
+        return [sp.a + s / length * seg for s in ss]
 
     def identify(self, wrench, pose: CardPose) -> Identification:
         """The contact state from the summed planar wrench (F_x, F_y, M_z about the site origin;
@@ -365,9 +557,10 @@ class ContactIdentifier:
             ft = float(self.friction * (lam[0] - lam[1])) if lam.size == 2 else 0.0
             contacts.append(Contact(np.asarray(pt, float), sp.normal.copy(), fn, ft, sp.side,
                                     sp.kind))
-        if state is ContactState.TWO_POINT:
+        if state in (ContactState.TWO_POINT, ContactState.CORNER_AND_SIDE):
             side = int(np.sign(side))
-        return Identification(state, side, tuple(contacts), chi2, score, scores)
+        seat = self.seat_check(w, pose) if state is ContactState.SEATED else None
+        return Identification(state, side, tuple(contacts), chi2, score, scores, seat)
 
 
 @dataclass(frozen=True)
@@ -414,14 +607,19 @@ class LeastResistance:
     misalignment removed per step), entry_margin_m (how far inside the jaw edge a corner is
     aimed when sliding off a mouth face; default a quarter of the clearance), level_rad (the
     turn a step about a corner on the bottom when the estimate does not say which way),
-    seat_force_n (a SEATED card is pressed until the floor pushes back this hard)."""
+    seat_force_n (a SEATED card is pressed until the floor pushes back this hard),
+    probe_stiffness_n_per_m (the stiffness the seat probe moves by: the arm's compliance that a
+    card pressed on the floor answers with, well below the contacts' own).
+
+    A SEATED card pressed to seat_force_n is done when its seat check passed
+    (ContactIdentifier.seat_check); else the step is the probe: see _probe."""
 
     def __init__(self, geometry: SlotGeometry, *, insert_step_m: float = 0.0005,
                  max_step_m: float = 0.002, max_rotation_rad: float = 0.01,
                  force_limit_n: float = 25.0, stiffness_n_per_m: float = 2.0e4,
                  contact_force_n: float = 3.0, align_gain: float = 0.3,
                  entry_margin_m: float | None = None, level_rad: float = 0.004,
-                 seat_force_n: float = 3.0) -> None:
+                 seat_force_n: float = 3.0, probe_stiffness_n_per_m: float = 2.0e3) -> None:
         if not isinstance(geometry, SlotGeometry):
             raise InsertionError('geometry must be a SlotGeometry')
         self.geometry = geometry
@@ -442,11 +640,13 @@ class LeastResistance:
             raise InsertionError('entry_margin_m must be below half the clearance')
         self.level_rad = _pos('level_rad', level_rad)
         self.seat_force_n = _pos('seat_force_n', seat_force_n, zero_ok=True)
+        self.probe_stiffness = _pos('probe_stiffness_n_per_m', probe_stiffness_n_per_m)
         self._weight = np.array([1.0, 1.0, geometry.card_width_m / 2])
         self._reach = float(np.hypot(geometry.card_width_m / 2, geometry.card_height_m))
         self._budget = np.inf
 
-    def _desired(self, ident: Identification, pose: CardPose) -> tuple[np.ndarray, str]:
+    def _desired(self, ident: Identification, pose: CardPose, w: np.ndarray
+                 ) -> tuple[np.ndarray, str]:
         g = self.geometry
         st, s = ident.state, ident.side
         step = self.insert_step_m
@@ -461,10 +661,13 @@ class LeastResistance:
             # flat on the floor by the wrench: press until the floor pushes back by
             # seat_force_n, where one corner's moment would stand clear of the noise
             pressed = ident.floor_force_n
-            if pressed >= self.seat_force_n:
+            if pressed < self.seat_force_n:
+                # (a card on the floor answers through the arm's compliance, probe_stiffness)
+                dy = min(step, (self.seat_force_n - pressed) / self.probe_stiffness)
+                return np.array([0.0, -dy, 0.0]), 'seated: press to the seating force'
+            if ident.seat is None or ident.seat.passed:
                 return np.zeros(3), 'seated'
-            dy = min(step, (self.seat_force_n - pressed) / self.stiffness)
-            return np.array([0.0, -dy, 0.0]), 'seated: press to the seating force'
+            return self._probe(ident, pose, w)
         if st is ContactState.CORNER_ON_MOUTH:
             # move the corner from where the wrench puts it to entry_margin inside the edge
             xc = ident.contacts[0].point[0]
@@ -486,18 +689,14 @@ class LeastResistance:
             # -y is tangent to the wall: keep inserting, ease off the wall, align
             return (np.array([-s * 0.5 * step, -step, align[2]]),
                     'corner on a wall: slide along it, align')
+        if st is ContactState.CORNER_AND_SIDE:
+            # on one corner, held up by a jaw: pivot flat about the corner as below, and ease
+            # away from the jaw that holds the card up (its friction is what holds it)
+            d, _ = self._pivot(ident.contacts[0], s, pose)
+            d[0] -= ident.contacts[1].side * 0.5 * step
+            return d, 'corner and side: rotate flat about the corner, ease off the jaw'
         if st is ContactState.CORNER_ON_BOTTOM:
-            # pivot about the corner on the bottom until the other comes down too: by the
-            # estimate's tilt when it agrees with the wrench (corner s lowest turns the card
-            # towards sign s), else by level_rad a step the wrench's way (through the graph the
-            # estimate called a card flat that stood on one corner, tilted past its tolerance)
-            c = ident.contacts[0].point
-            dth = -pose.theta
-            if not (np.sign(dth) == s and abs(dth) > self.level_rad):
-                dth = s * self.level_rad
-            r = pose.p - c
-            dp = dth * np.array([-r[1], r[0]])
-            return np.array([dp[0], dp[1], dth]), 'corner on the bottom: rotate flat about it'
+            return self._pivot(ident.contacts[0], s, pose)
         if st is ContactState.TWO_POINT:
             # jammed: back off along the card axis and rotate out of the wedge. The tilt to
             # remove is the estimated one; if the estimate says aligned, the wedge's moment
@@ -512,6 +711,47 @@ class LeastResistance:
             d = step * pose.u
             return np.array([d[0], d[1], dth]), 'two-point (wedged): back off, rotate out'
         raise InsertionError(f'unknown state {st}')  # pragma: no cover
+
+    def _pivot(self, bottom: Contact, s: int, pose: CardPose) -> tuple[np.ndarray, str]:
+        """Pivot about the corner on the bottom until the other comes down too: by the
+        estimate's tilt when it agrees with the wrench (corner s lowest turns the card towards
+        sign s), else by level_rad a step the wrench's way (through the graph the estimate
+        called a card flat that stood on one corner, tilted past its tolerance)."""
+        dth = -pose.theta
+        if not (np.sign(dth) == s and abs(dth) > self.level_rad):
+            dth = s * self.level_rad
+        r = pose.p - bottom.point
+        dp = dth * np.array([-r[1], r[0]])
+        return np.array([dp[0], dp[1], dth]), 'corner on the bottom: rotate flat about it'
+
+    def _probe(self, ident: Identification, pose: CardPose, w: np.ndarray
+               ) -> tuple[np.ndarray, str]:
+        """SEATED by the fit and pressed, but the seat check fails (a corner light, or a
+        one-corner rival within the margin): an active probe whose wrench response tells them
+        apart. The card turns about its heavier corner to bring the lighter one down, by a
+        fraction of what would even a seated card's loads (a card on one corner keeps its
+        imbalance, and keeps turning until the other corner lands; a seated one evens its
+        loads, which the check needs at mu 0.6); the press is held at 2 x seat_force_n (more
+        load, more chi^2 between the hypotheses)."""
+        seat, step, k = ident.seat, self.insert_step_m, self.probe_stiffness
+        g = self.geometry
+        light = seat.lighter_side
+        f_light, f_heavy = sorted(seat.corner_forces_n)
+        # a sixteenth of the turn that would even the corners' loads, at most a quarter of
+        # level_rad a step (the arm answers late: larger turns swung the load from corner to
+        # corner); none within a quarter of the total
+        dth = 0.0
+        if f_heavy - f_light > 0.25 * (f_heavy + f_light):
+            dth = -light * min(0.25 * self.level_rad,
+                               (f_heavy - f_light) / (16 * k * g.card_width_m))
+        r = pose.p - pose.corner(-light, g.card_width_m)
+        d = dth * np.array([-r[1], r[0]])
+        dx = 0.0
+        dy = float(np.clip((ident.floor_force_n - 2 * self.seat_force_n) / k, -step, step))
+        return (np.array([d[0] + dx, d[1] + dy, dth]),
+                f'seated by the fit, not by the check ({seat.rival} within '
+                f'{seat.margin:.1f} chi^2, corners {seat.corner_forces_n[0]:.1f} / '
+                f'{seat.corner_forces_n[1]:.1f} N): probe')
 
     def _constraints(self, ident: Identification, wrench: np.ndarray, pose: CardPose
                      ) -> list[tuple[np.ndarray, float, float]]:
@@ -541,7 +781,7 @@ class LeastResistance:
         if not isinstance(ident, Identification) or not isinstance(pose, CardPose):
             raise InsertionError('step needs an Identification and a CardPose')
         w = _check_wrench(wrench)
-        desired, reason = self._desired(ident, pose)
+        desired, reason = self._desired(ident, pose, w)
         cons = self._constraints(ident, w, pose)
         self._budget = max(0.0, self.force_limit_n - float(np.hypot(w[0], w[1]))) / \
             self.stiffness

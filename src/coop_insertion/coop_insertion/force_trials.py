@@ -2,13 +2,16 @@
 finish (app. A.4) measured apart from vision and camera placement.
 
     python -m coop_insertion.force_trials --slots 5.0,4.5,4.375 --seeds 1-5 --json out/ft.json
+    python -m coop_insertion.force_trials --friction 0.2 ...   # the card's mu on the site
 
 Each trial places the slave with the card 0.55 m short of the slot (perturbed by the seed, as
 `table_5_1` does) and runs `slave.SlaveController` at the physics rate on the world's own
 sensors (encoders, odometry, F/T). Its vision is ideal but honest in rate and noise: the true
 marker positions seen from a fixed camera 0.6 m from the site, with a 0.1 px-disparity depth
 noise, at 4 Hz, only while the card is in that camera's field. The simulator's truth judges each
-trial as `table_5_1` does: seated, penetration at most 0.5 mm.
+trial as `table_5_1` does: seated, penetration at most 0.5 mm. --friction sets the simulator's
+contact_friction (SimConfig's default otherwise); the slave is not told it. Each trial records
+whether the slave's verdict (seated or not) agreed with the truth's seated.
 """
 from __future__ import annotations
 
@@ -43,20 +46,25 @@ class Trial:
     peak_force_n: float
     sim_s: float
     reason: str
+    friction: float = float('nan')      # the simulator's contact_friction
+    verdict_agrees: bool = True         # the slave's seated verdict == the truth's seated
 
 
 def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 45.0,
-              slave_options: dict | None = None, site_bias_m: tuple[float, float] = (0.0, 0.0)
+              slave_options: dict | None = None, site_bias_m: tuple[float, float] = (0.0, 0.0),
+              friction: float | None = None
               ) -> tuple[Trial, SlaveStatus, list[Phase], SlaveController]:
     """One insertion from the perturbed start until the slave is done or `sim_s` passed.
     site_bias_m: (near, far) slot markers seen this much higher than they are (m), a constant
-    error of the site frame as the master's stereo makes it (equal: depth; opposite: tilt)."""
+    error of the site frame as the master's stereo makes it (equal: depth; opposite: tilt).
+    friction: the simulator's contact_friction (None: SimConfig's default)."""
     from rover_sim.config import NoiseConfig, SimConfig
     from rover_sim.world import World
     from rover_sim.worldgen import INCH
     gap = slot_in * INCH
+    extra = {} if friction is None else {'contact_friction': float(friction)}
     cfg = SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
-                    seed=seed, noise=NoiseConfig(encoder_rad=0.0077))
+                    seed=seed, noise=NoiseConfig(encoder_rad=0.0077), **extra)
     rng = np.random.default_rng(seed)
     with World(cfg, [load_truth()] * 2) as w:
         model = TaskModel(slot_width_m=gap)
@@ -107,9 +115,11 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
         st = cmd.status
         seated = w.seated(1)
         ok = bool(st.done and st.success and seated and pen <= PENETRATION_LIMIT_M)
-        trial = Trial(slot_in, seed, ok, bool(st.success), bool(seated), pen * 1e3,
+        said = bool(st.done and st.success)
+        trial = Trial(slot_in, seed, ok, said, bool(seated), pen * 1e3,
                       float(ctl.peak_force_n), float(w.time_s),
-                      st.reason or f'not done after {sim_s:.0f} sim s ({st.phase.name})')
+                      st.reason or f'not done after {sim_s:.0f} sim s ({st.phase.name})',
+                      float(cfg.contact_friction), said == bool(seated))
         return trial, st, phases, ctl
 
 
@@ -121,20 +131,30 @@ def _seeds(text: str) -> list[int]:
 
 
 def format_table(trials: list[Trial]) -> str:
+    """Per slot: trials, truth-judged successes, the slave's seated verdicts, the truth's seated,
+    the verdicts the truth contradicts (false seat: said seated, not seated; missed: seated,
+    not said), median and largest peak force, median sim s."""
     lines = [f'{"slot (in)":>9s} {"trials":>6s} {"success":>8s} {"slave said":>10s} '
-             f'{"peak F median (N)":>17s} {"sim s median":>12s}']
+             f'{"seated":>6s} {"false seat":>10s} {"missed":>6s} {"peak F median (N)":>17s} '
+             f'{"max (N)":>7s} {"sim s median":>12s}']
     for slot in sorted({t.slot_in for t in trials}, reverse=True):
         ts = [t for t in trials if t.slot_in == slot]
         lines.append(f'{slot:9.4g} {len(ts):6d} {sum(t.success for t in ts):8d} '
                      f'{sum(t.action_success for t in ts):10d} '
+                     f'{sum(t.seated for t in ts):6d} '
+                     f'{sum(t.action_success and not t.seated for t in ts):10d} '
+                     f'{sum(t.seated and not t.action_success for t in ts):6d} '
                      f'{np.median([t.peak_force_n for t in ts]):17.1f} '
+                     f'{max(t.peak_force_n for t in ts):7.1f} '
                      f'{np.median([t.sim_s for t in ts]):12.1f}')
     return '\n'.join(lines)
 
 
 def format_result(res: dict) -> str:
     """format_table of a --json result."""
-    return format_table([Trial(**t) for t in res['trials']]) + \
+    head = (f'contact friction {res["friction"]:g}\n' if res.get('friction') is not None
+            else '')
+    return head + format_table([Trial(**t) for t in res['trials']]) + \
         f'\n{res["seconds"] / 60:.1f} min'
 
 
@@ -145,6 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--sim-s', type=float, default=45.0, help='sim seconds per trial')
     p.add_argument('--site-bias-mm', default='0,0',
                    help='near,far slot markers seen this much higher (a biased site frame)')
+    p.add_argument('--friction', type=float, default=None,
+                   help="the simulator's contact_friction (the card's mu on the site; default "
+                        "SimConfig's); the slave is not told it")
     p.add_argument('--json', type=output_path, default=None)
     args = p.parse_args(argv)
     try:
@@ -156,19 +179,24 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         p.error('--slots: comma-separated inches; --seeds: a-b or comma-separated integers; '
                 '--site-bias-mm: near,far')
+    if args.friction is not None and not 0.0 <= args.friction <= 2.0:
+        p.error('--friction: in [0, 2]')
     if not all(4.25 < s <= 9.8 for s in slots):
         p.error('--slots: each slot must be wider than the 4.25 in card (and at most 9.8 in)')
     t0 = time.perf_counter()
     trials = []
     for slot in slots:
         for seed in seeds:
-            trial = run_trial(slot, seed, sim_s=args.sim_s, site_bias_m=bias)[0]
+            trial = run_trial(slot, seed, sim_s=args.sim_s, site_bias_m=bias,
+                              friction=args.friction)[0]
             trials.append(trial)
             print(f'{slot} in seed {seed}: {"success" if trial.success else "failure"} '
-                  f'({trial.reason}); seated {trial.seated}, penetration '
+                  f'({trial.reason}); seated {trial.seated}'
+                  f'{"" if trial.verdict_agrees else " (the verdict disagrees)"}, penetration '
                   f'{trial.max_penetration_mm:.2f} mm, peak {trial.peak_force_n:.1f} N',
                   file=sys.stderr, flush=True)
     res = {'slots': slots, 'seeds': seeds, 'sim_s': args.sim_s, 'site_bias_m': list(bias),
+           'friction': trials[0].friction if trials else args.friction,
            'trials': [asdict(t) for t in trials], 'seconds': time.perf_counter() - t0}
     print(format_result(res))
     if args.json:

@@ -24,7 +24,12 @@ knows into arm-joint and base-velocity commands through three phases:
    floor pushes back, the card's depth is the floor's (floor_correction): the estimate's
    lowest corner is put on it. On one corner, the card turns about it towards the other
    (by the contact's side when the estimate disagrees); both corners on the floor by the
-   wrench (SEATED), pressed to `seat_force_n`, end it with success (card_seated); a force above
+   wrench (SEATED), pressed to `seat_force_n`, each corner carrying load and every one-corner
+   rival (a corner on the floor, the card held up by a jaw) a margin worse on the mean wrench
+   of the last force period (ContactIdentifier.seat_check) in SEAT_CONFIRMATIONS periods
+   in a row, end it with success
+   (card_seated); SEATED by the fit but not by that check, the planner probes (turns the
+   lighter corner down, presses harder) until it is; a force above
    `abort_force_factor` x `max_force_n` in ABORT_SAMPLES consecutive readings ends it with
    failure, as does the caller's timeout.
 
@@ -35,6 +40,7 @@ odometry, planar); the F/T sensor frame is the base frame's axes at r_2 (rover_s
 """
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from collections import deque
@@ -56,6 +62,7 @@ from .contact import (
     ContactIdentifier,
     ContactState,
     LeastResistance,
+    SeatCheck,
     planar_step_in_frame,
     planar_wrench,
     task_wrench,
@@ -128,6 +135,10 @@ class _Target:
 
 #: the contact force must exceed the abort limit in this many consecutive F/T readings
 ABORT_SAMPLES = 3
+#: the seat check must pass in this many consecutive force periods (each period's wrench has
+#: its own noise: a check a card on one corner passes by chance once in a few hundred periods
+#: would, over a long press, pass it once)
+SEAT_CONFIRMATIONS = 3
 #: the floor felt corrects the site frame's depth only when the pose estimate puts the card's
 #: lowest corner within this of the floor (never a jaw's mouth, a slot depth away)
 FLOOR_GATE_M = 0.008
@@ -148,18 +159,22 @@ def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m
 
 
 def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, floor_force_n: float,
-                seat_force_n: float, slot_depth_m: float, card_width_m: float) -> bool:
+                seat_force_n: float, slot_depth_m: float, card_width_m: float,
+                seat: SeatCheck | None) -> bool:
     """Whether the force-feedback insertion is done: the wrench says both of the card's corners
-    are on the floor (SEATED) and the floor pushes back by at least seat_force_n, which is
-    where a single corner's moment (half the card's width x the force) stands clear of the
-    sensor's noise; the pose estimate only has to agree that the higher corner is within 4 mm
-    of the floor (half the card's width x sin(tilt) above the edge's centre). The estimate
-    alone decides nothing: it put a free card 30.3 mm in, a wedged one 30.8 mm, and through the
-    graph a card on one corner, 0.3 deg from flat, where the truth had it tilted by more than
-    the 1.06 deg its 2 mm allow."""
+    are on the floor (SEATED), the floor pushes back by at least seat_force_n, and the seat
+    check passed (ContactIdentifier.seat_check: each corner carries load, every one-corner
+    rival fits the wrench a margin worse; None, not checked, is not seated). The floor's sum
+    alone passed a card on one corner whose other corner a jaw's friction held up: through
+    the graph 3.4 N, 29.9 mm deep and 0.1 deg from flat by the estimate, and not seated by the
+    truth. The pose estimate only has to agree that the higher corner is within 4 mm of the
+    floor (half the card's width x sin(tilt) above the edge's centre); alone it decides
+    nothing: it put a free card 30.3 mm in, a wedged one 30.8 mm, and through the graph a card
+    on one corner, 0.3 deg from flat, where the truth had it tilted by more than the 1.06 deg
+    its 2 mm allow."""
     depth_high = depth_m - card_width_m / 2 * math.sin(abs(tilt_rad))
     return (state is ContactState.SEATED and floor_force_n >= seat_force_n and
-            depth_high >= slot_depth_m - 0.004)
+            seat is not None and seat.passed and depth_high >= slot_depth_m - 0.004)
 
 
 class SlaveController:
@@ -248,6 +263,8 @@ class SlaveController:
         self._card_in_site: tuple[float, float, float] | None = None
         self._floor_offset_m = 0.0      # the site's depth as the floor was felt (planar y)
         self.peak_force_n = 0.0
+        self.last_seat: SeatCheck | None = None   # the last force step's seat check (SEATED)
+        self._seat_passes = 0                     # consecutive force periods it passed
 
     # -- inputs -------------------------------------------------------------------------------
     def add_state(self, t: float, q, odom_xy_yaw, wrench) -> None:
@@ -450,6 +467,10 @@ class SlaveController:
         sensor = base_in_planar.copy()
         sensor[:3, 3] = base_in_planar[:3, :3] @ self.r2 + base_in_planar[:3, 3]
         w = planar_wrench([task_wrench(self._tared(s.wrench), sensor)])
+        # the seat check reads the mean of the last force period's readings (the torque's
+        # noise over one reading is a few times the identifier's moment noise)
+        period = [r for tr, r in self._recent if tr > t - self.force_period_s] or [s.wrench]
+        w_mean = planar_wrench([task_wrench(self._tared(np.mean(period, axis=0)), sensor)])
         ident = self.identifier.identify(w, pose)
         dy = floor_correction(ident, pose, slot_depth_m=m.slot_depth_m,
                               card_width_m=m.card_width_m, min_force_n=self.contact_threshold_n)
@@ -457,15 +478,23 @@ class SlaveController:
             self._floor_offset_m += dy
             pose = CardPose(pose.x, pose.y + dy, pose.theta)
             ident = self.identifier.identify(w, pose)
+        if ident.state is ContactState.SEATED:
+            ident = dataclasses.replace(ident, seat=self.identifier.seat_check(w_mean, pose))
+        self.last_seat = ident.seat
+        self._seat_passes = self._seat_passes + 1 if ident.seat and ident.seat.passed else 0
         self._card_in_site = (pose.x, pose.y, pose.theta)
         self._contact_state = ident.state.value
         # seated: both corners on the floor by the wrench, pressed to seat_force_n
         depth = -pose.y
         if card_seated(ident.state, depth, pose.theta, floor_force_n=ident.floor_force_n,
                        seat_force_n=self.seat_force_n, slot_depth_m=m.slot_depth_m,
-                       card_width_m=m.card_width_m):
+                       card_width_m=m.card_width_m, seat=ident.seat) and \
+                self._seat_passes >= SEAT_CONFIRMATIONS:
+            c = ident.seat
             self._finish(True, f'seated: both corners on the floor at '
-                               f'{ident.floor_force_n:.1f} N, card edge {depth * 1e3:.1f} mm '
+                               f'{c.corner_forces_n[0]:.1f} + {c.corner_forces_n[1]:.1f} N, '
+                               f'{c.margin:.0f} chi^2 over {c.rival}, '
+                               f'card edge {depth * 1e3:.1f} mm '
                                f'into the slot by the estimate, '
                                f'tilt {math.degrees(abs(pose.theta)):.1f} deg, peak force '
                                f'{self.peak_force_n:.1f} N')
