@@ -27,7 +27,7 @@ from coop_common.dynparams import load_truth
 from coop_common.files import write_json
 from coop_common.rover_geometry import ARM_JOINTS, joint2_in_base
 
-from .slave import Phase, SlaveController, SlaveStatus
+from .slave import Phase, SeatVerdict, SlaveController, SlaveStatus
 from .task import LabelledMarkers, TaskModel
 
 #: the fixes' depth noise: a 0.1 px disparity at 0.6 m with f = 850 px, b = 38 mm
@@ -168,6 +168,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--friction', type=float, default=None,
                    help="the simulator's contact_friction (the card's mu on the site; default "
                         "SimConfig's); the slave is not told it")
+    p.add_argument('--seat-verdict', choices=[v.value for v in SeatVerdict],
+                   default=SeatVerdict.FLOOR_FORCE.value,
+                   help="what ends the slave's press with seated (slave.SeatVerdict)")
     p.add_argument('--json', type=output_path, default=None)
     args = p.parse_args(argv)
     try:
@@ -188,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
     for slot in slots:
         for seed in seeds:
             trial = run_trial(slot, seed, sim_s=args.sim_s, site_bias_m=bias,
-                              friction=args.friction)[0]
+                              friction=args.friction,
+                              slave_options={'seat_verdict': args.seat_verdict})[0]
             trials.append(trial)
             print(f'{slot} in seed {seed}: {"success" if trial.success else "failure"} '
                   f'({trial.reason}); seated {trial.seated}'
@@ -197,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr, flush=True)
     res = {'slots': slots, 'seeds': seeds, 'sim_s': args.sim_s, 'site_bias_m': list(bias),
            'friction': trials[0].friction if trials else args.friction,
+           'seat_verdict': args.seat_verdict,
            'trials': [asdict(t) for t in trials], 'seconds': time.perf_counter() - t0}
     print(format_result(res))
     if args.json:

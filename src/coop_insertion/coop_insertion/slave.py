@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from coop_common.params import choice
 from coop_common.rover_geometry import (
     BASE_HEIGHT_M,
     ReachError,
@@ -158,13 +159,28 @@ def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m
     return dy if abs(dy) <= gate_m else 0.0
 
 
+class SeatVerdict(enum.StrEnum):
+    """What ends the force-feedback insertion with "seated" (card_seated)."""
+
+    #: the fit's SEATED, the floor's summed push at seat_force_n, the estimate deep enough:
+    #: it inserts, and it can be fooled by a card on one corner whose other corner a jaw holds
+    #: up (docs/results/insertion.md)
+    FLOOR_FORCE = 'floor_force'
+    #: that and the seat check (each corner loaded, every one-corner rival a margin worse) in
+    #: SEAT_CONFIRMATIONS force periods in a row, the planner probing until it passes: no false
+    #: seat measured, and most cards the truth has seated never pass it in time
+    BOTH_CORNERS = 'both_corners'
+
+
 def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, floor_force_n: float,
                 seat_force_n: float, slot_depth_m: float, card_width_m: float,
-                seat: SeatCheck | None) -> bool:
+                seat: SeatCheck | None,
+                verdict: SeatVerdict = SeatVerdict.BOTH_CORNERS) -> bool:
     """Whether the force-feedback insertion is done: the wrench says both of the card's corners
-    are on the floor (SEATED), the floor pushes back by at least seat_force_n, and the seat
-    check passed (ContactIdentifier.seat_check: each corner carries load, every one-corner
-    rival fits the wrench a margin worse; None, not checked, is not seated). The floor's sum
+    are on the floor (SEATED), the floor pushes back by at least seat_force_n, and, by the
+    BOTH_CORNERS verdict, the seat check passed (ContactIdentifier.seat_check: each corner
+    carries load, every one-corner rival fits the wrench a margin worse; None, not checked,
+    is not seated). The floor's sum
     alone passed a card on one corner whose other corner a jaw's friction held up: through
     the graph 3.4 N, 29.9 mm deep and 0.1 deg from flat by the estimate, and not seated by the
     truth. The pose estimate only has to agree that the higher corner is within 4 mm of the
@@ -173,8 +189,9 @@ def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, floor_f
     on one corner, 0.3 deg from flat, where the truth had it tilted by more than the 1.06 deg
     its 2 mm allow."""
     depth_high = depth_m - card_width_m / 2 * math.sin(abs(tilt_rad))
-    return (state is ContactState.SEATED and floor_force_n >= seat_force_n and
-            seat is not None and seat.passed and depth_high >= slot_depth_m - 0.004)
+    checked = verdict is SeatVerdict.FLOOR_FORCE or (seat is not None and seat.passed)
+    return (state is ContactState.SEATED and floor_force_n >= seat_force_n and checked and
+            depth_high >= slot_depth_m - 0.004)
 
 
 class SlaveController:
@@ -185,7 +202,8 @@ class SlaveController:
     (the least-resistance force limit), abort_force_factor, force_period_s, carry_reach_m,
     carry_height_m, ready_s, servo (a VisualServo; default one with arm_home at the carry
     pose), identifier / planner options through `contact_options` / `step_options`,
-    approach_speed_m_s, seat_force_n (the floor's push on both corners that ends it)."""
+    approach_speed_m_s, seat_force_n (the floor's push on both corners that ends it),
+    seat_verdict (SeatVerdict: what that push must show besides)."""
 
     def __init__(self, model: TaskModel, cg_to_arm, *, tolerance_m: float = 0.003,
                  angle_tolerance_rad: float = 0.03, yaw_tolerance_rad: float = 0.15,
@@ -196,7 +214,8 @@ class SlaveController:
                  carry_height_m: float = 0.0, ready_s: float = 2.0,
                  servo: VisualServo | None = None, contact_options: dict | None = None,
                  step_options: dict | None = None, site_in_odom=None,
-                 approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0) -> None:
+                 approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0,
+                 seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE) -> None:
         if not isinstance(model, TaskModel):
             raise InsertionError('model must be a TaskModel')
         self.model = model
@@ -231,6 +250,8 @@ class SlaveController:
         if not 0 < seat_force_n < max_force_n:
             raise InsertionError('seat_force_n must be in (0, max_force_n)')
         self.seat_force_n = float(seat_force_n)
+        self.seat_verdict = choice(SeatVerdict, seat_verdict, 'seat_verdict',
+                                   error=InsertionError)
         self.servo = servo if servo is not None else VisualServo(
             arm_home_m=tuple(self.carry), max_arm_speed_m_s=0.04, base_deadband_m=0.04)
         geo = model.geometry
@@ -486,14 +507,18 @@ class SlaveController:
         self._contact_state = ident.state.value
         # seated: both corners on the floor by the wrench, pressed to seat_force_n
         depth = -pose.y
+        both = self.seat_verdict is SeatVerdict.BOTH_CORNERS
         if card_seated(ident.state, depth, pose.theta, floor_force_n=ident.floor_force_n,
                        seat_force_n=self.seat_force_n, slot_depth_m=m.slot_depth_m,
-                       card_width_m=m.card_width_m, seat=ident.seat) and \
-                self._seat_passes >= SEAT_CONFIRMATIONS:
+                       card_width_m=m.card_width_m, seat=ident.seat,
+                       verdict=self.seat_verdict) and \
+                (not both or self._seat_passes >= SEAT_CONFIRMATIONS):
             c = ident.seat
-            self._finish(True, f'seated: both corners on the floor at '
-                               f'{c.corner_forces_n[0]:.1f} + {c.corner_forces_n[1]:.1f} N, '
-                               f'{c.margin:.0f} chi^2 over {c.rival}, '
+            loads = (f'{c.corner_forces_n[0]:.1f} + {c.corner_forces_n[1]:.1f} N, '
+                     f'{c.margin:.0f} chi^2 over {c.rival}' if c is not None else
+                     f'{ident.floor_force_n:.1f} N')
+            self._finish(True, f'seated ({self.seat_verdict.value}): both corners on the '
+                               f'floor at {loads}, '
                                f'card edge {depth * 1e3:.1f} mm '
                                f'into the slot by the estimate, '
                                f'tilt {math.degrees(abs(pose.theta)):.1f} deg, peak force '

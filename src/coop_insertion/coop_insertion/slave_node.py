@@ -33,7 +33,7 @@ from coop_msgs.action import Insert
 from coop_msgs.msg import DynamicParameters, MarkerObservation
 
 from .errors import InsertionError
-from .slave import Phase, SlaveController
+from .slave import Phase, SeatVerdict, SlaveController
 from .task import LABELS, LabelledMarkers, TaskModel
 
 PARAMS = {
@@ -51,8 +51,9 @@ PARAMS = {
                                'odometry frame (rover_sim starts odometry at the true pose)'),
     'site_yaw': ParamSpec(0.0, "The site frame's heading in the map (rad): its x across the "
                           'slot', lo=-math.pi, hi=math.pi),
-    'cg_to_arm': ParamSpec([0.01, 0.3, 0.1], 'r_2, the arm mount from the base c.g. (m), '
-                           'until the identifier publishes it'),
+    'cg_to_arm': ParamSpec([0.0, 0.3, 0.1], 'r_2, the arm mount from the base c.g. (m), '
+                           "until the identifier publishes it (the default: the design's "
+                           'nominal mount; set it to a calibration of the rover at hand)'),
     'tolerance_m': ParamSpec(0.003, 'Vision error to reach before descending, when the goal '
                              'gives none (m)', lo=1e-4, hi=0.1),
     'angle_tolerance_rad': ParamSpec(0.03, 'Card tilt error before descending, when the goal '
@@ -65,6 +66,11 @@ PARAMS = {
                                    lo=0.001, hi=0.1),
     'contact_threshold_n': ParamSpec(1.5, 'Tared force that means contact (N)', lo=0.1,
                                      hi=50.0),
+    'seat_verdict': ParamSpec(SeatVerdict.FLOOR_FORCE.value, "What ends the press with "
+                              "seated: 'floor_force' (the fit's SEATED and the floor's push), "
+                              "'both_corners' (and each corner loaded, every one-corner "
+                              'rival a margin worse: slave.SeatVerdict)',
+                              choices=[v.value for v in SeatVerdict]),
     'command_rate_hz': ParamSpec(100.0, 'Arm and base command rate (Hz)', lo=1.0, hi=200.0),
 }
 
@@ -99,6 +105,7 @@ class SlaveNode(Node):
         self._wake: Future | None = None
         self._busy = False
         self._status_t = 0.0           # stamp of the joint state the last status is of
+        self._descended_t: float | None = None      # ... the first in the descent, or contact
         # the goal's stamp: its task starts with the first joint state after it (in lockstep
         # the goal can arrive before or after the round it was sent in is handed out here;
         # states and fixes up to its stamp are left out either way)
@@ -225,6 +232,8 @@ class SlaveNode(Node):
                                f'{np.linalg.norm(st.wrench[:3]):.1f} N',
                                throttle_duration_sec=5.0)
         self._status, self._status_t = st, t
+        if self._descended_t is None and (st.descending or st.phase is Phase.FORCE_INSERT):
+            self._descended_t = t
         if st.done:
             self._wakeup()
 
@@ -268,7 +277,7 @@ class SlaveNode(Node):
             angle_tolerance_rad=g.angle_tolerance_rad or p['angle_tolerance_rad'],
             max_force_n=g.max_force_n or p['max_force_n'],
             descent_speed_m_s=p['descent_speed_m_s'],
-            contact_threshold_n=p['contact_threshold_n'],
+            contact_threshold_n=p['contact_threshold_n'], seat_verdict=p['seat_verdict'],
             site_in_odom=_site_pose(p['site_position'], p['site_yaw']))
         self._timeout = g.timeout_s or p['timeout_s']
         self._goal_t0 = None
@@ -277,6 +286,7 @@ class SlaveNode(Node):
         self._started = False
         self._last_cmd = -math.inf
         self._status = None
+        self._descended_t = None
         self.get_logger().info(f'inserting: guided by {master}/markers, r_2 '
                                f'{np.round(self.r2, 4).tolist()} ({self.r2_source}), slot '
                                f'{model.slot_width_m * 1e3:.1f} mm')
@@ -297,7 +307,8 @@ class SlaveNode(Node):
                                      Phase.READY else Insert.Feedback.PHASE_VISUAL_SERVO,
                                      displacement_error_m=st.displacement_error_m,
                                      angle_error_rad=st.angle_error_rad,
-                                     awaiting_fix=bool(st.awaiting_fix))
+                                     awaiting_fix=bool(st.awaiting_fix),
+                                     descending=bool(st.descending))
                 w = st.wrench
                 fb.wrench.force.x, fb.wrench.force.y, fb.wrench.force.z = (float(v) for v in w[:3])
                 fb.wrench.torque.x, fb.wrench.torque.y, fb.wrench.torque.z = \
@@ -312,6 +323,8 @@ class SlaveNode(Node):
     def _result(self, ok: bool, reason: str, t0: float, st=None) -> Insert.Result:
         r = Insert.Result(success=bool(ok), reason=reason, duration_s=time.monotonic() - t0)
         r.ended = stamp(self._status_t)
+        if self._descended_t is not None:
+            r.descended = stamp(self._descended_t)
         if st is not None:
             r.displacement_error_m = float(st.displacement_error_m)
             r.angle_error_rad = float(st.angle_error_rad)
