@@ -1,6 +1,5 @@
-"""Driving a skid-steer rover to a pose on its odometry (turn, drive, turn), and the camera pose
-the master drives to (§4, §5.4: optimal from the view planner, or random within reasonable
-bounds). No rclpy here."""
+"""Driving a skid-steer rover to a pose on its odometry (turn, drive, turn; or through
+waypoints). No rclpy here."""
 from __future__ import annotations
 
 import math
@@ -10,7 +9,7 @@ import numpy as np
 
 from .errors import InsertionError
 
-__all__ = ['GoToPose', 'FollowPath', 'DriveCommand', 'random_camera_pose', 'wrap']
+__all__ = ['GoToPose', 'FollowPath', 'DriveCommand', 'wrap']
 
 
 def wrap(a: float) -> float:
@@ -70,24 +69,6 @@ class GoToPose:
         v = float(np.clip(self.k * dist * max(0.0, math.cos(e)), 0.0, self.v_max))
         w = float(np.clip(2 * self.k * e, -self.w_max, self.w_max))
         return DriveCommand(v, w, False, 'drive')
-
-
-def random_camera_pose(site_xyz, rng: np.random.Generator, *, min_range_m: float = 0.5,
-                       max_range_m: float = 1.2, face_normal=(0.0, 1.0), max_bearing_rad:
-                       float = math.radians(75), aim_error_rad: float = math.radians(8),
-                       camera_z: float) -> tuple[np.ndarray, float, float]:
-    """§5.4's random placement, bounded to reasonable locations: a camera at a range uniform in
-    [min_range_m, max_range_m] from the site, on the side its markers face (bearing within
-    max_bearing_rad of face_normal), at the mast's camera height, aimed at the site with an
-    error uniform within +-aim_error_rad in heading and pitch. Returns (xy, yaw, pitch)."""
-    s = np.asarray(site_xyz, float)
-    n = math.atan2(face_normal[1], face_normal[0])
-    rng_m = rng.uniform(min_range_m, max_range_m)
-    b = n + rng.uniform(-max_bearing_rad, max_bearing_rad)
-    xy = s[:2] + rng_m * np.array([math.cos(b), math.sin(b)])
-    yaw = math.atan2(s[1] - xy[1], s[0] - xy[0]) + rng.uniform(-aim_error_rad, aim_error_rad)
-    pitch = math.atan2(camera_z - s[2], rng_m) + rng.uniform(-aim_error_rad, aim_error_rad)
-    return xy, float(yaw), float(pitch)
 
 
 class FollowPath:

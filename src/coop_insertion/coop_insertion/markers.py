@@ -411,6 +411,14 @@ class ThesisDetector:
 
 # ------------------------------------------------------------------ the default: sub-pixel ellipse
 
+#: the default detector's settings, the ones its benchmark and its limit study on the
+#: simulator's renders (detector_limits) measured
+DEFAULT_RADIUS_PX = (2.5, 80.0)
+DEFAULT_MIN_CONTRAST = 40.0
+DEFAULT_MIN_COVERAGE = 0.6
+DEFAULT_MAX_RESIDUAL_PX = 0.5
+
+
 class EllipseDetector:
     """Sub-pixel ellipse fit with the perspective correction (the default detector).
 
@@ -436,10 +444,12 @@ class EllipseDetector:
        or coplanar markers (`resolve_coplanar`); unresolved markers keep the ellipse centre.
     """
 
-    def __init__(self, *, radius_px: tuple[float, float] = (2.5, 80.0),
+    def __init__(self, *, radius_px: tuple[float, float] = DEFAULT_RADIUS_PX,
                  polarity: Polarity | str = Polarity.BRIGHT, K: np.ndarray | None = None,
-                 normal_hint: np.ndarray | None = None, min_contrast: float = 40.0,
-                 min_coverage: float = 0.6, max_residual_px: float = 0.5,
+                 normal_hint: np.ndarray | None = None,
+                 min_contrast: float = DEFAULT_MIN_CONTRAST,
+                 min_coverage: float = DEFAULT_MIN_COVERAGE,
+                 max_residual_px: float = DEFAULT_MAX_RESIDUAL_PX,
                  max_axis_ratio: float = 3.0,
                  ambiguity: Literal['coplanar', 'none'] = 'coplanar') -> None:
         self.r_min, self.r_max = _radius_range(radius_px)

@@ -6,9 +6,10 @@ Runs in the team's namespace (like the mapper) for the rover named by `rover`:
   frame, or at most `vision_rate_hz`), triangulates them and publishes the four labelled
   centres with their covariances and the vertical from the mast encoders on `<rover>/markers`;
 - action `insert` (coop_msgs/action/Insert): PLACE_CAMERA (the camera pose from the team's
-  `viewplan/task_view` for the site, or random within bounds; the rover drives there on its
-  odometry and tilts its mast), then hands the task to the slave's `<slave>/insert_card` action
-  and relays its feedback and result.
+  `viewplan/task_view` for the site: its best, or one drawn from the same feasible poses for
+  the random placement; or the goal's own; the rover drives there on its odometry and tilts its
+  mast), then hands the task to the slave's `<slave>/insert_card` action, relays its feedback
+  and result, and places its camera again when the fixes stop (optimal and random).
 """
 from __future__ import annotations
 
@@ -42,11 +43,18 @@ from coop_mapping.stereo_node import image_to_array
 from coop_msgs.action import Insert
 from coop_msgs.msg import MarkerObservation, TaskTarget, ViewRating
 from coop_msgs.srv import TaskView
-from coop_viewplan.frames import optical_quaternion
+from coop_viewplan.frames import yaw_pitch_from_optical
 
-from .drive import GoToPose, random_camera_pose, wrap
+from .drive import GoToPose, wrap
 from .errors import InsertionError
-from .markers import DETECTORS, make_detector
+from .markers import (
+    DEFAULT_MAX_RESIDUAL_PX,
+    DEFAULT_MIN_CONTRAST,
+    DEFAULT_MIN_COVERAGE,
+    DEFAULT_RADIUS_PX,
+    DETECTORS,
+    make_detector,
+)
 from .task import LABELS, SlotPair, TaskModel, find_slot, label_markers
 from .triangulate import triangulate_markers
 
@@ -54,15 +62,15 @@ PARAMS = {
     'rover': ParamSpec('rover1', 'The master rover (its topics are <rover>/...)', read_only=True),
     'detector': ParamSpec('default', 'Marker detector (coop_insertion.markers)',
                           choices=DETECTORS, read_only=True),
-    'marker_min_coverage': ParamSpec(0.3, "Default detector: least fraction of a marker's rim "
-                                     'with edge points (the 0.25 in slot markers are 6-8 px '
-                                     'across at 0.6-0.8 m)', lo=0.05, hi=1.0, read_only=True),
-    'marker_max_residual_px': ParamSpec(1.5, 'Default detector: largest RMS ellipse-fit '
-                                        'residual (px) of a marker kept', lo=0.05, hi=5.0,
-                                        read_only=True),
-    'marker_min_contrast': ParamSpec(15.0, 'Default detector: least marker-to-surround contrast '
-                                     '(grey levels; a 3-4 px slot marker shaded across its '
-                                     'face measures 20-30)', lo=1.0, hi=254.0, read_only=True),
+    'marker_min_coverage': ParamSpec(DEFAULT_MIN_COVERAGE, "Default detector: least fraction "
+                                     "of a marker's rim with edge points", lo=0.05, hi=1.0,
+                                     read_only=True),
+    'marker_max_residual_px': ParamSpec(DEFAULT_MAX_RESIDUAL_PX, 'Default detector: largest '
+                                        'RMS ellipse-fit residual (px) of a marker kept',
+                                        lo=0.05, hi=5.0, read_only=True),
+    'marker_min_contrast': ParamSpec(DEFAULT_MIN_CONTRAST, 'Default detector: least '
+                                     'marker-to-surround contrast (grey levels)', lo=1.0,
+                                     hi=254.0, read_only=True),
     'remember_slot': ParamSpec(True, 'Label the card against the slot pair seen before while '
                                'the camera stands still (the card hides or shades a slot '
                                'marker as it comes to the mouth); dropped when the camera '
@@ -82,37 +90,35 @@ PARAMS = {
                                 lo=0.0, hi=1.0),
     'max_speed_m_s': ParamSpec(0.2, 'Driving speed to the camera pose (m/s)', lo=0.01,
                                hi=0.25),
-    'random_min_range_m': ParamSpec(0.5, 'Random placement: nearest camera range (m)',
-                                    lo=0.2, hi=5.0),
-    'random_max_range_m': ParamSpec(1.2, 'Random placement: farthest camera range (m)',
-                                    lo=0.2, hi=5.0),
-    'random_max_bearing_deg': ParamSpec(75.0, 'Random placement: widest bearing from the '
-                                        "site's face normal (deg)", lo=0.0, hi=90.0),
-    'random_aim_error_deg': ParamSpec(8.0, 'Random placement: largest aim error in heading '
-                                      'and pitch (deg)', lo=0.0, hi=30.0),
     'view_target_offset_m': ParamSpec([0.0, 0.15, 0.1], "The task view's primary target "
                                       'relative to site_position (map axes, m): in front of the '
                                       'marked faces and above the mouth, so that a camera aimed '
                                       "at it has the card's markers and the slot's in view"),
     'marker_min_diameter_px': ParamSpec(6.0, "The smallest slot marker's image (px across) "
-                                        'the detector identifies reliably: with the focal '
-                                        "length it bounds the task's depth of field for the "
-                                        'optimal placement (thesis section 4.2.3.1)',
-                                        lo=2.0, hi=100.0),
+                                        'the detector identifies reliably (>= 97 % up to '
+                                        'marker_max_incidence_deg, measured on the '
+                                        "simulator's renders: coop_insertion.detector_limits): "
+                                        "with the focal length it bounds the task's depth of "
+                                        'field (thesis section 4.2.3.1)', lo=2.0, hi=100.0),
+    'marker_max_incidence_deg': ParamSpec(60.0, "The largest angle between the view ray and "
+                                          "the markers' face normal at which the detector "
+                                          'identifies them reliably (measured as '
+                                          'marker_min_diameter_px): task_view admits no '
+                                          'camera pose beyond it', lo=1.0, hi=90.0),
     'target_radius_m': ParamSpec(0.03, "The primary target's extent (m)", lo=0.0, hi=1.0),
-    'camera_height_m': ParamSpec(0.8, "The mast camera's height at rest (m), for random poses",
-                                 lo=0.1, hi=3.0),
     'secondary_weight': ParamSpec(0.5, "Weight of the secondary target (the site's marked "
                                   'face at site_position, with target_sigma_m): watched when '
                                   'the primary is occluded (Eq. 4-4)', lo=0.01, hi=1.0),
-    'replace_after_s': ParamSpec(3.0, 'Optimal placement: re-place the camera when no fix '
+    'replace_after_s': ParamSpec(3.0, 'Re-place the camera (optimal: the next best pose; '
+                                 'random: a new draw) when no fix '
                                  'came for this long (sim s) once the card should be in view '
                                  "(the slave's approach done, or a fix came)", lo=0.5,
                                  hi=60.0),
-    'max_replacements': ParamSpec(2, 'Optimal placement: re-placements per goal', lo=0, hi=20),
+    'max_replacements': ParamSpec(2, 'Re-placements per goal (optimal and random placement)',
+                                  lo=0, hi=20),
     'replace_range_factor': ParamSpec(0.85, "Each re-placement shrinks the markers' range by "
                                       'this factor (a closer view)', lo=0.3, hi=1.0),
-    'seed': ParamSpec(0, 'Seed of the random placement', lo=0, hi=2**31 - 1),
+    'seed': ParamSpec(0, "Seed of the random placement's draws", lo=0, hi=2**31 - 1),
     'lockstep': ParamSpec(False, "Answer rover_sim's lockstep rounds (a participant in its "
                           'lockstep_participants): frames, odometry and the action advance '
                           'round by round, so the outcome does not depend on load',
@@ -123,9 +129,13 @@ PARAMS = {
 }
 
 
+#: the placements this master serves, and those it re-places when the fixes stop
+PLACEMENTS = (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM,
+              Insert.Goal.PLACEMENT_RANDOM_FIXED, Insert.Goal.PLACEMENT_GIVEN)
+REPLACED = (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM)
+
+
 def _check(p: dict) -> str | None:
-    if not p['random_min_range_m'] < p['random_max_range_m']:
-        return 'random_min_range_m must be below random_max_range_m'
     for name in ('site_position', 'site_normal', 'view_target_offset_m'):
         v = p[name]
         if len(v) != 3 or not all(math.isfinite(x) for x in v):
@@ -156,7 +166,8 @@ class MasterNode(Node):
         self._image_t = -math.inf          # stamp of the last stereo pair (s)
         self._fix_t = -math.inf            # stamp of the last published fix (s)
         self.card_in_map: np.ndarray | None = None    # card markers' midpoint, last fix
-        self.tracked = 0
+        self.looked = 0                    # stereo pairs looked at
+        self.tracked = 0                   # of them, those that gave a fix
         self.remembered = 0                # fixes labelled against the remembered slot pair
         self.replacements = 0
         # the slot pair last seen since the camera was placed (dropped when it moves again)
@@ -222,6 +233,7 @@ class MasterNode(Node):
             if rate > 0 and t - self._last_vision < 1.0 / rate - 1e-6:
                 return
             self._last_vision = t
+            self.looked += 1
             try:
                 self._track(f['left'], f['right'])
             except (InsertionError, StereoError) as exc:
@@ -235,7 +247,7 @@ class MasterNode(Node):
                                    width=li.width, height=li.height)
         k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         kind = self.p['detector']
-        opts = {'radius_px': (2.0, 60.0)}
+        opts = {'radius_px': DEFAULT_RADIUS_PX}
         if kind == 'default':
             opts.update(K=k, min_coverage=self.p['marker_min_coverage'],
                         max_residual_px=self.p['marker_max_residual_px'],
@@ -327,7 +339,8 @@ class MasterNode(Node):
         if not goal.slave or goal.slave == self.p['rover']:
             self.get_logger().warn('insert: the goal names no slave (or the master); rejected')
             return GoalResponse.REJECT
-        if goal.placement not in (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM):
+        if goal.placement not in PLACEMENTS:
+            self.get_logger().warn(f'insert: unknown placement {goal.placement}; rejected')
             return GoalResponse.REJECT
         self._busy = True
         return GoalResponse.ACCEPT
@@ -357,9 +370,11 @@ class MasterNode(Node):
         goal = handle.request
         self.replacements = 0
         self.card_in_map = None
-        fixes = (self.tracked, self.remembered)
+        # each goal draws its random poses afresh from the seed: an attempt's placement
+        # depends on its seed alone, not on the goals before it
+        self.rng = np.random.default_rng(int(self.p['seed']))
         self._feedback(handle, Insert.Feedback.PHASE_PLACE_CAMERA)
-        failed = await self._place(handle, await self._choose_pose(goal.placement))
+        failed = await self._place(handle, await self._choose_pose(goal))
         if failed:
             return self._end(handle, failed)
         # the site's markers while the view is clear: the card, once at the mouth, may hide one
@@ -385,6 +400,7 @@ class MasterNode(Node):
                           stamp=stamp(self._now_s()))
         phase = [Insert.Feedback.PHASE_PLACE_CAMERA]
         awaiting = [False]
+        seen = (self.looked, self.tracked, self.remembered)
 
         def relay(fb) -> None:
             phase[0] = fb.feedback.phase
@@ -411,18 +427,17 @@ class MasterNode(Node):
                     continue
                 since = self._image_t
             lost = self._image_t - max(self._fix_t, since)
-            if (goal.placement == Insert.Goal.PLACEMENT_OPTIMAL and
-                    lost > self.p['replace_after_s'] and
+            if (goal.placement in REPLACED and lost > self.p['replace_after_s'] and
                     self.replacements < self.p['max_replacements']):
                 self.replacements += 1
                 self.get_logger().info(f'no fix for {lost:.1f} s while the slave servos: '
                                        f're-placing the camera ({self.replacements})')
-                where = await self._choose_pose(goal.placement, card=self.card_in_map,
+                where = await self._choose_pose(goal, card=self.card_in_map,
                                                 closer=self.replacements)
                 if isinstance(where, str) and self.card_in_map is not None:
                     # the target half-way to the card may lie in the card's (or the slave's)
                     # voxels: the site's own target, nearer
-                    where = await self._choose_pose(goal.placement, closer=self.replacements)
+                    where = await self._choose_pose(goal, closer=self.replacements)
                 failed = await self._place(handle, where)
                 if failed and handle.is_cancel_requested:
                     await self.ls.hold(sh.cancel_goal_async())
@@ -430,9 +445,12 @@ class MasterNode(Node):
                     self.get_logger().warn(f're-placement: {failed}')
                 since = self._image_t
         res = res_future.result().result
+        res.frames = self.looked - seen[0]
+        res.fixes = self.tracked - seen[1]
+        res.replacements = self.replacements
         self.get_logger().info(
-            f'goal ended ({res.reason}): {self.tracked - fixes[0]} fixes, '
-            f'{self.remembered - fixes[1]} of them against the remembered slot pair')
+            f'goal ended ({res.reason}): {res.fixes} fixes in {res.frames} frames, '
+            f'{self.remembered - seen[2]} of them against the remembered slot pair')
         if handle.is_cancel_requested:
             handle.canceled()
         elif res.success:
@@ -506,36 +524,26 @@ class MasterNode(Node):
             raise InsertionError('no camera_info yet: the focal length sets the task range')
         return 2 * self.model.slot_marker_radius_m * li.p[0] / self.p['marker_min_diameter_px']
 
-    async def _choose_pose(self, placement: int, *, card: np.ndarray | None = None,
+    async def _choose_pose(self, goal: Insert.Goal, *, card: np.ndarray | None = None,
                            closer: int = 0):
-        """The camera pose (xy, yaw, pitch, how) or the reason there is none. Optimal: the
-        view planner's for the primary target (in front of the site; re-placing, half-way to
-        the card's last fix) with the site's marked face as the secondary, within the range
-        where the slot markers span marker_min_diameter_px; `closer` re-placements shrink that
-        range by replace_range_factor each (the markers were not resolved from there)."""
+        """The camera pose (xy, yaw, pitch, how) or the reason there is none. Given: the goal's
+        camera_pose. Optimal: the view planner's best for the primary target (in front of the
+        site; re-placing, half-way to the card's last fix) with the site's marked face as the
+        secondary, within the range where the slot markers span marker_min_diameter_px and the
+        incidence the detector handles; `closer` re-placements shrink that range by
+        replace_range_factor each (the markers were not resolved from there). Random: a pose
+        drawn uniformly from the same request's feasible ones (the view planner draws it)."""
+        if goal.placement == Insert.Goal.PLACEMENT_GIVEN:
+            pose = goal.camera_pose
+            if pose.header.frame_id not in ('', 'map'):
+                return f'camera_pose must be in the map frame, not {pose.header.frame_id!r}'
+            try:
+                return (*_optical_pose(pose.pose), 'given')
+            except ValueError as exc:
+                return f'camera_pose: {exc}'
         site = np.asarray(self.p['site_position'], float)
         normal = np.asarray(self.p['site_normal'], float)
         normal /= np.linalg.norm(normal)
-        if placement == Insert.Goal.PLACEMENT_RANDOM:
-            target = site + np.asarray(self.p['view_target_offset_m'], float)
-            xy, yaw, pitch = random_camera_pose(
-                target, self.rng, min_range_m=self.p['random_min_range_m'],
-                max_range_m=self.p['random_max_range_m'], face_normal=normal[:2],
-                max_bearing_rad=math.radians(self.p['random_max_bearing_deg']),
-                aim_error_rad=math.radians(self.p['random_aim_error_deg']),
-                camera_z=self.p['camera_height_m'])
-            r = ViewRating(rating=math.nan, new_information_bits=math.nan, distance=math.nan,
-                           collision_probability=math.nan, depth_of_field=math.nan,
-                           resolution=math.nan, field_visibility=math.nan,
-                           angular_visibility=math.nan)
-            r.pose.header.frame_id = 'map'
-            r.pose.header.stamp = self.get_clock().now().to_msg()
-            pos = r.pose.pose.position
-            pos.x, pos.y, pos.z = float(xy[0]), float(xy[1]), float(self.p['camera_height_m'])
-            q = r.pose.pose.orientation
-            q.x, q.y, q.z, q.w = (float(v) for v in optical_quaternion(yaw, pitch))
-            self.pub_placement.publish(r)
-            return xy, yaw, pitch, 'random'
         if not self.task_view.wait_for_service(timeout_sec=10.0):
             return 'no viewplan/task_view service'
         offset = np.asarray(self.p['view_target_offset_m'], float)
@@ -547,7 +555,12 @@ class MasterNode(Node):
         if far <= 0:
             return (f'the slot markers are below {self.p["marker_min_diameter_px"]:g} px '
                     'from every camera pose')
-        req = TaskView.Request(robot=self.p['rover'], tolerance=0.1, far_m=far)
+        optimal = goal.placement == Insert.Goal.PLACEMENT_OPTIMAL
+        req = TaskView.Request(robot=self.p['rover'], tolerance=0.1, far_m=far,
+                               max_incidence_deg=float(self.p['marker_max_incidence_deg']),
+                               choose=(TaskView.Request.CHOOSE_BEST if optimal
+                                       else TaskView.Request.CHOOSE_RANDOM),
+                               seed=int(self.rng.integers(2**32)))
         t = TaskTarget()
         t.header.frame_id = 'map'
         target = site + offset
@@ -571,21 +584,15 @@ class MasterNode(Node):
         if not resp.success:
             return f'task_view: {resp.message}'
         self.pub_placement.publish(resp.best)
-        pose = resp.best.pose.pose
-        q = pose.orientation
-        rot = _quat_matrix(q.x, q.y, q.z, q.w)
-        fwd = rot[:, 2]
-        yaw = math.atan2(fwd[1], fwd[0])
-        pitch = -math.asin(max(-1.0, min(1.0, fwd[2])))
-        return (np.array([pose.position.x, pose.position.y]), wrap(yaw), pitch,
-                f'optimal, {resp.message}')
+        return (*_optical_pose(resp.best.pose.pose),
+                f'{"optimal" if optimal else "random"}, {resp.message}')
 
 
-def _quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+def _optical_pose(pose) -> tuple[np.ndarray, float, float]:
+    """(xy, yaw, pitch) of a left optical frame's pose (its z the viewing direction)."""
+    q = pose.orientation
+    yaw, pitch = yaw_pitch_from_optical(np.array([q.x, q.y, q.z, q.w]))
+    return np.array([pose.position.x, pose.position.y]), wrap(yaw), pitch
 
 
 def main(args: list[str] | None = None) -> int:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from geometry_msgs.msg import PoseStamped
 from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -43,6 +44,10 @@ from .errors import InsertionError
 INCH = 0.0254
 SITE_XY = (3.0, 0.0)            # rover_sim's site: the near jaw's inner face at x = 3.0
 SITE_TOP_M = 0.40
+#: the slave's arm mount from its c.g. (r_2) as a calibration of the rover gives it: the truth
+#: with this 1-sigma error per axis (m), drawn per rig from its seed (the rig runs no
+#: identifier; the mission's slave takes r_2 from its own)
+CALIBRATION_SIGMA_M = 0.005
 #: the slave starts with its card this far short of the slot (the arm outstretched clears the
 #: near jaw), its base a little off the slot's line and heading
 SLAVE_START_SHORT_M = 0.55
@@ -67,6 +72,25 @@ MAP_QUIET_S = 3.0
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
 #: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
 STALL_S = 90.0
+
+
+#: the nodes that close the insertion's and the mission's loops (by their names, in any
+#: namespace): none may read the simulator's truth (truth_readers)
+LOOP_NODES = ('master', 'slave', 'identifier', 'stereo', 'mapper', 'view_planner')
+
+
+def truth_readers(subscriptions: dict[str, list[str]]) -> dict[str, list[str]]:
+    """Of a graph's subscriptions (node's full name -> topics, InsertionRig.subscriptions),
+    the loop nodes' subscriptions to the simulator's truth (rover_sim.config.is_truth_topic):
+    empty when truth only judges."""
+    from rover_sim.config import is_truth_topic
+    out = {}
+    for node, topics in subscriptions.items():
+        if node.rsplit('/', 1)[-1] in LOOP_NODES:
+            truth = [t for t in topics if is_truth_topic(t)]
+            if truth:
+                out[node] = truth
+    return out
 
 
 #: composed: the nodes that share one process (the simulator and the stereo node keep theirs:
@@ -122,6 +146,13 @@ def mast_sweep(seconds: float) -> JointTrajectory:
     return tr
 
 
+def calibrated_r2(seed: int) -> list[float]:
+    """The slave's r_2 as a calibration gives it (CALIBRATION_SIGMA_M), for the rig's `seed`."""
+    rng = np.random.default_rng([seed, 2])
+    return [round(float(v), 5) for v in
+            load_truth().cg_to_arm + rng.normal(0.0, CALIBRATION_SIGMA_M, 3)]
+
+
 def staging_poses(slot_in: float, rng: np.random.Generator | None = None, *,
                   master: tuple[float, float, float] = MASTER_START,
                   slave_short_m: float = SLAVE_START_SHORT_M
@@ -138,6 +169,12 @@ def staging_poses(slot_in: float, rng: np.random.Generator | None = None, *,
                        float(SITE_XY[1] - j2[1] + d[1]), float(d[2]))}
 
 
+#: the placements an attempt can ask the master for (coop_msgs/action/Insert)
+PLACEMENTS = {'optimal': Insert.Goal.PLACEMENT_OPTIMAL, 'random': Insert.Goal.PLACEMENT_RANDOM,
+              'random_fixed': Insert.Goal.PLACEMENT_RANDOM_FIXED,
+              'given': Insert.Goal.PLACEMENT_GIVEN}
+
+
 @dataclass
 class Attempt:
     slot_in: float
@@ -151,7 +188,19 @@ class Attempt:
     peak_force_n: float
     duration_s: float
     sim_s: float
+    frames: int = 0                # stereo pairs the master looked at while the slave ran
+    fixes: int = 0                 # of them, those with a labelled fix
+    replacements: int = 0
+    #: the truth when the slave began its descent (aligned by vision), or when it touched
+    #: first if it never descended: the card's centre across the slot from the slot's centre
+    #: line (mm) and its tilt in the insertion plane (deg); None: it got to neither
+    align_mm: float | None = None
+    align_tilt_deg: float | None = None
     curves: dict = field(default_factory=dict)
+
+    @property
+    def fix_rate(self) -> float | None:
+        return self.fixes / self.frames if self.frames else None
 
 
 class _Client(Node):
@@ -169,6 +218,10 @@ class _Client(Node):
         self.pacer = Pacer(self.ls)
         self.create_subscription(Clock, '/clock', self._on_clock, 10)
         self.ls.subscription(ContactState, 'sim/rover2/contact', self._on_contact, SENSOR_QOS)
+        # the card's true pose while an attempt runs: (stamp, centre x, tilt in the insertion
+        # plane, rad)
+        self.card: list[tuple[float, float, float]] = []
+        self.ls.subscription(PoseStamped, 'sim/rover2/card_pose', self._on_card, SENSOR_QOS)
         self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
         self.reset = self.create_client(SimScenario, 'sim/reset')
         self.insert = ActionClient(self, Insert, 'insert')
@@ -183,6 +236,14 @@ class _Client(Node):
 
     def _on_map(self, m: VoxelMap) -> None:
         self.map_voxels = int(sum(m.contributions))
+
+    def _on_card(self, m: PoseStamped) -> None:
+        if self.recording:
+            x, y, z, w = (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
+                          m.pose.orientation.w)
+            # the card's width axis (its x) in the map: its tilt out of the horizontal
+            ax, az = 1 - 2 * (y * y + z * z), 2 * (x * z - y * w)
+            self.card.append((stamp_of(m), m.pose.position.x, math.atan2(az, abs(ax))))
 
     def _on_contact(self, m: ContactState) -> None:
         if self.recording:
@@ -260,6 +321,7 @@ class InsertionRig(contextlib.AbstractContextManager):
                                                     *master_args]),
             ('slave', 'coop_insertion', 'slave', [*node_args, '-p',
                                                   f'slot_width_m:={slot_in * INCH}',
+                                                  '-p', f'cg_to_arm:={calibrated_r2(seed)}',
                                                   *slave_args]),
         ]
         if planner:     # optimal placement: the team's map and view planner
@@ -398,6 +460,18 @@ class InsertionRig(contextlib.AbstractContextManager):
             self.node.pacer.stop()
             self._wait(lambda: self.node.pacer.paused, STALL_S, what='the sim held')
 
+    def subscriptions(self) -> dict[str, list[str]]:
+        """Every node of the graph this rig's client discovers (its full name) and the topics
+        it subscribes to."""
+        out = {}
+        for name, ns in self.node.get_node_names_and_namespaces():
+            try:
+                topics = self.node.get_subscriber_names_and_types_by_node(name, ns)
+            except Exception:  # noqa: BLE001 - rclpy's NodeNameNonExistentError: it left
+                continue
+            out[f'{ns.rstrip("/")}/{name}'] = sorted(t for t, _ in topics)
+        return out
+
     def set_parameters(self, node: str, **values) -> None:
         """Set parameters of one node of the graph (InsertionError with the node's reason
         when it refuses one)."""
@@ -463,24 +537,33 @@ class InsertionRig(contextlib.AbstractContextManager):
 
     def attempt(self, *, slot_in: float, placement: str, seed: int,
                 timeout_s: float = 120.0, max_force_n: float = 25.0,
-                penetration_limit_mm: float = 0.5) -> Attempt:
+                penetration_limit_mm: float = 0.5,
+                camera: tuple[tuple[float, float], float, float] | None = None) -> Attempt:
         rng = np.random.default_rng(seed)
         self.place(slot_in, rng)
         return self.insert(slot_in=slot_in, placement=placement, seed=seed,
                            timeout_s=timeout_s, max_force_n=max_force_n,
-                           penetration_limit_mm=penetration_limit_mm)
+                           penetration_limit_mm=penetration_limit_mm, camera=camera)
 
     def insert(self, *, slot_in: float, placement: str, seed: int = 0,
                timeout_s: float = 120.0, max_force_n: float = 25.0,
-               penetration_limit_mm: float = 0.5) -> Attempt:
+               penetration_limit_mm: float = 0.5,
+               camera: tuple[tuple[float, float], float, float] | None = None) -> Attempt:
         """One `insert` goal from wherever the rovers stand, judged by the simulator's
-        truth."""
+        truth. placement: one of PLACEMENTS ('given': the camera's (xy, yaw, pitch) in
+        `camera`); the master's random draws are the attempt's seed's."""
+        if placement not in PLACEMENTS:
+            raise InsertionError(f'placement must be one of {", ".join(PLACEMENTS)}')
+        if (placement == 'given') != (camera is not None):
+            raise InsertionError("a camera pose goes with the 'given' placement, and only")
         node = self.node
         self.hold()
+        self.set_parameters('master', seed=int(seed))
         node.contact = []
         self.feedback = None
         curves = {'t': [], 'phase': [], 'displacement_m': [], 'angle_rad': [], 'force': []}
         t_start = node.ls.now_s(lambda: node.clock)
+        node.card = []
 
         def on_fb(fb) -> None:
             f = self.feedback = fb.feedback
@@ -492,9 +575,15 @@ class InsertionRig(contextlib.AbstractContextManager):
             curves['force'].append([float(w.x), float(w.y), float(w.z)])
 
         goal = Insert.Goal(master='rover1', slave='rover2', tolerance_m=0.0,
-                           placement=(Insert.Goal.PLACEMENT_RANDOM if placement == 'random'
-                                      else Insert.Goal.PLACEMENT_OPTIMAL),
+                           placement=PLACEMENTS[placement],
                            max_force_n=float(max_force_n), timeout_s=float(timeout_s))
+        if camera is not None:
+            from coop_viewplan.frames import optical_quaternion
+            xy, yaw, pitch = camera
+            goal.camera_pose.header.frame_id = 'map'
+            pos, q = goal.camera_pose.pose.position, goal.camera_pose.pose.orientation
+            pos.x, pos.y = float(xy[0]), float(xy[1])
+            q.x, q.y, q.z, q.w = (float(v) for v in optical_quaternion(yaw, pitch))
         w0 = time.monotonic()
         fut = node.insert.send_goal_async(goal, feedback_callback=on_fb)
         # the master answers from an executor busy with 640x480 marker tracking: on a loaded
@@ -519,14 +608,24 @@ class InsertionRig(contextlib.AbstractContextManager):
         # goal the moment it judges the card seated, and relaxes its push after; the truth's
         # last message may predate the seating by a contact period)
         during = [c for c in node.contact if c[0] <= t_end]
+        # the alignment vision reached: the truth at the slave's descent (or first touch)
+        aligned = (None, None)
+        descended = res.descended.sec + 1e-9 * res.descended.nanosec
+        at = [c for c in node.card if c[0] >= descended] if descended > 0 else []
+        if at:
+            slot_x = SITE_XY[0] + slot_in * INCH / 2
+            aligned = (1e3 * (at[0][1] - slot_x), math.degrees(at[0][2]))
         seated = any(s for t, s, _ in during if t >= t_end - SEATED_WINDOW_S)
         pen_mm = max((p for *_, p in during), default=0.0) * 1e3
         ok = bool(res.success and seated and pen_mm <= penetration_limit_mm)
         return Attempt(slot_in, placement, seed, ok, bool(res.success), res.reason,
                        seated, pen_mm, float(res.peak_force_n),
-                       time.monotonic() - w0, t_end - t_start, curves)
+                       time.monotonic() - w0, t_end - t_start, int(res.frames),
+                       int(res.fixes), int(res.replacements), *aligned, curves=curves)
 
 
 def as_row(a: Attempt) -> dict:
-    return {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
-            for k, v in a.__dict__.items() if k != 'curves'}
+    row = {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
+           for k, v in a.__dict__.items() if k != 'curves'}
+    row['fix_rate'] = a.fix_rate
+    return row

@@ -1,7 +1,10 @@
 """Table 5-1 in the simulator: task success of the cooperative insertion for slot widths of 5.0,
 4.5 and 4.375 in (the thesis's easy, medium and hard rows) and 4.2925 in (1 % of the card's
 width in clearance, beyond the thesis), with the master's camera placed optimally (the view
-planner's `task_view`) or at random within reasonable bounds (§5.4).
+planner's `task_view`) or at random (§5.4): drawn uniformly from the poses `task_view` finds
+feasible for the same request (free, the markers within the detector's range and incidence,
+the target unoccluded), drawn again where the optimal placement is re-placed ('random'), or
+drawn once ('random_fixed', Table 4-1's fixed camera).
 
     ros2 run coop_insertion table_5_1 --attempts 20 --json out/table_5_1.json --plots out
 
@@ -30,6 +33,8 @@ from coop_common.files import save_figure, write_json
 from .rig import InsertionRig, SimStalled, as_row
 
 ROWS_IN = (5.0, 4.5, 4.375, 4.2925)
+#: the placements a table compares (the rig's 'given' pins a pose: for tests)
+TABLE_PLACEMENTS = ('optimal', 'random', 'random_fixed')
 THESIS = {5.0: (10, 7), 4.5: (10, 4), 4.375: (9, 2)}       # of 10: optimal, random
 LABELS = {5.0: 'Easy', 4.5: 'Medium', 4.375: 'Hard', 4.2925: '1 % clearance'}
 
@@ -159,7 +164,9 @@ def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], 
                     log(f'{slot_in} in {placement} #{k + 1}: '
                         f'{"success" if a["success"] else "failure"} ({a["reason"]}); '
                         f'penetration {a["max_penetration_mm"]:.2f} mm, peak force '
-                        f'{_fmt(a["peak_force_n"])} N, {a["sim_s"]:.0f} sim s, '
+                        f'{_fmt(a["peak_force_n"])} N, fixes {a.get("fixes", 0)}/'
+                        f'{a.get("frames", 0)}, aligned {_fmt(a.get("align_mm"))} mm '
+                        f'{_fmt(a.get("align_tilt_deg"))} deg, {a["sim_s"]:.0f} sim s, '
                         f'{a["duration_s"]:.0f} s')
                     row[f'{placement}_successes'] = sum(bool(x['success']) for x in got)
                     row[f'{placement}_peak_force_n'] = max(
@@ -176,28 +183,71 @@ def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], 
     return res
 
 
-def _fmt(v: float | None) -> str:
-    return '-' if v is None else f'{v:.1f}'
+def _fmt(v: float | None, digits: int = 1) -> str:
+    return '-' if v is None else f'{v:.{digits}f}'
+
+
+def _median(xs: list) -> float | None:
+    xs = [x for x in xs if x is not None]
+    return float(np.median(xs)) if xs else None
+
+
+def cell_summary(attempts: list[dict]) -> dict:
+    """What a cell's attempts show beyond the count: how many got to the descent, the median
+    fix rate (fixes per stereo pair the master looked at while the slave ran), the median
+    alignment by the truth when the descent began (|offset| across the slot, mm; |tilt|,
+    deg), and the slave's verdicts the truth contradicts."""
+    reached = [a for a in attempts if a.get('align_mm') is not None]
+    rates = [a['fixes'] / a['frames'] for a in attempts if a.get('frames')]
+    recorded = all('align_mm' in a for a in attempts)   # a run that recorded the alignment
+    return {'n': len(attempts), 'seated': sum(bool(a['success']) for a in attempts),
+            'reached_descent': len(reached) if recorded else None,
+            'fix_rate': _median(rates) if rates else None,
+            'align_mm': _median([abs(a['align_mm']) for a in reached]),
+            'align_tilt_deg': _median([abs(a['align_tilt_deg']) for a in reached]),
+            'false_seated': sum(bool(a['action_success']) and not bool(a['seated'])
+                                for a in attempts),
+            'peak_force_n': max((a['peak_force_n'] for a in attempts
+                                 if a['peak_force_n'] is not None), default=None)}
 
 
 def format_table(res: dict) -> str:
     n = res['attempts']
+    placements = res['placements']
     head = (f'Table 5-1 through sim + nodes: {n} attempts per cell (thesis: 10); success = '
             'seated, penetration <= 0.5 mm')
-    lines = [head, f'{"row":16s} {"slot (in)":>9s} {"optimal":>9s} {"random":>9s} '
-             f'{"thesis opt":>10s} {"thesis rnd":>10s} {"peak F opt (N)":>15s}']
+    lines = [head, f'{"row":16s} {"slot (in)":>9s} '
+             + ' '.join(f'{p:>12s}' for p in placements)
+             + f' {"thesis opt":>10s} {"thesis rnd":>10s}']
     for r in res['rows']:
         th = r.get('thesis')
-        opt = r.get('optimal_successes')
-        rnd = r.get('random_successes')
-        pk = r.get('optimal_peak_force_n')
+        cells = []
+        for p in placements:
+            got = r.get(f'{p}_attempts')
+            cells.append('-' if got is None else
+                         f'{sum(bool(a["success"]) for a in got)}/{len(got)}')
         lines.append(
             f'{r["label"]:16s} {r["slot_in"]:9.4g} '
-            f'{"-" if opt is None else f"{opt}/{n}":>9s} '
-            f'{"-" if rnd is None else f"{rnd}/{n}":>9s} '
-            f'{"-" if th is None else f"{th[0]}/10":>10s} '
-            f'{"-" if th is None else f"{th[1]}/10":>10s} '
-            f'{"-" if pk is None else f"{pk:.1f}":>15s}')
+            + ' '.join(f'{c:>12s}' for c in cells)
+            + f' {"-" if th is None else f"{th[0]}/10":>10s}'
+            f' {"-" if th is None else f"{th[1]}/10":>10s}')
+    lines += ['', 'per cell: attempts that got to the descent, median fix rate, median '
+              'alignment by the truth at the descent,',
+              "the slave's seated verdicts the truth contradicts, peak contact force",
+              f'{"row":16s} {"placement":>12s} {"seated":>7s} {"descent":>7s} '
+              f'{"fix rate":>8s} {"|dx| mm":>8s} {"|tilt| deg":>10s} {"false":>5s} '
+              f'{"peak F (N)":>10s}']
+    for r in res['rows']:
+        for p in placements:
+            got = r.get(f'{p}_attempts')
+            if not got:
+                continue
+            c = cell_summary(got)
+            lines.append(
+                f'{r["label"]:16s} {p:>12s} {c["seated"]:>3d}/{c["n"]:<3d} '
+                f'{_fmt(c["reached_descent"], 0):>7s} {_fmt(c["fix_rate"], 2):>8s} '
+                f'{_fmt(c["align_mm"]):>8s} {_fmt(c["align_tilt_deg"], 2):>10s} '
+                f'{c["false_seated"]:>5d} {_fmt(c["peak_force_n"]):>10s}')
     restarts = len(res.get('sim_restarts', []))
     if restarts:
         lines.append(f'{restarts} attempt(s) run again on a fresh graph after a simulator stall')
@@ -253,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--attempts', type=number(int, lo=1), default=20)
     p.add_argument('--rows', default=','.join(f'{r:g}' for r in ROWS_IN),
                    help='slot widths in inches')
-    p.add_argument('--placements', default='optimal,random')
+    p.add_argument('--placements', default=','.join(TABLE_PLACEMENTS),
+                   help=f'comma-separated, of {", ".join(TABLE_PLACEMENTS)}')
     p.add_argument('--seed', type=number(int, lo=0), default=1)
     p.add_argument('--occlusion-density', type=number(float, lo=0.0, hi=0.5), default=0.05)
     p.add_argument('--timeout', type=number(float, lo=1.0), default=90.0,
@@ -276,8 +327,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.resume and not args.json:
         p.error('--resume reads the attempts saved in --json: give --json')
     placements = tuple(x for x in args.placements.split(',') if x)
-    if not placements or any(x not in ('optimal', 'random') for x in placements):
-        p.error('--placements: optimal and/or random')
+    if not placements or any(x not in TABLE_PLACEMENTS for x in placements):
+        p.error(f'--placements: of {", ".join(TABLE_PLACEMENTS)}')
     res = run(attempts=args.attempts, rows=rows, placements=placements, seed=args.seed,
               occlusion_density=args.occlusion_density, timeout_s=args.timeout,
               max_force_n=args.max_force, site_map=args.site_map, checkpoint=args.json,

@@ -130,3 +130,25 @@ def test_measure_on_the_sims_renders():
     assert settings['fx'] == pytest.approx(851.3, abs=0.1)
     with pytest.raises(InsertionError):
         measure(incidences_deg=(95.0,), per_cell=1)
+
+
+def test_the_masters_placement_limits_are_within_the_measured_ones():
+    # task_view admits the master's camera poses by marker_min_diameter_px and
+    # marker_max_incidence_deg: both must lie inside what the study measured for the detector
+    # the master runs (its defaults are the detector's own)
+    import json
+    from pathlib import Path
+
+    from coop_insertion import markers
+    from coop_insertion.master_node import PARAMS
+    data = json.loads((Path(__file__).resolve().parents[3] / 'docs' / 'results' / 'data' /
+                       'detector_limits.json').read_text())
+    lim = data['limits']
+    inc = PARAMS['marker_max_incidence_deg'].default
+    assert inc <= lim['max_incidence_deg']
+    need = [d for a, d in lim['min_diameter_px_by_incidence'].items() if float(a) <= inc + 1e-9]
+    assert None not in need and PARAMS['marker_min_diameter_px'].default >= max(need)
+    assert (PARAMS['marker_min_contrast'].default, PARAMS['marker_min_coverage'].default,
+            PARAMS['marker_max_residual_px'].default) == (
+        markers.DEFAULT_MIN_CONTRAST, markers.DEFAULT_MIN_COVERAGE,
+        markers.DEFAULT_MAX_RESIDUAL_PX)

@@ -41,8 +41,12 @@ class FakeRig:
             FakeRig.stall_on.discard((slot_in, seed))
             raise SimStalled('the sim clock stood still for 91 s')
         ok = seed % 2 == 0
+        # a fake's outcome: the even seeds seat, aligned to 1 mm with 30 fixes in 40 pairs,
+        # the odd ones never got a fix
         return Attempt(slot_in, placement, seed, ok, ok, 'seated' if ok else 'timeout', ok,
-                       0.1, 8.0 + seed % 3, 10.0, 20.0, {'t': [0.0], 'phase': [1]})
+                       0.1, 8.0 + seed % 3, 10.0, 20.0, frames=40, fixes=30 if ok else 0,
+                       align_mm=-1.0 if ok else None, align_tilt_deg=0.2 if ok else None,
+                       curves={'t': [0.0], 'phase': [1]})
 
 
 @pytest.fixture
@@ -92,3 +96,19 @@ def test_resume_reuses_the_saved_attempts(tmp_path, fake_rig, monkeypatch):
     assert fake_rig.calls == [(4.5, 'optimal', 1001), (4.5, 'optimal', 1002)]
     assert res['complete'] and [r['optimal_successes'] for r in res['rows']] == [2, 2]
     assert len(res['rows'][0]['optimal_curves']) == 3
+
+
+def test_the_table_shows_why_a_cell_fails(tmp_path, fake_rig):
+    res = table_5_1.run(attempts=3, rows=(4.5,), placements=('optimal', 'random_fixed'),
+                        seed=1, occlusion_density=0.05, timeout_s=45.0, max_force_n=25.0,
+                        site_map=tmp_path / 'site.cmap', log=lambda s: None)
+    row = res['rows'][0]
+    assert row['random_fixed_attempts'][1]['fix_rate'] == 0.0
+    c = table_5_1.cell_summary(row['optimal_attempts'])
+    assert c == {'n': 3, 'seated': 2, 'reached_descent': 2, 'fix_rate': 0.75,
+                 'align_mm': 1.0, 'align_tilt_deg': 0.2, 'false_seated': 0,
+                 'peak_force_n': 10.0}
+    text = table_5_1.format_table(res)
+    assert 'random_fixed' in text.splitlines()[1]
+    assert any(line.split()[:6] == ['Medium', 'optimal', '2/3', '2', '0.75', '1.0']
+               for line in text.splitlines()), text

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from coop_common.rover_geometry import card_in_base
-from coop_insertion.drive import FollowPath, GoToPose, random_camera_pose, wrap
+from coop_insertion.drive import FollowPath, GoToPose, wrap
 from coop_insertion.errors import InsertionError
 from coop_insertion.frames import homogeneous, invert, rot_z
 from coop_insertion.task import TaskModel, card_required_motion, find_slot, label_markers
@@ -174,15 +174,3 @@ def test_follow_path_passes_every_waypoint_and_ends_at_the_heading():
             FollowPath(bad)
     with pytest.raises(InsertionError):
         FollowPath([(0.0, 0.0)], math.nan)
-
-
-def test_random_camera_poses_stay_within_their_bounds_and_face_the_site():
-    rng = np.random.default_rng(1)
-    site = np.array([3.0, 0.0, 0.4])
-    for _ in range(200):
-        xy, yaw, pitch = random_camera_pose(site, rng, camera_z=0.8)
-        d = xy - site[:2]
-        assert 0.5 <= np.hypot(*d) <= 1.2
-        assert abs(wrap(math.atan2(d[1], d[0]) - math.pi / 2)) <= math.radians(75) + 1e-9
-        assert abs(wrap(yaw - math.atan2(-d[1], -d[0]))) <= math.radians(8) + 1e-9
-        assert 0.0 < pitch < 1.2
