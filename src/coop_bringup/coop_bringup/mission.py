@@ -60,11 +60,13 @@ from coop_id.excitation import Strategy
 from coop_insertion.drive import FollowPath
 from coop_insertion.errors import InsertionError
 from coop_insertion.rig import (
+    LOOP_NODES,
     SITE_XY,
     VIEW_PLANNER,
     InsertionRig,
     mast_sweep,
     staging_poses,
+    truth_readers,
 )
 from coop_msgs.action import Identify, Insert
 from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
@@ -704,6 +706,12 @@ class Mission:
         self.progress.update(0.0, 'to the staging poses')
         self.rig.render((), 0.0)
         self._stage()
+        # every node of the graph is up (the stereo nodes until the next line): the loop
+        # nodes' subscriptions to the simulator's truth, none when truth only judges
+        subs = self.rig.subscriptions()
+        self.rep['truth_apart'] = {'nodes': len(subs), 'loop_nodes': sorted(
+            n for n in subs if n.rsplit('/', 1)[-1] in LOOP_NODES),
+            'truth_readers': truth_readers(subs)}
         # the map is final: ranging on would map the slave's arm and card over the slot as an
         # obstacle at the task (the master's re-placement asks task_view again mid-insertion)
         self.rig.stop_mapping()
@@ -745,7 +753,10 @@ class Mission:
             'success': bool(attempt.success), 'action_success': attempt.action_success,
             'reason': attempt.reason, 'seated': attempt.seated,
             'max_penetration_mm': attempt.max_penetration_mm,
-            'peak_force_n': attempt.peak_force_n, 'sim_s': attempt.sim_s}
+            'peak_force_n': attempt.peak_force_n, 'sim_s': attempt.sim_s,
+            'frames': attempt.frames, 'fixes': attempt.fixes,
+            'replacements': attempt.replacements, 'align_mm': attempt.align_mm,
+            'align_tilt_deg': attempt.align_tilt_deg}
         self.extras['insertion_curves'] = attempt.curves
         self.extras['paths'] = {r: list(p) for r, p in self.client.paths.items()}
         reached = phase['insert_at'] is not None
@@ -766,6 +777,7 @@ class Mission:
         th.start()
         try:
             return self.rig.insert(slot_in=self.cfg.slot_in, placement='optimal',
+                                   seed=self.cfg.seed,
                                    timeout_s=self.cfg.insert_timeout_s,
                                    max_force_n=self.cfg.max_force_n)
         finally:

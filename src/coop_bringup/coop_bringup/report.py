@@ -237,6 +237,15 @@ def _run_files(rep: dict) -> list[str]:
             '`rover_bag.bagio.read_messages`.')
     if rep.get('live_view'):
         lines.append(f'Live view served on {rep["live_view"]["url"]}.')
+    apart = rep.get('truth_apart')
+    if apart:
+        readers = apart['truth_readers']
+        lines.append(
+            f'Truth apart: of the graph\'s {apart["nodes"]} nodes, the '
+            f'{len(apart["loop_nodes"])} that close loops '
+            + ("read none of the simulator's truth topics." if not readers else
+               'include truth readers: ' + '; '.join(f'{n} ({", ".join(t)})'
+                                                     for n, t in readers.items()) + '.'))
     return [*lines, ''] if lines else []
 
 
