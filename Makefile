@@ -27,7 +27,7 @@ demo: build
 	$(ENV) && python -m coop_bringup.mission --out out
 
 test: build
-	$(ENV) && python -m pytest $(PYTEST_ARGS)
+	$(ENV) && python -m pytest -n 2 --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 
 lint: venv
 	$(ENV) && ruff check .

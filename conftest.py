@@ -1,5 +1,6 @@
 """Every test run gets its own ROS domain and single-threaded BLAS before rclpy is imported,
-and Ctrl-C as a terminal has it."""
+and Ctrl-C as a terminal has it. `make test` runs the tests on two pytest-xdist workers, each
+on its own domain, whole files to a worker, the longest graph files handed out first."""
 import os
 import signal
 
@@ -9,11 +10,38 @@ os.environ.setdefault('MPLBACKEND', 'Agg')
 
 from coop_common.testing import isolate_ros_environment  # noqa: E402
 
-isolate_ros_environment(int(os.environ['COOP_TEST_DOMAIN_ID'])
-                        if 'COOP_TEST_DOMAIN_ID' in os.environ else None)
+
+def _domain_id() -> int | None:
+    """COOP_TEST_DOMAIN_ID, or for an xdist worker (gw0, gw1, ...) one of the run's own: its
+    controller's pid picks the run's ids, the worker's number one of them (None: from the pid,
+    isolate_ros_environment's pick)."""
+    if 'COOP_TEST_DOMAIN_ID' in os.environ:
+        return int(os.environ['COOP_TEST_DOMAIN_ID'])
+    worker = os.environ.get('PYTEST_XDIST_WORKER', '')
+    if worker.startswith('gw') and worker[2:].isdigit():
+        n = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
+        return 1 + (os.getppid() * n + int(worker[2:])) % (100 - 100 % n)
+    return None
+
+
+isolate_ros_environment(_domain_id())
 
 # A run started in the background of a non-interactive shell (a CI runner, `cmd &`) inherits
 # SIGINT ignored, and every process it starts inherits that: `ros2 launch` would then ignore
 # the Ctrl-C a test sends it, and never escalate to SIGTERM / SIGKILL for a node that hangs.
 # Tests send Ctrl-C as a terminal does, to processes that handle it as a terminal's would.
 signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+#: the graph tests that take longest, started first so that no worker ends the run alone
+#: with one of them (the rest by collection order)
+FIRST = ('test/test_mission_graph.py', 'test/test_lockstep_graph.py',
+         'test/test_hw_identification_graph.py', 'test/test_bag_replay.py',
+         'test/test_sim_graph.py')
+
+
+def pytest_collection_modifyitems(session, config, items) -> None:
+    def rank(item) -> int:
+        path = item.nodeid.split('::')[0]
+        return FIRST.index(path) if path in FIRST else len(FIRST)
+    items.sort(key=rank)      # stable: within a rank, collection order

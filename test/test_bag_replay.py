@@ -71,8 +71,11 @@ def test_mapping_bag_replays_into_the_nodes_as_the_offline_map(tmp_path, probe, 
                          [*sim_time, '-p', 'publish_period_s:=0.2'],
                          log_path=tmp_path / 'mapper.log')
     topics = "['" + "','".join(stereo_topics(rovers)) + "']"
+    # at half speed: the stereo nodes take best-effort sensor streams, and beside another
+    # test run's work (make test runs two at once) a node behind at full speed drops pairs
     player = NodeProcess('rover_bag', 'play', ['-p', f'topics:={topics}',
-                                               '-p', 'wait_for_subscribers_s:=30.0'],
+                                               '-p', 'wait_for_subscribers_s:=30.0',
+                                               '-p', 'rate:=0.5'],
                          args=[str(bag)], log_path=tmp_path / 'play.log')
     expected = dict(offline_map.scans)
     from rover_bag.bagio import bag_info
