@@ -514,9 +514,10 @@ class SlaveController:
                        verdict=self.seat_verdict) and \
                 (not both or self._seat_passes >= SEAT_CONFIRMATIONS):
             c = ident.seat
-            loads = (f'{c.corner_forces_n[0]:.1f} + {c.corner_forces_n[1]:.1f} N, '
-                     f'{c.margin:.0f} chi^2 over {c.rival}' if c is not None else
-                     f'{ident.floor_force_n:.1f} N')
+            check = (f'{c.corner_forces_n[0]:.1f} + {c.corner_forces_n[1]:.1f} N, '
+                     f'{c.margin:.0f} chi^2 over {c.rival}' if c is not None else '')
+            loads = check if both else (f'{ident.floor_force_n:.1f} N' + (
+                f' (seat check {"passed" if c.passed else "failed"}: {check})' if c else ''))
             self._finish(True, f'seated ({self.seat_verdict.value}): both corners on the '
                                f'floor at {loads}, '
                                f'card edge {depth * 1e3:.1f} mm '
