@@ -60,10 +60,10 @@ from coop_id.excitation import Strategy
 from coop_insertion.drive import FollowPath
 from coop_insertion.errors import InsertionError
 from coop_insertion.rig import (
-    LOOP_NODES,
     SITE_XY,
     VIEW_PLANNER,
     InsertionRig,
+    loop_nodes,
     mast_sweep,
     staging_poses,
     truth_readers,
@@ -709,9 +709,8 @@ class Mission:
         # every node of the graph is up (the stereo nodes until the next line): the loop
         # nodes' subscriptions to the simulator's truth, none when truth only judges
         subs = self.rig.subscriptions()
-        self.rep['truth_apart'] = {'nodes': len(subs), 'loop_nodes': sorted(
-            n for n in subs if n.rsplit('/', 1)[-1] in LOOP_NODES),
-            'truth_readers': truth_readers(subs)}
+        self.rep['truth_apart'] = {'nodes': len(subs), 'loop_nodes': loop_nodes(subs),
+                                   'truth_readers': truth_readers(subs)}
         # the map is final: ranging on would map the slave's arm and card over the slot as an
         # obstacle at the task (the master's re-placement asks task_view again mid-insertion)
         self.rig.stop_mapping()

@@ -79,18 +79,28 @@ STALL_S = 90.0
 LOOP_NODES = ('master', 'slave', 'identifier', 'stereo', 'mapper', 'view_planner')
 
 
+def loop_nodes(names) -> list[str]:
+    """Of nodes' full names, those of loop nodes (LOOP_NODES), sorted."""
+    return sorted(n for n in names if n.rsplit('/', 1)[-1] in LOOP_NODES)
+
+
 def truth_readers(subscriptions: dict[str, list[str]]) -> dict[str, list[str]]:
     """Of a graph's subscriptions (node's full name -> topics, InsertionRig.subscriptions),
     the loop nodes' subscriptions to the simulator's truth (rover_sim.config.is_truth_topic):
     empty when truth only judges."""
     from rover_sim.config import is_truth_topic
     out = {}
-    for node, topics in subscriptions.items():
-        if node.rsplit('/', 1)[-1] in LOOP_NODES:
-            truth = [t for t in topics if is_truth_topic(t)]
-            if truth:
-                out[node] = truth
+    for node in loop_nodes(subscriptions):
+        truth = [t for t in subscriptions[node] if is_truth_topic(t)]
+        if truth:
+            out[node] = truth
     return out
+
+
+def slot_centre_x(slot_in: float) -> float:
+    """The slot's centre line in the map (x, m) for a slot `slot_in` inches wide: rover_sim's
+    site, its near jaw's inner face at SITE_XY."""
+    return SITE_XY[0] + slot_in * INCH / 2
 
 
 #: composed: the nodes that share one process (the simulator and the stereo node keep theirs:
@@ -161,7 +171,7 @@ def staging_poses(slot_in: float, rng: np.random.Generator | None = None, *,
     the site), the slave with its card `slave_short_m` short of the slot; with `rng`,
     perturbed (the slave by up to 3 cm along, 2 cm across and 0.05 rad)."""
     j2 = joint2_in_base(load_truth().cg_to_arm)
-    sx = SITE_XY[0] + slot_in * INCH / 2
+    sx = slot_centre_x(slot_in)
     d = rng.uniform([-0.03, -0.02, -0.05], [0.03, 0.02, 0.05]) if rng is not None \
         else np.zeros(3)
     return {'rover1': master,
@@ -239,11 +249,12 @@ class _Client(Node):
 
     def _on_card(self, m: PoseStamped) -> None:
         if self.recording:
-            x, y, z, w = (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
-                          m.pose.orientation.w)
+            from scipy.spatial.transform import Rotation
+            q = m.pose.orientation
             # the card's width axis (its x) in the map: its tilt out of the horizontal
-            ax, az = 1 - 2 * (y * y + z * z), 2 * (x * z - y * w)
-            self.card.append((stamp_of(m), m.pose.position.x, math.atan2(az, abs(ax))))
+            axis = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()[:, 0]
+            self.card.append((stamp_of(m), m.pose.position.x,
+                              math.atan2(axis[2], abs(axis[0]))))
 
     def _on_contact(self, m: ContactState) -> None:
         if self.recording:
@@ -613,8 +624,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         descended = res.descended.sec + 1e-9 * res.descended.nanosec
         at = [c for c in node.card if c[0] >= descended] if descended > 0 else []
         if at:
-            slot_x = SITE_XY[0] + slot_in * INCH / 2
-            aligned = (1e3 * (at[0][1] - slot_x), math.degrees(at[0][2]))
+            aligned = (1e3 * (at[0][1] - slot_centre_x(slot_in)), math.degrees(at[0][2]))
         seated = any(s for t, s, _ in during if t >= t_end - SEATED_WINDOW_S)
         pen_mm = max((p for *_, p in during), default=0.0) * 1e3
         ok = bool(res.success and seated and pen_mm <= penetration_limit_mm)
