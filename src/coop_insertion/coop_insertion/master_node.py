@@ -5,11 +5,15 @@ Runs in the team's namespace (like the mapper) for the rover named by `rover`:
 - tracks the card's and the slot's markers in `<rover>/stereo/{left,right}/image_raw` (every
   frame, or at most `vision_rate_hz`), triangulates them and publishes the four labelled
   centres with their covariances and the vertical from the mast encoders on `<rover>/markers`;
-- action `insert` (coop_msgs/action/Insert): PLACE_CAMERA (the camera pose from the team's
-  `viewplan/task_view` for the site: its best, or one drawn from the same feasible poses for
-  the random placement; or the goal's own; the rover drives there on its odometry and tilts its
-  mast), then hands the task to the slave's `<slave>/insert_card` action, relays its feedback
-  and result, and places its camera again when the fixes stop (optimal and random).
+- action `insert` (coop_msgs/action/Insert): PLACE_CAMERA: the master is told only a rough
+  region the slot is in (`site_position`, `site_search_m`); it places its camera for views over
+  the region (coop_insertion.locate) until it sees the slot's markers, takes the site's pose
+  from them, then places the camera for the task at the site so located (the team's
+  `viewplan/task_view`: its best, or one drawn from the same feasible poses for the random
+  placement; or the goal's own pose; the rover drives there on its odometry and tilts its
+  mast); then it hands the task with the located site to the slave's `<slave>/insert_card`
+  action, relays its feedback and result, and places its camera again when the fixes stop
+  (optimal and random).
 """
 from __future__ import annotations
 
@@ -17,7 +21,7 @@ import math
 import time
 
 import numpy as np
-from geometry_msgs.msg import Point, Twist
+from geometry_msgs.msg import Point, PoseStamped, Twist
 from nav_msgs.msg import Odometry
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.clock import Clock, ClockType
@@ -47,6 +51,7 @@ from coop_viewplan.frames import yaw_pitch_from_optical
 
 from .drive import GoToPose, wrap
 from .errors import InsertionError
+from .locate import SiteEstimate, search_points
 from .markers import (
     DEFAULT_MAX_RESIDUAL_PX,
     DEFAULT_MIN_CONTRAST,
@@ -55,7 +60,7 @@ from .markers import (
     DETECTORS,
     make_detector,
 )
-from .task import LABELS, SlotPair, TaskModel, find_slot, label_markers
+from .task import LABELS, SlotPair, TaskModel, find_slot, label_markers, site_from_slot
 from .triangulate import triangulate_markers
 
 PARAMS = {
@@ -77,17 +82,29 @@ PARAMS = {
                                'moves'),
     'slot_wait_s': ParamSpec(5.0, 'Once the camera stands, look at this long (s, by the '
                              "frames' stamps) of its frames for the slot pair alone in view "
-                             'before the slave brings the card (the pair remember_slot labels '
-                             'against); 0: hand over at once',
-                             lo=0.0, hi=60.0),
+                             'at the task view, before the slave brings the card (the pair '
+                             'that locates the site again and that remember_slot labels '
+                             'against)', lo=0.25, hi=60.0),
+    'search_look_s': ParamSpec(2.0, 'As slot_wait_s, at each view over the region while the '
+                               'master looks for the slot', lo=0.25, hi=60.0),
     'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
                                 '(0: every frame)', lo=0.0, hi=100.0),
-    'site_position': ParamSpec([3.0572, 0.0, 0.4], "The slot mouth's centre in the map "
-                               "frame (m): the task view's primary target"),
+    'site_position': ParamSpec([3.0572, 0.0, 0.4], "The centre of the region the slot's "
+                               "mouth is in (map frame, m): where the master looks for it"),
     'site_normal': ParamSpec([0.0, 1.0, 0.0], "The outward normal of the site's marked faces "
-                             '(map frame)'),
-    'target_sigma_m': ParamSpec(0.01, 'Position uncertainty of the site in the map (m)',
-                                lo=0.0, hi=1.0),
+                             '(map frame), as roughly known: the side the master looks from'),
+    'site_search_m': ParamSpec(0.3, 'The region the slot is in: this far (m) either side of '
+                               'site_position, along the marked faces and across them',
+                               lo=0.0, hi=2.0),
+    'search_spacing_m': ParamSpec(0.3, 'The spacing (m) of the targets the master places its '
+                                  'camera for while it looks for the slot over the region',
+                                  lo=0.05, hi=2.0),
+    'max_search_views': ParamSpec(9, 'Camera poses to look for the slot from before the goal '
+                                  'aborts (the region is covered by at most '
+                                  '(1 + ceil(2 site_search_m / search_spacing_m))^2)',
+                                  lo=1, hi=100),
+    'target_sigma_m': ParamSpec(0.01, 'Position uncertainty of the located site in the map '
+                                '(m)', lo=0.0, hi=1.0),
     'max_speed_m_s': ParamSpec(0.2, 'Driving speed to the camera pose (m/s)', lo=0.01,
                                hi=0.25),
     'view_target_offset_m': ParamSpec([0.0, 0.15, 0.1], "The task view's primary target "
@@ -170,6 +187,11 @@ class MasterNode(Node):
         self.tracked = 0                   # of them, those that gave a fix
         self.remembered = 0                # fixes labelled against the remembered slot pair
         self.replacements = 0
+        self.search_views = 0
+        # the site's pose from the slot pairs seen since the camera was placed, and the site
+        # the running goal located (4x4 in the map; None: not yet)
+        self.site_seen = SiteEstimate()
+        self.site: np.ndarray | None = None
         # the slot pair last seen since the camera was placed (dropped when it moves again)
         self._slot: SlotPair | None = None
         # stamp of the odometry at which the rover stopped at its camera pose (inf while it
@@ -273,13 +295,13 @@ class MasterNode(Node):
         except InsertionError as exc:
             slot = find_slot(st, radii, self.camera.fx, up, self.model)
             if slot is not None and standing:
-                self._slot = slot
+                self._saw_slot(slot, up)
             self.get_logger().info(f'markers: {exc}', throttle_duration_sec=5.0)
             return
         if lab.slot_remembered:
             self.remembered += 1
         elif standing:
-            self._slot = lab.slot
+            self._saw_slot(lab.slot, up)
         msg = MarkerObservation()
         msg.header = left.header
         msg.labels = list(LABELS)
@@ -299,6 +321,18 @@ class MasterNode(Node):
             cam = camera_in_map(*self.odom, *self.mast)
             mid = 0.5 * (lab.points[0] + lab.points[1])
             self.card_in_map = cam[:3, :3] @ mid + cam[:3, 3]
+
+    def _saw_slot(self, slot: SlotPair, up: np.ndarray) -> None:
+        """The slot pair seen from where the camera stands: remembered, and the site's pose in
+        the map it gives (the camera's pose from odometry and the mast) added to site_seen."""
+        self._slot = slot
+        if self.odom is None:
+            return
+        try:
+            self.site_seen.add(camera_in_map(*self.odom, *self.mast)
+                               @ site_from_slot(slot, up, self.model))
+        except InsertionError as exc:
+            self.bad.reject('slot', str(exc))
 
     # -- driving ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
@@ -369,23 +403,31 @@ class MasterNode(Node):
     async def _run(self, handle) -> Insert.Result:
         goal = handle.request
         self.replacements = 0
+        self.search_views = 0
+        self.site = None
         self.card_in_map = None
         # each goal draws its random poses afresh from the seed: an attempt's placement
         # depends on its seed alone, not on the goals before it
         self.rng = np.random.default_rng(int(self.p['seed']))
         self._feedback(handle, Insert.Feedback.PHASE_PLACE_CAMERA)
+        if goal.placement != Insert.Goal.PLACEMENT_GIVEN:
+            failed = await self._locate(handle, goal)
+            if failed:
+                return self._end(handle, failed)
         failed = await self._place(handle, await self._choose_pose(goal))
         if failed:
             return self._end(handle, failed)
-        # the site's markers while the view is clear: the card, once at the mouth, may hide one
-        if self.p['remember_slot']:
-            if await self._see_slot(handle, self.p['slot_wait_s']):
-                self.get_logger().info('slot pair seen from where the camera stands')
-            elif handle.is_cancel_requested:
-                return self._end(handle, 'canceled while looking for the slot')
-            else:
-                self.get_logger().info(f'no slot pair seen in {self.p["slot_wait_s"]:g} s '
-                                       'standing: the card is brought without it')
+        # the site's markers while the view is clear (the card, once at the mouth, may hide
+        # one): the site again, from the task's view
+        if await self._see_slot(handle, self.p['slot_wait_s']):
+            self.site = self._site_pose()
+            self.get_logger().info('slot pair seen from where the camera stands: the site at '
+                                   f'{np.round(self.site[:3, 3], 3).tolist()}')
+        elif handle.is_cancel_requested:
+            return self._end(handle, 'canceled while looking for the slot')
+        else:
+            self.get_logger().info(f'no slot pair seen in {self.p["slot_wait_s"]:g} s '
+                                   'standing: the card is brought without it')
         # hand over to the slave
         client = self._slaves.get(goal.slave)
         if client is None:
@@ -398,6 +440,8 @@ class MasterNode(Node):
                           angle_tolerance_rad=goal.angle_tolerance_rad,
                           max_force_n=goal.max_force_n, timeout_s=goal.timeout_s,
                           stamp=stamp(self._now_s()))
+        if self.site is not None:
+            sub.site = _pose_stamped(self.site)
         phase = [Insert.Feedback.PHASE_PLACE_CAMERA]
         awaiting = [False]
         seen = (self.looked, self.tracked, self.remembered)
@@ -448,6 +492,7 @@ class MasterNode(Node):
         res.frames = self.looked - seen[0]
         res.fixes = self.tracked - seen[1]
         res.replacements = self.replacements
+        self._report_site(res)
         self.get_logger().info(
             f'goal ended ({res.reason}): {res.fixes} fixes in {res.frames} frames, '
             f'{self.remembered - seen[2]} of them against the remembered slot pair')
@@ -479,7 +524,62 @@ class MasterNode(Node):
             handle.canceled()
         else:
             handle.abort()
-        return Insert.Result(success=False, reason=reason, ended=stamp(self._now_s()))
+        res = Insert.Result(success=False, reason=reason, ended=stamp(self._now_s()),
+                            replacements=self.replacements)
+        self._report_site(res)
+        return res
+
+    def _report_site(self, res: Insert.Result) -> None:
+        site = self.site[:3, 3] if self.site is not None else np.full(3, math.nan)
+        res.site.x, res.site.y, res.site.z = (float(v) for v in site)
+        res.search_views = self.search_views
+
+    def _site_pose(self) -> np.ndarray:
+        """The site in the map (4x4) from the slot pairs seen since the camera stood."""
+        est = self.site_seen
+        h = est.heading
+        t = np.eye(4)
+        t[:3, :3] = [[math.cos(h), -math.sin(h), 0.0], [math.sin(h), math.cos(h), 0.0],
+                     [0.0, 0.0, 1.0]]
+        t[:3, 3] = est.position
+        return t
+
+    async def _locate(self, handle, goal: Insert.Goal) -> str | None:
+        """Look for the slot over the rough region (site_position, site_search_m): the camera
+        placed for each of the region's search points in turn (as the goal's placement places
+        it: the best pose, or a random draw) until a slot pair is seen standing; the site
+        located from it (self.site). None once located, else why not."""
+        centre = np.asarray(self.p['site_position'], float)
+        normal = np.asarray(self.p['site_normal'], float)
+        normal = normal / np.linalg.norm(normal)
+        hw = self.p['site_search_m']
+        points = search_points(centre, normal, half_width_m=hw,
+                               spacing_m=self.p['search_spacing_m'])
+        last = ''
+        for target in points[:self.p['max_search_views']]:
+            where = await self._choose_pose(goal, site=target, normal=normal,
+                                            sigma=0.5 * self.p['search_spacing_m'])
+            failed = await self._place(handle, where)
+            if handle.is_cancel_requested:
+                return 'canceled while looking for the slot'
+            if failed:
+                last = failed
+                self.get_logger().info(f'looking for the slot at {np.round(target, 2).tolist()}'
+                                       f': {failed}')
+                continue
+            self.search_views += 1
+            if await self._see_slot(handle, self.p['search_look_s']):
+                self.site = self._site_pose()
+                self.get_logger().info(
+                    f'slot located from view {self.search_views} at '
+                    f'{np.round(self.site[:3, 3], 3).tolist()} ({len(self.site_seen)} frames, '
+                    f'spread {1e3 * self.site_seen.spread_m:.1f} mm)')
+                return None
+            if handle.is_cancel_requested:
+                return 'canceled while looking for the slot'
+        return (f'slot not found: no slot pair seen from {self.search_views} views over the '
+                f'region {hw:g} m either side of ({centre[0]:.2f}, {centre[1]:.2f})'
+                + (f' (last: {last})' if last else ''))
 
     async def _place(self, handle, where) -> str | None:
         """Drive the rover to the camera pose `where` and tilt its mast; the reason on failure."""
@@ -487,6 +587,7 @@ class MasterNode(Node):
             return where
         xy, yaw, pitch, how = where
         self._slot = None
+        self.site_seen.clear()
         self._stood_t = math.inf
         try:
             mount = camera_mount(xy, yaw, pitch)
@@ -524,15 +625,18 @@ class MasterNode(Node):
             raise InsertionError('no camera_info yet: the focal length sets the task range')
         return 2 * self.model.slot_marker_radius_m * li.p[0] / self.p['marker_min_diameter_px']
 
-    async def _choose_pose(self, goal: Insert.Goal, *, card: np.ndarray | None = None,
-                           closer: int = 0):
+    async def _choose_pose(self, goal: Insert.Goal, *, site: np.ndarray | None = None,
+                           normal: np.ndarray | None = None, sigma: float | None = None,
+                           card: np.ndarray | None = None, closer: int = 0):
         """The camera pose (xy, yaw, pitch, how) or the reason there is none. Given: the goal's
-        camera_pose. Optimal: the view planner's best for the primary target (in front of the
-        site; re-placing, half-way to the card's last fix) with the site's marked face as the
-        secondary, within the range where the slot markers span marker_min_diameter_px and the
-        incidence the detector handles; `closer` re-placements shrink that range by
-        replace_range_factor each (the markers were not resolved from there). Random: a pose
-        drawn uniformly from the same request's feasible ones (the view planner draws it)."""
+        camera_pose. Optimal: the view planner's best for the primary target (in front of
+        `site`, by default the located one; re-placing, half-way to the card's last fix) with
+        the site's marked face as the secondary, within the range where the slot markers span
+        marker_min_diameter_px and the incidence the detector handles; `closer` re-placements
+        shrink that range by replace_range_factor each (the markers were not resolved from
+        there); `sigma` the site's position uncertainty (by default target_sigma_m). Random: a
+        pose drawn uniformly from the same request's feasible ones (the view planner draws
+        it)."""
         if goal.placement == Insert.Goal.PLACEMENT_GIVEN:
             pose = goal.camera_pose
             if pose.header.frame_id not in ('', 'map'):
@@ -541,9 +645,12 @@ class MasterNode(Node):
                 return (*_optical_pose(pose.pose), 'given')
             except ValueError as exc:
                 return f'camera_pose: {exc}'
-        site = np.asarray(self.p['site_position'], float)
-        normal = np.asarray(self.p['site_normal'], float)
-        normal /= np.linalg.norm(normal)
+        if site is None:
+            if self.site is None:
+                return 'the site is not located'
+            site, normal = self.site[:3, 3], self.site[:3, 1]
+        normal = np.asarray(normal, float) / np.linalg.norm(normal)
+        sigma = self.p['target_sigma_m'] if sigma is None else float(sigma)
         if not self.task_view.wait_for_service(timeout_sec=10.0):
             return 'no viewplan/task_view service'
         offset = np.asarray(self.p['view_target_offset_m'], float)
@@ -569,7 +676,7 @@ class MasterNode(Node):
         t.position.x, t.position.y, t.position.z = (float(v) for v in target)
         t.normal.x, t.normal.y, t.normal.z = (float(v) for v in normal)
         t.radius_m = self.p['target_radius_m']
-        t.position_sigma_m = self.p['target_sigma_m']
+        t.position_sigma_m = sigma
         t.weight = 1.0
         req.primary = t
         sec = TaskTarget()
@@ -577,7 +684,7 @@ class MasterNode(Node):
         sec.position.x, sec.position.y, sec.position.z = (float(v) for v in site)
         sec.normal = t.normal
         sec.radius_m = self.p['target_radius_m']
-        sec.position_sigma_m = self.p['target_sigma_m']
+        sec.position_sigma_m = sigma
         sec.weight = self.p['secondary_weight']
         req.secondary = [sec]
         resp = await self.ls.hold(self.task_view.call_async(req))
@@ -586,6 +693,16 @@ class MasterNode(Node):
         self.pub_placement.publish(resp.best)
         return (*_optical_pose(resp.best.pose.pose),
                 f'{"optimal" if optimal else "random"}, {resp.message}')
+
+
+def _pose_stamped(t: np.ndarray) -> PoseStamped:
+    """A level 4x4 pose in the map as a PoseStamped (its heading about z)."""
+    msg = PoseStamped()
+    msg.header.frame_id = 'map'
+    h = math.atan2(t[1, 0], t[0, 0])
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in t[:3, 3])
+    msg.pose.orientation.z, msg.pose.orientation.w = math.sin(h / 2), math.cos(h / 2)
+    return msg
 
 
 def _optical_pose(pose) -> tuple[np.ndarray, float, float]:

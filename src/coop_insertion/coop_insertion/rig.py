@@ -48,6 +48,10 @@ SITE_TOP_M = 0.40
 #: with this 1-sigma error per axis (m), drawn per rig from its seed (the rig runs no
 #: identifier; the mission's slave takes r_2 from its own)
 CALIBRATION_SIGMA_M = 0.005
+#: the master is told the slot is within this far (m) either side of a centre drawn per attempt
+#: uniformly within as far of the slot's true mouth (along x and y: the site stands on the
+#: ground, its top at SITE_TOP_M)
+ROUGH_SITE_M = 0.3
 #: the slave starts with its card this far short of the slot (the arm outstretched clears the
 #: near jaw), its base a little off the slot's line and heading
 SLAVE_START_SHORT_M = 0.55
@@ -156,6 +160,14 @@ def mast_sweep(seconds: float) -> JointTrajectory:
     return tr
 
 
+def rough_site(slot_in: float, seed: int, half_width_m: float = ROUGH_SITE_M) -> list[float]:
+    """The centre of the region the master is told the slot's mouth is in, for an attempt's
+    `seed`: the true mouth moved by a uniform draw within `half_width_m` along x and y."""
+    d = np.random.default_rng([seed, 3]).uniform(-half_width_m, half_width_m, 2)
+    return [round(slot_centre_x(slot_in) + float(d[0]), 4), round(SITE_XY[1] + float(d[1]), 4),
+            SITE_TOP_M]
+
+
 def calibrated_r2(seed: int) -> list[float]:
     """The slave's r_2 as a calibration gives it (CALIBRATION_SIGMA_M), for the rig's `seed`."""
     rng = np.random.default_rng([seed, 2])
@@ -206,6 +218,11 @@ class Attempt:
     #: line (mm) and its tilt in the insertion plane (deg); None: it got to neither
     align_mm: float | None = None
     align_tilt_deg: float | None = None
+    #: the region's centre the master was given (map, m), the views it looked for the slot
+    #: from, and how far the site it located lay from the true mouth (mm; None: not located)
+    rough_site: list | None = None
+    search_views: int = 0
+    site_error_mm: float | None = None
     curves: dict = field(default_factory=dict)
 
     @property
@@ -279,7 +296,8 @@ class InsertionRig(contextlib.AbstractContextManager):
                  render_workers: int = 1, lockstep: bool = True, round_s: float = ROUND_S,
                  master_start: tuple[float, float, float] = MASTER_START,
                  slave_start_short_m: float = SLAVE_START_SHORT_M,
-                 composed: bool = False, participants: tuple[str, ...] = ()) -> None:
+                 composed: bool = False, participants: tuple[str, ...] = (),
+                 rough_site_m: float = ROUGH_SITE_M) -> None:
         """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
         the map (with the planner); extra_procs: more (log name, package, executable, args);
         render_workers: the sim's (1: the right eye drawn by a second process); lockstep: the
@@ -289,8 +307,10 @@ class InsertionRig(contextlib.AbstractContextManager):
         slave_start_short_m: where place() stands the rovers (staging_poses); composed: the
         master, the slave, the mapper and the view planner in one process (`coop_bringup
         compose`), not one each; participants: more lockstep participants than the master,
-        the slave and this rig (the extra processes' or nodes' that close loops)."""
+        the slave and this rig (the extra processes' or nodes' that close loops); rough_site_m:
+        the master's region (rough_site), its centre drawn per attempt."""
         self.seed = seed
+        self.rough_site_m = rough_site_m
         self.lockstep = lockstep
         self.round_s = round_s
         self.starts = {'master': master_start, 'slave_short_m': slave_start_short_m}
@@ -569,7 +589,9 @@ class InsertionRig(contextlib.AbstractContextManager):
             raise InsertionError("a camera pose goes with the 'given' placement, and only")
         node = self.node
         self.hold()
-        self.set_parameters('master', seed=int(seed))
+        rough = rough_site(slot_in, seed, self.rough_site_m)
+        self.set_parameters('master', seed=int(seed), site_position=rough,
+                            site_search_m=float(self.rough_site_m))
         node.contact = []
         self.feedback = None
         curves = {'t': [], 'phase': [], 'displacement_m': [], 'angle_rad': [], 'force': []}
@@ -628,10 +650,15 @@ class InsertionRig(contextlib.AbstractContextManager):
         seated = any(s for t, s, _ in during if t >= t_end - SEATED_WINDOW_S)
         pen_mm = max((p for *_, p in during), default=0.0) * 1e3
         ok = bool(res.success and seated and pen_mm <= penetration_limit_mm)
+        located = np.array([res.site.x, res.site.y, res.site.z])
+        truth = np.array([slot_centre_x(slot_in), SITE_XY[1], SITE_TOP_M])
+        site_mm = float(1e3 * np.linalg.norm(located - truth)) \
+            if np.all(np.isfinite(located)) else None
         return Attempt(slot_in, placement, seed, ok, bool(res.success), res.reason,
                        seated, pen_mm, float(res.peak_force_n),
                        time.monotonic() - w0, t_end - t_start, int(res.frames),
-                       int(res.fixes), int(res.replacements), *aligned, curves=curves)
+                       int(res.fixes), int(res.replacements), *aligned, rough,
+                       int(res.search_views), site_mm, curves=curves)
 
 
 def as_row(a: Attempt) -> dict:

@@ -7,7 +7,8 @@ vision error from the master's `<master>/markers` at the servo rate (`<rover>/jo
 with `<rover>/odom` and `<rover>/arm/wrench`), descends, and on contact finishes by force
 feedback; it commands `<rover>/arm/joint_command` and `<rover>/cmd_vel`. The arm's mount r_2
 comes from the identifier's `<rover>/dynamic_parameters` when it has published, else from the
-`cg_to_arm` parameter.
+`cg_to_arm` parameter. The site the coarse approach heads for is the goal's `site` (the master
+located it from the slot's markers), else the `site_position` and `site_yaw` parameters.
 """
 from __future__ import annotations
 
@@ -255,8 +256,27 @@ class SlaveNode(Node):
         for v in (goal.tolerance_m, goal.angle_tolerance_rad, goal.max_force_n, goal.timeout_s):
             if not (math.isfinite(v) and v >= 0):
                 return GoalResponse.REJECT
+        if goal.site.header.frame_id not in ('', 'map'):
+            self.get_logger().warn(f'insert_card: the site must be in the map frame, not '
+                                   f'{goal.site.header.frame_id!r}; rejected')
+            return GoalResponse.REJECT
+        site = goal.site.pose
+        if goal.site.header.frame_id and not all(math.isfinite(v) for v in (
+                site.position.x, site.position.y, site.position.z, site.orientation.x,
+                site.orientation.y, site.orientation.z, site.orientation.w)):
+            self.get_logger().warn('insert_card: the site is not finite; rejected')
+            return GoalResponse.REJECT
         self._busy = True
         return GoalResponse.ACCEPT
+
+    def _goal_site(self, goal: Insert.Goal) -> np.ndarray:
+        """The site frame in the odometry frame: the goal's `site` when it gives one (the map
+        frame taken as the odometry frame), else the site parameters."""
+        site = goal.site
+        if not site.header.frame_id:
+            return _site_pose(self.p['site_position'], self.p['site_yaw'])
+        q, pos = site.pose.orientation, site.pose.position
+        return _site_pose([pos.x, pos.y, pos.z], yaw_of(q.x, q.y, q.z, q.w))
 
     async def _execute(self, handle) -> Insert.Result:
         t0 = time.monotonic()
@@ -278,7 +298,7 @@ class SlaveNode(Node):
             max_force_n=g.max_force_n or p['max_force_n'],
             descent_speed_m_s=p['descent_speed_m_s'],
             contact_threshold_n=p['contact_threshold_n'], seat_verdict=p['seat_verdict'],
-            site_in_odom=_site_pose(p['site_position'], p['site_yaw']))
+            site_in_odom=self._goal_site(g))
         self._timeout = g.timeout_s or p['timeout_s']
         self._goal_t0 = None
         given = g.stamp.sec + 1e-9 * g.stamp.nanosec

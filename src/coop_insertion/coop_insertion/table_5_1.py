@@ -6,7 +6,10 @@ feasible for the same request (free, the markers within the detector's range and
 the target unoccluded), drawn again where the optimal placement is re-placed ('random'), or
 drawn once ('random_fixed', Table 4-1's fixed camera).
 
-    ros2 run coop_insertion table_5_1 --attempts 20 --json out/table_5_1.json --plots out
+    ros2 run coop_insertion table_5_1 --json out/table_5_1.json --resume --plots out
+
+runs the thesis's scale: 10 attempts a cell for the three thesis rows with each placement, and
+30 for the 1 % row with the optimal placement (`--rows`: `width[:attempts[:placement+...]]`).
 
 Every attempt runs through the whole graph over DDS (coop_insertion.rig: rover_sim, the mapper
 with the site's map, view_planner, master and slave): the simulator is reset to the row's slot
@@ -14,8 +17,10 @@ width with the slave's start perturbed (attempt seed), one `insert` goal runs, a
 simulator's truth decides success: the card seated to depth with its penetration into anything
 at most 0.5 mm at every step. The site map the view planner places the camera in is built once
 per scenario by the mapping pipeline (coop_viewplan.fig_3_25's maximum-information exploration
-with stereo ranging and the shared voxel map, saved with `save_map`), plus the master's own
-survey of the site through the live stereo and mapper nodes.
+with stereo ranging and the shared voxel map, saved with `save_map`; each cloud placed with
+the rover's own estimated camera pose), plus the master's own survey of the site through the
+live stereo and mapper nodes. The master is told only a region 0.3 m either side of a centre
+drawn per attempt (rig.rough_site) and finds the slot in it by its markers.
 """
 from __future__ import annotations
 
@@ -33,6 +38,9 @@ from coop_common.files import save_figure, write_json
 from .rig import InsertionRig, SimStalled, as_row
 
 ROWS_IN = (5.0, 4.5, 4.375, 4.2925)
+#: the thesis's scale: 10 attempts a cell, 30 for the 1 % row (optimal placement only)
+DEFAULT_ROWS = '5.0,4.5,4.375,4.2925:30:optimal'
+DEFAULT_ATTEMPTS = 10
 #: the placements a table compares (the rig's 'given' pins a pose: for tests)
 TABLE_PLACEMENTS = ('optimal', 'random', 'random_fixed')
 THESIS = {5.0: (10, 7), 4.5: (10, 4), 4.375: (9, 2)}       # of 10: optimal, random
@@ -42,8 +50,9 @@ LABELS = {5.0: 'Easy', 4.5: 'Medium', 4.375: 'Hard', 4.2925: '1 % clearance'}
 def build_site_map(path: Path, *, seed: int, occlusion_density: float, scans: int = 14,
                    log=None) -> Path:
     """The scenario's map by the mapping pipeline (coop_viewplan.fig_3_25's exploration)."""
-    from coop_viewplan.fig_3_25 import Fig325Config, run_strategy
-    cfg = Fig325Config(rovers=2, scans=scans, seed=seed, occlusion_density=occlusion_density)
+    from coop_viewplan.fig_3_25 import Fig325Config, PoseSource, run_strategy
+    cfg = Fig325Config(rovers=2, scans=scans, seed=seed, occlusion_density=occlusion_density,
+                       pose_source=PoseSource.ODOMETRY)
     run_strategy('max_information', cfg, seed=seed, log=log, save_map=path)
     return path
 
@@ -97,13 +106,42 @@ def _done_attempts(checkpoint: Path | None) -> dict:
     return done
 
 
-def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], seed: int,
+def parse_rows(spec: str, *, attempts: int,
+               placements: tuple[str, ...]) -> list[tuple[float, int, tuple[str, ...]]]:
+    """`width[:attempts[:placement+...]]`, comma-separated (e.g. DEFAULT_ROWS), into (slot
+    width in, attempts, placements) per row; `attempts` and `placements` where a row gives
+    none (ValueError with the reason)."""
+    rows = []
+    for item in (x.strip() for x in spec.split(',') if x.strip()):
+        parts = item.split(':')
+        if len(parts) > 3:
+            raise ValueError(f'{item!r}: width[:attempts[:placement+...]]')
+        width = float(parts[0])
+        if not 4.25 < width <= 9.8:
+            raise ValueError(f'{item!r}: the slot must be wider than the 4.25 in card (and at '
+                             'most 9.8 in)')
+        n = int(parts[1]) if len(parts) > 1 and parts[1] else attempts
+        if n < 1:
+            raise ValueError(f'{item!r}: at least one attempt')
+        pl = tuple(parts[2].split('+')) if len(parts) > 2 else placements
+        if not pl or any(x not in TABLE_PLACEMENTS for x in pl):
+            raise ValueError(f'{item!r}: placements of {", ".join(TABLE_PLACEMENTS)}')
+        rows.append((width, n, pl))
+    if not rows:
+        raise ValueError('no rows')
+    return rows
+
+
+def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple[str, ...]]],
+        placements: tuple[str, ...], seed: int,
         occlusion_density: float, timeout_s: float, max_force_n: float, site_map: Path | None,
         checkpoint: Path | None = None, resume: bool = False, log=print) -> dict:
-    """The table. With `checkpoint`, the result so far is written there (atomically) after
-    every attempt, `complete` false until the end; `resume` reuses the attempts it holds. An
-    attempt the simulator stalled in (rig.SimStalled) is run again on a fresh graph, up to
-    MAX_RESTARTS per run; each restart is listed in `sim_restarts`."""
+    """The table: `rows` slot widths (in), each with `attempts` per placement, or (width,
+    attempts, placements) per row (parse_rows). With `checkpoint`, the result so far is
+    written there (atomically) after every attempt, `complete` false until the end; `resume`
+    reuses the attempts it holds. An attempt the simulator stalled in (rig.SimStalled) is run
+    again on a fresh graph, up to MAX_RESTARTS per run; each restart is listed in
+    `sim_restarts`."""
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix='table_5_1_'))
     if site_map is None:
@@ -118,19 +156,21 @@ def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], 
            'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
     rig: InsertionRig | None = None
 
+    specs = [r if isinstance(r, tuple) else (float(r), attempts, placements) for r in rows]
+    res['placements'] = list(dict.fromkeys(p for *_, pl in specs for p in pl))
     try:
-        for slot_in in rows:
+        for slot_in, n_row, row_placements in specs:
             row = {'slot_in': slot_in, 'label': LABELS.get(slot_in, f'{slot_in} in'),
-                   'attempts': attempts, 'thesis': THESIS.get(slot_in)}
+                   'attempts': n_row, 'thesis': THESIS.get(slot_in)}
             res['rows'].append(row)
             if rig is not None:
                 rig.set_slot(slot_in)
-            for placement in placements:
+            for placement in row_placements:
                 got: list[dict] = []
                 curves: list[dict] = []
                 row[f'{placement}_attempts'] = got
                 row[f'{placement}_curves'] = curves
-                for k in range(attempts):
+                for k in range(n_row):
                     key = _cell_key(slot_in, placement, seed * 1000 + k)
                     if key in done:
                         a, c = done[key]
@@ -166,7 +206,8 @@ def run(*, attempts: int, rows: tuple[float, ...], placements: tuple[str, ...], 
                         f'penetration {a["max_penetration_mm"]:.2f} mm, peak force '
                         f'{_fmt(a["peak_force_n"])} N, fixes {a.get("fixes", 0)}/'
                         f'{a.get("frames", 0)}, aligned {_fmt(a.get("align_mm"))} mm '
-                        f'{_fmt(a.get("align_tilt_deg"))} deg, {a["sim_s"]:.0f} sim s, '
+                        f'{_fmt(a.get("align_tilt_deg"))} deg, site {_fmt(a.get("site_error_mm"))}'
+                        f' mm off after {a.get("search_views", 0)} views, {a["sim_s"]:.0f} sim s, '
                         f'{a["duration_s"]:.0f} s')
                     row[f'{placement}_successes'] = sum(bool(x['success']) for x in got)
                     row[f'{placement}_peak_force_n'] = max(
@@ -200,8 +241,13 @@ def cell_summary(attempts: list[dict]) -> dict:
     reached = [a for a in attempts if a.get('align_mm') is not None]
     rates = [a['fixes'] / a['frames'] for a in attempts if a.get('frames')]
     recorded = all('align_mm' in a for a in attempts)   # a run that recorded the alignment
+    located = [a['site_error_mm'] for a in attempts if a.get('site_error_mm') is not None]
     return {'n': len(attempts), 'seated': sum(bool(a['success']) for a in attempts),
             'reached_descent': len(reached) if recorded else None,
+            'located': len(located) if all('site_error_mm' in a for a in attempts) else None,
+            'site_error_mm': _median(located),
+            'search_views': _median([a['search_views'] for a in attempts
+                                     if 'search_views' in a]),
             'fix_rate': _median(rates) if rates else None,
             'align_mm': _median([abs(a['align_mm']) for a in reached]),
             'align_tilt_deg': _median([abs(a['align_tilt_deg']) for a in reached]),
@@ -212,10 +258,10 @@ def cell_summary(attempts: list[dict]) -> dict:
 
 
 def format_table(res: dict) -> str:
-    n = res['attempts']
+    counts = sorted({r.get('attempts', res['attempts']) for r in res['rows']})
     placements = res['placements']
-    head = (f'Table 5-1 through sim + nodes: {n} attempts per cell (thesis: 10); success = '
-            'seated, penetration <= 0.5 mm')
+    head = (f'Table 5-1 through sim + nodes: {" or ".join(map(str, counts))} attempts per cell '
+            '(thesis: 10); success = seated, penetration <= 0.5 mm')
     lines = [head, f'{"row":16s} {"slot (in)":>9s} '
              + ' '.join(f'{p:>12s}' for p in placements)
              + f' {"thesis opt":>10s} {"thesis rnd":>10s}']
@@ -231,10 +277,13 @@ def format_table(res: dict) -> str:
             + ' '.join(f'{c:>12s}' for c in cells)
             + f' {"-" if th is None else f"{th[0]}/10":>10s}'
             f' {"-" if th is None else f"{th[1]}/10":>10s}')
-    lines += ['', 'per cell: attempts that got to the descent, median fix rate, median '
-              'alignment by the truth at the descent,',
-              "the slave's seated verdicts the truth contradicts, peak contact force",
-              f'{"row":16s} {"placement":>12s} {"seated":>7s} {"descent":>7s} '
+    lines += ['', 'per cell: attempts that located the slot, median views it took and '
+              "the located site's error (mm), attempts that got to",
+              'the descent, median fix rate, median alignment by the truth at the descent, '
+              "the slave's seated verdicts the truth",
+              'contradicts, peak contact force',
+              f'{"row":16s} {"placement":>12s} {"seated":>7s} {"located":>7s} {"views":>5s} '
+              f'{"site mm":>7s} {"descent":>7s} '
               f'{"fix rate":>8s} {"|dx| mm":>8s} {"|tilt| deg":>10s} {"false":>5s} '
               f'{"peak F (N)":>10s}']
     for r in res['rows']:
@@ -245,6 +294,8 @@ def format_table(res: dict) -> str:
             c = cell_summary(got)
             lines.append(
                 f'{r["label"]:16s} {p:>12s} {c["seated"]:>3d}/{c["n"]:<3d} '
+                f'{_fmt(c["located"], 0):>7s} {_fmt(c["search_views"], 0):>5s} '
+                f'{_fmt(c["site_error_mm"], 0):>7s} '
                 f'{_fmt(c["reached_descent"], 0):>7s} {_fmt(c["fix_rate"], 2):>8s} '
                 f'{_fmt(c["align_mm"]):>8s} {_fmt(c["align_tilt_deg"], 2):>10s} '
                 f'{c["false_seated"]:>5d} {_fmt(c["peak_force_n"]):>10s}')
@@ -300,9 +351,11 @@ def plot(res: dict, out: Path) -> list[Path]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='table_5_1', description=__doc__.split('\n\n')[0])
-    p.add_argument('--attempts', type=number(int, lo=1), default=20)
-    p.add_argument('--rows', default=','.join(f'{r:g}' for r in ROWS_IN),
-                   help='slot widths in inches')
+    p.add_argument('--attempts', type=number(int, lo=1), default=DEFAULT_ATTEMPTS,
+                   help='per cell, where --rows gives none')
+    p.add_argument('--rows', default=DEFAULT_ROWS,
+                   help='comma-separated width[:attempts[:placement+...]], widths in inches '
+                        f'(default {DEFAULT_ROWS})')
     p.add_argument('--placements', default=','.join(TABLE_PLACEMENTS),
                    help=f'comma-separated, of {", ".join(TABLE_PLACEMENTS)}')
     p.add_argument('--seed', type=number(int, lo=0), default=1)
@@ -318,17 +371,15 @@ def main(argv: list[str] | None = None) -> int:
                    help='reuse the attempts an interrupted run saved in --json')
     p.add_argument('--plots', type=output_dir, default=None)
     args = p.parse_args(argv)
-    try:
-        rows = tuple(float(x) for x in args.rows.split(','))
-    except ValueError:
-        p.error('--rows: comma-separated slot widths in inches')
-    if not all(4.25 < r <= 9.8 for r in rows):
-        p.error('--rows: each slot must be wider than the 4.25 in card (and at most 9.8 in)')
     if args.resume and not args.json:
         p.error('--resume reads the attempts saved in --json: give --json')
     placements = tuple(x for x in args.placements.split(',') if x)
     if not placements or any(x not in TABLE_PLACEMENTS for x in placements):
         p.error(f'--placements: of {", ".join(TABLE_PLACEMENTS)}')
+    try:
+        rows = parse_rows(args.rows, attempts=args.attempts, placements=placements)
+    except ValueError as exc:
+        p.error(f'--rows: {exc}')
     res = run(attempts=args.attempts, rows=rows, placements=placements, seed=args.seed,
               occlusion_density=args.occlusion_density, timeout_s=args.timeout,
               max_force_n=args.max_force, site_map=args.site_map, checkpoint=args.json,

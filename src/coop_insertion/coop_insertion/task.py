@@ -38,7 +38,7 @@ from .frames import RequiredMotion, homogeneous, invert, required_motion_from_po
 from .triangulate import StereoMarker
 
 __all__ = ['TaskModel', 'LabelledMarkers', 'SlotPair', 'label_markers', 'find_slot',
-           'card_required_motion', 'LABELS']
+           'site_from_slot', 'card_required_motion', 'LABELS']
 
 LABELS = ('card_a', 'card_b', 'slot_a', 'slot_b')
 
@@ -256,6 +256,25 @@ def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
     order = sorted(pair, key=lambda k: float(pos[k] @ across))
     return SlotPair(np.array([pos[k] for k in order]),
                     np.array([markers[k].covariance for k in order]))
+
+
+def site_from_slot(pair: SlotPair, up, model: TaskModel) -> np.ndarray:
+    """The site frame (4x4: the slot mouth's centre, x across the slot, z up) in the frame of
+    the slot's markers `pair` (the camera's), from the task model's marker positions in the
+    site frame and the vertical `up` in that frame (InsertionError when the markers stand one
+    above the other)."""
+    u = np.asarray(up, float)
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) < 1e-9:
+        raise InsertionError('up must be a finite non-zero 3-vector')
+    u = u / np.linalg.norm(u)
+    a, b = np.asarray(pair.points, float)
+    x = (b - a) - ((b - a) @ u) * u
+    if np.linalg.norm(x) < 0.5 * np.linalg.norm(b - a) or np.linalg.norm(x) < 1e-6:
+        raise InsertionError('the slot markers are not side by side: no site heading')
+    x /= np.linalg.norm(x)
+    rot = np.column_stack([x, np.cross(u, x), u])
+    mid = model.slot_markers.mean(axis=0)
+    return homogeneous(rot, 0.5 * (a + b) - rot @ mid)
 
 
 def card_required_motion(obs: LabelledMarkers, t_base_card, model: TaskModel, *,

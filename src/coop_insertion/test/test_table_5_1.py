@@ -46,6 +46,8 @@ class FakeRig:
         return Attempt(slot_in, placement, seed, ok, ok, 'seated' if ok else 'timeout', ok,
                        0.1, 8.0 + seed % 3, 10.0, 20.0, frames=40, fixes=30 if ok else 0,
                        align_mm=-1.0 if ok else None, align_tilt_deg=0.2 if ok else None,
+                       rough_site=[3.0, 0.1, 0.4], search_views=1 + seed % 2,
+                       site_error_mm=20.0 + seed % 3 if ok else None,
                        curves={'t': [0.0], 'phase': [1]})
 
 
@@ -105,10 +107,26 @@ def test_the_table_shows_why_a_cell_fails(tmp_path, fake_rig):
     row = res['rows'][0]
     assert row['random_fixed_attempts'][1]['fix_rate'] == 0.0
     c = table_5_1.cell_summary(row['optimal_attempts'])
-    assert c == {'n': 3, 'seated': 2, 'reached_descent': 2, 'fix_rate': 0.75,
+    # seeds 1000 (seated, site 21 mm off), 1001 (never located), 1002 (seated, 20 mm)
+    assert c == {'n': 3, 'seated': 2, 'located': 2, 'site_error_mm': 20.5,
+                 'search_views': 1.0, 'reached_descent': 2, 'fix_rate': 0.75,
                  'align_mm': 1.0, 'align_tilt_deg': 0.2, 'false_seated': 0,
                  'peak_force_n': 10.0}
     text = table_5_1.format_table(res)
     assert 'random_fixed' in text.splitlines()[1]
-    assert any(line.split()[:6] == ['Medium', 'optimal', '2/3', '2', '0.75', '1.0']
+    assert any(line.split()[:9] == ['Medium', 'optimal', '2/3', '2', '1', '20', '2', '0.75',
+                                    '1.0']
                for line in text.splitlines()), text
+
+
+def test_rows_give_their_own_attempts_and_placements():
+    rows = table_5_1.parse_rows(table_5_1.DEFAULT_ROWS, attempts=10,
+                                placements=table_5_1.TABLE_PLACEMENTS)
+    assert rows[:3] == [(w, 10, table_5_1.TABLE_PLACEMENTS) for w in (5.0, 4.5, 4.375)]
+    assert rows[3] == (4.2925, 30, ('optimal',))
+    assert table_5_1.parse_rows('5::random+optimal', attempts=2, placements=('optimal',)) == \
+        [(5.0, 2, ('random', 'optimal'))]
+    for bad, why in (('4.2', 'wider'), ('5:0', 'at least one'), ('5:2:best', 'placements'),
+                     ('5:1:optimal:x', 'width'), ('', 'no rows')):
+        with pytest.raises(ValueError, match=why):
+            table_5_1.parse_rows(bad, attempts=1, placements=('optimal',))

@@ -9,7 +9,15 @@ from coop_common.rover_geometry import card_in_base
 from coop_insertion.drive import FollowPath, GoToPose, wrap
 from coop_insertion.errors import InsertionError
 from coop_insertion.frames import homogeneous, invert, rot_z
-from coop_insertion.task import TaskModel, card_required_motion, find_slot, label_markers
+from coop_insertion.locate import SiteEstimate, search_points
+from coop_insertion.task import (
+    SlotPair,
+    TaskModel,
+    card_required_motion,
+    find_slot,
+    label_markers,
+    site_from_slot,
+)
 from coop_insertion.triangulate import StereoMarker
 
 MODEL = TaskModel()
@@ -174,3 +182,50 @@ def test_follow_path_passes_every_waypoint_and_ends_at_the_heading():
             FollowPath(bad)
     with pytest.raises(InsertionError):
         FollowPath([(0.0, 0.0)], math.nan)
+
+
+def test_the_site_from_the_slot_pair_is_the_site_frame_in_the_camera():
+    """The slot pair alone, seen by a camera standing anywhere round the site's face, gives
+    the site frame in the camera frame: site_from_slot(pair) = inverse(camera in site)."""
+    for yaw in (-0.6, 0.0, 0.5):
+        cam = homogeneous(rot_z(yaw), np.zeros(3)) @ _camera()
+        ms, rs, up = _observe(cam, MODEL.card_goal(0.05))
+        slot = [k for k, m in enumerate(ms) if m.left >= 2]
+        pair = find_slot([ms[k] for k in slot], [rs[k] for k in slot], 850.0, up, MODEL)
+        np.testing.assert_allclose(site_from_slot(pair, up, MODEL), invert(cam), atol=1e-9)
+    with pytest.raises(InsertionError, match='side by side'):
+        site_from_slot(SlotPair(np.array([[0, 0, 1.0], [0, -0.1, 1.0]]), np.zeros((2, 3, 3))),
+                       [0, -1.0, 0], MODEL)
+
+
+def test_the_search_covers_the_region_from_its_centre_out():
+    pts = search_points([3.0, 0.0, 0.4], [0.0, 2.0, 0.5], half_width_m=0.3, spacing_m=0.3)
+    assert pts.shape == (9, 3)
+    np.testing.assert_allclose(pts[0], [3.0, 0.0, 0.4])
+    np.testing.assert_allclose(pts[1], [3.0, 0.3, 0.4])          # the camera's side first
+    d = np.hypot(*(pts[:, :2] - [3.0, 0.0]).T)
+    assert np.all(np.diff(d) >= -1e-12)
+    np.testing.assert_allclose(sorted(set(np.round(pts[:, 0], 9))), [2.7, 3.0, 3.3])
+    np.testing.assert_allclose(pts[:, 2], 0.4)
+    # a spacing that does not divide the region: its edges still covered, no gap wider
+    pts = search_points([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], half_width_m=0.3, spacing_m=0.25)
+    xs = np.array(sorted(set(np.round(pts[:, 0], 9))))
+    assert xs[0] == -0.3 and xs[-1] == 0.3 and np.max(np.diff(xs)) <= 0.25
+    assert len(search_points([0, 0, 0], [1, 0, 0], half_width_m=0.0, spacing_m=0.3)) == 1
+    with pytest.raises(InsertionError, match='vertical'):
+        search_points([0, 0, 0], [0, 0, 1.0], half_width_m=0.3, spacing_m=0.3)
+
+
+def test_the_site_estimate_averages_positions_and_headings_across_the_wrap():
+    est = SiteEstimate()
+    with pytest.raises(InsertionError):
+        _ = est.position
+    for h, dx in ((math.pi - 0.01, 0.002), (-math.pi + 0.03, -0.002)):
+        est.add(homogeneous(rot_z(h), [1.0 + dx, 2.0, 0.4]))
+    assert len(est) == 2
+    np.testing.assert_allclose(est.position, [1.0, 2.0, 0.4])
+    assert abs(wrap(est.heading - (math.pi + 0.01))) < 1e-9
+    np.testing.assert_allclose(est.normal, [-math.sin(est.heading), math.cos(est.heading), 0])
+    assert est.spread_m == pytest.approx(0.002)
+    est.clear()
+    assert len(est) == 0
