@@ -29,7 +29,7 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -83,6 +83,8 @@ from coop_viewplan.nbv import (
 from coop_viewplan.offline import nbv_config
 from coop_viewplan.params import PARAMS as VP_PARAMS
 
+from .mission_seeds import format_table as format_seeds
+from .mission_seeds import parse_seeds, run_seeds
 from .report import MissionError, identification_errors, site_coverage, top_view, write_report
 
 PHASES = ('identify', 'map', 'place', 'insert')
@@ -755,7 +757,8 @@ class Mission:
             'peak_force_n': attempt.peak_force_n, 'sim_s': attempt.sim_s,
             'frames': attempt.frames, 'fixes': attempt.fixes,
             'replacements': attempt.replacements, 'align_mm': attempt.align_mm,
-            'align_tilt_deg': attempt.align_tilt_deg}
+            'align_tilt_deg': attempt.align_tilt_deg, 'rough_site': attempt.rough_site,
+            'search_views': attempt.search_views, 'site_error_mm': attempt.site_error_mm}
         self.extras['insertion_curves'] = attempt.curves
         self.extras['paths'] = {r: list(p) for r, p in self.client.paths.items()}
         reached = phase['insert_at'] is not None
@@ -806,6 +809,10 @@ def main(argv: list[str] | None = None) -> int:
                    help='the report goes to OUT/<run-id>/ (default out)')
     p.add_argument('--run-id', default=None, help='default: date-time-pid')
     p.add_argument('--seed', type=number(int, lo=0), default=d.seed)
+    p.add_argument('--seeds', default=None, metavar='A-B[,C]',
+                   help='run the mission once per seed (OUT/<run-id>/seed_<k>/, the run id '
+                        "'seeds' by default; seeds already reported are read back) and print "
+                        'their table (coop_bringup.mission_seeds)')
     p.add_argument('--occlusion-density', type=number(float, lo=0.0, hi=0.5),
                    default=d.occlusion_density)
     p.add_argument('--slot-in', type=number(float, lo=4.26, hi=6.0), default=d.slot_in,
@@ -848,11 +855,25 @@ def main(argv: list[str] | None = None) -> int:
                             insert_timeout_s=a.insert_timeout, near_start=a.near_start,
                             bag=a.bag, bag_all=a.bag_all, live_port=a.live,
                             lockstep=a.lockstep)
+        if a.seeds is not None:
+            return _run_seeds(cfg, parse_seeds(a.seeds), a.out / (a.run_id or 'seeds'),
+                              domain_id=a.domain_id)
         mission = Mission(cfg, a.out, run_id=a.run_id, domain_id=a.domain_id)
     except (MissionError, FileExistsError) as exc:
         p.error(str(exc))
     rep = mission.run()
     return 0 if rep['success'] else 1
+
+
+def _run_seeds(cfg: MissionConfig, seeds: list[int], out: Path, *,
+               domain_id: int | None) -> int:
+    def run_one(seed: int, run_id: str) -> dict:
+        return Mission(replace(cfg, seed=seed), out, run_id=run_id, domain_id=domain_id).run()
+
+    out.mkdir(parents=True, exist_ok=True)
+    rows = run_seeds(seeds, run_one, out, log=lambda m: print(m, file=sys.stderr, flush=True))
+    print(format_seeds(rows))
+    return 0 if all(r['all'] for r in rows) else 1
 
 
 if __name__ == '__main__':
