@@ -16,6 +16,7 @@ whether the slave's verdict (seated or not) agreed with the truth's seated.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -48,16 +49,19 @@ class Trial:
     reason: str
     friction: float = float('nan')      # the simulator's contact_friction
     verdict_agrees: bool = True         # the slave's seated verdict == the truth's seated
+    end_contact_n: float = 0.0          # the truth's contact force on the card at the end (N)
 
 
 def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 45.0,
               slave_options: dict | None = None, site_bias_m: tuple[float, float] = (0.0, 0.0),
-              friction: float | None = None
+              friction: float | None = None, fail_in_contact_s: float | None = None
               ) -> tuple[Trial, SlaveStatus, list[Phase], SlaveController]:
     """One insertion from the perturbed start until the slave is done or `sim_s` passed.
     site_bias_m: (near, far) slot markers seen this much higher than they are (m), a constant
     error of the site frame as the master's stereo makes it (equal: depth; opposite: tilt).
-    friction: the simulator's contact_friction (None: SimConfig's default)."""
+    friction: the simulator's contact_friction (None: SimConfig's default). fail_in_contact_s:
+    the slave is failed (as by a timeout) once it has been this long in contact, and the
+    world runs on 2 s with its commands (what a failure leaves on the card)."""
     from rover_sim.config import NoiseConfig, SimConfig
     from rover_sim.world import World
     from rover_sim.worldgen import INCH
@@ -84,8 +88,9 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
         r_wc = np.column_stack([xc, np.cross(look, xc), look])
         var = np.array([SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2])
         k, pen, phases = 0, 0.0, []
+        contact_t, end_t = None, math.inf
         fix_every = max(1, round(0.25 / w.dt))
-        while w.time_s < sim_s:
+        while w.time_s < min(sim_s, end_t):
             w.step()
             k += 1
             rd = w.sense(1)
@@ -102,6 +107,11 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
                 pc += rng.normal(size=(4, 3)) * np.sqrt(var)
                 ctl.add_observation(w.time_s, LabelledMarkers(
                     pc, np.array([np.diag(var)] * 4), r_wc.T @ np.array([0.0, 0.0, 1.0])))
+            if fail_in_contact_s is not None and ctl.phase is Phase.FORCE_INSERT:
+                contact_t = w.time_s if contact_t is None else contact_t
+                if w.time_s - contact_t >= fail_in_contact_s:
+                    ctl.fail('timed out')
+                    end_t = w.time_s + 2.0
             cmd = ctl.step(w.time_s)
             if cmd.arm_joints is not None and k % 2 == 0:
                 w.command_arm(1, ARM_JOINTS, [0.02], [list(cmd.arm_joints)])
@@ -110,7 +120,7 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
             pen = max(pen, cs.max_penetration_m if cs else 0.0)
             if not phases or phases[-1] != cmd.status.phase:
                 phases.append(cmd.status.phase)
-            if cmd.status.done:
+            if cmd.status.done and end_t == math.inf:
                 break
         st = cmd.status
         seated = w.seated(1)
@@ -119,7 +129,8 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
         trial = Trial(slot_in, seed, ok, said, bool(seated), pen * 1e3,
                       float(ctl.peak_force_n), float(w.time_s),
                       st.reason or f'not done after {sim_s:.0f} sim s ({st.phase.name})',
-                      float(cfg.contact_friction), said == bool(seated))
+                      float(cfg.contact_friction), said == bool(seated),
+                      float(np.linalg.norm(cs.force)) if cs else 0.0)
         return trial, st, phases, ctl
 
 

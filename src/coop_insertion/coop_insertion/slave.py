@@ -33,6 +33,11 @@ knows into arm-joint and base-velocity commands through three phases:
    `abort_force_factor` x `max_force_n` in ABORT_SAMPLES consecutive readings ends it with
    failure, as does the caller's timeout.
 
+A failure (a timeout, a cancel, an error) once the card is descending or in contact backs off:
+the card's target rises `backoff_m` along the vertical and stays there, so that no force is
+left on the card and nothing pushes on (the master silent mid-insertion: vision holds the
+descent, the timeout ends it, the card lifts).
+
 Frames: base = `<slave>/base_link` (c.g., x forward, z up); odom = `<slave>/odom` (wheel
 odometry, planar); the F/T sensor frame is the base frame's axes at r_2 (rover_sim's
 `<slave>/ft_sensor_link`). The site frame is task.py's; contact.py's planar frame is its
@@ -215,7 +220,8 @@ class SlaveController:
                  servo: VisualServo | None = None, contact_options: dict | None = None,
                  step_options: dict | None = None, site_in_odom=None,
                  approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0,
-                 seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE) -> None:
+                 seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE,
+                 backoff_m: float = 0.02) -> None:
         if not isinstance(model, TaskModel):
             raise InsertionError('model must be a TaskModel')
         self.model = model
@@ -226,7 +232,8 @@ class SlaveController:
                         angle_tolerance_rad), ('descent_speed_m_s', descent_speed_m_s),
                         ('contact_threshold_n', contact_threshold_n),
                         ('max_force_n', max_force_n), ('force_period_s', force_period_s),
-                        ('carry_reach_m', carry_reach_m), ('ready_s', ready_s)):
+                        ('carry_reach_m', carry_reach_m), ('ready_s', ready_s),
+                        ('backoff_m', backoff_m)):
             if not (math.isfinite(v) and v > 0):
                 raise InsertionError(f'{name} must be finite and > 0, got {v}')
         if not abort_force_factor >= 1:
@@ -242,6 +249,7 @@ class SlaveController:
         self.force_period_s = float(force_period_s)
         self.carry = joint2_in_base(self.r2) + np.array([carry_reach_m, 0.0, carry_height_m])
         self.ready_s = float(ready_s)
+        self.backoff_m = float(backoff_m)
         self.site_in_odom = None if site_in_odom is None else np.asarray(site_in_odom, float)
         if self.site_in_odom is not None and (self.site_in_odom.shape != (4, 4) or not
                                               np.all(np.isfinite(self.site_in_odom))):
@@ -286,6 +294,7 @@ class SlaveController:
         self.peak_force_n = 0.0
         self.last_seat: SeatCheck | None = None   # the last force step's seat check (SEATED)
         self._seat_passes = 0                     # consecutive force periods it passed
+        self._hold_joints: tuple | None = None    # after a failure in contact: backed off
 
     # -- inputs -------------------------------------------------------------------------------
     def add_state(self, t: float, q, odom_xy_yaw, wrench) -> None:
@@ -327,7 +336,7 @@ class SlaveController:
         if s is None:
             raise InsertionError('step before the first state')
         if self._done:
-            return self._command(None, 0.0, 0.0)
+            return self._command(self._hold_joints, 0.0, 0.0)
         if self._target is None:
             self._target = _Target(self.carry.copy(), 0.0)
         if self.phase is Phase.READY:
@@ -339,10 +348,23 @@ class SlaveController:
         return self._force(t, s)
 
     def fail(self, reason: str) -> None:
-        """End the insertion as a failure (a timeout, a cancel) and hold."""
-        if not self._done:
-            self._done, self._success, self._reason = True, False, reason
-            self.phase = Phase.DONE
+        """End the insertion as a failure (a timeout, a cancel): hold, or once the card
+        descends or touches, back off (the card's target backoff_m higher: the joints in
+        `hold_joints`)."""
+        if self._done:
+            return
+        if (self._descending or self.phase is Phase.FORCE_INSERT) and \
+                self._target is not None:
+            self._hold_joints = self._move_target(np.array([0.0, 0.0, self.backoff_m]), 0.0)
+            reason += f' (backed off {1e3 * self.backoff_m:.0f} mm)'
+        self._done, self._success, self._reason = True, False, reason
+        self.phase = Phase.DONE
+
+    @property
+    def hold_joints(self) -> tuple | None:
+        """The arm's joints once ended: backed off after a failure in contact, else None
+        (the arm stays where it is)."""
+        return self._hold_joints
 
     def _finish(self, success: bool, reason: str) -> None:
         self._done, self._success, self._reason = True, success, reason

@@ -183,6 +183,15 @@ class SlaveNode(Node):
         except InsertionError as exc:
             self.bad.reject('markers', str(exc))
 
+    def _publish_arm(self, joints) -> None:
+        if joints is None:
+            return
+        tr = JointTrajectory(joint_names=list(ARM_JOINTS))
+        pt = JointTrajectoryPoint(positions=[float(v) for v in joints])
+        pt.time_from_start.nanosec = int(2e9 / self.p['command_rate_hz'])
+        tr.points = [pt]
+        self.pub_arm.publish(tr)
+
     def _on_joints(self, msg: JointState) -> None:
         if self.ctl is None or self.odom is None or self.wrench is None:
             return
@@ -211,12 +220,7 @@ class SlaveNode(Node):
         # command's is a new clock, not a command to skip)
         if t < self._last_cmd or t - self._last_cmd >= 1.0 / self.p['command_rate_hz'] - 1e-6:
             self._last_cmd = t
-            if cmd.arm_joints is not None:
-                tr = JointTrajectory(joint_names=list(ARM_JOINTS))
-                pt = JointTrajectoryPoint(positions=[float(v) for v in cmd.arm_joints])
-                pt.time_from_start.nanosec = int(2e9 / self.p['command_rate_hz'])
-                tr.points = [pt]
-                self.pub_arm.publish(tr)
+            self._publish_arm(cmd.arm_joints)
             tw = Twist()
             tw.linear.x, tw.angular.z = cmd.base_linear_x, cmd.base_angular_z
             self.pub_cmd.publish(tw)
@@ -317,8 +321,12 @@ class SlaveNode(Node):
             st = self._status
             if handle.is_cancel_requested:
                 self.ctl.fail('canceled')
+                self._publish_arm(self.ctl.hold_joints)
+                self.pub_cmd.publish(Twist())
                 handle.canceled()
-                return self._result(False, 'canceled', t0)
+                backed = self.ctl.hold_joints is not None
+                return self._result(False, 'canceled' + (' (backed off)' if backed else ''),
+                                    t0)
             if st is None:
                 continue
             if time.monotonic() - last_fb > 0.2:

@@ -38,6 +38,22 @@ def test_without_vision_the_slave_stops_short_and_never_descends():
     assert pen == 0.0
 
 
+def test_a_failure_in_contact_backs_off_and_leaves_no_force_on_the_card():
+    """A timeout (the master silent, the caller's limit) half a second into contact: the
+    card's target rises and the truth's contact force on the card is gone 2 s later."""
+    trial, st, phases, ctl = run_trial(5.0, 1, fail_in_contact_s=0.5)
+    assert Phase.FORCE_INSERT in phases and st.done and not st.success
+    assert 'backed off 20 mm' in st.reason
+    assert ctl.hold_joints is not None
+    assert trial.end_contact_n < 0.5, trial.end_contact_n
+    # a failure before the card comes down leaves the arm where it is
+    ctl = SlaveController(TaskModel(), [0.01, 0.3, 0.1])
+    ctl.add_state(0.0, [0.0, 0.6, -1.0, 0.4], [0.0] * 3, [0.0] * 6)
+    ctl.step(0.0)
+    ctl.fail('canceled')
+    assert ctl.hold_joints is None and ctl.step(0.01).arm_joints is None
+
+
 def test_bad_inputs_are_refused():
     with pytest.raises(InsertionError):
         SlaveController(TaskModel(), [0.0, math.nan, 0.1])
