@@ -85,8 +85,13 @@ PARAMS = {
                              'at the task view, before the slave brings the card (the pair '
                              'that locates the site again and that remember_slot labels '
                              'against)', lo=0.25, hi=60.0),
-    'search_look_s': ParamSpec(2.0, 'As slot_wait_s, at each view over the region while the '
-                               'master looks for the slot', lo=0.25, hi=60.0),
+    'search_look_s': ParamSpec(2.0, 'As slot_wait_s, at each view over the region (and each '
+                               'mast pan there) while the master looks for the slot',
+                               lo=0.25, hi=60.0),
+    'search_pans_rad': ParamSpec([0.0, -0.3, 0.3, -0.6, 0.6], 'The mast pans the master looks '
+                                 'from in turn at each view over the region (rad, 0 the pose '
+                                 'the view planner chose): a slot beside the view is turned '
+                                 'to'),
     'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
                                 '(0: every frame)', lo=0.0, hi=100.0),
     'site_position': ParamSpec([3.0572, 0.0, 0.4], "The centre of the region the slot's "
@@ -152,6 +157,10 @@ PLACEMENTS = (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM,
 REPLACED = (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM)
 
 
+#: the mast stands at a commanded pan within this (rad)
+MAST_TOLERANCE_RAD = 0.02
+
+
 def _check(p: dict) -> str | None:
     for name in ('site_position', 'site_normal', 'view_target_offset_m'):
         v = p[name]
@@ -159,6 +168,9 @@ def _check(p: dict) -> str | None:
             return f'{name} must be three finite numbers'
     if np.linalg.norm(p['site_normal']) < 1e-6:
         return 'site_normal must be non-zero'
+    pans = p['search_pans_rad']
+    if not pans or not all(math.isfinite(x) and abs(x) <= 3.0 for x in pans):
+        return 'search_pans_rad must be one or more pans within +-3 rad'
     return None
 
 
@@ -347,6 +359,9 @@ class MasterNode(Node):
             if c.arrived:
                 self._drive = None
                 self._stood_t = _stamp(msg)
+                self.get_logger().info(f'camera placed: base at ({self.odom[0]:.2f}, '
+                                       f'{self.odom[1]:.2f}) heading {self.odom[2]:.2f} by '
+                                       'odometry')
                 self._wakeup()
 
     def _wakeup(self) -> None:
@@ -568,7 +583,7 @@ class MasterNode(Node):
                                        f': {failed}')
                 continue
             self.search_views += 1
-            if await self._see_slot(handle, self.p['search_look_s']):
+            if await self._look_around(handle):
                 self.site = self._site_pose()
                 self.get_logger().info(
                     f'slot located from view {self.search_views} at '
@@ -615,6 +630,35 @@ class MasterNode(Node):
             self._slot = None
             self.pub_cmd.publish(Twist())
         return None
+
+    async def _look_around(self, handle) -> bool:
+        """From where the camera stands, look for the slot pair at each of search_pans_rad in
+        turn (the mast at the tilt it stands at; frames counted once the mast is there);
+        True once seen (self._slot, self.site_seen)."""
+        tilt = self.mast[1]
+        for pan in self.p['search_pans_rad']:
+            if abs(pan - self.mast[0]) > MAST_TOLERANCE_RAD:
+                cmd = JointTrajectory(joint_names=list(MAST_JOINTS))
+                cmd.points = [JointTrajectoryPoint(positions=[float(pan), float(tilt)])]
+                cmd.points[0].time_from_start.sec = 1
+                self.pub_mast.publish(cmd)
+                started = self._now_s()
+                while abs(self.mast[0] - pan) > MAST_TOLERANCE_RAD:
+                    await self._sleep_until_wake()
+                    if handle.is_cancel_requested:
+                        return False
+                    if self._now_s() - started > 10.0:
+                        self.get_logger().warn(f'the mast did not reach pan {pan:.2f}')
+                        break
+                # a frame is taken with the mast at this pan from its stamp on
+                self._slot = None
+                self.site_seen.clear()
+                self._stood_t = self._now_s()
+            if await self._see_slot(handle, self.p['search_look_s']):
+                return True
+            if handle.is_cancel_requested:
+                return False
+        return False
 
     def marker_range_m(self) -> float:
         """The farthest range at which the slot's markers span marker_min_diameter_px: the
