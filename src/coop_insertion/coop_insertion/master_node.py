@@ -6,8 +6,9 @@ Runs in the team's namespace (like the mapper) for the rover named by `rover`:
   frame, or at most `vision_rate_hz`), triangulates them and publishes the four labelled
   centres with their covariances and the vertical from the mast encoders on `<rover>/markers`;
 - action `insert` (coop_msgs/action/Insert): PLACE_CAMERA: the master is told only a rough
-  region the slot is in (`site_position`, `site_search_m`); it places its camera for views over
-  the region (coop_insertion.locate) until it sees the slot's markers, takes the site's pose
+  region the slot is in (`site_position`, `site_search_m`); it places its camera at the best
+  views over the region (coop_insertion.locate; the same search for every placement), panning
+  its mast at each, until it sees the slot's markers, takes the site's pose
   from them, then places the camera for the task at the site so located (the team's
   `viewplan/task_view`: its best, or one drawn from the same feasible poses for the random
   placement; or the goal's own pose; the rover drives there on its odometry and tilts its
@@ -561,9 +562,10 @@ class MasterNode(Node):
 
     async def _locate(self, handle, goal: Insert.Goal) -> str | None:
         """Look for the slot over the rough region (site_position, site_search_m): the camera
-        placed for each of the region's search points in turn (as the goal's placement places
-        it: the best pose, or a random draw) until a slot pair is seen standing; the site
-        located from it (self.site). None once located, else why not."""
+        placed at the best view of each of the region's search points in turn (whatever the
+        goal's placement: the placements differ in the task's view, not in the search), the
+        mast panned there, until a slot pair is seen standing; the site located from it
+        (self.site). None once located, else why not."""
         centre = np.asarray(self.p['site_position'], float)
         normal = np.asarray(self.p['site_normal'], float)
         normal = normal / np.linalg.norm(normal)
@@ -573,7 +575,7 @@ class MasterNode(Node):
         last = ''
         for target in points[:self.p['max_search_views']]:
             where = await self._choose_pose(goal, site=target, normal=normal,
-                                            sigma=0.5 * self.p['search_spacing_m'])
+                                            sigma=0.5 * self.p['search_spacing_m'], best=True)
             failed = await self._place(handle, where)
             if handle.is_cancel_requested:
                 return 'canceled while looking for the slot'
@@ -671,7 +673,8 @@ class MasterNode(Node):
 
     async def _choose_pose(self, goal: Insert.Goal, *, site: np.ndarray | None = None,
                            normal: np.ndarray | None = None, sigma: float | None = None,
-                           card: np.ndarray | None = None, closer: int = 0):
+                           card: np.ndarray | None = None, closer: int = 0,
+                           best: bool = False):
         """The camera pose (xy, yaw, pitch, how) or the reason there is none. Given: the goal's
         camera_pose. Optimal: the view planner's best for the primary target (in front of
         `site`, by default the located one; re-placing, half-way to the card's last fix) with
@@ -680,7 +683,8 @@ class MasterNode(Node):
         shrink that range by replace_range_factor each (the markers were not resolved from
         there); `sigma` the site's position uncertainty (by default target_sigma_m). Random: a
         pose drawn uniformly from the same request's feasible ones (the view planner draws
-        it)."""
+        it). `best`: the best pose whatever the placement (the search for the slot is the same
+        for every placement: they differ in the task's view)."""
         if goal.placement == Insert.Goal.PLACEMENT_GIVEN:
             pose = goal.camera_pose
             if pose.header.frame_id not in ('', 'map'):
@@ -706,7 +710,7 @@ class MasterNode(Node):
         if far <= 0:
             return (f'the slot markers are below {self.p["marker_min_diameter_px"]:g} px '
                     'from every camera pose')
-        optimal = goal.placement == Insert.Goal.PLACEMENT_OPTIMAL
+        optimal = best or goal.placement == Insert.Goal.PLACEMENT_OPTIMAL
         req = TaskView.Request(robot=self.p['rover'], tolerance=0.1, far_m=far,
                                max_incidence_deg=float(self.p['marker_max_incidence_deg']),
                                choose=(TaskView.Request.CHOOSE_BEST if optimal
