@@ -86,13 +86,16 @@ PARAMS = {
                              'at the task view, before the slave brings the card (the pair '
                              'that locates the site again and that remember_slot labels '
                              'against)', lo=0.25, hi=60.0),
-    'search_look_s': ParamSpec(2.0, 'As slot_wait_s, at each view over the region (and each '
-                               'mast pan there) while the master looks for the slot',
+    'search_look_s': ParamSpec(1.0, 'As slot_wait_s, at each view over the region (and each '
+                               'mast pan there) while the master looks for the slot (the '
+                               'frames of a camera standing still differ by noise alone)',
                                lo=0.25, hi=60.0),
-    'search_pans_rad': ParamSpec([0.0, -0.3, 0.3, -0.6, 0.6], 'The mast pans the master looks '
-                                 'from in turn at each view over the region (rad, 0 the pose '
-                                 'the view planner chose): a slot beside the view is turned '
-                                 'to'),
+    'search_pans_rad': ParamSpec([0.0, -0.3, 0.3, -0.6, 0.6, -0.45, 0.45, -0.15, 0.15],
+                                 'The mast pans the master looks from in turn at each view over '
+                                 'the region (rad, 0 the pose the view planner chose): a slot '
+                                 'beside the view is turned to; the steps of 0.3 first, then '
+                                 'those between (a slot marker imaged a sliver at one pan is '
+                                 'whole at the next)'),
     'vision_rate_hz': ParamSpec(0.0, 'Process at most this many stereo frames per second '
                                 '(0: every frame)', lo=0.0, hi=100.0),
     'site_position': ParamSpec([3.0572, 0.0, 0.4], "The centre of the region the slot's "
