@@ -433,9 +433,15 @@ class MasterNode(Node):
             failed = await self._locate(handle, goal)
             if failed:
                 return self._end(handle, failed)
-        failed = await self._place(handle, await self._choose_pose(goal))
-        if failed:
-            return self._end(handle, failed)
+        where = await self._choose_pose(goal)
+        if isinstance(where, str) and self.site is not None:
+            # the located site carries the odometry's drift: where the planner finds no view of
+            # it, the camera stays where it saw the slot (and sees it)
+            self.get_logger().info(f'{where}: the camera stays where it found the slot')
+        else:
+            failed = await self._place(handle, where)
+            if failed:
+                return self._end(handle, failed)
         # the site's markers while the view is clear (the card, once at the mouth, may hide
         # one): the site again, from the task's view
         if await self._see_slot(handle, self.p['slot_wait_s']):

@@ -25,6 +25,7 @@ drawn per attempt (rig.rough_site) and finds the slot in it by its markers.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import tempfile
 import time
@@ -380,6 +381,9 @@ def main(argv: list[str] | None = None) -> int:
         rows = parse_rows(args.rows, attempts=args.attempts, placements=placements)
     except ValueError as exc:
         p.error(f'--rows: {exc}')
+    # SIGTERM (`timeout`, a supervisor) as Ctrl-C: the graph's nodes run in their own
+    # sessions and would outlive the run
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     res = run(attempts=args.attempts, rows=rows, placements=placements, seed=args.seed,
               occlusion_density=args.occlusion_density, timeout_s=args.timeout,
               max_force_n=args.max_force, site_map=args.site_map, checkpoint=args.json,
