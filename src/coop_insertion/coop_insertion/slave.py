@@ -168,33 +168,44 @@ class SeatVerdict(enum.StrEnum):
     """What ends the force-feedback insertion with "seated" (card_seated)."""
 
     #: the fit's SEATED, the floor's summed push at seat_force_n, the estimate deep enough:
-    #: it inserts, and it can be fooled by a card on one corner whose other corner a jaw holds
-    #: up (docs/results/insertion.md)
+    #: it inserts, and it is fooled by a card landing on one corner (the other unloaded) and by
+    #: one whose other corner a jaw holds up (docs/results/insertion.md)
     FLOOR_FORCE = 'floor_force'
     #: that and the seat check (each corner loaded, every one-corner rival a margin worse) in
     #: SEAT_CONFIRMATIONS force periods in a row, the planner probing until it passes: no false
     #: seat measured, and most cards the truth has seated never pass it in time
     BOTH_CORNERS = 'both_corners'
+    #: the floor's push with each corner carrying the identifier's seat_corner_force_n in the
+    #: seated fit, in SEAT_CONFIRMATIONS force periods in a row (no rival margin): a card
+    #: landing on one corner is not passed on its first period's sum, the planner probing (the
+    #: lighter corner turned down) until both carry; a jaw's friction holding the other corner
+    #: up still reads as its load (the default: it seats, and refuses what the table's runs
+    #: were fooled by)
+    CORNER_LOADS = 'corner_loads'
 
 
 def card_seated(state: ContactState, depth_m: float, tilt_rad: float, *, floor_force_n: float,
                 seat_force_n: float, slot_depth_m: float, card_width_m: float,
                 seat: SeatCheck | None,
-                verdict: SeatVerdict = SeatVerdict.BOTH_CORNERS) -> bool:
+                verdict: SeatVerdict = SeatVerdict.BOTH_CORNERS,
+                corner_force_n: float = 1.0) -> bool:
     """Whether the force-feedback insertion is done: the wrench says both of the card's corners
     are on the floor (SEATED), the floor pushes back by at least seat_force_n, and, by the
     BOTH_CORNERS verdict, the seat check passed (ContactIdentifier.seat_check: each corner
-    carries load, every one-corner rival fits the wrench a margin worse; None, not checked,
-    is not seated). The floor's sum
-    alone passed a card on one corner whose other corner a jaw's friction held up: through
-    the graph 3.4 N, 29.9 mm deep and 0.1 deg from flat by the estimate, and not seated by the
-    truth. The pose estimate only has to agree that the higher corner is within 4 mm of the
-    floor (half the card's width x sin(tilt) above the edge's centre); alone it decides
+    carries load, every one-corner rival fits the wrench a margin worse; None, not checked, is
+    not seated), by CORNER_LOADS each corner carrying `corner_force_n` in the seated fit. The
+    floor's sum alone passed a card on one corner whose other corner a jaw's friction held up:
+    through the graph 3.4 N, 29.9 mm deep and 0.1 deg from flat by the estimate, and not seated
+    by the truth. The pose estimate only has to agree that the higher corner is within 4 mm of
+    the floor (half the card's width x sin(tilt) above the edge's centre); alone it decides
     nothing: it put a free card 30.3 mm in, a wedged one 30.8 mm, and through the graph a card
     on one corner, 0.3 deg from flat, where the truth had it tilted by more than the 1.06 deg
     its 2 mm allow."""
     depth_high = depth_m - card_width_m / 2 * math.sin(abs(tilt_rad))
-    checked = verdict is SeatVerdict.FLOOR_FORCE or (seat is not None and seat.passed)
+    checked = (verdict is SeatVerdict.FLOOR_FORCE or
+               (verdict is SeatVerdict.CORNER_LOADS and seat is not None and
+                min(seat.corner_forces_n) >= corner_force_n) or
+               (verdict is SeatVerdict.BOTH_CORNERS and seat is not None and seat.passed))
     return (state is ContactState.SEATED and floor_force_n >= seat_force_n and checked and
             depth_high >= slot_depth_m - 0.004)
 
@@ -220,7 +231,7 @@ class SlaveController:
                  servo: VisualServo | None = None, contact_options: dict | None = None,
                  step_options: dict | None = None, site_in_odom=None,
                  approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0,
-                 seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE,
+                 seat_verdict: SeatVerdict | str = SeatVerdict.CORNER_LOADS,
                  backoff_m: float = 0.02) -> None:
         if not isinstance(model, TaskModel):
             raise InsertionError('model must be a TaskModel')
@@ -485,6 +496,12 @@ class SlaveController:
         m = self.model
         return goal @ invert(m.card_goal(m.standoff_m) @ m.card_marker_frame)
 
+    def _seat_ok(self, seat: SeatCheck) -> bool:
+        """One force period's seat check as the verdict reads it."""
+        if self.seat_verdict is SeatVerdict.CORNER_LOADS:
+            return min(seat.corner_forces_n) >= self.identifier.seat_corner_force_n
+        return seat.passed
+
     def _force(self, t: float, s: _State) -> SlaveCommand:
         tared = self._tared(s.wrench)
         force = float(np.linalg.norm(tared[:3]))
@@ -524,17 +541,20 @@ class SlaveController:
         if ident.state is ContactState.SEATED:
             ident = dataclasses.replace(ident, seat=self.identifier.seat_check(w_mean, pose))
         self.last_seat = ident.seat
-        self._seat_passes = self._seat_passes + 1 if ident.seat and ident.seat.passed else 0
+        self._seat_passes = self._seat_passes + 1 if ident.seat and self._seat_ok(ident.seat) \
+            else 0
         self._card_in_site = (pose.x, pose.y, pose.theta)
         self._contact_state = ident.state.value
         # seated: both corners on the floor by the wrench, pressed to seat_force_n
         depth = -pose.y
         both = self.seat_verdict is SeatVerdict.BOTH_CORNERS
+        confirmed = self.seat_verdict is SeatVerdict.FLOOR_FORCE or \
+            self._seat_passes >= SEAT_CONFIRMATIONS
         if card_seated(ident.state, depth, pose.theta, floor_force_n=ident.floor_force_n,
                        seat_force_n=self.seat_force_n, slot_depth_m=m.slot_depth_m,
                        card_width_m=m.card_width_m, seat=ident.seat,
-                       verdict=self.seat_verdict) and \
-                (not both or self._seat_passes >= SEAT_CONFIRMATIONS):
+                       verdict=self.seat_verdict,
+                       corner_force_n=self.identifier.seat_corner_force_n) and confirmed:
             c = ident.seat
             check = (f'{c.corner_forces_n[0]:.1f} + {c.corner_forces_n[1]:.1f} N, '
                      f'{c.margin:.0f} chi^2 over {c.rival}' if c is not None else '')

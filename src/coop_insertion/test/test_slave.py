@@ -21,7 +21,7 @@ def _run(slot_in: float, seed: int, **kw):
 
 
 def test_an_easy_insertion_seats_the_card_through_every_phase():
-    """The slave's default verdict (SeatVerdict.FLOOR_FORCE) on the simulator's world core."""
+    """The slave's default verdict (SeatVerdict.CORNER_LOADS) on the simulator's world core."""
     st, seated, pen, phases, ctl = _run(5.0, 1)
     assert st.done and st.success, st.reason
     assert seated and not st.awaiting_fix
@@ -88,6 +88,17 @@ def test_seated_is_both_corners_on_the_floor_by_the_wrench():
     for seat in (failed, None):
         assert not card_seated(seated, 0.0299, math.radians(0.1), floor_force_n=4.2,
                                **{**geo, 'seat': seat})
+    # the corner-loads verdict reads the corners' loads alone: both >= 1 N passes without the
+    # rival margin, a corner carrying 0.1 N (a card landing on one corner) does not
+    from coop_insertion.slave import SeatVerdict
+    loads = {**geo, 'verdict': SeatVerdict.CORNER_LOADS}
+    assert card_seated(seated, 0.0299, 0.0, floor_force_n=4.2, seat=failed, **loads)
+    one = SeatCheck((2.5, 0.1), 0.0, 'corner_and_side:-1', 0.0, False)
+    for seat in (one, None):
+        assert not card_seated(seated, 0.0299, 0.0, floor_force_n=4.2, seat=seat, **loads)
+    # the floor's push alone passes the one-corner landing: the default's known flaw
+    assert card_seated(seated, 0.0299, 0.0, floor_force_n=4.2, seat=one,
+                       **{**geo, 'verdict': SeatVerdict.FLOOR_FORCE})
 
 
 def test_a_card_on_one_corner_held_up_by_a_jaw_is_not_called_seated():
