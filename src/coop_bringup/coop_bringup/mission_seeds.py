@@ -5,8 +5,10 @@ each phase judged as the report does, and one table of them.
     python -m coop_bringup.mission --seeds 1-20 --out out --run-id seeds
 
 runs `OUT/<run-id>/seed_<k>/` for each seed in turn (a seed whose report is there already is
-read back, not run again: an interrupted run resumes), then prints the table and writes it to
-`OUT/<run-id>/seeds.json`. `judge` and `format_table` need no ROS.
+read back, not run again: a stopped run resumes; a seed stopped by Ctrl-C or SIGTERM stops the
+batch, and is run again on the next, its directory kept as `seed_<k>.interrupted-<n>`), then
+prints the table and writes it to `OUT/<run-id>/seeds.json`. `judge` and `format_table` need
+no ROS.
 """
 from __future__ import annotations
 
@@ -108,19 +110,38 @@ def run_seeds(seeds: list[int], run_one: Callable[[int, str], dict], out: Path, 
     for seed in seeds:
         run_id = f'seed_{seed}'
         done = out / run_id / 'report.json'
+        rep = None
         if done.exists():
             try:
                 rep = json.loads(done.read_text())
-                log(f'seed {seed}: its report is there already ({done})')
             except (OSError, ValueError):
                 raise MissionError(f'{done} is unreadable: remove {out / run_id} to run '
                                    f'seed {seed} again') from None
-        else:
-            if (out / run_id).exists():
-                raise MissionError(f'{out / run_id} holds an unfinished run (no report): '
-                                   f'remove it to run seed {seed} again')
+            if rep.get('interrupted'):
+                kept = _set_aside(out / run_id)
+                log(f'seed {seed} was interrupted: run again ({kept.name} kept)')
+                rep = None
+            else:
+                log(f'seed {seed}: its report is there already ({done})')
+        elif (out / run_id).exists():
+            raise MissionError(f'{out / run_id} holds an unfinished run (no report): '
+                               f'remove it to run seed {seed} again')
+        if rep is None:
             rep = run_one(seed, run_id)
+            if rep.get('interrupted'):
+                write_json(out / 'seeds.json', {'seeds': seeds, 'rows': rows,
+                                                'complete': False})
+                raise KeyboardInterrupt
         rows.append(judge(rep))
         write_json(out / 'seeds.json', {'seeds': seeds, 'rows': rows,
                                         'complete': len(rows) == len(seeds)})
     return rows
+
+
+def _set_aside(path: Path) -> Path:
+    n = 1
+    while path.with_name(f'{path.name}.interrupted-{n}').exists():
+        n += 1
+    kept = path.with_name(f'{path.name}.interrupted-{n}')
+    path.rename(kept)
+    return kept

@@ -62,3 +62,24 @@ def test_a_stopped_run_resumes_from_the_reports_it_left(tmp_path):
     (tmp_path / 'seed_4').mkdir()                    # a run killed before its report
     with pytest.raises(MissionError, match='unfinished'):
         run_seeds([4], run_one, tmp_path, log=lambda m: None)
+
+
+def test_an_interrupted_seed_stops_the_batch_and_runs_again_on_resume(tmp_path):
+    ran = []
+
+    def run_one(seed, run_id, interrupt=()):
+        ran.append(seed)
+        (tmp_path / run_id).mkdir()
+        rep = _report(seed)
+        rep['interrupted'] = seed in interrupt
+        (tmp_path / run_id / 'report.json').write_text(json.dumps(rep))
+        return rep
+
+    with pytest.raises(KeyboardInterrupt):
+        run_seeds([1, 2, 3], lambda s, r: run_one(s, r, interrupt=(2,)), tmp_path,
+                  log=lambda m: None)
+    assert ran == [1, 2]
+    assert json.loads((tmp_path / 'seeds.json').read_text())['complete'] is False
+    rows = run_seeds([1, 2, 3], run_one, tmp_path, log=lambda m: None)
+    assert ran == [1, 2, 2, 3] and all(r['all'] for r in rows)
+    assert (tmp_path / 'seed_2.interrupted-1' / 'report.json').exists()

@@ -7,12 +7,15 @@ Runs in the team's namespace (like the mapper) for the rover named by `rover`:
   centres with their covariances and the vertical from the mast encoders on `<rover>/markers`;
 - action `insert` (coop_msgs/action/Insert): PLACE_CAMERA: the master is told only a rough
   region the slot is in (`site_position`, `site_search_m`); it places its camera at the best
-  views over the region (coop_insertion.locate; the same search for every placement), panning
-  its mast at each, until it sees the slot's markers, takes the site's pose
+  views over the region (coop_insertion.locate; the same search for the optimal and random
+  placements; the given placement looks from its own pose alone), panning its mast at each,
+  until it sees the slot's markers (averaged over half a second of frames), takes the site's
+  pose
   from them, then places the camera for the task at the site so located (the team's
   `viewplan/task_view`: its best, or one drawn from the same feasible poses for the random
   placement; or the goal's own pose; the rover drives there on its odometry and tilts its
-  mast); then it hands the task with the located site to the slave's `<slave>/insert_card`
+  mast; where the planner has no view of the located site, the camera stays where it saw the
+  slot); then it hands the task with the located site to the slave's `<slave>/insert_card`
   action, relays its feedback and result, and places its camera again when the fixes stop
   (optimal and random).
 """
@@ -108,8 +111,9 @@ PARAMS = {
     'search_spacing_m': ParamSpec(0.3, 'The spacing (m) of the targets the master places its '
                                   'camera for while it looks for the slot over the region',
                                   lo=0.05, hi=2.0),
-    'max_search_views': ParamSpec(9, 'Camera poses to look for the slot from before the goal '
-                                  'aborts (the region is covered by at most '
+    'max_search_views': ParamSpec(9, 'Search points to try (each a view planned and looked '
+                                  'from at every pan; a point with no view costs nothing) '
+                                  'before the goal aborts (the region has '
                                   '(1 + ceil(2 site_search_m / search_spacing_m))^2)',
                                   lo=1, hi=100),
     'target_sigma_m': ParamSpec(0.01, 'Position uncertainty of the located site in the map '
@@ -161,8 +165,13 @@ PLACEMENTS = (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM,
 REPLACED = (Insert.Goal.PLACEMENT_OPTIMAL, Insert.Goal.PLACEMENT_RANDOM)
 
 
-#: the mast stands at a commanded pan within this (rad)
+#: the mast stands at a commanded pan and tilt within this (rad), waited for at most
+#: MAST_WAIT_S of the clock
 MAST_TOLERANCE_RAD = 0.02
+MAST_WAIT_S = 5.0
+#: once the slot pair is first seen standing, the site is averaged over this much more of the
+#: frames' time (s)
+SITE_AVERAGE_S = 0.5
 
 
 def _check(p: dict) -> str | None:
@@ -170,8 +179,8 @@ def _check(p: dict) -> str | None:
         v = p[name]
         if len(v) != 3 or not all(math.isfinite(x) for x in v):
             return f'{name} must be three finite numbers'
-    if np.linalg.norm(p['site_normal']) < 1e-6:
-        return 'site_normal must be non-zero'
+    if np.linalg.norm(p['site_normal'][:2]) < 1e-6:
+        return 'site_normal must not be vertical (the marked faces stand)'
     pans = p['search_pans_rad']
     if not pans or not all(math.isfinite(x) and abs(x) <= 3.0 for x in pans):
         return 'search_pans_rad must be one or more pans within +-3 rad'
@@ -194,6 +203,9 @@ class MasterNode(Node):
         self.info: dict[str, CameraInfo] = {}
         self.frames: dict[int, dict[str, Image]] = {}
         self.mast = (0.0, 0.0)
+        self._mast_t = -math.inf           # stamp of the joint state self.mast is from
+        self._arrived_t = -math.inf        # odometry stamp of the last arrival
+        self._tilt = 0.0                   # the tilt the last placement commanded
         self.odom: tuple[float, float, float] | None = None
         self._last_vision = -math.inf
         self._image_t = -math.inf          # stamp of the last stereo pair (s)
@@ -256,6 +268,7 @@ class MasterNode(Node):
             pan, tilt = (float(msg.position[idx[n]]) for n in MAST_JOINTS)
             if math.isfinite(pan) and math.isfinite(tilt):
                 self.mast = (pan, tilt)
+                self._mast_t = _stamp(msg)
 
     def _on_image(self, side: str, msg: Image) -> None:
         st = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
@@ -362,7 +375,7 @@ class MasterNode(Node):
             self.pub_cmd.publish(t)
             if c.arrived:
                 self._drive = None
-                self._stood_t = _stamp(msg)
+                self._arrived_t = _stamp(msg)
                 self.get_logger().info(f'camera placed: base at ({self.odom[0]:.2f}, '
                                        f'{self.odom[1]:.2f}) heading {self.odom[2]:.2f} by '
                                        'odometry')
@@ -406,7 +419,8 @@ class MasterNode(Node):
             self.get_logger().error(f'insert failed: {exc!r}')
             handle.abort()
             res = Insert.Result(success=False, reason=f'master error: {exc}',
-                                ended=stamp(self._now_s()))
+                                ended=stamp(self._now_s()), replacements=self.replacements)
+            self._report_site(res)
         finally:
             self._busy = False
             self._drive = None
@@ -542,6 +556,13 @@ class MasterNode(Node):
             await self._sleep_until_wake()
             if handle.is_cancel_requested:
                 return False
+        # a little more of the frames for the site's mean
+        first, started = self._image_t, self._now_s()
+        while self._image_t < first + SITE_AVERAGE_S and \
+                self._now_s() - started < 4 * SITE_AVERAGE_S:
+            await self._sleep_until_wake()
+            if handle.is_cancel_requested:
+                return False
         return True
 
     def _end(self, handle, reason: str) -> Insert.Result:
@@ -622,10 +643,8 @@ class MasterNode(Node):
         self.get_logger().info(f'placing the camera ({how}): base at ({mount.base_xy[0]:.2f}, '
                                f'{mount.base_xy[1]:.2f}) heading {mount.base_yaw:.2f}, '
                                f'tilt {mount.tilt:.2f}')
-        tilt = JointTrajectory(joint_names=list(MAST_JOINTS))
-        tilt.points = [JointTrajectoryPoint(positions=[0.0, mount.tilt])]
-        tilt.points[0].time_from_start.sec = 1
-        self.pub_mast.publish(tilt)
+        self._tilt = mount.tilt
+        self._command_mast(0.0, mount.tilt)
         self._drive = GoToPose(mount.base_xy, mount.base_yaw,
                                max_speed_m_s=self.p['max_speed_m_s'])
         started = self._now_s()
@@ -640,31 +659,46 @@ class MasterNode(Node):
             self._drive = None
             self._slot = None
             self.pub_cmd.publish(Twist())
+        if not await self._mast_at(handle, 0.0, mount.tilt):
+            return 'canceled while placing the camera'
         return None
+
+    def _command_mast(self, pan: float, tilt: float) -> None:
+        cmd = JointTrajectory(joint_names=list(MAST_JOINTS))
+        cmd.points = [JointTrajectoryPoint(positions=[float(pan), float(tilt)])]
+        cmd.points[0].time_from_start.sec = 1
+        self.pub_mast.publish(cmd)
+
+    async def _mast_at(self, handle, pan: float, tilt: float) -> bool:
+        """Wait until the mast's encoders read (pan, tilt) within MAST_TOLERANCE_RAD (or
+        MAST_WAIT_S of the clock passed: a warning), then count frames as standing from that
+        joint state's stamp on (the slot pair and the site seen so far dropped); False on a
+        cancel."""
+        self._stood_t = math.inf
+        self._slot = None
+        self.site_seen.clear()
+        started = self._now_s()
+        while max(abs(self.mast[0] - pan), abs(self.mast[1] - tilt)) > MAST_TOLERANCE_RAD:
+            await self._sleep_until_wake()
+            if handle.is_cancel_requested:
+                return False
+            if self._now_s() - started > MAST_WAIT_S:
+                self.get_logger().warn(f'the mast reads ({self.mast[0]:.3f}, '
+                                       f'{self.mast[1]:.3f}), not ({pan:.3f}, {tilt:.3f})')
+                break
+        self._stood_t = max(self._mast_t, self._arrived_t)
+        return True
 
     async def _look_around(self, handle) -> bool:
         """From where the camera stands, look for the slot pair at each of search_pans_rad in
-        turn (the mast at the tilt it stands at; frames counted once the mast is there);
-        True once seen (self._slot, self.site_seen)."""
-        tilt = self.mast[1]
+        turn (the mast at the tilt its placement commanded; frames counted once the encoders
+        read the pan); True once seen (self._slot, self.site_seen)."""
         for pan in self.p['search_pans_rad']:
             if abs(pan - self.mast[0]) > MAST_TOLERANCE_RAD:
-                cmd = JointTrajectory(joint_names=list(MAST_JOINTS))
-                cmd.points = [JointTrajectoryPoint(positions=[float(pan), float(tilt)])]
-                cmd.points[0].time_from_start.sec = 1
-                self.pub_mast.publish(cmd)
-                started = self._now_s()
-                while abs(self.mast[0] - pan) > MAST_TOLERANCE_RAD:
-                    await self._sleep_until_wake()
-                    if handle.is_cancel_requested:
-                        return False
-                    if self._now_s() - started > 10.0:
-                        self.get_logger().warn(f'the mast did not reach pan {pan:.2f}')
-                        break
-                # a frame is taken with the mast at this pan from its stamp on
-                self._slot = None
-                self.site_seen.clear()
-                self._stood_t = self._now_s()
+                self._stood_t = math.inf
+                self._command_mast(pan, self._tilt)
+                if not await self._mast_at(handle, pan, self._tilt):
+                    return False
             if await self._see_slot(handle, self.p['search_look_s']):
                 return True
             if handle.is_cancel_requested:
@@ -724,7 +758,7 @@ class MasterNode(Node):
                                max_incidence_deg=float(self.p['marker_max_incidence_deg']),
                                choose=(TaskView.Request.CHOOSE_BEST if optimal
                                        else TaskView.Request.CHOOSE_RANDOM),
-                               seed=int(self.rng.integers(2**32)))
+                               seed=0 if optimal else int(self.rng.integers(2**32)))
         t = TaskTarget()
         t.header.frame_id = 'map'
         target = site + offset

@@ -366,8 +366,15 @@ class SlaveController:
             return
         if (self._descending or self.phase is Phase.FORCE_INSERT) and \
                 self._target is not None:
-            self._hold_joints = self._move_target(np.array([0.0, 0.0, self.backoff_m]), 0.0)
-            reason += f' (backed off {1e3 * self.backoff_m:.0f} mm)'
+            before = self._target.position.copy()
+            try:
+                self._hold_joints = self._move_target(
+                    np.array([0.0, 0.0, self.backoff_m]), 0.0)
+            except ReachError:
+                self._hold_joints = None
+            rose = float(self._target.position[2] - before[2])
+            reason += (f' (backed off {1e3 * rose:.0f} mm)' if rose > 0 else
+                       ' (could not back off: the raised card is out of reach)')
         self._done, self._success, self._reason = True, False, reason
         self.phase = Phase.DONE
 
@@ -511,9 +518,9 @@ class SlaveController:
         last = [float(np.linalg.norm(self._tared(w)[:3]))
                 for _, w in list(self._recent)[-ABORT_SAMPLES:]]
         if len(last) == ABORT_SAMPLES and min(last) > self.abort_force_n:
-            self._finish(False, f'contact force {min(last):.1f} N above the abort limit '
-                                f'{self.abort_force_n:.1f} N for {ABORT_SAMPLES} readings')
-            return self._command(None, 0.0, 0.0)
+            self.fail(f'contact force {min(last):.1f} N above the abort limit '
+                      f'{self.abort_force_n:.1f} N for {ABORT_SAMPLES} readings')
+            return self._command(self._hold_joints, 0.0, 0.0)
         if t - self._last_force_step < self.force_period_s - 1e-9:
             return self._command(self._joints(), 0.0, 0.0)
         self._last_force_step = t

@@ -272,6 +272,12 @@ class SlaveNode(Node):
                 site.orientation.y, site.orientation.z, site.orientation.w)):
             self.get_logger().warn('insert_card: the site is not finite; rejected')
             return GoalResponse.REJECT
+        q = site.orientation
+        if goal.site.header.frame_id and (abs(math.hypot(q.x, q.y, q.z, q.w) - 1.0) > 1e-3 or
+                                          math.hypot(q.x, q.y) > 1e-3):
+            self.get_logger().warn('insert_card: the site must be a level pose (a unit '
+                                   'quaternion about z); rejected')
+            return GoalResponse.REJECT
         self._busy = True
         return GoalResponse.ACCEPT
 

@@ -42,6 +42,10 @@ ROWS_IN = (5.0, 4.5, 4.375, 4.2925)
 #: the thesis's scale: 10 attempts a cell, 30 for the 1 % row (optimal placement only)
 DEFAULT_ROWS = '5.0,4.5,4.375,4.2925:30:optimal'
 DEFAULT_ATTEMPTS = 10
+#: what an attempt saved by a run of these settings stands for: raised when the system under
+#: test changes so that older attempts would not be the same experiment (2: the master told a
+#: rough region, the slave's corner-loads verdict); --resume reuses only the same
+TABLE_FORMAT = 2
 #: the placements a table compares (the rig's 'given' pins a pose: for tests)
 TABLE_PLACEMENTS = ('optimal', 'random', 'random_fixed')
 THESIS = {5.0: (10, 7), 4.5: (10, 4), 4.375: (9, 2)}       # of 10: optimal, random
@@ -87,15 +91,19 @@ def _cell_key(slot_in: float, placement: str, seed: int) -> tuple[float, str, in
     return (round(float(slot_in), 6), placement, int(seed))
 
 
-def _done_attempts(checkpoint: Path | None) -> dict:
-    """The attempts a previous run of the same settings saved in `checkpoint` (its --json):
-    (slot_in, placement, seed) -> (row, curves)."""
+def _done_attempts(checkpoint: Path | None, settings: dict | None = None, log=print) -> dict:
+    """The attempts a previous run of the same `settings` saved in `checkpoint` (its --json):
+    (slot_in, placement, seed) -> (row, curves); none when its settings differ."""
     if checkpoint is None or not checkpoint.exists():
         return {}
     import json
     try:
         old = json.loads(checkpoint.read_text())
     except (OSError, ValueError):
+        return {}
+    if settings is not None and old.get('settings') != settings:
+        log(f'{checkpoint} was run with other settings ({old.get("settings")}, not '
+            f'{settings}): nothing resumed')
         return {}
     done = {}
     for row in old.get('rows', []):
@@ -127,6 +135,10 @@ def parse_rows(spec: str, *, attempts: int,
         pl = tuple(parts[2].split('+')) if len(parts) > 2 else placements
         if not pl or any(x not in TABLE_PLACEMENTS for x in pl):
             raise ValueError(f'{item!r}: placements of {", ".join(TABLE_PLACEMENTS)}')
+        if width in [r[0] for r in rows]:
+            raise ValueError(f'{item!r}: the {width:g} in row is given twice')
+        if len(set(pl)) != len(pl):
+            raise ValueError(f'{item!r}: a placement is given twice')
         rows.append((width, n, pl))
     if not rows:
         raise ValueError('no rows')
@@ -149,10 +161,13 @@ def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple
         log(f'building the site map (seed {seed}, occlusion {occlusion_density})')
         site_map = build_site_map(work / 'site.cmap', seed=seed,
                                   occlusion_density=occlusion_density)
-    done = _done_attempts(checkpoint) if resume else {}
+    settings = {'format': TABLE_FORMAT, 'seed': seed, 'occlusion_density': occlusion_density,
+                'timeout_s': timeout_s, 'max_force_n': max_force_n}
+    done = _done_attempts(checkpoint, settings, log) if resume else {}
     if done:
         log(f'resuming: {len(done)} attempts from {checkpoint}')
-    res = {'attempts': attempts, 'seed': seed, 'occlusion_density': occlusion_density,
+    res = {'settings': settings, 'attempts': attempts, 'seed': seed,
+           'occlusion_density': occlusion_density,
            'placements': list(placements), 'rows': [], 'sim_restarts': [],
            'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
     rig: InsertionRig | None = None

@@ -127,6 +127,23 @@ def test_rows_give_their_own_attempts_and_placements():
     assert table_5_1.parse_rows('5::random+optimal', attempts=2, placements=('optimal',)) == \
         [(5.0, 2, ('random', 'optimal'))]
     for bad, why in (('4.2', 'wider'), ('5:0', 'at least one'), ('5:2:best', 'placements'),
-                     ('5:1:optimal:x', 'width'), ('', 'no rows')):
+                     ('5:1:optimal:x', 'width'), ('', 'no rows'), ('5,5.0', 'twice'),
+                     ('5:1:optimal+optimal', 'twice')):
         with pytest.raises(ValueError, match=why):
             table_5_1.parse_rows(bad, attempts=1, placements=('optimal',))
+
+
+def test_resume_refuses_attempts_of_other_settings(tmp_path, fake_rig, monkeypatch):
+    """A checkpoint of another experiment (an older table format, another force limit) is not
+    mixed into this one: every attempt runs again."""
+    _run(tmp_path)
+    saved = json.loads((tmp_path / 'r.json').read_text())
+    saved['settings']['format'] = table_5_1.TABLE_FORMAT - 1
+    (tmp_path / 'r.json').write_text(json.dumps(saved))
+    fake_rig.calls = []
+    said = []
+    table_5_1.run(attempts=3, rows=(5.0, 4.5), placements=('optimal',), seed=1,
+                  occlusion_density=0.05, timeout_s=45.0, max_force_n=25.0,
+                  site_map=tmp_path / 'site.cmap', checkpoint=tmp_path / 'r.json',
+                  log=said.append, resume=True)
+    assert len(fake_rig.calls) == 6 and any('other settings' in s for s in said)
