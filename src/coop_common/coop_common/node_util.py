@@ -2,6 +2,7 @@
 counting, and the Jazzy main() idiom. No algorithm lives here."""
 from __future__ import annotations
 
+import _thread
 import math
 import signal
 import threading
@@ -142,13 +143,39 @@ _STOP_REQUESTED = threading.Event()
 _STOP_SIGNALS: set[int] = set()
 
 
-def _interrupt(signum: int, _frame) -> None:
+#: the constructors an asynchronous KeyboardInterrupt must not land in: rclpy's Future and
+#: Task (a Task half-made by one prints 'Exception ignored in Future.__del__ ... no attribute
+#: _exception' when collected, seen at a Ctrl-C under load)
+_UNINTERRUPTIBLE = ('rclpy/task.py',)
+#: how long after such a landing the interrupt is raised again (s)
+_RETRY_S = 0.005
+
+
+def _in_constructor(frame, files: tuple[str, ...] = _UNINTERRUPTIBLE, depth: int = 6) -> bool:
+    """Whether `frame` or one of its `depth` callers is an `__init__` of one of `files`."""
+    f = frame
+    for _ in range(depth):
+        if f is None:
+            return False
+        if f.f_code.co_name == '__init__' and \
+                f.f_code.co_filename.replace('\\', '/').endswith(files):
+            return True
+        f = f.f_back
+    return False
+
+
+def _interrupt(signum: int, frame) -> None:
     _STOP_REQUESTED.set()
     if signum in _STOP_SIGNALS:
         # the same signal again: `ros2 launch` signals the process group, then each child, and
         # the second can land between the first's KeyboardInterrupt and the clean-up's
         # SIG_IGN, where raising would break the clean-up (a traceback, exit -2). The stop is
         # under way; a SIGTERM after a SIGINT still raises (launch's escalation)
+        return
+    if _in_constructor(frame):
+        # raised here it would leave the object half-made: again in a moment, from wherever
+        # the main thread is then
+        threading.Timer(_RETRY_S, _thread.interrupt_main, (signum,)).start()
         return
     _STOP_SIGNALS.add(signum)
     raise KeyboardInterrupt(signal.Signals(signum).name)

@@ -259,3 +259,33 @@ def test_a_repeated_stop_signal_does_not_interrupt_the_stop_under_way():
     with pytest.raises(KeyboardInterrupt, match='SIGTERM'):
         node_util._interrupt(signal.SIGTERM, None)
     node_util._STOP_SIGNALS.clear()
+
+
+def test_a_stop_signal_never_lands_inside_an_rclpy_task_being_built():
+    """Ctrl-C under load landed inside rclpy's Task.__init__: the half-made Task printed a
+    traceback from its __del__ ('no attribute _exception') and the launch test failed. A
+    signal landing in a constructor of rclpy/task.py is raised again a moment later, from
+    wherever the main thread is then."""
+    import sys
+    import time
+    src = ('class Task:\n'
+           '    def __init__(self, interrupt):\n'
+           '        interrupt(2, sys._getframe())\n'
+           '        self.built = True\n')
+    ns = {'sys': sys}
+    exec(compile(src, '/opt/ros/jazzy/lib/python3.12/site-packages/rclpy/task.py', 'exec'),
+         ns)
+    node_util._STOP_SIGNALS.clear()
+    previous = signal.signal(signal.SIGINT, node_util._interrupt)
+    try:
+        with pytest.raises(KeyboardInterrupt, match='SIGINT'):
+            task = ns['Task'](node_util._interrupt)     # not raised in there ...
+            assert task.built
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline:           # ... but soon after
+                time.sleep(0.001)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        node_util._STOP_SIGNALS.clear()
+        node_util._STOP_REQUESTED.clear()
+    assert not node_util._in_constructor(sys._getframe())
