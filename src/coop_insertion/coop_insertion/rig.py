@@ -73,6 +73,8 @@ ROUND_S = 0.01
 PARTICIPANTS = ('master', 'slave', 'insertion_rig')
 #: lockstep: the survey's frames are all in the map once it has not changed for this long (s)
 MAP_QUIET_S = 3.0
+#: the longest wall time the rig waits for one insert goal's result (s)
+RESULT_WALL_S = 4 * 3600.0
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
 #: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
 STALL_S = 90.0
@@ -629,7 +631,10 @@ class InsertionRig(contextlib.AbstractContextManager):
         res_fut = handle.get_result_async()
         if self.lockstep:
             node.pacer.run()
-        self._wait(res_fut.done, 3 * timeout_s + 600, what='the insert result')
+        # the goal is bounded in sim time (the master's search and placement, the slave's
+        # timeout), and a sim whose clock stops is told apart (SimStalled): the wall-clock bound
+        # is a last resort only (a search of several views on a loaded machine took 15 min)
+        self._wait(res_fut.done, RESULT_WALL_S, what='the insert result')
         res = res_fut.result().result
         # the goal's end by the stamp of the state it ended on (the sim may have run on while
         # the result came), else by this client's clock
