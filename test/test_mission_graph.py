@@ -27,8 +27,11 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     with socket.socket() as s:                # the live view on a free port
         s.bind(('127.0.0.1', 0))
         port = s.getsockname()[1]
+    # the master's region 0.1 m either side (the default 0.3): the search still runs, in
+    # fewer views, to keep `make test` short
     cfg = MissionConfig(seed=1, occlusion_density=0.05, slot_in=5.0, identify_s=6.0,
-                        coverage_target=0.5, max_scans=1, near_start=True, live_port=port)
+                        coverage_target=0.5, max_scans=1, near_start=True, live_port=port,
+                        rough_site_m=0.1)
     rep = Mission(cfg, tmp_path, run_id='short', domain_id=int(os.environ['ROS_DOMAIN_ID']),
                   log=print).run()
     out = tmp_path / 'short'
@@ -97,6 +100,8 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
           last.seated, 'bodies', list(last.bodies))
     assert ins['success'] and ins['seated'] and ins['action_success'], ins
     assert last.seated and ins['max_penetration_mm'] <= 0.5, (last, ins)
+    # the master found the slot in its region by the markers (not given it)
+    assert ins['search_views'] >= 1 and ins['site_error_mm'] is not None, ins
     assert rep['success']
     # the live view ran through the whole mission (a node that dies fails the phase it broke;
     # what a client receives from it: test_live_view.py)

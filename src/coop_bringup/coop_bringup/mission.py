@@ -118,6 +118,8 @@ class MissionConfig:
     sweep_s: float = 8.0              # scan 0: each rover sweeps its mast over its view (sim s)
     site_half_m: float = 1.5
     insert_timeout_s: float = 60.0
+    rough_site_m: float = 0.3         # the master's region: this far either side of a centre
+    #                                   drawn from the seed (coop_insertion.rig.rough_site)
     max_force_n: float = 25.0
     stereo_rate_hz: float = 4.0
     near_start: bool = False          # the rovers start at their staging poses (short missions)
@@ -372,7 +374,8 @@ class Mission:
                               domain_id=self.domain_id, stereo_rate_hz=cfg.stereo_rate_hz,
                               stereo_rovers=tuple(self.rovers), rovers=cfg.rovers,
                               extra_procs=extra, lockstep=cfg.lockstep,
-                              participants=participants) as rig:
+                              participants=participants,
+                              rough_site_m=cfg.rough_site_m) as rig:
                 self.rig = rig
                 self.client = _MissionClient(rig.ctx, self.rovers, cfg.lockstep)
                 rig.add_node(self.client)
@@ -828,6 +831,9 @@ def main(argv: list[str] | None = None) -> int:
                    choices=[m.value for m in StrategyName],
                    help='exploration strategy of next_best_view')
     p.add_argument('--insert-timeout', type=number(float, lo=1.0), default=d.insert_timeout_s)
+    p.add_argument('--rough-site', type=number(float, lo=0.0, hi=2.0), default=d.rough_site_m,
+                   help="the master's region: this far (m) either side of a centre drawn "
+                        'from the seed within as far of the slot')
     p.add_argument('--near-start', action='store_true',
                    help='start the rovers at their staging poses by the site (a short mission)')
     p.add_argument('--no-bag', dest='bag', action='store_false',
@@ -853,6 +859,7 @@ def main(argv: list[str] | None = None) -> int:
                             identify_s=a.identify_s, coverage_target=a.coverage,
                             max_scans=a.max_scans, strategy=a.strategy,
                             insert_timeout_s=a.insert_timeout, near_start=a.near_start,
+                            rough_site_m=a.rough_site,
                             bag=a.bag, bag_all=a.bag_all, live_port=a.live,
                             lockstep=a.lockstep)
         if a.seeds is not None:
