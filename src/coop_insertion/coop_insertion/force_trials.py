@@ -180,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="the simulator's contact_friction (the card's mu on the site; default "
                         "SimConfig's); the slave is not told it")
     p.add_argument('--seat-verdict', choices=[v.value for v in SeatVerdict],
-                   default=SeatVerdict.CORNER_LOADS.value,
+                   default=SeatVerdict.FLOOR_FORCE.value,
                    help="what ends the slave's press with seated (slave.SeatVerdict)")
     p.add_argument('--json', type=output_path, default=None)
     args = p.parse_args(argv)

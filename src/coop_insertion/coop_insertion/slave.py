@@ -179,8 +179,8 @@ class SeatVerdict(enum.StrEnum):
     #: seated fit, in SEAT_CONFIRMATIONS force periods in a row (no rival margin): a card
     #: landing on one corner is not passed on its first period's sum, the planner probing (the
     #: lighter corner turned down) until both carry; a jaw's friction holding the other corner
-    #: up still reads as its load (the default: it seats, and refuses what the table's runs
-    #: were fooled by)
+    #: up still reads as its load; through the graph the fit's state churns period by period
+    #: and two of four attempts timed out with the truth seated (docs/results/insertion.md)
     CORNER_LOADS = 'corner_loads'
 
 
@@ -231,7 +231,7 @@ class SlaveController:
                  servo: VisualServo | None = None, contact_options: dict | None = None,
                  step_options: dict | None = None, site_in_odom=None,
                  approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0,
-                 seat_verdict: SeatVerdict | str = SeatVerdict.CORNER_LOADS,
+                 seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE,
                  backoff_m: float = 0.02) -> None:
         if not isinstance(model, TaskModel):
             raise InsertionError('model must be a TaskModel')

@@ -67,12 +67,11 @@ PARAMS = {
                                    lo=0.001, hi=0.1),
     'contact_threshold_n': ParamSpec(1.5, 'Tared force that means contact (N)', lo=0.1,
                                      hi=50.0),
-    'seat_verdict': ParamSpec(SeatVerdict.CORNER_LOADS.value, "What ends the press with "
-                              "seated: 'corner_loads' (the fit's SEATED, the floor's push and "
-                              'each corner loaded, three force periods in a row), '
-                              "'floor_force' (the push alone), 'both_corners' (each corner "
-                              'loaded and every one-corner rival a margin worse): '
-                              'slave.SeatVerdict',
+    'seat_verdict': ParamSpec(SeatVerdict.FLOOR_FORCE.value, "What ends the press with "
+                              "seated: 'floor_force' (the fit's SEATED and the floor's push), "
+                              "'corner_loads' (and each corner loaded, three force periods in "
+                              "a row), 'both_corners' (each corner loaded and every one-corner "
+                              'rival a margin worse): slave.SeatVerdict',
                               choices=[v.value for v in SeatVerdict]),
     'command_rate_hz': ParamSpec(100.0, 'Arm and base command rate (Hz)', lo=1.0, hi=200.0),
 }

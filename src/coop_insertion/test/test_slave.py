@@ -21,7 +21,7 @@ def _run(slot_in: float, seed: int, **kw):
 
 
 def test_an_easy_insertion_seats_the_card_through_every_phase():
-    """The slave's default verdict (SeatVerdict.CORNER_LOADS) on the simulator's world core."""
+    """The slave's default verdict (SeatVerdict.FLOOR_FORCE) on the simulator's world core."""
     st, seated, pen, phases, ctl = _run(5.0, 1)
     assert st.done and st.success, st.reason
     assert seated and not st.awaiting_fix
@@ -41,7 +41,8 @@ def test_without_vision_the_slave_stops_short_and_never_descends():
 def test_a_failure_in_contact_backs_off_and_leaves_no_force_on_the_card():
     """A timeout (the master silent, the caller's limit) half a second into contact: the
     card's target rises and the truth's contact force on the card is gone 2 s later."""
-    trial, st, phases, ctl = run_trial(5.0, 1, fail_in_contact_s=0.5)
+    trial, st, phases, ctl = run_trial(5.0, 1, fail_in_contact_s=0.5,
+                                       slave_options={'seat_verdict': 'both_corners'})
     assert Phase.FORCE_INSERT in phases and st.done and not st.success
     assert 'backed off 20 mm' in st.reason
     assert ctl.hold_joints is not None
