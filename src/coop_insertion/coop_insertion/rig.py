@@ -431,12 +431,19 @@ class InsertionRig(contextlib.AbstractContextManager):
             rclpy.try_shutdown(context=self.ctx)
         self.stack.close()
 
-    def _wait(self, predicate, timeout_s: float, *, what: str) -> None:
+    def _wait(self, predicate, timeout_s: float, *, what: str, held: bool = False) -> None:
         """wait_for(predicate), failing early when a node of the graph died (InsertionError)
-        or the sim's clock stood still for STALL_S (SimStalled, with the sim's stacks)."""
+        or the sim's clock stood still for STALL_S (SimStalled, with the sim's stacks); `held`:
+        this rig holds the sim while it waits (lockstep), so a still clock is no stall."""
         def done() -> bool:
             if predicate():
                 return True
+            if held and self.lockstep:
+                dead = self.dead()
+                if dead:
+                    raise InsertionError(f'{", ".join(dead)} died while waiting for {what} '
+                                         f'(logs in {self.log_dir})')
+                return False
             self.check_alive(what)
             return False
         wait_for(done, timeout_s, what=what)
@@ -623,7 +630,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         fut = node.insert.send_goal_async(goal, feedback_callback=on_fb)
         # the master answers from an executor busy with 640x480 marker tracking: on a loaded
         # machine that took over 30 s of wall time
-        self._wait(fut.done, 120, what="the insert goal's acceptance")
+        self._wait(fut.done, 120, what="the insert goal's acceptance", held=True)
         handle = fut.result()
         if not handle.accepted:
             raise InsertionError('insert goal rejected')
