@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from .errors import InsertionError
+from .frames import homogeneous, rot_z
 
 __all__ = ['search_points', 'SiteEstimate']
 
@@ -78,6 +79,11 @@ class SiteEstimate:
             raise InsertionError('the site has not been seen')
         return math.atan2(float(np.mean(np.sin(self._headings))),
                           float(np.mean(np.cos(self._headings))))
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The site frame in the map (4x4, level): the mean position and heading."""
+        return homogeneous(rot_z(self.heading), self.position)
 
     @property
     def normal(self) -> np.ndarray:

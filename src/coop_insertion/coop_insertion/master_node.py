@@ -459,7 +459,7 @@ class MasterNode(Node):
         # the site's markers while the view is clear (the card, once at the mouth, may hide
         # one): the site again, from the task's view
         if await self._see_slot(handle, self.p['slot_wait_s']):
-            self.site = self._site_pose()
+            self.site = self.site_seen.pose
             self.get_logger().info('slot pair seen from where the camera stands: the site at '
                                    f'{np.round(self.site[:3, 3], 3).tolist()}')
         elif handle.is_cancel_requested:
@@ -580,16 +580,6 @@ class MasterNode(Node):
         res.site.x, res.site.y, res.site.z = (float(v) for v in site)
         res.search_views = self.search_views
 
-    def _site_pose(self) -> np.ndarray:
-        """The site in the map (4x4) from the slot pairs seen since the camera stood."""
-        est = self.site_seen
-        h = est.heading
-        t = np.eye(4)
-        t[:3, :3] = [[math.cos(h), -math.sin(h), 0.0], [math.sin(h), math.cos(h), 0.0],
-                     [0.0, 0.0, 1.0]]
-        t[:3, 3] = est.position
-        return t
-
     async def _locate(self, handle, goal: Insert.Goal) -> str | None:
         """Look for the slot over the rough region (site_position, site_search_m): the camera
         placed at the best view of each of the region's search points in turn (whatever the
@@ -616,7 +606,7 @@ class MasterNode(Node):
                 continue
             self.search_views += 1
             if await self._look_around(handle):
-                self.site = self._site_pose()
+                self.site = self.site_seen.pose
                 self.get_logger().info(
                     f'slot located from view {self.search_views} at '
                     f'{np.round(self.site[:3, 3], 3).tolist()} ({len(self.site_seen)} frames, '
