@@ -1,7 +1,9 @@
 """The team launch file run with the real `ros2 launch` (ros2cli and launch from
-../shared/ros2-tools, which CI installs): the graph that comes up (node names, namespaces,
-parameters, relative topic names), and Ctrl-C ending every node cleanly. Without the tools the
-tests skip and say why; with COOP_REQUIRE_ROS2_TOOLS=1 (CI) they fail instead."""
+`make ros2-tools`, which CI installs): the graph that comes up (node names, namespaces,
+parameters, relative topic names), its transform tree (/tf, /tf_static) read as a ROS user reads
+it (`ros2 topic echo --once /tf_static`, every frame any topic stamps found under `map`), and
+Ctrl-C ending every node cleanly. Without the tools the tests skip and say why; with
+COOP_REQUIRE_ROS2_TOOLS=1 (CI) they fail instead."""
 from __future__ import annotations
 
 import os
@@ -10,19 +12,26 @@ import signal
 import subprocess
 import tempfile
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import pytest
 import rclpy
+import yaml
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from rosidl_runtime_py.utilities import get_message
 from visualization_msgs.msg import MarkerArray
 
+from coop_common.frames import RoverFrames
 from coop_common.qos import LATCHED_QOS
-from coop_common.testing import pick_domain_id, ros2_tools, wait_for
+from coop_common.testing import NodeProcess, pick_domain_id, ros2_tools, wait_for
+from coop_common.tf_tree import TF_QOS, TF_STATIC_LISTENER_QOS
 
 pytestmark = pytest.mark.graph
 
@@ -215,8 +224,9 @@ def test_two_teams_in_one_domain_do_not_cross_talk(ros2, graph_node):
                 continue
             names = [t for t, _ in graph_node.get_publisher_names_and_types_by_node(name, ns)
                      + graph_node.get_subscriber_names_and_types_by_node(name, ns)]
+            # the transform tree is one for the whole graph, as tf2 has it
             stray = [t for t in names if not t.startswith(f'/{team}/')
-                     and t not in ('/rosout', '/parameter_events')]
+                     and t not in ('/rosout', '/parameter_events', '/tf', '/tf_static')]
             assert not stray, (f'{ns}/{name}', stray)
         for t in teams:
             ours = [n for n in topics if n.startswith(f'/{t}/')]
@@ -238,6 +248,27 @@ def test_two_teams_in_one_domain_do_not_cross_talk(ros2, graph_node):
             wait_for(lambda: got, 30.0, spin=spin, what=f'{t}/sim/world')
             worlds[t] = len(got[-1].markers)
         assert worlds['team_a'] != worlds['team_b'], worlds
+        # one /tf, two trees: every frame of each under its team's prefix, none shared
+        tf2_msgs = pytest.importorskip('tf2_msgs.msg')
+        seen: list = []
+        graph_node.create_subscription(tf2_msgs.TFMessage, '/tf', lambda m: seen.extend(
+            m.transforms), TF_QOS)
+        graph_node.create_subscription(tf2_msgs.TFMessage, '/tf_static', lambda m: seen.extend(
+            m.transforms), TF_STATIC_LISTENER_QOS)
+        want_tf = {f'{t}/{r}/{link}' for t in teams for r in ('rover1', 'rover2')
+                   for link in ('odom', 'base_link', 'mast_tilt_link',
+                                'right_camera_optical_frame')}
+        try:
+            wait_for(lambda: want_tf <= {f.child_frame_id for f in seen}, 60.0, spin=spin,
+                     what="both teams' trees")
+        except TimeoutError as exc:
+            raise AssertionError(f'{exc}: missing {want_tf - {f.child_frame_id for f in seen}}'
+                                 ) from None
+        by_team = {t: {n for f in seen for n in (f.header.frame_id, f.child_frame_id)
+                       if n.startswith(f'{t}/')} for t in teams}
+        assert 'team_a/map' in by_team['team_a'] and 'team_b/map' in by_team['team_b']
+        assert all(n.startswith(('team_a/', 'team_b/')) for f in seen
+                   for n in (f.header.frame_id, f.child_frame_id)), 'a frame of no team'
         for launch in launches:  # Ctrl-C in both terminals, then each ends
             launch.interrupt()
         for launch in launches:
@@ -245,3 +276,137 @@ def test_two_teams_in_one_domain_do_not_cross_talk(ros2, graph_node):
     finally:
         for launch in launches:
             launch.close()
+
+
+ROVERS = ('rover1', 'rover2')
+#: messages whose stamped frames are not read: they hold no frame of ours, and the images are
+#: megabytes a second to deserialize for frames their camera_info also carries
+SKIP_TYPES = ('sensor_msgs/msg/Image', 'rosgraph_msgs/msg/Clock', 'tf2_msgs/msg/TFMessage')
+
+
+def _frames_in(msg, out: set[str], depth: int = 0) -> None:
+    """Every `frame_id` and `child_frame_id` in `msg` (nested messages and lists of them)."""
+    if depth > 4 or not hasattr(msg, 'get_fields_and_field_types'):
+        return
+    for name in msg.get_fields_and_field_types():
+        value = getattr(msg, name)
+        if name in ('frame_id', 'child_frame_id') and isinstance(value, str):
+            if value:
+                out.add(value)
+        elif isinstance(value, list):
+            for item in value[:50]:
+                _frames_in(item, out, depth + 1)
+        else:
+            _frames_in(value, out, depth + 1)
+
+
+def _reader_qos(node, topic: str) -> QoSProfile:
+    """Best effort (matches any writer), transient local where every writer latches."""
+    infos = node.get_publishers_info_by_topic(topic)
+    latched = infos and all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                            for i in infos)
+    return QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                  else DurabilityPolicy.VOLATILE))
+
+
+def test_the_team_publishes_one_tree_that_holds_every_stamped_frame(ros2, graph_node):
+    tf2_msgs = pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs comes with make ros2-tools')
+    node = graph_node
+    spin = lambda dt: node.executor_.spin_once(timeout_sec=dt)  # noqa: E731
+    launch = Launch(ros2, 'seed:=4', 'rate:=1.0')
+    try:
+        dynamic: list = []
+        static: list = []
+        clock: list[float] = []
+        node.create_subscription(tf2_msgs.TFMessage, '/tf', lambda m: dynamic.extend(
+            m.transforms), TF_QOS)
+        node.create_subscription(tf2_msgs.TFMessage, '/tf_static', lambda m: static.extend(
+            m.transforms), TF_STATIC_LISTENER_QOS)
+        node.create_subscription(Clock, '/clock', lambda m: clock.append(
+            m.clock.sec + m.clock.nanosec * 1e-9), 10)
+        frames = [RoverFrames(r) for r in ROVERS]
+        moving = {(fr.map, fr.odom) for fr in frames} | {
+            pair for fr in frames for pair in ((fr.odom, fr.base_link),
+                                               (fr.base_link, fr.mast_pan),
+                                               (fr.mast_pan, fr.mast_tilt))}
+        wait_for(lambda: moving <= {(t.header.frame_id, t.child_frame_id) for t in dynamic}
+                 or launch.proc.poll() is not None, 90.0, spin=spin,
+                 what='every moving transform on /tf')
+        assert launch.proc.poll() is None, launch.text()[-3000:]
+
+        # the static chain as `ros2 topic echo` prints it (it takes the latched message)
+        wait_for(lambda: static, 30.0, spin=spin, what='/tf_static')
+        out = subprocess.run([ros2, 'topic', 'echo', '--once', '--qos-durability',
+                              'transient_local', '--qos-reliability', 'reliable', '/tf_static',
+                              'tf2_msgs/msg/TFMessage'],
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr[-2000:]
+        echoed = {(t['header']['frame_id'], t['child_frame_id']): t
+                  for t in yaml.safe_load(out.stdout.split('---')[0])['transforms']}
+        for fr in frames:
+            for pair in ((fr.base_link, fr.ft_sensor), (fr.mast_tilt, fr.optical('left')),
+                         (fr.optical('left'), fr.optical('right'))):
+                assert pair in echoed, (pair, sorted(echoed))
+            base = echoed[(fr.optical('left'), fr.optical('right'))]['transform']['translation']
+            assert base['x'] == pytest.approx(0.038) and base['y'] == base['z'] == 0.0
+
+        # every frame any topic stamps, for a few sim seconds
+        stamped: set[str] = set()
+        for topic, types in node.get_topic_names_and_types():
+            if types[0] in SKIP_TYPES or topic in ('/rosout', '/parameter_events'):
+                continue
+            node.create_subscription(get_message(types[0]), topic,
+                                     lambda m: _frames_in(m, stamped),
+                                     _reader_qos(node, topic))
+        start = len(dynamic)
+        wait_for(lambda: clock, 30.0, spin=spin, what='/clock')
+        t0 = clock[-1]
+        wait_for(lambda: clock[-1] >= t0 + 4.0, 60.0, spin=spin, what='4 sim s')
+
+        parents: dict[str, set[str]] = defaultdict(set)
+        for t in static + dynamic:
+            parents[t.child_frame_id].add(t.header.frame_id)
+        two = {c: p for c, p in parents.items() if len(p) > 1}
+        assert not two, f'frames with two parents: {two}'
+
+        def reaches_map(f: str) -> bool:
+            seen = set()
+            while f != 'map':
+                if f in seen or f not in parents:
+                    return False
+                seen.add(f)
+                f = next(iter(parents[f]))
+            return True
+
+        assert {'map', 'rover1/base_link', 'rover2/left_camera_optical_frame'} <= stamped
+        lost = sorted(f for f in stamped if not reaches_map(f))
+        assert not lost, f'stamped frames not in the tree under map: {lost}'
+        assert not any(f.startswith('truth/') for f in parents), 'truth in the tree by default'
+
+        # /tf on the sim clock, at the odometry rate (50 Hz) or faster for every rover
+        for fr in frames:
+            odom = sorted(t.header.stamp.sec + t.header.stamp.nanosec * 1e-9
+                          for t in dynamic[start:] if t.child_frame_id == fr.base_link)
+            assert odom and odom[-1] - odom[0] >= 2.0, (fr.rover, odom[:3], odom[-3:])
+            assert len(odom) >= 0.95 * 50.0 * (odom[-1] - odom[0]), (fr.rover, len(odom))
+            assert all(abs(s - t0) < 30.0 for s in odom), 'stamps not on the sim clock'
+    finally:
+        launch.close()
+
+
+def test_a_simulator_whose_frames_are_taken_refuses_to_start(tmp_path):
+    first = NodeProcess('rover_sim', 'sim', ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=0.0',
+                                             '-p', 'frame_prefix:=site_x/'],
+                        log_path=tmp_path / 'first.log')
+    with first:
+        wait_for(lambda: 'rovers, seed' in first.log_text(), 60.0, what='the first simulator')
+        # another team's namespace but the same frame prefix: refused, with the reason
+        out = subprocess.run(
+            [first.cmd[0], '--ros-args', '-r', '__ns:=/team_b', '-p', 'rovers:=1',
+             '-p', 'stereo_rate_hz:=0.0', '-p', 'frame_prefix:=site_x/',
+             '-p', 'frame_check_s:=5.0'],
+            capture_output=True, text=True, timeout=60)
+        said = out.stdout + out.stderr
+        assert out.returncode == 1, said[-3000:]
+        assert 'site_x/rover1/' in said and 'frame_prefix' in said, said[-3000:]

@@ -117,6 +117,9 @@ def test_a_client_receives_every_channel(tmp_path):
         image = got.channels['/rover1/camera/compressed']
         assert image['schemaName'] == 'foxglove.CompressedImage'
         assert got.channels['/map']['schemaName'] == 'foxglove.PointCloud'
+        # the simulator's transform tree, passed on for the 3-D panel
+        assert got.channels['/tf']['schemaName'] == 'foxglove.FrameTransforms'
+        assert b'rover2/right_camera_optical_frame' in got.first['/tf']
         # the JSON channels carry the numbers sent
         ident = json.loads(got.first['/rover2/identification'])
         assert ident['params']['mass'] == {'value': 1.0, 'std': 0.1, 'bits': 5.0}

@@ -281,7 +281,7 @@ def _first_imus(tmp_path: Path, seeds: list[int], n: int = 100, name: str = 'det
     every run is restarted at t = 0 once connected."""
     # its own namespace: the module's live simulator publishes /rover1/imu meanwhile
     with sim_process(tmp_path, '-r', '__ns:=/det', '-p', 'seed:=1', '-p', 'stereo_rate_hz:=0.0',
-                     '-p', 'real_time_factor:=0.5', name=name):
+                     '-p', 'real_time_factor:=0.5', '-p', 'frame_prefix:=det/', name=name):
         probe = Probe()
         probe.listen(Imu, '/det/rover1/imu', QoSProfile(depth=1000,
                                                         reliability=ReliabilityPolicy.BEST_EFFORT))
@@ -325,7 +325,7 @@ def test_namespace_and_params_file(tmp_path):
     params.write_text('/**:\n  ros__parameters:\n    rovers: 1\n    seed: 9\n'
                       '    stereo_rate_hz: 0.0\n')
     with sim_process(tmp_path, '-r', '__ns:=/team_a', '--params-file', str(params),
-                     '-p', 'occlusion_density:=0.2') as proc:
+                     '-p', 'occlusion_density:=0.2', '-p', 'frame_prefix:=team_a/') as proc:
         probe = Probe()
         try:
             probe.listen(Imu, '/team_a/rover1/imu')
@@ -357,3 +357,36 @@ def test_malformed_world_yaml_names_the_field_and_exits_non_zero(tmp_path):
 def test_out_of_range_parameter_is_rejected_with_a_reason(tmp_path):
     code, text = _run_to_exit(tmp_path, '-p', 'occlusion_density:=0.9')
     assert code != 0 and 'occlusion_density' in text
+
+
+def test_truth_is_in_the_tree_only_when_asked_and_apart(tmp_path):
+    """truth_tf: the true base and camera under <prefix>truth/, children of the map, beside
+    the estimated tree; the odometry's transform the same as the odom topic."""
+    tf2_msgs = pytest.importorskip('tf2_msgs.msg', reason='tf2_msgs comes with make ros2-tools')
+    from coop_common.tf_tree import TF_QOS
+    with sim_process(tmp_path, '-r', '__ns:=/tt', '-p', 'rovers:=1', '-p', 'stereo_rate_hz:=0.0',
+                     '-p', 'frame_prefix:=tt/', '-p', 'truth_tf:=true'):
+        probe = Probe('truth_tf_probe')
+        try:
+            probe.listen(tf2_msgs.TFMessage, '/tf', TF_QOS)
+            probe.listen(Odometry, '/tt/rover1/odom')
+            probe.listen(PoseStamped, '/tt/sim/rover1/base_pose')
+
+            def tree() -> dict:
+                return {t.child_frame_id: t for m in probe.msgs['/tf'] for t in m.transforms}
+            want = {'tt/truth/rover1/base_link', 'tt/truth/rover1/left_camera_optical_frame',
+                    'tt/rover1/base_link', 'tt/rover1/mast_tilt_link'}
+            probe.spin_until(lambda: want <= set(tree()) and probe.msgs['/tt/rover1/odom']
+                             and probe.msgs['/tt/sim/rover1/base_pose'], 30.0, 'the tree')
+            t = tree()
+            assert t['tt/truth/rover1/base_link'].header.frame_id == 'tt/map'
+            assert t['tt/rover1/base_link'].header.frame_id == 'tt/rover1/odom'
+            true_z = probe.msgs['/tt/sim/rover1/base_pose'][-1].pose.position.z
+            assert t['tt/truth/rover1/base_link'].transform.translation.z == pytest.approx(
+                true_z, abs=0.02)
+            od = probe.msgs['/tt/rover1/odom'][-1]
+            assert (od.header.frame_id, od.child_frame_id) == ('tt/rover1/odom',
+                                                              'tt/rover1/base_link')
+            assert od.pose.pose.position.z == t['tt/rover1/base_link'].transform.translation.z
+        finally:
+            probe.close()

@@ -59,3 +59,11 @@ def test_the_loop_nodes_load_neither_the_simulator_nor_the_truth_file():
     assert not readers, readers
     # the check can fail: the rig, which judges by the truth, is caught by it
     assert 'load_truth' in _names(sys.modules['coop_insertion.rig'].__file__)
+
+
+def test_a_loop_node_on_the_tree_counts_as_reading_the_truth():
+    # /tf carries the true poses when the simulator's truth_tf is on
+    from coop_insertion.rig import truth_readers
+    subs = {'/rover1/master': ['/rover1/odom', '/tf'], '/rover2/slave': ['/rover2/odom'],
+            '/live_view': ['/tf', '/sim/rover1/base_pose'], '/rover1/stereo': ['/rover1/odom']}
+    assert truth_readers(subs) == {'/rover1/master': ['/tf']}

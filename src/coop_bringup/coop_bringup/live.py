@@ -17,9 +17,16 @@ from dataclasses import dataclass
 
 import foxglove
 import numpy as np
-from foxglove.channels import CompressedImageChannel, PointCloudChannel, PoseInFrameChannel
+from foxglove.channels import (
+    CompressedImageChannel,
+    FrameTransformsChannel,
+    PointCloudChannel,
+    PoseInFrameChannel,
+)
 from foxglove.messages import (
     CompressedImage,
+    FrameTransform,
+    FrameTransforms,
     PackedElementField,
     PackedElementFieldNumericType,
     PointCloud,
@@ -158,7 +165,7 @@ def _pose(xyz: Sequence[float], quat_xyzw: Sequence[float]) -> Pose:
 def channel_topics(rovers: Sequence[str]) -> list[str]:
     """Every Foxglove channel the live view advertises for these rovers."""
     per = ('camera/compressed', 'pose', 'camera_pose', 'identification')
-    return ['/map', '/insertion', *(f'/{r}/{c}' for r in rovers for c in per)]
+    return ['/map', '/insertion', '/tf', *(f'/{r}/{c}' for r in rovers for c in per)]
 
 
 @dataclass(frozen=True)
@@ -205,6 +212,9 @@ class LiveView:
                       for r in cfg.rovers}
         self.map = PointCloudChannel('/map', context=c)
         self.insertion = foxglove.Channel('/insertion', context=c)
+        # the graph's transform tree (/tf and /tf_static), each frame's latest transform
+        self.tf = FrameTransformsChannel('/tf', context=c)
+        self._tf: dict[str, FrameTransform] = {}
         self._gates = {('image', r): RateGate(cfg.image_rate_hz) for r in cfg.rovers}
         self._gates.update({(k, r): RateGate(cfg.pose_rate_hz) for r in cfg.rovers
                             for k in ('pose', 'camera_pose')})
@@ -253,6 +263,25 @@ class LiveView:
         ch.log(PoseInFrame(timestamp=_stamp(stamp_s), frame_id=frame_id or self.cfg.map_frame,
                            pose=_pose(xyz, quat_xyzw)))
         self.sent[f'/{rover}/{kind}'] += 1
+        return True
+
+    def on_transforms(self, transforms) -> None:
+        """Keep each child frame's latest transform: `transforms` of (parent, child, xyz,
+        quat_xyzw, stamp_s); sent by `send_transforms`."""
+        for parent, child, xyz, q, stamp_s in transforms:
+            self._tf[child] = FrameTransform(
+                timestamp=_stamp(stamp_s), parent_frame_id=parent, child_frame_id=child,
+                translation=Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
+                rotation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                    w=float(q[3])))
+
+    def send_transforms(self) -> bool:
+        """Every frame's latest transform, static ones too (the protocol has no latching), to
+        a client that watches the tree; False when none does or nothing is known yet."""
+        if not self._tf or not self.tf.has_sinks():
+            return False
+        self.tf.log(FrameTransforms(transforms=list(self._tf.values())))
+        self.sent['/tf'] += 1
         return True
 
     # -- state: kept and re-sent at state_rate_hz -------------------------------------------------

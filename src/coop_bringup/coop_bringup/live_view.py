@@ -20,6 +20,7 @@ from sensor_msgs.msg import Image
 
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS, with_depth
+from coop_common.tf_tree import TF_QOS, TF_STATIC_LISTENER_QOS
 from coop_msgs.action import Insert
 from coop_msgs.msg import DynamicParameters, VoxelMap
 
@@ -119,14 +120,23 @@ class LiveViewNode(Node):
         self._state['feedback'] = (
             poll(Insert.Impl.FeedbackMessage, 'insert/_action/feedback', _ignore,
                  FEEDBACK_QOS), self._on_feedback)
+        # the transform tree, every message that waits (one per source and rover each time);
+        # without tf2_msgs the 3-D panel places only what is stamped in the map
+        self._tf_subs = []
+        try:
+            from tf2_msgs.msg import TFMessage  # noqa: PLC0415 - an optional dependency
+        except ImportError:
+            self.get_logger().info('tf2_msgs is not installed: no /tf channel')
+        else:
+            self._tf_subs = [poll(TFMessage, '/tf', _ignore, TF_QOS),
+                             poll(TFMessage, '/tf_static', _ignore, TF_STATIC_LISTENER_QOS)]
         self._state['status'] = (
             poll(GoalStatusArray, 'insert/_action/status', _ignore,
                  qos_profile_action_status_default), self._on_status)
         # wall clock: a paused or slow sim must not stop a connected client's map
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / p['state_rate_hz'], self._republish, clock=steady)
-        self.create_timer(1.0 / p['pose_rate_hz'], lambda: self._poll(self._poses),
-                          clock=steady)
+        self.create_timer(1.0 / p['pose_rate_hz'], self._on_pose_timer, clock=steady)
         self.get_logger().info(
             f'live view on ws://{p["host"]}:{self.view.port} (connect Foxglove to it); '
             f'channels {", ".join(channel_topics(rovers))}')
@@ -151,6 +161,20 @@ class LiveViewNode(Node):
             while (got := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
                 last = got[0]
         return last
+
+    def _on_pose_timer(self) -> None:
+        self._poll(self._poses)
+        for sub in self._tf_subs:
+            with sub.handle:
+                while (got := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                    self.view.on_transforms(
+                        (t.header.frame_id, t.child_frame_id,
+                         (t.transform.translation.x, t.transform.translation.y,
+                          t.transform.translation.z),
+                         (t.transform.rotation.x, t.transform.rotation.y,
+                          t.transform.rotation.z, t.transform.rotation.w),
+                         _t(t.header.stamp)) for t in got[0].transforms)
+        self.view.send_transforms()
 
     def _poll(self, subs: dict) -> None:
         for sub, handle in subs.values():

@@ -35,14 +35,21 @@ def _team(context: LaunchContext) -> list:
         raise ValueError(f'source:={arg["source"]!r} is not one of {list(SOURCES)}')
     rovers = _rovers(arg['rovers'])
     params = arg['params_file']
-    # /clock is the one global name: two simulated teams in one domain each keep their own
-    remap = [('/clock', 'clock')] if arg['clock'] == 'team' else []
+    # /clock is the one global name: two simulated teams in one domain each keep their own,
+    # <team>/clock for every node of the team (a relative 'clock' would resolve in a rover's
+    # namespace for the rover's nodes, where no clock ticks)
+    team_ns = '/' + arg['team'].strip('/') if arg['team'].strip('/') else ''
+    remap = [('/clock', f'{team_ns}/clock')] if arg['clock'] == 'team' else []
+    # frames follow the team as names do (team_a/map, team_a/rover1/base_link: two teams' trees
+    # share no frame); a bag's frames are what it recorded
+    frames = {'frame_prefix': f'{team_ns[1:]}/' if team_ns and arg['source'] == 'sim' else ''}
     sim_time = {'use_sim_time': True}
     if arg['source'] == 'sim':
         source = Node(package='rover_sim', executable='sim', name='rover_sim', output='screen',
                       remappings=remap,
-                      parameters=[params, {'rovers': len(rovers), 'seed': int(arg['seed']),
-                                           'real_time_factor': float(arg['rate'])}])
+                      parameters=[params, frames, {'rovers': len(rovers),
+                                                   'seed': int(arg['seed']),
+                                                   'real_time_factor': float(arg['rate'])}])
         expected = [f'rover{i + 1}' for i in range(len(rovers))]
         if rovers != expected:
             raise ValueError(f'rovers:={arg["rovers"]!r}: the simulator names its rovers '
@@ -57,19 +64,19 @@ def _team(context: LaunchContext) -> list:
     per_rover = []
     for r in rovers:
         nodes = [Node(package='coop_mapping', executable='stereo', name='stereo',
-                      output='screen', remappings=remap, parameters=[params, sim_time])]
+                      output='screen', remappings=remap, parameters=[params, sim_time, frames])]
         if arg['identify'].lower() == 'true':
             nodes.append(Node(package='coop_id', executable='identifier', name='identifier',
                               output='screen', remappings=remap,
-                              parameters=[params, sim_time]))
+                              parameters=[params, sim_time, frames]))
         per_rover.append(GroupAction([PushRosNamespace(r), *nodes]))
     team = [
         source,
         *per_rover,
         Node(package='coop_mapping', executable='mapper', name='mapper', output='screen',
-             remappings=remap, parameters=[params, sim_time, {'rovers': rovers}]),
+             remappings=remap, parameters=[params, sim_time, frames, {'rovers': rovers}]),
         Node(package='coop_viewplan', executable='view_planner', name='view_planner',
-             output='screen', remappings=remap, parameters=[params, sim_time]),
+             output='screen', remappings=remap, parameters=[params, sim_time, frames]),
     ]
     return [GroupAction([PushRosNamespace(arg['team']), *team]) if arg['team']
             else GroupAction(team)]

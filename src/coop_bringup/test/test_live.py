@@ -87,19 +87,25 @@ def test_a_client_gets_the_state_channels_resent():
             'rover1', ['mass'], [60.0], [1.0], [9.0], samples=1, strategy='constant',
             stamp_s=3.0))
         view.on_insertion(insertion_state(phase=0))
+        assert not view.send_transforms()           # nothing known, nobody watching
+        view.on_transforms([('map', 'rover1/odom', (0, 0, 0), (0, 0, 0, 1), 3.0),
+                            ('rover1/odom', 'rover1/base_link', (1, 2, 0.3), (0, 0, 0, 1), 3.0),
+                            ('rover1/odom', 'rover1/base_link', (1, 3, 0.3), (0, 0, 0, 1), 3.1)])
+        assert sorted(view._tf) == ['rover1/base_link', 'rover1/odom']   # the latest of each
         stop = threading.Event()
 
         def ticker() -> None:
             while not stop.wait(0.1):
                 view.republish()
                 view.on_pose('rover1', 'pose', (1, 2, 0), (0, 0, 0, 1), 3.0)
+                view.send_transforms()
 
         th = threading.Thread(target=ticker, daemon=True)
         th.start()
         try:
             got = receive(f'ws://127.0.0.1:{view.port}', duration_s=20.0, until_each=True,
                           topics=['/map', '/rover1/identification', '/insertion',
-                                  '/rover1/pose'])
+                                  '/rover1/pose', '/tf'])
         finally:
             stop.set()
             th.join()
@@ -108,6 +114,7 @@ def test_a_client_gets_the_state_channels_resent():
         x, y, z, occ = struct.unpack('<4f', got.first['/map'][-16:])
         assert (x, y, z) == pytest.approx((1.05, 0.05, 0.25)) and occ == pytest.approx(0.9)
         assert json.loads(got.first['/insertion'])['phase'] == 'place_camera'
+        assert got.channels['/tf']['schemaName'] == 'foxglove.FrameTransforms'
         # nobody subscribed to the images: none encoded
         assert view.sent['/rover1/camera/compressed'] == 0
     finally:

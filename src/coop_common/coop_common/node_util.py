@@ -129,13 +129,6 @@ class BadInputCounter:
         return sum(self.counts.values())
 
 
-def rover_frame(namespace: str, frame: str) -> str:
-    """`<rover>/<frame>` for a node in a rover's namespace (its last part: `/team_a/rover1` ->
-    `rover1/base_link`), as rover_sim names every rover's frames; `frame` itself at the root."""
-    rover = namespace.rstrip('/').rsplit('/', 1)[-1]
-    return f'{rover}/{frame}' if rover else frame
-
-
 #: set once SIGINT or SIGTERM arrived: whatever a callback raises after it is the stop (a
 #: KeyboardInterrupt raised inside a pybind11 call comes out as a RuntimeError)
 _STOP_REQUESTED = threading.Event()

@@ -158,12 +158,6 @@ def test_run_node_stops_on_sigterm_when_started_with_the_stop_signals_ignored():
             handler(s, None)
 
 
-def test_rover_frame_takes_the_last_part_of_the_namespace():
-    assert node_util.rover_frame('/rover1', 'base_link') == 'rover1/base_link'
-    assert node_util.rover_frame('/team_a/rover2', 'base_link') == 'rover2/base_link'
-    assert node_util.rover_frame('/', 'base_link') == 'base_link'
-
-
 def _param_node(name, specs, check_all=None, reject_also=None):
     """A node in a private context with `specs` declared; returns (node, context, applied),
     applied: the on_change calls. reject_also: another on-set callback, registered before

@@ -22,12 +22,12 @@ from sensor_msgs.msg import Imu, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import PARAM_NAMES
+from coop_common.frames import FRAME_PARAMS, RoverFrames, check_frame_params
 from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import (
     BadInputCounter,
     ParamSpec,
     declare_parameters,
-    rover_frame,
     run_node,
 )
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
@@ -88,8 +88,10 @@ SPECS = {
                                      lo=0.0, hi=1.0, read_only=True),
     'bias_compensation': ParamSpec(True, 'remove the errors-in-variables bias using the sensor '
                                    'noise covariances of the messages', read_only=True),
-    'base_frame': ParamSpec('', "frame id of the estimates; empty: '<rover>/base_link' with "
-                            "<rover> the last part of the node's namespace", read_only=True),
+    'base_frame': ParamSpec('', "frame id of the estimates; empty: "
+                            "'<frame_prefix><rover>/base_link' with <rover> the last part of "
+                            "the node's namespace", read_only=True),
+    'frame_prefix': FRAME_PARAMS['frame_prefix'],
     'lockstep': ParamSpec(False, "answer rover_sim's lockstep rounds (a participant in its "
                           'lockstep_participants; remap sim/lockstep/tick and ack to the '
                           "simulator's): each round's samples, then the arm's commands, so the "
@@ -100,8 +102,10 @@ SPECS = {
 class IdentifierNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('identifier', **kwargs)
-        self.p = declare_parameters(self, SPECS, on_change=self._on_change)
-        self.base_frame = self.p['base_frame'] or rover_frame(self.get_namespace(), 'base_link')
+        self.p = declare_parameters(self, SPECS, on_change=self._on_change,
+                                    check_all=check_frame_params)
+        self.base_frame = self.p['base_frame'] or RoverFrames.of_namespace(
+            self.get_namespace(), self.p['frame_prefix']).base_link
         self.bad = BadInputCounter(self)
         # The sample stream: an IMU sample waits for its partners however the three streams
         # interleave (a replay's burst, DDS or callback latency), up to QUEUE_S of samples

@@ -92,12 +92,12 @@ def loop_nodes(names) -> list[str]:
 
 def truth_readers(subscriptions: dict[str, list[str]]) -> dict[str, list[str]]:
     """Of a graph's subscriptions (node's full name -> topics, InsertionRig.subscriptions),
-    the loop nodes' subscriptions to the simulator's truth (rover_sim.config.is_truth_topic):
-    empty when truth only judges."""
+    the loop nodes' subscriptions to the simulator's truth (rover_sim.config.is_truth_topic)
+    and to /tf (which carries it with the simulator's truth_tf): empty when truth only judges."""
     from rover_sim.config import is_truth_topic
     out = {}
     for node in loop_nodes(subscriptions):
-        truth = [t for t in subscriptions[node] if is_truth_topic(t)]
+        truth = [t for t in subscriptions[node] if is_truth_topic(t) or t == '/tf']
         if truth:
             out[node] = truth
     return out

@@ -29,7 +29,7 @@ from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
-from coop_common.rover_geometry import ARM_JOINTS, ReachError, yaw_of
+from coop_common.rover_geometry import ARM_JOINTS, NOMINAL_CG_TO_ARM, ReachError, yaw_of
 from coop_msgs.action import Insert
 from coop_msgs.msg import DynamicParameters, MarkerObservation
 
@@ -52,7 +52,7 @@ PARAMS = {
                                'odometry frame (rover_sim starts odometry at the true pose)'),
     'site_yaw': ParamSpec(0.0, "The site frame's heading in the map (rad): its x across the "
                           'slot', lo=-math.pi, hi=math.pi),
-    'cg_to_arm': ParamSpec([0.0, 0.3, 0.1], 'r_2, the arm mount from the base c.g. (m), '
+    'cg_to_arm': ParamSpec(list(NOMINAL_CG_TO_ARM), 'r_2, the arm mount from the base c.g. (m), '
                            "until the identifier publishes it (the default: the design's "
                            'nominal mount; set it to a calibration of the rover at hand)'),
     'tolerance_m': ParamSpec(0.003, 'Vision error to reach before descending, when the goal '

@@ -32,6 +32,7 @@ from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
+from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
@@ -47,7 +48,9 @@ PARAMS = {
     'rovers': ParamSpec(['rover1', 'rover2'], 'rover namespaces whose clouds are fused',
                         read_only=True),
     'resolution_m': ParamSpec(0.1, 'voxel edge (m)', lo=0.005, hi=10.0, read_only=True),
-    'map_frame': ParamSpec('map', 'common frame of clouds and map', read_only=True),
+    'map_frame': ParamSpec('map', 'common frame of clouds and map, after frame_prefix',
+                           read_only=True),
+    'frame_prefix': FRAME_PARAMS['frame_prefix'],
     'map_file': ParamSpec('', 'autosave / default save-load file ("" = no autosave)',
                           read_only=True),
     'autosave_period_s': ParamSpec(30.0, 'autosave period (0 = off)', lo=0.0, hi=86400.0),
@@ -79,6 +82,8 @@ def _check_params(p: dict) -> str | None:
     twice would have every cloud fused twice); a map frame."""
     if not p['map_frame']:
         return 'map_frame must not be empty'
+    if why := check_frame_params(p):
+        return why
     rovers = list(p['rovers'])
     if len(set(rovers)) != len(rovers):
         return f'rovers {rovers}: a name is listed twice'
@@ -104,6 +109,7 @@ class MapperNode(Node):
         super().__init__('mapper', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self.p_update,
                                     check_all=_check_params)
+        self.map_frame = self.p['frame_prefix'] + self.p['map_frame']
         self.bad = BadInputCounter(self)
         # what map_file holds, as (map generation, sequence): a reset or a load starts a new
         # generation (its sequence may come back to the one saved: a reset starts at 0)
@@ -199,7 +205,7 @@ class MapperNode(Node):
 
     # ---------------------------------------------------------------- inputs
     def on_pose(self, rover: str, msg: PoseWithCovarianceStamped) -> None:
-        if msg.header.frame_id != self.p['map_frame']:
+        if msg.header.frame_id != self.map_frame:
             self.bad.reject('pose_frame', f'{rover}: frame {msg.header.frame_id!r}')
             return
         p = msg.pose.pose.position
@@ -218,7 +224,7 @@ class MapperNode(Node):
 
     def on_cloud(self, rover: str, msg: PointCloud2) -> None:
         t_arrival = time.monotonic()
-        if msg.header.frame_id != self.p['map_frame']:
+        if msg.header.frame_id != self.map_frame:
             self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
             return
         st = stamp_ns(msg.header.stamp)
@@ -261,7 +267,7 @@ class MapperNode(Node):
             self.bad.reject('map_input', f'{rover}: {exc}')
             return
         upd = VoxelMapUpdate()
-        upd.header = Header(stamp=msg.header.stamp, frame_id=self.p['map_frame'])
+        upd.header = Header(stamp=msg.header.stamp, frame_id=self.map_frame)
         upd.resolution_m = self.map.resolution
         upd.base_sequence = base
         upd.sequence = self.map.sequence
@@ -277,7 +283,7 @@ class MapperNode(Node):
     # ---------------------------------------------------------------- outputs
     def publish_map(self) -> None:
         now = self.get_clock().now().to_msg()
-        hdr = Header(stamp=now, frame_id=self.p['map_frame'])
+        hdr = Header(stamp=now, frame_id=self.map_frame)
         m = VoxelMapMsg()
         m.header = hdr
         m.resolution_m = self.map.resolution
@@ -312,7 +318,7 @@ class MapperNode(Node):
         if not self._surface_dirty or self.pub_surf.get_subscription_count() == 0:
             return
         _, pts = self.map.surface_points(self.map.occupied_keys())
-        hdr = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.p['map_frame'])
+        hdr = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.map_frame)
         self.pub_surf.publish(cloud_to_msg(pts, None, hdr))
         self._surface_dirty = False
 

@@ -33,12 +33,13 @@ import cv2
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.node import Node
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 
+from coop_common.frames import FRAME_PARAMS, RoverFrames, Transform, check_frame_params, quat_of
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
+from coop_common.tf_tree import TreeBroadcaster
 
 from .fiducial_odometry import FiducialOdometry, OdometryConfig
 from .offline import StereoSettings, stamp_ns
@@ -67,8 +68,14 @@ PARAMS = {
                                     hi=10.0),
     'error_T_lateral': ParamSpec(0.1, 'Eq. 3-7 T_x = T_y relative to T_z = 1', lo=1e-3, hi=10.0),
     'error_n': ParamSpec(2.0, 'Eq. 3-7 exponent n', lo=0.0, hi=4.0),
-    'map_frame': ParamSpec('map', 'frame of stereo/pose and of the published cloud',
+    'map_frame': ParamSpec('map', 'frame of stereo/pose and of the published cloud, after '
+                           'frame_prefix',
                            read_only=True),
+    'frame_prefix': FRAME_PARAMS['frame_prefix'],
+    'publish_tf': ParamSpec(True, "Publish map -> <rover>/odom on /tf from this node's estimate "
+                            '(needs tf2_msgs)', read_only=True),
+    'tf_rate_hz': ParamSpec(10.0, 'Rate of map -> <rover>/odom on /tf (Hz, node clock)', lo=0.1,
+                            hi=100.0, read_only=True),
     'fiducial_correction': ParamSpec('none', 'camera pose correction by scene fiducials: g01 '
                                      'method or none',
                                      choices=['none', 'pnp', 'rigid', 'linear', 'linear_so3'],
@@ -113,6 +120,8 @@ def _check_params(p: dict) -> str | None:
     disparity range a multiple of 16."""
     if p['num_disparities'] % 16:
         return f"num_disparities must be a multiple of 16, got {p['num_disparities']}"
+    if why := check_frame_params(p):
+        return why
     for lo, hi in (('min_range_m', 'max_range_m'),
                    ('marker_min_radius_px', 'marker_max_radius_px')):
         if not p[lo] < p[hi]:
@@ -133,6 +142,17 @@ class StereoNode(Node):
         self.pub_cloud = self.create_publisher(PointCloud2, 'stereo/points', SENSOR_QOS)
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'camera_pose',
                                               LATCHED_QOS)
+        # the rover's place in the map (REP 105's map -> odom), from what this node estimates:
+        # stereo/pose's frame is the rover's odometry frame, and the map is where `initialise`
+        # found the target or the fiducials put the camera; without either the two are one
+        self.rover_frames = RoverFrames.of_namespace(self.get_namespace(),
+                                                     self.p['frame_prefix'], self.p['map_frame'])
+        self.map_frame = self.rover_frames.map
+        self.map_from_odom: np.ndarray | None = (
+            None if self.p['initialise'] else np.eye(4))
+        self.tree = TreeBroadcaster(self, enabled=self.p['publish_tf'])
+        if self.tree.enabled:
+            self.create_timer(1.0 / self.p['tf_rate_hz'], self._send_tree)
         self.create_subscription(Image, 'stereo/left/image_raw',
                                  lambda m: self._put('left', m), SENSOR_QOS)
         self.create_subscription(Image, 'stereo/right/image_raw',
@@ -225,7 +245,7 @@ class StereoNode(Node):
             pose = self._initialise(m, pose)
             if pose is None:
                 return
-        if pose.header.frame_id != self.p['map_frame']:
+        if pose.header.frame_id != self.map_frame:
             self.bad.reject('pose_frame', pose.header.frame_id)
             return
         try:
@@ -245,7 +265,7 @@ class StereoNode(Node):
         except (StereoError, ValueError, cv2.error) as exc:
             self.bad.reject('stereo', str(exc))
             return
-        hdr = Header(stamp=m['left'].header.stamp, frame_id=self.p['map_frame'])
+        hdr = Header(stamp=m['left'].header.stamp, frame_id=self.map_frame)
         self.pub_pose.publish(pose)
         self.pub_cloud.publish(cloud_to_msg(scan.points, scan.covariances, hdr))
         self.frames += 1
@@ -258,7 +278,7 @@ class StereoNode(Node):
         R_oc, t_oc = pose_to_rt(pose.pose.pose)
         if init.initialised:
             R, t, cov = init.to_common(R_oc, t_oc, np.array(pose.pose.covariance, float))
-            return _pose_msg(pose.header.stamp, self.p['map_frame'], R, t, cov)
+            return _pose_msg(pose.header.stamp, self.map_frame, R, t, cov)
         try:
             if self.ranger is None:
                 self.ranger = self._make_ranger()
@@ -273,7 +293,7 @@ class StereoNode(Node):
                                    f'marker candidates: {step.reason})',
                                    throttle_duration_sec=5.0)
             return None
-        self.pub_target.publish(_pose_msg(pose.header.stamp, self.p['map_frame'], step.R,
+        self.pub_target.publish(_pose_msg(pose.header.stamp, self.map_frame, step.R,
                                           step.t, _ros_cov(step.covariance)))
         if not step.accepted:
             self.get_logger().info(f'initialisation: target found, position sigma '
@@ -282,16 +302,28 @@ class StereoNode(Node):
                                    'closer view', throttle_duration_sec=5.0)
             return None
         R_a, t_a = init.alignment
-        self.pub_alignment.publish(_pose_msg(pose.header.stamp, self.p['map_frame'], R_a, t_a,
+        self.map_from_odom = np.eye(4)
+        self.map_from_odom[:3, :3], self.map_from_odom[:3, 3] = R_a, t_a
+        self.pub_alignment.publish(_pose_msg(pose.header.stamp, self.map_frame, R_a, t_a,
                                              _ros_cov(init.alignment_covariance)))
         self.get_logger().info(
             f'initialised after {init.attempts} pair(s): camera at '
-            f'{np.array2string(step.t, precision=3)} in {self.p["map_frame"]} (position sigma '
+            f'{np.array2string(step.t, precision=3)} in {self.map_frame} (position sigma '
             f'{step.position_sigma_m:.3f} m); own frame ({pose.header.frame_id}) -> '
-            f'{self.p["map_frame"]}: yaw {np.degrees(np.arctan2(R_a[1, 0], R_a[0, 0])):.2f} '
+            f'{self.map_frame}: yaw {np.degrees(np.arctan2(R_a[1, 0], R_a[0, 0])):.2f} '
             f'deg, t {np.array2string(t_a, precision=3)}')
         R, t, cov = init.to_common(R_oc, t_oc, np.array(pose.pose.covariance, float))
-        return _pose_msg(pose.header.stamp, self.p['map_frame'], R, t, cov)
+        return _pose_msg(pose.header.stamp, self.map_frame, R, t, cov)
+
+    def _send_tree(self) -> None:
+        """map -> <rover>/odom, stamped now (a localisation node's habit: the estimate holds
+        until the next one); nothing before `initialise` has found the target."""
+        now = self.get_clock().now()
+        if self.map_from_odom is None or now.nanoseconds == 0 or not self.tree.listened:
+            return
+        fr = self.rover_frames
+        self.tree.send([Transform.from_matrix(fr.map, fr.odom, self.map_from_odom)],
+                       now.to_msg())
 
     def _correct(self, left, disp, R, t, pose: PoseWithCovarianceStamped):
         """§3.2.5 on the live stream: dead-reckoned increment as prediction, fiducials as
@@ -313,11 +345,12 @@ class StereoNode(Node):
             delta = np.linalg.inv(self._prev_dr) @ T_dr
             T = self.odometry.step([(left, disp)], delta)
         self._prev_dr = T_dr
+        self.map_from_odom = T @ np.linalg.inv(T_dr)
         out = PoseWithCovarianceStamped()
         out.header = pose.header
         p = out.pose.pose
         p.position.x, p.position.y, p.position.z = (float(v) for v in T[:3, 3])
-        q = _quat(T[:3, :3])
+        q = quat_of(T[:3, :3])
         p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = q
         if self.odometry.S.any():      # the filter's pose covariance, (theta, c) -> ROS order
             out.pose.covariance = _ros_cov(self.odometry.S).reshape(-1).tolist()
@@ -339,16 +372,9 @@ def _pose_msg(stamp, frame: str, R: np.ndarray, t: np.ndarray, cov: np.ndarray
     out.header = Header(stamp=stamp, frame_id=frame)
     p = out.pose.pose
     p.position.x, p.position.y, p.position.z = (float(v) for v in t)
-    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = _quat(R)
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = quat_of(R)
     out.pose.covariance = [float(v) for v in np.asarray(cov, float).reshape(-1)]
     return out
-
-
-def _quat(R: np.ndarray) -> tuple[float, float, float, float]:
-    """Rotation matrix -> quaternion (x, y, z, w), by scipy (stable at 180 deg too, where the
-    sign-copying formula lost the relative signs of x, y, z)."""
-    x, y, z, w = Rotation.from_matrix(np.asarray(R, float)).as_quat()
-    return float(x), float(y), float(z), float(w)
 
 
 def main(args=None) -> int:

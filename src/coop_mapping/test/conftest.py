@@ -84,7 +84,7 @@ class StereoRig:
              frame: str = 'map') -> None:
         """One stereo pair and the camera pose (rotation R, position t in `frame`) it was
         taken from, all with `stamp`."""
-        from coop_mapping.stereo_node import _quat
+        from coop_common.frames import quat_of as _quat
         pose = PoseWithCovarianceStamped()
         pose.header = Header(stamp=stamp, frame_id=frame)
         p = pose.pose.pose

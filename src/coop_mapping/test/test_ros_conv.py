@@ -68,8 +68,8 @@ def test_published_quaternions_round_trip_at_180_degrees():
     formula turned it to look along +y)."""
     from geometry_msgs.msg import Pose
 
+    from coop_common.frames import quat_of as _quat
     from coop_mapping.ros_conv import pose_to_rt
-    from coop_mapping.stereo_node import _quat
     look_minus_y = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]])
     rng = np.random.default_rng(0)
     half_turns = []

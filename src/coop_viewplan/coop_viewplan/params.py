@@ -2,6 +2,7 @@
 `coop_viewplan.offline`'s `-p` overrides). No rclpy here."""
 from __future__ import annotations
 
+from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.params import ParamSpec
 
 from .grid import FREE_GRAYS
@@ -15,7 +16,8 @@ PARAMS = {
                            read_only=True),
     'frame_id': ParamSpec('map', "the map's frame when its messages name none; requests must "
                           'be given in the map frame (no TF lookup here), answers are stamped '
-                          'with it', read_only=True),
+                          'with it; after frame_prefix', read_only=True),
+    'frame_prefix': FRAME_PARAMS['frame_prefix'],
     'max_grid_cells': ParamSpec(20_000_000, 'largest planning grid (cells) a map may make; a '
                                 'bigger one is rejected (a far outlier voxel, a tiny '
                                 'resolution)', lo=1000, hi=2_000_000_000),
@@ -87,4 +89,4 @@ PARAMS = {
 def check_params(p: dict) -> str | None:
     if not p['task_near_m'] < p['task_far_m']:
         return f"task_near_m ({p['task_near_m']}) must be below task_far_m ({p['task_far_m']})"
-    return None
+    return check_frame_params(p)

@@ -49,7 +49,8 @@ class ViewPlannerNode(Node):
         self.grid: OccupancyGrid | None = None
         # why grid is None: no map yet, an empty one, or every one so far refused
         self.map_state = 'empty map: nothing received on the map topic yet'
-        self.map_frame = self.p['frame_id']
+        self.default_frame = self.p['frame_prefix'] + self.p['frame_id']
+        self.map_frame = self.default_frame
         self.sequence = -1
         self.cameras: dict[str, CameraState] = {}
         self.expected: dict[str, tuple[int, np.ndarray]] = {}
@@ -99,7 +100,7 @@ class ViewPlannerNode(Node):
         elif old is not None:
             self.cameras.clear()
         self.grid = grid
-        self.map_frame = msg.header.frame_id or self.p['frame_id']
+        self.map_frame = msg.header.frame_id or self.default_frame
         self.sequence = int(msg.sequence)
         self.get_logger().debug(f'map {self.sequence}: {len(msg.voxels.occupancy)} voxels')
 

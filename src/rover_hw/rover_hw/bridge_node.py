@@ -25,15 +25,24 @@ from sensor_msgs.msg import Imu, JointState
 from std_srvs.srv import SetBool
 from trajectory_msgs.msg import JointTrajectory
 
+from coop_common.frames import (
+    FRAME_PARAMS,
+    FrameError,
+    RoverFrames,
+    check_frame_params,
+    mast_transforms,
+    odom_transform,
+    static_transforms,
+)
 from coop_common.node_util import (
     BadInputCounter,
     ParamSpec,
     declare_parameters,
-    rover_frame,
     run_node,
 )
 from coop_common.qos import COMMAND_QOS, SENSOR_QOS
 from coop_common.rover_geometry import ARM_JOINTS, MAST_JOINTS, camera_in_map
+from coop_common.tf_tree import TreeBroadcaster
 from coop_msgs.msg import Inclinometer
 from coop_msgs.srv import CalibrateInclinometer
 from rover_sim.trajectory import JointTrajectoryFollower, TrajectoryError
@@ -93,7 +102,9 @@ PARAMS = {
     'gyro_variance': ParamSpec(GYRO_VAR, 'Gyro variance published (rad^2/s^2)', lo=0.0, hi=1.0),
     'incl_variance': ParamSpec(INCL_VAR, 'Inclinometer variance published (rad^2)', lo=0.0,
                                hi=1.0),
-    'map_frame': ParamSpec('map', 'Frame of stereo/pose (REP 105)', read_only=True),
+    'map_frame': ParamSpec('map', 'Frame of stereo/pose (REP 105), after frame_prefix',
+                           read_only=True),
+    **FRAME_PARAMS,
 }
 
 
@@ -147,14 +158,20 @@ class ClockMap:
 class BridgeNode(LifecycleNode):
     def __init__(self, **kwargs) -> None:
         super().__init__('bridge', **kwargs)
-        self.values = declare_parameters(self, PARAMS, on_change=self._on_param_change)
+        self.values = declare_parameters(self, PARAMS, on_change=self._on_param_change,
+                                         check_all=check_frame_params)
         self.bad = BadInputCounter(self)
         self.limits = Limits()
         self.safety = Safety(command_timeout_s=self.values['command_timeout_s'],
                              heartbeat_timeout_s=self.values['heartbeat_timeout_s'],
                              clock=time.monotonic)
-        ns = self.get_namespace()
-        self.frames = {k: rover_frame(ns, k) for k in ('base_link', 'ft_sensor_link', 'odom')}
+        fr = self.rover_frames = RoverFrames.of_namespace(
+            self.get_namespace(), self.values['frame_prefix'], self.values['map_frame'])
+        self.frames = {'base_link': fr.base_link, 'ft_sensor_link': fr.ft_sensor,
+                       'odom': fr.odom}
+        # the rover's part of the tree; sent while active (statics at activation)
+        self.tree = TreeBroadcaster(self, enabled=self.values['publish_tf'], owned=fr.all(),
+                                    check_s=self.values['frame_check_s'])
         self._lock = threading.Lock()          # state shared by the reader thread and executor
         self._write_lock = threading.Lock()
         self._port: serial.SerialBase | None = None
@@ -226,6 +243,8 @@ class BridgeNode(LifecycleNode):
         with self._lock:
             self._reseed()
             self._active = True
+        self.tree.send_static(static_transforms(self.rover_frames),
+                              self.get_clock().now().to_msg())
         self.safety.set_fault('device unplugged' if self._link_fault else None)
         self.get_logger().info('active: publishing, commands accepted')
         return super().on_activate(state)
@@ -507,7 +526,7 @@ class BridgeNode(LifecycleNode):
         pubs['joints'].publish(js)
         if s.t_us >= self._next_odom_us:
             self._next_odom_us = s.t_us + int(round(1e6 / vals['odom_rate_hz'])) - 500
-            self._publish_odom(stamp, v, w)
+            self._publish_odom(stamp, v, w, js)
         rate = vals['stereo_pose_rate_hz']
         if rate > 0 and s.t_us >= self._next_pose_us:
             self._next_pose_us = s.t_us + int(round(1e6 / rate)) - 500
@@ -517,16 +536,25 @@ class BridgeNode(LifecycleNode):
         self.last_publish_ns = now
         self.latency_ns.append(now - t_in)
 
-    def _publish_odom(self, stamp, v: float, w: float) -> None:
+    def _publish_odom(self, stamp, v: float, w: float, js: JointState) -> None:
         x, y, yaw = self._odom
+        pose = odom_transform(self.rover_frames, x, y, yaw)
         od = Odometry()
         od.header.stamp, od.header.frame_id = stamp, self.frames['odom']
         od.child_frame_id = self.frames['base_link']
-        od.pose.pose.position.x, od.pose.pose.position.y = x, y
+        od.pose.pose.position.x, od.pose.pose.position.y, od.pose.pose.position.z = (
+            pose.translation)
         od.pose.pose.orientation.z, od.pose.pose.orientation.w = math.sin(yaw / 2), math.cos(
             yaw / 2)
         od.twist.twist.linear.x, od.twist.twist.angular.z = v, w
         self._pubs['odom'].publish(od)
+        if self.tree.listened:
+            tree = [pose]
+            try:
+                tree += mast_transforms(self.rover_frames, js.name, js.position)
+            except FrameError as exc:
+                self.bad.reject('mast transform', str(exc))
+            self.tree.send(tree, stamp)
 
     def _publish_pose(self, stamp, enc: np.ndarray) -> None:
         """Dead-reckoned left optical frame in the map (odometry + mast encoders; rover_sim's
@@ -536,7 +564,7 @@ class BridgeNode(LifecycleNode):
         from rover_sim.compliance import matrix_to_quat
         q = matrix_to_quat(t[:3, :3])
         msg = PoseWithCovarianceStamped()
-        msg.header.stamp, msg.header.frame_id = stamp, self.values['map_frame']
+        msg.header.stamp, msg.header.frame_id = stamp, self.rover_frames.map
         pp = msg.pose.pose
         pp.position.x, pp.position.y, pp.position.z = (float(c) for c in t[:3, 3])
         pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w = (

@@ -24,6 +24,16 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from coop_common.dynparams import PARAM_NAMES, TruthFileError, load_truth
+from coop_common.frames import (
+    FRAME_PARAMS,
+    FrameError,
+    RoverFrames,
+    check_frame_params,
+    mast_transforms,
+    odom_transform,
+    static_transforms,
+    truth_transforms,
+)
 from coop_common.lockstep import Gate, Inbox, LockstepError
 from coop_common.lockstep_node import (
     ACK_TOPIC,
@@ -34,6 +44,7 @@ from coop_common.lockstep_node import (
 )
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node, stamp
 from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, reliable
+from coop_common.tf_tree import TreeBroadcaster
 from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer, LockstepAck, LockstepTick
 from coop_msgs.srv import SimScenario
 
@@ -121,7 +132,12 @@ PARAMS = {
                                   lo=0.0, hi=100.0),
     'cmd_vel_timeout_s': ParamSpec(0.5, 'Stop a rover whose cmd_vel is older than this (sim s)',
                                    lo=0.05, hi=10.0),
-    'map_frame': ParamSpec('map', 'Common world frame id (REP 105)', read_only=True),
+    'map_frame': ParamSpec('map', 'Common world frame id (REP 105), after frame_prefix',
+                           read_only=True),
+    **FRAME_PARAMS,
+    'truth_tf': ParamSpec(False, "Also publish each rover's true base and camera poses on /tf "
+                          'as <prefix>truth/<rover>/... children of the map (for viewing and '
+                          'scoring; no loop reads them)', read_only=True),
     'lockstep_participants': ParamSpec(
         [''], 'Lockstep mode: the nodes (relative names resolve in this namespace) that close '
         'loops on the simulator; it steps no round before each has answered the last one '
@@ -157,6 +173,11 @@ class SimNode(Node):
         except TruthFileError as exc:
             raise ValueError(str(exc)) from exc
         self.world = World(self.config, [truth] * self.config.rovers)
+        self.frames = [RoverFrames(r.name, self.values['frame_prefix'], self.values['map_frame'])
+                       for r in self.world.rovers]
+        self.map_frame = self.frames[0].map
+        # each rover's last joint state as published (names, positions): the mast's transforms
+        self._joints: list[tuple[list[str], list[float]] | None] = [None] * len(self.frames)
         self.bad = BadInputCounter(self)
         self._pending: deque = deque()
         self._lock = threading.Lock()
@@ -280,11 +301,17 @@ class SimNode(Node):
         if self._gate is not None:
             self.tick_pub = self.create_publisher(LockstepTick, TICK_TOPIC, ROUND_QOS)
             self.create_subscription(LockstepAck, ACK_TOPIC, self._on_ack, ROUND_QOS)
+        # the tree (no loop reads it: not counted in lockstep rounds)
+        self.tree = TreeBroadcaster(
+            self, enabled=self.values['publish_tf'],
+            owned=[f for fr in self.frames for f in fr.all()],
+            check_s=self.values['frame_check_s'])
 
     def _check_params(self, values: dict) -> str | None:
-        """Between parameters, while running: the rendered rovers exist."""
+        """Between parameters: a frame prefix; while running, the rendered rovers exist."""
         world = getattr(self, 'world', None)
-        return _unknown_rovers(values['stereo_rovers'], len(world.rovers)) if world else None
+        return check_frame_params(values) or (
+            _unknown_rovers(values['stereo_rovers'], len(world.rovers)) if world else None)
 
     def _on_param_change(self, changed: dict) -> None:
         if 'stereo_rate_hz' in changed:
@@ -302,11 +329,10 @@ class SimNode(Node):
 
     # ------------------------------------------------------------------ commands (executor)
     def _on_traj(self, index: int, msg: JointTrajectory, group: str) -> tuple | None:
-        rover = self.world.rovers[index].name
         known = ARM_JOINTS if group == 'arm' else MAST_JOINTS
-        if msg.header.frame_id not in ('', f'{rover}/base_link'):
-            self.bad.reject('trajectory frame',
-                            f'{msg.header.frame_id!r} is not {rover}/base_link')
+        base = self.frames[index].base_link
+        if msg.header.frame_id not in ('', base):
+            self.bad.reject('trajectory frame', f'{msg.header.frame_id!r} is not {base}')
             return None
         names = list(msg.joint_names)
         if not names or any(n not in known for n in names) or len(set(names)) != len(names):
@@ -567,25 +593,27 @@ class SimNode(Node):
         for i, r in enumerate(w.rovers):
             pubs = self.pubs[i]
             if sensors:
-                self._publish_sensors(i, r.name, pubs, t)
+                self._publish_sensors(i, pubs, t)
                 if r.card_index is not None:
                     self._publish_card(i, pubs, t)
             if odom:
-                self._publish_odom(i, r.name, pubs, t)
+                self._publish_odom(i, pubs, t)
             if stereo and self._renders(r.name):
-                self._publish_stereo(i, r.name, pubs, t)
+                self._publish_stereo(i, pubs, t)
 
     def _renders(self, name: str) -> bool:
         chosen = self._stereo_rovers
         return not chosen or name in chosen
 
-    def _publish_sensors(self, i: int, name: str, pubs: dict, t: Time) -> None:
+    def _publish_sensors(self, i: int, pubs: dict, t: Time) -> None:
         s = self.world.sense(i)       # always: its noise draws do not depend on who listens
+        fr = self.frames[i]
+        self._joints[i] = (list(s.joint_names), [float(v) for v in s.joint_positions])
         if _listened(pubs['imu']):
-            self._publish_imu(s, name, pubs['imu'], t)
+            self._publish_imu(s, fr.base_link, pubs['imu'], t)
         if _listened(pubs['incl']):
             inc = Inclinometer()
-            inc.header.stamp, inc.header.frame_id = t, f'{name}/base_link'
+            inc.header.stamp, inc.header.frame_id = t, fr.base_link
             inc.roll, inc.pitch = float(s.incl_angles[0]), float(s.incl_angles[1])
             inc.roll_variance = inc.pitch_variance = float(s.incl_variance)
             inc.raw_roll_volts, inc.raw_pitch_volts = (float(s.incl_volts[0]),
@@ -594,7 +622,7 @@ class SimNode(Node):
             pubs['incl'].publish(inc)
         if _listened(pubs['wrench']):
             wr = WrenchStamped()
-            wr.header.stamp, wr.header.frame_id = t, f'{name}/ft_sensor_link'
+            wr.header.stamp, wr.header.frame_id = t, fr.ft_sensor
             wr.wrench.force.x, wr.wrench.force.y, wr.wrench.force.z = (float(v) for v in s.force)
             wr.wrench.torque.x, wr.wrench.torque.y, wr.wrench.torque.z = (float(v)
                                                                           for v in s.torque)
@@ -602,14 +630,13 @@ class SimNode(Node):
         if _listened(pubs['joints']):
             js = JointState()
             js.header.stamp = t
-            js.name = list(s.joint_names)
-            js.position = [float(v) for v in s.joint_positions]
+            js.name, js.position = self._joints[i]
             js.velocity = [float(v) for v in s.joint_velocities]
             pubs['joints'].publish(js)
 
-    def _publish_imu(self, s, name: str, pub, t: Time) -> None:
+    def _publish_imu(self, s, frame: str, pub, t: Time) -> None:
         imu = Imu()
-        imu.header.stamp, imu.header.frame_id = t, f'{name}/base_link'
+        imu.header.stamp, imu.header.frame_id = t, frame
         imu.orientation_covariance[0] = -1.0
         imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z = (
             float(v) for v in s.angular_velocity)
@@ -622,7 +649,7 @@ class SimNode(Node):
         pub.publish(imu)
 
     def _publish_card(self, i: int, pubs: dict, t: Time) -> None:
-        frame = self.values['map_frame']
+        frame = self.map_frame
         if _listened(pubs['card_pose']):
             ps = PoseStamped()
             ps.header.stamp, ps.header.frame_id = t, frame
@@ -643,11 +670,14 @@ class SimNode(Node):
         msg.bodies = list(cs.bodies)
         pubs['contact'].publish(msg)
 
-    def _publish_odom(self, i: int, name: str, pubs: dict, t: Time) -> None:
+    def _publish_odom(self, i: int, pubs: dict, t: Time) -> None:
         xy, yaw, v, w = self.world.odometry(i)
+        fr = self.frames[i]
         if _listened(pubs['odom']):
-            self._send_odom(name, pubs['odom'], t, xy, yaw, v, w)
-        frame = self.values['map_frame']
+            self._send_odom(fr, pubs['odom'], t, xy, yaw, v, w)
+        if self.tree.listened:
+            self._send_tree(i, t, xy, yaw)
+        frame = self.map_frame
         if _listened(pubs['truth_base']):
             tr = self.world.truth(i)
             ps = PoseStamped()
@@ -663,12 +693,33 @@ class SimNode(Node):
             _pose(ps.pose, cp, cr)
             pubs['truth_cam'].publish(ps)
 
+    def _send_tree(self, i: int, t: Time, xy, yaw: float) -> None:
+        """The rover's moving transforms: odometry, the mast from the last joint state (none,
+        with a throttled warning, when it lacks a mast joint or holds NaN), the truth if asked."""
+        fr = self.frames[i]
+        out = [odom_transform(fr, float(xy[0]), float(xy[1]), float(yaw))]
+        if self._joints[i] is not None:
+            try:
+                out += mast_transforms(fr, *self._joints[i])
+            except FrameError as exc:
+                self.bad.reject('mast transform', str(exc))
+        if self.values['truth_tf']:
+            tr = self.world.truth(i)
+            base = np.eye(4)
+            base[:3, :3], base[:3, 3] = tr.base_rotation, tr.base_position
+            cp, cr = self.world.camera_pose(i)
+            cam = np.eye(4)
+            cam[:3, :3], cam[:3, 3] = cr, cp
+            out += truth_transforms(fr, base, cam)
+        self.tree.send(out, t)
+
     @staticmethod
-    def _send_odom(name: str, pub, t: Time, xy, yaw: float, v: float, w: float) -> None:
+    def _send_odom(fr: RoverFrames, pub, t: Time, xy, yaw: float, v: float, w: float) -> None:
         od = Odometry()
-        od.header.stamp, od.header.frame_id = t, f'{name}/odom'
-        od.child_frame_id = f'{name}/base_link'
-        _pose(od.pose.pose, np.array([xy[0], xy[1], 0.0]), rpy_to_matrix(0.0, 0.0, yaw))
+        od.header.stamp, od.header.frame_id = t, fr.odom
+        od.child_frame_id = fr.base_link
+        pose = odom_transform(fr, float(xy[0]), float(xy[1]), float(yaw))
+        _pose(od.pose.pose, np.array(pose.translation), rpy_to_matrix(0.0, 0.0, yaw))
         od.twist.twist.linear.x, od.twist.twist.angular.z = float(v), float(w)
         pub.publish(od)
 
@@ -687,7 +738,7 @@ class SimNode(Node):
         info.p = [float(v) for v in p.ravel()]
         return info
 
-    def _publish_stereo(self, i: int, name: str, pubs: dict, t: Time) -> None:
+    def _publish_stereo(self, i: int, pubs: dict, t: Time) -> None:
         if not any(_listened(pubs[k]) for k in ('left', 'right', 'left_info', 'right_info',
                                                   'cam_est')):
             return          # rendering is most of the cost; its picture draws no noise
@@ -700,7 +751,7 @@ class SimNode(Node):
                                           ('right', right, 'right', True)):
             msg = Image()
             msg.header.stamp = t
-            msg.header.frame_id = f'{name}/{frame}_camera_optical_frame'
+            msg.header.frame_id = self.frames[i].optical(frame)
             msg.height, msg.width = img.shape
             msg.encoding, msg.step = 'mono8', img.shape[1]
             msg.data = img.tobytes()
@@ -708,7 +759,7 @@ class SimNode(Node):
             pubs[f'{key}_info'].publish(self._camera_info(t, msg.header.frame_id, is_right))
         pos, rot, cov = self.world.estimated_camera_pose(i)
         est = PoseWithCovarianceStamped()
-        est.header.stamp, est.header.frame_id = t, self.values['map_frame']
+        est.header.stamp, est.header.frame_id = t, self.map_frame
         _pose(est.pose.pose, pos, rot)
         est.pose.covariance = [float(v) for v in cov.ravel()]
         pubs['cam_est'].publish(est)
@@ -717,7 +768,7 @@ class SimNode(Node):
         t = stamp(self.world.time_s)
         for i, r in enumerate(self.world.rovers):
             dp = DynamicParameters()
-            dp.header.stamp, dp.header.frame_id = t, f'{r.name}/base_link'
+            dp.header.stamp, dp.header.frame_id = t, self.frames[i].base_link
             dp.names = list(PARAM_NAMES)
             dp.values = [float(v) for v in r.params.to_vector()]
             n = len(PARAM_NAMES)
@@ -731,10 +782,11 @@ class SimNode(Node):
             dp.strategy = 'truth'
             self.pubs[i]['truth_params'].publish(dp)
         self.world_pub.publish(self._world_markers(t))
+        self.tree.send_static([s for fr in self.frames for s in static_transforms(fr)], t)
 
     def _world_markers(self, t: Time) -> MarkerArray:
         arr = MarkerArray()
-        frame = self.values['map_frame']
+        frame = self.map_frame
         clear = Marker(action=Marker.DELETEALL)
         clear.header.frame_id = frame
         arr.markers.append(clear)
