@@ -69,6 +69,9 @@ from .triangulate import triangulate_markers
 
 PARAMS = {
     'rover': ParamSpec('rover1', 'The master rover (its topics are <rover>/...)', read_only=True),
+    'slot_width_m': ParamSpec(TaskModel.slot_width_m, "The slot's width (the task's given, as "
+                              "the slave's): it sets how far apart the slot's markers are",
+                              lo=0.1080, hi=0.25),
     'detector': ParamSpec('default', 'Marker detector (coop_insertion.markers)',
                           choices=DETECTORS, read_only=True),
     'marker_min_coverage': ParamSpec(DEFAULT_MIN_COVERAGE, "Default detector: least fraction "
@@ -197,7 +200,7 @@ class MasterNode(Node):
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params, check_all=_check)
         self.bad = BadInputCounter(self)
         r = self.p['rover']
-        self.model = TaskModel()
+        self.model = TaskModel(slot_width_m=self.p['slot_width_m'])
         self.detector = None
         self.camera: StereoCamera | None = None
         self.info: dict[str, CameraInfo] = {}
@@ -260,6 +263,8 @@ class MasterNode(Node):
 
     def _on_params(self, changed: dict) -> None:
         self.p.update(changed)
+        if 'slot_width_m' in changed:
+            self.model = TaskModel(slot_width_m=self.p['slot_width_m'])
 
     # -- vision -------------------------------------------------------------------------------
     def _on_joints(self, msg: JointState) -> None:

@@ -351,6 +351,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         self.procs = [
             ('sim', 'rover_sim', 'sim', sim_args),
             ('master', 'coop_insertion', 'master', [*node_args, '-p', f'seed:={seed}',
+                                                    '-p', f'slot_width_m:={slot_in * INCH}',
                                                     *master_args]),
             ('slave', 'coop_insertion', 'slave', [*node_args, '-p',
                                                   f'slot_width_m:={slot_in * INCH}',
@@ -527,8 +528,10 @@ class InsertionRig(contextlib.AbstractContextManager):
                 raise InsertionError(f'{node}: {name} refused: {res.reason}')
 
     def set_slot(self, slot_in: float) -> None:
-        """The slave's task given for the next attempts: the slot's width."""
-        self.set_parameters('slave', slot_width_m=slot_in * INCH)
+        """The task given for the next attempts, to the master and the slave: the slot's
+        width."""
+        for node in ('master', 'slave'):
+            self.set_parameters(node, slot_width_m=slot_in * INCH)
 
     def render(self, rovers: tuple[str, ...], rate_hz: float) -> None:
         """Which rovers' stereo pairs the sim renders, at what rate (rendering is most of the
