@@ -182,9 +182,12 @@ class Transform:
 
 
 def quat_of(r: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (scipy: stable at 180 deg too)."""
-    x, y, z, w = Rotation.from_matrix(np.asarray(r, float)).as_quat()
-    return float(x), float(y), float(z), float(w)
+    """Unit quaternion (x, y, z, w), w >= 0, of a rotation matrix (scipy: stable at 180 deg
+    too)."""
+    q = Rotation.from_matrix(np.asarray(r, float)).as_quat()
+    if q[3] < 0:
+        q = -q
+    return float(q[0]), float(q[1]), float(q[2]), float(q[3])
 
 
 def _about_z(a: float) -> tuple[float, float, float, float]:

@@ -139,3 +139,12 @@ def test_without_tf2_msgs_the_broadcaster_is_off_and_says_so(monkeypatch):
     finally:
         node.destroy_node()
         rclpy.shutdown(context=ctx)
+
+
+def test_quaternions_have_w_non_negative_and_round_trip():
+    from coop_common.rover_geometry import OPTICAL_IN_TILT
+    for m in (OPTICAL_IN_TILT, np.diag([1.0, -1.0, -1.0]), np.eye(3)):
+        q = F.quat_of(m)
+        assert q[3] >= 0 and abs(np.linalg.norm(q) - 1.0) < 1e-12
+        np.testing.assert_allclose(F.Transform('a', 'b', (0, 0, 0), q).matrix()[:3, :3], m,
+                                   atol=1e-12)
