@@ -148,10 +148,15 @@ class RoverFrames:
         """The simulator's true pose of frame `name` (`base_link`, ...)."""
         return RoverFrames(self.rover, self.prefix + TRUTH).link(name)
 
+    def body(self) -> tuple[str, ...]:
+        """The frames below odom: what the rover's source (the simulator, the bridge) publishes
+        the transforms of."""
+        return (self.base_link, self.ft_sensor, self.mast_pan, self.mast_tilt,
+                self.optical('left'), self.optical('right'))
+
     def all(self) -> tuple[str, ...]:
         """Every frame this rover's tree holds below the map (not the truth)."""
-        return (self.odom, self.base_link, self.ft_sensor, self.mast_pan, self.mast_tilt,
-                self.optical('left'), self.optical('right'))
+        return (self.odom, *self.body())
 
 
 @dataclass(frozen=True)

@@ -74,7 +74,8 @@ PARAMS = {
     'frame_prefix': FRAME_PARAMS['frame_prefix'],
     'publish_tf': ParamSpec(True, "Publish map -> <rover>/odom on /tf from this node's estimate "
                             '(needs tf2_msgs)', read_only=True),
-    'tf_rate_hz': ParamSpec(10.0, 'Rate of map -> <rover>/odom on /tf (Hz, node clock)', lo=0.1,
+    'tf_rate_hz': ParamSpec(10.0, 'Rate of map -> <rover>/odom on /tf with fiducial_correction '
+                            '(Hz, node clock; else it is fixed, on /tf_static)', lo=0.1,
                             hi=100.0, read_only=True),
     'fiducial_correction': ParamSpec('none', 'camera pose correction by scene fiducials: g01 '
                                      'method or none',
@@ -148,11 +149,16 @@ class StereoNode(Node):
         self.rover_frames = RoverFrames.of_namespace(self.get_namespace(),
                                                      self.p['frame_prefix'], self.p['map_frame'])
         self.map_frame = self.rover_frames.map
+        # a fixed estimate (the identity; the alignment once found) is static, on /tf_static
+        # (a tf2 listener keeps it after this node has stopped, as the insertion rig stops it
+        # after the survey); the fiducial correction's moves, on /tf
         self.map_from_odom: np.ndarray | None = (
             None if self.p['initialise'] else np.eye(4))
         self.tree = TreeBroadcaster(self, enabled=self.p['publish_tf'])
-        if self.tree.enabled:
+        if self.tree.enabled and self.p['fiducial_correction'] != 'none':
             self.create_timer(1.0 / self.p['tf_rate_hz'], self._send_tree)
+        elif self.map_from_odom is not None:
+            self._send_static_tree()
         self.create_subscription(Image, 'stereo/left/image_raw',
                                  lambda m: self._put('left', m), SENSOR_QOS)
         self.create_subscription(Image, 'stereo/right/image_raw',
@@ -304,6 +310,8 @@ class StereoNode(Node):
         R_a, t_a = init.alignment
         self.map_from_odom = np.eye(4)
         self.map_from_odom[:3, :3], self.map_from_odom[:3, 3] = R_a, t_a
+        if self.p['fiducial_correction'] == 'none':
+            self._send_static_tree()
         self.pub_alignment.publish(_pose_msg(pose.header.stamp, self.map_frame, R_a, t_a,
                                              _ros_cov(init.alignment_covariance)))
         self.get_logger().info(
@@ -314,6 +322,11 @@ class StereoNode(Node):
             f'deg, t {np.array2string(t_a, precision=3)}')
         R, t, cov = init.to_common(R_oc, t_oc, np.array(pose.pose.covariance, float))
         return _pose_msg(pose.header.stamp, self.map_frame, R, t, cov)
+
+    def _send_static_tree(self) -> None:
+        fr = self.rover_frames
+        self.tree.send_static([Transform.from_matrix(fr.map, fr.odom, self.map_from_odom)],
+                              self.get_clock().now().to_msg())
 
     def _send_tree(self) -> None:
         """map -> <rover>/odom, stamped now (a localisation node's habit: the estimate holds

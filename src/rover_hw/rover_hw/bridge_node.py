@@ -170,7 +170,7 @@ class BridgeNode(LifecycleNode):
         self.frames = {'base_link': fr.base_link, 'ft_sensor_link': fr.ft_sensor,
                        'odom': fr.odom}
         # the rover's part of the tree; sent while active (statics at activation)
-        self.tree = TreeBroadcaster(self, enabled=self.values['publish_tf'], owned=fr.all(),
+        self.tree = TreeBroadcaster(self, enabled=self.values['publish_tf'], owned=fr.body(),
                                     check_s=self.values['frame_check_s'])
         self._lock = threading.Lock()          # state shared by the reader thread and executor
         self._write_lock = threading.Lock()

@@ -304,7 +304,7 @@ class SimNode(Node):
         # the tree (no loop reads it: not counted in lockstep rounds)
         self.tree = TreeBroadcaster(
             self, enabled=self.values['publish_tf'],
-            owned=[f for fr in self.frames for f in fr.all()],
+            owned=[f for fr in self.frames for f in fr.body()],
             check_s=self.values['frame_check_s'])
 
     def _check_params(self, values: dict) -> str | None:
