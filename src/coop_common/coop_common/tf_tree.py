@@ -57,9 +57,9 @@ class TreeBroadcaster:
     this node ever sent, in one message, as tf2_ros's StaticTransformBroadcaster) and `send`
     (/tf). `enabled` is False when asked off or tf2_msgs is missing (logged once).
 
-    `owned`: the frames this node is the parent of; with `check_s` > 0 the constructor listens
-    that long to /tf_static first and raises ValueError when another node already publishes
-    one of them (a frame prefix that collides with another team's)."""
+    `owned`: the child frames this node publishes the transforms of; with `check_s` > 0 the
+    constructor listens that long to /tf_static first and raises ValueError when another node
+    already publishes one of them (a frame prefix that collides with another team's)."""
 
     def __init__(self, node: Node, *, enabled: bool = True, owned: Iterable[str] = (),
                  check_s: float = 0.0) -> None:
