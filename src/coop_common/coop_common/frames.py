@@ -41,7 +41,7 @@ from .rover_geometry import (
 )
 
 __all__ = ['FRAME_PARAMS', 'TRUTH', 'FrameError', 'RoverFrames', 'Transform',
-           'check_frame_params', 'check_prefix', 'map_frame', 'mast_transforms',
+           'check_frame_params', 'check_prefix', 'mast_transforms',
            'odom_transform', 'quat_of', 'static_transforms', 'truth_transforms']
 
 #: the prefix of the simulator's true frames (after the team's)
@@ -82,11 +82,6 @@ FRAME_PARAMS = {
 def check_frame_params(values: dict) -> str | None:
     """The rule FRAME_PARAMS' values obey beyond their ranges (for declare_parameters)."""
     return check_prefix(values['frame_prefix'])
-
-
-def map_frame(prefix: str = '') -> str:
-    """The team's common frame."""
-    return f'{prefix}map'
 
 
 @dataclass(frozen=True)

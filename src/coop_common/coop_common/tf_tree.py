@@ -18,8 +18,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from .frames import Transform
 
-__all__ = ['TF_QOS', 'TF_STATIC_LISTENER_QOS', 'TF_STATIC_QOS', 'TreeBroadcaster',
-           'tree_available']
+__all__ = ['TF_QOS', 'TF_STATIC_LISTENER_QOS', 'TF_STATIC_QOS', 'TreeBroadcaster']
 
 #: tf2_ros's DynamicBroadcasterQoS (and listener's)
 TF_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
@@ -33,15 +32,6 @@ TF_STATIC_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
 TF_STATIC_LISTENER_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
                                     reliability=ReliabilityPolicy.RELIABLE,
                                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-def tree_available() -> bool:
-    """Whether tf2_msgs is importable (a Jazzy install or ros2-tools have it)."""
-    try:
-        import tf2_msgs.msg  # noqa: F401, PLC0415 - an optional dependency
-    except ImportError:
-        return False
-    return True
-
 
 def _stamped(t: Transform, stamp: Time) -> TransformStamped:
     m = TransformStamped()
