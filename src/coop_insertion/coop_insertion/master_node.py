@@ -175,6 +175,9 @@ MAST_WAIT_S = 5.0
 #: once the slot pair is first seen standing, the site is averaged over this much more of the
 #: frames' time (s)
 SITE_AVERAGE_S = 0.5
+#: a sensor stamp this far behind the latest one is time jumping back (a simulator reset, a
+#: looped bag), not a late message
+TIME_JUMP_BACK_S = 0.5
 
 
 def _check(p: dict) -> str | None:
@@ -213,6 +216,7 @@ class MasterNode(Node):
         self._last_vision = -math.inf
         self._image_t = -math.inf          # stamp of the last stereo pair (s)
         self._fix_t = -math.inf            # stamp of the last published fix (s)
+        self._sensor_t: dict[str, float] = {}     # each stream's latest stamp (s)
         self.card_in_map: np.ndarray | None = None    # card markers' midpoint, last fix
         self.looked = 0                    # stereo pairs looked at
         self.tracked = 0                   # of them, those that gave a fix
@@ -275,7 +279,23 @@ class MasterNode(Node):
                 self.mast = (pan, tilt)
                 self._mast_t = _stamp(msg)
 
+    def _sensor_time(self, stream: str, t: float) -> None:
+        """Follow a sensor stream's time; where it jumps back (a simulator reset between
+        goals, a looped bag), forget the stamps kept from before: else the last image's stamp
+        would stand ahead of every new frame, and a look at the slot end before it began."""
+        last = self._sensor_t.get(stream, -math.inf)
+        if t < last - TIME_JUMP_BACK_S:
+            self.get_logger().info(f'{stream} time jumped back from {last:.3f} s to {t:.3f} s: '
+                                   'the stamps kept from before are dropped')
+            self._arrived_t = self._last_vision = self._image_t = self._fix_t = -math.inf
+            self._stood_t = math.inf
+            self.frames.clear()
+            self._sensor_t.clear()
+            last = -math.inf
+        self._sensor_t[stream] = max(last, t)
+
     def _on_image(self, side: str, msg: Image) -> None:
+        self._sensor_time(side, _stamp(msg))
         st = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
         f = self.frames.setdefault(st, {})
         f[side] = msg
@@ -370,6 +390,7 @@ class MasterNode(Node):
 
     # -- driving ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
+        self._sensor_time('odom', _stamp(msg))
         q = msg.pose.pose.orientation
         self.odom = (msg.pose.pose.position.x, msg.pose.pose.position.y,
                      yaw_of(q.x, q.y, q.z, q.w))
