@@ -44,8 +44,9 @@ DEFAULT_ROWS = '5.0,4.5,4.375,4.2925:30:optimal'
 DEFAULT_ATTEMPTS = 10
 #: what an attempt saved by a run of these settings stands for: raised when the system under
 #: test changes so that older attempts would not be the same experiment (3: the master told a
-#: rough region, the slave's floor-force verdict); --resume reuses only the same
-TABLE_FORMAT = 3
+#: rough region, the slave's floor-force verdict; 4: the master's search after a sim reset);
+#: --resume reuses only the same
+TABLE_FORMAT = 4
 #: the placements a table compares (the rig's 'given' pins a pose: for tests)
 TABLE_PLACEMENTS = ('optimal', 'random', 'random_fixed')
 THESIS = {5.0: (10, 7), 4.5: (10, 4), 4.375: (9, 2)}       # of 10: optimal, random
