@@ -13,6 +13,7 @@ import struct
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -26,11 +27,10 @@ from rosbags.interfaces import (
 )
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.rosbag2.errors import ReaderError, WriterError
-from rosbags.rosbag2.metadata import dump_qos_v9
 from rosbags.rosbag2.storage_mcap import decompress, get_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
-from ruamel.yaml import YAML
+from ruamel.yaml import YAML, YAMLError
 
 from .errors import BagError
 
@@ -139,6 +139,74 @@ def make_qos(*, reliable: bool, transient_local: bool, depth: int = 10,
                     else QosDurability.VOLATILE),
         deadline=_INFINITE, lifespan=_INFINITE, liveliness=QosLiveliness.AUTOMATIC,
         liveliness_lease_duration=_INFINITE, avoid_ros_namespace_conventions=False)
+
+
+# rosbag2 writes each QoS policy by its lower-case name (metadata version 9) or number (8)
+_QOS_POLICIES: tuple[tuple[str, type[Enum]], ...] = (
+    ('history', QosHistory), ('reliability', QosReliability), ('durability', QosDurability),
+    ('liveliness', QosLiveliness))
+_QOS_TIMES: tuple[str, ...] = ('deadline', 'lifespan', 'liveliness_lease_duration')
+
+
+def dump_offered_qos(profiles: Sequence[Qos]) -> list[dict[str, Any]]:
+    """Offered QoS profiles as rosbag2 writes them (metadata version 9) into metadata.yaml and an
+    MCAP channel's `offered_qos_profiles`: policies by lower-case name, durations as sec/nsec."""
+    def duration(t: QosTime) -> dict[str, int]:
+        return {'sec': t.sec, 'nsec': t.nsec}
+
+    return [{
+        'history': q.history.name.lower(),
+        'depth': q.depth,
+        'reliability': q.reliability.name.lower(),
+        'durability': q.durability.name.lower(),
+        'deadline': duration(q.deadline),
+        'lifespan': duration(q.lifespan),
+        'liveliness': q.liveliness.name.lower(),
+        'liveliness_lease_duration': duration(q.liveliness_lease_duration),
+        'avoid_ros_namespace_conventions': q.avoid_ros_namespace_conventions,
+    } for q in profiles]
+
+
+def parse_offered_qos(text: str) -> list[Qos]:
+    """The offered QoS profiles of rosbag2's YAML (an MCAP channel's `offered_qos_profiles`;
+    policies by name as version 9 writes them, or by number as version 8 did). '' gives [].
+    Raises BagError naming the first malformed entry."""
+    try:
+        entries = YAML(typ='safe').load(text) if text.strip() else []
+    except YAMLError as exc:
+        raise BagError(f'offered_qos_profiles is not YAML: {exc}') from None
+    if entries is None:
+        return []
+    if not isinstance(entries, list):
+        raise BagError(f'offered_qos_profiles is not a list: {entries!r}')
+    return [_qos_from_entry(i, e) for i, e in enumerate(entries)]
+
+
+def _qos_from_entry(index: int, entry: Any) -> Qos:
+    where = f'offered_qos_profiles[{index}]'
+    if not isinstance(entry, dict):
+        raise BagError(f'{where} is not a mapping: {entry!r}')
+    try:
+        policies: dict[str, Any] = {}
+        for key, enum in _QOS_POLICIES:
+            value = entry[key]
+            try:
+                policies[key] = (enum(value) if isinstance(value, int)
+                                 else enum[str(value).upper()])
+            except (KeyError, ValueError):
+                raise BagError(f'{where}.{key}: {value!r} is not one of '
+                               f'{[m.name.lower() for m in enum]}') from None
+        times = {key: QosTime(int(entry[key]['sec']), int(entry[key]['nsec']))
+                 for key in _QOS_TIMES}
+        avoid = entry['avoid_ros_namespace_conventions']
+        if not isinstance(avoid, bool):
+            raise BagError(f'{where}.avoid_ros_namespace_conventions: {avoid!r} is not a bool')
+        return Qos(depth=int(entry['depth']), avoid_ros_namespace_conventions=avoid,
+                   **policies, **times)
+    except KeyError as exc:
+        raise BagError(f'{where} has no {exc.args[0]!r}') from None
+    except (TypeError, ValueError) as exc:
+        raise BagError(f'{where} is malformed: {exc}') from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -348,7 +416,7 @@ class BagWriter:
             'topics_with_message_count': [{
                 'topic_metadata': {
                     'name': s.name, 'type': s.msgtype, 'serialization_format': 'cdr',
-                    'offered_qos_profiles': dump_qos_v9(s.offered_qos),
+                    'offered_qos_profiles': dump_offered_qos(s.offered_qos),
                     'type_description_hash': s.type_hash,
                 },
                 'message_count': self.counts[s.name],
@@ -742,6 +810,6 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None, *, raw:
 __all__ = [
     'BagError', 'BagInfo', 'BagMessage', 'BagNotFoundError', 'BagWriter', 'DamagedBagError',
     'DamagedBagWarning', 'TopicInfo', 'TopicSpec', 'UnknownTypeError', 'WriterError',
-    'bag_info', 'ensure_type', 'make_qos', 'make_typestore', 'read_messages',
-    'register_package_msgs',
+    'bag_info', 'dump_offered_qos', 'ensure_type', 'make_qos', 'make_typestore',
+    'parse_offered_qos', 'read_messages', 'register_package_msgs',
 ]

@@ -10,6 +10,14 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as Time
 from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
@@ -22,8 +30,10 @@ from rover_bag.bagio import (
     DamagedBagWarning,
     UnknownTypeError,
     bag_info,
+    dump_offered_qos,
     make_qos,
     make_typestore,
+    parse_offered_qos,
     read_messages,
 )
 
@@ -32,6 +42,9 @@ IMU = 'sensor_msgs/msg/Imu'
 STR = 'std_msgs/msg/String'
 SENSOR = [make_qos(reliable=False, transient_local=False, depth=5)]
 LATCHED = [make_qos(reliable=True, transient_local=True, depth=1)]
+#: every policy off its usual value
+ODD_QOS = Qos(QosHistory.KEEP_ALL, 0, QosReliability.BEST_AVAILABLE, QosDurability.SYSTEM_DEFAULT,
+              QosTime(1, 2), QosTime(3, 4), QosLiveliness.MANUAL_BY_TOPIC, QosTime(5, 6), True)
 
 
 @pytest.fixture(scope='module')
@@ -110,6 +123,45 @@ def test_round_trip_deserialized_and_raw(ts, tmp_path):
     assert info.message_count == len(written)
     assert info.topics['/sim/truth'].offered_qos == LATCHED
     assert info.topics['/rover1/imu'].type_hash == ts.hash_rihs01(IMU)
+
+
+def test_offered_qos_in_rosbag2_format(ts, tmp_path):
+    """Offered QoS is written as rosbag2 (metadata version 9) writes it, and read back the same
+    from metadata.yaml (by rosbags' reader) and from the MCAP channels (recovery)."""
+    profiles = [*LATCHED, ODD_QOS]
+    entries = dump_offered_qos(profiles)
+    forever = {'sec': 9223372036, 'nsec': 854775807}
+    assert entries[0] == {
+        'history': 'keep_last', 'depth': 1, 'reliability': 'reliable',
+        'durability': 'transient_local', 'deadline': forever, 'lifespan': forever,
+        'liveliness': 'automatic', 'liveliness_lease_duration': forever,
+        'avoid_ros_namespace_conventions': False}
+    assert entries[1]['reliability'] == 'best_available'
+    assert entries[1]['liveliness_lease_duration'] == {'sec': 5, 'nsec': 6}
+    text = '\n'.join(f'- {json.dumps(e)}' for e in entries)     # JSON is YAML
+    assert parse_offered_qos(text) == profiles
+    # metadata version 8 wrote the policies as numbers
+    v8 = ('- history: 1\n  depth: 5\n  reliability: 2\n  durability: 2\n'
+          '  deadline: {sec: 9223372036, nsec: 854775807}\n'
+          '  lifespan: {sec: 9223372036, nsec: 854775807}\n  liveliness: 1\n'
+          '  liveliness_lease_duration: {sec: 9223372036, nsec: 854775807}\n'
+          '  avoid_ros_namespace_conventions: false\n')
+    assert parse_offered_qos(v8) == SENSOR
+    assert parse_offered_qos('') == []
+    for bad, match in [('{a: [', 'not YAML'), ('history: 1', 'not a list'), ('- 3', 'mapping'),
+                       (v8.replace('  depth: 5\n', ''), "no 'depth'"),
+                       (v8.replace('history: 1', 'history: sometimes'), 'history'),
+                       (v8.replace('false', '"no"'), 'not a bool')]:
+        with pytest.raises(BagError, match=match):
+            parse_offered_qos(bad)
+    with BagWriter(tmp_path / 'q', typestore=ts) as bag:
+        bag.add_topic('/q', STR, offered_qos=profiles)
+        bag.write('/q', 1, ts.serialize_cdr(ts.types[STR]('q'), STR))
+    assert 'reliability: best_available\n' in (tmp_path / 'q' / 'metadata.yaml').read_text()
+    assert bag_info(tmp_path / 'q').topics['/q'].offered_qos == profiles
+    (tmp_path / 'q' / 'metadata.yaml').unlink()
+    info = bag_info(tmp_path / 'q')
+    assert info.recovered and info.topics['/q'].offered_qos == profiles
 
 
 def test_split_by_size_and_duration_one_bag(ts, tmp_path):
