@@ -8,15 +8,22 @@ No rclpy here: offline tools (identification, mapping, insertion experiments) re
 from __future__ import annotations
 
 import heapq
+import io
 import shutil
-import struct
 import warnings
+import zlib
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import IO, Any, NamedTuple
 
+import lz4.frame
+import zstandard
+from mcap.exceptions import EndOfFile, InvalidMagic, McapError
+from mcap.records import Channel as McapChannel
+from mcap.records import Chunk, Footer, McapRecord, Message, Schema
+from mcap.stream_reader import StreamReader
 from rosbags.interfaces import (
     Qos,
     QosDurability,
@@ -27,7 +34,6 @@ from rosbags.interfaces import (
 )
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.rosbag2.errors import ReaderError, WriterError
-from rosbags.rosbag2.storage_mcap import decompress, get_qos
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 from ruamel.yaml import YAML, YAMLError
@@ -500,89 +506,147 @@ class _Channel:
 
 @dataclass
 class _ScanResult:
+    """What the recovery read of one MCAP file found: its channels, its messages as
+    (t_ns, channel id, data) in file order, and the defects that stopped or marred the read."""
+
     channels: dict[int, _Channel] = field(default_factory=dict)
-    messages: list[tuple[int, int, bytes]] = field(default_factory=list)  # (t_ns, channel, data)
-    problem: str = ''
+    messages: list[tuple[int, int, bytes]] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
 
 
-def _scan_mcap(path: Path, *, want_data: bool = True) -> _ScanResult:
-    """Read an MCAP file record by record from the start, without its summary, stopping at the
-    first incomplete or corrupt record (a killed writer). Chunks are read whole or not at all."""
-    res = _ScanResult()
-    schemas: dict[int, tuple[str, str]] = {}
-    data = path.read_bytes()
-    size = len(data)
-    if data[:8] != _MCAP_MAGIC:
-        res.problem = f'{path.name}: not an MCAP file (bad magic)'
-        return res
+class _ExactReader(io.BufferedIOBase):
+    """Bytes for mcap's StreamReader handed out exactly as asked or not at all: a read past the
+    end raises mcap's EndOfFile, so a record cut off by the end of the data is never parsed from
+    a short read. `pos` counts the bytes handed out."""
 
-    def records(buf: bytes | memoryview, start: int, end: int) -> Iterator[tuple[int, int,
-                                                                               memoryview]]:
-        pos = start
-        view = memoryview(buf)
-        while pos < end:
-            if pos + 9 > end:
-                raise EOFError(pos)
-            op = view[pos]
-            (length,) = struct.unpack_from('<Q', view, pos + 1)
-            if pos + 9 + length > end:
-                raise EOFError(pos)
-            yield pos, op, view[pos + 9:pos + 9 + length]
-            pos += 9 + length
+    def __init__(self, raw: IO[bytes], size: int) -> None:
+        super().__init__()
+        self._raw = raw
+        self.size = size
+        self.pos = 0
 
-    def handle(op: int, rec: memoryview, offset: int) -> bool:
-        if op == 0x03:
-            sid, = struct.unpack_from('<H', rec, 0)
-            name, p = _read_str(rec, 2)
-            _enc, p = _read_str(rec, p)
-            text, p = _read_str(rec, p)
-            schemas[sid] = (name, text)
-        elif op == 0x04:
-            cid, sid = struct.unpack_from('<HH', rec, 0)
-            topic, p = _read_str(rec, 4)
-            _enc, p = _read_str(rec, p)
-            (mlen,) = struct.unpack_from('<I', rec, p)
-            meta = bytes(rec[p + 4:p + 4 + mlen])
-            name, text = schemas.get(sid, ('', ''))
-            res.channels[cid] = _Channel(topic, name, get_qos(meta), text)
-        elif op == 0x05:
-            cid, = struct.unpack_from('<H', rec, 0)
-            (log_time,) = struct.unpack_from('<Q', rec, 6)
-            res.messages.append((log_time, cid, bytes(rec[22:]) if want_data else b''))
-        elif op == 0x02:      # footer: the end
-            return False
+    def readable(self) -> bool:
         return True
 
+    def read(self, size: int | None = -1, /) -> bytes:
+        if size is None or size < 0:    # from a corrupt length field; would read everything
+            raise McapError(f'negative field length at byte {self.pos}')
+        if size > self.size - self.pos:
+            raise EndOfFile()
+        data = self._raw.read(size)
+        if len(data) != size:           # the file shrank while it was read
+            raise EndOfFile()
+        self.pos += size
+        return data
+
+
+class _ChunkError(Exception):
+    """A chunk whose records cannot be trusted (caught by the recovery read)."""
+
+
+def _chunk_records(chunk: Chunk) -> list[McapRecord]:
+    """All records of an MCAP chunk, or _ChunkError: the data decompressed, checked against the
+    chunk's uncompressed size and CRC (when its writer set one), and read by mcap's StreamReader
+    to exactly the chunk's end."""
     try:
-        for pos, op, rec in records(data, 8, size):
-            if op == 0x06:   # chunk: start, end, uncompressed size, crc, compression, data
-                _s, _e, usize, crc = struct.unpack_from('<QQQI', rec, 0)
-                compression, p = _read_str(rec, 28)
-                (csize,) = struct.unpack_from('<Q', rec, p)
-                try:
-                    raw = decompress(bytes(rec[p + 8:p + 8 + csize]), compression, usize, crc)
-                except ReaderError as exc:
-                    res.problem = f'{path.name}: corrupt chunk at byte {pos}: {exc}'
-                    break
-                for _p, op2, rec2 in records(raw, 0, len(raw)):
-                    handle(op2, rec2, pos)
-            elif not handle(op, rec, pos):
-                return res
-    except EOFError as exc:
-        lost = size - exc.args[0]
-        res.problem = (f'{path.name}: truncated at byte {exc.args[0]} of {size} (no MCAP footer; '
-                       f'{lost} trailing bytes unreadable)')
-        return res
-    except (struct.error, UnicodeDecodeError) as exc:
-        res.problem = f'{path.name}: corrupt record: {exc}'
-        return res
-    res.problem = f'{path.name}: truncated: no MCAP footer ({size} bytes)'
+        if chunk.compression == '':
+            raw = chunk.data
+        elif chunk.compression == 'zstd':
+            raw = zstandard.ZstdDecompressor().decompress(
+                chunk.data, max_output_size=chunk.uncompressed_size)
+        elif chunk.compression == 'lz4':
+            raw = lz4.frame.decompress(chunk.data)
+        else:
+            raise _ChunkError(f'unknown compression {chunk.compression!r}')
+    except (zstandard.ZstdError, RuntimeError) as exc:      # lz4 raises RuntimeError
+        raise _ChunkError(f'{chunk.compression} data do not decompress ({exc})') from None
+    if len(raw) != chunk.uncompressed_size:
+        raise _ChunkError(f'{len(raw)} bytes where the chunk says {chunk.uncompressed_size}')
+    if chunk.uncompressed_crc and zlib.crc32(raw) != chunk.uncompressed_crc:
+        raise _ChunkError('CRC mismatch')
+    records: list[McapRecord] = []
+    if not raw:
+        return records
+    stream = _ExactReader(io.BytesIO(raw), len(raw))
+    try:
+        for record in StreamReader(stream, skip_magic=True).records:
+            records.append(record)
+            if stream.pos == len(raw):
+                return records
+    except EndOfFile:
+        raise _ChunkError('a record runs past the end of the chunk') from None
+    except (McapError, ValueError) as exc:           # UnicodeDecodeError is a ValueError
+        raise _ChunkError(f'corrupt record ({exc})') from None
+    raise _ChunkError('a footer inside the chunk')
+
+
+def _scan_channel(name: str, record: McapChannel, schema: Schema | None,
+                  problems: list[str]) -> _Channel:
+    try:
+        qos = parse_offered_qos(record.metadata.get('offered_qos_profiles', ''))
+    except BagError as exc:
+        problems.append(f'{name}: topic {record.topic}: {exc}; its offered QoS is unknown')
+        qos = []
+    if schema is None:
+        return _Channel(record.topic, '', qos, '')
+    msgdef = schema.data.decode(errors='replace') if schema.encoding == 'ros2msg' else ''
+    return _Channel(record.topic, schema.name, qos, msgdef)
+
+
+def _scan_mcap(path: Path) -> _ScanResult:
+    """Recover what an MCAP file holds without its summary or index: mcap's StreamReader reads
+    it record by record from the start, and the read stops at the first record that is cut off
+    (a killed writer, no footer) or corrupt (a bad chunk), keeping every message before it. A
+    chunk's messages are kept only when the whole chunk is sound."""
+    res = _ScanResult()
+    schemas: dict[int, Schema] = {}
+
+    def take(record: McapRecord) -> None:
+        if isinstance(record, Message):
+            res.messages.append((record.log_time, record.channel_id, record.data))
+        elif isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, McapChannel) and record.id not in res.channels:
+            res.channels[record.id] = _scan_channel(path.name, record,
+                                                    schemas.get(record.schema_id), res.problems)
+
+    size = path.stat().st_size
+    done = 0                    # end of the last record read whole
+    footer = False
+    with path.open('rb') as fh:
+        stream = _ExactReader(fh, size)
+        try:
+            for record in StreamReader(stream, emit_chunks=True).records:
+                if isinstance(record, Chunk):
+                    try:
+                        inner = _chunk_records(record)
+                    except _ChunkError as exc:
+                        res.problems.append(f'{path.name}: corrupt chunk at byte {done}: {exc} '
+                                            f'({size - done} bytes from there unread)')
+                        return res
+                    for rec in inner:
+                        take(rec)
+                else:
+                    footer = isinstance(record, Footer)
+                    take(record)
+                done = stream.pos
+        except InvalidMagic:
+            res.problems.append(f'{path.name}: not an MCAP file (bad magic)')
+        except EndOfFile:
+            if footer:
+                what = 'after the MCAP footer (end magic cut off)'
+            elif done == 0:
+                what = f'at byte 0 of {size} (no complete MCAP header)'
+            elif done < size:
+                what = (f'at byte {done} of {size} (no MCAP footer; {size - done} trailing bytes '
+                        'unreadable)')
+            else:
+                what = f'between records: no MCAP footer ({size} bytes)'
+            res.problems.append(f'{path.name}: truncated {what}')
+        except (McapError, ValueError) as exc:
+            res.problems.append(f'{path.name}: corrupt record at byte {done}: {exc} '
+                                f'({size - done} bytes from there unread)')
     return res
-
-
-def _read_str(rec: memoryview, pos: int) -> tuple[str, int]:
-    (n,) = struct.unpack_from('<I', rec, pos)
-    return bytes(rec[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
 
 
 def _mcap_is_complete(path: Path) -> bool:
@@ -608,7 +672,7 @@ class _Source:
             if path.suffix != '.mcap':
                 raise BagError(f'{path}: not a bag directory or an .mcap file')
             self.files = [path]
-            self._scan_all(complete_ok=True)
+            self._scan_all()
             return
         meta = path / 'metadata.yaml'
         if meta.is_file():
@@ -643,13 +707,12 @@ class _Source:
                             key=_split_index)
         if not self.files:
             raise BagNotFoundError(f'{path}: no metadata.yaml and no .mcap file')
-        self._scan_all(complete_ok=False)
+        self._scan_all()
 
-    def _scan_all(self, *, complete_ok: bool) -> None:
+    def _scan_all(self) -> None:
         for f in self.files:
             scan = _scan_mcap(f)
-            if scan.problem:
-                self.problems.append(scan.problem)
+            self.problems.extend(scan.problems)
             self.scans.append(scan)
 
     def topics(self) -> dict[str, TopicInfo]:

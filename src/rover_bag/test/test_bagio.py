@@ -279,6 +279,35 @@ def test_truncated_file_yields_a_prefix(ts, tmp_path, seed):
         list(read_messages(tmp_path / 'bag', raw=True))
 
 
+@pytest.mark.parametrize('compression', ['none', 'zstd'])
+def test_bad_chunk_keeps_the_chunks_before_it(ts, tmp_path, compression):
+    """A chunk that fails its checks (zstd data that do not decompress, a CRC mismatch) ends the
+    recovery read of its file: every message of the chunks before it, none of the bad one."""
+    written = write_big(ts, tmp_path / 'bag', compression=compression)
+    (tmp_path / 'bag' / 'metadata.yaml').unlink()
+    f = tmp_path / 'bag' / 'bag_0.mcap'
+    with f.open('rb') as fh:
+        chunks = sorted(make_reader(fh).get_summary().chunk_indexes,
+                        key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 3
+    bad = chunks[2]
+    data = bytearray(f.read_bytes())
+    if compression == 'zstd':
+        mid = bad.chunk_start_offset + bad.chunk_length // 2
+        data[mid:mid + 64] = bytes(64)
+    else:   # the chunk's CRC of its records (rosbags leaves it 0: unset): after op, length, 3 u64
+        at = bad.chunk_start_offset + 1 + 8 + 3 * 8
+        data[at:at + 4] = (12345).to_bytes(4, 'little')
+    f.write_bytes(bytes(data))
+    got = []
+    with pytest.raises(DamagedBagError,
+                       match=f'bag_0.mcap: corrupt chunk at byte {bad.chunk_start_offset}: '):
+        for m in read_messages(tmp_path / 'bag', raw=True):
+            got.append((m.topic, m.t_ns, bytes(m.msg)))
+    kept = sum(1 for _topic, t, _data in written if t <= chunks[1].message_end_time)
+    assert 0 < kept < len(written) and got == written[:kept]
+
+
 def test_flush_then_kill_keeps_flushed_messages(ts, tmp_path):
     bag = BagWriter(tmp_path / 'bag', typestore=ts)
     bag.add_topic('/a', STR, offered_qos=SENSOR)
