@@ -32,8 +32,15 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
-from rosbags.rosbag2.errors import ReaderError, WriterError
+from rosbags.rosbag2 import (
+    CompressionFormat,
+    CompressionMode,
+    Reader,
+    ReaderError,
+    StoragePlugin,
+    Writer,
+    WriterError,
+)
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 from ruamel.yaml import YAML, YAMLError
@@ -42,7 +49,6 @@ from .errors import BagError
 
 #: Interface packages of this project whose .msg files are registered in every typestore.
 PROJECT_INTERFACE_PACKAGES: tuple[str, ...] = ('coop_msgs',)
-_MCAP_MAGIC = b'\x89MCAP0\r\n'
 #: MCAP chunk compression choices of BagWriter
 COMPRESSIONS: tuple[str, ...] = ('none', 'zstd')
 
@@ -649,23 +655,18 @@ def _scan_mcap(path: Path) -> _ScanResult:
     return res
 
 
-def _mcap_is_complete(path: Path) -> bool:
-    with path.open('rb') as f:
-        head = f.read(8)
-        if f.seek(0, 2) < 16:
-            return False
-        f.seek(-8, 2)
-        return head == _MCAP_MAGIC and f.read(8) == _MCAP_MAGIC
-
-
 class _Source:
-    """Where a bag's messages come from: rosbags' indexed Reader, or a scan of damaged files."""
+    """Where a bag's messages come from: rosbags' indexed Reader, or the recovery read of each
+    MCAP file (`_scan_mcap`) when the bag has no readable metadata.yaml or rosbags cannot open
+    it (a file without footer or summary)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self.problems: list[str] = []
         self.reader: Reader | None = None
         self.scans: list[_ScanResult] = []
+        self._last_t: int | None = None     # of the last message an indexed read yielded
+        indexed_error = ''
         if not path.exists():
             raise BagNotFoundError(f'bag {str(path)!r} does not exist')
         if path.is_file():
@@ -688,15 +689,14 @@ class _Source:
                 if missing:
                     raise BagNotFoundError(f'{path}: metadata.yaml names missing file(s) '
                                            f'{missing}')
-                if all(_mcap_is_complete(f) for f in self.files):
-                    reader = Reader(path)
-                    try:
-                        reader.open()
-                        self.reader = reader
-                        return
-                    except ReaderError as exc:
-                        self.problems.append(f'indexed read failed ({exc}); recovered from '
-                                             'the MCAP files')
+                reader = Reader(path)
+                try:
+                    reader.open()
+                except ReaderError as exc:
+                    indexed_error = str(exc)
+                else:
+                    self.reader = reader
+                    return
         else:
             self.problems.append(f'{path.name}: no metadata.yaml (recorder did not close the '
                                  'bag); recovered from the MCAP files')
@@ -708,6 +708,9 @@ class _Source:
         if not self.files:
             raise BagNotFoundError(f'{path}: no metadata.yaml and no .mcap file')
         self._scan_all()
+        if indexed_error and not self.problems:     # the files read whole: the index is at fault
+            self.problems.append(f'indexed read failed ({indexed_error}); recovered from the '
+                                 'MCAP files')
 
     def _scan_all(self) -> None:
         for f in self.files:
@@ -735,33 +738,48 @@ class _Source:
         return out
 
     def messages(self, topics: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
-
-        if self.reader is not None:
-            if len(self.files) == 1:
-                conns = [c for c in self.reader.connections
-                         if topics is None or c.topic in topics]
-                for c, t, data in self.reader.messages(connections=conns):
-                    yield c.topic, c.msgtype, t, data
-                return
-            # rosbags reads split files one after the other, but a recorder writes in arrival
-            # order, so a file may begin with messages older than the previous file's last
-            # (receive stamps taken on several threads): merge the files' streams by time
-            unzip = None
-            if self.reader.compression_mode == 'message':
-                from rosbags.rosbag2.storage_mcap import zstd  # noqa: PLC0415 - message-compressed bags only
-                unzip = zstd.decompress
-
-            def stream(file: Path) -> Iterator[tuple[int, str, str, bytes]]:
-                with Reader(file) as one:          # rosbags opens a lone storage file too
-                    conns = [c for c in one.connections if topics is None or c.topic in topics]
-                    if conns:
-                        for c, t, data in one.messages(connections=conns):
-                            yield t, c.topic, c.msgtype, data if unzip is None else unzip(data)
-            for t, topic, msgtype, data in heapq.merge(*map(stream, self.files),
-                                                      key=lambda m: m[0]):
-                yield topic, msgtype, t, data
+        if self.reader is None:
+            yield from self._recovered_messages(topics)
             return
+        # a chunk of a file with a sound index may still be unreadable: rosbags raises
+        # ReaderError, but lets the errors of its zstd and lz4 decompressors out as they are
+        try:
+            yield from self._indexed_messages(self.reader, topics)
+        except Exception as exc:  # noqa: BLE001 - see above; the messages before it stay
+            where = ('no message readable' if self._last_t is None
+                     else f'nothing readable after t={self._last_t} ns')
+            self.problems.append(f'{self.path.name}: {where} ({type(exc).__name__}: {exc})')
 
+    def _indexed_messages(self, reader: Reader, topics: set[str] | None
+                          ) -> Iterator[tuple[str, str, int, bytes]]:
+        if len(self.files) == 1:
+            conns = [c for c in reader.connections if topics is None or c.topic in topics]
+            for c, t, data in reader.messages(connections=conns):
+                self._last_t = t
+                yield c.topic, c.msgtype, t, data
+            return
+        # rosbags reads split files one after the other, but a recorder writes in arrival order,
+        # so a file may begin with messages older than the previous file's last (receive stamps
+        # taken on several threads): merge the files' streams by time. Each file is opened on its
+        # own, so a bag's message compression (a metadata.yaml setting) is undone here.
+        unzip = (zstandard.ZstdDecompressor() if reader.compression_mode == 'message'
+                 else None)
+
+        def stream(file: Path) -> Iterator[tuple[int, str, str, bytes]]:
+            with Reader(file) as one:          # rosbags opens a lone storage file too
+                conns = [c for c in one.connections if topics is None or c.topic in topics]
+                if conns:
+                    for c, t, data in one.messages(connections=conns):
+                        if unzip is not None:
+                            data = unzip.decompressobj().decompress(data)
+                        yield t, c.topic, c.msgtype, data
+        for t, topic, msgtype, data in heapq.merge(*map(stream, self.files),
+                                                  key=lambda m: m[0]):
+            self._last_t = t
+            yield topic, msgtype, t, data
+
+    def _recovered_messages(self, topics: set[str] | None
+                            ) -> Iterator[tuple[str, str, int, bytes]]:
         streams = []
         for scan in self.scans:
             chans = scan.channels

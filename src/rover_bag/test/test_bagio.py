@@ -18,7 +18,7 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as Time
 from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
 
@@ -201,6 +201,40 @@ def test_split_files_are_merged_in_time_order(ts, tmp_path):
         assert got == want
 
 
+def test_message_compressed_split_bag_is_merged_and_decompressed(ts, tmp_path):
+    """A bag of rosbag2's message compression (each message zstd-compressed, as metadata.yaml
+    says) split into two files whose times interleave: read merged, decompressed."""
+    from ruamel.yaml import YAML
+    yaml = YAML(typ='safe')
+    stamps = {0: [0, 20, 40], 1: [10, 30, 50]}
+    infos = []
+    for i, times in stamps.items():
+        w = Writer(tmp_path / f'm_{i}', version=9, storage_plugin=StoragePlugin.MCAP)
+        w.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+        with w:
+            c = w.add_connection('/s', STR, typestore=ts, offered_qos_profiles=SENSOR)
+            for t in times:
+                w.write(c, t, ts.serialize_cdr(ts.types[STR](f's{t}'), STR))
+        infos.append(yaml.load((tmp_path / f'm_{i}' / 'metadata.yaml').read_text())
+                     ['rosbag2_bagfile_information'])
+    bag = tmp_path / 'm'
+    bag.mkdir()
+    for i in stamps:
+        (tmp_path / f'm_{i}' / f'm_{i}.mcap').replace(bag / f'm_{i}.mcap')
+    info = infos[0]
+    assert info['compression_mode'].lower() == 'message'
+    info['relative_file_paths'] = ['m_0.mcap', 'm_1.mcap']
+    info['files'] = [{**f['files'][0], 'path': f'm_{i}.mcap'} for i, f in enumerate(infos)]
+    info['message_count'] = 6
+    info['topics_with_message_count'][0]['message_count'] = 6
+    info['duration'] = {'nanoseconds': 50}
+    with (bag / 'metadata.yaml').open('w') as out:
+        yaml.dump({'rosbag2_bagfile_information': info}, out)
+    got = [(m.t_ns, m.msg.data) for m in read_messages(bag, typestore=ts)]
+    assert got == [(t, f's{t}') for t in range(0, 60, 10)]
+    assert bag_info(bag).problems == []
+
+
 def test_foreign_readers_open_the_bag(ts, tmp_path):
     write_sample(ts, tmp_path / 'bag', max_bytes=30_000)
     with AnyReader([tmp_path / 'bag']) as reader:   # default typestore: types from the bag
@@ -281,10 +315,10 @@ def test_truncated_file_yields_a_prefix(ts, tmp_path, seed):
 
 @pytest.mark.parametrize('compression', ['none', 'zstd'])
 def test_bad_chunk_keeps_the_chunks_before_it(ts, tmp_path, compression):
-    """A chunk that fails its checks (zstd data that do not decompress, a CRC mismatch) ends the
-    recovery read of its file: every message of the chunks before it, none of the bad one."""
+    """A chunk that cannot be read (zstd data that do not decompress, a CRC mismatch) ends the
+    read of its file, through the index or recovered without metadata.yaml: every message of
+    the chunks before it is yielded, none of the bad one's."""
     written = write_big(ts, tmp_path / 'bag', compression=compression)
-    (tmp_path / 'bag' / 'metadata.yaml').unlink()
     f = tmp_path / 'bag' / 'bag_0.mcap'
     with f.open('rb') as fh:
         chunks = sorted(make_reader(fh).get_summary().chunk_indexes,
@@ -299,13 +333,39 @@ def test_bad_chunk_keeps_the_chunks_before_it(ts, tmp_path, compression):
         at = bad.chunk_start_offset + 1 + 8 + 3 * 8
         data[at:at + 4] = (12345).to_bytes(4, 'little')
     f.write_bytes(bytes(data))
-    got = []
-    with pytest.raises(DamagedBagError,
-                       match=f'bag_0.mcap: corrupt chunk at byte {bad.chunk_start_offset}: '):
+    kept = sum(1 for _topic, t, _data in written if t <= chunks[1].message_end_time)
+    assert 0 < kept < len(written)
+
+    def read(match: str) -> None:
+        got = []
+        with pytest.raises(DamagedBagError, match=match):
+            for m in read_messages(tmp_path / 'bag', raw=True):
+                got.append((m.topic, m.t_ns, bytes(m.msg)))
+        assert got == written[:kept]
+
+    assert bag_info(tmp_path / 'bag').problems == []    # the index is sound
+    read(f'bag: nothing readable after t={written[kept - 1][1]} ns')
+    (tmp_path / 'bag' / 'metadata.yaml').unlink()
+    read(f'bag_0.mcap: corrupt chunk at byte {bad.chunk_start_offset}: ')
+
+
+def test_broken_index_reads_every_message(ts, tmp_path):
+    """A file whose data are sound but whose summary rosbags cannot use is read whole by the
+    recovery read, and the failed indexed read is named."""
+    written = write_sample(ts, tmp_path / 'bag')
+    f = tmp_path / 'bag' / 'bag_0.mcap'
+    data = bytearray(f.read_bytes())
+    # the footer's summary start (end magic 8 bytes, before it summary crc 4, summary offset 8)
+    data[-28:-20] = (len(data) * 2).to_bytes(8, 'little')
+    f.write_bytes(bytes(data))
+    with pytest.raises(DamagedBagError, match=r'indexed read failed \(Invalid MCAP summary'):
+        got = []
         for m in read_messages(tmp_path / 'bag', raw=True):
             got.append((m.topic, m.t_ns, bytes(m.msg)))
-    kept = sum(1 for _topic, t, _data in written if t <= chunks[1].message_end_time)
-    assert 0 < kept < len(written) and got == written[:kept]
+    assert got == sorted(written, key=lambda w: w[1])
+    info = bag_info(tmp_path / 'bag')
+    assert info.recovered and len(info.problems) == 1
+    assert info.topics['/sim/truth'].offered_qos == LATCHED
 
 
 def test_flush_then_kill_keeps_flushed_messages(ts, tmp_path):
