@@ -3,7 +3,10 @@
 Bags are rosbag2 version 9 directories with MCAP storage, written through rosbags' `Writer`, so a
 full Jazzy install can `ros2 bag play` them and rosbags' AnyReader / the `mcap` package read them.
 No rclpy here: offline tools (identification, mapping, insertion experiments) read bags with
-`read_messages` as fast as the CPU allows.
+`read_messages` as fast as the CPU allows. A sound bag is read with rosbags' `Reader`; a damaged
+one (no metadata.yaml, a file without footer or summary) is recovered file by file with the `mcap`
+package's `StreamReader` (`_scan_mcap`). Either read stops at a chunk it cannot read and keeps
+every message before it.
 """
 from __future__ import annotations
 
@@ -495,7 +498,7 @@ class BagInfo:
     end_ns: int
     message_count: int
     problems: list[str]
-    recovered: bool     # read by scanning the MCAP files (metadata or index missing)
+    recovered: bool     # files recovered with mcap's StreamReader (no usable metadata/index)
 
     @property
     def duration_s(self) -> float:
