@@ -1,11 +1,22 @@
 # Source to work in the built workspace: the project venv, the colcon install space, and the
 # DDS settings every process of this project uses on one machine.
-# Usage: . tools/env.sh   (from the repository root)
+# Usage: . tools/env.sh   (from the repository root; on a ROS 2 Jazzy install, after
+# /opt/ros/jazzy/setup.bash)
+# The venv: $COOP_VENV if set (relative to the repository root unless absolute), else .venv
+# (make's pinned venv), else .venv-jazzy (the ROS 2 Jazzy install's, docs/install.md).
 _coop_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-export VIRTUAL_ENV="$_coop_root/.venv"
+_coop_venv=${COOP_VENV:-.venv}
+if [ -z "${COOP_VENV:-}" ] && [ ! -d "$_coop_root/.venv" ] && [ -d "$_coop_root/.venv-jazzy" ]; then
+  _coop_venv=.venv-jazzy
+fi
+case $_coop_venv in /*) ;; *) _coop_venv="$_coop_root/$_coop_venv" ;; esac
+export VIRTUAL_ENV="$_coop_venv"
 export PATH="$VIRTUAL_ENV/bin:$PATH"
-export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
-export CMAKE_PREFIX_PATH="$VIRTUAL_ENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
+# make's venv holds the ROS 2 Jazzy wheels, an ament prefix; a Jazzy install's venv does not
+if [ -d "$VIRTUAL_ENV/share/ament_index" ]; then
+  export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+  export CMAKE_PREFIX_PATH="$VIRTUAL_ENV${CMAKE_PREFIX_PATH:+:$CMAKE_PREFIX_PATH}"
+fi
 if [ -f "$_coop_root/install/setup.bash" ]; then
   # shellcheck disable=SC1091
   COLCON_CURRENT_PREFIX="$_coop_root/install" . "$_coop_root/install/setup.bash"
@@ -21,4 +32,4 @@ export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$_coop_
 # Two BLAS threads on two cores make small solves 5-20x slower (platform.md).
 export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 export MPLBACKEND=Agg
-unset _coop_root
+unset _coop_root _coop_venv
