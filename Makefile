@@ -7,8 +7,10 @@ VENV := $(ROOT)/.venv
 ENV := . $(ROOT)/tools/env.sh
 BUILD_INPUTS := $(shell find msg src -type f -not -path '*/__pycache__/*' -not -name '*.pyc' 2>/dev/null)
 PYTEST_ARGS ?=
-# the real ros2cli and launch (not on the package registries here): the workplace's copy
-ROS2_TOOLS_SRC ?= $(ROOT)/../shared/ros2-tools
+# `make ros2-tools`: the real ros2cli and launch for the pinned venv, which PyPI does not have,
+# from a ros2-tools bundle (a directory with an install.sh) that ROS2_TOOLS_SRC names; .ci/run
+# sets it. A ROS 2 Jazzy install has them already (docs/install.md).
+ROS2_TOOLS_SRC ?=
 
 .PHONY: all venv build demo test lint bench lock clean distclean ros2-tools
 
@@ -32,8 +34,9 @@ test: build
 	$(ENV) && python -m pytest -n 2 --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 
 ros2-tools: venv
-	@test -f $(ROS2_TOOLS_SRC)/install.sh || { echo "ros2-tools: no $(ROS2_TOOLS_SRC)/install.sh (set ROS2_TOOLS_SRC)" >&2; exit 1; }
-	set +u && $(ENV) && bash $(ROS2_TOOLS_SRC)/install.sh .ros2-tools
+	@test -n "$(ROS2_TOOLS_SRC)" || { echo "ros2-tools: set ROS2_TOOLS_SRC to a ros2-tools bundle (docs/install.md)" >&2; exit 1; }
+	@test -f "$(ROS2_TOOLS_SRC)/install.sh" || { echo "ros2-tools: no $(ROS2_TOOLS_SRC)/install.sh (ROS2_TOOLS_SRC)" >&2; exit 1; }
+	set +u && $(ENV) && bash "$(ROS2_TOOLS_SRC)/install.sh" .ros2-tools
 
 lint: venv
 	$(ENV) && ruff check .

@@ -41,16 +41,18 @@ def executable_path(package: str, executable: str) -> Path:
 
 
 def ros2_tools() -> str:
-    """The `ros2` command (a ROS 2 Jazzy install's, or ../shared/ros2-tools' in the venv) with
-    launch_ros beside it: its path. Without them a test skips with the reason, or fails when
-    COOP_REQUIRE_ROS2_TOOLS=1 (CI installs them and requires them)."""
+    """The `ros2` command (a ROS 2 Jazzy install's, or in the pinned venv the one `make
+    ros2-tools` installs from the bundle ROS2_TOOLS_SRC names) with launch_ros beside it: its
+    path. Without them a test skips with the reason, or fails when COOP_REQUIRE_ROS2_TOOLS=1
+    (CI installs them and requires them)."""
     import pytest  # noqa: PLC0415 - a test helper; the nodes never import this function
 
     exe = shutil.which('ros2')
     if exe and importlib.util.find_spec('launch_ros') is not None:
         return exe
-    why = ('no ros2 / launch_ros here: install ROS 2 Jazzy, or ../shared/ros2-tools/install.sh '
-           '.ros2-tools && . .ros2-tools/install/local_setup.bash')
+    why = ('no ros2 / launch_ros here: a ROS 2 Jazzy install has them (docs/install.md); in the '
+           'pinned venv, make ros2-tools ROS2_TOOLS_SRC=<ros2-tools bundle> && '
+           '. .ros2-tools/install/local_setup.bash')
     if os.environ.get('COOP_REQUIRE_ROS2_TOOLS') == '1':
         pytest.fail(f'COOP_REQUIRE_ROS2_TOOLS=1 but {why}')
     pytest.skip(why)
