@@ -1,7 +1,8 @@
 """Every command a README shows names something that exists: `ros2 run PKG EXE` an installed
 executable where ros2 run looks (and, with the real ros2cli, one that `ros2 pkg executables`
 lists), `ros2 launch PKG FILE` an installed launch file, `python -m MOD` a module, and
-`bench/*.py`, `tools/*.py`, `install/...` paths files. The READMEs are read at test time."""
+`bench/`, `tools/` (.py, .sh, .yaml, .txt) and `install/...` paths files. The READMEs are read
+at test time."""
 from __future__ import annotations
 
 import importlib.util
@@ -22,7 +23,7 @@ READMES = sorted({ROOT / 'README.md', ROOT / 'bags' / 'README.md',
 RUN = re.compile(r'ros2 run ([a-z_]+) ([\w.-]+)')
 LAUNCH = re.compile(r'ros2 launch ([a-z_]+) ([\w.-]+\.launch\.py)')
 MODULE = re.compile(r'python3? -m ([a-z_][\w.]*)')
-PATHS = re.compile(r'(?<![\w/.-])((?:bench|tools)/[\w-]+\.(?:py|sh)|install/[\w/-]+)')
+PATHS = re.compile(r'(?<![\w/.-])((?:bench|tools)/[\w-]+\.(?:py|sh|yaml|txt)|install/[\w/-]+)')
 
 
 def _commands(kind: re.Pattern) -> list[tuple[str, tuple[str, ...]]]:
