@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -73,6 +73,8 @@ ROUND_S = 0.01
 PARTICIPANTS = ('master', 'slave', 'insertion_rig')
 #: lockstep: the survey's frames are all in the map once it has not changed for this long (s)
 MAP_QUIET_S = 3.0
+#: lockstep: the longest wall time the survey waits for the stereo node to range one frame (s)
+FRAME_WAIT_S = 30.0
 #: the longest wall time the rig waits for one insert goal's result (s)
 RESULT_WALL_S = 4 * 3600.0
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
@@ -242,6 +244,8 @@ class _Client(Node):
         self.contact: list[tuple[float, bool, float]] = []
         self.recording = False
         self.map_voxels = 0
+        # the stamp of the last frame rover 1's stereo node ranged (its camera pose's)
+        self.ranged_t = -math.inf
         self.ls = Lockstep(self, lockstep)
         # lockstep: the rig holds the sim between the steps of an experiment
         self.pacer = Pacer(self.ls)
@@ -252,6 +256,8 @@ class _Client(Node):
         self.card: list[tuple[float, float, float]] = []
         self.ls.subscription(PoseStamped, 'sim/rover2/card_pose', self._on_card, SENSOR_QOS)
         self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, 'rover1/camera_pose',
+                                 self._on_ranged, LATCHED_QOS)
         self.reset = self.create_client(SimScenario, 'sim/reset')
         self.insert = ActionClient(self, Insert, 'insert')
         self.mast = self.ls.publisher(JointTrajectory, 'rover1/mast/command', COMMAND_QOS)
@@ -262,6 +268,9 @@ class _Client(Node):
             self.clock_wall = time.monotonic()
             self.elapsed += t - self.clock
         self.clock = t          # a reset starts the clock again from 0
+
+    def _on_ranged(self, m: PoseWithCovarianceStamped) -> None:
+        self.ranged_t = stamp_of(m)
 
     def _on_map(self, m: VoxelMap) -> None:
         self.map_voxels = int(sum(m.contributions))
@@ -312,6 +321,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         the slave and this rig (the extra processes' or nodes' that close loops); rough_site_m:
         the master's region (rough_site), its centre drawn per attempt."""
         self.seed = seed
+        self.stereo_rate_hz = stereo_rate_hz
         self.rough_site_m = rough_site_m
         self.lockstep = lockstep
         self.round_s = round_s
@@ -554,10 +564,30 @@ class InsertionRig(contextlib.AbstractContextManager):
 
     def survey(self, *, seconds: float = 20.0) -> int:
         """Rover 1 pans its mast over the site from its start so that the mapper builds the map
-        the view planner places the camera in. Returns the map's voxel count."""
+        the view planner places the camera in. Returns the map's voxel count. In lockstep the
+        sim steps one stereo frame at a time and is held until rover 1's stereo node has
+        ranged it (it and the mapper are not participants: a busy machine's stereo node would
+        drop the frames it is behind on, and the map, and the camera placed in it, differ)."""
         self.node.mast.publish(mast_sweep(seconds))
-        self.sim_sleep(seconds + 1.0)
-        return self.node.map_voxels
+        if not self.lockstep:
+            self.sim_sleep(seconds + 1.0)
+            return self.node.map_voxels
+        node, period = self.node, 1.0 / self.stereo_rate_hz
+        frames = math.ceil((seconds + 1.0) / period)
+        late = 0
+        for _ in range(frames):
+            self.sim_sleep(period)
+            # the last frame rendered is stamped within one period before the held clock
+            due = node.clock - period + 1e-6
+            try:
+                self._wait(lambda d=due: node.ranged_t >= d, FRAME_WAIT_S, held=True,
+                           what='the stereo node to range the survey frame')
+            except TimeoutError:
+                late += 1      # a frame the stereo node rejected: logged there
+        if late:
+            node.get_logger().warning(f'survey: {late} of {frames} frames not ranged within '
+                                      f'{FRAME_WAIT_S:g} s')
+        return node.map_voxels
 
     def stop_mapping(self) -> None:
         """End the stereo ranging into the map (the map keeps what it has): the site is
