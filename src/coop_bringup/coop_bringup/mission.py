@@ -45,7 +45,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from coop_common.cli import number
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.lockstep_node import Lockstep, remap_args
-from coop_common.node_util import stamp
+from coop_common.node_util import in_executor, stamp
 from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
@@ -501,14 +501,16 @@ class Mission:
         goal = Identify.Goal(strategy=cfg.identify_strategy, duration_s=cfg.identify_s)
         if cfg.lockstep:    # the round the rig holds the sim at: the goals are given there
             goal.stamp = stamp(self.rig.node.ls.stamp_s)
-        futs = {r: c.identify[r].send_goal_async(goal) for r in self.rovers}
+        ex = self.rig.ex
+        futs = {r: in_executor(ex, lambda r=r: c.identify[r].send_goal_async(goal))
+                for r in self.rovers}
         self._wait(lambda: all(f.done() for f in futs.values()), 30, 'the goals accepted',
                    run=False)
         handles = {r: f.result() for r, f in futs.items()}
         for r, h in handles.items():
             if not h.accepted:
                 raise MissionError(f'{r}: identify goal rejected')
-        res = {r: h.get_result_async() for r, h in handles.items()}
+        res = {r: in_executor(ex, h.get_result_async) for r, h in handles.items()}
         t0 = self._sim_t()
         self._wait(lambda: all(f.done() for f in res.values()), 120 + 40 * cfg.identify_s,
                    'the identification', tick=lambda: self.progress.update(

@@ -20,14 +20,15 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.exceptions import InvalidParameterValueException, ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.task import Future
 
 from .errors import CoopCommonError
 from .params import ParamSpec, check_values
 
 __all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'NodeFailed', 'run_node',
-           'run_nodes', 'stamp']
+           'run_nodes', 'stamp', 'in_executor']
 
 
 def stamp(t_s: float) -> Time:
@@ -35,6 +36,19 @@ def stamp(t_s: float) -> Time:
     whole second carries into sec rather than wrapping nanosec to 0)."""
     ns = int(round(t_s * 1e9))
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def in_executor(executor: Executor, call: Callable[[], Future]) -> Future:
+    """The result of `call()`, an rclpy request (an action client's send_goal_async,
+    get_result_async, cancel_goal_async), made in `executor`'s thread, as a future another
+    thread can wait on. Made from another thread while the executor spins, the request can be
+    answered and its answer taken by the executor before rclpy's action client has filed the
+    future for it: the answer is dropped and the future never completes (ros2/rclpy#1123,
+    fixed in later rclpy than this project's 7.1). In the executor's thread the request is
+    filed before the executor looks for its answer."""
+    async def request():
+        return await call()
+    return executor.create_task(request)
 
 
 def _descriptor(spec: ParamSpec) -> ParameterDescriptor:

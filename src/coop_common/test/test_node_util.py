@@ -283,3 +283,43 @@ def test_a_stop_signal_never_lands_inside_an_rclpy_task_being_built():
         node_util._STOP_SIGNALS.clear()
         node_util._STOP_REQUESTED.clear()
     assert not node_util._in_constructor(sys._getframe())
+
+
+def test_a_request_made_in_the_executor_completes_for_another_thread():
+    """in_executor makes the call in the spinning executor's thread (not the caller's) and hands
+    its result to a future the caller waits on."""
+    import threading
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.task import Future
+
+    from coop_common.node_util import in_executor
+    from coop_common.testing import isolate_ros_environment, wait_for
+    isolate_ros_environment()
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node('in_executor', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    spin = threading.Thread(target=ex.spin, daemon=True)
+    spin.start()
+    try:
+        answer, threads = Future(), []
+
+        def request() -> Future:
+            threads.append(threading.current_thread())
+            return answer
+        fut = in_executor(ex, request)
+        wait_for(lambda: threads, 5, what='the request made')
+        assert threads == [spin] and not fut.done()
+        # the answer comes in the executor's thread (as a response to the request does)
+        ex.create_task(lambda: answer.set_result('accepted'))
+        wait_for(fut.done, 5, what='the answer handed on')
+        assert fut.result() == 'accepted'
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+        spin.join(timeout=5)

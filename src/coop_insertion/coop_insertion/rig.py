@@ -32,6 +32,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import load_truth
 from coop_common.lockstep_node import Lockstep, Pacer, stamp_of
+from coop_common.node_util import in_executor
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, joint2_in_base
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
@@ -660,7 +661,8 @@ class InsertionRig(contextlib.AbstractContextManager):
             pos.x, pos.y = float(xy[0]), float(xy[1])
             q.x, q.y, q.z, q.w = (float(v) for v in optical_quaternion(yaw, pitch))
         w0 = time.monotonic()
-        fut = node.insert.send_goal_async(goal, feedback_callback=on_fb)
+        fut = in_executor(self.ex, lambda: node.insert.send_goal_async(
+            goal, feedback_callback=on_fb))
         # the master answers from an executor busy with 640x480 marker tracking: on a loaded
         # machine that took over 30 s of wall time
         self._wait(fut.done, 120, what="the insert goal's acceptance", held=True)
@@ -668,7 +670,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         if not handle.accepted:
             raise InsertionError('insert goal rejected')
         node.recording = True
-        res_fut = handle.get_result_async()
+        res_fut = in_executor(self.ex, handle.get_result_async)
         if self.lockstep:
             node.pacer.run()
         # the goal is bounded in sim time (the master's search and placement, the slave's
