@@ -15,14 +15,15 @@ import pytest
 SRC = Path(__file__).resolve().parents[2]
 PACKAGES = sorted(p.parent for p in SRC.glob('*/package.xml'))
 
-#: import name -> rosdep key (pip-only libraries as `python3-<name>-pip`, as rover_bag's file has)
+#: import name -> rosdep key (ros/rosdistro's, or tools/rosdep.yaml's where it has none:
+#: test/test_package_deps.py checks each key resolves)
 ROSDEP = {
     'numpy': 'python3-numpy',
     'scipy': 'python3-scipy',
     'cv2': 'python3-opencv',
     'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib',
-    'pybullet': 'python3-pybullet',
+    'pybullet': 'python3-pybullet-pip',
     'ruamel': 'python3-ruamel.yaml',
     'rosbags': 'python3-rosbags-pip',
     'mcap': 'python3-mcap-pip',
@@ -32,7 +33,9 @@ ROSDEP = {
     'foxglove': 'python3-foxglove-sdk-pip',
     'websockets': 'python3-websockets',
     'serial': 'python3-serial',
-    'cobs': 'python3-cobs-pip',
+    'cobs': 'python-cobs-pip',
+    'zstandard': 'python3-zstandard',
+    'lz4': 'python3-lz4',
 }
 #: ROS packages imported under their own name (client library, message and project packages)
 ROS_PACKAGES = {

@@ -549,7 +549,7 @@ class _ExactReader(io.BufferedIOBase):
         return data
 
 
-class _ChunkError(Exception):
+class _ChunkError(BagError):
     """A chunk whose records cannot be trusted (caught by the recovery read)."""
 
 
