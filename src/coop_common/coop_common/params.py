@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from enum import StrEnum
+from enum import Enum, StrEnum
 from typing import Any, TypeVar
 
 E = TypeVar('E', bound=StrEnum)
@@ -14,7 +14,10 @@ __all__ = ['ParamSpec', 'check_values', 'choice', 'markdown_table', 'parse_value
 
 
 class ParamSpec:
-    """One declared parameter: default, description, optional range/choices, read_only."""
+    """One declared parameter: default, description, optional range/choices, read_only.
+
+    `choices` may be an Enum's members: they are kept as their strings (a parameter is a
+    string on the wire), so a refusal names the allowed values as a user types them."""
 
     def __init__(self, default: Any, description: str, *, lo: float | None = None,
                  hi: float | None = None, choices: Sequence[str] | None = None,
@@ -22,7 +25,8 @@ class ParamSpec:
         self.default = default
         self.description = description
         self.lo, self.hi = lo, hi
-        self.choices = tuple(choices) if choices else None
+        self.choices = tuple(c.value if isinstance(c, Enum) else c
+                             for c in choices) if choices else None
         self.read_only = read_only
 
     def check(self, name: str, value: Any) -> str | None:

@@ -53,3 +53,21 @@ def test_markdown_table_shows_a_strenum_default_as_its_string():
 
     table = markdown_table({'mode': ParamSpec(Mode.FAST, 'how', choices=list(Mode))})
     assert "| `mode` | str | `'fast'` | `fast`, `slow` | yes | how |" in table
+
+
+def test_enum_choices_are_named_by_their_strings():
+    import enum
+    from enum import StrEnum
+
+    class Mode(StrEnum):
+        A = 'a'
+        B = 'b'
+
+    class Old(str, enum.Enum):          # str() of such a member is 'Old.X', not its value
+        X = 'x'
+
+    assert ParamSpec('a', 'how', choices=tuple(Mode)).choices == ('a', 'b')
+    assert ParamSpec('a', 'how', choices=tuple(Mode)).check('mode', 'c') == \
+        "mode must be one of ['a', 'b'], got 'c'"
+    assert ParamSpec('x', 'how', choices=list(Old)).choices == ('x',)
+    assert ParamSpec('a', 'how', choices=tuple(Mode)).check('mode', Mode.B) is None
