@@ -5,7 +5,16 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from enum import Enum
 from pathlib import Path
+
+
+def enum_choices(kind: type[Enum]) -> list[str]:
+    """The values of an Enum of string modes as argparse `choices`: an unknown value is a
+    usage error naming them as they are typed (given the members themselves, argparse names
+    their reprs, `<Strategy.CONSTANT: 'constant'>`). The option's value stays a string; the
+    core it goes to takes it as the member."""
+    return [m.value for m in kind]
 
 
 def number(kind: type = float, *, lo: float | None = None, hi: float | None = None,

@@ -3,7 +3,7 @@ import argparse
 
 import pytest
 
-from coop_common.cli import number, output_dir, output_path
+from coop_common.cli import enum_choices, number, output_dir, output_path
 
 
 def test_number_is_finite_typed_and_in_range():
@@ -39,3 +39,18 @@ def test_figure_path_names_a_format_it_can_write(tmp_path):
     for bad in ('a.xyz', 'a', str(tmp_path)):
         with pytest.raises(argparse.ArgumentTypeError):
             figure_path(bad)
+
+
+def test_enum_choices_name_the_values_as_typed(capsys):
+    from enum import StrEnum
+
+    class Mode(StrEnum):
+        FAST = 'fast'
+        SLOW = 'slow'
+
+    ap = argparse.ArgumentParser(prog='x')
+    ap.add_argument('--mode', choices=enum_choices(Mode), default=Mode.FAST.value)
+    assert ap.parse_args(['--mode', 'slow']).mode == 'slow'
+    with pytest.raises(SystemExit):
+        ap.parse_args(['--mode', 'warp'])
+    assert "invalid choice: 'warp' (choose from 'fast', 'slow')" in capsys.readouterr().err
