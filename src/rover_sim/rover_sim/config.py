@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
-import enum
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +62,7 @@ class NoiseConfig:
                                       # of the wheels' travel
 
 
-class Integrator(str, enum.Enum):
+class Integrator(StrEnum):
     """How the stiff base compliance and arm PD are integrated with the engine's step."""
 
     #: solved with the engine's mass matrix once per engine step (rover_sim.implicit): stable at
@@ -73,7 +73,7 @@ class Integrator(str, enum.Enum):
     EXPLICIT = 'explicit'
 
 
-class Renderer(str, enum.Enum):
+class Renderer(StrEnum):
     """Which of PyBullet's renderers draws the stereo pairs."""
 
     #: PyBullet's software rasteriser, in the simulator's own thread (every image validated on)
