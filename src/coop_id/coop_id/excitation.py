@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from enum import StrEnum
+from typing import Literal, assert_never, get_args
 
 import numpy as np
 
@@ -54,10 +55,26 @@ class ConditionMatrix(StrEnum):
 
 
 STRATEGIES = tuple(Strategy)
+#: the strategies with a cost to lower (`residuals`): every one but 'constant'
+COSTED_STRATEGIES = tuple(s for s in Strategy if s is not Strategy.CONSTANT)
+
+#: the arm joints a rotation mode of §2.2 may drive (ArmReference)
+ArmJoint = Literal['arm_joint_1', 'arm_joint_2']
+ARM_JOINTS: tuple[str, ...] = get_args(ArmJoint)
 
 
 class ExcitationError(CoopIdError):
     """Bad excitation arguments."""
+
+
+def costed_strategy(strategy: Strategy | str) -> Strategy:
+    """`strategy` as a member of COSTED_STRATEGIES; ExcitationError naming them otherwise
+    (an unknown name, or 'constant', which has no cost to lower)."""
+    if strategy in COSTED_STRATEGIES:
+        return Strategy(strategy)
+    why = " ('constant' never changes: nothing to cost)" if strategy == Strategy.CONSTANT else ''
+    raise ExcitationError(f'strategy must be one of {[m.value for m in COSTED_STRATEGIES]}, '
+                          f'got {strategy!r}{why}')
 
 
 @dataclass(frozen=True)
@@ -280,23 +297,26 @@ class CostContext:
                                        'condition_matrix', error=ExcitationError)
 
 
-def residuals(strategy: str, d: np.ndarray, predictor: WindowPredictor,
-              ctx: CostContext) -> np.ndarray:
+def residuals(d: np.ndarray, predictor: WindowPredictor, ctx: CostContext, *,
+              strategy: Strategy | str) -> np.ndarray:
     """R(d) of Eq. 2-14 for a strategy (V = 1/2 R^T R, Eq. 2-15)."""
-    return residuals_batch(strategy, np.asarray(d, dtype=float)[None], predictor, ctx)[0]
+    return residuals_batch(np.asarray(d, dtype=float)[None], predictor, ctx,
+                           strategy=strategy)[0]
 
 
-def residuals_batch(strategy: str, d: np.ndarray, predictor: WindowPredictor,
-                    ctx: CostContext) -> np.ndarray:
-    """R(d) of Eq. 2-14 for K candidates d (K, 3) at once: (K, len(R))."""
-    if strategy not in STRATEGIES or strategy == 'constant':
-        raise ExcitationError(f'unknown strategy {strategy!r} (one of {STRATEGIES[1:]})')
+def residuals_batch(d: np.ndarray, predictor: WindowPredictor, ctx: CostContext, *,
+                    strategy: Strategy | str) -> np.ndarray:
+    """R(d) of Eq. 2-14 for K candidates d (K, 3) at once: (K, len(R)). `strategy`: one of
+    COSTED_STRATEGIES (ExcitationError otherwise, as for an unknown ctx.condition_matrix)."""
+    strategy = costed_strategy(strategy)
+    condition_matrix = choice(ConditionMatrix, ctx.condition_matrix, 'condition_matrix',
+                              error=ExcitationError)
     rows = predictor.rows_batch(ctx.x, d)                    # (K, n, 6, 22)
     ncand, npar = rows.shape[0], rows.shape[-1]
     h = (rows * (ctx.scale / np.sqrt(ctx.row_var)[:, None])).reshape(ncand, -1, npar)
     j_new = ctx.info_scaled + predictor.weight * np.matmul(h.transpose(0, 2, 1), h)
     act = np.arange(npar) if ctx.active is None else np.flatnonzero(ctx.active)
-    if strategy == 'information':
+    if strategy is Strategy.INFORMATION:
         var = np.diagonal(np.linalg.inv(j_new), axis1=1, axis2=2)
         std = np.sqrt(np.clip(var, 0, None)) * ctx.scale
         shape = std.shape
@@ -309,24 +329,31 @@ def residuals_batch(strategy: str, d: np.ndarray, predictor: WindowPredictor,
             return np.sqrt(1.0 - u + u * u)
         return 1.0 - u
     j_act = j_new[:, act[:, None], act[None, :]]
-    if strategy == 'condition':
-        if ctx.condition_matrix == 'window':
-            j_act = np.matmul(h.transpose(0, 2, 1), h)[:, act[:, None], act[None, :]]
-        elif ctx.condition_matrix == 'unscaled':
-            j_act = j_act / np.outer(ctx.scale[act], ctx.scale[act])
-        elif ctx.condition_matrix != 'accumulated':
-            raise ExcitationError(f'unknown condition_matrix {ctx.condition_matrix!r}')
-        ev = np.maximum(np.linalg.eigvalsh(j_act), 1e-300)
-        return 0.5 * np.log10(ev[:, -1:] / ev[:, :1])
-    if strategy == 'd_optimal':
-        sign, logdet = np.linalg.slogdet(j_act)
-        return np.where(sign > 0, np.exp(-logdet / (2 * len(act))), 1e6)[:, None]
-    return np.sqrt(np.trace(np.linalg.inv(j_act), axis1=1, axis2=2))[:, None]   # a_optimal
+    match strategy:
+        case Strategy.CONDITION:
+            match condition_matrix:
+                case ConditionMatrix.WINDOW:
+                    j_act = np.matmul(h.transpose(0, 2, 1), h)[:, act[:, None], act[None, :]]
+                case ConditionMatrix.UNSCALED:
+                    j_act = j_act / np.outer(ctx.scale[act], ctx.scale[act])
+                case ConditionMatrix.ACCUMULATED:
+                    pass
+                case _:
+                    assert_never(condition_matrix)
+            ev = np.maximum(np.linalg.eigvalsh(j_act), 1e-300)
+            return 0.5 * np.log10(ev[:, -1:] / ev[:, :1])
+        case Strategy.D_OPTIMAL:
+            sign, logdet = np.linalg.slogdet(j_act)
+            return np.where(sign > 0, np.exp(-logdet / (2 * len(act))), 1e6)[:, None]
+        case Strategy.A_OPTIMAL:
+            return np.sqrt(np.trace(np.linalg.inv(j_act), axis1=1, axis2=2))[:, None]
+    # costed_strategy let nothing else through (information returned above)
+    raise AssertionError(f'strategy {strategy!r} has no cost')
 
 
-def optimise(strategy: str, current: Excitation, predictor: WindowPredictor, ctx: CostContext,
-             *, bounds: ExcitationBounds | None = None, iterations: int = 3,
-             starts: tuple[np.ndarray, ...] = (), fd_step: float = 0.02
+def optimise(current: Excitation, predictor: WindowPredictor, ctx: CostContext, *,
+             strategy: Strategy | str, bounds: ExcitationBounds | None = None,
+             iterations: int = 3, starts: tuple[np.ndarray, ...] = (), fd_step: float = 0.02
              ) -> tuple[Excitation, float]:
     """Levenberg-Marquardt (Eq. 2-16 .. 2-20) over d in unit box coordinates, from the best of
     the current d (warm start: last window's optimum) and optional extra starts; returns the
@@ -337,14 +364,16 @@ def optimise(strategy: str, current: Excitation, predictor: WindowPredictor, ctx
     line-search points alpha = 1, 1/2, 1/4 (Eq. 2-19) with the neighbours of the full step
     (the next iteration's Jacobian when the full step is taken, as it mostly is). The iterates
     are exactly those of the one-at-a-time algorithm; only the evaluations are grouped (3 numpy
-    passes instead of ~14 for 2 iterations)."""
-    if strategy == 'constant':
+    passes instead of ~14 for 2 iterations). 'constant' returns `current` and NaN; a name
+    that is not a Strategy is refused (ExcitationError naming them)."""
+    strategy = choice(Strategy, strategy, 'strategy', error=ExcitationError)
+    if strategy is Strategy.CONSTANT:
         return current, float('nan')
     bounds = bounds or ExcitationBounds()
 
     def costs(us: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        r = residuals_batch(strategy, bounds.feasible_batch(bounds.from_unit(np.stack(us))),
-                            predictor, ctx)
+        r = residuals_batch(bounds.feasible_batch(bounds.from_unit(np.stack(us))), predictor,
+                            ctx, strategy=strategy)
         return 0.5 * np.einsum('kr,kr->k', r, r), r
 
     def neighbours(u: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
@@ -399,9 +428,13 @@ class ArmReference:
     and acceleration continuous) no faster than `speed_rad_s`. A step makes an effort-limited
     joint controller whip the arm at tens of rad/s: base loads of ~100 N for a few ms, far
     outside the small-motion model of Eq. 2-1 (and outside what a simulated or real F/T sensor
-    resolves)."""
+    resolves). A mode driving a joint that is not one of ARM_JOINTS is refused
+    (ExcitationError)."""
 
     def __init__(self, modes, *, speed_rad_s: float = 1.5, min_blend_s: float = 0.2) -> None:
+        bad = [m[0] for m in modes if m[0] not in ARM_JOINTS]
+        if bad:
+            raise ExcitationError(f'a mode drives one of {list(ARM_JOINTS)}, got {bad}')
         self.modes = modes
         self.speed, self.min_blend = speed_rad_s, min_blend_s
         self._key = None
@@ -416,9 +449,12 @@ class ArmReference:
 
         def ref(t: float) -> tuple[np.ndarray, np.ndarray]:
             f, fd, _ = exc(t - t0)
-            if joint == 'arm_joint_1':
-                return np.array([float(f), 0.0]), np.array([float(fd), 0.0])
-            return np.array([hold1, float(f)]), np.array([0.0, float(fd)])
+            match joint:
+                case 'arm_joint_1':
+                    return np.array([float(f), 0.0]), np.array([float(fd), 0.0])
+                case 'arm_joint_2':
+                    return np.array([hold1, float(f)]), np.array([0.0, float(fd)])
+            raise AssertionError(f'joint {joint!r} passed the constructor')
         return ref
 
     def update(self, now: float, mode: int, exc: Excitation, exc_t0: float,

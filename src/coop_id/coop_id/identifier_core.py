@@ -486,7 +486,7 @@ class Identifier:
         if self.cfg.drift_per_s > 0:
             self._predict()
         self.report = self._make_report()
-        if optimise_excitation and self.cfg.strategy != 'constant' and \
+        if optimise_excitation and self.cfg.strategy is not Strategy.CONSTANT and \
                 np.all(np.isfinite(self.row_var)):
             self.excitation = self._reoptimise()
         return self.report
@@ -509,7 +509,7 @@ class Identifier:
                           condition_matrix=self.cfg.condition_matrix)
         self._start_k += 1
         starts = tuple(_start_grid(self._start_k + i) for i in range(self.cfg.extra_starts))
-        exc, _ = optimise(self.cfg.strategy, self.excitation, self.predictor, ctx,
+        exc, _ = optimise(self.excitation, self.predictor, ctx, strategy=self.cfg.strategy,
                           bounds=self.bounds, iterations=self.cfg.lm_iterations, starts=starts)
         return exc
 

@@ -54,8 +54,8 @@ def test_optimiser_never_worsens_the_cost(strategy):
     pred = WindowPredictor(arm=ArmModel(), times=np.arange(20) * 0.02)
     ctx = _ctx()
     start = constant_excitation()
-    r0 = residuals(strategy, start.d, pred, ctx)
-    exc, v = optimise(strategy, start, pred, ctx, iterations=2)
+    r0 = residuals(start.d, pred, ctx, strategy=strategy)
+    exc, v = optimise(start, pred, ctx, strategy=strategy, iterations=2)
     assert v <= 0.5 * float(r0 @ r0) + 1e-12
     b = ExcitationBounds()
     np.testing.assert_allclose(b.feasible(exc.d), exc.d)
@@ -64,7 +64,30 @@ def test_optimiser_never_worsens_the_cost(strategy):
 def test_unknown_strategy_rejected():
     pred = WindowPredictor(arm=ArmModel(), times=np.arange(4) * 0.02)
     with pytest.raises(ExcitationError):
-        residuals('random', np.array([0.3, 2.0, 0.0]), pred, _ctx())
+        residuals(np.array([0.3, 2.0, 0.0]), pred, _ctx(), strategy='random')
+
+
+def test_unknown_modes_are_refused_naming_the_allowed_values():
+    from coop_id.excitation import ArmReference, residuals_batch
+    pred = WindowPredictor(arm=ArmModel(), times=np.arange(4) * 0.02)
+    d = np.array([[0.3, 2.0, 0.0]])
+    allowed = r"\['information', 'condition', 'd_optimal', 'a_optimal'\]"
+    for bad in ('random', 'constant'):      # constant has no cost: refused, not A-optimal
+        with pytest.raises(ExcitationError, match=f'strategy must be one of {allowed}'):
+            residuals_batch(d, pred, _ctx(), strategy=bad)
+    with pytest.raises(ExcitationError, match=r"strategy must be one of \['constant', "
+                       r"'information', 'condition', 'd_optimal', 'a_optimal'\], got 'shake'"):
+        optimise(constant_excitation(), pred, _ctx(), strategy='shake')
+    ctx = _ctx()
+    ctx.condition_matrix = 'eigen'
+    with pytest.raises(ExcitationError, match=r"condition_matrix must be one of "
+                       r"\['accumulated', 'window', 'unscaled'\], got 'eigen'"):
+        residuals_batch(d, pred, ctx, strategy='condition')
+    with pytest.raises(ExcitationError, match=r"\['arm_joint_1', 'arm_joint_2'\]"):
+        ArmReference((('arm_joint_3', 0.0, None),))
+    # 'constant' is a strategy of the optimiser: it keeps the excitation
+    same, v = optimise(constant_excitation(), pred, _ctx(), strategy='constant')
+    assert same == constant_excitation() and np.isnan(v)
 
 
 def test_arm_reference_never_steps_and_respects_the_blend_speed():
@@ -142,8 +165,8 @@ def test_batched_prediction_equals_one_candidate_at_a_time():
     for k in range(3):
         np.testing.assert_array_equal(batch[k], pred.rows(x, d[k]))
         for s in ('information', 'condition', 'd_optimal', 'a_optimal'):
-            np.testing.assert_allclose(residuals_batch(s, d, pred, ctx)[k],
-                                       residuals(s, d[k], pred, ctx), rtol=1e-12)
+            np.testing.assert_allclose(residuals_batch(d, pred, ctx, strategy=s)[k],
+                                       residuals(d[k], pred, ctx, strategy=s), rtol=1e-12)
 
 
 def _lm_one_at_a_time(strategy, current, pred, ctx, iterations, starts, fd_step=0.02):
@@ -151,7 +174,7 @@ def _lm_one_at_a_time(strategy, current, pred, ctx, iterations, starts, fd_step=
     b = ExcitationBounds()
 
     def cost(u):
-        r = residuals(strategy, b.feasible(b.from_unit(u)), pred, ctx)
+        r = residuals(b.feasible(b.from_unit(u)), pred, ctx, strategy=strategy)
         return 0.5 * float(r @ r), r
     best = None
     for d0 in (current.d, *starts):
@@ -192,7 +215,7 @@ def test_grouped_lm_takes_the_one_at_a_time_iterates(strategy):
         ctx.row_var = np.array([1, 1, 1, 0.1, 0.1, 0.1]) * 10.0 ** (trial - 1)
         cur = (constant_excitation(), Excitation(0.3, 5.0, 0.2), Excitation(0.1, 25.0, 0.5))[trial]
         starts = (np.array([0.6, 16.0, 0.5]),)
-        exc, v = optimise(strategy, cur, pred, ctx, iterations=3, starts=starts)
+        exc, v = optimise(cur, pred, ctx, strategy=strategy, iterations=3, starts=starts)
         d_ref, v_ref = _lm_one_at_a_time(strategy, cur, pred, ctx, 3, starts)
         np.testing.assert_allclose(exc.d, d_ref, rtol=1e-9)
         assert v == pytest.approx(v_ref, rel=1e-9)
@@ -206,11 +229,11 @@ def test_condition_matrix_readings():
     for m in ('accumulated', 'window', 'unscaled'):
         ctx = _ctx()
         ctx.condition_matrix = m
-        out[m] = residuals_batch('condition', d, pred, ctx)[:, 0]
+        out[m] = residuals_batch(d, pred, ctx, strategy='condition')[:, 0]
     # SI columns span 0.01 .. 3000: the unscaled matrix is orders of magnitude worse
     assert np.all(out['unscaled'] > out['accumulated'] + 2)
     assert np.all(np.isfinite(out['window']))
     ctx = _ctx()
     ctx.condition_matrix = 'eigen'
     with pytest.raises(ExcitationError):
-        residuals_batch('condition', d, pred, ctx)
+        residuals_batch(d, pred, ctx, strategy='condition')
