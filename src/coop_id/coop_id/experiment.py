@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from coop_common.cli import number, output_path
+from coop_common.cli import enum_choices, number, output_path
 from coop_common.dynparams import BaseParameters, load_truth
 from coop_common.files import write_json
 
-from .excitation import STRATEGIES, Excitation, constant_excitation
+from .excitation import Excitation, Strategy, constant_excitation
 from .identifier_core import Identifier, IdentifierConfig
 from .model import IDX, SensorNoise
 from .modelsim import ThesisRover, add_noise, noise_scales, stack_frames
@@ -25,7 +25,7 @@ from .modelsim import ThesisRover, add_noise, noise_scales, stack_frames
 
 @dataclass
 class RunResult:
-    strategy: str
+    strategy: Strategy
     seed: int
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))
     estimates: list[np.ndarray] = field(default_factory=list)   # consistent values per window
@@ -48,16 +48,16 @@ def reference_noise_scales(truth: BaseParameters, duration_s: float) -> dict[str
     return noise_scales(stack_frames(frames))
 
 
-def run_identification(truth: BaseParameters, *, strategy: str, seed: int, duration_s: float,
-                       noise: float, scales: dict[str, np.ndarray],
+def run_identification(truth: BaseParameters, *, strategy: Strategy | str, seed: int,
+                       duration_s: float, noise: float, scales: dict[str, np.ndarray],
                        config: IdentifierConfig | None = None,
                        mass_step: tuple[float, float] | None = None,
                        bias_compensation: bool = True) -> RunResult:
     """One identification run: the rover shakes its arm (all three modes, 18 rows per sample),
     the identifier absorbs noisy samples window by window and re-optimises the excitation.
-    mass_step=(t, dm): add dm kg to the base at time t (a rock picked up)."""
-    cfg = config or IdentifierConfig()
-    cfg.strategy = strategy
+    mass_step=(t, dm): add dm kg to the base at time t (a rock picked up). `config` is not
+    changed: the run's is a copy with `strategy` (IdentifierError for an unknown one)."""
+    cfg = replace(config or IdentifierConfig(), strategy=strategy)
     noise_model = None
     if bias_compensation and noise > 0:
         # the sensors' datasheet: uniform +-noise x scale has sigma noise x scale / sqrt(3)
@@ -73,7 +73,7 @@ def run_identification(truth: BaseParameters, *, strategy: str, seed: int, durat
         raise ValueError(f'duration {duration_s} s holds no {cfg.window_s} s identification '
                          'window')
     exc: Excitation = ident.excitation
-    out = RunResult(strategy, seed)
+    out = RunResult(cfg.strategy, seed)
     times = []
     prev = [rover.rest_frame()]
     for w in range(n_windows):
@@ -145,7 +145,7 @@ class StepTracking:
 
 def mass_step_tracking(truth: BaseParameters, *, seeds: list[int], config_factory,
                        step_s: float = 8.0, duration_s: float = 14.0, fraction: float = 0.2,
-                       noise: float = 0.1, strategy: str = 'information',
+                       noise: float = 0.1, strategy: Strategy | str = Strategy.INFORMATION,
                        scales: dict[str, np.ndarray] | None = None) -> list[StepTracking]:
     """The drift scenario of issue #3 item 5: the rover identifies itself, then at step_s
     (after convergence, so that an estimator that does not track visibly lags) picks up a rock
@@ -200,12 +200,13 @@ def format_tracking(runs: list[StepTracking], *, tol: float = 0.05, delay_s: flo
 
 
 def tracking_json(runs: list[StepTracking], *, drift_per_s: float,
-                  drift_parameters: tuple[str, ...], strategy: str, fraction: float,
+                  drift_parameters: tuple[str, ...], strategy: Strategy | str,
+                  fraction: float,
                   duration_s: float) -> dict:
     """The JSON of a mass-step run: the settings and each seed's series (what format_json
     prints from)."""
     return {'scenario': 'mass_step', 'drift_per_s': drift_per_s,
-            'drift_parameters': list(drift_parameters), 'strategy': strategy,
+            'drift_parameters': list(drift_parameters), 'strategy': str(strategy),
             'fraction': fraction, 'duration_s': duration_s,
             'step_s': runs[0].step_s, 'mass_before': runs[0].mass_before,
             'mass_after': runs[0].mass_after,
@@ -239,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
                     default=14.0)
     ap.add_argument('--fraction', type=number(float, lo=-1.0, lo_open=True, hi=10.0),
                     default=0.2, help='the mass step as a fraction of the mass')
-    ap.add_argument('--strategy', default='information', choices=STRATEGIES)
+    ap.add_argument('--strategy', default=Strategy.INFORMATION.value,
+                    choices=enum_choices(Strategy))
     ap.add_argument('--json', type=output_path, default=None,
                     help='write the result here (the printed table is made from it)')
     args = ap.parse_args(argv)

@@ -34,7 +34,7 @@ from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_msgs.action import Identify
 from coop_msgs.msg import DynamicParameters, Inclinometer
 
-from .excitation import STRATEGIES, ArmReference, Excitation
+from .excitation import STRATEGIES, ArmReference, Excitation, Strategy
 from .identifier_core import Identifier, IdentifierConfig
 from .offline import FT_FORCE_LIMIT_N, FT_TORQUE_LIMIT_NM, SYNC_TOLERANCE_S, sensor_noise
 from .pairing import QUEUE_S, SamplePairer, stamp_ns
@@ -50,8 +50,8 @@ TRAJECTORY_STEP_S = 0.01
 SAMPLE_QUEUE_S = 10.0
 
 SPECS = {
-    'strategy': ParamSpec('information', 'default excitation strategy (goal may override)',
-                          choices=STRATEGIES),
+    'strategy': ParamSpec(Strategy.INFORMATION.value, 'default excitation strategy (goal may '
+                          'override)', choices=STRATEGIES),
     'rate_hz': ParamSpec(200.0, 'sensor sample rate the filters are designed for',
                          lo=20.0, hi=2000.0, read_only=True),
     'window_s': ParamSpec(0.4, 'information / excitation re-optimisation period (§2.6.1)',
@@ -269,7 +269,7 @@ class IdentifierNode(Node):
         msg.observable = [bool(o) for o in rep.observable]
         msg.max_information_bits = float(self.ident.cfg.bits)
         msg.physically_consistent = bool(rep.consistent)
-        msg.strategy = self.ident.cfg.strategy
+        msg.strategy = self.ident.cfg.strategy.value
         exc = self.ident.excitation
         msg.excitation_amplitude_rad = float(exc.amplitude_rad)
         msg.excitation_frequency_rad_s = float(exc.frequency_rad_s)
@@ -358,9 +358,13 @@ class IdentifierNode(Node):
     # -- action --------------------------------------------------------------------------------
     def _on_goal(self, goal: Identify.Goal) -> GoalResponse:
         strategy = goal.strategy or self.p['strategy']
-        if strategy not in STRATEGIES or not (0 < goal.duration_s <= 3600):
-            self.get_logger().warn(f'rejected goal: strategy {goal.strategy!r}, '
-                                   f'duration {goal.duration_s}')
+        if strategy not in STRATEGIES:
+            self.get_logger().warn(f'rejected goal: strategy {goal.strategy!r} is not one of '
+                                   f'{[s.value for s in Strategy]}')
+            return GoalResponse.REJECT
+        if not (0 < goal.duration_s <= 3600):
+            self.get_logger().warn(f'rejected goal: duration {goal.duration_s} s is not in '
+                                   '(0, 3600]')
             return GoalResponse.REJECT
         if self._busy:
             self.get_logger().warn('rejected goal: an identification is running')
@@ -442,9 +446,11 @@ class IdentifierNode(Node):
         return result
 
 
-def identifier_config(p: dict, strategy: str) -> IdentifierConfig:
-    """The core's configuration from the node's parameters (`SPECS` names) and a strategy;
-    `{k: s.default for k, s in SPECS.items()}` gives the node's defaults (offline replays)."""
+def identifier_config(p: dict, strategy: Strategy | str) -> IdentifierConfig:
+    """The core's configuration from the node's parameters (`SPECS` names) and a strategy
+    (a goal's or the parameter's string: the config takes it as the Strategy, IdentifierError
+    naming them otherwise); `{k: s.default for k, s in SPECS.items()}` gives the node's
+    defaults (offline replays)."""
     return IdentifierConfig(
         strategy=strategy, rate_hz=p['rate_hz'], window_s=p['window_s'],
         decimation=p['decimation'], bits=p['information_bits'],

@@ -21,10 +21,15 @@ from rclpy.node import Node
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.lockstep_node import Lockstep, Pacer, remap_args
 from coop_common.node_util import stamp
+from coop_common.params import choice
 from coop_common.qos import LATCHED_QOS
 from coop_common.testing import NodeProcess, isolate_ros_environment
 from coop_msgs.action import Identify
 from coop_msgs.msg import DynamicParameters
+from rover_sim.config import Integrator
+
+from .errors import CoopIdError
+from .excitation import Strategy
 
 #: this client's node name (a lockstep participant), and rover_sim's lockstep round (s): 20 ms,
 #: half the round trips of 10 ms (the arm's commands lead their time by command_lead_s)
@@ -32,16 +37,20 @@ CLIENT = 'table_2_1_sim'
 ROUND_S = 0.02
 
 
-def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
+def run_sim_identification(*, duration_s: float, strategy: Strategy | str, noise: float,
                            settle_s: float = 3.0, timeout_s: float = 600.0,
                            domain_id: int | None = None, log_dir: Path | None = None,
-                           integrator: str = 'explicit', lockstep: bool = False) -> dict:
+                           integrator: Integrator | str = Integrator.EXPLICIT,
+                           lockstep: bool = False) -> dict:
     """domain_id: the ROS domain of the run (default: $COOP_SIM_DOMAIN_ID, else one from the
     pid); the processes started inherit it. log_dir: where the nodes' logs go (default: a new
     temporary directory). integrator: the simulator's (rover_sim `integrator` parameter).
     lockstep: the simulator steps no round before the identifier and this client have answered
     the last (docs/design.md), and the client holds it while the goal is sent: the same
-    estimate on an idle and on a busy machine."""
+    estimate on an idle and on a busy machine. An unknown strategy or integrator is refused
+    (CoopIdError naming the choices) before anything starts."""
+    strategy = choice(Strategy, strategy, 'strategy', error=CoopIdError)
+    integrator = choice(Integrator, integrator, 'integrator', error=CoopIdError)
     if domain_id is None:
         domain_id = int(os.environ.get('COOP_SIM_DOMAIN_ID', '0')) or None
     isolate_ros_environment(domain_id)
@@ -49,7 +58,7 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
         tempfile.mkdtemp(prefix='coop_id_sim_'))
     logs.mkdir(parents=True, exist_ok=True)
     sim_args = ['-p', 'rovers:=1', '-p', 'stereo_rate_hz:=0.0', '-p', f'noise_fraction:={noise}',
-                '-p', f'integrator:={integrator}']
+                '-p', f'integrator:={integrator.value}']
     ident_args = ['-r', '__ns:=/rover1']
     if lockstep:
         # as fast as the identifier answers: nothing else closes a loop on the simulator
@@ -87,7 +96,7 @@ def run_sim_identification(*, duration_s: float, strategy: str, noise: float,
                 t0 = time.monotonic()
                 spin_until(lambda: time.monotonic() - t0 >= settle_s, settle_s + 1, 'rest')
             # in lockstep the goal carries the round it is given in (the sim held there)
-            goal = Identify.Goal(strategy=strategy, duration_s=duration_s)
+            goal = Identify.Goal(strategy=strategy.value, duration_s=duration_s)
             if lockstep:
                 goal.stamp = stamp(pacer_ls.stamp_s)
             fut = client.send_goal_async(goal)

@@ -15,12 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from coop_common.cli import number, output_dir, output_path
+from coop_common.cli import enum_choices, number, output_dir, output_path
 from coop_common.dynparams import PARAM_LABELS, PARAM_NAMES, TruthFileError, load_truth
 from coop_common.files import save_figure, write_json
+from rover_sim.config import Integrator
 
 from . import offline
-from .excitation import STRATEGIES
+from .excitation import STRATEGIES, Strategy
 from .experiment import RunResult, reference_noise_scales, run_identification
 from .identifier_core import IdentifierConfig
 
@@ -209,7 +210,7 @@ _MODE_OPTIONS = {
 }
 
 
-def _strategies(text: str) -> list[str]:
+def _strategies(text: str) -> list[Strategy]:
     names = text.split(',')
     bad = [s for s in names if s not in STRATEGIES]
     if bad:
@@ -217,7 +218,7 @@ def _strategies(text: str) -> list[str]:
                                          f'{",".join(STRATEGIES)}')
     if len(set(names)) != len(names):
         raise argparse.ArgumentTypeError(f'a strategy is listed twice: {text}')
-    return names
+    return [Strategy(n) for n in names]
 
 
 def _existing(text: str) -> Path:
@@ -262,7 +263,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument('--sim', action='store_true',
                     help='identification end to end through rover_sim + identifier, one run '
                          'per listed strategy')
-    ap.add_argument('--integrator', choices=('explicit', 'implicit'), default='explicit',
+    ap.add_argument('--integrator', choices=enum_choices(Integrator),
+                    default=Integrator.EXPLICIT.value,
                     help="with --sim: the simulator's integrator (rover_sim parameter)")
     ap.add_argument('--lockstep', action='store_true',
                     help='with --sim: the simulator in lockstep with the identifier')
@@ -348,7 +350,7 @@ def _main_sim(args: argparse.Namespace) -> int:
 
     from .sim_mode import run_sim_identification  # noqa: PLC0415 - rclpy, only --sim
 
-    def run(strategy: str, busy: bool) -> dict:
+    def run(strategy: Strategy, busy: bool) -> dict:
         with busy_core(busy):
             return run_sim_identification(duration_s=args.duration, strategy=strategy,
                                           noise=args.noise, integrator=args.integrator,
@@ -441,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
     truth = truth_p.to_vector()
     scales = reference_noise_scales(truth_p, args.duration)
     strategies = args.strategies
-    runs: dict[str, list[RunResult]] = {s: [] for s in strategies}
+    runs: dict[Strategy, list[RunResult]] = {s: [] for s in strategies}
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     for s in strategies:
         for seed in seeds:

@@ -95,6 +95,8 @@ def test_a_duration_without_a_window_is_refused(scenario):
     (['--step', '13', '--duration', '14'], 'must come at least 2 s before the end'),
     (['--fraction', '-1'], '--fraction: -1.0 must be > -1.0'),
     (['--strategy', 'magic'], "invalid choice: 'magic'"),
+    (['--strategy', 'magic'], "(choose from 'constant', 'information', 'condition', "
+                              "'d_optimal', 'a_optimal')"),
     (['--duration', 'nan'], "'nan' is not finite"),
 ])
 def test_mass_step_cli_refuses_before_any_run(capsys, args, reason):

@@ -153,6 +153,8 @@ def test_bad_parameter_rejected(graph):
     assert not res[0].successful
     res = node.set_parameters([Parameter('strategy', value='magic')])
     assert not res[0].successful
+    assert res[0].reason == ("strategy must be one of ['constant', 'information', 'condition', "
+                             "'d_optimal', 'a_optimal'], got 'magic'")
 
 
 def test_a_goal_ends_when_the_sensors_fall_silent_or_time_jumps_back(graph):

@@ -90,6 +90,10 @@ def test_cli_rejects_bad_arguments(tmp_path):
     (['--first-seed', '-1'], '--first-seed: -1 must be >= 0'),
     (['--seeds', '1000000000'], '--seeds: 1000000000 must be <= 10000'),
     (['--strategies', 'constant,constant'], 'a strategy is listed twice'),
+    (['--strategies', 'shake'], "unknown strategies ['shake']; choose from constant,"
+                                'information,condition,d_optimal,a_optimal'),
+    (['--sim', '--integrator', 'rk4'], "invalid choice: 'rk4' (choose from 'implicit', "
+                                       "'explicit')"),
     (['--json', '{tmp}'], 'is a directory'),
     (['--plots', '{tmp}/f'], 'is not a directory'),
     (['--bag', '{tmp}/none'], 'does not exist'),
