@@ -42,6 +42,7 @@ KNOWN = {
     'coop_mapping.voxelmap.MapInputError': ValueError,
     'coop_mapping.voxelmap.ScanRejected': ValueError,
     'coop_mapping.voxelmap.MapFileError': RuntimeError,
+    'coop_viewplan.errors.OptionError': ValueError,
     'coop_viewplan.nbv.PlanningError': RuntimeError,
     'coop_viewplan.grid.MapError': ValueError,
     'coop_viewplan.grid.EmptyMapError': ValueError,

@@ -4,3 +4,8 @@ from __future__ import annotations
 
 class ViewplanError(Exception):
     """Root of every error a coop_viewplan core raises (each also keeps its builtin base)."""
+
+
+class OptionError(ViewplanError, ValueError):
+    """An option a core cannot take: a mode that is not one of its choices (the message names
+    them), or a setting out of its range."""

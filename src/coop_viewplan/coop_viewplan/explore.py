@@ -6,13 +6,24 @@ map it builds from the scans.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
+from typing import assert_never
 
 import numpy as np
 from scipy import ndimage
 
+from .errors import OptionError
 from .grid import OccupancyGrid
-from .nbv import CameraState, NbvConfig, NextBestViewPlanner, PlanningError, _disk, plan_cameras
+from .nbv import (
+    CameraState,
+    NbvConfig,
+    NextBestViewPlanner,
+    PlanningError,
+    StrategyName,
+    _disk,
+    plan_cameras,
+)
 from .raycast import cast
 
 
@@ -159,14 +170,29 @@ def png_world(path: str | Path, *, resolution: float = 1.0, seed: int = 0,
     return World(occ, resolution, start, Path(path).stem)
 
 
-def make_world(name: str, *, seed: int, resolution: float = 1.0) -> World:
-    if name == 'unstructured':
-        return unstructured_world(seed=seed, resolution=resolution)
-    if name == 'rooms':
-        return rooms_world(seed=seed, resolution=resolution)
+class WorldName(StrEnum):
+    """The generated worlds: Fig. 3-12's unstructured field, Fig. 3-19's rooms."""
+
+    UNSTRUCTURED = 'unstructured'
+    ROOMS = 'rooms'
+
+
+def make_world(name: WorldName | str | Path, *, seed: int, resolution: float = 1.0) -> World:
+    """A generated world by its WorldName, or a PNG world from an existing .png file;
+    OptionError naming both otherwise."""
+    if name in tuple(WorldName):
+        world = WorldName(name)
+        match world:
+            case WorldName.UNSTRUCTURED:
+                return unstructured_world(seed=seed, resolution=resolution)
+            case WorldName.ROOMS:
+                return rooms_world(seed=seed, resolution=resolution)
+            case _:
+                assert_never(world)
     if Path(name).suffix.lower() == '.png' and Path(name).is_file():
         return png_world(name, resolution=resolution, seed=seed)
-    raise ValueError(f'unknown world {name!r}: unstructured, rooms or an existing .png file')
+    raise OptionError(f'unknown world {str(name)!r}: one of {[w.value for w in WorldName]} or '
+                      'an existing .png file')
 
 
 def scan(world: World, grid: OccupancyGrid, planner: NextBestViewPlanner,
@@ -205,8 +231,8 @@ class Trace:
         return None
 
 
-def explore(world: World, *, strategy: str, n_cameras: int, config: NbvConfig, scans: int,
-            seed: int) -> Trace:
+def explore(world: World, *, strategy: StrategyName | str, n_cameras: int, config: NbvConfig,
+            scans: int, seed: int) -> Trace:
     """Map `world` with `n_cameras` cameras for `scans` scan steps (every camera scans once per
     step; distance is summed over cameras)."""
     rng = np.random.default_rng(seed)

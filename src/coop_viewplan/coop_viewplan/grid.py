@@ -9,11 +9,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import assert_never
 
 import numpy as np
 from scipy import ndimage
 
-from .errors import ViewplanError
+from coop_common.params import choice
+
+from .errors import OptionError, ViewplanError
 
 
 class MapError(ViewplanError, ValueError):
@@ -206,7 +209,7 @@ class FreeGray(StrEnum):
 FREE_GRAYS = tuple(FreeGray)
 
 
-def gray_estimate(grid: OccupancyGrid, *, free_gray: str = 'empty',
+def gray_estimate(grid: OccupancyGrid, *, free_gray: FreeGray | str = FreeGray.EMPTY,
                   iterations: int = 6, prior: float = 0.5) -> np.ndarray:
     """Gray values of NI (§3.2.4): known cells their occupancy, unknown ones the Markov-chain
     average of their neighbours (`markov_estimate`). free_gray 'empty': a known cell the map holds
@@ -214,15 +217,19 @@ def gray_estimate(grid: OccupancyGrid, *, free_gray: str = 'empty',
     thesis tabulates empty space in the field of view "as known, but with no contribution to the
     uncertainty model" (§3.3.2), and "if every point in the field of view is known and is empty
     then NI = 0" (§3.2.4); 'occupancy': the map's own probability (a log-odds map leaves 0.40
-    after one miss, whose -p log2 p = 0.53 outweighs an unknown cell's 0.5)."""
-    if free_gray == 'occupancy':
-        return markov_estimate(grid, iterations=iterations, prior=prior)
-    if free_gray != 'empty':
-        raise ValueError(f'free_gray must be one of {FREE_GRAYS}, got {free_gray!r}')
-    empty = grid.known & (grid.prob < 0.5)
-    gray = OccupancyGrid(np.where(empty, np.float32(0.0), grid.prob), grid.known,
-                         resolution=grid.resolution, origin=grid.origin)
-    return markov_estimate(gray, iterations=iterations, prior=prior)
+    after one miss, whose -p log2 p = 0.53 outweighs an unknown cell's 0.5). Another
+    free_gray is refused (OptionError naming the choices)."""
+    free_gray = choice(FreeGray, free_gray, 'free_gray', error=OptionError)
+    match free_gray:
+        case FreeGray.OCCUPANCY:
+            return markov_estimate(grid, iterations=iterations, prior=prior)
+        case FreeGray.EMPTY:
+            empty = grid.known & (grid.prob < 0.5)
+            gray = OccupancyGrid(np.where(empty, np.float32(0.0), grid.prob), grid.known,
+                                 resolution=grid.resolution, origin=grid.origin)
+            return markov_estimate(gray, iterations=iterations, prior=prior)
+        case _:
+            assert_never(free_gray)
 
 
 def obstacle_density(grid: OccupancyGrid, *, threshold: float = 0.5) -> float:
@@ -242,21 +249,27 @@ class OcclusionPrior(StrEnum):
 OCCLUSION_PRIORS = tuple(OcclusionPrior)
 
 
-def occlusion_estimate(grid: OccupancyGrid, *, prior: str = 'density', free_gray: str = 'empty',
-                       iterations: int = 6, gray: np.ndarray | None = None) -> np.ndarray:
+def occlusion_estimate(grid: OccupancyGrid, *,
+                       prior: OcclusionPrior | str = OcclusionPrior.DENSITY,
+                       free_gray: FreeGray | str = FreeGray.EMPTY, iterations: int = 6,
+                       gray: np.ndarray | None = None) -> np.ndarray:
     """Per-cell probability that a cell stops a ray, for the occlusion-aware expected view
     (`NbvConfig.unknown_occlusion = 'expected'`, beyond the thesis): known cells their occupancy
     (known free 0 under free_gray 'empty', as in NI's gray values), unknown ones the Markov-chain
     estimate. prior 'markov': the planner's gray estimate as it is (unknown space far from the
     map at 0.5); 'density': the same Markov chain started from the map's obstacle density
     (`obstacle_density`) instead of 0.5, so unknown space far from the map is as cluttered as
-    the known map. `gray`: the 'markov' estimate if already computed."""
-    if prior == 'markov':
-        est = gray if gray is not None else gray_estimate(grid, free_gray=free_gray,
-                                                          iterations=iterations)
-    elif prior == 'density':
-        est = gray_estimate(grid, free_gray=free_gray, iterations=iterations,
-                            prior=obstacle_density(grid))
-    else:
-        raise ValueError(f'occlusion prior must be one of {OCCLUSION_PRIORS}, got {prior!r}')
+    the known map. `gray`: the 'markov' estimate if already computed. Another prior or
+    free_gray is refused (OptionError naming the choices)."""
+    prior = choice(OcclusionPrior, prior, 'prior', error=OptionError)
+    free_gray = choice(FreeGray, free_gray, 'free_gray', error=OptionError)
+    match prior:
+        case OcclusionPrior.MARKOV:
+            est = gray if gray is not None else gray_estimate(grid, free_gray=free_gray,
+                                                              iterations=iterations)
+        case OcclusionPrior.DENSITY:
+            est = gray_estimate(grid, free_gray=free_gray, iterations=iterations,
+                                prior=obstacle_density(grid))
+        case _:
+            assert_never(prior)
     return np.asarray(est, np.float32)

@@ -62,7 +62,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol, assert_never
 
 import numpy as np
 from scipy import ndimage
@@ -71,7 +71,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from coop_common.params import choice
 
-from .errors import ViewplanError
+from .errors import OptionError, ViewplanError
 from .grid import (
     FreeGray,
     MapError,
@@ -158,14 +158,18 @@ def plogp(p: np.ndarray) -> np.ndarray:
 ENTROPY_WEIGHTS = tuple(EntropyWeight)
 
 
-def occupancy_weight(p: np.ndarray, kind: str = 'plogp') -> np.ndarray:
+def occupancy_weight(p: np.ndarray, *,
+                     weight: EntropyWeight | str = EntropyWeight.PLOGP) -> np.ndarray:
     """The weight of a cell of occupancy p in NI: 'plogp' (-p log2 p, §3.2.4 as written) or
-    'binary' (the binary occupancy entropy)."""
-    if kind == 'plogp':
-        return plogp(p)
-    if kind == 'binary':
-        return binary_entropy(p)
-    raise ValueError(f'entropy_weight must be one of {ENTROPY_WEIGHTS}, got {kind!r}')
+    'binary' (the binary occupancy entropy); another weight is refused (OptionError)."""
+    weight = choice(EntropyWeight, weight, 'entropy_weight', error=OptionError)
+    match weight:
+        case EntropyWeight.PLOGP:
+            return plogp(p)
+        case EntropyWeight.BINARY:
+            return binary_entropy(p)
+        case _:
+            assert_never(weight)
 
 
 def binary_entropy(p: np.ndarray) -> np.ndarray:
@@ -220,12 +224,15 @@ class NbvConfig:
                                                # of the decision's best NI (0: the thesis)
 
     def __post_init__(self) -> None:
+        """Every mode taken as its StrEnum member (OptionError naming the choices for any
+        other value), the ranges checked."""
         if not 0.5 <= self.occupied_p <= 1.0:
-            raise ValueError(f'occupied_p must be within [0.5, 1], got {self.occupied_p}')
+            raise OptionError(f'occupied_p must be within [0.5, 1], got {self.occupied_p}')
         if not 0.0 <= self.ni_floor < 1.0:
-            raise ValueError(f'ni_floor must be within [0, 1), got {self.ni_floor}')
+            raise OptionError(f'ni_floor must be within [0, 1), got {self.ni_floor}')
         for name, kind in self._CHOICES.items():
-            object.__setattr__(self, name, choice(kind, getattr(self, name), name))
+            object.__setattr__(self, name, choice(kind, getattr(self, name), name,
+                                                  error=OptionError))
 
     _CHOICES: ClassVar[dict[str, type[StrEnum]]] = {
         'entropy_weight': EntropyWeight, 'ni_measure': NiMeasure, 'free_gray': FreeGray,
@@ -295,7 +302,7 @@ class Decision:
     candidates: Candidates
     scores: ViewScores
     rating: np.ndarray
-    strategy: str
+    strategy: StrategyName
     extras: dict = field(default_factory=dict)
 
     @property
@@ -344,14 +351,15 @@ class InfoLookup:
 
     @classmethod
     def build(cls, grid: OccupancyGrid, estimate: np.ndarray, *, n_gray: int = 10,
-              claimed: np.ndarray | None = None, weight: str = 'plogp') -> InfoLookup:
+              claimed: np.ndarray | None = None,
+              weight: EntropyWeight | str = EntropyWeight.PLOGP) -> InfoLookup:
         if n_gray < 1:
             raise ValueError('n_gray must be >= 1')
         p = np.clip(estimate.reshape(-1).astype(np.float32), 0.0, 1.0)
         level = np.minimum((p * n_gray).astype(np.int16), n_gray - 1)
         unknown = ~grid.known.reshape(-1)
         # Weight by table over 1024 levels: exact to 1e-3 bits, 10x cheaper than logs.
-        table = occupancy_weight(np.linspace(0, 1, 1025), weight).astype(np.float32)
+        table = occupancy_weight(np.linspace(0, 1, 1025), weight=weight).astype(np.float32)
         h = table[np.rint(p * 1024).astype(np.int32)]
         if claimed is not None:
             h[np.asarray(claimed, bool).reshape(-1) & unknown] = 0.0
@@ -387,7 +395,8 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
                          n_gray: int = 10, n_shells: int = 8,
                          claimed: np.ndarray | None = None,
                          lookup: InfoLookup | None = None,
-                         weight: str = 'plogp', measure: str = 'histogram',
+                         weight: EntropyWeight | str = EntropyWeight.PLOGP,
+                         measure: NiMeasure | str = NiMeasure.HISTOGRAM,
                          visibility: np.ndarray | None = None,
                          transmission: np.ndarray | None = None) -> ViewScores:
     """NI of every cast pose (Eq. 3-12b with Eq. 3-13 q_k = f_k / N and the entropy weighting;
@@ -398,24 +407,27 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
     `visibility`: the probability each sample is seen (`expected_visibility`, unknown_occlusion
     'expected'), (M, R, S) or compact (the visible samples in np.nonzero order), or computed
     here from `transmission` (`raycast.transmission_table` of the per-cell stop
-    probabilities); the histogram counts become expected counts."""
+    probabilities); the histogram counts become expected counts. Another measure or weight is
+    refused (OptionError naming the choices)."""
     if n_shells < 1:
         raise ValueError('n_shells must be >= 1')
-    if measure not in NI_MEASURES:
-        raise ValueError(f'measure must be one of {NI_MEASURES}, got {measure!r}')
+    measure = choice(NiMeasure, measure, 'measure', error=OptionError)
     lk = lookup if lookup is not None else InfoLookup.build(grid, estimate, n_gray=n_gray,
                                                             claimed=claimed, weight=weight)
     tpl = casting.template
     m = casting.flat.shape[0]
     mi, ri, si = np.nonzero(casting.visible)
     cellv = casting.flat[mi, ri, si]
-    if measure == 'predictor5':
-        full = lk.code[np.maximum(casting.flat, 0)]
-        codes, n_levels = predictor5_codes(full, casting.visible, lk.n_gray)
-        code = codes[mi, ri, si]
-    else:
-        code = lk.code[cellv].astype(np.int64)
-        n_levels = lk.n_gray
+    match measure:
+        case NiMeasure.PREDICTOR5:
+            full = lk.code[np.maximum(casting.flat, 0)]
+            codes, n_levels = predictor5_codes(full, casting.visible, lk.n_gray)
+            code = codes[mi, ri, si]
+        case NiMeasure.HISTOGRAM:
+            code = lk.code[cellv].astype(np.int64)
+            n_levels = lk.n_gray
+        case _:
+            assert_never(measure)
     h = lk.entropy[cellv]
     w0 = tpl.weights[ri, si]
     if visibility is None and transmission is not None:
@@ -448,21 +460,22 @@ def expected_information(grid: OccupancyGrid, estimate: np.ndarray, casting: Cas
 
 
 def max_information(template: RayTemplate, *, n_gray: int = 10, n_shells: int = 8,
-                    weight: str = 'plogp') -> float:
+                    weight: EntropyWeight | str = EntropyWeight.PLOGP) -> float:
     """NI of a fully unknown, unobstructed view (p = 0.5 everywhere): the scale of K."""
     shell = np.minimum((template.ranges / template.depth_m * n_shells).astype(int), n_shells - 1)
     f = np.bincount(shell, weights=template.weights.sum(axis=0), minlength=n_shells)
     q = f / template.frustum_cells
     with np.errstate(divide='ignore', invalid='ignore'):
         h = float(np.where(q > 0, -q * np.log2(q), 0.0).sum())
-    return h * float(occupancy_weight(np.array([0.5]), weight)[0])
+    return h * float(occupancy_weight(np.array([0.5]), weight=weight)[0])
 
 
 def score_views(grid: OccupancyGrid, estimate: np.ndarray, positions: np.ndarray,
                 yaw: np.ndarray, pitch: np.ndarray | None, template: RayTemplate, *,
                 n_gray: int = 10, n_shells: int = 8, claimed: np.ndarray | None = None,
                 chunk_samples: int = 400_000, lookup: InfoLookup | None = None,
-                weight: str = 'plogp', measure: str = 'histogram',
+                weight: EntropyWeight | str = EntropyWeight.PLOGP,
+                measure: NiMeasure | str = NiMeasure.HISTOGRAM,
                 occlusion: np.ndarray | None = None) -> ViewScores:
     """Cast and score many poses in chunks of at most `chunk_samples` ray samples
     (`lookup` reuses the per-map tables across calls). `occlusion` (grid shape): per-cell
@@ -685,7 +698,7 @@ class PlanContext:
                          pitch[:, None]])
         d = configuration_distance(cur, new, self.config.alpha)
         path = self.reach[c[:, 0], c[:, 1]]
-        if self.config.distance_metric == 'path':
+        if self.config.distance_metric is DistanceMetric.PATH:
             # Eq. 3-11 with the translation measured along the collision-free path (ii).
             ang = configuration_distance(cur * np.r_[0, 0, 0, 1, 1], new * np.r_[0, 0, 0, 1, 1],
                                          self.config.alpha)
@@ -708,7 +721,7 @@ class PlanContext:
 class Strategy(Protocol):
     """One camera pose selection method of §3.3.1 (or the frontier baseline)."""
 
-    name: str
+    name: StrategyName
 
     def choose(self, ctx: PlanContext) -> Decision: ...
 
@@ -730,7 +743,7 @@ def _sample_cells(ctx: PlanContext) -> np.ndarray:
     return cells[np.r_[near, pick]]
 
 
-def _decide(ctx: PlanContext, name: str, cands: Candidates, key: np.ndarray,
+def _decide(ctx: PlanContext, name: StrategyName, cands: Candidates, key: np.ndarray,
             scores: ViewScores | None = None, rating: np.ndarray | None = None) -> Decision:
     if scores is None:
         scores = ctx.score(cands)
@@ -743,7 +756,7 @@ def _decide(ctx: PlanContext, name: str, cands: Candidates, key: np.ndarray,
 class RandomStrategy:
     """(i) the next pose is random within the known (free, reachable) environment."""
 
-    name = 'random'
+    name = StrategyName.RANDOM
 
     def choose(self, ctx: PlanContext) -> Decision:
         cells = ctx.reachable_cells()
@@ -761,7 +774,7 @@ class RasterStrategy:
     location the camera first sweeps n headings 2 pi / n apart (starting along the raster),
     one per scan, then moves on."""
 
-    name = 'raster'
+    name = StrategyName.RASTER
 
     def choose(self, ctx: PlanContext) -> Decision:
         n_h = int(ctx.config.raster_headings)
@@ -816,7 +829,7 @@ class MaxUnmappedStrategy:
     """(iii) the pose with the largest expected unmapped region, accounting for known
     occlusions."""
 
-    name = 'max_unmapped'
+    name = StrategyName.MAX_UNMAPPED
 
     def choose(self, ctx: PlanContext) -> Decision:
         cands = ctx.candidates_at(_sample_cells(ctx))
@@ -827,7 +840,7 @@ class MaxUnmappedStrategy:
 class MinMappedStrategy:
     """(iv) the pose that will see the smallest known (already mapped) region."""
 
-    name = 'min_mapped'
+    name = StrategyName.MIN_MAPPED
 
     def choose(self, ctx: PlanContext) -> Decision:
         cands = ctx.candidates_at(_sample_cells(ctx))
@@ -845,7 +858,7 @@ class MaxInformationStrategy:
     views worth hundredths of a bit, and exploration stalls. With no candidate above the floor
     (nothing informative anywhere) the plain argmax RF decides."""
 
-    name = 'max_information'
+    name = StrategyName.MAX_INFORMATION
 
     def choose(self, ctx: PlanContext) -> Decision:
         cands = ctx.candidates_at(_sample_cells(ctx))
@@ -864,7 +877,7 @@ class FrontierStrategy:
     """Nearest-frontier baseline (Yamauchi 1997): drive to the closest reachable free cell that
     borders unknown space and look at the unknown."""
 
-    name = 'frontier'
+    name = StrategyName.FRONTIER
 
     def choose(self, ctx: PlanContext) -> Decision:
         g = ctx.grid
@@ -901,13 +914,19 @@ class FrontierStrategy:
         return _decide(ctx, self.name, cands, np.zeros(len(cands)))
 
 
-def make_strategy(name: str) -> Strategy:
-    """The strategy called `name` (one of STRATEGIES); ValueError otherwise."""
-    table = {s.name: s for s in (RandomStrategy, RasterStrategy, MaxUnmappedStrategy,
-                                 MinMappedStrategy, MaxInformationStrategy, FrontierStrategy)}
-    if name not in table:
-        raise ValueError(f'unknown strategy {name!r}; one of {list(STRATEGIES)}')
-    return table[name]()
+#: the class of each StrategyName
+STRATEGY_CLASSES: dict[StrategyName, type[Strategy]] = {
+    s.name: s for s in (RandomStrategy, RasterStrategy, MaxUnmappedStrategy, MinMappedStrategy,
+                        MaxInformationStrategy, FrontierStrategy)}
+
+
+def make_strategy(name: StrategyName | str) -> Strategy:
+    """The strategy called `name` (a StrategyName or its string); OptionError naming them
+    otherwise."""
+    if name not in STRATEGY_CLASSES:
+        raise OptionError(f'unknown strategy {name!r}: strategy must be one of '
+                          f'{[s.value for s in StrategyName]}')
+    return STRATEGY_CLASSES[StrategyName(name)]()
 
 
 # ----------------------------------------------------------------------------- planner
@@ -949,11 +968,17 @@ class NextBestViewPlanner:
         """Constraints (i) and (ii) on the ground plane, per `config.reach_model` (see the
         module docstring)."""
         cfg = self.config
-        if cfg.reach_model == 'evidence':
-            return self._evidence_traversability(grid)
-        if cfg.reach_model != 'known':
-            raise ValueError(f"reach_model must be 'known' or 'evidence', got "
-                             f'{cfg.reach_model!r}')
+        match cfg.reach_model:
+            case ReachModel.EVIDENCE:
+                return self._evidence_traversability(grid)
+            case ReachModel.KNOWN:
+                return self._known_traversability(grid)
+            case _:
+                assert_never(cfg.reach_model)
+
+    def _known_traversability(self, grid: OccupancyGrid) -> Traversal:
+        """'known' model: a rover passes and stands only where the map knows it free."""
+        cfg = self.config
         if grid.ndim == 2:
             prob2, known2 = grid.prob, grid.known
         else:
@@ -1009,14 +1034,15 @@ class NextBestViewPlanner:
         return OccupancyGrid(np.where(free, 0.0, grid.prob), grid.known | free,
                              resolution=grid.resolution, origin=grid.origin)
 
-    def plan(self, grid: OccupancyGrid, camera: CameraState, *, strategy: str | Strategy,
+    def plan(self, grid: OccupancyGrid, camera: CameraState, *,
+             strategy: StrategyName | str | Strategy,
              rng: np.random.Generator, claimed: np.ndarray | None = None,
              estimate: np.ndarray | None = None,
              traversability: Traversal | None = None,
              free_footprint: bool = False,
              occlusion: np.ndarray | None = None) -> Decision:
         """Choose one camera's next view. Raises PlanningError when no admissible view exists
-        and ValueError for an unknown strategy.
+        and OptionError for an unknown strategy (a StrategyName's string, or a Strategy).
 
         free_footprint: the rover stands where the camera is, so its own footprint is free. With
         reach_model 'known' the unseen ground within one rover length of the camera counts as
@@ -1034,7 +1060,7 @@ class NextBestViewPlanner:
         if not np.all((cell >= 0) & (cell < np.array(trav.navigable.shape))):
             raise PlanningError('camera outside the map')
         if free_footprint:
-            if self.config.reach_model == 'known':
+            if self.config.reach_model is ReachModel.KNOWN:
                 if traversability is None:
                     trav = self.traversability(self._footprint_freed(grid, cell))
             else:
@@ -1052,7 +1078,7 @@ class NextBestViewPlanner:
                             iterations=self.config.markov_iterations) \
             if estimate is None else estimate
         occ = None
-        if self.config.unknown_occlusion == 'expected':
+        if self.config.unknown_occlusion is UnknownOcclusion.EXPECTED:
             occ = occlusion if occlusion is not None else self.occlusion_map(grid, gray=est)
         ctx = PlanContext(grid, est, self.template(grid), self.config, camera, nav, reach,
                           trav.collision_p, claimed, self.k_value(grid), rng,
@@ -1065,7 +1091,7 @@ class NextBestViewPlanner:
         with `config.occlusion_prior`; `gray`: the planner's gray estimate if at hand); None
         with 'none'."""
         cfg = self.config
-        if cfg.unknown_occlusion != 'expected':
+        if cfg.unknown_occlusion is UnknownOcclusion.NONE:
             return None
         return occlusion_estimate(grid, prior=cfg.occlusion_prior, free_gray=cfg.free_gray,
                                   iterations=cfg.markov_iterations, gray=gray)
@@ -1080,7 +1106,7 @@ class NextBestViewPlanner:
         casting = cast(grid, c.positions[i:i + 1], c.yaw[i:i + 1],
                        c.pitch[i:i + 1] if grid.ndim == 3 else None, self.template(grid))
         seen = casting.visible
-        if self.config.unknown_occlusion == 'expected':
+        if self.config.unknown_occlusion is UnknownOcclusion.EXPECTED:
             occ = occlusion if occlusion is not None else self.occlusion_map(grid)
             seen = expected_visibility(casting, occ) >= 0.5
         out = np.zeros(grid.prob.size, bool)
@@ -1089,7 +1115,8 @@ class NextBestViewPlanner:
 
 
 def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: list[CameraState],
-                 *, strategy: str, rng: np.random.Generator) -> list[Decision]:
+                 *, strategy: StrategyName | str | Strategy,
+                 rng: np.random.Generator) -> list[Decision]:
     """Several cameras on one shared map: each plans in turn, the cells the earlier cameras are
     expected to see are claimed so the later ones look elsewhere."""
     est = gray_estimate(grid, free_gray=planner.config.free_gray,
@@ -1106,7 +1133,8 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
     return out
 
 
-__all__ = ['STRATEGIES', 'UNKNOWN_OCCLUSIONS', 'Candidates', 'CameraState', 'Decision',
+__all__ = ['STRATEGIES', 'STRATEGY_CLASSES', 'UNKNOWN_OCCLUSIONS', 'Candidates', 'CameraState',
+           'Decision',
            'NbvConfig', 'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores',
            'binary_entropy', 'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
            'configuration_distance', 'expected_information', 'geodesic_distance',

@@ -59,9 +59,9 @@ def test_ni_premultiplier_is_minus_p_log_p_as_written():
     assert NbvConfig().entropy_weight == 'plogp'
     w = occupancy_weight(np.array([0.0, 1.0, 0.5, 0.25]))
     assert w.tolist() == pytest.approx([0, 0, 0.5, 0.5])
-    assert occupancy_weight(np.array([0.5]), 'binary')[0] == pytest.approx(1.0)
+    assert occupancy_weight(np.array([0.5]), weight='binary')[0] == pytest.approx(1.0)
     with pytest.raises(ValueError):
-        occupancy_weight(np.array([0.5]), 'shannon')
+        occupancy_weight(np.array([0.5]), weight='shannon')
 
 
 @pytest.mark.parametrize('weight', ['plogp', 'binary'])
@@ -332,3 +332,42 @@ def test_config_options_are_enums_checked_at_construction():
     assert (best.unknown_occlusion, best.distance_metric, best.k_rel, best.ni_floor,
             best.near_fraction) == ('expected', 'path', 0.8, 0.25, 0.5)
     assert NbvConfig.best_measured(k_rel=0.1).k_rel == 0.1
+
+
+def test_unknown_modes_are_refused_naming_the_allowed_values(tmp_path):
+    """Every mode of the cores is taken as its StrEnum member where it enters; any other value
+    is an OptionError (a ViewplanError and a ValueError) naming the choices, never a default
+    branch."""
+    from coop_viewplan.errors import OptionError, ViewplanError
+    from coop_viewplan.explore import make_world
+    from coop_viewplan.grid import gray_estimate, occlusion_estimate
+    from coop_viewplan.nbv import STRATEGY_CLASSES, StrategyName, expected_information
+
+    assert issubclass(OptionError, ViewplanError) and issubclass(OptionError, ValueError)
+    g = _known_free_grid(10)
+    t = make_template(ndim=2, fov_deg=60, depth_m=4.0, resolution=1.0, n_az=8)
+    cases = [
+        (lambda: occupancy_weight(np.array([0.5]), weight='shannon'),
+         r"entropy_weight must be one of \['plogp', 'binary'\], got 'shannon'"),
+        (lambda: gray_estimate(g, free_gray='zero'),
+         r"free_gray must be one of \['empty', 'occupancy'\], got 'zero'"),
+        (lambda: occlusion_estimate(g, prior='flat'),
+         r"prior must be one of \['markov', 'density'\], got 'flat'"),
+        (lambda: expected_information(g, g.prob, cast(g, np.array([[5.5, 5.5]]), np.zeros(1),
+                                                      None, t), measure='jpeg'),
+         r"measure must be one of \['histogram', 'predictor5'\], got 'jpeg'"),
+        (lambda: make_strategy('teleport'),
+         r"unknown strategy 'teleport': strategy must be one of \['random', 'raster', "
+         r"'max_unmapped', 'min_mapped', 'max_information', 'frontier'\]"),
+        (lambda: NbvConfig(distance_metric='manhattan'),
+         r"distance_metric must be one of \['configuration', 'path'\], got 'manhattan'"),
+        (lambda: make_world('mars', seed=0),
+         r"unknown world 'mars': one of \['unstructured', 'rooms'\] or an existing .png"),
+        (lambda: make_world(tmp_path / 'mars.png', seed=0), r"unknown world '.*mars.png'"),
+    ]
+    for call, message in cases:
+        with pytest.raises(OptionError, match=message):
+            call()
+    # every strategy name has its class, each named by its member
+    assert set(STRATEGY_CLASSES) == set(StrategyName)
+    assert all(make_strategy(s.value).name is s for s in StrategyName)
