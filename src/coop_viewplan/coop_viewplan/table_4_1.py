@@ -21,6 +21,7 @@ from .task_study import (
     METHODS,
     THESIS_TABLE_4_1,
     TOLERANCES,
+    Method,
     StudyConfig,
     rating_maps,
     run_study,
@@ -28,9 +29,9 @@ from .task_study import (
 
 DEFAULT_CLEAR_ZONE_M = StudyConfig().clear_zone_m
 
-LABEL = {'optimal_replacement': 'Optimal camera re-placement',
-         'random_replacement': 'Random camera re-placement',
-         'random_fixed': 'Random camera placement'}
+LABEL = {Method.OPTIMAL_REPLACEMENT: 'Optimal camera re-placement',
+         Method.RANDOM_REPLACEMENT: 'Random camera re-placement',
+         Method.RANDOM_FIXED: 'Random camera placement'}
 
 
 def _thesis(v: float) -> str:
@@ -79,10 +80,10 @@ def check(cells: list[dict]) -> dict:
            for c in cells}
     order_bad, near_bad = [], []
     for (tol, m, d, sec), v in idx.items():
-        if m != 'optimal_replacement':
+        if m != Method.OPTIMAL_REPLACEMENT:
             continue
-        rr = idx.get((tol, 'random_replacement', d, sec))
-        rf = idx.get((tol, 'random_fixed', d, sec))
+        rr = idx.get((tol, Method.RANDOM_REPLACEMENT, d, sec))
+        rf = idx.get((tol, Method.RANDOM_FIXED, d, sec))
         if rr is not None and rf is not None and not (v >= rr >= rf):
             order_bad.append({'tolerance': tol, 'density': d, 'secondary': sec,
                               'optimal': v, 'random_replacement': rr, 'random_fixed': rf})

@@ -29,6 +29,8 @@ re-drawn when the target is lost); biased random fixed placement (drawn once).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
+from typing import assert_never
 
 import numpy as np
 
@@ -50,21 +52,31 @@ from .placement import (
     occlusion_distance,
 )
 
-METHODS = ('optimal_replacement', 'random_replacement', 'random_fixed')
+
+class Method(StrEnum):
+    """How the camera is placed (Table 4-1's rows): Eq. 4-1 maximised at every step, a
+    biased random spot re-drawn when the target is lost, or one drawn once."""
+
+    OPTIMAL_REPLACEMENT = 'optimal_replacement'
+    RANDOM_REPLACEMENT = 'random_replacement'
+    RANDOM_FIXED = 'random_fixed'
+
+
+METHODS = tuple(Method)
 DENSITIES = (0.05, 0.20, 0.35)
 TOLERANCES = (0.20, 0.10, 0.01)
 
 #: Table 4-1 as printed (success %, "<<1" as 0.1); [tolerance][method][density][secondary].
 THESIS_TABLE_4_1 = {
-    0.20: {'optimal_replacement': [[100, 100], [76, 95], [13, 25]],
-           'random_replacement': [[51, 63], [18, 31], [5, 10]],
-           'random_fixed': [[45, 58], [16, 28], [5, 9]]},
-    0.10: {'optimal_replacement': [[99, 100], [63, 86], [10, 18]],
-           'random_replacement': [[30, 37], [11, 18], [3, 6]],
-           'random_fixed': [[23, 30], [8, 15], [3, 4]]},
-    0.01: {'optimal_replacement': [[97, 99], [30, 52], [3, 7]],
-           'random_replacement': [[3, 4], [1, 2], [0.1, 1]],
-           'random_fixed': [[1, 1], [0.1, 0.1], [0.1, 0.1]]},
+    0.20: {Method.OPTIMAL_REPLACEMENT: [[100, 100], [76, 95], [13, 25]],
+           Method.RANDOM_REPLACEMENT: [[51, 63], [18, 31], [5, 10]],
+           Method.RANDOM_FIXED: [[45, 58], [16, 28], [5, 9]]},
+    0.10: {Method.OPTIMAL_REPLACEMENT: [[99, 100], [63, 86], [10, 18]],
+           Method.RANDOM_REPLACEMENT: [[30, 37], [11, 18], [3, 6]],
+           Method.RANDOM_FIXED: [[23, 30], [8, 15], [3, 4]]},
+    0.01: {Method.OPTIMAL_REPLACEMENT: [[97, 99], [30, 52], [3, 7]],
+           Method.RANDOM_REPLACEMENT: [[3, 4], [1, 2], [0.1, 1]],
+           Method.RANDOM_FIXED: [[1, 1], [0.1, 0.1], [0.1, 0.1]]},
 }
 
 
@@ -213,7 +225,7 @@ def _sigma(cam: np.ndarray, t: Target, cfg: StudyConfig) -> float:
 
 
 def run_trial(seed: int, density: float, *, use_secondary: bool,
-              cfg: StudyConfig = StudyConfig()) -> dict[str, dict]:
+              cfg: StudyConfig = StudyConfig()) -> dict[Method, dict]:
     """One scenario, all three methods. Returns per method: whether guidance survived the
     approach ('tracked'), the final error (m) and the target used at the end."""
     rng = np.random.default_rng(seed)
@@ -228,7 +240,7 @@ def run_trial(seed: int, density: float, *, use_secondary: bool,
     out = {}
     for method in METHODS:
         # Both random methods draw the same first placement: they differ only in re-placing.
-        mrng = np.random.default_rng([seed, 0 if method == 'optimal_replacement' else 1])
+        mrng = np.random.default_rng([seed, 0 if method is Method.OPTIMAL_REPLACEMENT else 1])
         grid = OccupancyGrid(sc.grid.prob.copy(), sc.grid.known.copy(), sc.grid.resolution,
                              sc.grid.origin)
         obj = np.zeros((0, 2), np.int64)
@@ -241,28 +253,33 @@ def run_trial(seed: int, density: float, *, use_secondary: bool,
             hull = _object_hull(grid, obj, 0.0)
             fields = [_with_object(f, hull, t) for f, t in zip(static_fields, targets)]
             if cam is not None and grid.prob[tuple(grid.to_index(cam))] >= 0.5:
-                cam = None if method != 'random_fixed' else cam   # the object hit the camera
-                if method == 'random_fixed':
+                # the object hit the camera: a fixed one is lost, the others are placed anew
+                if method is Method.RANDOM_FIXED:
                     tracked = False
                     break
-            if method == 'optimal_replacement':
-                try:
-                    pl = placer.place(grid, targets[0], targets[1:], rng=mrng, fields=fields)
-                except PlacementError:
-                    tracked = False
-                    break
-                cam, watched = pl.position, pl.target_index
-            else:
-                seen = [] if cam is None else [i for i, (t, f) in enumerate(
-                    zip(targets, fields)) if _seen(cam, t, f, cfg)]
-                if not seen and (cam is None or method == 'random_replacement'):
-                    cam = _random_biased(grid, targets, fields, placer, mrng)
+                cam = None
+            match method:
+                case Method.OPTIMAL_REPLACEMENT:
+                    try:
+                        pl = placer.place(grid, targets[0], targets[1:], rng=mrng,
+                                          fields=fields)
+                    except PlacementError:
+                        tracked = False
+                        break
+                    cam, watched = pl.position, pl.target_index
+                case Method.RANDOM_REPLACEMENT | Method.RANDOM_FIXED:
                     seen = [] if cam is None else [i for i, (t, f) in enumerate(
                         zip(targets, fields)) if _seen(cam, t, f, cfg)]
-                if not seen:
-                    tracked = False
-                    break
-                watched = seen[0]
+                    if not seen and (cam is None or method is Method.RANDOM_REPLACEMENT):
+                        cam = _random_biased(grid, targets, fields, placer, mrng)
+                        seen = [] if cam is None else [i for i, (t, f) in enumerate(
+                            zip(targets, fields)) if _seen(cam, t, f, cfg)]
+                    if not seen:
+                        tracked = False
+                        break
+                    watched = seen[0]
+                case _:
+                    assert_never(method)
             if not _seen(cam, targets[watched], fields[watched], cfg):
                 tracked = False
                 break
