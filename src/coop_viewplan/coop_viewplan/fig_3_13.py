@@ -15,12 +15,22 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from coop_common.cli import number, output_dir, output_path
+from coop_common.cli import enum_choices, number, output_dir, output_path
 from coop_common.files import save_figure, write_json
+from coop_common.params import choice
 
-from .explore import explore, make_world
-from .grid import OCCLUSION_PRIORS
-from .nbv import ENTROPY_WEIGHTS, NI_MEASURES, STRATEGIES, UNKNOWN_OCCLUSIONS, NbvConfig
+from .errors import OptionError
+from .explore import WorldName, explore, make_world
+from .grid import OcclusionPrior
+from .nbv import (
+    STRATEGIES,
+    DistanceMetric,
+    EntropyWeight,
+    NbvConfig,
+    NiMeasure,
+    StrategyName,
+    UnknownOcclusion,
+)
 
 THESIS_FIGURE = {('unstructured', 1): 'Fig. 3-13', ('unstructured', 2): 'Fig. 3-16',
                  ('rooms', 1): 'Fig. 3-20'}
@@ -51,14 +61,18 @@ def _summary(values: list[float | None]) -> dict:
     return out
 
 
-def run(*, world: str, cameras: int, fov_deg: float, depth_m: float, seeds: int, scans: int,
-        resolution_m: float, strategies: list[str], k_rel: float, n_positions: int,
-        distance_metric: str = 'configuration', level: float = 0.9,
-        near_fraction: float = 0.0, angle_weight: float = 1.0,
-        entropy_weight: str = 'plogp', ni_measure: str = 'histogram',
-        unknown_occlusion: str = NbvConfig.unknown_occlusion,
-        occlusion_prior: str = NbvConfig.occlusion_prior,
+def run(*, world: WorldName | str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
+        scans: int, resolution_m: float, strategies: list[StrategyName | str], k_rel: float,
+        n_positions: int, distance_metric: DistanceMetric | str = NbvConfig.distance_metric,
+        level: float = 0.9, near_fraction: float = 0.0, angle_weight: float = 1.0,
+        entropy_weight: EntropyWeight | str = NbvConfig.entropy_weight,
+        ni_measure: NiMeasure | str = NbvConfig.ni_measure,
+        unknown_occlusion: UnknownOcclusion | str = NbvConfig.unknown_occlusion,
+        occlusion_prior: OcclusionPrior | str = NbvConfig.occlusion_prior,
         ni_floor: float = NbvConfig.ni_floor) -> dict:
+    """Each strategy over `seeds` worlds; an unknown strategy or mode (NbvConfig's) is an
+    OptionError naming the choices, before any run."""
+    strategies = [choice(StrategyName, s, 'strategy', error=OptionError) for s in strategies]
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
                     distance_metric=distance_metric, near_fraction=near_fraction,
                     alpha=(1.0, 1.0, 1.0, angle_weight, angle_weight),
@@ -191,10 +205,11 @@ def format_json(result: dict) -> str:
              f"fov={r['fov_deg']:.0f} deg depth={r['depth_m']:.0f} m seeds={seeds} "
              f"scans={r['scans']} res={r['resolution_m']} m"
              + (f" unknown_occlusion=expected/{r['occlusion_prior']}"
-                if r['unknown_occlusion'] == 'expected' else '')
+                if r['unknown_occlusion'] == UnknownOcclusion.EXPECTED else '')
              + (f" ni_floor={r['ni_floor']:g}" if r['ni_floor'] > 0 else '')
              + (f" near_fraction={r['near_fraction']:g}" if r['near_fraction'] > 0 else '')
-             + (f" distance={r['distance']}" if r['distance'] != 'configuration' else '')
+             + (f" distance={r['distance']}"
+                if r['distance'] != DistanceMetric.CONFIGURATION else '')
              + (f" k_rel={r['k_rel']:g}" if r['k_rel'] != NbvConfig.k_rel else '')
              + (f" candidates={r['candidates']}" if r['candidates'] != NbvConfig.n_positions
                 else '')
@@ -232,8 +247,9 @@ def format_json(result: dict) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='fig_3_13', description=__doc__.split('\n\n')[0])
-    p.add_argument('--world', default='unstructured',
-                   help='unstructured | rooms | path to a PNG (dark = obstacle)')
+    p.add_argument('--world', default=WorldName.UNSTRUCTURED.value,
+                   help=f'{" | ".join(enum_choices(WorldName))} | path to a PNG (dark = '
+                        'obstacle)')
     p.add_argument('--cameras', type=int, choices=(1, 2), default=1)
     p.add_argument('--fov-deg', type=number(lo=0, hi=180, lo_open=True, hi_open=True),
                    default=None,
@@ -247,7 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--strategies', default=','.join(STRATEGIES))
     p.add_argument('--k-rel', type=number(lo=0), default=NbvConfig.k_rel,
                    help='K of Eq. 3-15 relative to the NI of a fully unknown view per depth')
-    p.add_argument('--distance', choices=('configuration', 'path'), default='configuration',
+    p.add_argument('--distance', choices=enum_choices(DistanceMetric),
+                   default=NbvConfig.distance_metric.value,
                    help='d of Eq. 3-15: Eq. 3-11 straight-line configuration distance, or '
                         'with the translation measured along the collision-free path')
     p.add_argument('--candidates', type=number(int, lo=1), default=NbvConfig.n_positions,
@@ -260,20 +277,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--angle-weight', type=number(lo=0), default=NbvConfig.alpha[3],
                    help='alpha of yaw and pitch in Eq. 3-11 (m per rad); thesis: "alpha_i = 1 '
                         'for this thesis" (default); 0 = the pre-2026-11-21 runs')
-    p.add_argument('--entropy-weight', choices=ENTROPY_WEIGHTS, default=NbvConfig.entropy_weight,
+    p.add_argument('--entropy-weight', choices=enum_choices(EntropyWeight),
+                   default=NbvConfig.entropy_weight.value,
                    help='premultiplier of q_k log2 q_k in NI: -p_k log2 p_k as the thesis writes '
                         'it (plogp, default) or the binary occupancy entropy (the pre-2026-11-21 '
                         'runs)')
-    p.add_argument('--ni-measure', choices=NI_MEASURES, default=NbvConfig.ni_measure,
+    p.add_argument('--ni-measure', choices=enum_choices(NiMeasure),
+                   default=NbvConfig.ni_measure.value,
                    help='NI binning: gray levels of the cells in view (Eq. 3-13, default) or the '
                         "App. C predictor-5 residual of the view's gray image")
-    p.add_argument('--unknown-occlusion', choices=UNKNOWN_OCCLUSIONS,
-                   default=NbvConfig.unknown_occlusion,
+    p.add_argument('--unknown-occlusion', choices=enum_choices(UnknownOcclusion),
+                   default=NbvConfig.unknown_occlusion.value,
                    help='none: the expected view is occluded by the known obstacles only '
                         '(thesis, default); expected: each cell counts with its probability of '
                         'being seen past the unknown cells before it (beyond the thesis)')
-    p.add_argument('--occlusion-prior', choices=OCCLUSION_PRIORS,
-                   default=NbvConfig.occlusion_prior,
+    p.add_argument('--occlusion-prior', choices=enum_choices(OcclusionPrior),
+                   default=NbvConfig.occlusion_prior.value,
                    help="with --unknown-occlusion expected: unknown cells' occupancy, the "
                         "Markov chain started from the known map's obstacle density (density, "
                         "default) or the planner's Markov-chain estimate as it is (markov, 0.5 "
@@ -294,13 +313,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    default_wide = args.world == 'unstructured' and args.cameras == 1
+    default_wide = args.world == WorldName.UNSTRUCTURED and args.cameras == 1
     fov = args.fov_deg if args.fov_deg is not None else (90.0 if default_wide else 75.0)
     depth = args.depth_m if args.depth_m is not None else (15.0 if default_wide else 10.0)
-    strategies = [s.strip() for s in args.strategies.split(',') if s.strip()]
-    bad = [s for s in strategies if s not in STRATEGIES]
-    if bad or not strategies:
-        parser.error(f'--strategies: unknown {bad}; of {list(STRATEGIES)}')
+    names = [s.strip() for s in args.strategies.split(',') if s.strip()]
+    bad = [s for s in names if s not in STRATEGIES]
+    if bad or not names:
+        parser.error(f'--strategies: unknown {bad}; of {enum_choices(StrategyName)}')
+    strategies = [StrategyName(s) for s in names]
     if depth < args.resolution_m:         # the view would hold no cell
         parser.error(f'--depth-m {depth} is below --resolution-m {args.resolution_m}')
     try:
@@ -326,8 +346,9 @@ def main(argv: list[str] | None = None) -> int:
               'strategies': strat,
               'verdict': verdict(strat)}
     if args.compare_one_camera and args.cameras == 2:
-        one = run(cameras=1, strategies=['max_information'], **common)['max_information']
-        two = strat.get('max_information')
+        one = run(cameras=1, strategies=[StrategyName.MAX_INFORMATION],
+                  **common)[StrategyName.MAX_INFORMATION]
+        two = strat.get(StrategyName.MAX_INFORMATION)
         ratio = None
         if two and one['scans_to_90pct'] and two['scans_to_90pct']:
             ratio = one['scans_to_90pct'] / two['scans_to_90pct']

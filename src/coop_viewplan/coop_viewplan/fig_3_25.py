@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from coop_common.cli import number, output_dir, output_path
+from coop_common.cli import enum_choices, number, output_dir, output_path
 from coop_common.dynparams import load_truth
 from coop_common.files import save_figure, write_json
 from coop_common.params import choice
@@ -44,13 +44,14 @@ from rover_sim.config import SimConfig
 from rover_sim.rover_model import MAST_JOINTS, STEREO_BASELINE_M
 from rover_sim.world import World
 
-from .grid import FREE_GRAYS, FreeGray, MapError, OccupancyGrid, gray_estimate
+from .grid import FreeGray, MapError, OccupancyGrid, gray_estimate
 from .nbv import (
     STRATEGIES,
     CameraState,
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
+    StrategyName,
     geodesic_path,
     waypoints,
 )
@@ -285,7 +286,7 @@ def planner_config(cfg: Fig325Config, mapper: SimMapper, camera_height_m: float)
                      raster_headings=cfg.raster_headings, free_gray=cfg.free_gray)
 
 
-def run_strategy(strategy: str, cfg: Fig325Config, *, seed: int,
+def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
                  log=None, save_map: Path | None = None) -> dict:
     """One run of one strategy: mapped voxel counts after the initial scan and each of
     `cfg.scans` planned scans (every rover scans once per scan step). save_map: write the
@@ -389,7 +390,8 @@ def _top_view(sm: SimMapper) -> dict:
             'resolution_m': sm.map.resolution, 'grid': img.tolist()}
 
 
-def run(cfg: Fig325Config, *, strategies: list[str], seeds: int, log=None) -> dict:
+def run(cfg: Fig325Config, *, strategies: list[StrategyName | str], seeds: int,
+        log=None) -> dict:
     out = {'config': {k: (list(v) if isinstance(v, tuple) else v)
                       for k, v in cfg.__dict__.items()},
            'seeds': seeds, 'thesis_claim': THESIS_CLAIM, 'strategies': {}}
@@ -533,8 +535,8 @@ def main(argv: list[str] | None = None) -> int:
                    help='headings the raster sweeps at each location (0: one, along the '
                         'raster, as in fig_3_13)')
     p.add_argument('--p-empty', type=number(lo=0, hi=1), default=d.p_empty)
-    p.add_argument('--pose', choices=list(PoseSource), default=d.pose_source)
-    p.add_argument('--free-gray', choices=FREE_GRAYS, default=d.free_gray,
+    p.add_argument('--pose', choices=enum_choices(PoseSource), default=d.pose_source.value)
+    p.add_argument('--free-gray', choices=enum_choices(FreeGray), default=d.free_gray.value,
                    help="NI gray value of known free voxels: 'empty' 0 (the thesis's known "
                         "empty space); 'occupancy' the map's log-odds probability (earlier)")
     p.add_argument('--strategies', default='raster,max_information')
@@ -562,7 +564,7 @@ def main(argv: list[str] | None = None) -> int:
     names = [s.strip() for s in a.strategies.split(',') if s.strip()]
     bad = [s for s in names if s not in STRATEGIES]
     if bad or not names:
-        p.error(f'unknown strategy {bad}; one of {list(STRATEGIES)}')
+        p.error(f'unknown strategy {bad}; one of {enum_choices(StrategyName)}')
     if a.depth_m < d.resolution_m:          # the view would hold no voxel
         p.error(f'--depth-m {a.depth_m} is below the map resolution {d.resolution_m} m')
     cfg = Fig325Config(rovers=a.rovers, scans=a.scans, seed=a.seed,

@@ -20,14 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from coop_common.cli import output_path
+from coop_common.cli import enum_choices, output_path
 from coop_common.files import write_json
 from coop_common.params import check_values, choice, parse_value
 
 from .frames import camera_pose
 from .grid import MapError, OccupancyGrid, planning_grid
 from .nbv import (
-    STRATEGIES,
     CameraState,
     Decision,
     NbvConfig,
@@ -168,8 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('bag', type=Path, help='bag with <rover>/stereo/* (poses, and the map '
                                            'unless --map)')
     ap.add_argument('--map', type=Path, default=None, help='a saved coop_mapping map instead')
-    ap.add_argument('--strategy', default=StrategyName.MAX_INFORMATION,
-                    choices=list(STRATEGIES))
+    ap.add_argument('--strategy', default=StrategyName.MAX_INFORMATION.value,
+                    choices=enum_choices(StrategyName))
     ap.add_argument('-p', action='append', default=[], metavar='NAME=VALUE',
                     help='node parameter override, e.g. -p camera_height_m=0.75')
     ap.add_argument('--json', type=output_path, default=None,

@@ -5,8 +5,8 @@ from __future__ import annotations
 from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.params import ParamSpec
 
-from .grid import FREE_GRAYS
-from .nbv import NI_MEASURES
+from .grid import FreeGray
+from .nbv import NiMeasure
 from .placement import PrimarySpace
 
 __all__ = ['PARAMS', 'check_params']
@@ -34,10 +34,10 @@ PARAMS = {
     'k_rel': ParamSpec(0.15, 'K of Eq. 3-15 relative to the NI of an unknown view per depth',
                        lo=0.0, hi=100.0),
     'n_exp': ParamSpec(1.0, 'n of Eq. 3-15', lo=0.1, hi=4.0),
-    'ni_measure': ParamSpec('histogram', 'NI binning: gray levels (Eq. 3-13) or the App. C '
-                            'predictor-5 residual', choices=NI_MEASURES),
-    'free_gray': ParamSpec('empty', 'NI gray of known free voxels: 0 (known empty space) or '
-                           'their occupancy', choices=FREE_GRAYS),
+    'ni_measure': ParamSpec(NiMeasure.HISTOGRAM.value, 'NI binning: gray levels (Eq. 3-13) or '
+                            'the App. C predictor-5 residual', choices=tuple(NiMeasure)),
+    'free_gray': ParamSpec(FreeGray.EMPTY.value, 'NI gray of known free voxels: 0 (known empty '
+                           'space) or their occupancy', choices=tuple(FreeGray)),
     'candidates': ParamSpec(40, 'default candidate positions per decision (x headings)',
                             lo=1, hi=5000),
     'headings': ParamSpec(8, 'candidate headings per position', lo=1, hi=64),
@@ -78,9 +78,10 @@ PARAMS = {
     # The insertion's primary target stands in front of the site, a voxel above its mouth:
     # range noise off the site's edges can occupy a voxel that, grown by the target's radius,
     # holds it ('free': such cells are not occluders of the primary; placement.PrimarySpace).
-    'task_primary_space': ParamSpec('refuse', "task placement: occluder cells holding the "
-                                    "primary target refuse the request (the thesis), or are "
-                                    "taken as free ('free'; counted in the reply)",
+    'task_primary_space': ParamSpec(PrimarySpace.REFUSE.value, 'task placement: occluder '
+                                    'cells holding the primary target refuse the request (the '
+                                    "thesis), or are taken as free ('free'; counted in the "
+                                    'reply)',
                                     choices=tuple(PrimarySpace)),
     'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
 }
