@@ -33,6 +33,7 @@ KNOWN = {
     'coop_id.estimators.RankDeficientError': ValueError,
     'coop_id.information.InformationError': ValueError,
     'coop_id.offline.BagError': ValueError,
+    'coop_mapping.errors.OptionError': ValueError,
     'coop_mapping.ros_conv.CloudFormatError': ValueError,
     'coop_mapping.gauss.NotPositiveDefinite': ValueError,
     'coop_mapping.target_frame.TargetFrameError': ValueError,

@@ -26,6 +26,7 @@ import numpy as np
 
 from coop_common.params import choice
 
+from .errors import OptionError
 from .gauss import skew
 from .motion import (
     FiducialWeights,
@@ -74,15 +75,16 @@ class OdometryConfig:
     sigma_px: float = 0.5
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, 'method', choice(PoseMethod, self.method, 'method'))
+        object.__setattr__(self, 'method', choice(PoseMethod, self.method, 'method',
+                                                  error=OptionError))
         if self.n_fiducials < 4:
-            raise ValueError('n_fiducials must be >= 4')
+            raise OptionError('n_fiducials must be >= 4')
         if (self.sigma_t_m is None) != (self.sigma_rot_rad is None):
-            raise ValueError('give both sigma_t_m and sigma_rot_rad, or neither')
+            raise OptionError('give both sigma_t_m and sigma_rot_rad, or neither')
         if self.sigma_t_m is not None and not (self.sigma_t_m > 0 and self.sigma_rot_rad > 0):
-            raise ValueError('sigma_t_m and sigma_rot_rad must be > 0')
+            raise OptionError('sigma_t_m and sigma_rot_rad must be > 0')
         if not self.sigma_px > 0:
-            raise ValueError('sigma_px must be > 0')
+            raise OptionError('sigma_px must be > 0')
 
 
 def sample_points(disp: np.ndarray, uv: np.ndarray, cam: StereoCamera
@@ -323,7 +325,7 @@ class FiducialOdometry:
             use = okf & okd
             pcs.append((pc, use))
             try:
-                if self.cfg.method == 'pnp':
+                if self.cfg.method is PoseMethod.PNP:
                     use = okf.copy()
                     if use.sum() < 8:
                         continue
@@ -339,19 +341,20 @@ class FiducialOdometry:
                     Sr = self._cam_cov(pc[use]) + Rp[None] @ self.P[use] @ Rp.T[None]
                     g, keep = robust_g01(
                         self.x[use], pc[use], method=self.cfg.method,
-                        covariances=Sr if self.cfg.method == 'rigid' else None)
+                        covariances=Sr if self.cfg.method is PoseMethod.RIGID else None)
                 idx = np.flatnonzero(use)[keep]
                 if S_meas is None:
                     # frames of a step share the map and the tracks: the first frame's
                     # covariance is kept for the Eq. 3-19 mean (only image noise averages out)
-                    if self.cfg.method == 'pnp':
+                    if self.cfg.method is PoseMethod.PNP:
                         S_meas = pnp_covariance(self.x[idx], self.P[idx], g, self.cam,
                                                 self.cfg.sigma_px)
                     else:
                         Ci = self._cam_cov(pc[idx])
                         Si = Sr[keep]
                         S_meas = camera_pose_covariance(
-                            lambda r, p, Si=Si: fit_g01(r, p, self.cfg.method, covariances=Si),
+                            lambda r, p, Si=Si: fit_g01(r, p, method=self.cfg.method,
+                                                        covariances=Si),
                             self.x[idx], pc[idx], self.P[idx], Ci)
             except (MotionError, np.linalg.LinAlgError):
                 continue

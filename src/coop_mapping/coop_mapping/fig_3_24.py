@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from coop_common.cli import figure_path, number, output_path
+from coop_common.cli import enum_choices, figure_path, number, output_path
 from coop_common.files import save_figure, write_json
 from coop_common.params import choice
 
@@ -40,7 +40,6 @@ from .render import Box, TexturedScene, look_at
 from .stereo import (
     FULL_WIDTH_DEFAULT,
     SUBPIXEL_DEFAULT,
-    SUBPIXEL_MODES,
     StereoCamera,
     Subpixel,
     compute_disparity,
@@ -70,7 +69,8 @@ class TrialConfig:
 
     def __post_init__(self) -> None:
         for name, kind in (('method', PoseMethod), ('subpixel', Subpixel)):
-            object.__setattr__(self, name, choice(kind, getattr(self, name), name))
+            object.__setattr__(self, name, choice(kind, getattr(self, name), name,
+                                                  error=ConfigError))
 
     @classmethod
     def thesis(cls, **changes: Any) -> TrialConfig:
@@ -208,14 +208,19 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
 
 
 def run(distances: list[float], trials: int, steps: int, seed: int = 0,
-        width: int = 320, height: int = 240, methods: tuple[str, ...] = ('linear',),
-        fuse_prediction: bool = True, subpixel: str = SUBPIXEL_DEFAULT,
+        width: int = 320, height: int = 240,
+        methods: tuple[PoseMethod | str, ...] = (PoseMethod.LINEAR,),
+        fuse_prediction: bool = True, subpixel: Subpixel | str = SUBPIXEL_DEFAULT,
         full_width: bool = FULL_WIDTH_DEFAULT) -> dict:
+    """Every method at every distance, `trials` runs each; an unknown method or sub-pixel
+    mode, or a distance the rig cannot run, is a ConfigError before the first trial."""
+    methods = tuple(choice(PoseMethod, m, 'method', error=ConfigError) for m in methods)
+    subpixel = choice(Subpixel, subpixel, 'subpixel', error=ConfigError)
     out = {'distances_m': distances, 'trials': trials, 'steps': steps, 'seed': seed,
            'width': width, 'height': height, 'fuse_prediction': fuse_prediction,
            'subpixel': subpixel, 'full_width': full_width, 'results': {}}
 
-    def config(D: float, method: str) -> TrialConfig:
+    def config(D: float, method: PoseMethod | str) -> TrialConfig:
         return TrialConfig(distance=D, steps=steps, width=width, height=height, method=method,
                            fuse_prediction=fuse_prediction, subpixel=subpixel,
                            full_width=full_width)
@@ -292,8 +297,8 @@ def main(argv: list[str] | None = None) -> int:
                     nargs='+', default=[1.1, 0.35],
                     help='average distances of the scene (m); the images must be wider than '
                     'the disparity range the nearest one needs')
-    ap.add_argument('--methods', nargs='+', choices=['linear', 'linear_so3', 'rigid', 'pnp'],
-                    default=['linear', 'linear_so3', 'rigid', 'pnp'],
+    ap.add_argument('--methods', nargs='+', choices=enum_choices(PoseMethod),
+                    default=enum_choices(PoseMethod),
                     help='g01 by Eq. 3-18 as printed (12 independent entries), the same with R '
                     'projected onto SO(3) and X re-solved (linear_so3), the covariance-weighted '
                     'rigid fit, or reprojection of the mapped fiducials (pnp)')
@@ -302,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
                     'motion only as its starting point (no Kalman update with the prediction)')
     ap.add_argument('--width', type=number(int, lo=32, hi=4096), default=320)
     ap.add_argument('--height', type=number(int, lo=32, hi=4096), default=240)
-    ap.add_argument('--subpixel', choices=SUBPIXEL_MODES, default=SUBPIXEL_DEFAULT,
+    ap.add_argument('--subpixel', choices=enum_choices(Subpixel), default=SUBPIXEL_DEFAULT.value,
                     help="sub-pixel disparity (stereo.compute_disparity): SGBM's own, "
                     'equalised, or the mean over 2 / 4 sub-pixel shifts of the right image')
     ap.add_argument('--full-width', action=argparse.BooleanOptionalAction,

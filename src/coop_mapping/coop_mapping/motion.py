@@ -14,17 +14,22 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import StrEnum
+from typing import assert_never
 
 import cv2
 import numpy as np
 
-from .errors import MappingError
+from coop_common.params import choice
+
+from .errors import MappingError, OptionError
 from .gauss import skew
 
 __all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_contrast',
            'depth_contrast', 'certainty_term', 'track', 'solve_g01', 'robust_g01',
            'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'solve_rigid_cov', 'fit_g01',
-           'camera_pose_covariance', 'RecursivePoseStats', 'ekf_point_update', 'MotionError']
+           'camera_pose_covariance', 'RecursivePoseStats', 'ekf_point_update', 'MotionError',
+           'G01Method', 'G01_METHODS']
 
 
 class MotionError(MappingError, ValueError):
@@ -288,29 +293,42 @@ def solve_rigid_cov(r_common: np.ndarray, p_camera: np.ndarray, cov: np.ndarray,
     return g
 
 
-G01_METHODS = ('linear', 'linear_so3', 'rigid')
+class G01Method(StrEnum):
+    """The solvers of g01 from 3-D correspondences: Eq. 3-18 as printed ('linear'), the same
+    with R projected onto SO(3) and X re-solved ('linear_so3'), the rigid fit ('rigid')."""
+
+    LINEAR = 'linear'
+    LINEAR_SO3 = 'linear_so3'
+    RIGID = 'rigid'
 
 
-def fit_g01(r_common: np.ndarray, p_camera: np.ndarray, method: str, *,
+G01_METHODS = tuple(G01Method)
+
+
+def fit_g01(r_common: np.ndarray, p_camera: np.ndarray, *, method: G01Method | str,
             weights: np.ndarray | None = None, covariances: np.ndarray | None = None
             ) -> np.ndarray:
     """g01 by `method`: 'linear' Eq. 3-18 as printed (solve_g01), 'linear_so3'
     (solve_g01_so3), 'rigid' (solve_rigid_cov with `covariances` (N, 3, 3), else solve_rigid
-    with scalar `weights`)."""
-    if method == 'linear':
-        return solve_g01(r_common, p_camera)
-    if method == 'linear_so3':
-        return solve_g01_so3(r_common, p_camera)
-    if method != 'rigid':
-        raise ValueError(f'method must be one of {G01_METHODS}, got {method!r}')
-    if covariances is not None:
-        return solve_rigid_cov(r_common, p_camera, covariances)
-    w = np.ones(len(r_common)) if weights is None else weights
-    return solve_rigid(r_common, p_camera, w)
+    with scalar `weights`); another method is refused (OptionError naming them)."""
+    method = choice(G01Method, method, 'method', error=OptionError)
+    match method:
+        case G01Method.LINEAR:
+            return solve_g01(r_common, p_camera)
+        case G01Method.LINEAR_SO3:
+            return solve_g01_so3(r_common, p_camera)
+        case G01Method.RIGID:
+            if covariances is not None:
+                return solve_rigid_cov(r_common, p_camera, covariances)
+            w = np.ones(len(r_common)) if weights is None else weights
+            return solve_rigid(r_common, p_camera, w)
+        case _:
+            assert_never(method)
 
 
 def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 3,
-               gate: float = 3.0, min_points: int = 6, method: str = 'linear',
+               gate: float = 3.0, min_points: int = 6,
+               method: G01Method | str = G01Method.LINEAR,
                weights: np.ndarray | None = None, covariances: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
     """g01 (method 'linear': Eq. 3-18 as printed; 'linear_so3': solve_g01_so3; 'rigid':
@@ -318,17 +336,16 @@ def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 
     tracking outliers (residual > gate x median). With `covariances` (N, 3, 3) of the residuals
     the gate is on the Mahalanobis length of each residual: range noise grows as L^2 (Eq. 3-7),
     so a gate on the raw length rejects the far fiducials for being far. Returns (g01, inlier
-    mask)."""
+    mask); another method is refused (OptionError naming them)."""
     r = np.asarray(r_common, float)
     p = np.asarray(p_camera, float)
-    if method not in G01_METHODS:
-        raise ValueError(f'method must be linear, linear_so3 or rigid, got {method!r}')
+    method = choice(G01Method, method, 'method', error=OptionError)
     w = np.ones(len(r)) if weights is None else np.asarray(weights, float)
     C = None if covariances is None else np.asarray(covariances, float)
     Winv = None if C is None else np.linalg.inv(C)
 
     def fit(m):
-        return fit_g01(r[m], p[m], method, weights=w[m],
+        return fit_g01(r[m], p[m], method=method, weights=w[m],
                        covariances=None if C is None else C[m])
 
     def residual(g):

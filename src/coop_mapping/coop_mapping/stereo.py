@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import assert_never
 
 import cv2
 import numpy as np
@@ -37,7 +38,8 @@ class Subpixel(StrEnum):
 SUBPIXEL_MODES = tuple(Subpixel)
 SUBPIXEL_DEFAULT = Subpixel.SHIFT4
 FULL_WIDTH_DEFAULT = True
-_PHASES = {'shift2': 2, 'shift4': 4}
+#: the sub-pixel shifts each phase-averaged mode runs SGBM at
+_PHASES = {Subpixel.SHIFT2: 2, Subpixel.SHIFT4: 4}
 
 
 class StereoError(MappingError, ValueError):
@@ -142,7 +144,7 @@ def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: int = 64,
                       block_size: int = 5, uniqueness: int = 10, speckle_window: int = 50,
-                      speckle_range: int = 2, subpixel: str = SUBPIXEL_DEFAULT,
+                      speckle_range: int = 2, subpixel: Subpixel | str = SUBPIXEL_DEFAULT,
                       full_width: bool = FULL_WIDTH_DEFAULT) -> np.ndarray:
     """StereoSGBM (3-way) disparity in pixels (float32), NaN where invalid.
 
@@ -193,9 +195,14 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
             d[(d <= 0) | (u - d < 0)] = np.nan    # no match, or a match in the padding
         return d
 
-    # (a phase average of disparities each <= u is <= u too)
-    d = (phase_averaged_disparity(run, right_p, _PHASES[subpixel]) if subpixel in _PHASES
-         else run(right_p))
+    match subpixel:
+        case Subpixel.SHIFT2 | Subpixel.SHIFT4:
+            # (a phase average of disparities each <= u is <= u too)
+            d = phase_averaged_disparity(run, right_p, _PHASES[subpixel])
+        case Subpixel.SGBM | Subpixel.EQUALISE:
+            d = run(right_p)
+        case _:
+            assert_never(subpixel)
     if not full_width:          # the left num_disparities columns have no full search range
         d[:, :num_disparities] = np.nan
     else:
@@ -211,7 +218,7 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
         bad = ~((back > 0) & (np.abs(back - band[rows, cols]) <= 1.0))
         band[rows[bad], cols[bad]] = np.nan
     d[_clipped_blocks(left, block_size)] = np.nan
-    return equalize_subpixel(d) if subpixel == 'equalise' else d
+    return equalize_subpixel(d) if subpixel is Subpixel.EQUALISE else d
 
 
 def _clipped_blocks(img: np.ndarray, block_size: int) -> np.ndarray:
@@ -317,13 +324,12 @@ class StereoRanger:
     def __init__(self, camera: StereoCamera, *, error_model: ErrorModel | None = None,
                  num_disparities: int = 64, block_size: int = 5, stride: int = 1,
                  min_range: float = 0.2, max_range: float = 20.0,
-                 subpixel: str = SUBPIXEL_DEFAULT, full_width: bool = FULL_WIDTH_DEFAULT
-                 ) -> None:
-        """`subpixel`: the sub-pixel disparity estimate, one of SUBPIXEL_MODES; `full_width`:
-        also range the left num_disparities columns (both: see compute_disparity)."""
-        if subpixel not in SUBPIXEL_MODES:
-            raise StereoError(f'subpixel must be one of {SUBPIXEL_MODES}, got {subpixel!r}')
-        self.subpixel = subpixel
+                 subpixel: Subpixel | str = SUBPIXEL_DEFAULT,
+                 full_width: bool = FULL_WIDTH_DEFAULT) -> None:
+        """`subpixel`: the sub-pixel disparity estimate, a Subpixel or its string (StereoError
+        naming them otherwise); `full_width`: also range the left num_disparities columns
+        (both: see compute_disparity)."""
+        self.subpixel = choice(Subpixel, subpixel, 'subpixel', error=StereoError)
         self.full_width = bool(full_width)
         self.camera = camera
         self.error_model = error_model or ErrorModel.from_stereo(camera)

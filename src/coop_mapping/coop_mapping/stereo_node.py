@@ -41,7 +41,7 @@ from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from coop_common.tf_tree import TreeBroadcaster
 
-from .fiducial_odometry import FiducialOdometry, OdometryConfig
+from .fiducial_odometry import FiducialOdometry, OdometryConfig, PoseMethod
 from .offline import StereoSettings, stamp_ns
 from .ros_conv import cloud_to_msg, pose_to_rt
 from .stereo import FULL_WIDTH_DEFAULT, SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoError, StereoRanger
@@ -51,6 +51,9 @@ from .target_frame import Initialiser, TargetFrameError, TargetGeometry
 # centre, x out of the marker face, z up; the block sits at (3, 0, 0.2) with yaw pi in `map`
 SIM_SITE_MARKERS = [0.1, 0.062, 0.05, 0.1, -0.062, 0.05]
 SIM_SITE_POSE = [3.0, 0.0, 0.2, float(np.pi)]
+
+#: fiducial_correction's value for no correction (the others: a PoseMethod)
+NO_CORRECTION = 'none'
 
 PARAMS = {
     'num_disparities': ParamSpec(64, 'StereoSGBM disparity range (multiple of 16)', lo=16,
@@ -77,9 +80,9 @@ PARAMS = {
     'tf_rate_hz': ParamSpec(10.0, 'Rate of map -> <rover>/odom on /tf with fiducial_correction '
                             '(Hz, node clock; else it is fixed, on /tf_static)', lo=0.1,
                             hi=100.0, read_only=True),
-    'fiducial_correction': ParamSpec('none', 'camera pose correction by scene fiducials: g01 '
-                                     'method or none',
-                                     choices=['none', 'pnp', 'rigid', 'linear', 'linear_so3'],
+    'fiducial_correction': ParamSpec(NO_CORRECTION, 'camera pose correction by scene '
+                                     'fiducials: g01 method or none',
+                                     choices=[NO_CORRECTION, *(m.value for m in PoseMethod)],
                                      read_only=True),
     'n_fiducials': ParamSpec(40, 'fiducials kept in view', lo=4, hi=500, read_only=True),
     'scene_distance_m': ParamSpec(1.1, 'typical scene distance (sets the fiducial map voxel)',
@@ -135,6 +138,10 @@ class StereoNode(Node):
         super().__init__('stereo', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._changed,
                                     check_all=_check_params)
+        # fiducial_correction (validated against its choices, read only) as the core's mode
+        self.fiducial_method: PoseMethod | None = (
+            None if self.p['fiducial_correction'] == NO_CORRECTION
+            else PoseMethod(self.p['fiducial_correction']))
         self.bad = BadInputCounter(self)
         self.info: dict[str, CameraInfo] = {}
         self.ranger: StereoRanger | None = None
@@ -155,7 +162,7 @@ class StereoNode(Node):
         self.map_from_odom: np.ndarray | None = (
             None if self.p['initialise'] else np.eye(4))
         self.tree = TreeBroadcaster(self, enabled=self.p['publish_tf'])
-        if self.tree.enabled and self.p['fiducial_correction'] != 'none':
+        if self.tree.enabled and self.fiducial_method is not None:
             self.create_timer(1.0 / self.p['tf_rate_hz'], self._send_tree)
         elif self.map_from_odom is not None:
             self._send_static_tree()
@@ -264,7 +271,7 @@ class StereoNode(Node):
             if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
                 raise StereoError('camera pose not finite')
             disp = None
-            if self.p['fiducial_correction'] != 'none':
+            if self.fiducial_method is not None:
                 disp = self.ranger.disparity(left, right)
                 R, t, pose = self._correct(left, disp, R, t, pose)
             scan = self.ranger.process(left, right, R, t, disparity=disp)
@@ -310,7 +317,7 @@ class StereoNode(Node):
         R_a, t_a = init.alignment
         self.map_from_odom = np.eye(4)
         self.map_from_odom[:3, :3], self.map_from_odom[:3, 3] = R_a, t_a
-        if self.p['fiducial_correction'] == 'none':
+        if self.fiducial_method is None:
             self._send_static_tree()
         self.pub_alignment.publish(_pose_msg(pose.header.stamp, self.map_frame, R_a, t_a,
                                              _ros_cov(init.alignment_covariance)))
@@ -345,7 +352,7 @@ class StereoNode(Node):
         T_dr[:3, :3], T_dr[:3, 3] = R, t
         if self.odometry is None:
             cfg = OdometryConfig(n_fiducials=self.p['n_fiducials'],
-                                 method=self.p['fiducial_correction'],
+                                 method=self.fiducial_method,
                                  scene_distance=self.p['scene_distance_m'],
                                  spacing_px=left.shape[1] / 16)
             odometry = FiducialOdometry(self.ranger.camera, cfg, T_dr)

@@ -142,3 +142,40 @@ def test_fig_3_24_reduced_run():
     assert r['fallback_steps'] == 0
     # the corrected chain ends better than dead reckoning on this seeded trajectory
     assert r['rms_error_corrected_m'][-1] < r['rms_error_dead_reckoned_m'][-1]
+
+
+def test_unknown_modes_are_refused_naming_the_allowed_values():
+    """g01's solver, the odometry's pose method, the sub-pixel mode and Fig. 3-24's options are
+    taken as their StrEnum members where they enter; anything else is refused with the
+    choices named (OptionError, StereoError, ConfigError: MappingErrors and ValueErrors)."""
+    from coop_mapping.errors import MappingError, OptionError
+    from coop_mapping.fiducial_odometry import OdometryConfig
+    from coop_mapping.fig_3_24 import ConfigError, TrialConfig, run
+    from coop_mapping.motion import G01Method, fit_g01
+    from coop_mapping.stereo import StereoCamera, StereoError, StereoRanger
+
+    R, t = _pose(1)
+    r = np.random.default_rng(2).uniform(-1, 1, (12, 3)) + [0, 0, 3]
+    p = r @ R.T + t
+    g01 = r"method must be one of \['linear', 'linear_so3', 'rigid'\], got 'pnp'"
+    with pytest.raises(OptionError, match=g01):       # pnp needs pixels, not 3-D points
+        fit_g01(r, p, method='pnp')
+    with pytest.raises(OptionError, match=g01):
+        robust_g01(r, p, method='pnp')
+    for m in G01Method:
+        g = fit_g01(r, p, method=m.value)
+        assert np.allclose(g[:3, :3], R, atol=1e-9) and np.allclose(g[:3, 3], t, atol=1e-9)
+    pose = r"method must be one of \['linear', 'linear_so3', 'rigid', 'pnp'\], got 'icp'"
+    with pytest.raises(OptionError, match=pose):
+        OdometryConfig(method='icp')
+    with pytest.raises(ConfigError, match=pose):
+        TrialConfig(method='icp')
+    with pytest.raises(ConfigError, match=pose):
+        run([1.1], 1, 1, methods=('linear', 'icp'))     # before the first trial
+    cam = StereoCamera(fx=200.0, fy=200.0, cx=160.0, cy=120.0, baseline=0.1, width=320,
+                       height=240)
+    with pytest.raises(StereoError, match=r"subpixel must be one of \['sgbm', 'equalise', "
+                       r"'shift2', 'shift4'\], got 'shift8'"):
+        StereoRanger(cam, subpixel='shift8')
+    assert all(issubclass(e, MappingError) and issubclass(e, ValueError)
+               for e in (OptionError, StereoError, ConfigError))

@@ -375,8 +375,16 @@ def test_stereo_node_checks_its_ranges_together(ctx):
         r = node.set_parameters([Parameter('num_disparities', value=24)])[0]
         assert not r.successful and 'multiple of 16' in r.reason
         assert node.set_parameters([Parameter('min_range_m', value=0.5)])[0].successful
+        r = node.set_parameters([Parameter('subpixel', value='shift8')])[0]
+        assert not r.successful and r.reason == (
+            "subpixel must be one of ['sgbm', 'equalise', 'shift2', 'shift4'], got 'shift8'")
+        assert node.fiducial_method is None          # fiducial_correction 'none'
     finally:
         node.destroy_node()
+    with pytest.raises(ValueError, match=r"fiducial_correction must be one of \['none', "
+                       r"'linear', 'linear_so3', 'rigid', 'pnp'\], got 'icp'"):
+        StereoNode(context=ctx, parameter_overrides=[Parameter('fiducial_correction',
+                                                               value='icp')])
 
 
 def test_mapper_autosaves_a_reset_or_loaded_map_whatever_its_sequence(ctx, tmp_path):
