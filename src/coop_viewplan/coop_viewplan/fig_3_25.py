@@ -43,6 +43,7 @@ from coop_mapping.voxelmap import OCCUPIED, unpack_keys
 from rover_sim.config import SimConfig
 from rover_sim.rover_model import MAST_JOINTS, STEREO_BASELINE_M
 from rover_sim.world import World
+from rover_sim.worldgen import ObstacleKind
 
 from .grid import FreeGray, MapError, OccupancyGrid, gray_estimate
 from .nbv import (
@@ -143,7 +144,8 @@ class SimMapper:
         # obstacle collisions)
         self.obstacles = np.array([(o.position[0], o.position[1], o.radius)
                                    for o in self.world.layout.obstacles
-                                   if o.kind == 'drum' or 1.7 * o.radius > 0.23]).reshape(-1, 3)
+                                   if o.kind is ObstacleKind.DRUM or 1.7 * o.radius > 0.23]
+                                  ).reshape(-1, 3)
         self.contacts = 0
         self.hfov_deg = sim.hfov_deg
         self.vfov_deg = math.degrees(2 * math.atan((h / 2) / k[1, 1]))

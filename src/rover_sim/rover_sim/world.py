@@ -11,6 +11,7 @@ import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import assert_never
 
 import cv2
 import numpy as np
@@ -60,7 +61,7 @@ from .sensors import (
     wheel_speeds,
 )
 from .trajectory import JointTrajectoryFollower
-from .worldgen import WorldLayout, generate_world
+from .worldgen import ObstacleKind, WorldLayout, generate_world
 
 NOMINAL_HEIGHT_M = BASE_HEIGHT_M    # base c.g. above the ground at rest
 GRAVITY_VEC = np.array([0.0, 0.0, -9.81])
@@ -339,16 +340,22 @@ class World:
         self.obstacle_bodies = []
         for ob in self.layout.obstacles:
             s = ob.shade
-            if ob.kind == 'rock':
-                vis = pb.createVisualShape(pb.GEOM_SPHERE, radius=ob.radius,
-                                           rgbaColor=[s, s * 0.9, s * 0.8, 1], physicsClientId=c)
-                col = pb.createCollisionShape(pb.GEOM_SPHERE, radius=ob.radius,
-                                              physicsClientId=c)
-            else:
-                vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=ob.radius, length=ob.height,
-                                           rgbaColor=[s * 0.6, s * 0.7, s, 1], physicsClientId=c)
-                col = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=ob.radius,
-                                              height=ob.height, physicsClientId=c)
+            match ob.kind:
+                case ObstacleKind.ROCK:
+                    vis = pb.createVisualShape(pb.GEOM_SPHERE, radius=ob.radius,
+                                               rgbaColor=[s, s * 0.9, s * 0.8, 1],
+                                               physicsClientId=c)
+                    col = pb.createCollisionShape(pb.GEOM_SPHERE, radius=ob.radius,
+                                                  physicsClientId=c)
+                case ObstacleKind.DRUM:
+                    vis = pb.createVisualShape(pb.GEOM_CYLINDER, radius=ob.radius,
+                                               length=ob.height,
+                                               rgbaColor=[s * 0.6, s * 0.7, s, 1],
+                                               physicsClientId=c)
+                    col = pb.createCollisionShape(pb.GEOM_CYLINDER, radius=ob.radius,
+                                                  height=ob.height, physicsClientId=c)
+                case _:
+                    assert_never(ob.kind)
             body = self._static_body(vis, ob.position, collision=col)
             pb.changeVisualShape(body, -1, textureUniqueId=self._textures['rock'],
                                  physicsClientId=c)

@@ -4,19 +4,35 @@ Table 5-1, with its markers (ch. 5.2)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
+
+from coop_common.params import choice
+
+from .errors import SimError
 
 INCH = 0.0254
 
 
+class ObstacleKind(StrEnum):
+    """The site's obstacles: a rock (a sphere, sunk 30 % into the ground) or a drum (an
+    upright cylinder)."""
+
+    ROCK = 'rock'
+    DRUM = 'drum'
+
+
 @dataclass(frozen=True)
 class Obstacle:
-    kind: str                  # 'rock' (sphere) or 'drum' (upright cylinder)
+    kind: ObstacleKind
     position: tuple[float, float, float]
     radius: float
     height: float              # drum height; rock: 2 * radius
     shade: float               # grey level 0..1 of its texture
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'kind', choice(ObstacleKind, self.kind, 'kind', error=SimError))
 
 
 SITE_MARKER_RADIUS_M = 0.02
@@ -113,14 +129,15 @@ def generate_world(*, seed: int, occlusion_density: float, extent_m: float = 10.
     attempts = 0
     while area < target_area and attempts < 20000:
         attempts += 1
-        kind = 'rock' if rng.random() < 0.6 else 'drum'
-        radius = float(rng.uniform(0.15, 0.45) if kind == 'rock' else rng.uniform(0.25, 0.35))
+        rock = rng.random() < 0.6
+        kind = ObstacleKind.ROCK if rock else ObstacleKind.DRUM
+        radius = float(rng.uniform(0.15, 0.45) if rock else rng.uniform(0.25, 0.35))
         x, y = rng.uniform(-extent_m / 2, extent_m / 2, size=2)
         if any((x - cx) ** 2 + (y - cy) ** 2 < (cr + radius + 0.05) ** 2 for cx, cy, cr in
                clear + placed):
             continue
-        height = 2 * radius if kind == 'rock' else float(rng.uniform(0.8, 0.9))
-        z = radius * 0.7 if kind == 'rock' else height / 2
+        height = 2 * radius if rock else float(rng.uniform(0.8, 0.9))
+        z = radius * 0.7 if rock else height / 2
         obstacles.append(Obstacle(kind, (float(x), float(y), float(z)), radius, height,
                                   float(rng.uniform(0.25, 0.75))))
         placed.append((float(x), float(y), radius))
