@@ -11,6 +11,8 @@ import math
 import threading
 import time
 from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Literal, assert_never
 
 import numpy as np
 import rclpy
@@ -23,7 +25,7 @@ from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
-from coop_common.dynparams import PARAM_NAMES, TruthFileError, load_truth
+from coop_common.dynparams import PARAM_NAMES, BaseParameters, TruthFileError, load_truth
 from coop_common.frames import (
     FRAME_PARAMS,
     FrameError,
@@ -62,7 +64,48 @@ from .config import (
 from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
 from .trajectory import TrajectoryError
 from .world import World
-from .worldgen import TABLE_5_1_GAPS_M
+from .worldgen import TABLE_5_1_GAPS_M, ObstacleKind
+
+#: the joint groups a rover takes trajectories for, each on its own command topic
+JointGroup = Literal['arm', 'mast']
+GROUP_JOINTS: dict[str, tuple[str, ...]] = {'arm': tuple(ARM_JOINTS), 'mast': tuple(MAST_JOINTS)}
+
+
+@dataclass(frozen=True)
+class _Trajectory:
+    """A checked JointTrajectory for rover `index`'s arm or mast, applied between steps."""
+
+    index: int
+    group: JointGroup
+    names: list[str]
+    times: list[float]
+    positions: list[list[float]]
+    velocities: list[list[float]] | None
+    start_s: float
+
+
+@dataclass(frozen=True)
+class _Velocity:
+    """A checked cmd_vel for rover `index`."""
+
+    index: int
+    linear: float
+    angular: float
+
+
+@dataclass(frozen=True)
+class _Reset:
+    """sim/reset's new world, built by the sim thread; `done` is set once it stands."""
+
+    config: SimConfig
+    truth: BaseParameters
+    truth_yaml: str
+    places: list[tuple[str, float, float, float]]
+    done: threading.Event
+
+
+#: what the executor hands the sim thread
+_Pending = _Trajectory | _Velocity | _Reset
 
 
 def _listened(pub) -> bool:
@@ -328,8 +371,9 @@ class SimNode(Node):
             self._lockstep_timeout = float(changed['lockstep_timeout_s'])
 
     # ------------------------------------------------------------------ commands (executor)
-    def _on_traj(self, index: int, msg: JointTrajectory, group: str) -> tuple | None:
-        known = ARM_JOINTS if group == 'arm' else MAST_JOINTS
+    def _on_traj(self, index: int, msg: JointTrajectory, group: JointGroup
+                 ) -> _Trajectory | None:
+        known = GROUP_JOINTS[group]
         base = self.frames[index].base_link
         if msg.header.frame_id not in ('', base):
             self.bad.reject('trajectory frame', f'{msg.header.frame_id!r} is not {base}')
@@ -357,14 +401,14 @@ class SimNode(Node):
             self.bad.reject('trajectory NaN')
             return None
         start = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        return 'traj', index, group, names, times, positions, velocities, start
+        return _Trajectory(index, group, names, times, positions, velocities, start)
 
-    def _on_twist(self, index: int, msg: Twist) -> tuple | None:
+    def _on_twist(self, index: int, msg: Twist) -> _Velocity | None:
         v, w = msg.linear.x, msg.angular.z
         if not (math.isfinite(v) and math.isfinite(w)):
             self.bad.reject('cmd_vel NaN')
             return None
-        return 'twist', index, v, w
+        return _Velocity(index, v, w)
 
     def _on_reset(self, request: SimScenario.Request, response: SimScenario.Response):
         changes = {}
@@ -383,7 +427,7 @@ class SimNode(Node):
             return response
         done = threading.Event()
         with self._lock:
-            self._pending.append(('reset', config, truth, request.truth_yaml, places, done))
+            self._pending.append(_Reset(config, truth, request.truth_yaml, places, done))
         if not done.wait(timeout=30.0):
             response.success, response.message = False, 'simulator did not reset within 30 s'
             return response
@@ -419,44 +463,54 @@ class SimNode(Node):
             self._pending.clear()
         return self._apply(items)
 
-    def _apply(self, items) -> bool:
+    def _apply(self, items: list[_Pending]) -> bool:
         reset = False
         for item in items:
-            kind = item[0]
-            if kind == 'traj':
-                _, i, group, names, times, positions, velocities, start = item
-                try:
-                    if group == 'arm':
-                        self.world.command_arm(i, names, times, positions, start_s=start,
-                                               velocities=velocities)
-                    else:
-                        self.world.command_mast(i, names, times, positions, start_s=start)
-                except TrajectoryError as exc:
-                    self.bad.reject('trajectory', str(exc))
-            elif kind == 'twist':
-                _, i, v, w = item
-                self.world.command_velocity(i, v, w)
-                self._last_cmd_vel[i] = self.world.time_s
-            elif kind == 'reset':
-                _, config, truth, truth_yaml, places, done = item
-                # the same scene (an insertion rig's next attempt: the rovers placed anew):
-                # the render worker stays, rather than a new process building its copy
-                truths = [truth] * config.rovers
-                worker = self.world.hand_over_renderer(config, truths)
-                self.world.close()
-                self.config = config
-                if truth_yaml:
-                    self.truth_path = truth_yaml
-                self.world = World(config, truths, render_worker=worker)
-                for name, x, y, yaw in places:
-                    self.world.place_rover(self.world.rover_index(name), x, y, yaw)
-                self._last_cmd_vel.clear()
-                self._pace_origin = None
-                self._publish_latched()
-                self.get_logger().info(f'reset to seed {config.seed}')
-                done.set()
-                reset = True
+            match item:
+                case _Trajectory():
+                    self._apply_trajectory(item)
+                case _Velocity(index=i, linear=v, angular=w):
+                    self.world.command_velocity(i, v, w)
+                    self._last_cmd_vel[i] = self.world.time_s
+                case _Reset():
+                    self._apply_reset(item)
+                    reset = True
+                case _:
+                    assert_never(item)
         return reset
+
+    def _apply_trajectory(self, t: _Trajectory) -> None:
+        try:
+            match t.group:
+                case 'arm':
+                    self.world.command_arm(t.index, t.names, t.times, t.positions,
+                                           start_s=t.start_s, velocities=t.velocities)
+                case 'mast':
+                    self.world.command_mast(t.index, t.names, t.times, t.positions,
+                                            start_s=t.start_s)
+                case _:
+                    assert_never(t.group)
+        except TrajectoryError as exc:
+            self.bad.reject('trajectory', str(exc))
+
+    def _apply_reset(self, r: _Reset) -> None:
+        config = r.config
+        # the same scene (an insertion rig's next attempt: the rovers placed anew): the render
+        # worker stays, rather than a new process building its copy
+        truths = [r.truth] * config.rovers
+        worker = self.world.hand_over_renderer(config, truths)
+        self.world.close()
+        self.config = config
+        if r.truth_yaml:
+            self.truth_path = r.truth_yaml
+        self.world = World(config, truths, render_worker=worker)
+        for name, x, y, yaw in r.places:
+            self.world.place_rover(self.world.rover_index(name), x, y, yaw)
+        self._last_cmd_vel.clear()
+        self._pace_origin = None
+        self._publish_latched()
+        self.get_logger().info(f'reset to seed {config.seed}')
+        r.done.set()
 
     def _running(self) -> bool:
         return not self._stop.is_set() and rclpy.ok(context=self.context)
@@ -793,12 +847,17 @@ class SimNode(Node):
         for k, ob in enumerate(self.world.layout.obstacles):
             m = Marker()
             m.header.stamp, m.header.frame_id = t, frame
-            m.ns, m.id = ob.kind, k
-            m.type = Marker.SPHERE if ob.kind == 'rock' else Marker.CYLINDER
+            m.ns, m.id = ob.kind.value, k
+            match ob.kind:
+                case ObstacleKind.ROCK:
+                    m.type, m.scale.z = Marker.SPHERE, 2 * ob.radius
+                case ObstacleKind.DRUM:
+                    m.type, m.scale.z = Marker.CYLINDER, ob.height
+                case _:
+                    assert_never(ob.kind)
             m.pose.position.x, m.pose.position.y, m.pose.position.z = ob.position
             m.pose.orientation.w = 1.0
             m.scale.x = m.scale.y = 2 * ob.radius
-            m.scale.z = 2 * ob.radius if ob.kind == 'rock' else ob.height
             m.color.r = m.color.g = m.color.b = float(ob.shade)
             m.color.a = 1.0
             arr.markers.append(m)

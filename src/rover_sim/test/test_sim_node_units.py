@@ -94,3 +94,26 @@ def test_rendering_is_chosen_while_running():
     finally:
         node.destroy_node()
         rclpy.shutdown(context=ctx)
+
+
+def test_unknown_modes_are_refused_naming_the_allowed_values():
+    """The integrator and renderer parameters are refused at start (read only) with the
+    allowed values named; an obstacle kind that is neither rock nor drum never enters a
+    layout."""
+    import pytest
+
+    from rover_sim.errors import SimError
+    from rover_sim.worldgen import Obstacle, ObstacleKind
+    ctx = Context()
+    rclpy.init(context=ctx)
+    try:
+        for name, bad, allowed in (('integrator', 'rk4', "['implicit', 'explicit']"),
+                                   ('renderer', 'vulkan', "['tiny', 'egl']")):
+            with pytest.raises(ValueError) as exc:
+                SimNode(context=ctx, parameter_overrides=[Parameter(name, value=bad)])
+            assert str(exc.value) == f"{name} must be one of {allowed}, got '{bad}'"
+    finally:
+        rclpy.shutdown(context=ctx)
+    assert Obstacle('drum', (0.0, 0.0, 0.4), 0.3, 0.8, 0.5).kind is ObstacleKind.DRUM
+    with pytest.raises(SimError, match=r"kind must be one of \['rock', 'drum'\], got 'tree'"):
+        Obstacle('tree', (0.0, 0.0, 0.0), 0.3, 0.8, 0.5)
