@@ -14,6 +14,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal, assert_never, get_args
 
 import foxglove
 import numpy as np
@@ -162,9 +163,14 @@ def _pose(xyz: Sequence[float], quat_xyzw: Sequence[float]) -> Pose:
                                        z=float(quat_xyzw[2]), w=float(quat_xyzw[3])))
 
 
+#: a rover's pose channels: its base ('pose') and its left camera's optical frame
+PoseChannel = Literal['pose', 'camera_pose']
+POSE_CHANNELS: tuple[str, ...] = get_args(PoseChannel)
+
+
 def channel_topics(rovers: Sequence[str]) -> list[str]:
     """Every Foxglove channel the live view advertises for these rovers."""
-    per = ('camera/compressed', 'pose', 'camera_pose', 'identification')
+    per = ('camera/compressed', *POSE_CHANNELS, 'identification')
     return ['/map', '/insertion', '/tf', *(f'/{r}/{c}' for r in rovers for c in per)]
 
 
@@ -217,7 +223,7 @@ class LiveView:
         self._tf: dict[str, FrameTransform] = {}
         self._gates = {('image', r): RateGate(cfg.image_rate_hz) for r in cfg.rovers}
         self._gates.update({(k, r): RateGate(cfg.pose_rate_hz) for r in cfg.rovers
-                            for k in ('pose', 'camera_pose')})
+                            for k in POSE_CHANNELS})
         self._last_map: PointCloud | None = None
         self._last_ident: dict[str, dict] = {}
         self._fresh: set[str] = set()       # logged since the last republish()
@@ -254,10 +260,16 @@ class LiveView:
         self.log_image(rover, img, stamp_s, frame_id)
         return True
 
-    def on_pose(self, rover: str, kind: str, xyz, quat_xyzw, stamp_s: float,
+    def on_pose(self, rover: str, kind: PoseChannel, xyz, quat_xyzw, stamp_s: float,
                 frame_id: str = '', now_s: float | None = None) -> bool:
         """kind: 'pose' (the rover's base) or 'camera_pose' (its left optical frame)."""
-        ch = (self.poses if kind == 'pose' else self.cam_poses)[rover]
+        match kind:
+            case 'pose':
+                ch = self.poses[rover]
+            case 'camera_pose':
+                ch = self.cam_poses[rover]
+            case _:
+                assert_never(kind)
         if not ch.has_sinks() or not self._gates[(kind, rover)].ready(now_s):
             return False
         ch.log(PoseInFrame(timestamp=_stamp(stamp_s), frame_id=frame_id or self.cfg.map_frame,

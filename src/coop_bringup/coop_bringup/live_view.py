@@ -9,6 +9,8 @@ Subscribes (relative names) to each rover's left camera image, its base and came
 """
 from __future__ import annotations
 
+from typing import Literal, assert_never, get_args
+
 from action_msgs.msg import GoalStatusArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
@@ -27,12 +29,16 @@ from coop_msgs.msg import DynamicParameters, VoxelMap
 from .live import (
     LiveView,
     LiveViewConfig,
+    PoseChannel,
     channel_topics,
     identification_state,
     image_array,
     insertion_state,
     voxel_map_cdr,
 )
+
+#: where the rovers' poses come from: the simulator's truth or the rovers' own estimates
+PoseSource = Literal['truth', 'estimate']
 
 PARAMS = {
     'rovers': ParamSpec(['rover1', 'rover2'], 'rover namespaces shown', read_only=True),
@@ -51,7 +57,7 @@ PARAMS = {
                                'rate (wall clock; the protocol has no latching)',
                                lo=0.2, hi=20.0, read_only=True),
     'pose_source': ParamSpec('truth', "poses from the sim's truth or the rovers' estimates "
-                             '(odometry, stereo/pose)', choices=('truth', 'estimate'),
+                             '(odometry, stereo/pose)', choices=get_args(PoseSource),
                              read_only=True),
     'camera': ParamSpec('left', 'which camera of each stereo pair is shown',
                         choices=('left', 'right'), read_only=True),
@@ -98,18 +104,23 @@ class LiveViewNode(Node):
             self.create_subscription(Image, f'{r}/stereo/{p["camera"]}/image_raw',
                                      lambda m, r=r: self._on_image(r, m), SENSOR_QOS,
                                      raw=True)
-            if p['pose_source'] == 'truth':
-                for kind in ('base_pose', 'camera_pose'):
-                    self._poses[f'{r}/{kind}'] = (
-                        poll(PoseStamped, f'sim/{r}/{kind}', _ignore, POLLED_QOS),
-                        lambda m, r=r, k=kind: self._on_pose(r, k, m.header, m.pose))
-            else:
-                self._poses[f'{r}/base_pose'] = (
-                    poll(Odometry, f'{r}/odom', _ignore, POLLED_QOS),
-                    lambda m, r=r: self._on_pose(r, 'base_pose', m.header, m.pose.pose))
-                self._poses[f'{r}/camera_pose'] = (
-                    poll(PoseWithCovarianceStamped, f'{r}/stereo/pose', _ignore, POLLED_QOS),
-                    lambda m, r=r: self._on_pose(r, 'camera_pose', m.header, m.pose.pose))
+            source: PoseSource = p['pose_source']       # one of its choices (read only)
+            match source:
+                case 'truth':
+                    for truth, channel in (('base_pose', 'pose'), ('camera_pose', 'camera_pose')):
+                        self._poses[f'{r}/{truth}'] = (
+                            poll(PoseStamped, f'sim/{r}/{truth}', _ignore, POLLED_QOS),
+                            lambda m, r=r, c=channel: self._on_pose(r, c, m.header, m.pose))
+                case 'estimate':
+                    self._poses[f'{r}/base_pose'] = (
+                        poll(Odometry, f'{r}/odom', _ignore, POLLED_QOS),
+                        lambda m, r=r: self._on_pose(r, 'pose', m.header, m.pose.pose))
+                    self._poses[f'{r}/camera_pose'] = (
+                        poll(PoseWithCovarianceStamped, f'{r}/stereo/pose', _ignore,
+                             POLLED_QOS),
+                        lambda m, r=r: self._on_pose(r, 'camera_pose', m.header, m.pose.pose))
+                case _:
+                    assert_never(source)
             self._state[f'{r}/ident'] = (
                 poll(DynamicParameters, f'{r}/dynamic_parameters', _ignore, LATCHED_QOS),
                 lambda m, r=r: self._on_ident(r, m))
@@ -182,11 +193,10 @@ class LiveViewNode(Node):
             if m is not None:
                 handle(m)
 
-    def _on_pose(self, rover: str, kind: str, header, pose) -> None:
+    def _on_pose(self, rover: str, channel: PoseChannel, header, pose) -> None:
         q, p = pose.orientation, pose.position
-        self.view.on_pose(rover, 'pose' if kind == 'base_pose' else 'camera_pose',
-                          (p.x, p.y, p.z), (q.x, q.y, q.z, q.w), _t(header.stamp),
-                          header.frame_id)
+        self.view.on_pose(rover, channel, (p.x, p.y, p.z), (q.x, q.y, q.z, q.w),
+                          _t(header.stamp), header.frame_id)
 
     def _on_ident(self, rover: str, m: DynamicParameters) -> None:
         self.view.on_identification(rover, identification_state(
