@@ -30,8 +30,9 @@ import sys
 import threading
 import time
 from dataclasses import asdict, dataclass, replace
+from enum import StrEnum
 from pathlib import Path
-from typing import Literal
+from typing import Literal, assert_never
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, Twist
@@ -42,7 +43,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from coop_common.cli import number
+from coop_common.cli import enum_choices, number
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.lockstep_node import Lockstep, remap_args
 from coop_common.node_util import in_executor, stamp
@@ -87,7 +88,17 @@ from .mission_seeds import format_table as format_seeds
 from .mission_seeds import parse_seeds, run_seeds
 from .report import MissionError, identification_errors, site_coverage, top_view, write_report
 
-PHASES = ('identify', 'map', 'place', 'insert')
+
+class PhaseName(StrEnum):
+    """The mission's phases, in the order they run (place and insert: one insert goal)."""
+
+    IDENTIFY = 'identify'
+    MAP = 'map'
+    PLACE = 'place'
+    INSERT = 'insert'
+
+
+PHASES = tuple(PhaseName)
 #: a goal within an obstacle's clearance is reached by a straight last leg of at most this (m)
 SNAP_M = 1.0
 MASTER, SLAVE = 'rover1', 'rover2'
@@ -109,7 +120,7 @@ class MissionConfig:
     occlusion_density: float = 0.05
     slot_in: float = 4.5
     rovers: int = 2
-    phases: tuple[str, ...] = PHASES
+    phases: tuple[PhaseName, ...] = PHASES
     identify_s: float = 20.0
     identify_strategy: Strategy = Strategy.INFORMATION
     strategy: StrategyName = StrategyName.MAX_INFORMATION
@@ -136,15 +147,16 @@ class MissionConfig:
         bad = [p for p in self.phases if p not in PHASES]
         if bad:
             raise MissionError(f'unknown phases {bad}; choose from {", ".join(PHASES)}')
+        object.__setattr__(self, 'phases', tuple(PhaseName(p) for p in self.phases))
         if self.rovers < 2:
             raise MissionError('the mission needs a master and a slave: rovers >= 2')
-        if ('insert' in self.phases) != ('place' in self.phases):
+        if (PhaseName.INSERT in self.phases) != (PhaseName.PLACE in self.phases):
             raise MissionError("'place' and 'insert' run as one insert goal: both or neither")
 
 
 @dataclass
 class Phase:
-    name: str
+    name: PhaseName
     status: Literal['skipped', 'running', 'ok', 'failed'] = 'skipped'
     reason: str = ''
     wall_s: float | None = None
@@ -342,7 +354,7 @@ class Mission:
     def run(self) -> dict:
         cfg = self.cfg
         isolate_ros_environment(self.domain_id)
-        ident = ('identify' in cfg.phases)
+        ident = PhaseName.IDENTIFY in cfg.phases
         lockstep = (['-p', 'lockstep:=true', *remap_args()] if cfg.lockstep else [])
         extra = tuple((f'identifier_{r}', 'coop_id', 'identifier',
                        ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true', *lockstep])
@@ -390,7 +402,7 @@ class Mission:
                     if failed is not None:
                         ph.reason = f'after {failed} failed'
                         continue
-                    if ph.name == 'insert':
+                    if ph.name is PhaseName.INSERT:
                         continue               # run with 'place' as one goal
                     self._run_phase(ph)
                     if ph.status == 'failed':
@@ -474,19 +486,24 @@ class Mission:
         self.progress.start(ph.name)
         w0, s0 = time.monotonic(), self._sim_t()
         try:
-            if ph.name == 'identify':
-                self._identify()
-            elif ph.name == 'map':
-                self._map()
-            elif ph.name == 'place':
-                self._place_and_insert(ph)
+            match ph.name:
+                case PhaseName.IDENTIFY:
+                    self._identify()
+                case PhaseName.MAP:
+                    self._map()
+                case PhaseName.PLACE:
+                    self._place_and_insert(ph)
+                case PhaseName.INSERT:
+                    raise AssertionError("'insert' runs with 'place', as one insert goal")
+                case _:
+                    assert_never(ph.name)
             ph.status = ph.status if ph.status == 'failed' else 'ok'
         except (MissionError, InsertionError, TimeoutError) as exc:
             ph.status, ph.reason = 'failed', str(exc)
             self.log(f'{ph.name} failed: {exc}')
         finally:
             self.progress.close()
-            if ph.name != 'place':
+            if ph.name is not PhaseName.PLACE:
                 ph.wall_s, ph.sim_s = time.monotonic() - w0, self._sim_t() - s0
 
     # -- phase 1: identification ---------------------------------------------------------------
@@ -709,7 +726,7 @@ class Mission:
         rig.set_slot(self.cfg.slot_in)
 
     def _place_and_insert(self, place: Phase) -> None:
-        insert = next(p for p in self.phases if p.name == 'insert')
+        insert = next(p for p in self.phases if p.name is PhaseName.INSERT)
         self.progress.update(0.0, 'to the staging poses')
         self.rig.render((), 0.0)
         self._stage()
@@ -830,7 +847,7 @@ def main(argv: list[str] | None = None) -> int:
                    default=d.coverage_target, help='work-site coverage target')
     p.add_argument('--max-scans', type=number(int, lo=0), default=d.max_scans)
     p.add_argument('--strategy', default=d.strategy.value,
-                   choices=[m.value for m in StrategyName],
+                   choices=enum_choices(StrategyName),
                    help='exploration strategy of next_best_view')
     p.add_argument('--insert-timeout', type=number(float, lo=1.0), default=d.insert_timeout_s)
     p.add_argument('--rough-site', type=number(float, lo=0.0, hi=2.0), default=d.rough_site_m,
