@@ -11,6 +11,7 @@ turns about z above it, joints 2..4 pitch about their y axes in the arm's plane.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -21,6 +22,10 @@ BASE_HEIGHT_M = 0.30
 
 ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
 MAST_JOINTS = ('mast_pan', 'mast_tilt')
+#: the joint groups a rover takes trajectories for, each on its own command topic
+#: (`<rover>/arm/joint_command`, `<rover>/mast/command`), and their joints
+JointGroup = Literal['arm', 'mast']
+GROUP_JOINTS: dict[JointGroup, tuple[str, ...]] = {'arm': ARM_JOINTS, 'mast': MAST_JOINTS}
 
 
 @dataclass(frozen=True)

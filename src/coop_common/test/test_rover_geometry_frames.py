@@ -19,3 +19,11 @@ def test_camera_in_map_is_the_base_pose_times_camera_in_base():
     rz = Rotation.from_euler('z', math.pi / 2).as_matrix()
     np.testing.assert_allclose(c[:3, :3], rz @ b[:3, :3], atol=1e-12)
     np.testing.assert_allclose(c[:3, 3], rz @ b[:3, 3] + [1.0, -2.0, BASE_HEIGHT_M], atol=1e-12)
+
+
+def test_every_joint_group_has_its_joints():
+    from typing import get_args
+
+    from coop_common.rover_geometry import ARM_JOINTS, GROUP_JOINTS, MAST_JOINTS, JointGroup
+    assert tuple(GROUP_JOINTS) == get_args(JointGroup) == ('arm', 'mast')
+    assert GROUP_JOINTS['arm'] == ARM_JOINTS and GROUP_JOINTS['mast'] == MAST_JOINTS

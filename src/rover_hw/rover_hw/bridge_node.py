@@ -12,6 +12,7 @@ import math
 import threading
 import time
 from collections import deque
+from typing import assert_never
 
 import numpy as np
 import serial
@@ -41,7 +42,13 @@ from coop_common.node_util import (
     run_node,
 )
 from coop_common.qos import COMMAND_QOS, SENSOR_QOS
-from coop_common.rover_geometry import ARM_JOINTS, MAST_JOINTS, camera_in_map
+from coop_common.rover_geometry import (
+    ARM_JOINTS,
+    GROUP_JOINTS,
+    MAST_JOINTS,
+    JointGroup,
+    camera_in_map,
+)
 from coop_common.tf_tree import TreeBroadcaster
 from coop_msgs.msg import Inclinometer
 from coop_msgs.srv import CalibrateInclinometer
@@ -189,8 +196,8 @@ class BridgeNode(LifecycleNode):
         self._measured: np.ndarray | None = None     # arm + mast encoder angles (mean)
         self._enc_hist: deque = deque(maxlen=SEED_SAMPLES)
         self._seeded = False
-        self._live = {'arm': False, 'mast': False}
-        self._next_us: dict[str, int | None] = {'arm': None, 'mast': None}
+        self._live: dict[JointGroup, bool] = {'arm': False, 'mast': False}
+        self._next_us: dict[JointGroup, int | None] = {'arm': None, 'mast': None}
         self._arm = JointTrajectoryFollower(ARM_JOINTS, np.zeros(4))
         self._mast = JointTrajectoryFollower(MAST_JOINTS, np.zeros(2))
         self._wheels = (0.0, 0.0, 0.0, 0.0)
@@ -575,8 +582,8 @@ class BridgeNode(LifecycleNode):
         self._pubs['pose'].publish(msg)
 
     # ------------------------------------------------------------------ graph -> device
-    def _on_traj(self, msg: JointTrajectory, group: str) -> None:
-        known = ARM_JOINTS if group == 'arm' else MAST_JOINTS
+    def _on_traj(self, msg: JointTrajectory, group: JointGroup) -> None:
+        known = GROUP_JOINTS[group]
         names = list(msg.joint_names)
         try:
             if not self._active:
@@ -599,7 +606,7 @@ class BridgeNode(LifecycleNode):
             with self._lock:
                 if not self._seeded:
                     raise CommandRefused('no measured state yet (device not streaming)')
-                follower = self._arm if group == 'arm' else self._mast
+                follower = self._follower(group)
                 q, qd = follower.target(now)
                 follower.set(names, times, positions, start if start > 0 else now, q,
                              velocities=vels, current_velocity=qd)
@@ -620,6 +627,15 @@ class BridgeNode(LifecycleNode):
         with self._lock:
             self._wheels = wheels
         self.safety.drive_command()
+
+    def _follower(self, group: JointGroup) -> JointTrajectoryFollower:
+        match group:
+            case 'arm':
+                return self._arm
+            case 'mast':
+                return self._mast
+            case _:
+                assert_never(group)
 
     def _stamp_now_s(self) -> float:
         """Now on the stamps' clock (the device's, see ClockMap), the time base of trajectories;

@@ -20,6 +20,9 @@ import time
 import tty
 from dataclasses import dataclass
 from pathlib import Path
+from typing import assert_never
+
+from coop_common.rover_geometry import GROUP_JOINTS, JointGroup
 
 from . import protocol as p
 from .protocol import Flags
@@ -135,7 +138,8 @@ class Device:
         self.decoder = p.Decoder()
         self.host_timeout_s = host_timeout_s
         # timed set-points not yet reached, per group: [(t_s, positions, velocities)]
-        self._setpoints: dict[str, list[tuple[float, tuple, tuple]]] = {'arm': [], 'mast': []}
+        self._setpoints: dict[JointGroup, list[tuple[float, tuple, tuple]]] = {'arm': [],
+                                                                               'mast': []}
         self.late_setpoints = 0         # timed set-points that came at or after their time
         self._hb_every = max(1, int(round(1.0 / (heartbeat_hz * self.dt))))
         self.estop = False
@@ -190,14 +194,13 @@ class Device:
             v, yaw_rate = wheels_to_twist(wheels, Limits())
             w.command_velocity(0, v, yaw_rate)
 
-    def _follow(self, group: str, pl) -> None:
+    def _follow(self, group: JointGroup, pl) -> None:
         """A position-velocity-time set-point stream: the joint references pass through the
         timed set-points still ahead, by cubic interpolation from where the reference is now.
         Re-planned from the reference's own value and speed, the path is the same however a
         set-point's arrival falls between control instants. A set-point at or past its time
         is dropped while later ones are queued (the path goes on through them); otherwise it,
         like an untimed one (t_us 0), is the target of the next control instant."""
-        from rover_sim.rover_model import ARM_JOINTS, MAST_JOINTS
         now, w = self.time_s, self.world
         t = pl.t_us * 1e-6
         queue = self._setpoints[group]
@@ -215,11 +218,14 @@ class Device:
         queue.append((t, tuple(pl.positions), tuple(pl.velocities)))
         times = [sp[0] - now for sp in queue]
         positions = [list(sp[1]) for sp in queue]
-        if group == 'arm':
-            w.command_arm(0, ARM_JOINTS, times, positions,
-                          velocities=[list(sp[2]) for sp in queue])
-        else:
-            w.command_mast(0, MAST_JOINTS, times, positions)
+        match group:
+            case 'arm':
+                w.command_arm(0, GROUP_JOINTS[group], times, positions,
+                              velocities=[list(sp[2]) for sp in queue])
+            case 'mast':
+                w.command_mast(0, GROUP_JOINTS[group], times, positions)
+            case _:
+                assert_never(group)
 
     def _stop_motors(self) -> None:
         w = self.world

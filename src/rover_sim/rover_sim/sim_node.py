@@ -12,7 +12,7 @@ import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Literal, assert_never
+from typing import assert_never
 
 import numpy as np
 import rclpy
@@ -46,6 +46,7 @@ from coop_common.lockstep_node import (
 )
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node, stamp
 from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, reliable
+from coop_common.rover_geometry import GROUP_JOINTS, JointGroup
 from coop_common.tf_tree import TreeBroadcaster
 from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer, LockstepAck, LockstepTick
 from coop_msgs.srv import SimScenario
@@ -61,14 +62,10 @@ from .config import (
     load_config,
     truth_topic,
 )
-from .rover_model import ARM_JOINTS, MAST_JOINTS, STEREO_BASELINE_M
+from .rover_model import STEREO_BASELINE_M
 from .trajectory import TrajectoryError
 from .world import World
 from .worldgen import TABLE_5_1_GAPS_M, ObstacleKind
-
-#: the joint groups a rover takes trajectories for, each on its own command topic
-JointGroup = Literal['arm', 'mast']
-GROUP_JOINTS: dict[str, tuple[str, ...]] = {'arm': tuple(ARM_JOINTS), 'mast': tuple(MAST_JOINTS)}
 
 
 @dataclass(frozen=True)
