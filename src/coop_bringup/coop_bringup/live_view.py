@@ -20,6 +20,7 @@ from rclpy.qos import QoSProfile, qos_profile_action_status_default
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
 
+from coop_common.frames import CAMERA_SIDES
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_common.tf_tree import TF_QOS, TF_STATIC_LISTENER_QOS
@@ -60,7 +61,7 @@ PARAMS = {
                              '(odometry, stereo/pose)', choices=get_args(PoseSource),
                              read_only=True),
     'camera': ParamSpec('left', 'which camera of each stereo pair is shown',
-                        choices=('left', 'right'), read_only=True),
+                        choices=CAMERA_SIDES, read_only=True),
     'map_frame': ParamSpec('map', 'frame of the map and of frame-less poses', read_only=True),
     'min_occupancy': ParamSpec(0.5, 'voxels at least this likely occupied are map points',
                                lo=0.5, hi=1.0, read_only=True),

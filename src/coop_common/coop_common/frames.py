@@ -23,6 +23,7 @@ import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -40,7 +41,8 @@ from .rover_geometry import (
     TILT_ABOVE_PAN_M,
 )
 
-__all__ = ['FRAME_PARAMS', 'TRUTH', 'FrameError', 'RoverFrames', 'Transform',
+__all__ = ['CAMERA_SIDES', 'FRAME_PARAMS', 'TRUTH', 'CameraSide', 'FrameError', 'RoverFrames',
+           'Transform',
            'check_frame_params', 'check_prefix', 'mast_transforms',
            'odom_transform', 'quat_of', 'static_transforms', 'truth_transforms']
 
@@ -82,6 +84,11 @@ FRAME_PARAMS = {
 def check_frame_params(values: dict) -> str | None:
     """The rule FRAME_PARAMS' values obey beyond their ranges (for declare_parameters)."""
     return check_prefix(values['frame_prefix'])
+
+
+#: the cameras of a rover's stereo pair
+CameraSide = Literal['left', 'right']
+CAMERA_SIDES: tuple[str, ...] = get_args(CameraSide)
 
 
 @dataclass(frozen=True)
@@ -133,10 +140,10 @@ class RoverFrames:
     def mast_tilt(self) -> str:
         return self.link('mast_tilt_link')
 
-    def optical(self, side: str) -> str:
-        """`left` or `right` camera's optical frame."""
-        if side not in ('left', 'right'):
-            raise FrameError(f'camera side {side!r} is not left or right')
+    def optical(self, side: CameraSide) -> str:
+        """`left` or `right` camera's optical frame; FrameError for another side."""
+        if side not in CAMERA_SIDES:
+            raise FrameError(f'camera side must be one of {list(CAMERA_SIDES)}, got {side!r}')
         return self.link(f'{side}_camera_optical_frame')
 
     def truth(self, name: str) -> str:

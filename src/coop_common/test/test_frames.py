@@ -148,3 +148,11 @@ def test_quaternions_have_w_non_negative_and_round_trip():
         assert q[3] >= 0 and abs(np.linalg.norm(q) - 1.0) < 1e-12
         np.testing.assert_allclose(F.Transform('a', 'b', (0, 0, 0), q).matrix()[:3, :3], m,
                                    atol=1e-12)
+
+
+def test_a_camera_side_is_left_or_right():
+    fr = F.RoverFrames('rover1', 'team_a/')
+    assert fr.optical('right') == 'team_a/rover1/right_camera_optical_frame'
+    with pytest.raises(F.FrameError, match=r"camera side must be one of \['left', 'right'\], "
+                       r"got 'centre'"):
+        fr.optical('centre')
