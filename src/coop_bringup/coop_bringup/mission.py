@@ -730,6 +730,13 @@ class Mission:
         self.progress.update(0.0, 'to the staging poses')
         self.rig.render((), 0.0)
         self._stage()
+        # the master looks over the site from its staging pose before the map is final, as
+        # the table's rig does: the exploration sees the site from afar, and its front, where
+        # the camera is placed, can stay unknown (then task_view finds no free pose within
+        # the markers' range of any search point, and the slot is not found)
+        self.progress.update(0.2, 'surveying the site')
+        self.rig.render((MASTER,), self.cfg.stereo_rate_hz)
+        self.rig.survey()
         # every node of the graph is up (the stereo nodes until the next line): the loop
         # nodes' subscriptions to the simulator's truth, none when truth only judges
         subs = self.rig.subscriptions()
