@@ -231,8 +231,11 @@ def test_two_teams_in_one_domain_do_not_cross_talk(ros2, graph_node):
         for t in teams:
             ours = [n for n in topics if n.startswith(f'/{t}/')]
             assert f'/{t}/clock' in ours and f'/{t}/map/voxels' in ours
-            subs = graph_node.get_subscriptions_info_by_topic(f'/{t}/rover2/stereo/points')
-            assert any(i.node_name == 'mapper' and i.node_namespace == f'/{t}' for i in subs)
+            # (discovered apart from the node: on a loaded machine its endpoints come later)
+            wait_for(lambda t=t: any(
+                i.node_name == 'mapper' and i.node_namespace == f'/{t}'
+                for i in graph_node.get_subscriptions_info_by_topic(f'/{t}/rover2/stereo/points')),
+                60.0, spin=spin, what=f"{t}'s mapper on rover2's clouds")
             for name in ours:
                 for info in (graph_node.get_publishers_info_by_topic(name)
                              + graph_node.get_subscriptions_info_by_topic(name)):
