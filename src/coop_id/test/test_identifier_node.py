@@ -15,6 +15,7 @@ from sensor_msgs.msg import Imu
 from trajectory_msgs.msg import JointTrajectory
 
 from coop_common.dynparams import load_truth
+from coop_common.node_util import in_executor
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import pick_domain_id, wait_for
 from coop_id.excitation import Excitation, constant_excitation
@@ -38,6 +39,16 @@ def _data(seconds: float):
 def _stamp(msg, t):
     msg.header.stamp.sec = int(t)
     msg.header.stamp.nanosec = int(round((t - int(t)) * 1e9))
+
+
+def _send(peer, client, goal):
+    """The goal sent from the executor's thread (the fixture spins it in another): rclpy's
+    action client can lose the answer to a request made beside its executor (in_executor)."""
+    return in_executor(peer.executor, lambda: client.send_goal_async(goal))
+
+
+def _result(peer, handle):
+    return in_executor(peer.executor, handle.get_result_async)
 
 
 @pytest.fixture
@@ -74,18 +85,18 @@ def test_identify_action_over_dds(graph):
     wait_for(lambda: pub_imu.get_subscription_count() and pub_wr.get_subscription_count()
              and pub_inc.get_subscription_count(), 10, what='node subscriptions')
     # a bad goal is rejected
-    bad = client.send_goal_async(Identify.Goal(strategy='magic', duration_s=1.0))
+    bad = _send(peer, client, Identify.Goal(strategy='magic', duration_s=1.0))
     wait_for(bad.done, 10, what='bad goal answer')
     assert not bad.result().accepted
-    fut = client.send_goal_async(Identify.Goal(strategy='information', duration_s=2.0))
+    fut = _send(peer, client, Identify.Goal(strategy='information', duration_s=2.0))
     wait_for(fut.done, 10, what='goal accepted')
     handle = fut.result()
     assert handle.accepted
     # one identification at a time: a second goal, sent at once, is turned down
-    second = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=1.0))
+    second = _send(peer, client, Identify.Goal(strategy='constant', duration_s=1.0))
     wait_for(second.done, 10, what='second goal answer')
     assert not second.result().accepted
-    res_fut = handle.get_result_async()
+    res_fut = _result(peer, handle)
     d = _data(2.6)
     t0 = 100.0
     for k in range(d['t'].size):
@@ -165,18 +176,18 @@ def test_a_goal_ends_when_the_sensors_fall_silent_or_time_jumps_back(graph):
     assert node.set_parameters([Parameter('silence_abort_s', value=1.0)])[0].successful
     client = ActionClient(peer, Identify, 'identifier/identify')
     assert client.wait_for_server(timeout_sec=10)
-    fut = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=60.0))
+    fut = _send(peer, client, Identify.Goal(strategy='constant', duration_s=60.0))
     wait_for(fut.done, 10, what='goal answer')
-    res = fut.result().get_result_async()
+    res = _result(peer, fut.result())
     wait_for(res.done, 10, what='the aborted result')
     r = res.result().result
     assert not r.success and 'no paired sensor samples' in r.message
     assert r.estimate.rejected_samples == 0
     # sensor time jumps back 100 s during the next goal
     assert node.set_parameters([Parameter('silence_abort_s', value=0.0)])[0].successful
-    fut = client.send_goal_async(Identify.Goal(strategy='constant', duration_s=60.0))
+    fut = _send(peer, client, Identify.Goal(strategy='constant', duration_s=60.0))
     wait_for(fut.done, 10, what='goal answer')
-    res = fut.result().get_result_async()
+    res = _result(peer, fut.result())
     pub_imu = peer.create_publisher(Imu, 'imu', SENSOR_QOS)
     wait_for(lambda: pub_imu.get_subscription_count(), 10, what='node subscription')
     for t in (100.0, 100.005, 0.0):
