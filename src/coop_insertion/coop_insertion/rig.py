@@ -570,7 +570,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         ranged it (it and the mapper are not participants: a busy machine's stereo node would
         drop the frames it is behind on, and the map, and the camera placed in it, differ)."""
         self.node.mast.publish(mast_sweep(seconds))
-        if not self.lockstep:
+        if not self.lockstep or 'stereo' not in self.nodes:
             self.sim_sleep(seconds + 1.0)
             return self.node.map_voxels
         node, period = self.node, 1.0 / self.stereo_rate_hz
