@@ -43,9 +43,9 @@ def in_executor(executor: Executor, call: Callable[[], Future]) -> Future:
     get_result_async, cancel_goal_async), made in `executor`'s thread, as a future another
     thread can wait on. Made from another thread while the executor spins, the request can be
     answered and its answer taken by the executor before rclpy's action client has filed the
-    future for it: the answer is dropped and the future never completes (ros2/rclpy#1123,
-    fixed in later rclpy than this project's 7.1). In the executor's thread the request is
-    filed before the executor looks for its answer."""
+    future for it: the answer is dropped and the future never completes (ros2/rclpy#1123;
+    seen with this project's rclpy 7.1). In the executor's thread the request is filed before
+    the executor looks for its answer."""
     async def request():
         return await call()
     return executor.create_task(request)
