@@ -35,6 +35,7 @@ import numpy as np
 
 from coop_common.cli import number, output_dir, output_path
 from coop_common.files import save_figure, write_json
+from coop_common.provenance import source_revision
 
 from .rig import InsertionRig, SimStalled, as_row
 
@@ -155,7 +156,8 @@ def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple
     written there (atomically) after every attempt, `complete` false until the end; `resume`
     reuses the attempts it holds. An attempt the simulator stalled in (rig.SimStalled) is run
     again on a fresh graph, up to MAX_RESTARTS per run; each restart is listed in
-    `sim_restarts`."""
+    `sim_restarts`. Each attempt run records the source revision it ran on (`source`), so a
+    table resumed over several checkouts says which code ran which attempt."""
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix='table_5_1_'))
     if site_map is None:
@@ -165,6 +167,7 @@ def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple
     settings = {'format': TABLE_FORMAT, 'seed': seed, 'occlusion_density': occlusion_density,
                 'timeout_s': timeout_s, 'max_force_n': max_force_n}
     done = _done_attempts(checkpoint, settings, log) if resume else {}
+    source = source_revision()
     if done:
         log(f'resuming: {len(done)} attempts from {checkpoint}')
     res = {'settings': settings, 'attempts': attempts, 'seed': seed,
@@ -216,6 +219,7 @@ def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple
                                     raise
                                 continue
                             a, c = as_row(at), at.curves
+                            a['source'] = source
                     got.append(a)
                     curves.append(c)
                     log(f'{slot_in} in {placement} #{k + 1}: '
