@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
-"""Wall time of Table 5-1 attempts end to end: the insertion graph over DDS (coop_insertion.rig:
+"""Wall time of Table 5-1 attempts end to end: the insertion graph over DDS (coop_bringup.rig:
 rover_sim, mapper with the scenario's site map, view_planner, master, slave), the medium slot
 (4.5 in) by default, the master's camera placed by `task_view` (optimal) or at random; each
-attempt as `coop_insertion table_5_1` runs it (the simulator reset to the slot with the slave's
+attempt as `coop_bringup table_5_1` runs it (the simulator reset to the slot with the slave's
 start perturbed by the attempt's seed, one `insert` goal, the truth's verdict). The graph's
 set-up (start, the master's survey) is timed apart. The simulator runs in lockstep with the
 master, the slave and the rig (--no-lockstep: paced by the clock); --busy-too runs the same
@@ -15,7 +15,7 @@ Usage: bench/attempt_rate.py --json OUT --site-map MAP [--attempts 10] [--slot 4
        [--placement optimal] [--busy-too] [--no-lockstep]
        [--composed | --composed-too]
 
-MAP: the scenario's site map (`coop_insertion.table_5_1.build_site_map`, seed 1, occlusion
+MAP: the scenario's site map (`coop_bringup.table_5_1.build_site_map`, seed 1, occlusion
 0.05; without it the command builds one first, a few minutes).
 """
 from __future__ import annotations
@@ -74,7 +74,7 @@ def format_load_table(result: dict) -> str:
 
 def run_attempts(args, site_map: Path, work: Path, *, busy: bool, composed: bool) -> dict:
     """One graph, `args.attempts` attempts; wall times and each attempt's outcome."""
-    from coop_insertion.table_5_1 import open_rig
+    from coop_bringup.table_5_1 import open_rig
     logs = 'logs' + ('_busy' if busy else '') + ('_composed' if composed else '')
     from coop_common.testing import busy_core
     with busy_core(busy):
@@ -160,7 +160,7 @@ def main() -> int:
     layout.add_argument('--composed-too', action='store_true',
                         help='run the attempts again composed and compare')
     args = ap.parse_args()
-    from coop_insertion.table_5_1 import build_site_map
+    from coop_bringup.table_5_1 import build_site_map
 
     work = Path(tempfile.mkdtemp(prefix='attempt_rate_'))
     site_map = args.site_map

@@ -50,7 +50,7 @@ KNOWN = {
     'coop_viewplan.placement.PlacementError': ValueError,
     'coop_common.rover_geometry.ReachError': ValueError,
     'coop_common.dynparams.TruthFileError': ValueError,
-    'coop_insertion.rig.SimStalled': ValueError,
+    'coop_bringup.rig.SimStalled': RuntimeError,
     'rover_hw.protocol.ProtocolError': ValueError,
     'rover_hw.safety.CommandRefused': ValueError,
     'rover_bag.bagio.BagNotFoundError': FileNotFoundError,

@@ -4,7 +4,7 @@ The master drives to its camera pose and tracks the card's and the slot's marker
 rendered stereo pair, the slave approaches, servos on the master's fixes, descends and finishes
 by force feedback; the simulator's truth judges the result. The easy slot (5.0 in) with the
 camera given in front of the site (the optimal and random placements need the view planner and
-a site map, which `coop_insertion table_5_1` runs)."""
+a site map, which `coop_bringup table_5_1` runs)."""
 from __future__ import annotations
 
 import math
@@ -18,7 +18,7 @@ pytestmark = [pytest.mark.graph, pytest.mark.extra]
 
 
 def test_an_easy_insertion_through_sim_master_and_slave(tmp_path):
-    from coop_insertion.rig import InsertionRig
+    from coop_bringup.rig import InsertionRig
     camera = ((3.0572, 0.65), -math.pi / 2, math.atan2(0.8 - 0.5, 0.5))
     with InsertionRig(seed=1, slot_in=5.0, occlusion_density=0.0, planner=False,
                       log_dir=tmp_path, domain_id=int(os.environ['ROS_DOMAIN_ID'])) as rig:

@@ -22,7 +22,7 @@ CAMERA = ((3.0572, 0.65), -math.pi / 2, math.atan2(0.8 - 0.5, 0.5))
 
 def short_attempt(log_dir, *, composed=False):
     from coop_common.rover_geometry import camera_mount
-    from coop_insertion.rig import InsertionRig
+    from coop_bringup.rig import InsertionRig
     # the master starts where its given camera pose puts it, the slave's card 0.05 m short of
     # the slot, descending at 3 cm/s: a short attempt
     mount = camera_mount(*CAMERA)

@@ -9,7 +9,7 @@ import json
 import subprocess
 import sys
 
-#: the loop nodes' modules (coop_insertion.rig.LOOP_NODES by name)
+#: the loop nodes' modules (coop_bringup.rig.LOOP_NODES by name)
 LOOP_MODULES = ('coop_insertion.master_node', 'coop_insertion.slave_node',
                 'coop_id.identifier_node', 'coop_mapping.stereo_node',
                 'coop_mapping.mapper_node', 'coop_viewplan.view_planner_node')
@@ -44,7 +44,7 @@ def _names(path: str) -> set[str]:
 
 
 def test_the_loop_nodes_load_neither_the_simulator_nor_the_truth_file():
-    from coop_insertion.rig import LOOP_NODES
+    from coop_bringup.rig import LOOP_NODES
     assert {m.rsplit('.', 1)[1].removesuffix('_node') for m in LOOP_MODULES} == set(LOOP_NODES)
     out = subprocess.run([sys.executable, '-c', PROBE, *LOOP_MODULES], capture_output=True,
                          text=True, timeout=120, check=True).stdout
@@ -58,12 +58,12 @@ def test_the_loop_nodes_load_neither_the_simulator_nor_the_truth_file():
                 readers.append(name)
     assert not readers, readers
     # the check can fail: the rig, which judges by the truth, is caught by it
-    assert 'load_truth' in _names(sys.modules['coop_insertion.rig'].__file__)
+    assert 'load_truth' in _names(sys.modules['coop_bringup.rig'].__file__)
 
 
 def test_a_loop_node_on_the_tree_counts_as_reading_the_truth():
     # /tf carries the true poses when the simulator's truth_tf is on
-    from coop_insertion.rig import truth_readers
+    from coop_bringup.rig import truth_readers
     subs = {'/rover1/master': ['/rover1/odom', '/tf'], '/rover2/slave': ['/rover2/odom'],
             '/live_view': ['/tf', '/sim/rover1/base_pose'], '/rover1/stereo': ['/rover1/odom']}
     assert truth_readers(subs) == {'/rover1/master': ['/tf']}

@@ -22,5 +22,6 @@ setup(
     license='Apache-2.0',
     entry_points={'console_scripts': ['mission = coop_bringup.mission:main',
                                       'live_view = coop_bringup.live_view:main',
-                                      'compose = coop_bringup.compose:main']},
+                                      'compose = coop_bringup.compose:main',
+                                      'table_5_1 = coop_bringup.table_5_1:main']},
 )

@@ -21,7 +21,6 @@ setup(
     entry_points={'console_scripts': [
         'master = coop_insertion.master_node:main',
         'slave = coop_insertion.slave_node:main',
-        'table_5_1 = coop_insertion.table_5_1:main',
         'force_trials = coop_insertion.force_trials:main',
     ]},
 )

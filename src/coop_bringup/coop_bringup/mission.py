@@ -3,7 +3,7 @@
 
 Brings up, on a private ROS domain, the simulator with the insertion site among rocks and drums,
 each rover's `identifier` and `stereo`, the team's `mapper` and `view_planner`, and the
-`master` and `slave` of `coop_insertion` (`coop_insertion.rig.InsertionRig`), then runs:
+`master` and `slave` of `coop_insertion` (`coop_bringup.rig.InsertionRig`), then runs:
 
 1. identify: every rover identifies its base's dynamic parameters (`identify` action,
    information-optimal excitation);
@@ -60,7 +60,7 @@ from coop_common.testing import isolate_ros_environment, pick_domain_id
 from coop_id.excitation import Strategy
 from coop_insertion.drive import FollowPath
 from coop_insertion.errors import InsertionError
-from coop_insertion.rig import (
+from coop_bringup.rig import (
     SITE_XY,
     VIEW_PLANNER,
     InsertionRig,
@@ -130,7 +130,7 @@ class MissionConfig:
     site_half_m: float = 1.5
     insert_timeout_s: float = 60.0
     rough_site_m: float = 0.3         # the master's region: this far either side of a centre
-    #                                   drawn from the seed (coop_insertion.rig.rough_site)
+    #                                   drawn from the seed (coop_bringup.rig.rough_site)
     max_force_n: float = 25.0
     stereo_rate_hz: float = 4.0
     near_start: bool = False          # the rovers start at their staging poses (short missions)

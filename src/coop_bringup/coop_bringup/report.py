@@ -211,7 +211,7 @@ def _plots(rep: dict, out: Path, extras: dict) -> dict[str, str]:
         plt.close(fig)
     curves = extras.get('insertion_curves')
     if curves and curves.get('t'):
-        from coop_insertion.table_5_1 import plot_curves
+        from coop_bringup.table_5_1 import plot_curves
         ok = rep.get('insertion', {}).get('success')
         files['insertion'] = plot_curves(
             curves, f'Insertion, {rep["config"]["slot_in"]} in slot: '

@@ -19,7 +19,7 @@ def test_a_spec_names_the_node_class_of_the_executable():
     for bad, why in (('coop_mapping', 'expected <package>/<executable>'),
                      ('coop_mapping/nothing', "has no executable 'nothing'"),
                      ('no_such_package/mapper', "package 'no_such_package'"),
-                     ('coop_insertion/table_5_1', 'is not a node executable'),
+                     ('coop_bringup/table_5_1', 'is not a node executable'),
                      ('coop_bringup/mission', 'is not a node executable')):
         with pytest.raises(ComposeError, match=why):
             node_class(bad)

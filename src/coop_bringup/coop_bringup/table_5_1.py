@@ -6,12 +6,12 @@ feasible for the same request (free, the markers within the detector's range and
 the target unoccluded), drawn again where the optimal placement is re-placed ('random'), or
 drawn once ('random_fixed', Table 4-1's fixed camera).
 
-    ros2 run coop_insertion table_5_1 --json out/table_5_1.json --resume --plots out
+    ros2 run coop_bringup table_5_1 --json out/table_5_1.json --resume --plots out
 
 runs the thesis's scale: 10 attempts a cell for the three thesis rows with each placement, and
 30 for the 1 % row with the optimal placement (`--rows`: `width[:attempts[:placement+...]]`).
 
-Every attempt runs through the whole graph over DDS (coop_insertion.rig: rover_sim, the mapper
+Every attempt runs through the whole graph over DDS (coop_bringup.rig: rover_sim, the mapper
 with the site's map, view_planner, master and slave): the simulator is reset to the row's slot
 width with the slave's start perturbed (attempt seed), one `insert` goal runs, and the
 simulator's truth decides success: the card seated to depth with its penetration into anything

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from coop_insertion import table_5_1
-from coop_insertion.rig import Attempt, SimStalled
+from coop_bringup import table_5_1
+from coop_bringup.rig import Attempt, SimStalled
 
 
 class FakeRig:

@@ -40,7 +40,7 @@ from coop_msgs.action import Insert
 from coop_msgs.msg import ContactState, VoxelMap
 from coop_msgs.srv import SimScenario
 
-from .errors import InsertionError
+from .report import MissionError
 
 INCH = 0.0254
 SITE_XY = (3.0, 0.0)            # rover_sim's site: the near jaw's inner face at x = 3.0
@@ -126,7 +126,7 @@ def compose(procs: list[tuple], names: tuple[str, ...], params_file: Path) -> li
     params: dict[str, dict] = {}
     for name, _, exe, args, *_ in together:
         if len(args) % 2 or any(flag != '-p' for flag in args[::2]):
-            raise InsertionError(f'{name}: only -p arguments compose, not {args}')
+            raise MissionError(f'{name}: only -p arguments compose, not {args}')
         own = params.setdefault(f'/**/{exe}', {'ros__parameters': {}})['ros__parameters']
         for assignment in args[1::2]:
             key, _, value = assignment.partition(':=')
@@ -140,7 +140,7 @@ def compose(procs: list[tuple], names: tuple[str, ...], params_file: Path) -> li
                 specs)])
 
 
-class SimStalled(InsertionError):
+class SimStalled(MissionError):
     """The simulator's clock stopped advancing; `stack_file` holds its threads' stacks when
     gdb could read them."""
 
@@ -409,9 +409,9 @@ class InsertionRig(contextlib.AbstractContextManager):
             self._thread = threading.Thread(target=self._spin, daemon=True)
             self._thread.start()
             if not self.node.insert.wait_for_server(timeout_sec=60):
-                raise InsertionError(f'no insert action server (logs in {self.log_dir})')
+                raise MissionError(f'no insert action server (logs in {self.log_dir})')
             if not self.node.reset.wait_for_service(timeout_sec=30):
-                raise InsertionError('no sim/reset service')
+                raise MissionError('no sim/reset service')
         except BaseException:
             self.__exit__(None, None, None)
             raise
@@ -444,7 +444,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         self.stack.close()
 
     def _wait(self, predicate, timeout_s: float, *, what: str, held: bool = False) -> None:
-        """wait_for(predicate), failing early when a node of the graph died (InsertionError)
+        """wait_for(predicate), failing early when a node of the graph died (MissionError)
         or the sim's clock stood still for STALL_S (SimStalled, with the sim's stacks); `held`:
         this rig holds the sim while it waits (lockstep), so a still clock is no stall."""
         def done() -> bool:
@@ -453,7 +453,7 @@ class InsertionRig(contextlib.AbstractContextManager):
             if held and self.lockstep:
                 dead = self.dead()
                 if dead:
-                    raise InsertionError(f'{", ".join(dead)} died while waiting for {what} '
+                    raise MissionError(f'{", ".join(dead)} died while waiting for {what} '
                                          f'(logs in {self.log_dir})')
                 return False
             self.check_alive(what)
@@ -463,7 +463,7 @@ class InsertionRig(contextlib.AbstractContextManager):
     def check_alive(self, what: str = 'the graph') -> None:
         dead = self.dead()
         if dead:
-            raise InsertionError(f'{", ".join(dead)} died while waiting for {what} (logs in '
+            raise MissionError(f'{", ".join(dead)} died while waiting for {what} (logs in '
                                  f'{self.log_dir})')
         idle = time.monotonic() - self.node.clock_wall
         if idle > STALL_S:
@@ -525,18 +525,18 @@ class InsertionRig(contextlib.AbstractContextManager):
         return out
 
     def set_parameters(self, node: str, **values) -> None:
-        """Set parameters of one node of the graph (InsertionError with the node's reason
+        """Set parameters of one node of the graph (MissionError with the node's reason
         when it refuses one)."""
         from rclpy.parameter import Parameter
         from rclpy.parameter_client import AsyncParameterClient
         client = AsyncParameterClient(self.node, node)
         if not client.wait_for_services(timeout_sec=10.0):
-            raise InsertionError(f'no {node} parameter services')
+            raise MissionError(f'no {node} parameter services')
         fut = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
         self._wait(fut.done, 10.0, what=f"{node}'s {', '.join(values)}")
         for name, res in zip(values, fut.result().results):
             if not res.successful:
-                raise InsertionError(f'{node}: {name} refused: {res.reason}')
+                raise MissionError(f'{node}: {name} refused: {res.reason}')
 
     def set_slot(self, slot_in: float) -> None:
         """The task given for the next attempts, to the master and the slave: the slot's
@@ -560,7 +560,7 @@ class InsertionRig(contextlib.AbstractContextManager):
                                   place_yaw=[p[2] for p in poses.values()])
         resp = self._call(self.node.reset, req)
         if not resp.success:
-            raise InsertionError(f'sim/reset: {resp.message}')
+            raise MissionError(f'sim/reset: {resp.message}')
         self.sim_sleep(0.5)
 
     def survey(self, *, seconds: float = 20.0) -> int:
@@ -627,9 +627,9 @@ class InsertionRig(contextlib.AbstractContextManager):
         truth. placement: one of PLACEMENTS ('given': the camera's (xy, yaw, pitch) in
         `camera`); the master's random draws are the attempt's seed's."""
         if placement not in PLACEMENTS:
-            raise InsertionError(f'placement must be one of {", ".join(PLACEMENTS)}')
+            raise MissionError(f'placement must be one of {", ".join(PLACEMENTS)}')
         if (placement == 'given') != (camera is not None):
-            raise InsertionError("a camera pose goes with the 'given' placement, and only")
+            raise MissionError("a camera pose goes with the 'given' placement, and only")
         node = self.node
         self.hold()
         rough = rough_site(slot_in, seed, self.rough_site_m)
@@ -668,7 +668,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         self._wait(fut.done, 120, what="the insert goal's acceptance", held=True)
         handle = fut.result()
         if not handle.accepted:
-            raise InsertionError('insert goal rejected')
+            raise MissionError('insert goal rejected')
         node.recording = True
         res_fut = in_executor(self.ex, handle.get_result_async)
         if self.lockstep:
