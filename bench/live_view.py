@@ -269,7 +269,7 @@ def run_mission(args) -> dict:
                     node.create_subscription(msg_type, topic, count(topic), qos, raw=True)
                 rig.add_node(node)
                 threads.extend([
-                    threading.Thread(target=watch, args=(rig.nodes['live_view'].proc.pid,),
+                    threading.Thread(target=watch, args=(rig.graph.pid('live_view'),),
                                      daemon=True),
                     threading.Thread(target=client, daemon=True)])
                 for t in threads:

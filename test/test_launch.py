@@ -47,12 +47,12 @@ def ros2():
 class Launch:
     """`ros2 launch ...` in its own process group, output to a file."""
 
-    def __init__(self, ros2: str, *args: str) -> None:
+    def __init__(self, ros2: str, *args: str, file: str = 'team.launch.py') -> None:
         self.log = Path(tempfile.mkstemp(prefix='launch_', suffix='.log')[1])
         self._out = self.log.open('w')
         # a fatal signal makes launch print every thread's stack (see wait())
         env = {**os.environ, 'PYTHONFAULTHANDLER': '1'}
-        self.proc = subprocess.Popen([ros2, 'launch', 'coop_bringup', 'team.launch.py', *args],
+        self.proc = subprocess.Popen([ros2, 'launch', 'coop_bringup', file, *args],
                                      stdout=self._out, stderr=subprocess.STDOUT, env=env,
                                      start_new_session=True)
 
@@ -155,7 +155,7 @@ def test_team_launch_brings_up_the_graph_and_ctrl_c_ends_it_cleanly(ros2, graph_
         # launch arguments and the package's params file (keyed /**/<node>) both reach nodes
         assert _param(graph_node, f'{ns}/rover_sim', 'seed') == 4
         assert _param(graph_node, f'{ns}/rover_sim', 'rovers') == 2
-        assert _param(graph_node, f'{ns}/view_planner', 'camera_height_m') == 0.75
+        assert _param(graph_node, f'{ns}/view_planner', 'camera_height_m') == 0.78
         assert _param(graph_node, f'{ns}/mapper', 'rovers') == ['rover1', 'rover2']
         assert _param(graph_node, f'{ns}/rover2/identifier', 'use_sim_time') is True
         # every name relative: the team's map and the rovers' clouds are under its namespace
@@ -175,6 +175,47 @@ def test_team_launch_brings_up_the_graph_and_ctrl_c_ends_it_cleanly(ros2, graph_
         wait_for(lambda: _group_gone(launch.proc.pid), 10.0, what='every launched process gone')
     finally:
         launch.close()
+
+
+def test_mission_launch_brings_up_the_whole_mission_graph(ros2, graph_node):
+    """mission.launch.py, as `coop_bringup mission` and the insertion rig start it: the data
+    source, each rover's identifier and stereo node, the mapper, the view planner, the master
+    and the slave, with the scenario's arguments and the one parameter file's settings."""
+    ns = '/team_m'
+    want = ({f'{ns}/{n}' for n in ('rover_sim', 'mapper', 'view_planner', 'master', 'slave')}
+            | {f'{ns}/{r}/{n}' for r in ('rover1', 'rover2') for n in ROVER_NODES})
+    launch = Launch(ros2, 'team:=team_m', 'seed:=5', 'slot_in:=4.375', 'render_workers:=0',
+                    'cg_to_arm:=[0.1, 0.0, 0.2]', file='mission.launch.py')
+    try:
+        wait_for(lambda: want <= _nodes(graph_node) or launch.proc.poll() is not None, 90.0,
+                 spin=lambda dt: graph_node.executor_.spin_once(timeout_sec=dt),
+                 what="the mission's nodes")
+        assert launch.proc.poll() is None, launch.text()[-3000:]
+        assert want <= _nodes(graph_node), (want - _nodes(graph_node))
+        assert _param(graph_node, f'{ns}/rover_sim', 'seed') == 5
+        assert _param(graph_node, f'{ns}/master', 'seed') == 5
+        assert abs(_param(graph_node, f'{ns}/slave', 'slot_width_m') - 4.375 * 0.0254) < 1e-9
+        assert _param(graph_node, f'{ns}/slave', 'cg_to_arm') == [0.1, 0.0, 0.2]
+        assert _param(graph_node, f'{ns}/view_planner', 'camera_height_m') == 0.78
+        assert _param(graph_node, f'{ns}/view_planner', 'clearance_m') == 0.46
+        assert _param(graph_node, f'{ns}/rover1/identifier', 'use_sim_time') is True
+        assert _param(graph_node, f'{ns}/rover_sim', 'lockstep_participants') == ['']
+        launch.interrupt()
+        code = launch.wait()
+        text = launch.text()
+        assert code == 0, text[-3000:]
+        assert 'Traceback' not in text, text[-3000:]
+        wait_for(lambda: _group_gone(launch.proc.pid), 10.0, what='every launched process gone')
+    finally:
+        launch.close()
+    for args, why in ((['source:=hw'], "give 'rover=port'"),
+                      (['source:=bag', 'bag:=x', 'lockstep:=true'], 'source:=sim only'),
+                      (['rovers:=1'], 'needs a master and a slave'),
+                      (['stereo_rovers:=rover3'], 'not among'),
+                      (['live_view:=maybe'], 'give true or false')):
+        out = subprocess.run([ros2, 'launch', 'coop_bringup', 'mission.launch.py', *args],
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode != 0 and why in out.stdout + out.stderr, (args, out.stdout[-2000:])
 
 
 def test_bag_source_and_bad_arguments(ros2, graph_node):

@@ -21,14 +21,15 @@ CAMERA = ((3.0572, 0.65), -math.pi / 2, math.atan2(0.8 - 0.5, 0.5))
 
 
 def short_attempt(log_dir, *, composed=False):
-    from coop_common.rover_geometry import camera_mount
     from coop_bringup.rig import InsertionRig
+
+    from coop_common.rover_geometry import camera_mount
     # the master starts where its given camera pose puts it, the slave's card 0.05 m short of
     # the slot, descending at 3 cm/s: a short attempt
     mount = camera_mount(*CAMERA)
     with InsertionRig(seed=1, slot_in=5.0, occlusion_density=0.0, planner=False,
-                      master_args=('-p', 'slot_wait_s:=0.5'),
-                      slave_args=('-p', 'descent_speed_m_s:=0.03'),
+                      overrides={'master': {'slot_wait_s': 0.5},
+                                 'slave': {'descent_speed_m_s': 0.03}},
                       log_dir=log_dir, lockstep=True, round_s=ROUND_S,
                       master_start=(*mount.base_xy, mount.base_yaw), slave_start_short_m=0.05,
                       composed=composed, domain_id=int(os.environ['ROS_DOMAIN_ID'])) as rig:

@@ -18,6 +18,7 @@ pytestmark = pytest.mark.graph
 
 
 def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
+    from coop_bringup.graph import node_logs
     from coop_bringup.mission import Mission, MissionConfig
     from coop_bringup.report import top_view
 
@@ -37,11 +38,12 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     out = tmp_path / 'short'
     print((out / 'report.md').read_text())
     # what a failure's output needs: what each identifier skipped, placements, phases
-    for name in ('identifier_rover1', 'identifier_rover2', 'master', 'slave'):
-        lines = [ln for ln in (out / 'logs' / f'{name}.log').read_text().splitlines()
+    logs = node_logs(out / 'logs')
+    for name in ('/rover1/identifier', '/rover2/identifier', '/master', '/slave'):
+        lines = [ln for ln in logs[name].read_text().splitlines()
                  if 'markers not labelled' not in ln and ']: error ' not in ln]
-        print(f'--- logs/{name}.log, {len(lines)} lines without the periodic ones', *lines[-30:],
-              sep='\n')
+        print(f'--- {name}: {logs[name]}, {len(lines)} lines without the periodic ones',
+              *lines[-30:], sep='\n')
     on_disk = json.loads((out / 'report.json').read_text())
     status = {p['name']: (p['status'], p['reason']) for p in rep['phases']}
     assert all(status[p][0] == 'ok' for p in ('identify', 'map', 'place', 'insert')), status

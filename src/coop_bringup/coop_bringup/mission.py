@@ -43,9 +43,17 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from coop_bringup.rig import (
+    SITE_XY,
+    InsertionRig,
+    loop_nodes,
+    mast_sweep,
+    staging_poses,
+    truth_readers,
+)
 from coop_common.cli import enum_choices, number
 from coop_common.dynparams import PARAM_NAMES
-from coop_common.lockstep_node import Lockstep, remap_args
+from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import in_executor, stamp
 from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
@@ -60,15 +68,6 @@ from coop_common.testing import isolate_ros_environment, pick_domain_id
 from coop_id.excitation import Strategy
 from coop_insertion.drive import FollowPath
 from coop_insertion.errors import InsertionError
-from coop_bringup.rig import (
-    SITE_XY,
-    VIEW_PLANNER,
-    InsertionRig,
-    loop_nodes,
-    mast_sweep,
-    staging_poses,
-    truth_readers,
-)
 from coop_msgs.action import Identify, Insert
 from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
 from coop_msgs.srv import MapFile, NextBestView
@@ -84,6 +83,7 @@ from coop_viewplan.nbv import (
 from coop_viewplan.offline import nbv_config
 from coop_viewplan.params import PARAMS as VP_PARAMS
 
+from .graph import node_settings
 from .mission_seeds import format_table as format_seeds
 from .mission_seeds import parse_seeds, run_seeds
 from .report import MissionError, identification_errors, site_coverage, top_view, write_report
@@ -102,13 +102,6 @@ PHASES = tuple(PhaseName)
 #: a goal within an obstacle's clearance is reached by a straight last leg of at most this (m)
 SNAP_M = 1.0
 MASTER, SLAVE = 'rover1', 'rover2'
-BAG_NEVER = ('/rosout', '/parameter_events')
-#: what the bag leaves out unless --bag-all: the bulk streams, each MBs a second. A short
-#: mission's 10 sim s held 183 + 162 MB of stereo clouds, 119 MB of map snapshots, 51 MB of map
-#: updates, 19 MB of map clouds (the raw pairs: 4.9 MB per sim s); everything else, 6 MB. The
-#: final map is team.cmap; /map/grid (the 2-D map) stays, as do sensors, poses and estimates.
-BAG_BULK = ('*/image_raw', '*/stereo/points', '/map/voxels', '/map/updates', '/map/surface',
-            '/map/occupied')
 LIVE_PORT = 8765
 
 
@@ -135,7 +128,7 @@ class MissionConfig:
     stereo_rate_hz: float = 4.0
     near_start: bool = False          # the rovers start at their staging poses (short missions)
     bag: bool = True                  # record the run into OUT/<run-id>/bag (rover_bag record)
-    bag_all: bool = False             # ... with the bulk streams too (BAG_BULK)
+    bag_all: bool = False             # ... with the bulk streams too (mission.launch.py)
     live_port: int | None = None      # serve the live view (Foxglove WebSocket) on this port
     lockstep: bool = False            # the sim in lockstep with the nodes that close loops
 
@@ -303,6 +296,9 @@ class Mission:
         self.progress = progress or Progress()
         self.log = log
         self.rovers = [f'rover{i + 1}' for i in range(cfg.rovers)]
+        # the view planner's settings, as the graph's node has them: the runner plans its
+        # paths on the same grid
+        self.view_planner = node_settings('view_planner')
         self.phases = [Phase(p) for p in PHASES]
         self.rep: dict = {'run_id': self.run_id, 'config': {**asdict(cfg),
                                                            'phases': list(cfg.phases)},
@@ -354,13 +350,7 @@ class Mission:
     def run(self) -> dict:
         cfg = self.cfg
         isolate_ros_environment(self.domain_id)
-        ident = PhaseName.IDENTIFY in cfg.phases
-        lockstep = (['-p', 'lockstep:=true', *remap_args()] if cfg.lockstep else [])
-        extra = tuple((f'identifier_{r}', 'coop_id', 'identifier',
-                       ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true', *lockstep])
-                      for r in self.rovers) if ident else ()
-        participants = ('mission', *(f'{r}/identifier' for r in self.rovers if ident))
-        extra = self._recorder_and_live_view() + extra
+        launch_args = self._launch_args()
         t_all = time.monotonic()
         failed = None
         interrupted = []
@@ -385,8 +375,8 @@ class Mission:
                               slot_in=cfg.slot_in, log_dir=self.out / 'logs',
                               domain_id=self.domain_id, stereo_rate_hz=cfg.stereo_rate_hz,
                               stereo_rovers=tuple(self.rovers), rovers=cfg.rovers,
-                              extra_procs=extra, lockstep=cfg.lockstep,
-                              participants=participants,
+                              launch_args=launch_args, lockstep=cfg.lockstep,
+                              clients=('mission',),
                               rough_site_m=cfg.rough_site_m) as rig:
                 self.rig = rig
                 self.client = _MissionClient(rig.ctx, self.rovers, cfg.lockstep)
@@ -429,27 +419,20 @@ class Mission:
                 for sig, handler in previous.items():
                     signal.signal(sig, handler)
 
-    def _recorder_and_live_view(self) -> tuple:
-        """The optional processes: the recorder (first, so that it is the first stopped and
-        its bag closed while the graph still runs) and the live view."""
-        cfg, procs = self.cfg, []
+    def _launch_args(self) -> dict[str, str]:
+        """mission.launch.py's arguments beyond the rig's: the identifiers, the recorder
+        (stopped first, so that its bag is closed while the graph still runs) and the live
+        view."""
+        cfg = self.cfg
+        args = {'identify': str(PhaseName.IDENTIFY in cfg.phases).lower()}
         if cfg.bag:
-            exclude = BAG_NEVER + (() if cfg.bag_all else BAG_BULK)
-            procs.append(('record', 'rover_bag', 'record', [
-                '-p', f'output:={(self.out / "bag").resolve()}', '-p', 'use_sim_time:=true',
-                # one split file per 30 s, not per second (the default): an 8-min short
-                # mission left 115 files, which bag_info took 14 s to read on a loaded machine
-                # (a 25-min default mission: ~1500); a clean stop loses nothing, a killed
-                # recorder the last 30 s
-                '-p', 'compression:=zstd', '-p', 'flush_period_s:=30.0',
-                '-p', 'exclude:=[' + ','.join(f"'{p}'" for p in exclude) + ']']))
+            args |= {'record': str((self.out / 'bag').resolve()),
+                     'record_all': str(cfg.bag_all).lower()}
         if cfg.live_port is not None:
-            procs.append(('live_view', 'coop_bringup', 'live_view', [
-                '-p', 'use_sim_time:=true', '-p', f'port:={cfg.live_port}',
-                '-p', f'rovers:=[{",".join(self.rovers)}]']))
+            args |= {'live_view': 'true', 'live_port': str(cfg.live_port)}
             self.log(f'live view: connect Foxglove to ws://localhost:{cfg.live_port}')
             self.rep['live_view'] = {'url': f'ws://localhost:{cfg.live_port}'}
-        return tuple(procs)
+        return args
 
     def _bag_summary(self) -> dict | None:
         """What the recorder left in bag/ (read back with rover_bag.bagio), for the report."""
@@ -457,7 +440,7 @@ class Mission:
             return None
         path = self.out / 'bag'
         if not path.exists():
-            return {'path': 'bag', 'error': 'no bag written (see logs/record.log)'}
+            return {'path': 'bag', 'error': "no bag written (see the recorder's log in logs/)"}
         from rover_bag.bagio import bag_info  # noqa: PLC0415 - only with a bag
         try:
             info = bag_info(path)
@@ -557,7 +540,7 @@ class Mission:
     # -- phase 2: mapping ----------------------------------------------------------------------
     def _grid(self):
         m = self.client.map
-        p = {k: s.default for k, s in VP_PARAMS.items()} | VIEW_PLANNER
+        p = {k: s.default for k, s in VP_PARAMS.items()} | self.view_planner
         keys = np.asarray(m.voxels.keys, np.int64)
         grid = planning_grid(keys, np.asarray(m.voxels.occupancy), m.resolution_m,
                              pad_m=p['pad_m'], ceiling_m=p['ceiling_m'],
@@ -575,7 +558,7 @@ class Mission:
 
     def _path(self, r: str, goal_xy, grid, trav, others: list) -> list:
         """Waypoints from rover r's base to goal_xy on the map, round the other rovers."""
-        clear = int(math.ceil(VIEW_PLANNER['clearance_m'] / grid.resolution))
+        clear = int(math.ceil(self.view_planner['clearance_m'] / grid.resolution))
         for xy in others:
             trav = trav.with_blocked_disk(grid.to_index(np.r_[xy, 0.0])[:2], clear + 2)
         x, y, _ = self.client.odom[r]

@@ -35,12 +35,16 @@ from coop_common.lockstep_node import Lockstep, Pacer, stamp_of
 from coop_common.node_util import in_executor
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, joint2_in_base
-from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
+from coop_common.testing import isolate_ros_environment, wait_for
 from coop_msgs.action import Insert
 from coop_msgs.msg import ContactState, VoxelMap
 from coop_msgs.srv import SimScenario
 
+from .graph import LaunchedGraph, mission_launch_file
 from .report import MissionError
+
+#: the nodes that one `coop_bringup compose` process runs with composed=True (mission.launch.py)
+COMPOSED = ('master', 'slave', 'mapper', 'view_planner')
 
 INCH = 0.0254
 SITE_XY = (3.0, 0.0)            # rover_sim's site: the near jaw's inner face at x = 3.0
@@ -63,15 +67,11 @@ MASTER_START = (2.2, 1.4, -1.0)
 #: an attempt counts as seated when the simulator's truth said so within the goal's last
 #: this many sim seconds
 SEATED_WINDOW_S = 0.5
-#: the view planner's settings for the insertion (why: the comments in InsertionRig); the
-#: mast camera at a working tilt (0.2 to 0.5 rad) stands 0.79 to 0.77 m high, in the 0.1 m map's
-#: layer 7, the one its downward rays cross (at 0.8, layer 8, hardly any voxel is seen free)
-VIEW_PLANNER = {'p_empty': 0.45, 'task_unknown_occludes': False, 'clearance_m': 0.46,
-                'camera_height_m': 0.78, 'task_primary_space': 'free'}
-#: lockstep: the sim time of one round (the sim's lockstep_period_s), the participants that
-#: close loops in an attempt (this rig's client holds the sim between its steps)
+#: lockstep: the sim time of one round (the sim's lockstep_period_s); the launch file makes
+#: the master and the slave participants, and this rig's client is one (it holds the sim
+#: between its steps)
 ROUND_S = 0.01
-PARTICIPANTS = ('master', 'slave', 'insertion_rig')
+CLIENT = 'insertion_rig'
 #: lockstep: the survey's frames are all in the map once it has not changed for this long (s)
 MAP_QUIET_S = 3.0
 #: lockstep: the longest wall time the survey waits for the stereo node to range one frame (s)
@@ -81,6 +81,8 @@ RESULT_WALL_S = 4 * 3600.0
 #: the sim counts as stalled when its /clock has not advanced for this many wall seconds (a
 #: loaded machine runs the rendering sim at a real-time factor near 0.1: the clock still moves)
 STALL_S = 90.0
+#: the longest wall time a recorder has to close its bag at the end (s)
+STOP_RECORD_S = 60.0
 
 
 #: the nodes that close the insertion's and the mission's loops (by their names, in any
@@ -110,34 +112,6 @@ def slot_centre_x(slot_in: float) -> float:
     """The slot's centre line in the map (x, m) for a slot `slot_in` inches wide: rover_sim's
     site, its near jaw's inner face at SITE_XY."""
     return SITE_XY[0] + slot_in * INCH / 2
-
-
-#: composed: the nodes that share one process (the simulator and the stereo node keep theirs:
-#: the one steps on its own thread, the other is stopped after the survey)
-COMPOSED = ('master', 'slave', 'mapper', 'view_planner')
-
-
-def compose(procs: list[tuple], names: tuple[str, ...], params_file: Path) -> list[tuple]:
-    """`procs` (log name, package, executable, ROS args[, other args]) with those named in
-    `names` run by one `coop_bringup compose` process ('nodes'); their `-p name:=value`
-    arguments move into `params_file`, keyed by node, as ROS's own per-node parameters."""
-    import yaml
-    together = [p for p in procs if p[0] in names]
-    params: dict[str, dict] = {}
-    for name, _, exe, args, *_ in together:
-        if len(args) % 2 or any(flag != '-p' for flag in args[::2]):
-            raise MissionError(f'{name}: only -p arguments compose, not {args}')
-        own = params.setdefault(f'/**/{exe}', {'ros__parameters': {}})['ros__parameters']
-        for assignment in args[1::2]:
-            key, _, value = assignment.partition(':=')
-            own[key] = yaml.safe_load(value)
-    tmp = params_file.with_suffix('.tmp')
-    tmp.write_text(yaml.safe_dump(params))
-    tmp.replace(params_file)
-    specs = [f'{pkg}/{exe}' for _, pkg, exe, *_ in together]
-    return ([p for p in procs if p[0] not in names]
-            + [('nodes', 'coop_bringup', 'compose', ['--params-file', str(params_file)],
-                specs)])
 
 
 class SimStalled(MissionError):
@@ -301,26 +275,29 @@ class InsertionRig(contextlib.AbstractContextManager):
                  slot_in: float = 5.0, log_dir: Path | None = None, domain_id: int | None = None,
                  image_width: int = 640, image_height: int = 480, stereo_rate_hz: float = 4.0,
                  real_time_factor: float = 1.0, site_map: Path | None = None,
-                 master_args: tuple[str, ...] = (), slave_args: tuple[str, ...] = (),
-                 planner: bool = True,
+                 overrides: dict[str, dict] | None = None, planner: bool = True,
                  stereo_rovers: tuple[str, ...] = ('rover1',), rovers: int = 2,
-                 extra_procs: tuple[tuple[str, str, str, list[str]], ...] = (),
                  render_workers: int = 1, lockstep: bool = True, round_s: float = ROUND_S,
                  master_start: tuple[float, float, float] = MASTER_START,
                  slave_start_short_m: float = SLAVE_START_SHORT_M,
-                 composed: bool = False, participants: tuple[str, ...] = (),
+                 composed: bool = False, clients: tuple[str, ...] = (),
+                 launch_args: dict[str, str] | None = None,
                  rough_site_m: float = ROUGH_SITE_M) -> None:
-        """stereo_rovers: whose stereo pairs the sim renders and a `stereo` node ranges into
-        the map (with the planner); extra_procs: more (log name, package, executable, args);
+        """The graph is coop_bringup's mission.launch.py (its nodes' settings in
+        config/mission.yaml), started through launch's Python API (coop_bringup.graph) with
+        this rig's scenario as its arguments. stereo_rovers: whose stereo pairs the sim
+        renders and (with the planner: the mapper and the view planner) a `stereo` node
+        ranges into the map; overrides: node name -> parameters over the file's (tests);
         render_workers: the sim's (1: the right eye drawn by a second process); lockstep: the
         sim steps no round before the master, the slave and this rig have answered the last
         (docs/design.md): the same attempt on an idle and on a busy machine, in rounds of
-        round_s (the slave's command period by default); master_start,
-        slave_start_short_m: where place() stands the rovers (staging_poses); composed: the
-        master, the slave, the mapper and the view planner in one process (`coop_bringup
-        compose`), not one each; participants: more lockstep participants than the master,
-        the slave and this rig (the extra processes' or nodes' that close loops); rough_site_m:
-        the master's region (rough_site), its centre drawn per attempt."""
+        round_s (the slave's command period by default); master_start, slave_start_short_m:
+        where place() stands the rovers (staging_poses); composed: the master, the slave, the
+        mapper and the view planner in one process (`coop_bringup compose`), not one each;
+        clients: lockstep participants besides the graph's nodes and this rig (the nodes of
+        other clients in this process); launch_args: more of the launch file's arguments (the
+        mission's identifiers, recorder, live view); rough_site_m: the master's region
+        (rough_site), its centre drawn per attempt."""
         self.seed = seed
         self.stereo_rate_hz = stereo_rate_hz
         self.rough_site_m = rough_site_m
@@ -330,76 +307,44 @@ class InsertionRig(contextlib.AbstractContextManager):
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix='insert_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         isolate_ros_environment(domain_id)
-        from ament_index_python.packages import get_package_share_directory
-        world = Path(get_package_share_directory('coop_insertion')) / 'config' / \
-            'insertion_world.yaml'
         self.slot_in = slot_in
-        self.stack = contextlib.ExitStack()
-        self.nodes: dict[str, NodeProcess] = {}
+        self.graph: LaunchedGraph | None = None
         self._extra_nodes: list[Node] = []
         self.feedback: Insert.Feedback | None = None    # the running goal's last feedback
-        sim_args = ['-p', f'rovers:={rovers}', '-p', f'seed:={seed}', '-p',
-                    f'occlusion_density:={occlusion_density}', '-p',
-                    f'slot_gap_m:={slot_in * INCH}', '-p', f'image_width:={image_width}',
-                    '-p', f'image_height:={image_height}', '-p',
-                    f'stereo_rate_hz:={stereo_rate_hz}', '-p', f'world_yaml:={world}',
-                    '-p', f'real_time_factor:={real_time_factor}', '-p',
-                    f'stereo_rovers:=[{",".join(stereo_rovers)}]', '-p',
-                    f'render_workers:={render_workers}']
-        node_args = ['-p', 'use_sim_time:=true']
-        if lockstep:
-            sim_args += ['-p', 'lockstep_participants:=['
-                         + ','.join((*PARTICIPANTS, *participants)) + ']',
-                         '-p', f'lockstep_period_s:={round_s}']
-            node_args += ['-p', 'lockstep:=true']
-        map_args = []
-        if site_map is not None:
+        args = {'seed': seed, 'occlusion_density': occlusion_density, 'slot_in': slot_in,
+                'rovers': rovers, 'stereo_rovers': ' '.join(stereo_rovers),
+                'image_width': image_width, 'image_height': image_height,
+                'stereo_rate_hz': stereo_rate_hz, 'render_workers': render_workers,
+                'rate': real_time_factor, 'identify': False, 'mapping': planner,
+                'insertion': True, 'cg_to_arm': calibrated_r2(seed), 'lockstep': lockstep,
+                'lockstep_period_s': round_s, 'clients': ' '.join((CLIENT, *clients)),
+                'composed': composed, 'output': 'own_log'}
+        if site_map is not None and planner:
             # the scenario's map, built by the mapping pipeline (coop_viewplan.fig_3_25 with
             # save_map); a copy, since the mapper autosaves to the file it loaded
             local = self.log_dir / 'site.cmap'
             local.write_bytes(Path(site_map).read_bytes())
-            map_args = ['-p', f'map_file:={local}']
-        self.procs = [
-            ('sim', 'rover_sim', 'sim', sim_args),
-            ('master', 'coop_insertion', 'master', [*node_args, '-p', f'seed:={seed}',
-                                                    '-p', f'slot_width_m:={slot_in * INCH}',
-                                                    *master_args]),
-            ('slave', 'coop_insertion', 'slave', [*node_args, '-p',
-                                                  f'slot_width_m:={slot_in * INCH}',
-                                                  '-p', f'cg_to_arm:={calibrated_r2(seed)}',
-                                                  *slave_args]),
-        ]
-        if planner:     # optimal placement: the team's map and view planner
-            self.procs += [
-                ('mapper', 'coop_mapping', 'mapper', ['-p', 'use_sim_time:=true', '-p',
-                                                      f'rovers:=[{",".join(stereo_rovers)}]']
-                 + map_args),
-                # p_empty as the exploration study runs it (fig_3_25: the map's free voxels
-                # clamp at 0.12 and one miss gives 0.4); the site map's unknown pockets (never
-                # seen: under, behind and above the site) would hide the target from every
-                # nearby camera (docs/results/insertion.md); the rover's clearance from its
-                # mast camera: the 0.5 x 0.36 m base, the mast 0.12 m behind and 0.10 m beside
-                # its centre, reaches 0.46 m; the primary target's own cells as free (it
-                # stands a voxel above the slot's mouth: range noise off the site's top edge
-                # can occupy the voxel that, grown by the target's radius, holds it)
-                ('view_planner', 'coop_viewplan', 'view_planner',
-                 ['-p', 'use_sim_time:=true'] + [a for k, v in VIEW_PLANNER.items()
-                                                 for a in ('-p', f'{k}:={v}'.lower())]),
-            ]
-            # rover 1's stereo feeds the mapper while it surveys the site (survey())
-            self.procs += [(f'stereo_{r}' if r != 'rover1' else 'stereo', 'coop_mapping',
-                            'stereo', ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'])
-                           for r in stereo_rovers]
+            args['site_map'] = local
+        if overrides:
+            import yaml
+            path = self.log_dir / 'overrides.yaml'
+            path.write_text(yaml.safe_dump({f'/**/{node}': {'ros__parameters': values}
+                                            for node, values in overrides.items()}))
+            args['overrides'] = path
+        args |= launch_args or {}
+        self.launch_args = {k: (str(v).lower() if isinstance(v, bool) else str(v))
+                            for k, v in args.items()}
+        self.expected = ['rover_sim', 'master', 'slave'] + (
+            ['mapper', 'view_planner', *(f'{r}/stereo' for r in stereo_rovers)]
+            if planner else [])
         if composed:
-            self.procs = compose(self.procs, COMPOSED, self.log_dir / 'composed.yaml')
-        self.procs += list(extra_procs)
+            self.expected = [n for n in self.expected if n not in COMPOSED] + ['compose']
 
     def __enter__(self) -> InsertionRig:
         try:
-            for name, pkg, exe, ros_args, *args in self.procs:
-                self.nodes[name] = self.stack.enter_context(
-                    NodeProcess(pkg, exe, ros_args, args=args[0] if args else (),
-                                log_path=self.log_dir / f'{name}.log'))
+            self.graph = LaunchedGraph(mission_launch_file(), self.launch_args,
+                                       log_dir=self.log_dir).__enter__()
+            self.graph.wait_started(self.expected, timeout_s=60)
             self.ctx = Context()
             rclpy.init(context=self.ctx)
             self.node = _Client(self.ctx, self.lockstep)
@@ -425,7 +370,7 @@ class InsertionRig(contextlib.AbstractContextManager):
 
     def dead(self) -> list[str]:
         """The processes of the graph that have ended (a node that died)."""
-        return [name for name, proc in self.nodes.items() if not proc.alive()]
+        return self.graph.dead() if self.graph is not None else []
 
     def _spin(self) -> None:
         while not self._stop.is_set():
@@ -441,7 +386,10 @@ class InsertionRig(contextlib.AbstractContextManager):
                 n.destroy_node()
             self.node.destroy_node()
             rclpy.try_shutdown(context=self.ctx)
-        self.stack.close()
+        if self.graph is not None:
+            # a recorder first, so that its bag is closed while the graph still runs
+            self.graph.stop('record', timeout_s=STOP_RECORD_S)
+            self.graph.__exit__(None, None, None)
 
     def _wait(self, predicate, timeout_s: float, *, what: str, held: bool = False) -> None:
         """wait_for(predicate), failing early when a node of the graph died (MissionError)
@@ -467,21 +415,21 @@ class InsertionRig(contextlib.AbstractContextManager):
                                  f'{self.log_dir})')
         idle = time.monotonic() - self.node.clock_wall
         if idle > STALL_S:
-            stack = self.dump_stack('sim')
+            stack = self.dump_stack('rover_sim')
             raise SimStalled(f'the sim clock stood still for {idle:.0f} s while waiting for '
                              f'{what}' + (f' (its stacks: {stack})' if stack else ''), stack)
 
     def dump_stack(self, name: str) -> Path | None:
         """Every thread's native and Python stack of process `name` into the log directory
         (gdb, when installed), for the post-mortem of a stall."""
-        proc = self.nodes.get(name)
+        pid = self.graph.pid(name) if self.graph is not None else None
         gdb = shutil.which('gdb')
-        if proc is None or proc.proc is None or not proc.alive() or gdb is None:
+        if pid is None or gdb is None:
             return None
         path = self.log_dir / f'{name}_stack_{time.strftime("%H%M%S")}.txt'
         with open(path, 'wb') as out:
             try:
-                subprocess.run([gdb, '-p', str(proc.proc.pid), '-batch', '-ex',
+                subprocess.run([gdb, '-p', str(pid), '-batch', '-ex',
                                 'thread apply all bt', '-ex', 'thread apply all py-bt'],
                                stdout=out, stderr=subprocess.STDOUT, timeout=120, check=False)
             except subprocess.TimeoutExpired:
@@ -570,7 +518,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         ranged it (it and the mapper are not participants: a busy machine's stereo node would
         drop the frames it is behind on, and the map, and the camera placed in it, differ)."""
         self.node.mast.publish(mast_sweep(seconds))
-        if not self.lockstep or 'stereo' not in self.nodes:
+        if not self.lockstep or not self.graph.find('rover1/stereo'):
             self.sim_sleep(seconds + 1.0)
             return self.node.map_voxels
         node, period = self.node, 1.0 / self.stereo_rate_hz
@@ -606,8 +554,7 @@ class InsertionRig(contextlib.AbstractContextManager):
                     seen[:] = [self.node.map_voxels, time.monotonic()]
                 return time.monotonic() - seen[1] >= MAP_QUIET_S
             self._wait(settled, STALL_S, what='the map to take in the survey')
-        for name in [n for n in self.nodes if n == 'stereo' or n.startswith('stereo_')]:
-            self.nodes.pop(name).stop()
+        self.graph.stop('stereo')
 
     def attempt(self, *, slot_in: float, placement: str, seed: int,
                 timeout_s: float = 120.0, max_force_n: float = 25.0,

@@ -3,9 +3,9 @@ fresh graph, every attempt is checkpointed, and --resume reuses what a stopped r
 import json
 
 import pytest
+from coop_bringup.rig import Attempt, SimStalled
 
 from coop_bringup import table_5_1
-from coop_bringup.rig import Attempt, SimStalled
 
 
 class FakeRig:
