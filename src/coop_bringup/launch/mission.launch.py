@@ -92,7 +92,8 @@ ARGUMENTS = (
                       '/**/<node>; tests and experiments: empty, none)'),
     ('clock', 'global', "the time source's topic: /clock, or the team's own <team>/clock (two "
                         'simulated teams in one domain)'),
-    ('output', 'screen', "where the nodes' output goes: screen, log or own_log"),
+    ('output', 'screen', "where the nodes' output goes: screen, log (launch's log), own_log (a "
+                         "file per process in launch's log directory) or both"),
 )
 #: what the recorder leaves out: ROS's own chatter always, the bulk streams unless
 #: record_all:=true, each MBs a second (a short mission's 10 sim s held 183 + 162 MB of stereo
@@ -153,7 +154,11 @@ def _graph(context: LaunchContext) -> list:
     team_ns = '/' + a['team'].strip('/') if a['team'].strip('/') else ''
     if a['clock'] not in ('global', 'team'):
         raise ValueError(f'clock:={a["clock"]!r}: give global or team')
-    output = a['output']
+    if a['output'] not in ('screen', 'log', 'own_log', 'both'):
+        raise ValueError(f'output:={a["output"]!r}: give screen, log, own_log or both')
+    # own_log: one file per process, <process>.log (launch's own_log alone also writes its
+    # -stdout and -stderr files)
+    output = {'both': {'own_log'}} if a['output'] == 'own_log' else a['output']
     # /clock is the one global name: two simulated teams in one domain each keep their own,
     # <team>/clock for every node of the team (a relative 'clock' would resolve in a rover's
     # namespace for the rover's nodes, where no clock ticks)
