@@ -28,6 +28,7 @@ install/.built: $(VENV)/.lock.sha256 $(BUILD_INPUTS)
 	touch $@
 
 demo: build
+	@$(ENV) && python -c 'import launch_ros' 2>/dev/null || { echo "demo: the mission starts its launch file through launch, which this venv lacks: make ros2-tools ROS2_TOOLS_SRC=<bundle> (docs/install.md)" >&2; exit 1; }
 	$(ENV) && python -m coop_bringup.mission --out out
 
 test: build

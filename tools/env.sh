@@ -21,6 +21,12 @@ if [ -f "$_coop_root/install/setup.bash" ]; then
   # shellcheck disable=SC1091
   COLCON_CURRENT_PREFIX="$_coop_root/install" . "$_coop_root/install/setup.bash"
 fi
+# make's venv: the real ros2cli and launch, when `make ros2-tools` put them there (the mission
+# starts its launch file through launch)
+if [ -f "$_coop_root/.ros2-tools/install/local_setup.bash" ]; then
+  # shellcheck disable=SC1091
+  . "$_coop_root/.ros2-tools/install/local_setup.bash"
+fi
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 # A 16 MB Fast DDS shared-memory segment (default 0.5 MB): a 640x480 stereo pair fills the default
