@@ -56,6 +56,7 @@ from coop_common.dynparams import PARAM_NAMES
 from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import in_executor, stamp
 from coop_common.params import choice
+from coop_common.provenance import source_revision
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
     MAST_JOINTS,
@@ -302,7 +303,7 @@ class Mission:
         self.phases = [Phase(p) for p in PHASES]
         self.rep: dict = {'run_id': self.run_id, 'config': {**asdict(cfg),
                                                            'phases': list(cfg.phases)},
-                          'domain_id': self.domain_id,
+                          'domain_id': self.domain_id, 'source': source_revision(),
                           'targets': {'identification_error': 0.15,
                                       'coverage': cfg.coverage_target, 'penetration_mm': 0.5},
                           'identification': {'mean_abs_rel_error': None},

@@ -64,6 +64,7 @@ def judge(rep: dict) -> dict:
         'peak_force_n': ins.get('peak_force_n'),
         'wall_s': rep.get('wall_s'),
         'error': rep.get('error'),
+        'source': rep.get('source'),      # the commit the seed ran on
     }
     asked = [p['name'] for p in rep.get('phases', []) if p.get('reason') != 'not asked for']
     row['all'] = all(row[name] for name in asked)
