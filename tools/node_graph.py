@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
-"""Draw the node graph from the running graph: start one team (the simulator, each rover's
-stereo node and identifier, the mapper and the view planner, as team.launch.py does), ask the
-ROS graph for every node's publishers, subscriptions, services and action servers, and write a
-Mermaid flowchart to docs/node-graph.md (GitHub renders it).
+"""Draw the node graph from the running graph: start the mission's graph (coop_bringup's
+mission.launch.py: the simulator, each rover's stereo node and identifier, the mapper, the view
+planner, the master and the slave), ask the ROS graph for every node's publishers,
+subscriptions, services and action servers, and write a Mermaid flowchart to
+docs/node-graph.md (GitHub renders it).
 
 Usage: python tools/node_graph.py [--out docs/node-graph.md]
 """
@@ -10,27 +11,22 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from collections import defaultdict
-from contextlib import ExitStack
 from pathlib import Path
 
 import rclpy
+from coop_bringup.graph import LaunchedGraph, mission_launch_file
 from rclpy.action import get_action_server_names_and_types_by_node
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from coop_common.files import write_text_atomic
-from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
+from coop_common.testing import isolate_ros_environment, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 ROVERS = ('rover1', 'rover2')
-PER_ROVER = (('coop_mapping', 'stereo'), ('coop_id', 'identifier'))
-NODES = [('rover_sim', 'sim', []),
-         *[(pkg, exe, ['-r', f'__ns:=/{r}', '-p', 'use_sim_time:=true'])
-           for r in ROVERS for pkg, exe in PER_ROVER],
-         ('coop_mapping', 'mapper', ['-p', 'use_sim_time:=true']),
-         ('coop_viewplan', 'view_planner', ['-p', 'use_sim_time:=true'])]
 #: plumbing every node has, and the simulator's ground truth (for tests), left out of the picture
 HIDDEN = ('/rosout', '/parameter_events', '/clock')
 HIDDEN_SUFFIXES = ('/describe_parameters', '/get_parameters', '/get_parameter_types',
@@ -74,8 +70,9 @@ def mermaid(graph: dict[str, dict[str, list[str]]]) -> str:
     for ns, members in sorted(groups.items()):
         lines.append(f'  subgraph {ns.strip("/") or "team"}["{ns}"]')
         for n in members:
-            srv = [s.rsplit('/', 2)[-2] + '/' + s.rsplit('/', 1)[-1] for s in graph[n]['srv']]
-            act = [a.rsplit('/', 2)[-2] + '/' + a.rsplit('/', 1)[-1] for a in graph[n]['act']]
+            # a name's last two segments, relative ('/insert' of a node at the root: 'insert')
+            srv = ['/'.join(s.rsplit('/', 2)[-2:]).lstrip('/') for s in graph[n]['srv']]
+            act = ['/'.join(a.rsplit('/', 2)[-2:]).lstrip('/') for a in graph[n]['act']]
             extra = ''.join(f'<br/><small>srv {s}</small>' for s in srv)
             extra += ''.join(f'<br/><small>action {a}</small>' for a in act)
             lines.append(f'    {ids[n]}["<b>{n.rsplit("/", 1)[-1]}</b>{extra}"]')
@@ -106,15 +103,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--out', type=Path, default=ROOT / 'docs' / 'node-graph.md')
     args = ap.parse_args(argv)
     domain = isolate_ros_environment()
-    with ExitStack() as stack:
-        for pkg, exe, ros_args in NODES:
-            stack.enter_context(NodeProcess(pkg, exe, ros_args))
+    with tempfile.TemporaryDirectory(prefix='node_graph_') as logs, \
+            LaunchedGraph(mission_launch_file(), {'output': 'own_log'}, log_dir=Path(logs)):
         ctx = Context()
         rclpy.init(context=ctx, domain_id=domain)
         node = Node('node_graph', context=ctx)
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
-        want = {'/rover_sim', '/mapper', '/view_planner',
+        want = {'/rover_sim', '/mapper', '/view_planner', '/master', '/slave',
                 *(f'/{r}/{n}' for r in ROVERS for n in ('stereo', 'identifier'))}
         spin = lambda dt: ex.spin_once(timeout_sec=dt)  # noqa: E731
         wait_for(lambda: want <= set(introspect(node)), 90.0, spin=spin, what='the team')
@@ -125,8 +121,8 @@ def main(argv: list[str] | None = None) -> int:
         ex.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=ctx)
-    text = ('# The node graph\n\nOne team as `ros2 launch coop_bringup team.launch.py` brings it '
-            'up, drawn from the running graph by `python tools/node_graph.py` (topics as edges '
+    text = ('# The node graph\n\nOne team as `ros2 launch coop_bringup mission.launch.py` brings '
+            'it up, drawn from the running graph by `python tools/node_graph.py` (topics as edges '
             'from publisher to subscriber; an open circle: a topic nothing in the team '
             'subscribes to, for tools and other teams; a slanted box: a command nothing in the '
             'team publishes; services and actions in their server; every name relative to the '
