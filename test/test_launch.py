@@ -218,6 +218,33 @@ def test_mission_launch_brings_up_the_whole_mission_graph(ros2, graph_node):
         assert out.returncode != 0 and why in out.stdout + out.stderr, (args, out.stdout[-2000:])
 
 
+def test_mission_launch_with_the_hardware_source_activates_each_bridge(ros2, tmp_path):
+    """source:=hw: a `rover_hw bridge` per rover on the port hw_ports gives it, configured and
+    activated by the launch file as it starts (here against `rover_hw emulator`): the rover's
+    sensor streams flow with no one driving the lifecycle by hand."""
+    from sensor_msgs.msg import Imu
+
+    from coop_common.testing import Probe
+    link = tmp_path / 'rover1_hw'
+    with NodeProcess('rover_hw', 'emulator', args=['--link', str(link)],
+                     log_path=tmp_path / 'emulator.log') as emu:
+        wait_for(link.exists, 30.0, what='the emulator pty')
+        launch = Launch(ros2, 'source:=hw', 'rovers:=1', f'hw_ports:=rover1={link}',
+                        'identify:=false', 'mapping:=false', 'insertion:=false',
+                        file='mission.launch.py')
+        probe = Probe('hw_launch_probe')
+        try:
+            probe.listen(Imu, '/rover1/imu')
+            probe.spin_until(lambda: probe.count('/rover1/imu') >= 50 or
+                             launch.proc.poll() is not None, 60.0, 'the bridge active')
+            assert probe.count('/rover1/imu') >= 50, launch.text()[-3000:] + emu.log_text()
+            launch.interrupt()
+            assert launch.wait() == 0, launch.text()[-3000:]
+        finally:
+            probe.close()
+            launch.close()
+
+
 def test_bag_source_and_bad_arguments(ros2, graph_node):
     root = Path(__file__).resolve().parents[1]
     launch = Launch(ros2, 'source:=bag', f'bag:={root / "bags" / "mapping_two_rovers"}',
