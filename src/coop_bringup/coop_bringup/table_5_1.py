@@ -25,6 +25,7 @@ drawn per attempt (rig.rough_site) and finds the slot in it by its markers.
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import tempfile
@@ -113,8 +114,37 @@ def _done_attempts(checkpoint: Path | None, settings: dict | None = None, log=pr
             rows = row.get(f'{placement}_attempts') or []
             curves = row.get(f'{placement}_curves') or [{}] * len(rows)
             for a, c in zip(rows, curves):
-                done[_cell_key(a['slot_in'], placement, a['seed'])] = (a, c)
+                done[_cell_key(a['slot_in'], placement, a['seed'])] = (a, thin_curves(c))
     return done
+
+
+#: the curves an attempt keeps in the JSON: at most one sample per this much sim time (s),
+#: plus every phase change, rounded to what the plots show (a 120-attempt table at the
+#: feedback's full rate is 17 MB of JSON)
+CURVE_DT_S = 0.25
+_CURVE_DIGITS = {'t': 3, 'displacement_m': 5, 'angle_rad': 5, 'force': 3}
+
+
+def thin_curves(c: dict, dt_s: float = CURVE_DT_S) -> dict:
+    """An attempt's curves (rig.Attempt.curves) with one sample per `dt_s` of sim time, every
+    sample where the phase changes and the last, values rounded (_CURVE_DIGITS)."""
+    t = c.get('t') or []
+    if not t:
+        return c
+    keep, last_t = [], -math.inf
+    for i, ti in enumerate(t):
+        changed = i > 0 and c['phase'][i] != c['phase'][i - 1]
+        if ti - last_t >= dt_s or changed or i == len(t) - 1:
+            keep.append(i)
+            last_t = ti
+
+    def rounded(key: str, v):
+        d = _CURVE_DIGITS.get(key)
+        if d is None:
+            return v
+        return [round(float(x), d) for x in v] if isinstance(v, list) else round(float(v), d)
+    return {k: [rounded(k, v[i]) for i in keep] if isinstance(v, list) and len(v) == len(t)
+            else v for k, v in c.items()}
 
 
 def parse_rows(spec: str, *, attempts: int,
@@ -218,7 +248,7 @@ def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple
                                 if len(res['sim_restarts']) > MAX_RESTARTS:
                                     raise
                                 continue
-                            a, c = as_row(at), at.curves
+                            a, c = as_row(at), thin_curves(at.curves)
                             a['source'] = source
                     got.append(a)
                     curves.append(c)

@@ -147,3 +147,19 @@ def test_resume_refuses_attempts_of_other_settings(tmp_path, fake_rig, monkeypat
                   site_map=tmp_path / 'site.cmap', checkpoint=tmp_path / 'r.json',
                   log=said.append, resume=True)
     assert len(fake_rig.calls) == 6 and any('other settings' in s for s in said)
+
+
+def test_thin_curves_keeps_every_phase_change_and_the_ends():
+    n = 1000
+    t = [0.01 * i for i in range(n)]
+    phase = [0 if i < 333 else 1 if i < 700 else 2 for i in range(n)]
+    c = {'t': t, 'phase': phase, 'displacement_m': [1e-3 * i for i in range(n)],
+         'angle_rad': [0.0] * n, 'force': [[0.1234567, 0.0, -1.0]] * n}
+    thin = table_5_1.thin_curves(c, dt_s=0.25)
+    assert thin['t'][0] == 0.0 and thin['t'][-1] == round(t[-1], 3)
+    assert len(thin['t']) <= n * 0.01 / 0.25 + 4
+    # the samples where the phase changes are kept: their times are there
+    assert {3.33, 7.0} <= set(thin['t'])
+    assert all(len(v) == len(thin['t']) for v in thin.values())
+    assert thin['force'][0] == [0.123, 0.0, -1.0]
+    assert table_5_1.thin_curves({}) == {}
