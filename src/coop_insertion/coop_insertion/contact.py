@@ -81,9 +81,9 @@ from scipy.optimize import nnls
 
 from .errors import InsertionError
 
-__all__ = ['ContactState', 'SlotGeometry', 'CardPose', 'Contact', 'Identification', 'SeatCheck',
-           'ContactIdentifier', 'Step', 'LeastResistance', 'task_wrench', 'planar_wrench',
-           'planar_step_in_frame', 'INCH']
+__all__ = ['ContactState', 'ContactKind', 'SlotGeometry', 'CardPose', 'Contact', 'Identification',
+           'SeatCheck', 'ContactIdentifier', 'Step', 'LeastResistance', 'task_wrench',
+           'planar_wrench', 'planar_step_in_frame', 'INCH']
 
 INCH = 0.0254
 #: weight per newton of the contact forces in the fit (chi^2 units: 0.01 costs 0.0625 at 25 N)
@@ -99,6 +99,19 @@ class ContactState(enum.Enum):
     CORNER_ON_BOTTOM = 'corner_on_bottom'
     TWO_POINT = 'two_point'
     CORNER_AND_SIDE = 'corner_and_side'
+    SEATED = 'seated'
+
+
+class ContactKind(enum.StrEnum):
+    """What touches what in one fitted contact (Contact.kind): the single-contact states of
+    ContactState, of which the two-point ones are made, and a seated card's corner on the
+    floor."""
+
+    EDGE_ON_FACE = 'edge_on_face'
+    EDGE_ON_SIDE = 'edge_on_side'
+    CORNER_ON_MOUTH = 'corner_on_mouth'
+    CORNER_ON_WALL = 'corner_on_wall'
+    CORNER_ON_BOTTOM = 'corner_on_bottom'
     SEATED = 'seated'
 
 
@@ -172,7 +185,7 @@ class Contact:
     normal_force_n: float
     friction_force_n: float
     side: int
-    kind: str
+    kind: ContactKind
 
 
 @dataclass(frozen=True)
@@ -229,7 +242,7 @@ class Identification:
         """The slot floor's normal force on the card (N): its corners on the bottom, alone or
         wedged, or the card seated; 0 without."""
         return float(sum(c.normal_force_n for c in self.contacts
-                         if c.kind in ('corner_on_bottom', 'seated')))
+                         if c.kind in (ContactKind.CORNER_ON_BOTTOM, ContactKind.SEATED)))
 
 
 def _check_wrench(w) -> np.ndarray:
@@ -249,7 +262,7 @@ class _Spec:
     b: np.ndarray | None
     feature: np.ndarray
     side: int
-    kind: str
+    kind: ContactKind
 
 
 class ContactIdentifier:
@@ -320,17 +333,17 @@ class ContactIdentifier:
             # the point of side face s (from corner s back along u) nearest the edge
             eta = float(np.clip(np.dot(e - corner, u), 0.0, g.card_height_m))
             on_side = corner + eta * u
-            edge_on_side = _Spec(-s * v, e, None, on_side, s, 'edge_on_side')
+            edge_on_side = _Spec(-s * v, e, None, on_side, s, ContactKind.EDGE_ON_SIDE)
             wall = _Spec(-s * lat, np.array([s * half, 0.0]), np.array([s * half, -d]), corner,
-                         s, 'corner_on_wall')
+                         s, ContactKind.CORNER_ON_WALL)
             bottom = _Spec(up, np.array([-half, -d]), np.array([half, -d]), corner, s,
-                           'corner_on_bottom')
+                           ContactKind.CORNER_ON_BOTTOM)
             hyps[(ContactState.EDGE_ON_FACE, s)] = [_Spec(u, e, None, on_face, s,
-                                                          'edge_on_face')]
+                                                          ContactKind.EDGE_ON_FACE)]
             hyps[(ContactState.EDGE_ON_SIDE, s)] = [edge_on_side]
             hyps[(ContactState.CORNER_ON_MOUTH, s)] = [
                 _Spec(up, np.array([s * half, 0.0]), np.array([s * (half + jaw), 0.0]), corner,
-                      s, 'corner_on_mouth')]
+                      s, ContactKind.CORNER_ON_MOUTH)]
             hyps[(ContactState.CORNER_ON_WALL, s)] = [wall]
             hyps[(ContactState.CORNER_ON_BOTTOM, s)] = [bottom]
             # wedged: corner s on wall s (or on the bottom) and the other jaw's edge on the
@@ -339,18 +352,21 @@ class ContactIdentifier:
             e_o = self._edge(other)
             c_o = pose.corner(other, g.card_width_m)
             eta_o = float(np.clip(np.dot(e_o - c_o, u), 0.0, g.card_height_m))
-            side_o = _Spec(-other * v, e_o, None, c_o + eta_o * u, other, 'edge_on_side')
+            side_o = _Spec(-other * v, e_o, None, c_o + eta_o * u, other,
+                           ContactKind.EDGE_ON_SIDE)
             hyps[(ContactState.TWO_POINT, s)] = [wall, side_o]
             hyps[(ContactState.TWO_POINT, 2 * s)] = [bottom, side_o]
             # on corner s, held up by a jaw: the other corner on the other jaw's wall, or side
             # face s on jaw s's mouth edge (the card leaning towards s)
             wall_o = _Spec(-other * lat, np.array([other * half, 0.0]),
-                           np.array([other * half, -d]), c_o, other, 'corner_on_wall')
+                           np.array([other * half, -d]), c_o, other,
+                           ContactKind.CORNER_ON_WALL)
             hyps[(ContactState.CORNER_AND_SIDE, s)] = [bottom, wall_o]
             hyps[(ContactState.CORNER_AND_SIDE, 2 * s)] = [bottom, edge_on_side]
         c_l, c_r = pose.corner(-1, g.card_width_m), pose.corner(1, g.card_width_m)
         hyps[(ContactState.SEATED, 0)] = [
-            _Spec(up, np.array([np.clip(c[0], -half, half), -d]), None, c, k, 'seated')
+            _Spec(up, np.array([np.clip(c[0], -half, half), -d]), None, c, k,
+                  ContactKind.SEATED)
             for k, c in ((-1, c_l), (1, c_r))]
         return hyps
 
@@ -394,7 +410,8 @@ class ContactIdentifier:
                 # more than a contact in the geometric term)
                 choices.append(self._locus(sp))
         combos = itertools.product(*choices)
-        if [sp.kind for sp in specs] == ['corner_on_bottom', 'corner_on_wall'] and \
+        if [sp.kind for sp in specs] == [ContactKind.CORNER_ON_BOTTOM,
+                                         ContactKind.CORNER_ON_WALL] and \
                 specs[0].side == -specs[1].side:
             # the card spans the slot from the other corner, h up the other wall, to its corner
             # on the floor sqrt(w^2 - h^2) across: one point fixes the other
@@ -447,7 +464,8 @@ class ContactIdentifier:
             return np.array([float(np.clip(x, -half, half)), -d])
 
         corners = {s: pose.corner(s, g.card_width_m) for s in (-1, 1)}
-        floor = {s: _Spec(up, floor_at(corners[s][0]), None, corners[s], s, 'seated')
+        floor = {s: _Spec(up, floor_at(corners[s][0]), None, corners[s], s,
+                          ContactKind.SEATED)
                  for s in (-1, 1)}
         best_seat = None
         for dx in shifts:
@@ -472,7 +490,7 @@ class ContactIdentifier:
             wall_pt = np.array([s * half, -d])
             rivals[f'corner_in_corner:{s:+d}'] = (
                 [bottom, _Spec(np.array([-s, 0.0]), wall_pt, None, corners[s], s,
-                               'corner_on_wall')], [[wall_pt, wall_pt]])
+                               ContactKind.CORNER_ON_WALL)], [[wall_pt, wall_pt]])
             # the other corner h up the other jaw's wall, h from seat_depth_m (lower, the card
             # is seated) within 3 pose sigmas of where the estimate puts that corner; the card
             # spans the slot from it, so corner s is on the floor sqrt(w^2 - h^2) across
@@ -480,7 +498,7 @@ class ContactIdentifier:
             heights = np.linspace(max(self.seat_depth_m, h_est - span), h_est + span,
                                   self.samples)
             wall = _Spec(np.array([s, 0.0]), np.array([-s * half, 0.0]), None, corners[-s], -s,
-                         'corner_on_wall')
+                         ContactKind.CORNER_ON_WALL)
             # (each only where the estimate's corner is within 3 pose sigmas of where the
             # rival puts it: in a wide slot a centred card spans no jaw to jaw)
             sets = [[self._spanned(np.array([-s * half, -d + h]), -s),
@@ -495,7 +513,8 @@ class ContactIdentifier:
             for h in heights:
                 phi = float(np.arcsin(min(h / wc, 1.0)))
                 v = np.array([np.cos(phi), -s * np.sin(phi)])
-                edge = _Spec(-s * v, self._edge(s), None, corners[s], s, 'edge_on_side')
+                edge = _Spec(-s * v, self._edge(s), None, corners[s], s,
+                             ContactKind.EDGE_ON_SIDE)
                 x_s = s * (half - d * np.tan(phi))
                 if abs(x_s - corners[s][0]) <= span:
                     sets.append((edge, [np.array([x_s, -d]), self._edge(s)]))

@@ -4,12 +4,23 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
 from .errors import InsertionError
 
-__all__ = ['GoToPose', 'FollowPath', 'DriveCommand', 'wrap']
+__all__ = ['DriveCommand', 'FollowPath', 'GoToPose', 'Stage', 'wrap']
+
+
+class Stage(StrEnum):
+    """What a drive command does: turn to face the goal, drive to it, turn to its heading, or
+    nothing (arrived)."""
+
+    FACE = 'face'
+    DRIVE = 'drive'
+    TURN = 'turn'
+    ARRIVED = 'arrived'
 
 
 def wrap(a: float) -> float:
@@ -22,7 +33,7 @@ class DriveCommand:
     linear_x: float
     angular_z: float
     arrived: bool
-    stage: str
+    stage: Stage
 
 
 class GoToPose:
@@ -45,30 +56,30 @@ class GoToPose:
         self.goal_yaw = float(goal_yaw)
         self.v_max, self.w_max, self.k = max_speed_m_s, max_yaw_rate_rad_s, gain
         self.tol_p, self.tol_yaw = position_tolerance_m, yaw_tolerance_rad
-        self.stage = 'face'
+        self.stage = Stage.FACE
 
     def command(self, x: float, y: float, yaw: float) -> DriveCommand:
         d = self.goal - np.array([x, y])
         dist = float(np.hypot(*d))
-        if self.stage != 'turn' and dist <= self.tol_p:
-            self.stage = 'turn'
-        if self.stage == 'turn':
+        if self.stage != Stage.TURN and dist <= self.tol_p:
+            self.stage = Stage.TURN
+        if self.stage == Stage.TURN:
             e = wrap(self.goal_yaw - yaw)
             if abs(e) <= self.tol_yaw:
-                return DriveCommand(0.0, 0.0, True, 'arrived')
+                return DriveCommand(0.0, 0.0, True, Stage.ARRIVED)
             return DriveCommand(0.0, float(np.clip(self.k * e, -self.w_max, self.w_max)),
-                                False, 'turn')
+                                False, Stage.TURN)
         bearing = math.atan2(d[1], d[0])
         e = wrap(bearing - yaw)
-        if self.stage == 'face':
+        if self.stage == Stage.FACE:
             if abs(e) <= 0.05:
-                self.stage = 'drive'
+                self.stage = Stage.DRIVE
             else:
                 return DriveCommand(0.0, float(np.clip(self.k * e, -self.w_max, self.w_max)),
-                                    False, 'face')
+                                    False, Stage.FACE)
         v = float(np.clip(self.k * dist * max(0.0, math.cos(e)), 0.0, self.v_max))
         w = float(np.clip(2 * self.k * e, -self.w_max, self.w_max))
-        return DriveCommand(v, w, False, 'drive')
+        return DriveCommand(v, w, False, Stage.DRIVE)
 
 
 class FollowPath:
@@ -99,17 +110,18 @@ class FollowPath:
             self.todo.pop(0)
         if not self.todo:
             if self.final_yaw is None:
-                return DriveCommand(0.0, 0.0, True, 'arrived')
+                return DriveCommand(0.0, 0.0, True, Stage.ARRIVED)
             e = wrap(self.final_yaw - yaw)
             if abs(e) <= self.tol_yaw:
-                return DriveCommand(0.0, 0.0, True, 'arrived')
+                return DriveCommand(0.0, 0.0, True, Stage.ARRIVED)
             return DriveCommand(0.0, float(np.clip(1.5 * e, -self.w_max, self.w_max)), False,
-                                'turn')
+                                Stage.TURN)
         d = self.todo[0] - xy
         e = wrap(math.atan2(d[1], d[0]) - yaw)
         if abs(e) > self.turn_above:
             return DriveCommand(0.0, float(np.clip(2.5 * e, -self.w_max, self.w_max)), False,
-                                'face')
+                                Stage.FACE)
         dist = float(np.linalg.norm(d)) + self.pass_m * (len(self.todo) - 1)
         v = min(self.v_max, 0.8 * dist + 0.05)
-        return DriveCommand(v, float(np.clip(2.0 * e, -self.w_max, self.w_max)), False, 'drive')
+        return DriveCommand(v, float(np.clip(2.0 * e, -self.w_max, self.w_max)), False,
+                            Stage.DRIVE)

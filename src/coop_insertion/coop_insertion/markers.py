@@ -25,17 +25,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from enum import Enum
-from typing import Literal, Protocol, runtime_checkable
+from enum import Enum, StrEnum
+from typing import Protocol, assert_never, runtime_checkable
 
 import cv2
 import numpy as np
 
+from coop_common.params import choice
+
 from .errors import InsertionError
 
-__all__ = ['Marker', 'MarkerDetector', 'Polarity', 'ThesisDetector', 'EllipseDetector',
-           'HoughDetector', 'DETECTORS', 'make_detector', 'check_image', 'ellipse_conic',
-           'circle_candidates', 'resolve_coplanar', 'LAPLACIAN_5_6', 'three_point_circles']
+__all__ = ['Marker', 'MarkerDetector', 'Polarity', 'Ambiguity', 'ThesisDetector',
+           'EllipseDetector', 'HoughDetector', 'DetectorKind', 'DETECTORS', 'make_detector',
+           'check_image', 'ellipse_conic', 'circle_candidates', 'resolve_coplanar',
+           'LAPLACIAN_5_6', 'three_point_circles']
 
 
 class Polarity(Enum):
@@ -43,6 +46,14 @@ class Polarity(Enum):
 
     BRIGHT = 'bright'
     DARK = 'dark'
+
+
+class Ambiguity(StrEnum):
+    """What EllipseDetector does with a marker's two perspective candidates when no normal hint
+    is given: pick by the markers' common plane ('coplanar'), or keep the ellipse centre."""
+
+    COPLANAR = 'coplanar'
+    NONE = 'none'
 
 
 @dataclass(frozen=True)
@@ -451,7 +462,7 @@ class EllipseDetector:
                  min_coverage: float = DEFAULT_MIN_COVERAGE,
                  max_residual_px: float = DEFAULT_MAX_RESIDUAL_PX,
                  max_axis_ratio: float = 3.0,
-                 ambiguity: Literal['coplanar', 'none'] = 'coplanar') -> None:
+                 ambiguity: Ambiguity | str = Ambiguity.COPLANAR) -> None:
         self.r_min, self.r_max = _radius_range(radius_px)
         self.polarity = _polarity(polarity)
         self.K = _intrinsics(K)
@@ -470,8 +481,7 @@ class EllipseDetector:
             raise InsertionError(f'max_residual_px must be > 0, got {max_residual_px}')
         if not (max_axis_ratio >= 1):
             raise InsertionError(f'max_axis_ratio must be >= 1, got {max_axis_ratio}')
-        if ambiguity not in ('coplanar', 'none'):
-            raise InsertionError(f"ambiguity must be 'coplanar' or 'none', got {ambiguity!r}")
+        ambiguity = choice(Ambiguity, ambiguity, 'ambiguity', error=InsertionError)
         self.min_contrast = float(min_contrast)
         self.min_coverage = float(min_coverage)
         self.max_residual_px = float(max_residual_px)
@@ -668,7 +678,7 @@ class EllipseDetector:
                 corrected.append(m)
                 continue
             corrected.append(replace(m, candidates=centres, normals=normals))
-        if self.normal_hint is None and self.ambiguity == 'none':
+        if self.normal_hint is None and self.ambiguity is Ambiguity.NONE:
             return corrected
         return resolve_coplanar(corrected, normal_hint=self.normal_hint)
 
@@ -786,16 +796,28 @@ class HoughDetector:
                 for x, y, r in c.reshape(-1, c.shape[-1])[:, :3]]
 
 
-DETECTORS = ('default', 'thesis', 'hough')
+class DetectorKind(StrEnum):
+    """The detectors `make_detector` builds by name (the master node's `detector` parameter)."""
+
+    DEFAULT = 'default'
+    THESIS = 'thesis'
+    HOUGH = 'hough'
 
 
-def make_detector(kind: Literal['default', 'thesis', 'hough'] = 'default', **options
+DETECTORS = tuple(DetectorKind)
+
+
+def make_detector(kind: DetectorKind | str = DetectorKind.DEFAULT, **options
                   ) -> MarkerDetector:
-    """The detector by name, with its keyword options."""
-    if kind == 'default':
-        return EllipseDetector(**options)
-    if kind == 'thesis':
-        return ThesisDetector(**options)
-    if kind == 'hough':
-        return HoughDetector(**options)
-    raise InsertionError(f'detector must be one of {DETECTORS}, got {kind!r}')
+    """The detector by name, with its keyword options; InsertionError naming the detectors for
+    an unknown name."""
+    kind = choice(DetectorKind, kind, 'detector', error=InsertionError)
+    match kind:
+        case DetectorKind.DEFAULT:
+            return EllipseDetector(**options)
+        case DetectorKind.THESIS:
+            return ThesisDetector(**options)
+        case DetectorKind.HOUGH:
+            return HoughDetector(**options)
+        case _:
+            assert_never(kind)

@@ -36,7 +36,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
-from coop_common.params import ParamSpec
+from coop_common.params import ParamSpec, choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
     MAST_JOINTS,
@@ -62,6 +62,7 @@ from .markers import (
     DEFAULT_MIN_COVERAGE,
     DEFAULT_RADIUS_PX,
     DETECTORS,
+    DetectorKind,
     make_detector,
 )
 from .task import LABELS, SlotPair, TaskModel, find_slot, label_markers, site_from_slot
@@ -322,9 +323,10 @@ class MasterNode(Node):
         self.camera = StereoCamera(fx=fx, fy=fy, cx=cx, cy=cy, baseline=baseline,
                                    width=li.width, height=li.height)
         k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-        kind = self.p['detector']
+        # a string on the wire, checked against DETECTORS when declared (read-only)
+        kind = choice(DetectorKind, self.p['detector'], 'detector', error=InsertionError)
         opts = {'radius_px': DEFAULT_RADIUS_PX}
-        if kind == 'default':
+        if kind is DetectorKind.DEFAULT:
             opts.update(K=k, min_coverage=self.p['marker_min_coverage'],
                         max_residual_px=self.p['marker_max_residual_px'],
                         min_contrast=self.p['marker_min_contrast'])

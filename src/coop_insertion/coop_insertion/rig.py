@@ -18,6 +18,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from coop_common.dynparams import load_truth
 from coop_common.lockstep_node import Lockstep, Pacer, stamp_of
 from coop_common.node_util import in_executor
+from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, joint2_in_base
 from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
@@ -196,16 +198,27 @@ def staging_poses(slot_in: float, rng: np.random.Generator | None = None, *,
                        float(SITE_XY[1] - j2[1] + d[1]), float(d[2]))}
 
 
-#: the placements an attempt can ask the master for (coop_msgs/action/Insert)
-PLACEMENTS = {'optimal': Insert.Goal.PLACEMENT_OPTIMAL, 'random': Insert.Goal.PLACEMENT_RANDOM,
-              'random_fixed': Insert.Goal.PLACEMENT_RANDOM_FIXED,
-              'given': Insert.Goal.PLACEMENT_GIVEN}
+class Placement(StrEnum):
+    """The placements an attempt can ask the master for (coop_msgs/action/Insert's
+    PLACEMENT_*): 'given' pins the camera pose an attempt names."""
+
+    OPTIMAL = 'optimal'
+    RANDOM = 'random'
+    RANDOM_FIXED = 'random_fixed'
+    GIVEN = 'given'
+
+
+#: each placement's constant in the Insert goal
+PLACEMENTS = {Placement.OPTIMAL: Insert.Goal.PLACEMENT_OPTIMAL,
+              Placement.RANDOM: Insert.Goal.PLACEMENT_RANDOM,
+              Placement.RANDOM_FIXED: Insert.Goal.PLACEMENT_RANDOM_FIXED,
+              Placement.GIVEN: Insert.Goal.PLACEMENT_GIVEN}
 
 
 @dataclass
 class Attempt:
     slot_in: float
-    placement: str
+    placement: Placement
     seed: int
     success: bool                  # the simulator's truth: seated, penetration within limit
     action_success: bool
@@ -609,7 +622,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         for name in [n for n in self.nodes if n == 'stereo' or n.startswith('stereo_')]:
             self.nodes.pop(name).stop()
 
-    def attempt(self, *, slot_in: float, placement: str, seed: int,
+    def attempt(self, *, slot_in: float, placement: Placement | str, seed: int,
                 timeout_s: float = 120.0, max_force_n: float = 25.0,
                 penetration_limit_mm: float = 0.5,
                 camera: tuple[tuple[float, float], float, float] | None = None) -> Attempt:
@@ -619,16 +632,15 @@ class InsertionRig(contextlib.AbstractContextManager):
                            timeout_s=timeout_s, max_force_n=max_force_n,
                            penetration_limit_mm=penetration_limit_mm, camera=camera)
 
-    def insert(self, *, slot_in: float, placement: str, seed: int = 0,
+    def insert(self, *, slot_in: float, placement: Placement | str, seed: int = 0,
                timeout_s: float = 120.0, max_force_n: float = 25.0,
                penetration_limit_mm: float = 0.5,
                camera: tuple[tuple[float, float], float, float] | None = None) -> Attempt:
         """One `insert` goal from wherever the rovers stand, judged by the simulator's
-        truth. placement: one of PLACEMENTS ('given': the camera's (xy, yaw, pitch) in
+        truth. placement: a Placement or its name ('given': the camera's (xy, yaw, pitch) in
         `camera`); the master's random draws are the attempt's seed's."""
-        if placement not in PLACEMENTS:
-            raise InsertionError(f'placement must be one of {", ".join(PLACEMENTS)}')
-        if (placement == 'given') != (camera is not None):
+        placement = choice(Placement, placement, 'placement', error=InsertionError)
+        if (placement is Placement.GIVEN) != (camera is not None):
             raise InsertionError("a camera pose goes with the 'given' placement, and only")
         node = self.node
         self.hold()

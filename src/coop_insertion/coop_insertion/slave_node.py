@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from enum import StrEnum
 
 import numpy as np
 from geometry_msgs.msg import Twist, WrenchStamped
@@ -89,6 +90,14 @@ def _stamp(msg) -> float:
     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
 
+class R2Source(StrEnum):
+    """Where the slave's r2 (the arm's offset from the rover's CG) comes from: the
+    `cg_to_arm` parameter, until the identifier has published an observable CG."""
+
+    PARAMETER = 'parameter'
+    IDENTIFIED = 'identified'
+
+
 class SlaveNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('slave', **kwargs)
@@ -97,7 +106,7 @@ class SlaveNode(Node):
         self.bad = BadInputCounter(self)
         r = self.p['rover']
         self.r2 = np.asarray(self.p['cg_to_arm'], float)
-        self.r2_source = 'parameter'
+        self.r2_source = R2Source.PARAMETER
         self.odom: tuple[float, float, float] | None = None
         self.wrench: np.ndarray | None = None
         self.ctl: SlaveController | None = None
@@ -143,7 +152,7 @@ class SlaveNode(Node):
 
     def _on_params(self, changed: dict) -> None:
         self.p.update(changed)
-        if 'cg_to_arm' in changed and self.r2_source == 'parameter':
+        if 'cg_to_arm' in changed and self.r2_source is R2Source.PARAMETER:
             self.r2 = np.asarray(changed['cg_to_arm'], float)
 
     def _on_params_id(self, msg: DynamicParameters) -> None:
@@ -153,7 +162,7 @@ class SlaveNode(Node):
         if all(k in v and obs.get(k, True) and math.isfinite(v[k])
                for k in ('cg_x', 'cg_y', 'cg_z')):
             self.r2 = np.array([v['cg_x'], v['cg_y'], v['cg_z']])
-            self.r2_source = 'identified'
+            self.r2_source = R2Source.IDENTIFIED
 
     # -- sensing ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
