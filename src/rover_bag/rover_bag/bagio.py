@@ -17,9 +17,9 @@ import warnings
 import zlib
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import Enum, StrEnum
 from pathlib import Path
-from typing import IO, Any, NamedTuple
+from typing import IO, Any, NamedTuple, assert_never
 
 import lz4.frame
 import zstandard
@@ -48,12 +48,23 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 from ruamel.yaml import YAML, YAMLError
 
+from coop_common.params import choice
+
 from .errors import BagError
 
 #: Interface packages of this project whose .msg files are registered in every typestore.
 PROJECT_INTERFACE_PACKAGES: tuple[str, ...] = ('coop_msgs',)
+
+
+class Compression(StrEnum):
+    """BagWriter's MCAP chunk compression (the recorder's `compression` parameter)."""
+
+    NONE = 'none'
+    ZSTD = 'zstd'
+
+
 #: MCAP chunk compression choices of BagWriter
-COMPRESSIONS: tuple[str, ...] = ('none', 'zstd')
+COMPRESSIONS = tuple(Compression)
 
 
 class BagNotFoundError(BagError, FileNotFoundError):
@@ -236,15 +247,21 @@ class _SplitFile:
     and, once closed, its MCAP file is moved up to `<bag>/<bag>_<i>.mcap` and its metadata kept
     in memory for the bag's metadata.yaml."""
 
-    def __init__(self, bag: Path, index: int, compression: str) -> None:
+    def __init__(self, bag: Path, index: int, compression: Compression) -> None:
         self.name = f'{bag.name}_{index}.mcap'
         self.file_path = bag / self.name            # where the file is once closed
         self.dir = bag / f'{bag.name}_{index}'      # rosbags' bag of this one file
         self.writer = Writer(self.dir, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compression == 'zstd':
-            # MCAP chunk compression: transparent to every MCAP reader (ros2 bag play included);
-            # the rosbag2 metadata keeps compression_mode '' as rosbag2's own MCAP presets do
-            self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        match compression:
+            case Compression.NONE:
+                pass
+            case Compression.ZSTD:
+                # MCAP chunk compression: transparent to every MCAP reader (ros2 bag play
+                # included); the rosbag2 metadata keeps compression_mode '' as rosbag2's own MCAP
+                # presets do
+                self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            case _:
+                assert_never(compression)
         self.writer.open()
         self.messages = 0
 
@@ -304,12 +321,11 @@ class BagWriter:
     """
 
     def __init__(self, path: str | Path, *, typestore: Typestore | None = None,
-                 max_bytes: int = 0, max_duration_s: float = 0.0, compression: str = 'none',
+                 max_bytes: int = 0, max_duration_s: float = 0.0,
+                 compression: Compression | str = Compression.NONE,
                  custom_data: dict[str, str] | None = None) -> None:
         self.path = Path(path)
-        if compression not in COMPRESSIONS:
-            raise ValueError(f'compression must be one of {COMPRESSIONS}, got {compression!r}')
-        self.compression = compression
+        self.compression = choice(Compression, compression, 'compression')
         if self.path.exists():
             raise BagError(f'{self.path} exists already; a bag is never overwritten')
         if max_bytes < 0 or max_duration_s < 0:
@@ -558,15 +574,18 @@ def _chunk_records(chunk: Chunk) -> list[McapRecord]:
     chunk's uncompressed size and CRC (when its writer set one), and read by mcap's StreamReader
     to exactly the chunk's end."""
     try:
-        if chunk.compression == '':
-            raw = chunk.data
-        elif chunk.compression == 'zstd':
-            raw = zstandard.ZstdDecompressor().decompress(
-                chunk.data, max_output_size=chunk.uncompressed_size)
-        elif chunk.compression == 'lz4':
-            raw = lz4.frame.decompress(chunk.data)
-        else:
-            raise _ChunkError(f'unknown compression {chunk.compression!r}')
+        # the MCAP specification's chunk compressions: none, zstd, lz4
+        match chunk.compression:
+            case '':
+                raw = chunk.data
+            case 'zstd':
+                raw = zstandard.ZstdDecompressor().decompress(
+                    chunk.data, max_output_size=chunk.uncompressed_size)
+            case 'lz4':
+                raw = lz4.frame.decompress(chunk.data)
+            case _:
+                raise _ChunkError(f"unknown compression {chunk.compression!r} (MCAP's are '', "
+                                  f"'zstd' and 'lz4')")
     except (zstandard.ZstdError, RuntimeError) as exc:      # lz4 raises RuntimeError
         raise _ChunkError(f'{chunk.compression} data do not decompress ({exc})') from None
     if len(raw) != chunk.uncompressed_size:
