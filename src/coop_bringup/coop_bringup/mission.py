@@ -32,7 +32,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Literal, assert_never
+from typing import assert_never
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, Twist
@@ -86,7 +86,14 @@ from coop_viewplan.params import PARAMS as VP_PARAMS
 
 from .mission_seeds import format_table as format_seeds
 from .mission_seeds import parse_seeds, run_seeds
-from .report import MissionError, identification_errors, site_coverage, top_view, write_report
+from .report import (
+    MissionError,
+    PhaseStatus,
+    identification_errors,
+    site_coverage,
+    top_view,
+    write_report,
+)
 
 
 class PhaseName(StrEnum):
@@ -157,7 +164,7 @@ class MissionConfig:
 @dataclass
 class Phase:
     name: PhaseName
-    status: Literal['skipped', 'running', 'ok', 'failed'] = 'skipped'
+    status: PhaseStatus = PhaseStatus.SKIPPED
     reason: str = ''
     wall_s: float | None = None
     sim_s: float | None = None
@@ -405,20 +412,21 @@ class Mission:
                     if ph.name is PhaseName.INSERT:
                         continue               # run with 'place' as one goal
                     self._run_phase(ph)
-                    if ph.status == 'failed':
+                    if ph.status is PhaseStatus.FAILED:
                         failed = ph.name
         except KeyboardInterrupt:
             for ph in self.phases:
-                if ph.status == 'running':
-                    ph.status, ph.reason = 'failed', 'interrupted (Ctrl-C)'
-                elif ph.status == 'skipped' and ph.name in cfg.phases and not ph.reason:
+                if ph.status is PhaseStatus.RUNNING:
+                    ph.status, ph.reason = PhaseStatus.FAILED, 'interrupted (Ctrl-C)'
+                elif (ph.status is PhaseStatus.SKIPPED and ph.name in cfg.phases
+                      and not ph.reason):
                     ph.reason = 'interrupted (Ctrl-C)'
             self.rep['interrupted'] = True
         except (InsertionError, MissionError, TimeoutError) as exc:
             self.rep['error'] = str(exc)
             for ph in self.phases:
-                if ph.status == 'running':
-                    ph.status, ph.reason = 'failed', str(exc)
+                if ph.status is PhaseStatus.RUNNING:
+                    ph.status, ph.reason = PhaseStatus.FAILED, str(exc)
         finally:
             self.progress.close()
         self.rep['phases'] = [asdict(p) for p in self.phases]
@@ -475,14 +483,14 @@ class Mission:
         if bag is not None:
             self.rep['bag'] = bag
         self.rep['wall_s'] = time.monotonic() - t_all
-        self.rep['success'] = all(p.status == 'ok' for p in self.phases
+        self.rep['success'] = all(p.status is PhaseStatus.OK for p in self.phases
                                   if p.name in cfg.phases)
         md, _ = write_report(self.rep, self.out, **self.extras)
         self.log(f'report: {md}')
         return self.rep
 
     def _run_phase(self, ph: Phase) -> None:
-        ph.status = 'running'
+        ph.status = PhaseStatus.RUNNING
         self.progress.start(ph.name)
         w0, s0 = time.monotonic(), self._sim_t()
         try:
@@ -497,9 +505,9 @@ class Mission:
                     raise AssertionError("'insert' runs with 'place', as one insert goal")
                 case _:
                     assert_never(ph.name)
-            ph.status = ph.status if ph.status == 'failed' else 'ok'
+            ph.status = ph.status if ph.status is PhaseStatus.FAILED else PhaseStatus.OK
         except (MissionError, InsertionError, TimeoutError) as exc:
-            ph.status, ph.reason = 'failed', str(exc)
+            ph.status, ph.reason = PhaseStatus.FAILED, str(exc)
             self.log(f'{ph.name} failed: {exc}')
         finally:
             self.progress.close()
@@ -791,9 +799,10 @@ class Mission:
         self.extras['insertion_curves'] = attempt.curves
         self.extras['paths'] = {r: list(p) for r, p in self.client.paths.items()}
         reached = phase['insert_at'] is not None
-        place.status = 'ok' if reached else 'failed'
+        place.status = PhaseStatus.OK if reached else PhaseStatus.FAILED
         place.reason = '' if reached else attempt.reason
-        insert.status = 'ok' if attempt.success else ('failed' if reached else 'skipped')
+        insert.status = PhaseStatus.OK if attempt.success else (
+            PhaseStatus.FAILED if reached else PhaseStatus.SKIPPED)
         insert.reason = '' if attempt.success else (attempt.reason if reached else
                                                     'after place failed')
 

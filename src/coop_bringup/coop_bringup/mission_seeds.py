@@ -19,7 +19,7 @@ from pathlib import Path
 
 from coop_common.files import write_json
 
-from .report import MissionError
+from .report import MissionError, PhaseStatus
 
 
 def parse_seeds(spec: str) -> list[int]:
@@ -50,12 +50,13 @@ def judge(rep: dict) -> dict:
     ins = rep.get('insertion', {})
     row = {
         'seed': rep.get('config', {}).get('seed'),
-        'identify': status.get('identify') == 'ok' and e is not None
+        'identify': status.get('identify') == PhaseStatus.OK and e is not None
         and e <= t.get('identification_error', 0.15),
         'identification_error': e,
-        'map': status.get('map') == 'ok' and cov is not None and cov >= t.get('coverage', 0.9),
+        'map': (status.get('map') == PhaseStatus.OK and cov is not None
+                and cov >= t.get('coverage', 0.9)),
         'coverage': cov,
-        'place': status.get('place') == 'ok',
+        'place': status.get('place') == PhaseStatus.OK,
         'insert': bool(ins.get('success')),
         'reason': ins.get('reason', ''),
         'search_views': ins.get('search_views'),

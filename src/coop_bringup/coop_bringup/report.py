@@ -8,13 +8,14 @@ report.json holds at least `identification.mean_abs_rel_error`, `mapping.coverag
 from __future__ import annotations
 
 import math
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 
 from coop_common.files import save_figure, write_json, write_text_atomic
 
-__all__ = ['MissionError', 'site_coverage', 'top_view', 'identification_errors',
+__all__ = ['MissionError', 'PhaseStatus', 'site_coverage', 'top_view', 'identification_errors',
            'write_report', 'format_summary']
 
 
@@ -25,6 +26,15 @@ GROUND_KEY = -2
 
 class MissionError(RuntimeError):
     """A mission that cannot go on: the phase and the reason are in the message."""
+
+
+class PhaseStatus(StrEnum):
+    """A mission phase's status in the report (its JSON 'phases' rows)."""
+
+    SKIPPED = 'skipped'
+    RUNNING = 'running'
+    OK = 'ok'
+    FAILED = 'failed'
 
 
 def _site_columns(keys: np.ndarray, resolution: float, centre_xy, half_m: float
@@ -134,8 +144,8 @@ def format_summary(rep: dict) -> str:
              '|---|---|---|---|---|---|']
     for ph in rep.get('phases', []):
         res, tgt = results.get(ph['name'], ('', ''))
-        if ph['status'] != 'ok' and ph.get('reason') and ph['reason'] not in res:
-            res = f'{res}; {ph["reason"]}' if ph['status'] == 'failed' else ph['reason']
+        if ph['status'] != PhaseStatus.OK and ph.get('reason') and ph['reason'] not in res:
+            res = f'{res}; {ph["reason"]}' if ph['status'] == PhaseStatus.FAILED else ph['reason']
         lines.append(f'| {ph["name"]} | {ph["status"]} | {res} | {tgt} | '
                      f'{_fmt(ph.get("wall_s"), ".0f")} | {_fmt(ph.get("sim_s"), ".1f")} |')
     return '\n'.join(lines)

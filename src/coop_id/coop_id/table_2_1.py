@@ -129,10 +129,10 @@ def format_table(summary: dict, truth: np.ndarray, seeds: int) -> str:
                      f'{100 * s["mean_abs_rel_error_seed_std"]:8.1f}{t20:>8s}{t20m:>9s}'
                      f'{100 * s["coverage_95"]:8.1f}%'
                      f'{100 * s["physically_consistent_fraction"]:8.1f}%')
-    if 'constant' in summary:
-        base = summary['constant']['mean_abs_rel_error']
+    if Strategy.CONSTANT in summary:
+        base = summary[Strategy.CONSTANT]['mean_abs_rel_error']
         for n in names:
-            if n != 'constant':
+            if n != Strategy.CONSTANT:
                 lines.append(f'ratio {n}/constant = {summary[n]["mean_abs_rel_error"] / base:.3f}')
     return '\n'.join(lines)
 
