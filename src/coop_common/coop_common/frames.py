@@ -234,7 +234,7 @@ def mast_transforms(frames: RoverFrames, names: Sequence[str],
     one."""
     if len(names) != len(positions):
         raise FrameError(f'joint state with {len(names)} names and {len(positions)} positions')
-    by_name = dict(zip(names, positions))
+    by_name = dict(zip(names, positions, strict=False))
     missing = [j for j in MAST_JOINTS if j not in by_name]
     if missing:
         raise FrameError(f'joint state without {", ".join(missing)}')

@@ -30,6 +30,8 @@ GROUP_JOINTS: dict[JointGroup, tuple[str, ...]] = {'arm': ARM_JOINTS, 'mast': MA
 
 @dataclass(frozen=True)
 class ArmLink:
+    """One arm link's mass properties and length (link frame, SI units)."""
+
     name: str
     mass: float
     com: tuple[float, float, float]
@@ -116,7 +118,7 @@ def arm_gravity_moment(q, *, g: float = 9.81) -> np.ndarray:
              ARM_LINKS[1].com[0] * np.cos(t2),
              l2 * np.cos(t2) + ARM_LINKS[2].com[0] * np.cos(t3),
              l2 * np.cos(t2) + l3 * np.cos(t3) + ARM_LINKS[3].com[0] * np.cos(t4))
-    first = sum(link.mass * x for link, x in zip(ARM_LINKS, reach))
+    first = sum(link.mass * x for link, x in zip(ARM_LINKS, reach, strict=False))
     return np.array([g * first * np.sin(q1), -g * first * np.cos(q1), 0.0])
 
 
