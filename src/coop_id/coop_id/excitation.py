@@ -102,6 +102,10 @@ def constant_excitation() -> Excitation:
     return Excitation(2 * np.pi / 9, np.pi / 2, np.pi / 4)
 
 
+#: the arm's joint limits ExcitationBounds holds unless told otherwise
+DEFAULT_LIMITS = JointLimits()
+
+
 @dataclass(frozen=True)
 class ExcitationBounds:
     """Box on d plus the arm joint position / speed / acceleration (torque) limits."""
@@ -109,12 +113,12 @@ class ExcitationBounds:
     amplitude: tuple[float, float] = (0.05, 1.2)
     frequency: tuple[float, float] = (0.5, 30.0)
     offset: tuple[float, float] = (-1.0, 1.0)
-    limits: JointLimits = JointLimits()
+    limits: JointLimits = DEFAULT_LIMITS
 
     def feasible(self, d: np.ndarray) -> np.ndarray:
         """Clip d into the box, then shrink the amplitude to the joint limits."""
         a, w, a0 = (float(np.clip(v, *b)) for v, b in
-                    zip(d, (self.amplitude, self.frequency, self.offset)))
+                    zip(d, (self.amplitude, self.frequency, self.offset), strict=False))
         lim = self.limits
         a = min(a, lim.position_rad - abs(a0), lim.speed_rad_s / w, lim.accel_rad_s2 / w ** 2)
         return np.array([max(a, 1e-3), w, a0])
@@ -503,7 +507,7 @@ class ArmReference:
         # overlap never nest
         t_a = now - 0.05
         grid = np.linspace(t_a, start + dur, int(np.ceil((start + dur - t_a) / 1e-3)) + 1)
-        pos, vel = (np.array(v) for v in zip(*(live(t) for t in grid)))
+        pos, vel = (np.array(v) for v in zip(*(live(t) for t in grid), strict=False))
 
         def old(t: float) -> tuple[np.ndarray, np.ndarray]:
             return (np.array([np.interp(t, grid, pos[:, j]) for j in range(2)]),

@@ -25,6 +25,9 @@ from .modelsim import ThesisRover, add_noise, noise_scales, stack_frames
 
 @dataclass
 class RunResult:
+    """One identification run: the estimates, their standard deviations and information bits, and
+    the excitation, per window."""
+
     strategy: Strategy
     seed: int
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -43,7 +46,7 @@ def reference_noise_scales(truth: BaseParameters, duration_s: float) -> dict[str
     rover = ThesisRover(truth)
     exc = constant_excitation()
     frames = [rover.rest_frame()]
-    for k in range(int(round(duration_s / 0.005))):
+    for k in range(round(duration_s / 0.005)):
         frames.append(rover.step(exc((k + 1) * 0.005)))
     return noise_scales(stack_frames(frames))
 
@@ -67,8 +70,8 @@ def run_identification(truth: BaseParameters, *, strategy: Strategy | str, seed:
     ident = Identifier(cfg, sensor_noise=noise_model)
     rng = np.random.default_rng(seed)
     rover = ThesisRover(truth)
-    per_window = int(round(cfg.window_s * cfg.rate_hz))
-    n_windows = int(round(duration_s / cfg.window_s))
+    per_window = round(cfg.window_s * cfg.rate_hz)
+    n_windows = round(duration_s / cfg.window_s)
     if n_windows < 1:
         raise ValueError(f'duration {duration_s} s holds no {cfg.window_s} s identification '
                          'window')
@@ -171,13 +174,14 @@ def mass_step_tracking(truth: BaseParameters, *, seeds: list[int], config_factor
 
 def format_tracking(runs: list[StepTracking], *, tol: float = 0.05, delay_s: float = 2.0
                     ) -> str:
+    """The mass-step runs as a text table: the mass estimate about the step, settling, errors."""
     step = runs[0].step_s
     lines = [f'mass step {runs[0].mass_before:g} -> {runs[0].mass_after:g} kg at {step:g} s, '
              f'{len(runs)} seed(s)',
              f'{"seed":>4s}{"m@step":>8s}{"+1 s":>7s}{"+2 s":>7s}{"+4 s":>7s}{"end":>7s}'
              f'{"t5% s":>7s}{"m err":>9s}{"all err":>9s}  (max from {delay_s:g} s after)']
     for r in runs:
-        def at(t: float) -> float:
+        def at(t: float, r: StepTracking = r) -> float:
             return float(r.mass[np.argmin(np.abs(r.times - t))])
         settle = r.settle_time(tol)
         wm, we = r.worst_after(delay_s)
@@ -226,6 +230,7 @@ def format_json(doc: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_id.experiment`: the mass step (drift) scenario over seeds."""
     ap = argparse.ArgumentParser(prog='coop_id.experiment',
                                  description='the +20 % mass step (drift) scenario')
     ap.add_argument('--seeds', type=number(int, lo=1, hi=10_000), default=20)

@@ -52,6 +52,9 @@ class IdentifierError(CoopIdError):
 
 @dataclass
 class IdentifierConfig:
+    """Identifier settings: the excitation strategy, sample rate and window, decimation, the
+    information resolution and the optional drift model."""
+
     strategy: Strategy = Strategy.INFORMATION
     rate_hz: float = 200.0
     window_s: float = 0.4
@@ -163,7 +166,7 @@ class Identifier:
         self.detector = ChangeDetector() if cfg.detect_changes else None
         self.excitation: Excitation = constant_excitation()
         # predict at half the update instants (the rows are smooth), each counting twice
-        n_pred = max(int(round(cfg.window_s * cfg.rate_hz / cfg.decimation / 2)), 1)
+        n_pred = max(round(cfg.window_s * cfg.rate_hz / cfg.decimation / 2), 1)
         self.predictor = WindowPredictor(
             arm=self.arm, times=np.arange(n_pred) * 2 * cfg.decimation / cfg.rate_hz,
             accelerometer=cfg.accelerometer, weight=2.0)

@@ -26,6 +26,7 @@ class BagError(CoopIdError):
 
 
 def ident_topics(rover: str) -> tuple[str, str, str]:
+    """The IMU, inclinometer and F/T topics of `rover` in a bag."""
     return (f'/{rover}/imu', f'/{rover}/inclinometer', f'/{rover}/arm/wrench')
 
 
@@ -53,7 +54,7 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
         rows.append(row)
 
     pairer = SamplePairer(int(QUEUE_S * IdentifierConfig.rate_hz),
-                          tolerance_ns=int(round(tolerance_s * 1e9)),
+                          tolerance_ns=round(tolerance_s * 1e9),
                           force_limit=force_limit, torque_limit=torque_limit,
                           on_sample=on_sample, on_reject=lambda r, _d: skipped.update([r]))
     try:
@@ -118,7 +119,7 @@ def identify_rows(rows: np.ndarray, config: IdentifierConfig | None = None, *,
     the errors-in-variables model (sensor_noise(); None: no bias correction)."""
     cfg = config or IdentifierConfig()
     ident = Identifier(cfg, sensor_noise=noise)
-    per = int(round(cfg.window_s * cfg.rate_hz))
+    per = round(cfg.window_s * cfg.rate_hz)
     if n_samples is None:
         n_samples = 1 + per * ((len(rows) - 1) // per) if len(rows) > per else 0
     if n_samples < per + 1 or n_samples > len(rows):
@@ -146,7 +147,7 @@ def bag_truth(bag: str | Path, *, rover: str = 'rover1') -> np.ndarray | None:
         if topic not in bag_info(bag).topics:
             return None
         for m in read_messages(bag, [topic]):
-            d = dict(zip(m.msg.names, m.msg.values))
+            d = dict(zip(m.msg.names, m.msg.values, strict=False))
             missing = [n for n in PARAM_NAMES if n not in d]
             if missing:
                 raise BagError(f'{bag}: {topic} lacks {missing}')
