@@ -60,6 +60,8 @@ METHODS = tuple(PoseMethod)
 
 @dataclass(frozen=True)
 class OdometryConfig:
+    """Fiducial-odometry trial settings: the fiducials, the pose method and the motion errors."""
+
     n_fiducials: int = 40
     method: PoseMethod = PoseMethod.PNP
     scene_distance: float = 1.1     # m, sets the resolution of the first scan's map

@@ -48,6 +48,8 @@ from .stereo import (
 
 @dataclass(frozen=True)
 class TrialConfig:
+    """One Fig. 3-24 trial's settings: the scene's distance, the steps and their errors."""
+
     distance: float = 1.1          # m, average distance of the scene from the camera
     steps: int = 20
     step_m: float = 0.04           # commanded sideways motion per step at 1.1 m (scaled)
@@ -285,6 +287,8 @@ def format_table(out: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_mapping.fig_3_24`: the camera translation error with and without fiducials
+    (Fig. 3-24)."""
     ap = argparse.ArgumentParser(description='Fig. 3-24: camera translation error with and '
                                  'without fiducial correction')
     ap.add_argument('--json', type=output_path)

@@ -25,11 +25,28 @@ from coop_common.params import choice
 from .errors import MappingError, OptionError
 from .gauss import skew
 
-__all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_contrast',
-           'depth_contrast', 'certainty_term', 'track', 'solve_g01', 'robust_g01',
-           'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'solve_rigid_cov', 'fit_g01',
-           'camera_pose_covariance', 'RecursivePoseStats', 'ekf_point_update', 'MotionError',
-           'G01Method', 'G01_METHODS']
+__all__ = [
+    'G01_METHODS',
+    'FiducialWeights',
+    'G01Method',
+    'MotionError',
+    'RecursivePoseStats',
+    'camera_pose_covariance',
+    'certainty_term',
+    'depth_contrast',
+    'ekf_point_update',
+    'fiducial_scores',
+    'fit_g01',
+    'project_to_so3',
+    'robust_g01',
+    'select_fiducials',
+    'solve_g01',
+    'solve_g01_so3',
+    'solve_rigid',
+    'solve_rigid_cov',
+    'track',
+    'visual_contrast',
+]
 
 
 class MotionError(MappingError, ValueError):

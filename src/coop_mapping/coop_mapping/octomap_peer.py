@@ -17,7 +17,7 @@ def leaf_states(tree, res: float) -> tuple[np.ndarray, np.ndarray]:
     for leaf in tree.begin_leafs():
         c = np.array(leaf.getCoordinate())
         s = leaf.getSize()
-        n = int(round(s / res))
+        n = round(s / res)
         lo = np.round((c - s / 2) / res).astype(np.int64)
         g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing='ij'), -1).reshape(-1, 3) + lo
         keys.append(g)

@@ -37,8 +37,18 @@ from .stereo import (
 )
 from .voxelmap import MapInputError, ScanLimits, ScanRejected, VoxelMap
 
-__all__ = ['StereoSettings', 'MapSettings', 'StereoFrame', 'OfflineMap', 'image_array',
-           'stereo_frames', 'frame_scan', 'build_map', 'map_from_bag', 'stereo_topics']
+__all__ = [
+    'MapSettings',
+    'OfflineMap',
+    'StereoFrame',
+    'StereoSettings',
+    'build_map',
+    'frame_scan',
+    'image_array',
+    'map_from_bag',
+    'stereo_frames',
+    'stereo_topics',
+]
 
 _SIDES = ('left', 'right')
 _TOPIC = re.compile(r'^/(?P<rover>[^/]+)/stereo/(?P<what>left/image_raw|right/image_raw|'
@@ -55,7 +65,7 @@ class StereoSettings:
     min_range_m: float = 0.2
     max_range_m: float = 10.0
     sigma_disparity_px: float = 0.5
-    error_T_lateral: float = 0.1
+    error_T_lateral: float = 0.1    # noqa: N815 - the stereo node's parameter (Eq. 3-7's T)
     error_n: float = 2.0
     subpixel: Subpixel = SUBPIXEL_DEFAULT
     full_width: bool = FULL_WIDTH_DEFAULT

@@ -17,11 +17,13 @@ from coop_common.rendering import fine_intrinsics, pixel_average, projection_mat
 
 from .stereo import StereoCamera
 
-__all__ = ['Box', 'TexturedScene', 'look_at', 'default_boxes']
+__all__ = ['Box', 'TexturedScene', 'default_boxes', 'look_at']
 
 
 @dataclass(frozen=True)
 class Box:
+    """An axis-aligned box: centre and half extents (m)."""
+
     centre: tuple[float, float, float]
     half_extents: tuple[float, float, float]
 
@@ -35,9 +37,11 @@ def default_boxes() -> list[Box]:
             Box((2.2, 0.6, 0.15), (0.15, 0.2, 0.15))]
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])
-            ) -> np.ndarray:
-    """R_wc of an optical frame (z forward, x right, y down) at `eye` looking at `target`."""
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """R_wc of an optical frame (z forward, x right, y down) at `eye` looking at `target`
+    (`up`: the world's up, +z by default)."""
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0])
     z = np.asarray(target, float) - np.asarray(eye, float)
     z /= np.linalg.norm(z)
     x = np.cross(z, up)

@@ -18,11 +18,24 @@ from coop_common.params import choice
 from .errors import MappingError
 from .gauss import rotate_sym6
 
-__all__ = ['SUBPIXEL_MODES', 'Subpixel', 'SUBPIXEL_DEFAULT', 'FULL_WIDTH_DEFAULT', 'StereoCamera',
-           'ErrorModel', 'StereoError',
-           'compute_disparity', 'equalize_subpixel', 'phase_averaged_disparity', 'shift_columns',
-           'disparity_to_range', 'range_sigma', 'disparity_to_points',
-           'StereoRanger', 'StereoScan']
+__all__ = [
+    'FULL_WIDTH_DEFAULT',
+    'SUBPIXEL_DEFAULT',
+    'SUBPIXEL_MODES',
+    'ErrorModel',
+    'StereoCamera',
+    'StereoError',
+    'StereoRanger',
+    'StereoScan',
+    'Subpixel',
+    'compute_disparity',
+    'disparity_to_points',
+    'disparity_to_range',
+    'equalize_subpixel',
+    'phase_averaged_disparity',
+    'range_sigma',
+    'shift_columns',
+]
 
 
 class Subpixel(StrEnum):

@@ -33,9 +33,19 @@ from .errors import MappingError
 from .gauss import mat_from_sym6, skew, sym6_from_mat
 from .stereo import ErrorModel, StereoCamera
 
-__all__ = ['TargetFrameError', 'TargetGeometry', 'PoseFix', 'solve_pose', 'locate_in_target',
-           'transform_to_target', 'frame_alignment', 'detect_markers', 'triangulate_markers',
-           'InitialisationStep', 'Initialiser']
+__all__ = [
+    'InitialisationStep',
+    'Initialiser',
+    'PoseFix',
+    'TargetFrameError',
+    'TargetGeometry',
+    'detect_markers',
+    'frame_alignment',
+    'locate_in_target',
+    'solve_pose',
+    'transform_to_target',
+    'triangulate_markers',
+]
 
 
 class TargetFrameError(MappingError, ValueError):
@@ -103,12 +113,13 @@ def _weighted_kabsch(m: np.ndarray, p: np.ndarray, w: np.ndarray, up_pair=None
 
 def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarray, *,
                up_observed: np.ndarray | None = None, up_sigma_rad: float | None = None,
-               up_target: np.ndarray = np.array([0.0, 0.0, 1.0]), iterations: int = 30
-               ) -> PoseFix:
+               up_target: np.ndarray | None = None, iterations: int = 30) -> PoseFix:
     """Maximum-likelihood camera pose in the target frame from marker i observed at
     observed[i] (camera frame, covariance covariances[i] as (6,) sym6 or (3, 3)) of the known
-    markers[i] (target frame); optional up direction in the camera frame with its angular sigma.
-    See the module docstring."""
+    markers[i] (target frame); optional up direction in the camera frame with its angular sigma
+    (`up_target`: the target frame's up, +z by default). See the module docstring."""
+    if up_target is None:
+        up_target = np.array([0.0, 0.0, 1.0])
     m = np.asarray(markers, float)
     p = np.asarray(observed, float)
     C = np.asarray(covariances, float)
@@ -248,7 +259,7 @@ def locate_in_target(geometry: TargetGeometry, observed: np.ndarray, covariances
             continue
         if best is None or fix.chi2 < best.chi2:
             a = [-1] * len(p)
-            for i, j in zip(o, mk):
+            for i, j in zip(o, mk, strict=False):
                 a[i] = j
             best = PoseFix(fix.R, fix.t, fix.covariance, fix.chi2, fix.dof, tuple(a))
     if best is None:
@@ -326,7 +337,7 @@ def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamer
     ur, rr = detect_markers(right, **detect_kw)
     uv, pts = [], []
     used = set()
-    for (u, v), r in zip(ul, rl):
+    for (u, v), r in zip(ul, rl, strict=False):
         d = u - ur[:, 0] if len(ur) else np.empty(0)
         ok = (np.abs(ur[:, 1] - v) <= max_row_diff_px) & (d > 0) & (d <= max_disparity_px) & \
             (np.abs(rr - r) <= 0.5 * r + 1.0) if len(ur) else np.zeros(0, bool)
@@ -369,12 +380,12 @@ class Initialiser:
     target frame sits at (R_ct, t_ct). `to_common` then maps own-frame camera poses there, with
     the alignment's uncertainty added. No rclpy here."""
 
-    def __init__(self, geometry: TargetGeometry, *, R_ct: np.ndarray = np.eye(3),
-                 t_ct: np.ndarray = np.zeros(3), max_position_sigma_m: float = 0.1,
+    def __init__(self, geometry: TargetGeometry, *, R_ct: np.ndarray | None = None,
+                 t_ct: np.ndarray | None = None, max_position_sigma_m: float = 0.1,
                  up_sigma_rad: float | None = 0.01, **detect_kw) -> None:
         self.geometry = geometry
-        self.R_ct = np.asarray(R_ct, float)
-        self.t_ct = np.asarray(t_ct, float)
+        self.R_ct = np.eye(3) if R_ct is None else np.asarray(R_ct, float)
+        self.t_ct = np.zeros(3) if t_ct is None else np.asarray(t_ct, float)
         self.max_position_sigma_m = float(max_position_sigma_m)
         self.up_sigma_rad = up_sigma_rad if up_sigma_rad and up_sigma_rad > 0 else None
         self.detect_kw = detect_kw

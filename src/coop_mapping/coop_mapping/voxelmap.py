@@ -46,6 +46,7 @@ No rclpy in this module.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import math
 import os
@@ -68,10 +69,23 @@ from .gauss import (
     sym6_matvec,
 )
 
-__all__ = ['OccupancyModel', 'VoxelMap', 'InsertResult', 'MapFileError', 'MapInputError',
-           'ScanLimits', 'ScanRejected',
-           'state_agreement', 'kernel_centroids',
-           'pack_keys', 'unpack_keys', 'ray_voxel_keys', 'FREE', 'OCCUPIED', 'UNKNOWN']
+__all__ = [
+    'FREE',
+    'OCCUPIED',
+    'UNKNOWN',
+    'InsertResult',
+    'MapFileError',
+    'MapInputError',
+    'OccupancyModel',
+    'ScanLimits',
+    'ScanRejected',
+    'VoxelMap',
+    'kernel_centroids',
+    'pack_keys',
+    'ray_voxel_keys',
+    'state_agreement',
+    'unpack_keys',
+]
 
 FILE_FORMAT = 'coop_mapping.voxelmap'
 FILE_VERSION = 1
@@ -156,7 +170,7 @@ class OccupancyModel:
                              f'with pmax={lim:.5f} (int16 log-odds range)')
 
     def _q(self, p: float) -> int:
-        return int(round(_logodds(p) * LOGODDS_SCALE))
+        return round(_logodds(p) * LOGODDS_SCALE)
 
     @property
     def hit_q(self) -> int:
@@ -325,7 +339,7 @@ def _ray_lin(origin: np.ndarray, ends: np.ndarray, resolution: float, k0: np.nda
             alpha[a, b], beta[a, b], dirty[a, b] = al, be, bad
     cum = np.cumsum(n_i[0].astype(np.int64) + n_i[1] + n_i[2])
     gb = np.flatnonzero(np.r_[True, octant[1:] != octant[:-1], True])
-    for g0, g1 in zip(gb[:-1], gb[1:]):
+    for g0, g1 in itertools.pairwise(gb):
         oc = int(octant[g0])
         sg = np.array([-1 if oc & 4 else 1, -1 if oc & 2 else 1, -1 if oc & 1 else 1])
         ss = [int(v) for v in sg * st]
@@ -333,7 +347,7 @@ def _ray_lin(origin: np.ndarray, ends: np.ndarray, resolution: float, k0: np.nda
         # batches of about batch_visits visits (at least one ray each)
         lc = (cum[g0:g1] - base) // batch_visits
         edges = np.r_[0, np.flatnonzero(lc[1:] != lc[:-1]) + 1, g1 - g0] + g0
-        for i, j in zip(edges[:-1], edges[1:]):
+        for i, j in itertools.pairwise(edges):
             for a in range(3):
                 reps = n_i[a, i:j]
                 csum = np.cumsum(reps, dtype=ity)
@@ -781,7 +795,7 @@ class VoxelMap:
         klo = np.clip(np.ceil(lo / self.resolution - 0.5), -_OFFSET, _OFFSET).astype(np.int64)
         khi = np.clip(np.floor(hi / self.resolution - 0.5), -_OFFSET - 1,
                       _OFFSET - 1).astype(np.int64)
-        total = math.prod(max(int(b) - int(a) + 1, 0) for a, b in zip(klo, khi))
+        total = math.prod(max(int(b) - int(a) + 1, 0) for a, b in zip(klo, khi, strict=False))
         k = unpack_keys(self.keys)
         inside = np.all((k >= klo) & (k <= khi), axis=1)
         occ = int(np.count_nonzero(self.logodds[inside] >= self.model.thr_q))
