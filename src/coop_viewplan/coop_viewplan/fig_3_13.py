@@ -1,7 +1,7 @@
-"""Figs. 3-13, 3-16, 3-20: fraction mapped and distance moved vs scan number for the five pose
+r"""Figs. 3-13, 3-16, 3-20: fraction mapped and distance moved vs scan number for the five pose
 selection methods of §3.3.1 and a nearest-frontier baseline, mean and 95 % interval over seeds.
 
-    ros2 run coop_viewplan fig_3_13 --world unstructured --cameras 1 --seeds 5 --scans 150 \\
+    ros2 run coop_viewplan fig_3_13 --world unstructured --cameras 1 --seeds 5 --scans 150 \
         --json out/fig_3_13.json --plots out/fig_3_13
 """
 from __future__ import annotations
@@ -173,9 +173,10 @@ def verdict(strategies: dict) -> dict:
 
 
 def plot(result: dict, out_dir: Path) -> list[Path]:
+    """Draw the mapped-fraction and distance curves into `out_dir`; the files written."""
     import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     for name, r in result['strategies'].items():
         c = r['curve']
@@ -246,6 +247,7 @@ def format_json(result: dict) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """fig_3_13's command line."""
     p = argparse.ArgumentParser(prog='fig_3_13', description=__doc__.split('\n\n')[0])
     p.add_argument('--world', default=WorldName.UNSTRUCTURED.value,
                    help=f'{" | ".join(enum_choices(WorldName))} | path to a PNG (dark = '
@@ -311,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run coop_viewplan fig_3_13`: the exploration runs over seeds, table and plots."""
     parser = build_parser()
     args = parser.parse_args(argv)
     default_wide = args.world == WorldName.UNSTRUCTURED and args.cameras == 1

@@ -734,7 +734,7 @@ def _sample_cells(ctx: PlanContext) -> np.ndarray:
     n = ctx.config.n_positions
     if len(cells) <= n:
         return cells
-    n_near = int(round(np.clip(ctx.config.near_fraction, 0.0, 1.0) * n))
+    n_near = round(np.clip(ctx.config.near_fraction, 0.0, 1.0) * n)
     if n_near == 0:
         return cells[ctx.rng.choice(len(cells), n, replace=False)]
     order = np.argsort(ctx.reach[cells[:, 0], cells[:, 1]], kind='stable')
@@ -791,7 +791,7 @@ class RasterStrategy:
     def _next_location(self, ctx: PlanContext) -> Decision:
         g = ctx.grid
         spacing = ctx.config.raster_spacing_m or ctx.config.depth_m / 2
-        step = max(1, int(round(spacing / g.resolution)))
+        step = max(1, round(spacing / g.resolution))
         rows = np.arange(step // 2, g.shape[0], step)
         cols = np.arange(step // 2, g.shape[1], step)
         order, heading = [], []
@@ -1073,7 +1073,7 @@ class NextBestViewPlanner:
                                   resolution=grid.resolution)
         reach[cell[0], cell[1]] = np.inf if not nav[cell[0], cell[1]] else 0.0
         if not (np.isfinite(reach) & trav.candidate).any():
-            raise PlanningError('no free reachable candidate (P < %.2f)' % self.config.p_empty)
+            raise PlanningError(f'no free reachable candidate (P < {self.config.p_empty:.2f})')
         est = gray_estimate(grid, free_gray=self.config.free_gray,
                             iterations=self.config.markov_iterations) \
             if estimate is None else estimate
@@ -1133,13 +1133,33 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
     return out
 
 
-__all__ = ['STRATEGIES', 'STRATEGY_CLASSES', 'UNKNOWN_OCCLUSIONS', 'Candidates', 'CameraState',
-           'Decision',
-           'NbvConfig', 'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores',
-           'binary_entropy', 'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
-           'configuration_distance', 'expected_information', 'geodesic_distance',
-           'geodesic_path', 'make_strategy', 'waypoints',
-           'max_information', 'plan_cameras', 'rating_function', 'score_views']
+__all__ = [
+    'ENTROPY_WEIGHTS',
+    'STRATEGIES',
+    'STRATEGY_CLASSES',
+    'UNKNOWN_OCCLUSIONS',
+    'CameraState',
+    'Candidates',
+    'Decision',
+    'NbvConfig',
+    'NextBestViewPlanner',
+    'PlanningError',
+    'Traversal',
+    'ViewScores',
+    'binary_entropy',
+    'configuration_distance',
+    'expected_information',
+    'geodesic_distance',
+    'geodesic_path',
+    'make_strategy',
+    'max_information',
+    'occupancy_weight',
+    'plan_cameras',
+    'plogp',
+    'rating_function',
+    'score_views',
+    'waypoints',
+]
 
 
 def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:

@@ -108,6 +108,8 @@ def last_camera_poses(bag: str | Path) -> dict[str, CameraState]:
 
 @dataclass
 class Answer:
+    """One rover's answer: its decision, or None with the reason."""
+
     rover: str
     decision: Decision | None
     message: str
@@ -163,6 +165,7 @@ def format_table(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_viewplan.offline`: next best views on a bag's map."""
     ap = argparse.ArgumentParser(description="next best views on a bag's map, without DDS")
     ap.add_argument('bag', type=Path, help='bag with <rover>/stereo/* (poses, and the map '
                                            'unless --map)')

@@ -140,7 +140,8 @@ def _expanded_hulls(points_sets: list[np.ndarray], target_radius: float, *,
     boxes, candidates = _hull_candidates(sets) if all_3d else (None, None)
     verts: list[np.ndarray] = []
     eqs: list[np.ndarray | None] = []
-    for i, pts in enumerate(sets):
+    for i, set_pts in enumerate(sets):
+        pts = set_pts
         nd = pts.shape[1]
         if boxes is not None:
             box = boxes[i]
@@ -254,7 +255,7 @@ def _hull_candidates(sets: list[np.ndarray], *, max_extent: int = 8
         last[:, a, 0], last[:, a, 1] = ~below[at], ~above[at]
     side = (_CUBE_SIGNS > 0).astype(np.int64)                        # (8, 3)
     keep = last[:, np.arange(3), side].all(axis=2)                    # (points, 8)
-    for i, k in zip(rest[small], np.split(keep, np.cumsum(nr[small])[:-1])):
+    for i, k in zip(rest[small], np.split(keep, np.cumsum(nr[small])[:-1]), strict=False):
         cand[i] = k
     return boxes, cand
 
@@ -340,7 +341,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     cells = np.argwhere(occ)
     if len(cells) == 0:
         return []
-    lab, n = ndimage.label(occ)
+    lab, _n = ndimage.label(occ)
     tile_of = tiles[occ]
     # filled tiles: their box's corners (one connected piece each)
     full = np.bincount(tile_of, minlength=mult) == np.bincount(tiles.ravel(), minlength=mult)
@@ -357,7 +358,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     last = np.append(first[1:], len(full_ids))[:len(first)] - 1
     box_lo, box_hi = box_lo[first], box_hi[last]
     boxes = [grid.origin + (lo + np.where(corners == 0, a, b)) * grid.resolution
-             for a, b in zip(box_lo, box_hi)]
+             for a, b in zip(box_lo, box_hi, strict=False)]
     rest = ~full[tile_of]
     cells = cells[rest]
     if len(cells) == 0:
@@ -380,7 +381,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
 def _occluder_mask(grid: OccupancyGrid, lo: np.ndarray, hi: np.ndarray, *,
                    threshold: float = 0.5, unknown_occludes: bool = True) -> np.ndarray:
     """The cells grid_occluders cuts into occluders, of the index box [lo, hi) only."""
-    sl = tuple(slice(a, b) for a, b in zip(lo, hi))
+    sl = tuple(slice(a, b) for a, b in zip(lo, hi, strict=False))
     known = grid.known[sl]
     occ = known & (grid.prob[sl] >= threshold)
     return occ | ~known if unknown_occludes else occ
@@ -831,8 +832,8 @@ def cells_holding(grid: OccupancyGrid, position: np.ndarray, radius: float) -> n
     # cell i, spanning [i, i + 1) in cells, grown: i - reach < rel < i + 1 + reach
     lo = np.maximum(np.floor(rel - 1 - reach).astype(np.int64) + 1, 0)
     hi = np.minimum(np.ceil(rel + reach).astype(np.int64), np.asarray(grid.shape))
-    axes = [np.arange(a, b) for a, b in zip(lo, hi)]
-    axes = [a[(a - reach < r) & (r < a + 1 + reach)] for a, r in zip(axes, rel)]
+    axes = [np.arange(a, b) for a, b in zip(lo, hi, strict=False)]
+    axes = [a[(a - reach < r) & (r < a + 1 + reach)] for a, r in zip(axes, rel, strict=False)]
     if any(len(a) == 0 for a in axes):
         return np.zeros((0, grid.ndim), np.int64)
     return np.stack(np.meshgrid(*axes, indexing='ij'), axis=-1).reshape(-1, grid.ndim)
@@ -973,8 +974,8 @@ class TaskPlacer:
                                 unknown_occludes=self.unknown_occludes), t.radius)
             keep = np.ones(len(hulls), bool)
             keep[holding] = False
-            hulls = [h for h, k in zip(hulls, keep) if k] + cell_hulls
-            equations = [e for e, k in zip(equations, keep) if k] + cell_eqs
+            hulls = [h for h, k in zip(hulls, keep, strict=False) if k] + cell_hulls
+            equations = [e for e, k in zip(equations, keep, strict=False) if k] + cell_eqs
         try:
             f = VisibilityField(t.position, hulls, n_dirs=self.n_dirs, equations=equations)
         except PlacementError as exc:       # the target inside an occluder: cached too
