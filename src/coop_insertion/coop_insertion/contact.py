@@ -81,9 +81,22 @@ from scipy.optimize import nnls
 
 from .errors import InsertionError
 
-__all__ = ['ContactState', 'ContactKind', 'SlotGeometry', 'CardPose', 'Contact', 'Identification',
-           'SeatCheck', 'ContactIdentifier', 'Step', 'LeastResistance', 'task_wrench',
-           'planar_wrench', 'planar_step_in_frame', 'INCH']
+__all__ = [
+    'INCH',
+    'CardPose',
+    'Contact',
+    'ContactIdentifier',
+    'ContactKind',
+    'ContactState',
+    'Identification',
+    'LeastResistance',
+    'SeatCheck',
+    'SlotGeometry',
+    'Step',
+    'planar_step_in_frame',
+    'planar_wrench',
+    'task_wrench',
+]
 
 INCH = 0.0254
 #: weight per newton of the contact forces in the fit (chi^2 units: 0.01 costs 0.0625 at 25 N)
@@ -91,6 +104,8 @@ SQUEEZE_RIDGE = 0.01
 
 
 class ContactState(enum.Enum):
+    """The contact states of app. A.4 (Fig. A-6) between the card and the slot."""
+
     FREE = 'free'
     EDGE_ON_FACE = 'edge_on_face'
     EDGE_ON_SIDE = 'edge_on_side'
@@ -382,7 +397,8 @@ class ContactIdentifier:
 
     def _fit_points(self, w: np.ndarray, specs: list[_Spec], points: list[np.ndarray]
                     ) -> tuple[float, np.ndarray, list[np.ndarray]]:
-        a = np.hstack([self._generators(pt, sp.normal) for pt, sp in zip(points, specs)])
+        a = np.hstack([self._generators(pt, sp.normal)
+                       for pt, sp in zip(points, specs, strict=False)])
         # the least contact forces that fit: two opposed contacts can squeeze the card with any
         # force and leave the wrench unchanged, and a bare NNLS put 54 N of such squeeze on
         # each contact from a 0.76 N reading (then a 23 mm 'retreat' from it); the tiny ridge
@@ -420,10 +436,11 @@ class ContactIdentifier:
         best = None
         for pts in combos:
             chi2, _, lams = self._fit_points(w, specs, list(pts))
-            geo = sum(float(np.sum((pt - sp.feature) ** 2)) for pt, sp in zip(pts, specs))
+            geo = sum(float(np.sum((pt - sp.feature) ** 2))
+                      for pt, sp in zip(pts, specs, strict=False))
             geo /= self.pose_sigma_m ** 2
             if best is None or chi2 + geo < best[0] + best[1]:
-                best = (chi2, geo, list(zip(pts, lams)))
+                best = (chi2, geo, list(zip(pts, lams, strict=False)))
         return best
 
     def _spanned(self, wall_pt: np.ndarray, wall_side: int) -> np.ndarray:
@@ -571,7 +588,7 @@ class ContactIdentifier:
                 best = (score, state, side, chi2, specs, fitted)
         score, state, side, chi2, specs, fitted = best
         contacts = []
-        for sp, (pt, lam) in zip(specs, fitted):
+        for sp, (pt, lam) in zip(specs, fitted, strict=False):
             fn = float(lam.sum())
             ft = float(self.friction * (lam[0] - lam[1])) if lam.size == 2 else 0.0
             contacts.append(Contact(np.asarray(pt, float), sp.normal.copy(), fn, ft, sp.side,

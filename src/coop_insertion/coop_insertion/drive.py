@@ -30,6 +30,8 @@ def wrap(a: float) -> float:
 
 @dataclass(frozen=True)
 class DriveCommand:
+    """One drive step: the twist to send, whether the goal is reached, and the stage."""
+
     linear_x: float
     angular_z: float
     arrived: bool

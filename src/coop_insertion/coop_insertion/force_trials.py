@@ -38,6 +38,8 @@ PENETRATION_LIMIT_M = 5e-4
 
 @dataclass
 class Trial:
+    """One force-only trial: the truth's verdict, the slave's own, and what was measured."""
+
     slot_in: float
     seed: int
     success: bool               # the truth: seated, penetration within the limit
@@ -62,9 +64,9 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
     friction: the simulator's contact_friction (None: SimConfig's default). fail_in_contact_s:
     the slave is failed (as by a timeout) once it has been this long in contact, and the
     world runs on 2 s with its commands (what a failure leaves on the card)."""
-    from rover_sim.config import NoiseConfig, SimConfig
-    from rover_sim.world import World
-    from rover_sim.worldgen import INCH
+    from rover_sim.config import NoiseConfig, SimConfig  # noqa: PLC0415 - only to run trials
+    from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only to run trials
+    from rover_sim.worldgen import INCH  # noqa: PLC0415 - only to run trials
     gap = slot_in * INCH
     extra = {} if friction is None else {'contact_friction': float(friction)}
     cfg = SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
@@ -102,7 +104,7 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
             if vision and seen and k % fix_every == 0:
                 pts = [c + r @ m for m in model.card_markers] + \
                     [np.array(m) + [0.0, 0.0, b]
-                     for m, b in zip(w.layout.site.slot_markers, site_bias_m)]
+                     for m, b in zip(w.layout.site.slot_markers, site_bias_m, strict=False)]
                 pc = np.array([r_wc.T @ (p - cam_p) for p in pts])
                 pc += rng.normal(size=(4, 3)) * np.sqrt(var)
                 ctl.add_observation(w.time_s, LabelledMarkers(
@@ -170,6 +172,7 @@ def format_result(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_insertion.force_trials`: the trials over slots and seeds."""
     p = argparse.ArgumentParser(prog='force_trials', description=__doc__.split('\n\n')[0])
     p.add_argument('--slots', default='5.0,4.5,4.375', help='slot widths in inches')
     p.add_argument('--seeds', default='1-5', help='e.g. 1-5 or 1,4,7')

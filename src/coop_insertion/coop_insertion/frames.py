@@ -31,9 +31,23 @@ from scipy.spatial.transform import Rotation
 
 from .errors import InsertionError
 
-__all__ = ['rot_x', 'rot_y', 'rot_z', 'rotation_from_euler', 'euler_from_rotation',
-           'euler_eq_5_1', 'frame_from_points', 'third_point', 'homogeneous', 'invert',
-           'a_vt', 'a_ts', 'RequiredMotion', 'required_motion', 'required_motion_from_points']
+__all__ = [
+    'RequiredMotion',
+    'a_ts',
+    'a_vt',
+    'euler_eq_5_1',
+    'euler_from_rotation',
+    'frame_from_points',
+    'homogeneous',
+    'invert',
+    'required_motion',
+    'required_motion_from_points',
+    'rot_x',
+    'rot_y',
+    'rot_z',
+    'rotation_from_euler',
+    'third_point',
+]
 
 #: Below this sine of the angle P2-P1-P3 (or length ratio) the three points count as collinear.
 COLLINEAR_SINE = 1e-3
@@ -114,7 +128,7 @@ def _check_triangle(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray) -> None:
 
 def euler_eq_5_1(p1, p2, p3) -> np.ndarray:
     """Eq. 5-1 as printed: (R_x, R_y, R_z) of the frame (P1 origin, P2 on x, P3 on z) in the
-    camera frame, each from one pair of points (decoupled, small-angle; see the module notes):
+    camera frame, each from one pair of points (decoupled, small-angle; see the module notes).
 
         R_z = atan((P1y - P2y) / (P1x - P2x))
         R_y = atan((P1z - P2z) / (sqrt(P1x^2 + P1y^2) - sqrt(P2x^2 + P2y^2)))

@@ -17,7 +17,7 @@ import numpy as np
 from .errors import InsertionError
 from .frames import homogeneous, rot_z
 
-__all__ = ['search_points', 'SiteEstimate']
+__all__ = ['SiteEstimate', 'search_points']
 
 
 def search_points(centre, normal, *, half_width_m: float, spacing_m: float) -> np.ndarray:

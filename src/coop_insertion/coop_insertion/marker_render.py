@@ -29,9 +29,22 @@ from coop_common.params import choice
 
 from .errors import InsertionError
 
-__all__ = ['Plate', 'Rendered', 'render_plate', 'random_pose', 'random_scene', 'CARD', 'SITE',
-           'SLOT', 'sim_intrinsics', 'Background', 'BACKGROUNDS', 'background_texture',
-           'render_discs', 'background_scene']
+__all__ = [
+    'BACKGROUNDS',
+    'CARD',
+    'SITE',
+    'SLOT',
+    'Background',
+    'Plate',
+    'Rendered',
+    'background_scene',
+    'background_texture',
+    'random_pose',
+    'random_scene',
+    'render_discs',
+    'render_plate',
+    'sim_intrinsics',
+]
 
 INCH = 0.0254
 
@@ -78,6 +91,8 @@ def sim_intrinsics(width: int = 640, height: int = 480, hfov_deg: float = 41.2) 
 
 @dataclass(frozen=True)
 class Rendered:
+    """A rendered image with the true marker centres, radii and plate normal."""
+
     image: np.ndarray          # mono8
     centres: np.ndarray        # (M, 2) true centre images (px), M = 0 for a marker-free image
     radius_px: np.ndarray      # (M,) approximate imaged radius (f r / depth)

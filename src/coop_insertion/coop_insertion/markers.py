@@ -35,10 +35,24 @@ from coop_common.params import choice
 
 from .errors import InsertionError
 
-__all__ = ['Marker', 'MarkerDetector', 'Polarity', 'Ambiguity', 'ThesisDetector',
-           'EllipseDetector', 'HoughDetector', 'DetectorKind', 'DETECTORS', 'make_detector',
-           'check_image', 'ellipse_conic', 'circle_candidates', 'resolve_coplanar',
-           'LAPLACIAN_5_6', 'three_point_circles']
+__all__ = [
+    'DETECTORS',
+    'LAPLACIAN_5_6',
+    'Ambiguity',
+    'DetectorKind',
+    'EllipseDetector',
+    'HoughDetector',
+    'Marker',
+    'MarkerDetector',
+    'Polarity',
+    'ThesisDetector',
+    'check_image',
+    'circle_candidates',
+    'ellipse_conic',
+    'make_detector',
+    'resolve_coplanar',
+    'three_point_circles',
+]
 
 
 class Polarity(Enum):
@@ -398,7 +412,7 @@ class ThesisDetector:
         h, w = binary.shape
         out = []
         for cu, cv_, rad in circles:
-            seed = (int(round(cu)), int(round(cv_)))
+            seed = (round(cu), round(cv_))
             if not (0 <= seed[0] < w and 0 <= seed[1] < h):
                 continue
             if binary[seed[1], seed[0]] == 0:
@@ -507,8 +521,8 @@ class EllipseDetector:
         img = image if self.polarity is Polarity.BRIGHT else 255 - image
         rows = []
         level, cur = img, 1
-        for s, lo, hi in _LEVELS:
-            lo, hi = max(lo, self.r_min), min(hi, self.r_max)
+        for s, level_lo, level_hi in _LEVELS:
+            lo, hi = max(level_lo, self.r_min), min(level_hi, self.r_max)
             if lo > hi:
                 continue
             while cur < s:
@@ -789,7 +803,7 @@ class HoughDetector:
         blur = cv2.GaussianBlur(image, (5, 5), 1.0)
         c = cv2.HoughCircles(blur, cv2.HOUGH_GRADIENT, dp=1, minDist=self.r_min * 2,
                              param1=self.canny_high, param2=self.accumulator,
-                             minRadius=int(self.r_min), maxRadius=int(math.ceil(self.r_max)))
+                             minRadius=int(self.r_min), maxRadius=math.ceil(self.r_max))
         if c is None:
             return []
         return [Marker(u=float(x), v=float(y), radius_px=float(r), score=1.0)

@@ -199,6 +199,9 @@ def _stamp(msg) -> float:
 
 
 class MasterNode(Node):
+    """The master: tracks the card's and the slot's markers in its stereo images, places its
+    camera, and guides the slave (the insert action)."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('master', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params, check_all=_check)
@@ -361,7 +364,7 @@ class MasterNode(Node):
         msg = MarkerObservation()
         msg.header = left.header
         msg.labels = list(LABELS)
-        for p, c in zip(lab.points, lab.covariances):
+        for p, c in zip(lab.points, lab.covariances, strict=False):
             msg.positions.append(Point(x=float(p[0]), y=float(p[1]), z=float(p[2])))
             msg.covariances.extend(float(v) for v in c.ravel())
             u = self.camera.cx + self.camera.fx * p[0] / p[2]
@@ -443,7 +446,7 @@ class MasterNode(Node):
         t0 = time.monotonic()
         try:
             res = await self._run(handle)
-        except Exception as exc:     # noqa: BLE001  an action must end with a result
+        except Exception as exc:
             self.get_logger().error(f'insert failed: {exc!r}')
             handle.abort()
             res = Insert.Result(success=False, reason=f'master error: {exc}',
@@ -822,6 +825,7 @@ def _optical_pose(pose) -> tuple[np.ndarray, float, float]:
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run coop_insertion master`."""
     return run_node(MasterNode, args)
 
 

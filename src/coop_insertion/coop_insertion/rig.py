@@ -23,12 +23,17 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+import yaml
+from ament_index_python.packages import get_package_share_directory
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from rosgraph_msgs.msg import Clock
+from scipy.spatial.transform import Rotation
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import load_truth
@@ -41,6 +46,8 @@ from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
 from coop_msgs.action import Insert
 from coop_msgs.msg import ContactState, VoxelMap
 from coop_msgs.srv import SimScenario
+from coop_viewplan.frames import optical_quaternion
+from rover_sim.config import is_truth_topic
 
 from .errors import InsertionError
 
@@ -99,7 +106,6 @@ def truth_readers(subscriptions: dict[str, list[str]]) -> dict[str, list[str]]:
     """Of a graph's subscriptions (node's full name -> topics, InsertionRig.subscriptions),
     the loop nodes' subscriptions to the simulator's truth (rover_sim.config.is_truth_topic)
     and to /tf (which carries it with the simulator's truth_tf): empty when truth only judges."""
-    from rover_sim.config import is_truth_topic
     out = {}
     for node in loop_nodes(subscriptions):
         truth = [t for t in subscriptions[node] if is_truth_topic(t) or t == '/tf']
@@ -123,7 +129,6 @@ def compose(procs: list[tuple], names: tuple[str, ...], params_file: Path) -> li
     """`procs` (log name, package, executable, ROS args[, other args]) with those named in
     `names` run by one `coop_bringup compose` process ('nodes'); their `-p name:=value`
     arguments move into `params_file`, keyed by node, as ROS's own per-node parameters."""
-    import yaml
     together = [p for p in procs if p[0] in names]
     params: dict[str, dict] = {}
     for name, _, exe, args, *_ in together:
@@ -217,6 +222,9 @@ PLACEMENTS = {Placement.OPTIMAL: Insert.Goal.PLACEMENT_OPTIMAL,
 
 @dataclass
 class Attempt:
+    """One insertion attempt on the rig: the truth's verdict, the action's result, what vision
+    saw, and the curves."""
+
     slot_in: float
     placement: Placement
     seed: int
@@ -291,7 +299,6 @@ class _Client(Node):
 
     def _on_card(self, m: PoseStamped) -> None:
         if self.recording:
-            from scipy.spatial.transform import Rotation
             q = m.pose.orientation
             # the card's width axis (its x) in the map: its tilt out of the horizontal
             axis = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()[:, 0]
@@ -343,7 +350,6 @@ class InsertionRig(contextlib.AbstractContextManager):
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix='insert_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         isolate_ros_environment(domain_id)
-        from ament_index_python.packages import get_package_share_directory
         world = Path(get_package_share_directory('coop_insertion')) / 'config' / \
             'insertion_world.yaml'
         self.slot_in = slot_in
@@ -532,7 +538,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         for name, ns in self.node.get_node_names_and_namespaces():
             try:
                 topics = self.node.get_subscriber_names_and_types_by_node(name, ns)
-            except Exception:  # noqa: BLE001 - rclpy's NodeNameNonExistentError: it left
+            except Exception:
                 continue
             out[f'{ns.rstrip("/")}/{name}'] = sorted(t for t, _ in topics)
         return out
@@ -540,14 +546,12 @@ class InsertionRig(contextlib.AbstractContextManager):
     def set_parameters(self, node: str, **values) -> None:
         """Set parameters of one node of the graph (InsertionError with the node's reason
         when it refuses one)."""
-        from rclpy.parameter import Parameter
-        from rclpy.parameter_client import AsyncParameterClient
         client = AsyncParameterClient(self.node, node)
         if not client.wait_for_services(timeout_sec=10.0):
             raise InsertionError(f'no {node} parameter services')
         fut = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
         self._wait(fut.done, 10.0, what=f"{node}'s {', '.join(values)}")
-        for name, res in zip(values, fut.result().results):
+        for name, res in zip(values, fut.result().results, strict=False):
             if not res.successful:
                 raise InsertionError(f'{node}: {name} refused: {res.reason}')
 
@@ -666,7 +670,6 @@ class InsertionRig(contextlib.AbstractContextManager):
                            placement=PLACEMENTS[placement],
                            max_force_n=float(max_force_n), timeout_s=float(timeout_s))
         if camera is not None:
-            from coop_viewplan.frames import optical_quaternion
             xy, yaw, pitch = camera
             goal.camera_pose.header.frame_id = 'map'
             pos, q = goal.camera_pose.pose.position, goal.camera_pose.pose.orientation
@@ -721,6 +724,7 @@ class InsertionRig(contextlib.AbstractContextManager):
 
 
 def as_row(a: Attempt) -> dict:
+    """The attempt as a JSON row: its fields but the curves, non-finite numbers as None."""
     row = {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
            for k, v in a.__dict__.items() if k != 'curves'}
     row['fix_rate'] = a.fix_rate

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from .errors import InsertionError
 
-__all__ = ['VisionFix', 'ServoCommand', 'VisualServo']
+__all__ = ['ServoCommand', 'VisionFix', 'VisualServo']
 
 
 def _finite(name: str, v, shape: tuple[int, ...]) -> np.ndarray:

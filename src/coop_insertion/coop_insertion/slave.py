@@ -78,7 +78,7 @@ from .frames import homogeneous, invert
 from .servo import VisionFix, VisualServo
 from .task import LabelledMarkers, TaskModel, card_required_motion
 
-__all__ = ['Phase', 'SlaveStatus', 'SlaveCommand', 'SlaveController', 'pose_2d']
+__all__ = ['Phase', 'SlaveCommand', 'SlaveController', 'SlaveStatus', 'pose_2d']
 
 #: the site frame's axes as contact.py's planar frame sees them (columns: planar x, y, z in site)
 SITE_FROM_PLANAR = homogeneous(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
@@ -104,6 +104,8 @@ def pose_2d(x: float, y: float, yaw: float, z: float = BASE_HEIGHT_M) -> np.ndar
 
 @dataclass(frozen=True)
 class SlaveStatus:
+    """The slave controller's state after a step (the insert action's feedback)."""
+
     phase: Phase
     displacement_error_m: float        # card to its current goal (vision), nan before a fix
     angle_error_rad: float
@@ -119,6 +121,8 @@ class SlaveStatus:
 
 @dataclass(frozen=True)
 class SlaveCommand:
+    """What the slave controller commands for one step: arm joints, base twist, and its status."""
+
     arm_joints: tuple[float, float, float, float] | None     # None: leave the arm as it is
     base_linear_x: float
     base_angular_z: float

@@ -99,6 +99,8 @@ class R2Source(StrEnum):
 
 
 class SlaveNode(Node):
+    """The slave: carries the card and runs the insertion loop (vision, then force), an action."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('slave', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params,
@@ -156,9 +158,9 @@ class SlaveNode(Node):
             self.r2 = np.asarray(changed['cg_to_arm'], float)
 
     def _on_params_id(self, msg: DynamicParameters) -> None:
-        v = dict(zip(msg.names, msg.values))
-        obs = dict(zip(msg.names, msg.observable)) if len(msg.observable) == len(msg.names) \
-            else {}
+        v = dict(zip(msg.names, msg.values, strict=False))
+        obs = dict(zip(msg.names, msg.observable, strict=False)) \
+            if len(msg.observable) == len(msg.names) else {}
         if all(k in v and obs.get(k, True) and math.isfinite(v[k])
                for k in ('cg_x', 'cg_y', 'cg_z')):
             self.r2 = np.array([v['cg_x'], v['cg_y'], v['cg_z']])
@@ -377,6 +379,7 @@ class SlaveNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run coop_insertion slave`."""
     return run_node(SlaveNode, args)
 
 

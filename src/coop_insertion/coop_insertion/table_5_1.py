@@ -25,6 +25,7 @@ drawn per attempt (rig.rough_site) and finds the slot in it by its markers.
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import tempfile
@@ -57,7 +58,7 @@ LABELS = {5.0: 'Easy', 4.5: 'Medium', 4.375: 'Hard', 4.2925: '1 % clearance'}
 def build_site_map(path: Path, *, seed: int, occlusion_density: float, scans: int = 14,
                    log=None) -> Path:
     """The scenario's map by the mapping pipeline (coop_viewplan.fig_3_25's exploration)."""
-    from coop_viewplan.fig_3_25 import Fig325Config, PoseSource, run_strategy
+    from coop_viewplan.fig_3_25 import Fig325Config, PoseSource, run_strategy  # noqa: PLC0415 - only to build a site map
     cfg = Fig325Config(rovers=2, scans=scans, seed=seed, occlusion_density=occlusion_density,
                        pose_source=PoseSource.ODOMETRY)
     run_strategy('max_information', cfg, seed=seed, log=log, save_map=path)
@@ -98,7 +99,6 @@ def _done_attempts(checkpoint: Path | None, settings: dict | None = None, log=pr
     (slot_in, placement, seed) -> (row, curves); none when its settings differ."""
     if checkpoint is None or not checkpoint.exists():
         return {}
-    import json
     try:
         old = json.loads(checkpoint.read_text())
     except (OSError, ValueError):
@@ -112,7 +112,7 @@ def _done_attempts(checkpoint: Path | None, settings: dict | None = None, log=pr
         for placement in old.get('placements', []):
             rows = row.get(f'{placement}_attempts') or []
             curves = row.get(f'{placement}_curves') or [{}] * len(rows)
-            for a, c in zip(rows, curves):
+            for a, c in zip(rows, curves, strict=False):
                 done[_cell_key(a['slot_in'], placement, a['seed'])] = (a, c)
     return done
 
@@ -279,6 +279,7 @@ def cell_summary(attempts: list[dict]) -> dict:
 
 
 def format_table(res: dict) -> str:
+    """The result as Table 5-1's text: success per row and placement next to the thesis's."""
     counts = sorted({r.get('attempts', res['attempts']) for r in res['rows']})
     placements = res['placements']
     head = (f'Table 5-1 through sim + nodes: {" or ".join(map(str, counts))} attempts per cell '
@@ -332,9 +333,9 @@ def format_table(res: dict) -> str:
 def plot_curves(c: dict, title: str, path: Path) -> Path:
     """One attempt's Figs. 5-13 / 5-14 curves (an Attempt's `curves`): displacement and angular
     error against time, and the F/T force after contact."""
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - heavy, only when plotting
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
     t = c['t']
     ax[0].plot(t, [1e3 * v for v in c['displacement_m']])
@@ -371,6 +372,7 @@ def plot(res: dict, out: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_insertion.table_5_1`: the attempts per row and placement, resumable."""
     p = argparse.ArgumentParser(prog='table_5_1', description=__doc__.split('\n\n')[0])
     p.add_argument('--attempts', type=number(int, lo=1), default=DEFAULT_ATTEMPTS,
                    help='per cell, where --rows gives none')

@@ -37,8 +37,16 @@ from .errors import InsertionError
 from .frames import RequiredMotion, homogeneous, invert, required_motion_from_points, third_point
 from .triangulate import StereoMarker
 
-__all__ = ['TaskModel', 'LabelledMarkers', 'SlotPair', 'label_markers', 'find_slot',
-           'site_from_slot', 'card_required_motion', 'LABELS']
+__all__ = [
+    'LABELS',
+    'LabelledMarkers',
+    'SlotPair',
+    'TaskModel',
+    'card_required_motion',
+    'find_slot',
+    'label_markers',
+    'site_from_slot',
+]
 
 LABELS = ('card_a', 'card_b', 'slot_a', 'slot_b')
 
@@ -68,7 +76,7 @@ class TaskModel:
         for name, v in self.__dict__.items():
             if not (np.isfinite(v) and v > 0):
                 raise InsertionError(f'{name} must be finite and > 0, got {v}')
-        self.geometry        # the slot must be wider than the card
+        _ = self.geometry    # the slot must be wider than the card (SlotGeometry checks)
 
     @property
     def geometry(self) -> SlotGeometry:
@@ -171,7 +179,7 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
              'slot': (model.slot_marker_radius_m,
                       model.slot_markers[1, 0] - model.slot_markers[0, 0])}
     # candidates: sizes within the tolerance of either kind (fiducials and glints drop out)
-    sizes = [_size_m(m, r, fx) for m, r in zip(markers, radii_px)]
+    sizes = [_size_m(m, r, fx) for m, r in zip(markers, radii_px, strict=False)]
     lo = kinds['slot'][0] / (1 + size_tolerance)
     hi = kinds['card'][0] * (1 + size_tolerance)
     cand = [k for k, sz in enumerate(sizes) if lo <= sz <= hi]
@@ -246,7 +254,7 @@ def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
     as in label_markers; None when no pair qualifies."""
     _, across = _site_axes(up, markers, radii_px)
     r = model.slot_marker_radius_m
-    sizes = [_size_m(m, rad, fx) for m, rad in zip(markers, radii_px)]
+    sizes = [_size_m(m, rad, fx) for m, rad in zip(markers, radii_px, strict=False)]
     cand = [k for k, sz in enumerate(sizes) if r / (1 + size_tolerance) <= sz
             <= r * (1 + size_tolerance)]
     pos = [m.position for m in markers]

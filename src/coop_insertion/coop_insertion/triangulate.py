@@ -25,8 +25,13 @@ from coop_mapping.stereo import ErrorModel, StereoCamera, disparity_to_range
 from .errors import InsertionError
 from .markers import Marker
 
-__all__ = ['CovarianceModel', 'StereoMarker', 'match_markers', 'triangulate_markers',
-           'stereo_candidates']
+__all__ = [
+    'CovarianceModel',
+    'StereoMarker',
+    'match_markers',
+    'stereo_candidates',
+    'triangulate_markers',
+]
 
 
 class CovarianceModel(StrEnum):
@@ -98,7 +103,7 @@ def match_markers(left: list[Marker], right: list[Marker], camera: StereoCamera,
                 c += (rel / max_disparity_error) ** 2
             cost[i, j] = c
     rows, cols = linear_sum_assignment(cost)
-    return [(int(i), int(j)) for i, j in zip(rows, cols) if cost[i, j] < big]
+    return [(int(i), int(j)) for i, j in zip(rows, cols, strict=False) if cost[i, j] < big]
 
 
 def triangulate_markers(left: list[Marker], right: list[Marker], camera: StereoCamera, *,
