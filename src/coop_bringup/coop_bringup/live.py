@@ -154,7 +154,7 @@ def voxel_map_cdr(buf: bytes | memoryview) -> tuple[float, str, float, np.ndarra
 
 def _stamp(t_s: float) -> Timestamp:
     sec = math.floor(t_s)
-    return Timestamp(int(sec), int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+    return Timestamp(int(sec), round((t_s - sec) * 1e9) % 1_000_000_000)
 
 
 def _pose(xyz: Sequence[float], quat_xyzw: Sequence[float]) -> Pose:

@@ -163,6 +163,8 @@ class MissionConfig:
 
 @dataclass
 class Phase:
+    """One phase's row of the report: its status, why it is not ok, its wall and sim time."""
+
     name: PhaseName
     status: PhaseStatus = PhaseStatus.SKIPPED
     reason: str = ''
@@ -182,14 +184,14 @@ class Progress:
     def start(self, phase: str) -> None:
         self.close()
         if self.tty:
-            from tqdm import tqdm
+            from tqdm import tqdm  # noqa: PLC0415 - only on a terminal
             self.bar = tqdm(total=100, desc=phase, file=self.stream, unit='%',
                             bar_format='{desc:>9}: {percentage:3.0f}%|{bar}| {postfix} '
                                        '[{elapsed}<{remaining}]')
         self._phase, self._t0 = phase, time.monotonic()
 
     def update(self, fraction: float, note: str = '') -> None:
-        pct = int(round(100 * min(max(fraction, 0.0), 1.0)))
+        pct = round(100 * min(max(fraction, 0.0), 1.0))
         if self.bar is not None:
             self.bar.n = pct
             self.bar.set_postfix_str(note, refresh=True)
@@ -469,7 +471,7 @@ class Mission:
         from rover_bag.bagio import bag_info  # noqa: PLC0415 - only with a bag
         try:
             info = bag_info(path)
-        except Exception as exc:  # noqa: BLE001 - a broken bag is reported, not raised
+        except Exception as exc:
             return {'path': 'bag', 'error': f'{type(exc).__name__}: {exc}'}
         size = sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
         return {'path': 'bag', 'closed': (path / 'metadata.yaml').exists(),
@@ -546,8 +548,10 @@ class Mission:
             result = res[r].result().result
             t, e = c.truth[r], result.estimate
             row = identification_errors(
-                dict(zip(t.names, t.values)), dict(zip(e.names, e.values)),
-                dict(zip(e.names, e.std_devs)), dict(zip(e.names, e.information_bits)))
+                dict(zip(t.names, t.values, strict=False)),
+                dict(zip(e.names, e.values, strict=False)),
+                dict(zip(e.names, e.std_devs, strict=False)),
+                dict(zip(e.names, e.information_bits, strict=False)))
             row.update(success=bool(result.success), message=result.message,
                        samples=int(e.samples))
             out[r] = row
@@ -583,7 +587,7 @@ class Mission:
 
     def _path(self, r: str, goal_xy, grid, trav, others: list) -> list:
         """Waypoints from rover r's base to goal_xy on the map, round the other rovers."""
-        clear = int(math.ceil(VIEW_PLANNER['clearance_m'] / grid.resolution))
+        clear = math.ceil(VIEW_PLANNER['clearance_m'] / grid.resolution)
         for xy in others:
             trav = trav.with_blocked_disk(grid.to_index(np.r_[xy, 0.0])[:2], clear + 2)
         x, y, _ = self.client.odom[r]
@@ -594,7 +598,7 @@ class Mission:
             # a goal inside the clearance of an obstacle (a base a little off its camera's
             # column, a staging pose close to the site): the path goes to the nearest
             # navigable cell within SNAP_M and the last leg straight on
-            r = int(math.ceil(SNAP_M / grid.resolution))
+            r = math.ceil(SNAP_M / grid.resolution)
             lo = np.maximum(goal - r, 0)
             near = np.argwhere(nav[lo[0]:goal[0] + r + 1, lo[1]:goal[1] + r + 1]) + lo
             if not len(near):
@@ -839,6 +843,7 @@ def _port_free(port: int) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run coop_bringup mission`: run the mission (or its seeds) and write the report."""
     p = argparse.ArgumentParser(
         prog='mission', description=__doc__.split('\n\n')[0],
         formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -15,8 +15,15 @@ import numpy as np
 
 from coop_common.files import save_figure, write_json, write_text_atomic
 
-__all__ = ['MissionError', 'PhaseStatus', 'site_coverage', 'top_view', 'identification_errors',
-           'write_report', 'format_summary']
+__all__ = [
+    'MissionError',
+    'PhaseStatus',
+    'format_summary',
+    'identification_errors',
+    'site_coverage',
+    'top_view',
+    'write_report',
+]
 
 
 #: the lowest voxel layer counted as the site's surface: the ground at z = 0 lands in layer
@@ -60,7 +67,7 @@ def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *,
     occ = np.asarray(occupancy, float).reshape(-1)
     if len(occ) != len(k):
         raise MissionError('one occupancy per voxel key')
-    kz = int(math.floor(z_max_m / resolution))
+    kz = math.floor(z_max_m / resolution)
     sel = np.all((k[:, :2] >= lo) & (k[:, :2] <= hi), axis=1) & (k[:, 2] >= GROUND_KEY) & \
         (k[:, 2] < kz) & (occ >= 0.5)
     cols = np.unique(k[sel, :2], axis=0)
@@ -75,7 +82,7 @@ def top_view(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, cent
     lo, hi, k = _site_columns(keys, resolution, centre_xy, half_m)
     occ = np.asarray(occupancy, float).reshape(-1)
     out = np.full(tuple(hi - lo + 1), -1, np.int8)
-    kz0, kz1 = int(math.floor(ground_m / resolution)), int(math.floor(z_max_m / resolution))
+    kz0, kz1 = math.floor(ground_m / resolution), math.floor(z_max_m / resolution)
     sel = np.all((k[:, :2] >= lo) & (k[:, :2] <= hi), axis=1) & (k[:, 2] >= GROUND_KEY) & \
         (k[:, 2] < kz1)
     ij = k[sel, :2] - lo
@@ -152,9 +159,9 @@ def format_summary(rep: dict) -> str:
 
 
 def _plots(rep: dict, out: Path, extras: dict) -> dict[str, str]:
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - heavy, only when plotting
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     files = {}
     ident = rep.get('identification', {}).get('rovers', {})
     if ident:
@@ -221,7 +228,7 @@ def _plots(rep: dict, out: Path, extras: dict) -> dict[str, str]:
         plt.close(fig)
     curves = extras.get('insertion_curves')
     if curves and curves.get('t'):
-        from coop_insertion.table_5_1 import plot_curves
+        from coop_insertion.table_5_1 import plot_curves  # noqa: PLC0415 - rclpy; only with insertion curves
         ok = rep.get('insertion', {}).get('success')
         files['insertion'] = plot_curves(
             curves, f'Insertion, {rep["config"]["slot_in"]} in slot: '

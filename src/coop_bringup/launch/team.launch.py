@@ -83,6 +83,7 @@ def _team(context: LaunchContext) -> list:
 
 
 def generate_launch_description() -> LaunchDescription:
+    """One team's nodes (the simulator or a bag, stereo, identifier, mapper, view planner)."""
     config = Path(get_package_share_directory('coop_bringup')) / 'config' / 'team.yaml'
     return LaunchDescription([
         DeclareLaunchArgument('team', default_value='',
