@@ -194,9 +194,10 @@ class FastCompliance:
     (rover_model.base_link_inertial, damper_lag_s)."""
 
     def __init__(self, stiffness: np.ndarray, damping: np.ndarray, preload: np.ndarray,
-                 inertial_quat: np.ndarray, com_offset: np.ndarray = np.zeros(3), *,
+                 inertial_quat: np.ndarray, com_offset: np.ndarray | None = None, *,
                  midpoint_damper: bool = False) -> None:
-        self.com_offset = tuple(float(v) for v in com_offset)
+        self.com_offset = (0.0, 0.0, 0.0) if com_offset is None else \
+            tuple(float(v) for v in com_offset)
         self.k = tuple(float(v) for v in stiffness)
         self.b = tuple(float(v) for v in damping)
         self.pre = tuple(float(v) for v in preload)

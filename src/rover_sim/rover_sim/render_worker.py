@@ -39,7 +39,7 @@ def _send(stream: BinaryIO, obj: Any) -> None:
 def serve(inp: BinaryIO, out: BinaryIO) -> None:
     """The worker's loop: (config, truths) first, then (poses, eye position, rotation, offset)
     in, an image (or an error string) out; None or the end of the input ends it."""
-    from .world import World
+    from .world import World  # noqa: PLC0415 - world imports this module
     config, truths = pickle.load(inp)
     world = World(config.replace(render_workers=0), truths)
     try:
@@ -54,7 +54,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             try:
                 world.set_poses(poses)
                 image = world.render_eye(pos, rot, offset)
-            except Exception as exc:  # noqa: BLE001 - sent back, raised in the simulator
+            except Exception as exc:
                 _send(out, f'{type(exc).__name__}: {exc}')
             else:
                 _send(out, image)
@@ -124,6 +124,7 @@ class RenderWorker:
 
 
 def main() -> None:
+    """The worker process: render the requested eye for each scene on standard input."""
     # the simulator's Ctrl-C ends its input: the worker stops with it, not before it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # the images go out on a copy of standard output; whatever C or Python code prints (PyBullet

@@ -150,7 +150,7 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
     parts.append('<joint name="mast_pan" type="revolute"><parent link="base_link"/>'
                  f'<child link="mast_pan_link"/><origin xyz="{mx} {my} {mz}"/><axis xyz="0 0 1"/>'
                  '<limit lower="-3.1" upper="3.1" effort="5" velocity="2"/></joint>')
-    cx, cy, cz = CAMERA_OFFSET
+    cx, _cy, cz = CAMERA_OFFSET
     tilt_inertial = _inertial(MAST_TILT[0], (0.02, 0, 0.06), MAST_TILT[2])
     parts.append(f'<link name="mast_tilt_link">{tilt_inertial}'
                  + _box((0.04, 0.08, 0.04), (cx - 0.02, -STEREO_BASELINE_M / 2, cz),

@@ -3,6 +3,7 @@ the card and the insertion site. No rclpy: `World` steps, senses and renders; th
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib.util
 import math
@@ -205,7 +206,7 @@ def substeps_for(params: Sequence[BaseParameters], dt: float) -> int:
         diag = np.concatenate([masses, inertia])
         rate = max(rate, float(np.max(p.damping / diag)),
                    float(np.max(2.0 * np.sqrt(p.stiffness / diag))))
-    return max(1, int(math.ceil(rate * dt)))
+    return max(1, math.ceil(rate * dt))
 
 
 def load_egl(client: int) -> tuple[int, str | None]:
@@ -298,7 +299,7 @@ class World:
             np.full(6, nz['encoder'].bound), np.full(4, nz['tach'].bound), [nz['pot'].bound]])
         self.rovers: list[_Rover] = []
         self.substep_s = self.dt / self.substeps
-        for i, (params, (x, y)) in enumerate(zip(truths, starts)):
+        for i, (params, (x, y)) in enumerate(zip(truths, starts, strict=False)):
             self.rovers.append(self._spawn(f'rover{i + 1}', params, x, y, with_card=(i == 1)))
 
     # ----------------------------------------------------------------- construction
@@ -363,7 +364,7 @@ class World:
             self._body_kind[body] = 'obstacle'
         site = self.layout.site
         self.site_bodies = []
-        for kind, box in zip(('jaw_near', 'jaw_far', 'floor'), site.jaws):
+        for kind, box in zip(('jaw_near', 'jaw_far', 'floor'), site.jaws, strict=False):
             vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
                                        rgbaColor=[0.25, 0.25, 0.3, 1], physicsClientId=c)
             col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
@@ -530,7 +531,7 @@ class World:
         mom = [0.0, 0.0, 0.0]
         ang = [0.0, 0.0, 0.0]
         grav = [0.0, 0.0, 0.0]
-        for st, m, inertia in zip(sts, r.arm_masses, r.arm_inertias):
+        for st, m, inertia in zip(sts, r.arm_masses, r.arm_inertias, strict=False):
             (cx, cy, cz), quat, (vx, vy, vz), w = st[0], st[1], st[6], st[7]
             # spin I w, the principal inertia in the link's inertial frame
             bx, by, bz = quat_rotate_inverse(quat, w)
@@ -758,7 +759,7 @@ class World:
                 starts.append((states, com, quat, vel, ang))
             pb.stepSimulation(physicsClientId=pc)
             for r, (q_refs, qd_refs, kp, kd), (states, com, quat, vel, ang) in zip(
-                    self.rovers, targets, starts):
+                    self.rovers, targets, starts, strict=False):
                 q_all = [st[0] for st in states]
                 mass = np.array(pb.calculateMassMatrix(r.body, q_all, physicsClientId=c))
                 mass = mass[np.ix_(r.mass_index, r.mass_index)]
@@ -792,7 +793,7 @@ class World:
                     r.last_sub_quat = quat
             pb.stepSimulation(physicsClientId=c)
             if sub == self.substeps - 1:
-                for r, start in zip(self.rovers, starts):
+                for r, start in zip(self.rovers, starts, strict=False):
                     self._probe_kick_state(r, start)
             for r in self.rovers:
                 if r.card_index is not None:
@@ -826,7 +827,7 @@ class World:
         c = self.client
         last = self.substeps - 1
         for sub in range(self.substeps):
-            for r, (q_refs, qd_refs, kp, kd) in zip(self.rovers, targets):
+            for r, (q_refs, qd_refs, kp, kd) in zip(self.rovers, targets, strict=False):
                 if sub % PD_HOLD == 0:
                     # PD torques held for PD_HOLD sub-steps (zero-order hold, 2 w h << 1)
                     q_ref, qd_ref = q_refs[sub // PD_HOLD], qd_refs[sub // PD_HOLD]
@@ -1059,7 +1060,7 @@ class World:
     def set_poses(self, poses: Sequence[tuple]) -> None:
         """Pose this world's rovers as `poses` (another World's `poses()`), for a picture."""
         c = self.client
-        for r, (pos, orn, joints) in zip(self.rovers, poses):
+        for r, (pos, orn, joints) in zip(self.rovers, poses, strict=False):
             pb.resetBasePositionAndOrientation(r.body, pos, orn, physicsClientId=c)
             pb.resetJointStatesMultiDof(r.body, r.movable, [[q] for q in joints],
                                         physicsClientId=c)
@@ -1083,7 +1084,8 @@ class World:
         each picture, so where they stand does not matter); None otherwise. Handed over, it is
         no longer this world's (close leaves it running)."""
         same = config == self.config and len(truths) == len(self._truths) and all(
-            np.array_equal(a.to_vector(), b.to_vector()) for a, b in zip(truths, self._truths))
+            np.array_equal(a.to_vector(), b.to_vector())
+            for a, b in zip(truths, self._truths, strict=False))
         if not same:
             return None
         worker, self._render_worker = self._render_worker, None
@@ -1099,10 +1101,8 @@ class World:
     def close(self) -> None:
         self._stop_worker(self.render_note)
         if self.probe_client is not None:
-            try:
+            with contextlib.suppress(pb.error):
                 pb.disconnect(physicsClientId=self.probe_client)
-            except pb.error:
-                pass
             self.probe_client = None
         if self.client is not None and self.client >= 0:
             try:
@@ -1121,5 +1121,12 @@ class World:
         self.close()
 
 
-__all__ = ['ArmMomentum', 'ContactState', 'World', 'Readings', 'Truth', 'substeps_for',
-           'rotation_vector']
+__all__ = [
+    'ArmMomentum',
+    'ContactState',
+    'Readings',
+    'Truth',
+    'World',
+    'rotation_vector',
+    'substeps_for',
+]
