@@ -495,6 +495,8 @@ class BagMessage(NamedTuple):
 
 @dataclass
 class TopicInfo:
+    """One topic of a bag: its type, message count, offered QoS and type description."""
+
     name: str
     msgtype: str
     count: int
@@ -702,7 +704,7 @@ class _Source:
             try:
                 doc = YAML(typ='safe').load(meta.read_text())
                 names = doc['rosbag2_bagfile_information']['relative_file_paths']
-            except Exception as exc:  # noqa: BLE001 - any defect of the YAML is reported
+            except Exception as exc:
                 self.problems.append(f'{meta.name}: unreadable ({exc}); recovered from the '
                                      'MCAP files')
             else:
@@ -767,7 +769,7 @@ class _Source:
         # ReaderError, but lets the errors of its zstd and lz4 decompressors out as they are
         try:
             yield from self._indexed_messages(self.reader, topics)
-        except Exception as exc:  # noqa: BLE001 - see above; the messages before it stay
+        except Exception as exc:
             where = ('no message readable' if self._last_t is None
                      else f'nothing readable after t={self._last_t} ns')
             self.problems.append(f'{self.path.name}: {where} ({type(exc).__name__}: {exc})')
@@ -791,9 +793,8 @@ class _Source:
             with Reader(file) as one:          # rosbags opens a lone storage file too
                 conns = [c for c in one.connections if topics is None or c.topic in topics]
                 if conns:
-                    for c, t, data in one.messages(connections=conns):
-                        if unzip is not None:
-                            data = unzip.decompressobj().decompress(data)
+                    for c, t, raw in one.messages(connections=conns):
+                        data = raw if unzip is None else unzip.decompressobj().decompress(raw)
                         yield t, c.topic, c.msgtype, data
         for t, topic, msgtype, data in heapq.merge(*map(stream, self.files),
                                                   key=lambda m: m[0]):
@@ -852,7 +853,7 @@ def _register_bag_types(typestore: Typestore, topics: Iterable[TopicInfo]) -> li
             try:
                 typestore.register(get_types_from_msg(info.msgdef, info.msgtype))
                 continue
-            except Exception:  # noqa: BLE001 - fall back to the ament index
+            except Exception:
                 pass
         try:
             ensure_type(typestore, info.msgtype)
