@@ -21,6 +21,7 @@ posterior covariance, hence each strategy's cost:
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Literal, assert_never, get_args
@@ -404,7 +405,10 @@ def optimise(current: Excitation, predictor: WindowPredictor, ctx: CostContext, 
         step = -np.linalg.solve(jtj + mu * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(3)), g)
         trial = [np.clip(u + a * step, 0.0, 1.0) for a in alphas]
         last = it == iterations - 1
-        nb, du = neighbours(trial[0]) if not last else ([], None)
+        if last:
+            nb = []                     # no finite differences after the last step
+        else:
+            nb, du = neighbours(trial[0])
         v_all, r_all = costs(trial + nb)
         fd = None
         moved = False
@@ -441,12 +445,12 @@ class ArmReference:
             raise ExcitationError(f'a mode drives one of {list(ARM_JOINTS)}, got {bad}')
         self.modes = modes
         self.speed, self.min_blend = speed_rad_s, min_blend_s
-        self._key = None
-        self._old = None
-        self._new = None
+        self._key: tuple | None = None
+        self._old: Callable[[float], tuple[np.ndarray, np.ndarray]] | None = None
+        self._new: Callable[[float], tuple[np.ndarray, np.ndarray]] | None = None
         self._t0 = 0.0
         self._dur = 1.0
-        self._home = None
+        self._home: np.ndarray | None = None
 
     def _target(self, mode: int, exc: Excitation, t0: float):
         joint, hold1, _ = self.modes[mode]
@@ -489,13 +493,15 @@ class ArmReference:
             if self._old is not None and now >= self._t0 + self._dur:
                 self._old = None            # blend over: forget the old trajectory
             return
+        live: Callable[[float], tuple[np.ndarray, np.ndarray]]
         if self._new is None:
             here = np.asarray(here, dtype=float)
             self._home = here.copy()
             zero = np.zeros(2)
 
-            def live(_t: float) -> tuple[np.ndarray, np.ndarray]:
+            def hold(_t: float) -> tuple[np.ndarray, np.ndarray]:
                 return here, zero
+            live = hold
         else:
             live = self.__call__
         start = now + lead_s

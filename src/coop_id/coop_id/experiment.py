@@ -16,9 +16,10 @@ import numpy as np
 from coop_common.cli import enum_choices, number, output_path
 from coop_common.dynparams import BaseParameters, load_truth
 from coop_common.files import write_json
+from coop_common.params import choice
 
 from .excitation import Excitation, Strategy, constant_excitation
-from .identifier_core import Identifier, IdentifierConfig
+from .identifier_core import Identifier, IdentifierConfig, IdentifierError
 from .model import IDX, SensorNoise
 from .modelsim import ThesisRover, add_noise, noise_scales, stack_frames
 
@@ -35,9 +36,10 @@ class RunResult:
     std: list[np.ndarray] = field(default_factory=list)
     info_bits: list[np.ndarray] = field(default_factory=list)
     excitation: list[np.ndarray] = field(default_factory=list)  # d per window
-    final_low: np.ndarray | None = None
-    final_high: np.ndarray | None = None
-    observable: np.ndarray | None = None
+    # the last window's 95 % interval and observability (set at the run's end)
+    final_low: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    final_high: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    observable: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     consistent: list[bool] = field(default_factory=list)
 
 
@@ -60,7 +62,8 @@ def run_identification(truth: BaseParameters, *, strategy: Strategy | str, seed:
     the identifier absorbs noisy samples window by window and re-optimises the excitation.
     mass_step=(t, dm): add dm kg to the base at time t (a rock picked up). `config` is not
     changed: the run's is a copy with `strategy` (IdentifierError for an unknown one)."""
-    cfg = replace(config or IdentifierConfig(), strategy=strategy)
+    cfg = replace(config or IdentifierConfig(),
+                  strategy=choice(Strategy, strategy, 'strategy', error=IdentifierError))
     noise_model = None
     if bias_compensation and noise > 0:
         # the sensors' datasheet: uniform +-noise x scale has sigma noise x scale / sqrt(3)

@@ -189,7 +189,7 @@ class Identifier:
         self.walked = np.zeros((0, 0))
         self._pending: list[tuple[list[_Call], float]] = []     # (calls, weight)
         self._score_tail = np.zeros((0, N_PARAMS))
-        self._cache = None
+        self._cache: tuple[np.ndarray, np.ndarray] | None = None
         self.report: Report = self._make_report()
 
     # -- data in -----------------------------------------------------------------------------

@@ -46,7 +46,7 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
     topics = ident_topics(rover)
     stamps: list[int] = []
     rows: list[np.ndarray] = []
-    heard = Counter()
+    heard: Counter[str] = Counter()
     skipped = rejects if rejects is not None else Counter()
 
     def on_sample(t: int, row: np.ndarray) -> None:

@@ -55,6 +55,7 @@ class SamplePairer:
                  on_reset: Callable[[int, int], None] | None = None) -> None:
         if capacity < 1:
             raise ValueError('capacity must be >= 1')
+        self.capacity = capacity
         self.tolerance_ns = int(tolerance_ns)
         self.reset_after_ns = int(reset_after_ns)
         self._on_reset = on_reset
@@ -74,7 +75,7 @@ class SamplePairer:
             old = self.last_stamp[name]
             self.reset()
             if self._on_reset is not None:
-                self._on_reset(old, t)
+                self._on_reset(int(old), t)     # a stamp, finite: t is below it
         if t <= self.last_stamp[name]:
             self._on_reject('out-of-order stamp', f'{name} {t * 1e-9:.4f} <= '
                             f'{self.last_stamp[name] * 1e-9:.4f}')
@@ -140,7 +141,7 @@ class SamplePairer:
             _trim(wrench, t - tol)
             if not final and min(self.last_stamp['inclinometer'],
                                  self.last_stamp['wrench']) < t:
-                if len(imu) < imu.maxlen:
+                if len(imu) < self.capacity:
                     return        # the partners of this instant may still come: wait
                 imu.popleft()
                 self._on_reject('silent sensor', 'inclinometer or wrench')

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,7 @@ def time_to(times: np.ndarray, curve: np.ndarray, level: float) -> float | None:
     return float(times[above[-1] + 1])
 
 
-def summarise(runs: dict[str, list[RunResult]], truth: np.ndarray) -> dict:
+def summarise(runs: Mapping[Strategy, list[RunResult]], truth: np.ndarray) -> dict:
     """Per strategy: final and per-parameter errors over the seeds, error curves, coverage and
     consistency (the JSON summary)."""
     out = {}
@@ -170,7 +171,8 @@ def format_json(doc: dict) -> str:
     return '\n'.join(lines)
 
 
-def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Path) -> list[Path]:
+def draw_plots(runs: Mapping[Strategy, list[RunResult]], truth: np.ndarray, out_dir: Path
+               ) -> list[Path]:
     """Draw the convergence plots into `out_dir`; the files written."""
     import matplotlib  # noqa: PLC0415 - only when plots are asked for
     matplotlib.use('Agg')
