@@ -216,20 +216,21 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
         full_width: bool = FULL_WIDTH_DEFAULT) -> dict:
     """Every method at every distance, `trials` runs each; an unknown method or sub-pixel
     mode, or a distance the rig cannot run, is a ConfigError before the first trial."""
-    methods = tuple(choice(PoseMethod, m, 'method', error=ConfigError) for m in methods)
+    poses = tuple(choice(PoseMethod, m, 'method', error=ConfigError) for m in methods)
     subpixel = choice(Subpixel, subpixel, 'subpixel', error=ConfigError)
-    out = {'distances_m': distances, 'trials': trials, 'steps': steps, 'seed': seed,
-           'width': width, 'height': height, 'fuse_prediction': fuse_prediction,
-           'subpixel': subpixel, 'full_width': full_width, 'results': {}}
+    out: dict[str, Any] = {
+        'distances_m': distances, 'trials': trials, 'steps': steps, 'seed': seed,
+        'width': width, 'height': height, 'fuse_prediction': fuse_prediction,
+        'subpixel': subpixel, 'full_width': full_width, 'results': {}}
 
-    def config(D: float, method: PoseMethod | str) -> TrialConfig:
+    def config(D: float, method: PoseMethod) -> TrialConfig:
         return TrialConfig(distance=D, steps=steps, width=width, height=height, method=method,
                            fuse_prediction=fuse_prediction, subpixel=subpixel,
                            full_width=full_width)
 
     for D in distances:             # every distance checked before the first trial
-        check_config(config(D, methods[0]))
-    for method in methods:
+        check_config(config(D, poses[0]))
+    for method in poses:
         for D in distances:
             cfg = config(D, method)
             # same seeds for every method: the same true trajectories and images

@@ -194,10 +194,11 @@ def track(prev: np.ndarray, curr: np.ndarray, uv: np.ndarray, *, window: int = 2
         return np.empty((0, 2)), np.zeros(0, bool)
     p0 = np.asarray(uv, np.float32).reshape(-1, 1, 2)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, curr, p0, None, winSize=(window, window),
-                                          maxLevel=levels, criteria=crit)
-    pb, st2, _ = cv2.calcOpticalFlowPyrLK(curr, prev, p1, None, winSize=(window, window),
-                                          maxLevel=levels, criteria=crit)
+    # (OpenCV's stubs want an array for nextPts; None has it computed)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]
+        prev, curr, p0, None, winSize=(window, window), maxLevel=levels, criteria=crit)
+    pb, st2, _ = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]
+        curr, prev, p1, None, winSize=(window, window), maxLevel=levels, criteria=crit)
     fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
     p1 = p1.reshape(-1, 2).astype(np.float64)
     h, w = curr.shape

@@ -74,7 +74,8 @@ class StereoSettings:
         object.__setattr__(self, 'subpixel', choice(Subpixel, self.subpixel, 'subpixel',
                                                     error=StereoError))
 
-    def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
+    def ranger(self, left_p: Sequence[float] | np.ndarray, right_p: Sequence[float] | np.ndarray,
+               width: int,
                height: int) -> StereoRanger:
         """The StereoRanger the node builds from a camera_info pair."""
         cam = StereoCamera.from_projection(np.asarray(left_p, float), np.asarray(right_p, float),
@@ -245,6 +246,7 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
         try:
             if key not in rangers:
                 rangers[key] = stereo.ranger(*key)
+            cov: np.ndarray | None
             pts, cov, origin = frame_scan(fr, stereo, ranger=rangers[key])
         except (StereoError, ValueError, cv2.error):       # as the stereo node counts them
             out.rejected['stereo'] += 1

@@ -96,9 +96,10 @@ class TexturedScene:
         # blurred noise: texture with contrast at several scales so SGBM has something to match;
         # TinyRenderer maps one texture per face, so big boxes are cut into tiles of <= tile_m
         for i, b in enumerate(_tiles(self.boxes, tile_m)):
-            tex = rng.integers(0, 256, (256, 256)).astype(np.uint8)
+            tex: np.ndarray = rng.integers(0, 256, (256, 256)).astype(np.uint8)
             tex = cv2.GaussianBlur(tex, (0, 0), 1.2)
-            tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX)
+            # (OpenCV's stubs want an array for dst; None returns a new one)
+            tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX)  # type: ignore[call-overload]
             path = os.path.join(self._tmp.name, f'tex{i}.png')
             cv2.imwrite(path, cv2.cvtColor(tex, cv2.COLOR_GRAY2BGR))
             vis = p.createVisualShape(p.GEOM_BOX, halfExtents=b.half_extents,

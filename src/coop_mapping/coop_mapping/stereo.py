@@ -191,7 +191,7 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
     if block_size < 1 or block_size % 2 == 0:
         raise StereoError('block_size must be odd and >= 1')
     subpixel = choice(Subpixel, subpixel, 'subpixel', error=StereoError)
-    sgbm = cv2.StereoSGBM_create(
+    sgbm = cv2.StereoSGBM.create(
         minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
         P1=8 * block_size ** 2, P2=32 * block_size ** 2, disp12MaxDiff=1,
         uniquenessRatio=uniqueness, speckleWindowSize=speckle_window,

@@ -24,6 +24,7 @@ No rclpy here.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import cv2
@@ -241,7 +242,8 @@ def locate_in_target(geometry: TargetGeometry, observed: np.ndarray, covariances
         if not geometry.labels:
             raise TargetFrameError('labelled observations need a labelled geometry')
         try:
-            candidates = [(tuple(range(len(p))), tuple(geometry.labels.index(x)
+            candidates: Iterable[tuple[tuple[int, ...], tuple[int, ...]]] = [
+            (tuple(range(len(p))), tuple(geometry.labels.index(x)
                                                        for x in labels))]
         except ValueError as exc:
             raise TargetFrameError(f'unknown marker label ({exc})') from exc
@@ -335,7 +337,8 @@ def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamer
     em = error_model or ErrorModel.from_stereo(camera)
     ul, rl = detect_markers(left, **detect_kw)
     ur, rr = detect_markers(right, **detect_kw)
-    uv, pts = [], []
+    uv_rows: list[list[float]] = []
+    pt_rows: list[list[float]] = []
     used = set()
     for (u, v), r in zip(ul, rl, strict=False):
         d = u - ur[:, 0] if len(ur) else np.empty(0)
@@ -347,10 +350,10 @@ def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamer
         j = min(cand, key=lambda j: d[j])
         used.add(j)
         z = camera.fx * camera.baseline / d[j]
-        uv.append([u, v])
-        pts.append([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z])
-    uv = np.array(uv).reshape(-1, 2)
-    pts = np.array(pts).reshape(-1, 3)
+        uv_rows.append([u, v])
+        pt_rows.append([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z])
+    uv = np.array(uv_rows).reshape(-1, 2)
+    pts = np.array(pt_rows).reshape(-1, 3)
     return uv, pts, em.covariances(pts)
 
 
@@ -435,7 +438,7 @@ class Initialiser:
         in ROS order (x, y, z, rot x, rot y, rot z): the own one rotated into the common frame
         plus the alignment's, carried to this camera: a rotation error theta of the alignment
         moves a camera d = t - (camera position at the fix) away by -[d]_x theta."""
-        if self.alignment is None:
+        if self.alignment is None or self.alignment_covariance is None:     # set together
             raise TargetFrameError('not initialised')
         R_a, t_a = self.alignment
         R = R_a @ np.asarray(R_oc, float)

@@ -255,7 +255,7 @@ def _ray_visits(origins: np.ndarray, ends: np.ndarray, resolution: float, *,
         first = np.cumsum(reps) - reps
         k1 = np.arange(1, total + 1, dtype=np.int64) - np.repeat(first, reps)
         t = np.repeat(t0[:, a], reps) + (k1 - 1) * np.repeat(dt[:, a], reps)
-        out = [None, None, None]
+        out: dict[int, np.ndarray] = {}
         out[a] = np.repeat(s[:, a], reps) + np.repeat(step[:, a], reps) * k1
         for b in range(3):
             if b == a:
@@ -266,7 +266,7 @@ def _ray_visits(origins: np.ndarray, ends: np.ndarray, resolution: float, *,
         if drop_end:
             keep = ((out[0] != np.repeat(e[:, 0], reps)) | (out[1] != np.repeat(e[:, 1], reps))
                     | (out[2] != np.repeat(e[:, 2], reps)))
-            out = [o[keep] for o in out]
+            out = {b: o[keep] for b, o in out.items()}
         yield out[0], out[1], out[2]
 
 
@@ -307,8 +307,8 @@ def _ray_lin(origin: np.ndarray, ends: np.ndarray, resolution: float, k0: np.nda
     n = np.abs(diff)
     # int32 indices and float32 crossing counts halve the memory traffic, which is what a
     # visit costs in numpy; float32 is exact enough for counts up to ~10^4 crossings per ray
-    ity = np.int32 if lin_s + int(np.abs(st).sum() * (n.max(initial=0) + 1)) < 2 ** 31 \
-        else np.int64
+    ity: type[np.signedinteger] = \
+        np.int32 if lin_s + int(np.abs(st).sum() * (n.max(initial=0) + 1)) < 2 ** 31 else np.int64
     n_i = n.astype(ity)
     nf = n_i.astype(np.float32)
     mov = n_i > 0
@@ -888,9 +888,9 @@ class VoxelMap:
             raise ValueError(f'frustum bounding box has {int(np.prod(dims))} voxels '
                              f'> max_voxels {max_voxels}')
         known, unknown = [], []
-        gy, gz = np.meshgrid(np.arange(klo[1], khi[1] + 1), np.arange(klo[2], khi[2] + 1),
-                             indexing='ij')
-        gy, gz = gy.ravel(), gz.ravel()
+        gy2, gz2 = np.meshgrid(np.arange(klo[1], khi[1] + 1), np.arange(klo[2], khi[2] + 1),
+                               indexing='ij')
+        gy, gz = gy2.ravel(), gz2.ravel()
         for x in range(klo[0], khi[0] + 1):  # one slab at a time bounds the memory
             k = np.stack([np.full(gy.size, x), gy, gz], -1)
             pc = ((k + 0.5) * self.resolution - t) @ R
