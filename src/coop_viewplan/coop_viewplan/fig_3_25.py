@@ -28,9 +28,11 @@ import json
 import math
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +54,7 @@ from .nbv import (
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
+    ReachModel,
     StrategyName,
     geodesic_path,
     waypoints,
@@ -192,7 +195,8 @@ class SimMapper:
             self.world.command_mast(i, self.mast_joints, [0.6], [[pan, tilt]])
         self.step_for(0.6 + settle_s)
 
-    def drive(self, paths: dict[int, np.ndarray], *, tol_m: float = 0.08) -> dict[int, float]:
+    def drive(self, paths: Mapping[int, Sequence[np.ndarray] | np.ndarray], *,
+              tol_m: float = 0.08) -> dict[int, float]:
         """Drive rovers along their waypoint lists (map xy) at once: turn on the spot when the
         heading is off by more than 20 deg, else drive with a proportional heading correction.
         Returns the distance each anchor (the chassis) moved."""
@@ -284,7 +288,8 @@ def planner_config(cfg: Fig325Config, mapper: SimMapper, camera_height_m: float)
                      n_az=24, n_el=18, step_cells=1.0, k_rel=cfg.k_rel,
                      n_positions=cfg.n_positions, n_yaw=cfg.n_yaw,
                      pitches_deg=tuple(cfg.pitches_deg), camera_height_m=camera_height_m,
-                     clearance_m=cfg.clearance_m, p_empty=cfg.p_empty, reach_model='evidence',
+                     clearance_m=cfg.clearance_m, p_empty=cfg.p_empty,
+                     reach_model=ReachModel.EVIDENCE,
                      raster_spacing_m=cfg.raster_spacing_m,
                      raster_headings=cfg.raster_headings, free_gray=cfg.free_gray)
 
@@ -396,7 +401,7 @@ def _top_view(sm: SimMapper) -> dict:
 def run(cfg: Fig325Config, *, strategies: list[StrategyName | str], seeds: int,
         log=None) -> dict:
     """Each strategy over the seeds: the per-scan rows and their means (the JSON result)."""
-    out = {'config': {k: (list(v) if isinstance(v, tuple) else v)
+    out: dict[str, Any] = {'config': {k: (list(v) if isinstance(v, tuple) else v)
                       for k, v in cfg.__dict__.items()},
            'seeds': seeds, 'thesis_claim': THESIS_CLAIM, 'strategies': {}}
     for name in strategies:

@@ -533,7 +533,7 @@ def _disk(radius_cells: int, ndim: int) -> np.ndarray:
     r = max(0, int(radius_cells))
     ax = np.arange(-r, r + 1)
     g = np.meshgrid(*([ax] * ndim), indexing='ij')
-    return sum(x ** 2 for x in g) <= r * r + 1e-9
+    return np.asarray(sum(x ** 2 for x in g) <= r * r + 1e-9)
 
 
 def footprint_probability(grid2d_prob: np.ndarray, known2d: np.ndarray,
@@ -683,9 +683,9 @@ class PlanContext:
         pitches = np.radians(np.asarray(cfg.pitches_deg if self.grid.ndim == 3 else (0.0,)))
         if yaws is None:
             yaw_set = np.arange(cfg.n_yaw) * 2 * np.pi / cfg.n_yaw
-            ci, yi, pi = np.meshgrid(np.arange(len(cells2d)), np.arange(len(yaw_set)),
+            cg, yi, pi = np.meshgrid(np.arange(len(cells2d)), np.arange(len(yaw_set)),
                                      np.arange(len(pitches)), indexing='ij')
-            ci, yaw, pitch = ci.ravel(), yaw_set[yi.ravel()], pitches[pi.ravel()]
+            ci, yaw, pitch = cg.ravel(), yaw_set[yi.ravel()], pitches[pi.ravel()]
         else:
             ci = np.repeat(np.arange(len(cells2d)), len(pitches))
             yaw = np.repeat(np.asarray(yaws, float), len(pitches))
@@ -794,12 +794,13 @@ class RasterStrategy:
         step = max(1, round(spacing / g.resolution))
         rows = np.arange(step // 2, g.shape[0], step)
         cols = np.arange(step // 2, g.shape[1], step)
-        order, heading = [], []
+        sweep: list[tuple[int, int]] = []
+        heading: list[float] = []
         for k, i in enumerate(rows):
             cs = cols if k % 2 == 0 else cols[::-1]
-            order += [(i, j) for j in cs]
+            sweep += [(int(i), int(j)) for j in cs]
             heading += [np.pi / 2 if k % 2 == 0 else -np.pi / 2] * len(cs)
-        order = np.array(order)
+        order = np.array(sweep)
         visited = np.array(ctx.camera.visited).reshape(-1, 2) if ctx.camera.visited else None
         n = len(order)
         for t in range(n):
@@ -884,8 +885,8 @@ class FrontierStrategy:
         if g.ndim == 2:
             unknown2d, free2d = ~g.known, g.free(p_empty=ctx.config.p_empty)
         else:
-            unknown2d = ~g.known.any(axis=2)
-            free2d = g.free(p_empty=ctx.config.p_empty).any(axis=2)
+            unknown2d = np.asarray(~g.known.any(axis=2))
+            free2d = np.asarray(g.free(p_empty=ctx.config.p_empty).any(axis=2))
         # Frontier: unknown cells bordering known free space (not obstacle interiors).
         # 4-adjacency: an obstacle's interior cell touching free space only at a corner is
         # hidden behind the obstacle's known faces and never observable.

@@ -32,6 +32,7 @@ from .nbv import (
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
+    ReachModel,
     StrategyName,
 )
 from .params import PARAMS, check_params
@@ -72,7 +73,8 @@ def nbv_config(p: dict) -> NbvConfig:
         fov_deg=p['fov_deg'], depth_m=p['depth_m'], n_az=p['rays_az'], n_el=p['rays_el'],
         step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
         n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
-        clearance_m=p['clearance_m'], p_empty=p['p_empty'], reach_model='evidence',
+        clearance_m=p['clearance_m'], p_empty=p['p_empty'],
+        reach_model=ReachModel.EVIDENCE,
         occupied_voxels=p['occupied_voxels'], occupied_p=p['occupied_p'],
         occupied_clamp=p['occupied_clamp'],
         ni_measure=p['ni_measure'], free_gray=p['free_gray'])

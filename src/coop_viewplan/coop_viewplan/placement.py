@@ -25,6 +25,7 @@ evaluations). `search='random'` rates a random subset of `max_candidates` candid
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -166,7 +167,7 @@ def _expanded_hulls(points_sets: list[np.ndarray], target_radius: float, *,
             if keep is not None:
                 keep = keep.reshape(-1)                 # the sum's (point, corner) order
         elif keep is not None:
-            keep = keep.any(axis=1)                     # no growth: a point of any corner
+            keep = np.asarray(keep.any(axis=1))         # no growth: a point of any corner
         if nd == 3:
             hull = _hull_3d(pts, keep)
             if hull is not None:
@@ -287,7 +288,7 @@ def _filled_boxes(sets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.nd
     corner = (at_hi | (pts == lo[sid])).all(axis=1)
     present = np.zeros((len(sets), 2 ** nd), bool)
     present[sid[corner], at_hi[corner] @ (1 << np.arange(nd))] = True
-    return present.all(axis=1) & (hi > lo).all(axis=1), lo, hi
+    return np.asarray(present.all(axis=1) & (hi > lo).all(axis=1)), lo, hi
 
 
 _CORNER_SELECT = {nd: np.array(np.meshgrid(*([[0, 1]] * nd), indexing='ij')).reshape(nd, -1).T
@@ -434,13 +435,13 @@ def _cells_as_boxes(grid: OccupancyGrid, sets: list[np.ndarray], *, unknown_occl
     """The occluder cells (`_occluder_mask`) inside the bounding boxes of cell-corner vertex
     sets (tile pieces of grid_occluders), each cell as its box's corners: the same occluders,
     exactly."""
-    cells = []
+    per_set = []
     for pts in sets:
         lo = np.rint((pts.min(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
         hi = np.rint((pts.max(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
-        cells.append(np.argwhere(_occluder_mask(grid, lo, hi,
-                                                unknown_occludes=unknown_occludes)) + lo)
-    cells = np.unique(np.concatenate(cells), axis=0)
+        per_set.append(np.argwhere(_occluder_mask(grid, lo, hi,
+                                                  unknown_occludes=unknown_occludes)) + lo)
+    cells = np.unique(np.concatenate(per_set), axis=0)
     corners = _CORNER_SELECT[grid.ndim]
     return list(grid.origin + (cells[:, None, :] + corners[None]) * grid.resolution)
 
@@ -867,7 +868,7 @@ class TaskPlacer:
         self.n_dirs = int(n_dirs)
         self.cache_fields = int(cache_fields)
         self._cache_grid: OccupancyGrid | None = None
-        self._cache: dict[tuple, VisibilityField] = {}
+        self._cache: dict[tuple, VisibilityField | PlacementError] = {}
         self.unknown_occludes = unknown_occludes
 
     def narrowed(self, near_m: float = 0.0, far_m: float = 0.0, *,
@@ -1004,7 +1005,7 @@ class TaskPlacer:
             ub = dof ** e.dof * res ** e.res * (1 - p) * target.weight
         return np.where(dof > 0, ub, 0.0)
 
-    def place(self, grid: OccupancyGrid, primary: Target, secondary: list[Target] = (), *,
+    def place(self, grid: OccupancyGrid, primary: Target, secondary: Sequence[Target] = (), *,
               rng: np.random.Generator, hulls: list[np.ndarray] | None = None,
               fields: list[VisibilityField] | None = None,
               stations: Stations | None = None,

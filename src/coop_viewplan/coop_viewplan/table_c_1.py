@@ -73,12 +73,12 @@ def study(images: list[np.ndarray], sizes: tuple[int, ...] = SIZES) -> dict:
     for m in range(1, 11):
         row = []
         for s in sizes:
-            crs = []
+            ratios: list[float] = []
             for img in images:
                 h, w = img.shape
                 c = img[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]
-                crs.append(compression_ratio(c, m))
-            crs = np.array(crs)
+                ratios.append(compression_ratio(c, m))
+            crs = np.array(ratios)
             crs = crs[np.isfinite(crs)]
             row.append([float(crs.mean()), float(crs.std())] if len(crs) else [None, None])
         out[m] = row

@@ -67,7 +67,7 @@ DENSITIES = (0.05, 0.20, 0.35)
 TOLERANCES = (0.20, 0.10, 0.01)
 
 #: Table 4-1 as printed (success %, "<<1" as 0.1); [tolerance][method][density][secondary].
-THESIS_TABLE_4_1 = {
+THESIS_TABLE_4_1: dict[float, dict[Method, list[list[float]]]] = {
     0.20: {Method.OPTIMAL_REPLACEMENT: [[100, 100], [76, 95], [13, 25]],
            Method.RANDOM_REPLACEMENT: [[51, 63], [18, 31], [5, 10]],
            Method.RANDOM_FIXED: [[45, 58], [16, 28], [5, 9]]},
@@ -194,7 +194,8 @@ def make_scenario(rng: np.random.Generator, density: float, cfg: StudyConfig) ->
     ax = np.arange(-rc, rc + 1)
     gi, gj = np.meshgrid(ax, ax, indexing='ij')
     disc = (gi ** 2 + gj ** 2) * res * res <= cfg.object_radius_m ** 2
-    return Scenario(grid, primary, secondary, path, np.argwhere(disc) - rc, tuple(radii))
+    return Scenario(grid, primary, secondary, path, np.argwhere(disc) - rc,
+                    (radii[0], radii[1]))
 
 
 def _static_field(grid: OccupancyGrid, t: Target, cfg: StudyConfig) -> VisibilityField:
@@ -290,11 +291,13 @@ def run_trial(seed: int, density: float, *, use_secondary: bool,
                     watched = seen[0]
                 case _:
                     assert_never(method)
+            assert cam is not None          # each method placed one, or the run ended
             if not _seen(cam, targets[watched], fields[watched], cfg):
                 tracked = False
                 break
         err = np.inf
         if tracked:
+            assert cam is not None                  # the last step's check held
             t = targets[watched]
             err = abs(_sigma(cam, t, cfg) * z_meas + (t.sigma * z_rel if watched > 0 else 0.0))
         out[method] = {'tracked': tracked, 'error_m': float(err), 'target': watched}
