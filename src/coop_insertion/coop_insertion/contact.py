@@ -74,6 +74,7 @@ from __future__ import annotations
 
 import enum
 import itertools
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -425,7 +426,7 @@ class ContactIdentifier:
                 # points within +-3 pose sigmas of the feature's projection (further ones cost
                 # more than a contact in the geometric term)
                 choices.append(self._locus(sp))
-        combos = itertools.product(*choices)
+        combos: Iterable[tuple[np.ndarray, ...]] = itertools.product(*choices)
         if [sp.kind for sp in specs] == [ContactKind.CORNER_ON_BOTTOM,
                                          ContactKind.CORNER_ON_WALL] and \
                 specs[0].side == -specs[1].side:
@@ -493,11 +494,14 @@ class ContactIdentifier:
             cost = chi2 + 2 * (dx / self.pose_sigma_m) ** 2
             if best_seat is None or cost < best_seat[0]:
                 best_seat = (cost, chi2, lams)
+        assert best_seat is not None                # `shifts` is never empty
         _, seated_chi2, lams = best_seat
         loads = (float(lams[0].sum()), float(lams[1].sum()))
 
         # (pairs: the specs, and the point sets tried together, one point per spec)
-        rivals: dict[str, tuple[list[_Spec], list[list[np.ndarray]]]] = {}
+        # a rival's point sets: points for its specs, or (a spec that moves with them, points)
+        rivals: dict[str, tuple[list[_Spec],
+                                Sequence[list[np.ndarray] | tuple[_Spec, list[np.ndarray]]]]] = {}
         wc = g.card_width_m
         for s in (-1, 1):
             bottom = floor[s]
@@ -526,7 +530,7 @@ class ContactIdentifier:
             # side face s on jaw s's mouth edge, the card leaning towards s by phi (the other
             # corner h = w sin(phi) up, over the same heights): corner s is D tan(phi) in from
             # the wall, and the edge pushes along -v of the card's tilt -s phi
-            sets, specs = [], None
+            leaning: list[tuple[_Spec, list[np.ndarray]]] = []
             for h in heights:
                 phi = float(np.arcsin(min(h / wc, 1.0)))
                 v = np.array([np.cos(phi), -s * np.sin(phi)])
@@ -534,9 +538,9 @@ class ContactIdentifier:
                              ContactKind.EDGE_ON_SIDE)
                 x_s = s * (half - d * np.tan(phi))
                 if abs(x_s - corners[s][0]) <= span:
-                    sets.append((edge, [np.array([x_s, -d]), self._edge(s)]))
-            if sets:
-                rivals[f'corner_and_side:{2 * s:+d}'] = ([bottom, sets[0][0]], sets)
+                    leaning.append((edge, [np.array([x_s, -d]), self._edge(s)]))
+            if leaning:
+                rivals[f'corner_and_side:{2 * s:+d}'] = ([bottom, leaning[0][0]], leaning)
         rival, rival_chi2 = '', np.inf
         for name, (specs, point_sets) in rivals.items():
             for item in point_sets:
@@ -586,6 +590,7 @@ class ContactIdentifier:
             scores[key] = score
             if best is None or score < best[0]:
                 best = (score, state, side, chi2, specs, fitted)
+        assert best is not None                     # there is always a FREE hypothesis
         score, state, side, chi2, specs, fitted = best
         contacts = []
         for sp, (pt, lam) in zip(specs, fitted, strict=False):
@@ -770,6 +775,7 @@ class LeastResistance:
         loads, which the check needs at mu 0.6); the press is held at 2 x seat_force_n (more
         load, more chi^2 between the hypotheses)."""
         seat, step, k = ident.seat, self.insert_step_m, self.probe_stiffness
+        assert seat is not None                     # a probe follows a failed seat check
         g = self.geometry
         light = seat.lighter_side
         f_light, f_heavy = sorted(seat.corner_forces_n)

@@ -20,6 +20,7 @@ import math
 import sys
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -68,7 +69,7 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
     from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only to run trials
     from rover_sim.worldgen import INCH  # noqa: PLC0415 - only to run trials
     gap = slot_in * INCH
-    extra = {} if friction is None else {'contact_friction': float(friction)}
+    extra: dict[str, Any] = {} if friction is None else {'contact_friction': float(friction)}
     cfg = SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
                     seed=seed, noise=NoiseConfig(encoder_rad=0.0077), **extra)
     rng = np.random.default_rng(seed)
@@ -89,7 +90,8 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
         xc /= np.linalg.norm(xc)
         r_wc = np.column_stack([xc, np.cross(look, xc), look])
         var = np.array([SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2])
-        k, pen, phases = 0, 0.0, []
+        k, pen = 0, 0.0
+        phases: list[Phase] = []
         contact_t, end_t = None, math.inf
         fix_every = max(1, round(0.25 / w.dt))
         while w.time_s < min(sim_s, end_t):

@@ -306,7 +306,7 @@ def background_texture(rng: np.random.Generator, kind: Background | str, size: i
             fine = cv2.GaussianBlur(rng.random((size, size)), (3, 3), 0) - 0.5
             tex = (base + veins) * (1.0 - 0.6 * cracks) + 0.1 * fine
         case Background.METAL:
-            streak = rng.normal(0.0, 1.0, (size, size))
+            streak: np.ndarray = rng.normal(0.0, 1.0, (size, size))
             streak = cv2.GaussianBlur(streak, (61, 1), 20.0)
             streak = cv2.GaussianBlur(streak, (1, 3), 0.7)
             streak = (streak - streak.mean()) / streak.std()

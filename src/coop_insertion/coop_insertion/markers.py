@@ -196,7 +196,7 @@ def resolve_coplanar(markers: list[Marker], *, max_angle_rad: float = math.radia
     else the marker keeps its ellipse centre and `resolved` stays False."""
     out = []
     for i, m in enumerate(markers):
-        if m.normals is None:
+        if m.normals is None or m.candidates is None:       # (set together)
             out.append(m)
             continue
         if normal_hint is not None:
@@ -384,7 +384,7 @@ class ThesisDetector:
         iu, iv, C, R = iu[ok], iv[ok], C[ok], R[ok]
         key = iu * 100000 + iv
         uk, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-        out = []
+        out: list[tuple[float, float, float]] = []
         taken = np.zeros(len(uk), bool)
         for idx in np.argsort(-cnt):
             if cnt[idx] < 3 or taken[idx]:
@@ -410,7 +410,7 @@ class ThesisDetector:
     def _grow(self, binary: np.ndarray, pts: np.ndarray,
               circles: list[tuple[float, float, float]]) -> list[Marker]:
         h, w = binary.shape
-        out = []
+        out: list[Marker] = []
         for cu, cv_, rad in circles:
             seed = (round(cu), round(cv_))
             if not (0 <= seed[0] < w and 0 <= seed[1] < h):
@@ -610,7 +610,8 @@ class EllipseDetector:
         sigma = rms * math.sqrt(2.0 / n)
         score = float(coverage * min(contrast / 100.0, 1.0) / (1.0 + rms))
         return Marker(u=float(ell[0]), v=float(ell[1]), radius_px=mr, score=score,
-                      ellipse=tuple(float(x) for x in ell), sigma_px=sigma)
+                      ellipse=(float(ell[0]), float(ell[1]), float(ell[2]), float(ell[3]),
+                               float(ell[4])), sigma_px=sigma)
 
     def _edge_points(self, img: np.ndarray, ell) -> tuple[np.ndarray, float] | None:
         """Sub-pixel crossings of the local mid level near the ellipse `ell`, and the contrast."""
@@ -686,6 +687,7 @@ class EllipseDetector:
             return found
         corrected = []
         for m in found:
+            assert m.ellipse is not None                # _refine fits one to every marker
             try:
                 normals, centres = circle_candidates(ellipse_conic(*m.ellipse), self.K)
             except (InsertionError, np.linalg.LinAlgError):
@@ -703,7 +705,7 @@ _RING = np.linspace(0.0, 2 * math.pi, 16, endpoint=False)[None, :]
 _INNER = np.concatenate([[0.0], np.linspace(0.0, 2 * math.pi, 6, endpoint=False)])[None, :]
 
 
-def _isolation(img: np.ndarray, c: np.ndarray) -> np.ndarray:
+def _isolation(img: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per blob (rows of c: cx, cy, r in full-res px): the median of the image at the centre
     and 6 points at 0.35 r, minus the second brightest of 16 points on the circle 1.8 r + 1.5
     (one bright point, a vein or a speck, is let through)."""

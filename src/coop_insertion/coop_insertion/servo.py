@@ -228,6 +228,7 @@ class VisualServo:
         else:
             q = self._drift(self._last_base, ob, p_goal, self._last_stamp, fix.stamp)
             p = self._cov + q
+            assert self._goal_r is not None          # set with _goal_p
             nu = np.concatenate([p_goal - self._goal_p, _log(r_goal @ self._goal_r.T)])
             k = p @ np.linalg.inv(p + c)
             d = k @ nu

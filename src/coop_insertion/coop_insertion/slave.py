@@ -355,6 +355,7 @@ class SlaveController:
         if self._target is None:
             self._target = _Target(self.carry.copy(), 0.0)
         if self.phase is Phase.READY:
+            assert self._start_t is not None         # the first state set it
             if t - self._start_t >= self.ready_s:
                 self.phase = Phase.VISUAL_SERVO
             return self._command(self._joints(), 0.0, 0.0)
@@ -394,6 +395,7 @@ class SlaveController:
 
     def _joints(self) -> tuple[float, float, float, float]:
         tg = self._target
+        assert tg is not None                       # the first step sets it
         j2 = joint2_in_base(self.r2)
         heading = math.atan2(tg.position[1] - j2[1], tg.position[0] - j2[0])
         return card_joints(tg.position, heading, tg.pitch, self.r2)
@@ -401,6 +403,7 @@ class SlaveController:
     def _plane_normal(self) -> np.ndarray:
         """The arm plane's normal (base frame): the axis the card's pitch turns about."""
         tg = self._target
+        assert tg is not None
         j2 = joint2_in_base(self.r2)
         heading = math.atan2(tg.position[1] - j2[1], tg.position[0] - j2[0])
         return np.array([-math.sin(heading), math.cos(heading), 0.0])
@@ -411,6 +414,7 @@ class SlaveController:
         the contact identification read as a couple, a wedge)."""
         if self._tare is None:
             return np.zeros(6)
+        assert self._state is not None              # a tare is taken from a state
         moved = arm_gravity_moment(self._state.q) - self._tare_moment
         return w - self._tare - np.concatenate([np.zeros(3), moved])
 
@@ -426,6 +430,7 @@ class SlaveController:
     def _move_target(self, dp: np.ndarray, dpitch: float) -> tuple | None:
         """Move the arm's card target, undoing the move when the arm cannot reach it."""
         tg = self._target
+        assert tg is not None
         old = (tg.position.copy(), tg.pitch)
         tg.position = tg.position + dp
         tg.pitch += dpitch

@@ -31,6 +31,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -122,7 +123,7 @@ def parse_rows(spec: str, *, attempts: int,
     """`width[:attempts[:placement+...]]`, comma-separated (e.g. DEFAULT_ROWS), into (slot
     width in, attempts, placements) per row; `attempts` and `placements` where a row gives
     none (ValueError with the reason)."""
-    rows = []
+    rows: list[tuple[float, int, tuple[str, ...]]] = []
     for item in (x.strip() for x in spec.split(',') if x.strip()):
         parts = item.split(':')
         if len(parts) > 3:
@@ -170,10 +171,10 @@ def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple
     source = source_revision()
     if done:
         log(f'resuming: {len(done)} attempts from {checkpoint}')
-    res = {'settings': settings, 'attempts': attempts, 'seed': seed,
-           'occlusion_density': occlusion_density,
-           'placements': list(placements), 'rows': [], 'sim_restarts': [],
-           'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
+    res: dict[str, Any] = {'settings': settings, 'attempts': attempts, 'seed': seed,
+                           'occlusion_density': occlusion_density,
+                           'placements': list(placements), 'rows': [], 'sim_restarts': [],
+                           'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
     rig: InsertionRig | None = None
 
     specs = [r if isinstance(r, tuple) else (float(r), attempts, placements) for r in rows]

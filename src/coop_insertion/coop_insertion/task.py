@@ -226,9 +226,9 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
                              "of a marker's size)")
     points, covs = [], []
     for pair in best[1:]:
-        found = sorted(pair, key=lambda k: float(pos[k] @ across))
-        points += [pos[k] for k in found]
-        covs += [markers[k].covariance for k in found]
+        ordered = sorted(pair, key=lambda k: float(pos[k] @ across))
+        points += [pos[k] for k in ordered]
+        covs += [markers[k].covariance for k in ordered]
     return LabelledMarkers(np.array(points), np.array(covs), u)
 
 

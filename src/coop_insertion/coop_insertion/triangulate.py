@@ -57,11 +57,13 @@ class StereoMarker:
 def stereo_candidates(ml: Marker, mr: Marker) -> tuple[tuple[float, float], tuple[float, float]]:
     """The centres to triangulate: the perspective candidates whose normals agree best across
     the two images when both have them, else the markers' own (u, v)."""
-    if ml.normals is None or mr.normals is None:
+    if ml.normals is None or mr.normals is None or ml.candidates is None or \
+            mr.candidates is None:                      # (normals and candidates go together)
         return (ml.u, ml.v), (mr.u, mr.v)
     cos = ml.normals @ mr.normals.T                     # (2, 2)
     i, j = np.unravel_index(int(np.argmax(cos)), cos.shape)
-    return tuple(map(float, ml.candidates[i])), tuple(map(float, mr.candidates[j]))
+    ci, cj = ml.candidates[i], mr.candidates[j]
+    return (float(ci[0]), float(ci[1])), (float(cj[0]), float(cj[1]))
 
 
 def match_markers(left: list[Marker], right: list[Marker], camera: StereoCamera, *,
