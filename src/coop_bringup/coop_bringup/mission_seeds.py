@@ -107,7 +107,7 @@ def run_seeds(seeds: list[int], run_one: Callable[[int, str], dict], out: Path, 
     """Each seed's mission (`run_one(seed, run_id)` returns its report) under `out`, or its
     report read back when `out/seed_<k>/report.json` holds one; the judged rows, also written
     to `out/seeds.json` after every seed."""
-    rows = []
+    rows: list[dict] = []
     for seed in seeds:
         run_id = f'seed_{seed}'
         done = out / run_id / 'report.json'
