@@ -41,8 +41,8 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     else:
         s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
         q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q)
-    return q / np.linalg.norm(q)
+    qv = np.array(q)
+    return qv / np.linalg.norm(qv)
 
 
 def rotation_vector(r: np.ndarray) -> np.ndarray:
@@ -147,7 +147,7 @@ def relative_rotation_vector(qa: tuple[float, float, float, float],
                              qb: tuple[float, float, float, float]) -> np.ndarray:
     """Rotation vector (log map) of R_a^T R_b for unit quaternions (x, y, z, w): the rotation
     from pose a to pose b in a's axes. Scalar math (the gyro model, every control step)."""
-    x, y, z, w = _qmul((-qa[0], -qa[1], -qa[2], qa[3]), tuple(qb))
+    x, y, z, w = _qmul((-qa[0], -qa[1], -qa[2], qa[3]), (qb[0], qb[1], qb[2], qb[3]))
     if w < 0.0:
         x, y, z, w = -x, -y, -z, -w
     n = math.sqrt(x * x + y * y + z * z)
@@ -196,8 +196,8 @@ class FastCompliance:
     def __init__(self, stiffness: np.ndarray, damping: np.ndarray, preload: np.ndarray,
                  inertial_quat: np.ndarray, com_offset: np.ndarray | None = None, *,
                  midpoint_damper: bool = False) -> None:
-        self.com_offset = (0.0, 0.0, 0.0) if com_offset is None else \
-            tuple(float(v) for v in com_offset)
+        c = (0.0, 0.0, 0.0) if com_offset is None else com_offset
+        self.com_offset = (float(c[0]), float(c[1]), float(c[2]))
         self.k = tuple(float(v) for v in stiffness)
         self.b = tuple(float(v) for v in damping)
         self.pre = tuple(float(v) for v in preload)

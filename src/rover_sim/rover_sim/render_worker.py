@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Sequence
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO
 
 import numpy as np
 
@@ -31,7 +31,7 @@ class RenderWorkerError(SimError):
     """The render worker failed or stopped answering; the message says how."""
 
 
-def _send(stream: BinaryIO, obj: Any) -> None:
+def _send(stream: IO[bytes], obj: Any) -> None:
     pickle.dump(obj, stream, protocol=pickle.HIGHEST_PROTOCOL)
     stream.flush()
 
@@ -70,11 +70,14 @@ class RenderWorker:
         self._proc = subprocess.Popen(
             [sys.executable, '-m', 'rover_sim.render_worker'], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, start_new_session=False)
+        assert self._proc.stdin is not None and self._proc.stdout is not None     # PIPE
+        self._stdin: IO[bytes] = self._proc.stdin
+        self._stdout: IO[bytes] = self._proc.stdout
         self._first = True
         self._reply: list = []
         self._got = threading.Event()
         try:
-            _send(self._proc.stdin, (config, list(truths)))
+            _send(self._stdin, (config, list(truths)))
         except OSError as exc:
             self.close()
             raise RenderWorkerError(f'render worker gone at its start: {exc}') from exc
@@ -84,7 +87,7 @@ class RenderWorker:
         self._got.clear()
         self._reply = []
         try:
-            _send(self._proc.stdin, (poses, np.asarray(pos, float), np.asarray(rot, float),
+            _send(self._stdin, (poses, np.asarray(pos, float), np.asarray(rot, float),
                                      float(offset)))
         except (OSError, ValueError) as exc:
             raise RenderWorkerError(f'render worker gone: {exc}') from exc
@@ -92,7 +95,7 @@ class RenderWorker:
 
     def _read(self) -> None:
         try:
-            self._reply.append(pickle.load(self._proc.stdout))
+            self._reply.append(pickle.load(self._stdout))
         except (EOFError, OSError, pickle.UnpicklingError) as exc:
             self._reply.append(f'the worker ended ({type(exc).__name__}), exit code '
                                f'{self._proc.poll()}')
@@ -111,8 +114,8 @@ class RenderWorker:
 
     def close(self) -> None:
         try:
-            _send(self._proc.stdin, None)
-            self._proc.stdin.close()
+            _send(self._stdin, None)
+            self._stdin.close()
         except (OSError, ValueError):
             pass
         try:
@@ -120,7 +123,7 @@ class RenderWorker:
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait(timeout=5.0)
-        self._proc.stdout.close()
+        self._stdout.close()
 
 
 def main() -> None:

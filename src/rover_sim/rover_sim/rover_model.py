@@ -73,7 +73,7 @@ def base_link_inertial(params: BaseParameters, *, damper_lag_s: float = 0.0
         raise ValueError(f'base mass {params.mass} kg does not exceed the mast mass')
     if damper_lag_s < 0:
         raise ValueError(f'damper_lag_s must be >= 0, got {damper_lag_s}')
-    c_b = -sum(m * np.asarray(c) for m, c, _ in mast) / m_b
+    c_b = np.asarray(-sum(m * np.asarray(c) for m, c, _ in mast) / m_b)
     inertia = (params.inertia + damper_lag_s * np.diag(params.damping[3:])
                - _shift(m_b, c_b))
     for m, c, i in mast:

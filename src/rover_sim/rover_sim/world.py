@@ -172,9 +172,10 @@ class _Rover:
     fast: FastCompliance | None = None
     implicit: ImplicitSolver | None = None
     movable: list[int] | None = None      # every non-fixed joint, in the mass matrix's order
-    mass_index: np.ndarray | None = None  # base + arm rows of the mass matrix (mast locked)
-    actuated: list[int] | None = None
-    mast_joints: list[int] | None = None
+    # base + arm rows of the mass matrix (mast locked); the arm's and the mast's joints
+    mass_index: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))
+    actuated: list[int] = dataclasses.field(default_factory=list)
+    mast_joints: list[int] = dataclasses.field(default_factory=list)
     tau: list[float] = dataclasses.field(default_factory=lambda: [0.0] * 4)
     # base link orientation (quaternion x, y, z, w) at the end of the last control step, and
     # at the start of the last sub-step of the current / previous control step (the gyro)
@@ -182,7 +183,7 @@ class _Rover:
     last_sub_quat: tuple = (0.0, 0.0, 0.0, 1.0)
     prev_sub_quat: tuple = (0.0, 0.0, 0.0, 1.0)
     gyro_mean: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
-    ft_mean: np.ndarray | None = None
+    ft_mean: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(6))
     # the links beyond the F/T sensor (sensor link first): masses, principal inertias, and
     # their momentum state at the end of the last control step (ArmMomentum)
     arm_links: list[int] = dataclasses.field(default_factory=list)
@@ -307,9 +308,10 @@ class World:
         rng = np.random.default_rng(self.config.seed + 7919)
         out = {}
         for name, size, blur in (('ground', 1024, 3), ('rock', 256, 3)):
-            img = rng.integers(0, 256, size=(size, size), dtype=np.uint8)
+            img: np.ndarray = rng.integers(0, 256, size=(size, size), dtype=np.uint8)
             img = cv2.GaussianBlur(img, (blur, blur), 0)
-            img = cv2.normalize(img, None, 40, 230, cv2.NORM_MINMAX)
+            # (OpenCV's stubs want an array for dst; None returns a new one)
+            img = cv2.normalize(img, None, 40, 230, cv2.NORM_MINMAX)  # type: ignore[call-overload]
             path = self._tmp / f'{name}.png'
             cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
             out[name] = pb.loadTexture(str(path), physicsClientId=self.client)
@@ -575,6 +577,7 @@ class World:
         row, and that reaction alone put I_x at 0.05 instead of 0.15 and I_xy at -0.06."""
         implicit = self.integrator is Integrator.IMPLICIT
         new, old = self._arm_momentum(r, probe=implicit), r.arm_prev
+        assert old is not None                      # _build took the first
         r.arm_prev = new
         dt = self.dt
         force = (new.momentum - old.momentum) / dt - r.arm_masses.sum() * GRAVITY_VEC
@@ -692,6 +695,7 @@ class World:
         q = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)[1]
         r.prev_quat = r.last_sub_quat = r.prev_sub_quat = q
         r.contact = _Contact()
+        assert r.fast is not None                   # _build gives every rover one
         r.fast.reset()
 
     def command_velocity(self, index: int, v: float, w: float) -> None:
@@ -769,6 +773,7 @@ class World:
                 rot = quat_to_matrix(quat)
                 v, w = r.cmd
                 cy, sy = math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)
+                assert r.fast is not None               # the implicit integrator has one
                 origin, off, dr, dth, dv, dw = r.fast.state(
                     com, quat, vel, ang, (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
                     r.anchor_yaw, (v * cy, v * sy, 0.0), w)
@@ -780,6 +785,7 @@ class World:
                 pqd = [st[1] for st in pb.getJointStates(r.probe_body, r.actuated,
                                                          physicsClientId=pc)]
                 free = np.concatenate([rot.T @ np.array(pw), rot.T @ np.array(pv), pqd]) - u
+                assert r.implicit is not None
                 wrench, tau = r.implicit.solve(
                     h, mass, kin, free, np.asarray(q_refs[sub]) - q,
                     np.asarray(qd_refs[sub]) - qd, np.asarray(kp), np.asarray(kd), effort)
@@ -844,6 +850,7 @@ class World:
                     r.last_sub_quat = quat
                 v, w = r.cmd
                 cy, sy = math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)
+                assert r.fast is not None
                 f, t, at = r.fast.wrench(pos, quat, vel, ang,
                                          (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
                                          r.anchor_yaw, (v * cy, v * sy, 0.0), w)
@@ -881,10 +888,10 @@ class World:
             r.prev_quat, r.prev_sub_quat = quat, r.last_sub_quat
             v, w = r.cmd
             r.wheel_rates = wheel_speeds(v, w, track_m=TRACK_M, radius_m=WHEEL_RADIUS_M)
-            r.odom_xy, r.odom_yaw = odometry_step(
+            odom_xy, odom_yaw = odometry_step(
                 r.odom_xy, r.odom_yaw, v, w, self.dt, drift=self.config.noise.odom_drift,
                 track_m=TRACK_M, noise=self.rng.standard_normal(3))
-            r.odom_yaw = float(r.odom_yaw)
+            r.odom_xy, r.odom_yaw = odom_xy, float(odom_yaw)
 
     # ----------------------------------------------------------------- sensing
     def camera_pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:
