@@ -19,7 +19,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
 from pathlib import Path
-from typing import IO, Any, NamedTuple, assert_never
+from typing import IO, Any, NamedTuple, assert_never, cast
 
 import lz4.frame
 import zstandard
@@ -28,6 +28,7 @@ from mcap.records import Channel as McapChannel
 from mcap.records import Chunk, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from rosbags.interfaces import (
+    ConnectionExtRosbag2,
     Qos,
     QosDurability,
     QosHistory,
@@ -222,7 +223,7 @@ def _qos_from_entry(index: int, entry: Any) -> Qos:
             except (KeyError, ValueError):
                 raise BagError(f'{where}.{key}: {value!r} is not one of '
                                f'{[m.name.lower() for m in enum]}') from None
-        times = {key: QosTime(int(entry[key]['sec']), int(entry[key]['nsec']))
+        times: dict[str, Any] = {key: QosTime(int(entry[key]['sec']), int(entry[key]['nsec']))
                  for key in _QOS_TIMES}
         avoid = entry['avoid_ros_namespace_conventions']
         if not isinstance(avoid, bool):
@@ -401,6 +402,7 @@ class BagWriter:
             self._open_file()
         if self._file_start_ns is None:
             self._file_start_ns = t_ns
+        assert self._file is not None                # _open_file opened one
         self._file.write(self._conns[topic], t_ns, data)
         self._file_bytes += len(data) + 31   # message record + index entry
         self.counts[topic] += 1
@@ -599,7 +601,8 @@ def _chunk_records(chunk: Chunk) -> list[McapRecord]:
         return records
     stream = _ExactReader(io.BytesIO(raw), len(raw))
     try:
-        for record in StreamReader(stream, skip_magic=True).records:
+        # (StreamReader reads any readable binary stream; its annotation names a few)
+        for record in StreamReader(cast(IO[bytes], stream), skip_magic=True).records:
             records.append(record)
             if stream.pos == len(raw):
                 return records
@@ -646,7 +649,7 @@ def _scan_mcap(path: Path) -> _ScanResult:
     with path.open('rb') as fh:
         stream = _ExactReader(fh, size)
         try:
-            for record in StreamReader(stream, emit_chunks=True).records:
+            for record in StreamReader(cast(IO[bytes], stream), emit_chunks=True).records:
                 if isinstance(record, Chunk):
                     try:
                         inner = _chunk_records(record)
@@ -746,6 +749,7 @@ class _Source:
         out: dict[str, TopicInfo] = {}
         if self.reader is not None:
             for c in self.reader.connections:
+                assert isinstance(c.ext, ConnectionExtRosbag2)      # a rosbag2 reader's
                 info = out.setdefault(c.topic, TopicInfo(c.topic, c.msgtype, 0,
                                                          list(c.ext.offered_qos_profiles),
                                                          c.digest, c.msgdef.data))
@@ -902,6 +906,7 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None, *, raw:
             if raw or topic in undecodable:
                 yield BagMessage(topic, msgtype, t, data)
             else:
+                assert deser is not None                 # a typestore unless raw
                 yield BagMessage(topic, msgtype, t, deser(data, msgtype))
         if src.problems:
             if strict:
