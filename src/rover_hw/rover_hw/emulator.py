@@ -283,7 +283,8 @@ class Device:
             tachometers=tuple(c(v, p.TACH_RAD_S, p.I16) for v in vel[ENCODERS:ENCODERS + 4]),
             pot=c(float(pos[ENCODERS + 4]), p.POT_RAD, p.I16),
             incl=tuple(max(0, min(65535, round(v / p.INCL_VOLTS))) for v in s.incl_volts),
-            ft=tuple(ft), accel=tuple(accel), gyro=tuple(gyro), flags=flags)
+            ft=tuple(ft), accel=(accel[0], accel[1], accel[2]),
+            gyro=(gyro[0], gyro[1], gyro[2]), flags=flags)
 
 
 class PtyEmulator:
