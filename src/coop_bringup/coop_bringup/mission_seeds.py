@@ -71,7 +71,7 @@ def judge(rep: dict) -> dict:
     return row
 
 
-def _f(v, spec: str) -> str:
+def _f(v: object, spec: str) -> str:
     return '-' if v is None or (isinstance(v, float) and not math.isfinite(v)) \
         else format(v, spec)
 
@@ -98,12 +98,12 @@ def format_table(rows: list[dict]) -> str:
     return '\n'.join(lines)
 
 
-def _pct(v):
+def _pct(v: float | None) -> float | None:
     return None if v is None else 100 * v
 
 
 def run_seeds(seeds: list[int], run_one: Callable[[int, str], dict], out: Path, *,
-              log=print) -> list[dict]:
+              log: Callable[[str], None] = print) -> list[dict]:
     """Each seed's mission (`run_one(seed, run_id)` returns its report) under `out`, or its
     report read back when `out/seed_<k>/report.json` holds one; the judged rows, also written
     to `out/seeds.json` after every seed."""

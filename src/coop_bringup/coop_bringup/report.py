@@ -10,8 +10,10 @@ from __future__ import annotations
 import math
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from coop_common.files import save_figure, write_json, write_text_atomic
 
@@ -44,7 +46,7 @@ class PhaseStatus(StrEnum):
     FAILED = 'failed'
 
 
-def _site_columns(keys: np.ndarray, resolution: float, centre_xy, half_m: float
+def _site_columns(keys: np.ndarray, resolution: float, centre_xy: ArrayLike, half_m: float
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The work site's ground cells as key ranges: (lo, hi) inclusive (x, y) keys and the
     (N, 3) keys given."""
@@ -55,8 +57,8 @@ def _site_columns(keys: np.ndarray, resolution: float, centre_xy, half_m: float
     return lo, hi, k
 
 
-def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, centre_xy,
-                  half_m: float, z_max_m: float = 1.0) -> float:
+def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *,
+                  centre_xy: ArrayLike, half_m: float, z_max_m: float = 1.0) -> float:
     """Fraction of the work site's ground cells (a square of side 2 half_m about centre_xy)
     whose surface the map has measured: an occupied voxel (the ground, or the top of what stands
     on it) in the column below z_max_m. A column crossed only by rays (free voxels above an
@@ -75,7 +77,7 @@ def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *,
     return float(len(cols) / total) if total > 0 else 0.0
 
 
-def top_view(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, centre_xy,
+def top_view(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, centre_xy: ArrayLike,
              half_m: float, z_max_m: float = 1.0, ground_m: float = 0.1) -> np.ndarray:
     """Per ground cell of the site (x rows, y columns): -1 unknown, 0 seen free, 1 an occupied
     voxel above `ground_m` (an obstacle)."""
@@ -117,12 +119,12 @@ def identification_errors(truth: dict[str, float], estimate: dict[str, float],
 # ------------------------------------------------------------------------------ the report
 
 
-def _fmt(v, spec: str = '.3g', none: str = '-') -> str:
+def _fmt(v: object, spec: str = '.3g', none: str = '-') -> str:
     return none if v is None or (isinstance(v, float) and not math.isfinite(v)) else \
         format(v, spec)
 
 
-def _pct(v):
+def _pct(v: float | None) -> float | None:
     return None if v is None else 100 * v
 
 
@@ -266,7 +268,7 @@ def _run_files(rep: dict) -> list[str]:
     return [*lines, ''] if lines else []
 
 
-def write_report(rep: dict, out: Path, **extras) -> tuple[Path, Path]:
+def write_report(rep: dict, out: Path, **extras: Any) -> tuple[Path, Path]:
     """report.json and report.md (with PNG plots) under `out`. extras: top_view (from
     `top_view`), paths {rover: (N, 2) odometry xy}, occupied_points (N, 3), insertion_curves
     (an Attempt's curves); they go into the plots only."""

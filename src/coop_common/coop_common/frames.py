@@ -197,7 +197,7 @@ def quat_of(r: np.ndarray) -> tuple[float, float, float, float]:
     return float(q[0]), float(q[1]), float(q[2]), float(q[3])
 
 
-def _xyz(v) -> tuple[float, float, float]:
+def _xyz(v: Sequence[float] | np.ndarray) -> tuple[float, float, float]:
     """A 3-vector's components as floats."""
     return float(v[0]), float(v[1]), float(v[2])
 

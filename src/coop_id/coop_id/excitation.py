@@ -21,7 +21,7 @@ posterior covariance, hence each strategy's cost:
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Literal, assert_never, get_args
@@ -254,11 +254,13 @@ def _mv(m: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (m @ v[..., None])[..., 0]
 
 
-def _sine(a, w, a0, t) -> tuple:
+def _sine(a: np.ndarray | float, w: np.ndarray | float, a0: np.ndarray | float,
+          t: np.ndarray | float) -> tuple:
     return a0 + a * np.sin(w * t), a * w * np.cos(w * t), -a * w * w * np.sin(w * t)
 
 
-def _matrices(x: np.ndarray, arm: ArmModel, kin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _matrices(x: np.ndarray, arm: ArmModel, kin: ArmKinematics
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mass, stiffness (with the arm's gravity term) and damping of the coupled base, per mode
     (kin with leading axes (..., 3 modes)): (..., 3, 6, 6) each, damping (6, 6)."""
     m2 = arm.mass
@@ -439,7 +441,8 @@ class ArmReference:
     resolves). A mode driving a joint that is not one of ARM_JOINTS is refused
     (ExcitationError)."""
 
-    def __init__(self, modes, *, speed_rad_s: float = 1.5, min_blend_s: float = 0.2) -> None:
+    def __init__(self, modes: Sequence[tuple[str, float, float]], *, speed_rad_s: float = 1.5,
+                 min_blend_s: float = 0.2) -> None:
         bad = [m[0] for m in modes if m[0] not in ARM_JOINTS]
         if bad:
             raise ExcitationError(f'a mode drives one of {list(ARM_JOINTS)}, got {bad}')
@@ -452,7 +455,8 @@ class ArmReference:
         self._dur = 1.0
         self._home: np.ndarray | None = None
 
-    def _target(self, mode: int, exc: Excitation, t0: float):
+    def _target(self, mode: int, exc: Excitation, t0: float
+                ) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
         joint, hold1, _ = self.modes[mode]
 
         def ref(t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -487,8 +491,8 @@ class ArmReference:
         self._switch(('rest',), still, now, here, 1.0, lead_s)   # 1 s: the swing's reach
         return self._t0 + self._dur
 
-    def _switch(self, key, new, now: float, here: np.ndarray, horizon_s: float,
-                lead_s: float) -> None:
+    def _switch(self, key: tuple, new: Callable[[float], tuple[np.ndarray, np.ndarray]],
+                now: float, here: np.ndarray, horizon_s: float, lead_s: float) -> None:
         if key == self._key:
             if self._old is not None and now >= self._t0 + self._dur:
                 self._old = None            # blend over: forget the old trajectory
@@ -524,10 +528,13 @@ class ArmReference:
 
     def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(position, speed) of (arm_joint_1, arm_joint_2) at t."""
+        assert self._new is not None, 'no reference yet (start or rest first)'
         return _blend(self._old, self._new, self._t0, self._dur, t)
 
 
-def _blend(old, new, t0: float, dur: float, t: float) -> tuple[np.ndarray, np.ndarray]:
+def _blend(old: Callable[[float], tuple[np.ndarray, np.ndarray]] | None,
+           new: Callable[[float], tuple[np.ndarray, np.ndarray]], t0: float, dur: float, t: float
+           ) -> tuple[np.ndarray, np.ndarray]:
     qn, vn = new(t)
     u = (t - t0) / dur
     if old is None or u >= 1.0:

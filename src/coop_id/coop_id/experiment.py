@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -149,9 +150,10 @@ class StepTracking:
         return float(self.mass_error()[sel].max()), float(self.mean_error[sel].max())
 
 
-def mass_step_tracking(truth: BaseParameters, *, seeds: list[int], config_factory,
-                       step_s: float = 8.0, duration_s: float = 14.0, fraction: float = 0.2,
-                       noise: float = 0.1, strategy: Strategy | str = Strategy.INFORMATION,
+def mass_step_tracking(truth: BaseParameters, *, seeds: list[int],
+                       config_factory: Callable[[], IdentifierConfig], step_s: float = 8.0,
+                       duration_s: float = 14.0, fraction: float = 0.2, noise: float = 0.1,
+                       strategy: Strategy | str = Strategy.INFORMATION,
                        scales: dict[str, np.ndarray] | None = None) -> list[StepTracking]:
     """The drift scenario of issue #3 item 5: the rover identifies itself, then at step_s
     (after convergence, so that an estimator that does not track visibly lags) picks up a rock

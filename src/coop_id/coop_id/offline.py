@@ -7,6 +7,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from coop_common.dynparams import PARAM_NAMES
 
@@ -79,8 +80,8 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
     return np.array(stamps, dtype=np.int64), np.stack(rows)
 
 
-def sensor_noise(acc_var, gyro_var, incl_var, force_std: float = 0.0,
-                 ) -> dict[int, SensorNoise] | None:
+def sensor_noise(acc_var: ArrayLike, gyro_var: ArrayLike, incl_var: ArrayLike,
+                 force_std: float = 0.0) -> dict[int, SensorNoise] | None:
     """The errors-in-variables noise model from the sensors' published variances (IMU
     covariance diagonals, inclinometer roll/pitch variances) and the F/T force sigma; None
     when a variance is missing (zero, negative or not finite): then no bias correction."""

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +34,7 @@ STREAMS = ('imu', 'inclinometer', 'wrench')
 QUEUE_S = 5.0
 
 
-def stamp_ns(header) -> int:
+def stamp_ns(header: Any) -> int:
     """A std_msgs/Header's stamp in integer nanoseconds."""
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
@@ -161,7 +162,7 @@ def _trim(buf: deque, t_min: int) -> None:
         buf.popleft()
 
 
-def _nearest(buf: deque, t: int, tol: int):
+def _nearest(buf: deque, t: int, tol: int) -> tuple[int, Sequence[float]] | None:
     """The values of `buf` (stamp-ordered) nearest to t within tol, searched from the newest
     (of two equally near, the older)."""
     best, best_dt = None, tol

@@ -76,8 +76,10 @@ import enum
 import itertools
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import nnls
 
 from .errors import InsertionError
@@ -131,7 +133,7 @@ class ContactKind(enum.StrEnum):
     SEATED = 'seated'
 
 
-def _pos(name: str, v, *, zero_ok: bool = False) -> float:
+def _pos(name: str, v: float, *, zero_ok: bool = False) -> float:
     x = float(v)
     if not np.isfinite(x) or x < 0 or (x == 0 and not zero_ok):
         raise InsertionError(f'{name} must be finite and {">=" if zero_ok else ">"} 0, got {v}')
@@ -261,7 +263,7 @@ class Identification:
                          if c.kind in (ContactKind.CORNER_ON_BOTTOM, ContactKind.SEATED)))
 
 
-def _check_wrench(w) -> np.ndarray:
+def _check_wrench(w: Sequence[float] | np.ndarray) -> np.ndarray:
     a = np.asarray(w, float)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise InsertionError(f'planar wrench must be a finite (F_x, F_y, M_z), got {w}')
@@ -411,7 +413,8 @@ class ContactIdentifier:
         ncol = a.shape[1] // len(specs)
         return float(r @ r), lam, [lam[k * ncol:(k + 1) * ncol] for k in range(len(specs))]
 
-    def _fit(self, w: np.ndarray, specs: list[_Spec]):
+    def _fit(self, w: np.ndarray, specs: list[_Spec]
+             ) -> tuple[float, float, list[tuple[np.ndarray, np.ndarray]]]:
         """Best (chi2 + geometric term) over the hypothesis's contact points."""
         if not specs:
             r = w * self._scale
@@ -442,6 +445,7 @@ class ContactIdentifier:
             geo /= self.pose_sigma_m ** 2
             if best is None or chi2 + geo < best[0] + best[1]:
                 best = (chi2, geo, list(zip(pts, lams, strict=False)))
+        assert best is not None                     # every spec has a point to try
         return best
 
     def _spanned(self, wall_pt: np.ndarray, wall_side: int) -> np.ndarray:
@@ -464,7 +468,7 @@ class ContactIdentifier:
             s = (w[2] - (sp.a[0] * f[1] - sp.a[1] * f[0])) / den
         return sp.a + float(np.clip(s, 0.0, 1.0)) * d
 
-    def seat_check(self, wrench, pose: CardPose) -> SeatCheck:
+    def seat_check(self, wrench: Sequence[float] | np.ndarray, pose: CardPose) -> SeatCheck:
         """Whether the wrench says both corners carry the card on the floor, by a margin over
         every one-corner rival (see the module notes). Only the wrench's chi^2 compares: the
         pose estimate sets where the features may be (within 3 pose sigmas), not which
@@ -569,7 +573,7 @@ class ContactIdentifier:
               np.array([min(max(proj, 0.0), length)]))
         return [sp.a + s / length * seg for s in ss]
 
-    def identify(self, wrench, pose: CardPose) -> Identification:
+    def identify(self, wrench: Sequence[float] | np.ndarray, pose: CardPose) -> Identification:
         """The contact state from the summed planar wrench (F_x, F_y, M_z about the site origin;
         the force the site exerts on the card, see task_wrench / planar_wrench) and the card's
         estimated pose in the site frame."""
@@ -817,7 +821,8 @@ class LeastResistance:
             out.append((a, (force - self.force_limit_n) / self.stiffness, force))
         return out
 
-    def step(self, ident: Identification, wrench, pose: CardPose) -> Step:
+    def step(self, ident: Identification, wrench: Sequence[float] | np.ndarray, pose: CardPose
+             ) -> Step:
         """The bounded increment for this control step (site frame, about the card's
         leading-edge centre)."""
         if not isinstance(ident, Identification) or not isinstance(pose, CardPose):
@@ -857,7 +862,8 @@ class LeastResistance:
             worst = max(worst, force - self.stiffness * float(a @ d))
         return worst
 
-    def _project(self, desired: np.ndarray, cons) -> np.ndarray:
+    def _project(self, desired: np.ndarray, cons: Sequence[tuple[np.ndarray, float, Any]]
+                 ) -> np.ndarray:
         """Nearest (weighted) d to desired with a_k . d >= b_k: enumerate active sets."""
         wgt = self._weight
         # work in scaled coordinates z = W d, so the metric is Euclidean
@@ -884,7 +890,7 @@ class LeastResistance:
         if best is None:
             # conflicting retreats (cannot happen for b <= 0, where d = 0 is feasible): retreat
             # along the summed constraint normals
-            a = sum(a for a, _, _ in cons)
+            a = np.asarray(sum(a for a, _, _ in cons))
             need = max(b for _, b, _ in cons)
             return a * need / max(float(a @ a), 1e-12)
         return best[1] / wgt
@@ -913,8 +919,8 @@ class LeastResistance:
         return d_min + lo * (d - d_min)
 
 
-def task_wrench(sensor_wrench, t_task_sensor, *, tare=None, reaction: bool = True
-                ) -> np.ndarray:
+def task_wrench(sensor_wrench: Sequence[float] | np.ndarray, t_task_sensor: ArrayLike, *,
+                tare: ArrayLike | None = None, reaction: bool = True) -> np.ndarray:
     """A rover's 6-axis F/T reading (F, M in its sensor frame) as the wrench the environment
     exerts on the carried card, in the task (site) frame, moments about the task origin.
 
@@ -942,7 +948,7 @@ def task_wrench(sensor_wrench, t_task_sensor, *, tare=None, reaction: bool = Tru
     return -out if reaction else out
 
 
-def planar_wrench(task_wrenches) -> np.ndarray:
+def planar_wrench(task_wrenches: ArrayLike) -> np.ndarray:
     """Sum of the rovers' task-frame wrenches (N, 6) reduced to the plane of the insertion:
     (F_x, F_y, M_z). "The measured forces/torques are evaluated from force/torque sensor
     readings of all cooperating robots" (app. A.4)."""
@@ -953,7 +959,7 @@ def planar_wrench(task_wrenches) -> np.ndarray:
     return np.array([total[0], total[1], total[5]])
 
 
-def planar_step_in_frame(step: Step, pose: CardPose, t_frame_task) -> tuple[np.ndarray,
+def planar_step_in_frame(step: Step, pose: CardPose, t_frame_task: ArrayLike) -> tuple[np.ndarray,
                                                                               np.ndarray]:
     """A Step as a 3-D translation of the card's leading-edge centre and a rotation vector
     (about that point), both in the frame t_frame_task maps into (e.g. the slave's base frame

@@ -29,6 +29,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -107,7 +108,7 @@ def camera_pose(marker: np.ndarray, normal: np.ndarray, range_m: float, incidenc
 def measure(*, diameters_px: tuple[float, ...] = DIAMETERS_PX,
             incidences_deg: tuple[float, ...] = INCIDENCES_DEG, per_cell: int = 20,
             seed: int = 0, world_seed: int = 1, width: int = 640, height: int = 480,
-            log=None) -> tuple[list[CellResult], dict]:
+            log: Callable[[str], None] | None = None) -> tuple[list[CellResult], dict]:
     """Render and detect every cell `per_cell` times; the cells and the settings used."""
     if per_cell < 1:
         raise InsertionError(f'per_cell must be >= 1, got {per_cell}')
@@ -222,7 +223,7 @@ def format_table(result: dict) -> str:
         lines.append(f'{d:7.0f} {rng_m:7.2f} | '
                      + ' '.join(f'{100 * rate[(d, i)]:5.0f}' for i in incs))
 
-    def fmt(x, unit):
+    def fmt(x: float | None, unit: str) -> str:
         return 'none in the grid' if x is None else f'{x:g} {unit}'
 
     lines.append(f'detected in >= {100 * lim["rate"]:g} %: min_diameter_px '

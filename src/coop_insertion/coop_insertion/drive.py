@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import InsertionError
 
@@ -43,7 +44,7 @@ class GoToPose:
     goal's heading. Options (keyword-only): max_speed_m_s (app. D: 0.25), max_yaw_rate_rad_s,
     gain (1/s, on distance and on heading), position_tolerance_m, yaw_tolerance_rad."""
 
-    def __init__(self, goal_xy, goal_yaw: float, *, max_speed_m_s: float = 0.2,
+    def __init__(self, goal_xy: ArrayLike, goal_yaw: float, *, max_speed_m_s: float = 0.2,
                  max_yaw_rate_rad_s: float = 0.6, gain: float = 1.5,
                  position_tolerance_m: float = 0.02, yaw_tolerance_rad: float = 0.02) -> None:
         g = np.asarray(goal_xy, float)
@@ -90,7 +91,7 @@ class FollowPath:
     correction; intermediate waypoints count as passed within `pass_m`, the last within
     `position_tolerance_m`, then (if given) turn to `final_yaw`."""
 
-    def __init__(self, waypoints, final_yaw: float | None = None, *,
+    def __init__(self, waypoints: ArrayLike, final_yaw: float | None = None, *,
                  max_speed_m_s: float = 0.2, max_yaw_rate_rad_s: float = 0.8,
                  turn_above_rad: float = math.radians(20), pass_m: float = 0.25,
                  position_tolerance_m: float = 0.08, yaw_tolerance_rad: float = 0.05) -> None:

@@ -18,6 +18,7 @@ image of the same background.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import assert_never
@@ -212,7 +213,8 @@ def render_plate(K: np.ndarray, width: int, height: int, R: np.ndarray, t: np.nd
     return Rendered(image, centres, radius, R[:, 2].copy(), occluded, ell_c)
 
 
-def _ellipse_centre(K, R, t, m, r) -> np.ndarray:
+def _ellipse_centre(K: np.ndarray, R: np.ndarray, t: np.ndarray, m: Sequence[float], r: float
+                    ) -> np.ndarray:
     """Centre of the exact imaged ellipse of the circle (radius r at plate point m)."""
     H = K @ np.column_stack([R[:, 0], R[:, 1], R @ np.array([m[0], m[1], 0.0]) + t])
     Hi = np.linalg.inv(H)

@@ -24,9 +24,10 @@ stereo (`triangulate.py`: the true normal is the same in both rectified images).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from enum import Enum, StrEnum
-from typing import Protocol, assert_never, runtime_checkable
+from typing import Any, Protocol, assert_never, runtime_checkable
 
 import cv2
 import numpy as np
@@ -567,7 +568,7 @@ class EllipseDetector:
         return out
 
     # -- stages 2-3
-    def _refine(self, image: np.ndarray, coarse) -> Marker | None:
+    def _refine(self, image: np.ndarray, coarse: Sequence[float]) -> Marker | None:
         # (coarse a, b: full axes of the half-size image = semi-axes at full resolution)
         img = image if self.polarity is Polarity.BRIGHT else 255 - image
         ell = coarse
@@ -613,7 +614,8 @@ class EllipseDetector:
                       ellipse=(float(ell[0]), float(ell[1]), float(ell[2]), float(ell[3]),
                                float(ell[4])), sigma_px=sigma)
 
-    def _edge_points(self, img: np.ndarray, ell) -> tuple[np.ndarray, float] | None:
+    def _edge_points(self, img: np.ndarray, ell: Sequence[float]
+                     ) -> tuple[np.ndarray, float] | None:
         """Sub-pixel crossings of the local mid level near the ellipse `ell`, and the contrast."""
         cx, cy, a, b, ang = ell
         pad = 6
@@ -775,7 +777,7 @@ def _plane_fit(mask: np.ndarray, z: np.ndarray, qx: np.ndarray, qy: np.ndarray,
             rough)
 
 
-def _ellipse_residual(pts: np.ndarray, ell) -> np.ndarray:
+def _ellipse_residual(pts: np.ndarray, ell: Sequence[float]) -> np.ndarray:
     """Approximate signed geometric distance (px) of points from the ellipse (Sampson)."""
     cx, cy, a, b, ang = ell
     ca, sa = math.cos(ang), math.sin(ang)
@@ -823,7 +825,7 @@ class DetectorKind(StrEnum):
 DETECTORS = tuple(DetectorKind)
 
 
-def make_detector(kind: DetectorKind | str = DetectorKind.DEFAULT, **options
+def make_detector(kind: DetectorKind | str = DetectorKind.DEFAULT, **options: Any
                   ) -> MarkerDetector:
     """The detector by name, with its keyword options; InsertionError naming the detectors for
     an unknown name."""

@@ -49,9 +49,11 @@ import dataclasses
 import enum
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from coop_common.params import choice
 from coop_common.rover_geometry import (
@@ -67,6 +69,7 @@ from .contact import (
     CardPose,
     ContactIdentifier,
     ContactState,
+    Identification,
     LeastResistance,
     SeatCheck,
     planar_step_in_frame,
@@ -154,8 +157,9 @@ SEAT_CONFIRMATIONS = 3
 FLOOR_GATE_M = 0.008
 
 
-def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m: float,
-                     min_force_n: float, gate_m: float = FLOOR_GATE_M) -> float:
+def floor_correction(ident: Identification, pose: CardPose, *, slot_depth_m: float,
+                     card_width_m: float, min_force_n: float, gate_m: float = FLOOR_GATE_M
+                     ) -> float:
     """How far to move the card pose's depth estimate (planar y, m) so that its lowest corner
     lies on the slot's floor, when the floor pushes back by more than min_force_n
     (Identification.floor_force_n); 0 otherwise. The floor is where the card stands: its depth
@@ -225,7 +229,7 @@ class SlaveController:
     approach_speed_m_s, seat_force_n (the floor's push on both corners that ends it),
     seat_verdict (SeatVerdict: what that push must show besides)."""
 
-    def __init__(self, model: TaskModel, cg_to_arm, *, tolerance_m: float = 0.003,
+    def __init__(self, model: TaskModel, cg_to_arm: ArrayLike, *, tolerance_m: float = 0.003,
                  angle_tolerance_rad: float = 0.03, yaw_tolerance_rad: float = 0.15,
                  settle_s: float = 1.0,
                  descent_speed_m_s: float = 0.005, contact_threshold_n: float = 1.5,
@@ -233,7 +237,7 @@ class SlaveController:
                  force_period_s: float = 0.05, carry_reach_m: float = 0.30,
                  carry_height_m: float = 0.0, ready_s: float = 2.0,
                  servo: VisualServo | None = None, contact_options: dict | None = None,
-                 step_options: dict | None = None, site_in_odom=None,
+                 step_options: dict | None = None, site_in_odom: ArrayLike | None = None,
                  approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0,
                  seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE,
                  backoff_m: float = 0.02) -> None:
@@ -312,7 +316,8 @@ class SlaveController:
         self._hold_joints: tuple | None = None    # after a failure in contact: backed off
 
     # -- inputs -------------------------------------------------------------------------------
-    def add_state(self, t: float, q, odom_xy_yaw, wrench) -> None:
+    def add_state(self, t: float, q: ArrayLike, odom_xy_yaw: Sequence[float], wrench: ArrayLike
+                  ) -> None:
         """Servo-rate sensing: arm joints (4, rad), odometry (x, y, yaw) and the F/T reading
         (force, torque in the sensor frame)."""
         qa = np.asarray(q, float)
@@ -424,7 +429,8 @@ class SlaveController:
                            self._contact_state, self._done, self._success, self._reason,
                            self._descending, self._card_in_site, self._awaiting_fix)
 
-    def _command(self, joints, v: float, w: float) -> SlaveCommand:
+    def _command(self, joints: tuple[float, float, float, float] | None, v: float, w: float
+                 ) -> SlaveCommand:
         return SlaveCommand(joints, float(v), float(w), self._status())
 
     def _move_target(self, dp: np.ndarray, dpitch: float) -> tuple | None:

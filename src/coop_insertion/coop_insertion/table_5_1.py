@@ -30,6 +30,7 @@ import signal
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -57,7 +58,7 @@ LABELS = {5.0: 'Easy', 4.5: 'Medium', 4.375: 'Hard', 4.2925: '1 % clearance'}
 
 
 def build_site_map(path: Path, *, seed: int, occlusion_density: float, scans: int = 14,
-                   log=None) -> Path:
+                   log: Callable[[str], None] | None = None) -> Path:
     """The scenario's map by the mapping pipeline (coop_viewplan.fig_3_25's exploration)."""
     from coop_viewplan.fig_3_25 import Fig325Config, PoseSource, run_strategy  # noqa: PLC0415 - only to build a site map
     cfg = Fig325Config(rovers=2, scans=scans, seed=seed, occlusion_density=occlusion_density,
@@ -71,7 +72,7 @@ MAX_RESTARTS = 6
 
 
 def open_rig(*, seed: int, occlusion_density: float, slot_in: float, log_dir: Path,
-             site_map: Path, log=print, render_workers: int = 1,
+             site_map: Path, log: Callable[[str], None] = print, render_workers: int = 1,
              lockstep: bool = True, composed: bool = False) -> InsertionRig:
     """The attempts' graph, ready: the rovers placed for the row, the master's survey of the
     site fused into the map, the stereo ranging stopped (the map is the scenario's); in
@@ -95,7 +96,8 @@ def _cell_key(slot_in: float, placement: str, seed: int) -> tuple[float, str, in
     return (round(float(slot_in), 6), placement, int(seed))
 
 
-def _done_attempts(checkpoint: Path | None, settings: dict | None = None, log=print) -> dict:
+def _done_attempts(checkpoint: Path | None, settings: dict | None = None,
+                   log: Callable[[str], None] = print) -> dict:
     """The attempts a previous run of the same `settings` saved in `checkpoint` (its --json):
     (slot_in, placement, seed) -> (row, curves); none when its settings differ."""
     if checkpoint is None or not checkpoint.exists():
@@ -149,9 +151,9 @@ def parse_rows(spec: str, *, attempts: int,
 
 
 def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple[str, ...]]],
-        placements: tuple[str, ...], seed: int,
-        occlusion_density: float, timeout_s: float, max_force_n: float, site_map: Path | None,
-        checkpoint: Path | None = None, resume: bool = False, log=print) -> dict:
+        placements: tuple[str, ...], seed: int, occlusion_density: float, timeout_s: float,
+        max_force_n: float, site_map: Path | None, checkpoint: Path | None = None,
+        resume: bool = False, log: Callable[[str], None] = print) -> dict:
     """The table: `rows` slot widths (in), each with `attempts` per placement, or (width,
     attempts, placements) per row (parse_rows). With `checkpoint`, the result so far is
     written there (atomically) after every attempt, `complete` false until the end; `resume`

@@ -31,6 +31,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .contact import INCH, SlotGeometry
 from .errors import InsertionError
@@ -145,7 +146,8 @@ def _size_m(m: StereoMarker, radius_px: float, fx: float) -> float:
     return float(radius_px * m.position[2] / fx)
 
 
-def _site_axes(up, markers: list, radii_px: list[float]) -> tuple[np.ndarray, np.ndarray]:
+def _site_axes(up: ArrayLike, markers: list, radii_px: list[float]
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The unit vertical and the site's x as the camera sees it (the vertical crossed with the
     viewing direction), after checking the inputs (InsertionError)."""
     u = np.asarray(up, float)
@@ -160,7 +162,7 @@ def _site_axes(up, markers: list, radii_px: list[float]) -> tuple[np.ndarray, np
     return u, across / np.linalg.norm(across)
 
 
-def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
+def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float, up: ArrayLike,
                   model: TaskModel, *, size_tolerance: float = 0.6,
                   slot_memory: SlotPair | None = None,
                   memory_gate_m: float = 0.02) -> LabelledMarkers:
@@ -247,7 +249,7 @@ def _best_pair(cand: list[int], pos: list[np.ndarray], sizes: list[float], radiu
     return None if best is None else best[1]
 
 
-def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
+def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up: ArrayLike,
               model: TaskModel, *, size_tolerance: float = 0.6) -> SlotPair | None:
     """The slot's pair alone (the card not in view): markers of a slot marker's size within
     `size_tolerance`, their distance apart the slot's within 20 %, ordered along the site's x
@@ -266,7 +268,7 @@ def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
                     np.array([markers[k].covariance for k in order]))
 
 
-def site_from_slot(pair: SlotPair, up, model: TaskModel) -> np.ndarray:
+def site_from_slot(pair: SlotPair, up: ArrayLike, model: TaskModel) -> np.ndarray:
     """The site frame (4x4: the slot mouth's centre, x across the slot, z up) in the frame of
     the slot's markers `pair` (the camera's), from the task model's marker positions in the
     site frame and the vertical `up` in that frame (InsertionError when the markers stand one
@@ -285,7 +287,7 @@ def site_from_slot(pair: SlotPair, up, model: TaskModel) -> np.ndarray:
     return homogeneous(rot, 0.5 * (a + b) - rot @ mid)
 
 
-def card_required_motion(obs: LabelledMarkers, t_base_card, model: TaskModel, *,
+def card_required_motion(obs: LabelledMarkers, t_base_card: ArrayLike, model: TaskModel, *,
                          above_m: float) -> RequiredMotion:
     """Eq. 5-1..5-4: the card's required motion in the slave's base frame, to the pose with its
     lower edge `above_m` over the mouth, from the master's labelled markers and the card's pose in

@@ -176,7 +176,7 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
         nd = _working_range(cfg, cam, scene, T0)
         d_max = [0.0]                    # largest true disparity met, to check the range
 
-        def frames(T):
+        def frames(T: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
             out = []
             for _ in range(cfg.frames_per_step):
                 left, right, depth = scene.render(T[:3, :3], T[:3, 3],

@@ -149,7 +149,7 @@ def fiducial_scores(image: np.ndarray, depth: np.ndarray, uv: np.ndarray, *,
     g = c * wc
     hh = h * wh
 
-    def norm(x):
+    def norm(x: np.ndarray) -> np.ndarray:
         m = np.median(x[x > 0]) if np.any(x > 0) else 1.0
         return x / m
 
@@ -168,7 +168,7 @@ def select_fiducials(uv: np.ndarray, score: np.ndarray, n: int, *,
     uv = np.asarray(uv, float)
     sig2 = 2 * weights.spacing_px ** 2
 
-    def penalise(p):
+    def penalise(p: np.ndarray) -> None:
         s[:] -= weights.spacing_penalty * np.exp(-np.sum((uv - p) ** 2, 1) / sig2)
 
     if existing is not None:
@@ -362,11 +362,11 @@ def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 
     C = None if covariances is None else np.asarray(covariances, float)
     Winv = None if C is None else np.linalg.inv(C)
 
-    def fit(m):
+    def fit(m: np.ndarray) -> np.ndarray:
         return fit_g01(r[m], p[m], method=method, weights=w[m],
                        covariances=None if C is None else C[m])
 
-    def residual(g):
+    def residual(g: np.ndarray) -> np.ndarray:
         e = r @ g[:3, :3].T + g[:3, 3] - p
         if Winv is None:
             return np.linalg.norm(e, axis=1)
@@ -398,7 +398,8 @@ def camera_pose_covariance(fit: Callable[[np.ndarray, np.ndarray], np.ndarray],
     r = np.asarray(r_common, float)
     p = np.asarray(p_meas, float)
 
-    def params(g):                    # as RecursivePoseStats.g01: R projected onto SO(3)
+    # as RecursivePoseStats.g01: R projected onto SO(3)
+    def params(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         R = project_to_so3(g[:3, :3])
         return R.T, -R.T @ g[:3, 3]
 

@@ -5,12 +5,14 @@ benchmark and the tests, where the peer is installed).
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from .voxelmap import FREE, OCCUPIED, pack_keys
 
 
-def leaf_states(tree, res: float) -> tuple[np.ndarray, np.ndarray]:
+def leaf_states(tree: Any, res: float) -> tuple[np.ndarray, np.ndarray]:
     """(packed keys, FREE/OCCUPIED) of every voxel at resolution `res` covered by a leaf of
     `tree` (a pruned leaf of size s covers (s / res)^3 voxels), sorted by key."""
     keys, occ = [], []

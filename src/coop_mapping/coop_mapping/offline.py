@@ -137,12 +137,12 @@ class OfflineMap:
     body_points: int = 0                                 # points dropped as rover bodies
 
 
-def stamp_ns(stamp) -> int:
+def stamp_ns(stamp: Any) -> int:
     """A builtin_interfaces/Time as integer nanoseconds (the nodes key frames by it too)."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def image_array(msg) -> np.ndarray:
+def image_array(msg: Any) -> np.ndarray:
     """mono8 Image (rclpy or rosbags message) -> (height, width) uint8."""
     if msg.encoding not in ('mono8', '8UC1'):
         raise StereoError(f'encoding {msg.encoding!r}, need mono8')

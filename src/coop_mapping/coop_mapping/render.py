@@ -122,7 +122,7 @@ class TexturedScene:
     def __enter__(self) -> TexturedScene:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _view(self, R_wc: np.ndarray, t_wc: np.ndarray) -> list[float]:

@@ -6,6 +6,7 @@ Eq. 3-9. No rclpy here.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import assert_never
@@ -249,8 +250,9 @@ def shift_columns(img: np.ndarray, s: float) -> np.ndarray:
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def phase_averaged_disparity(match, right: np.ndarray, n_phases: int,
-                             max_spread_px: float = 1.0) -> np.ndarray:
+def phase_averaged_disparity(match: Callable[[np.ndarray], np.ndarray],
+                             right: np.ndarray, n_phases: int, max_spread_px: float = 1.0
+                             ) -> np.ndarray:
     """Pixel-locking cancellation by sub-pixel shifts (Shimizu and Okutomi's half-pixel shift
     of the image, ICCV 2001, generalised to n phases).
 

@@ -24,8 +24,9 @@ No rclpy here.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -97,7 +98,8 @@ class PoseFix:
         return self.R.T, -self.R.T @ self.t
 
 
-def _weighted_kabsch(m: np.ndarray, p: np.ndarray, w: np.ndarray, up_pair=None
+def _weighted_kabsch(m: np.ndarray, p: np.ndarray, w: np.ndarray,
+                     up_pair: tuple[np.ndarray, np.ndarray, float] | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
     """R, t minimising sum w_i |R p_i + t - m_i|^2 (+ w_g |R g - u|^2)."""
     W = w / w.sum()
@@ -152,7 +154,7 @@ def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarra
     w = 3.0 / np.trace(C, axis1=1, axis2=2)
     R, t = _weighted_kabsch(m, p, w, up_pair)
 
-    def normal_eq(R, t):
+    def normal_eq(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         q = (m - t) @ R              # R^T (m_i - t), camera frame
         s = p - q
         J = np.concatenate([-skew(q), np.broadcast_to(R.T, (n, 3, 3))], axis=2)  # (n, 3, 6)
@@ -192,7 +194,8 @@ def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarra
     return PoseFix(R, t, 0.5 * (cov + cov.T), chi2, n_obs - 6, tuple(range(n)))
 
 
-def _assignments(M: np.ndarray, p: np.ndarray, C: np.ndarray, gate: float):
+def _assignments(M: np.ndarray, p: np.ndarray, C: np.ndarray, gate: float
+                 ) -> Iterator[tuple[tuple[int, ...], tuple[int, ...]]]:
     """Every injective pairing of k = min(#obs, #markers) observations with markers whose
     pairwise distances all agree with the markers' within `gate` sigma (the distance between
     two points is frame-free): yields (observation indices, marker indices)."""
@@ -204,7 +207,8 @@ def _assignments(M: np.ndarray, p: np.ndarray, C: np.ndarray, gate: float):
     var = np.einsum('ijk,ikl,ijl->ij', u, C, u) + np.einsum('ijk,jkl,ijl->ij', u, C, u)
     tol = gate * np.sqrt(var) + 1e-9
 
-    def extend(mk, obs):
+    def extend(mk: tuple[int, ...], obs: list[int]
+               ) -> Iterator[tuple[tuple[int, ...], tuple[int, ...]]]:
         if len(obs) == k:
             yield tuple(obs), mk
             return
@@ -328,7 +332,7 @@ def detect_markers(image: np.ndarray, *, min_radius_px: float = 1.5, max_radius_
 
 def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamera, *,
                         error_model: ErrorModel | None = None, max_row_diff_px: float = 1.5,
-                        max_disparity_px: float = 256.0, **detect_kw
+                        max_disparity_px: float = 256.0, **detect_kw: Any
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Markers seen in both images of a rectified pair -> (K, 2) left uv, (K, 3) points in the
     left optical frame (Eq. 3-1..3-3), (K, 6) covariances (Eq. 3-7, default error model of the
@@ -385,7 +389,7 @@ class Initialiser:
 
     def __init__(self, geometry: TargetGeometry, *, R_ct: np.ndarray | None = None,
                  t_ct: np.ndarray | None = None, max_position_sigma_m: float = 0.1,
-                 up_sigma_rad: float | None = 0.01, **detect_kw) -> None:
+                 up_sigma_rad: float | None = 0.01, **detect_kw: Any) -> None:
         self.geometry = geometry
         self.R_ct = np.eye(3) if R_ct is None else np.asarray(R_ct, float)
         self.t_ct = np.zeros(3) if t_ct is None else np.asarray(t_ct, float)

@@ -55,6 +55,7 @@ import zlib
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import IO
 
 import numpy as np
 
@@ -933,7 +934,7 @@ class VoxelMap:
                   'model': self.model.__dict__, 'contributions': dict(self.contributions),
                   'voxels': len(self)}
 
-        def write(f) -> None:
+        def write(f: IO[bytes]) -> None:
             with zipfile.ZipFile(f, 'w', compression=zipfile.ZIP_STORED) as z:
                 z.writestr('header.json', json.dumps(header))
                 for name, arr in self._arrays().items():

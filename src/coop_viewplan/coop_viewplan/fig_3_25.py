@@ -28,7 +28,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
@@ -171,7 +171,7 @@ class SimMapper:
     def __enter__(self) -> SimMapper:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ world
@@ -295,7 +295,7 @@ def planner_config(cfg: Fig325Config, mapper: SimMapper, camera_height_m: float)
 
 
 def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
-                 log=None, save_map: Path | None = None) -> dict:
+                 log: Callable[[str], None] | None = None, save_map: Path | None = None) -> dict:
     """One run of one strategy: mapped voxel counts after the initial scan and each of
     `cfg.scans` planned scans (every rover scans once per scan step). save_map: write the
     shared map there at the end (the mapper's file format: `mapper -p map_file:=...` loads
@@ -399,7 +399,7 @@ def _top_view(sm: SimMapper) -> dict:
 
 
 def run(cfg: Fig325Config, *, strategies: list[StrategyName | str], seeds: int,
-        log=None) -> dict:
+        log: Callable[[str], None] | None = None) -> dict:
     """Each strategy over the seeds: the per-scan rows and their means (the JSON result)."""
     out: dict[str, Any] = {'config': {k: (list(v) if isinstance(v, tuple) else v)
                       for k, v in cfg.__dict__.items()},

@@ -60,9 +60,10 @@ Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, ClassVar, Protocol, assert_never
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, assert_never
 
 import numpy as np
 from scipy import ndimage
@@ -90,6 +91,9 @@ from .raycast import (
     ray_prefix_visibility,
     transmission_table,
 )
+
+if TYPE_CHECKING:    # for annotations only
+    from scipy.sparse import csr_matrix
 
 
 class StrategyName(StrEnum):
@@ -545,7 +549,7 @@ def footprint_probability(grid2d_prob: np.ndarray, known2d: np.ndarray,
                                   cval=1.0)
 
 
-def _grid_graph(nav: np.ndarray, resolution: float):
+def _grid_graph(nav: np.ndarray, resolution: float) -> tuple[csr_matrix, np.ndarray]:
     """8-connected graph of the navigable cells: (CSR matrix of step lengths, cell ids)."""
     h, w = nav.shape
     ids = np.full(nav.shape, -1, np.int64)
@@ -566,7 +570,7 @@ def _grid_graph(nav: np.ndarray, resolution: float):
     return mat, ids
 
 
-def _check_start(nav: np.ndarray, start) -> bool:
+def _check_start(nav: np.ndarray, start: Sequence[int] | np.ndarray) -> bool:
     if nav.ndim != 2:
         raise ValueError('navigable must be 2-D')
     si, sj = (int(v) for v in start)

@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +37,9 @@ from .nbv import (
     StrategyName,
 )
 from .params import PARAMS, check_params
+
+if TYPE_CHECKING:    # for annotations only
+    from coop_mapping.voxelmap import VoxelMap
 
 #: the node's parameters that the planning here reads (`nbv_config`, the grid, the seed); the
 #: others (topics, frames, task placement) have nothing to act on off line
@@ -80,7 +84,7 @@ def nbv_config(p: dict) -> NbvConfig:
         ni_measure=p['ni_measure'], free_gray=p['free_gray'])
 
 
-def grid_from_voxelmap(vm, p: dict) -> OccupancyGrid:
+def grid_from_voxelmap(vm: VoxelMap, p: dict) -> OccupancyGrid:
     """coop_mapping VoxelMap -> dense planning grid, with the node's checks and its parameter
     values `p` (`grid.planning_grid`, as the node converts the map topic)."""
     from coop_mapping.voxelmap import unpack_keys  # noqa: PLC0415 - see map_from_bag below

@@ -25,7 +25,7 @@ evaluations). `search='random'` rates a random subset of `max_candidates` candid
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -521,7 +521,7 @@ def _hull_entry_each(target: np.ndarray, eqs: list[np.ndarray], u: np.ndarray,
 
 
 def _ray_pairs(target: np.ndarray, centre: np.ndarray, rad2: np.ndarray, u: np.ndarray, *,
-               pairs_per_block: int = 1 << 15):
+               pairs_per_block: int = 1 << 15) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """The (direction, shape) pairs whose ray from `target` passes within a shape's bounding
     sphere (centre (S, ndim), squared radius (S,)), in blocks of directions: yields
     (first direction of the block, direction index in the block (ascending), shape index).
@@ -1049,7 +1049,7 @@ class TaskPlacer:
 
         unrated: list[int] = []
 
-        def rating_of(k: int, sel) -> np.ndarray:
+        def rating_of(k: int, sel: np.ndarray | slice) -> np.ndarray:
             """Eq. 4-1 of target k at cams[sel]; 0 for a secondary target that is inside an
             expanded occluder (recorded in `unrated`)."""
             try:

@@ -18,15 +18,19 @@ import sys
 import termios
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import assert_never
+from typing import TYPE_CHECKING, assert_never
 
 from coop_common.rover_geometry import GROUP_JOINTS, JointGroup
 from rover_sim.rover_model import ARM_JOINTS, MAST_JOINTS
 
 from . import protocol as p
 from .protocol import Flags
+
+if TYPE_CHECKING:    # for annotations only: the world imports PyBullet
+    from rover_sim.world import World
 from .safety import Limits, wheels_to_twist
 
 ENCODERS = 6
@@ -116,7 +120,7 @@ def corrupt(frame: bytes, rng: random.Random) -> bytes:
     return bytes(b)
 
 
-def make_world(*, seed: int = 1, noise_fraction: float = 0.1, truth_yaml: str = ''):
+def make_world(*, seed: int = 1, noise_fraction: float = 0.1, truth_yaml: str = '') -> World:
     """One rover in rover_sim's world (its sensors, noise and truth). Imports PyBullet."""
     from coop_common.dynparams import load_truth  # noqa: PLC0415 - only with a world
     from rover_sim.config import NoiseConfig, SimConfig  # noqa: PLC0415 - only with a world
@@ -132,7 +136,7 @@ class Device:
     tick and a heartbeat every 10th of a second, follows the host's commands, and stops every
     motor when the host falls silent for `host_timeout_s` or the e-stop is latched."""
 
-    def __init__(self, world, *, faults: Faults | None = None, host_timeout_s: float = 0.25,
+    def __init__(self, world: World, *, faults: Faults | None = None, host_timeout_s: float = 0.25,
                  heartbeat_hz: float = 10.0) -> None:
         self.world = world
         self.dt = world.dt
@@ -180,7 +184,7 @@ class Device:
             self._apply(pl)
         return b''
 
-    def _apply(self, pl) -> None:
+    def _apply(self, pl: p.Payload) -> None:
         w = self.world
         if isinstance(pl, p.ArmCommand):
             self._follow('arm', pl)
@@ -195,7 +199,7 @@ class Device:
             v, yaw_rate = wheels_to_twist(wheels, Limits())
             w.command_velocity(0, v, yaw_rate)
 
-    def _follow(self, group: JointGroup, pl) -> None:
+    def _follow(self, group: JointGroup, pl: p.ArmCommand | p.MastCommand) -> None:
         """A position-velocity-time set-point stream: the joint references pass through the
         timed set-points still ahead, by cubic interpolation from where the reference is now.
         Re-planned from the reference's own value and speed, the path is the same however a
@@ -291,7 +295,7 @@ class PtyEmulator:
     """A Device on a pseudo-terminal, paced in real time (`rate` x), faults on schedule."""
 
     def __init__(self, device: Device, *, link: str | Path | None = None, rate: float = 1.0,
-                 log=None) -> None:
+                 log: Callable[[str], None] | None = None) -> None:
         self.device = device
         self.link = Path(link) if link else None
         self.rate = rate
@@ -421,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _interrupt(signum, frame) -> None:
+def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 

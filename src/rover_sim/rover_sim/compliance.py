@@ -6,6 +6,7 @@ returned in the world frame, ready for the physics engine.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,7 +127,7 @@ def static_preload(masses: np.ndarray, com_positions: np.ndarray, p_cg: np.ndarr
     return np.concatenate([r_anchor.T @ force, r_anchor.T @ torque])
 
 
-def cross3(a, b) -> np.ndarray:
+def cross3(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) -> np.ndarray:
     """a x b of two 3-vectors in scalar math (np.cross costs ~50 us on 3-vectors)."""
     ax, ay, az = (float(v) for v in a)
     bx, by, bz = (float(v) for v in b)
@@ -210,12 +211,14 @@ class FastCompliance:
         """Forget the velocity history (after the base is placed by hand)."""
         self._dv_prev = None
 
-    def state(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
-              anchor_w: float) -> tuple[tuple, tuple, tuple, tuple, tuple, tuple]:
+    def state(self, com: Sequence[float], quat: Sequence[float], com_vel: Sequence[float],
+              ang: Sequence[float], anchor_pos: Sequence[float], anchor_yaw: float,
+              anchor_vel: Sequence[float], anchor_w: float
+              ) -> tuple[tuple, tuple, tuple, tuple, tuple, tuple]:
         """(sprung c.g. position (world), c.o.m. minus c.g. (world), dr, dtheta, dv, domega
         (anchor axes)) from PyBullet's base link c.o.m. position, principal-axes orientation,
         velocity and angular velocity: the deflection of Eq. B-3 and its rates."""
-        q_link = _qmul(tuple(quat), self.q_in_inv)
+        q_link = _qmul((quat[0], quat[1], quat[2], quat[3]), self.q_in_inv)
         ox, oy, oz = _rotate(q_link, self.com_offset)
         pos = (com[0] - ox, com[1] - oy, com[2] - oz)
         vel = (com_vel[0] - (ang[1] * oz - ang[2] * oy),
@@ -239,8 +242,10 @@ class FastCompliance:
         dth = (scale * qx, scale * qy, scale * qz)
         return pos, (ox, oy, oz), dr, dth, dv, dw
 
-    def wrench(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
-               anchor_w: float) -> tuple[list[float], list[float], list[float]]:
+    def wrench(self, com: Sequence[float], quat: Sequence[float], com_vel: Sequence[float],
+               ang: Sequence[float], anchor_pos: Sequence[float], anchor_yaw: float,
+               anchor_vel: Sequence[float], anchor_w: float
+               ) -> tuple[list[float], list[float], list[float]]:
         """(force, torque, point) in the world frame: the compliance wrench acts at the sprung
         body's c.g. (the base link origin); com, com_vel, quat are PyBullet's base link c.o.m.
         position, velocity and principal-axes orientation."""

@@ -20,6 +20,7 @@ from typing import IO, Any, BinaryIO
 
 import numpy as np
 
+from .config import SimConfig
 from .errors import SimError
 
 #: a first image waits for the worker to start and build its world
@@ -66,7 +67,7 @@ class RenderWorker:
     """The worker process of one World (`python -m rover_sim.render_worker`, pickles over its
     standard input and output); `request`, then `result`."""
 
-    def __init__(self, config, truths: Sequence[Any]) -> None:
+    def __init__(self, config: SimConfig, truths: Sequence[Any]) -> None:
         self._proc = subprocess.Popen(
             [sys.executable, '-m', 'rover_sim.render_worker'], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, start_new_session=False)

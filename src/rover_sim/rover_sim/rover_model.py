@@ -7,6 +7,8 @@ collision shape: it is what touches the insertion site (ch. 5).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from coop_common.dynparams import BaseParameters
@@ -85,13 +87,14 @@ def base_link_inertial(params: BaseParameters, *, damper_lag_s: float = 0.0
     return m_b, c_b, inertia
 
 
-def _inertial(mass: float, com, inertia) -> str:
+def _inertial(mass: float, com: Sequence[float], inertia: Sequence[float]) -> str:
     ix, iy, iz = inertia
     return (f'<inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>'
             f'<inertia ixx="{ix}" iyy="{iy}" izz="{iz}" ixy="0" ixz="0" iyz="0"/></inertial>')
 
 
-def _box(size, xyz=(0, 0, 0), rgba=(0.6, 0.6, 0.6, 1.0)) -> str:
+def _box(size: Sequence[float], xyz: Sequence[float] = (0, 0, 0),
+         rgba: Sequence[float] = (0.6, 0.6, 0.6, 1.0)) -> str:
     return (f'<visual><origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}"/><geometry><box size="{size[0]} '
             f'{size[1]} {size[2]}"/></geometry><material name="m"><color rgba="{rgba[0]} '
             f'{rgba[1]} {rgba[2]} {rgba[3]}"/></material></visual>')

@@ -317,8 +317,8 @@ class World:
             out[name] = pb.loadTexture(str(path), physicsClientId=self.client)
         return out
 
-    def _static_body(self, shape: int, position, orientation=(0, 0, 0, 1), *,
-                     collision: int = -1) -> int:
+    def _static_body(self, shape: int, position: Sequence[float] | np.ndarray,
+                     orientation: Sequence[float] = (0, 0, 0, 1), *, collision: int = -1) -> int:
         body = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
                                   baseCollisionShapeIndex=collision, basePosition=position,
                                   baseOrientation=orientation, physicsClientId=self.client)
@@ -1124,7 +1124,7 @@ class World:
     def __enter__(self) -> World:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
