@@ -1,5 +1,6 @@
 # The two commands: `make demo` (the main job) and `make test` (every test). Both bootstrap the
 # project venv from requirements.lock and build the colcon workspace first, idempotently.
+# `make lint`: ruff over the tree and mypy over the algorithm cores, in the same venv.
 SHELL := /bin/bash
 .SHELLFLAGS := -eo pipefail -c
 ROOT := $(CURDIR)
@@ -39,8 +40,9 @@ ros2-tools: venv
 	@test -f "$(ROS2_TOOLS_SRC)/install.sh" || { echo "ros2-tools: no $(ROS2_TOOLS_SRC)/install.sh (ROS2_TOOLS_SRC)" >&2; exit 1; }
 	set +u && $(ENV) && bash "$(ROS2_TOOLS_SRC)/install.sh" .ros2-tools
 
+# mypy.ini says which modules are the cores
 lint: venv
-	$(ENV) && ruff check .
+	$(ENV) && ruff check . && mypy
 
 bench: build
 	$(ENV) && for b in bench/*.py; do python $$b --json out/bench/$$(basename $$b .py).json; done

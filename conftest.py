@@ -8,7 +8,7 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
-from coop_common.testing import isolate_ros_environment  # noqa: E402
+from coop_common.testing import isolate_ros_environment
 
 
 def _domain_id() -> int | None:

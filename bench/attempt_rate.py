@@ -29,10 +29,10 @@ from pathlib import Path
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
 
 SEED = 1
 OCCLUSION = 0.05
@@ -61,7 +61,7 @@ def format_load_table(result: dict) -> str:
     idle, busy = result['outcomes'], result['busy']['outcomes']
     lines = [f'{"seed":>6} {"idle":>8} {"busy":>8} {"peak F idle (N)":>16} '
              f'{"peak F busy (N)":>16} {"rel. diff":>10}']
-    for a, b in zip(idle, busy):
+    for a, b in zip(idle, busy, strict=False):
         rel = abs(a['peak_force_n'] - b['peak_force_n']) / max(abs(a['peak_force_n']), 1e-9)
         lines.append(f'{a["seed"]:>6} {("seated" if a["success"] else "failed"):>8} '
                      f'{("seated" if b["success"] else "failed"):>8} '
@@ -104,7 +104,7 @@ def run_attempts(args, site_map: Path, work: Path, *, busy: bool, composed: bool
             rig.__exit__(None, None, None)
     return {'attempt_wall_s': _stats(walls), 'attempt_sim_s': _stats(sims),
             'goal_wall_s': _stats(goals),
-            'sim_per_wall': _stats([s / w for s, w in zip(sims, goals)]),
+            'sim_per_wall': _stats([s / w for s, w in zip(sims, goals, strict=False)]),
             'successes': sum(o['success'] for o in outcomes), 'outcomes': outcomes,
             'setup_wall_s': setup}
 
@@ -183,7 +183,7 @@ def main() -> int:
             [o['success'] for o in busy['outcomes']]
         result['peak_force_max_rel_diff'] = max(
             abs(a['peak_force_n'] - b['peak_force_n']) / max(abs(a['peak_force_n']), 1e-9)
-            for a, b in zip(result['outcomes'], busy['outcomes']))
+            for a, b in zip(result['outcomes'], busy['outcomes'], strict=False))
     if args.composed_too:
         together = run_attempts(args, site_map, work, busy=False, composed=True)
         result['composed_run'] = together

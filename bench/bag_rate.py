@@ -36,19 +36,19 @@ try:
 except ImportError:  # a source checkout before the package is built
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'rover_bag'))
 
-import numpy as np  # noqa: E402
-from rosbags.highlevel import AnyReader  # noqa: E402
-from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
+import numpy as np
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin, Writer
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from rover_bag.bagio import BagWriter, bag_info, make_qos, make_typestore, read_messages  # noqa
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
+from rover_bag.bagio import BagWriter, bag_info, make_qos, make_typestore, read_messages
 
 SENSOR = [make_qos(reliable=False, transient_local=False, depth=5)]
 
 
 def sim_mix(ts, n: int, seed: int = 0) -> list[tuple[str, str, int, bytes]]:
-    """n messages of the sim's 200 Hz topics (2 rovers x imu, inclinometer, wrench, joints)."""
+    """N messages of the sim's 200 Hz topics (2 rovers x imu, inclinometer, wrench, joints)."""
     rng = np.random.default_rng(seed)
     from geometry_msgs.msg import WrenchStamped
     from rclpy.serialization import serialize_message
@@ -249,7 +249,7 @@ def _count_flushed(path: Path, topic: str) -> int:
         try:
             return sum(1 for m in read_messages(path, raw=True, strict=False)
                        if m.topic == topic)
-        except Exception:  # noqa: BLE001 - being written
+        except Exception:
             return 0
 
 

@@ -23,9 +23,11 @@ from pathlib import Path
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_common.testing import pick_domain_id  # noqa: E402
+import itertools
+
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
+from coop_common.testing import pick_domain_id
 
 PROFILE = Path(__file__).resolve().parents[1] / 'src' / 'rover_bag' / 'config' / \
     'fastdds_large_shm.xml'
@@ -73,7 +75,7 @@ def subscribe(topics: int, seconds: float) -> None:
     while time.monotonic() - t0 < seconds:
         rclpy.spin_once(node, timeout_sec=0.05)
     s = sorted(got)
-    lost = sum(b - a - 1 for a, b in zip(s, s[1:]))
+    lost = sum(b - a - 1 for a, b in itertools.pairwise(s))
     print(f'received {len(s)} first {s[0] if s else -1} lost {lost}', flush=True)
 
 

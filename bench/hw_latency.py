@@ -18,21 +18,21 @@ import time
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 
-import numpy as np  # noqa: E402
-import rclpy  # noqa: E402
-from lifecycle_msgs.msg import State  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import Imu  # noqa: E402
+import numpy as np
+import rclpy
+from lifecycle_msgs.msg import State
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Imu
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_common.qos import SENSOR_QOS  # noqa: E402
-from coop_common.testing import isolate_ros_environment  # noqa: E402
-from rover_hw import protocol as p  # noqa: E402
-from rover_hw.bridge_node import BridgeNode  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
+from coop_common.qos import SENSOR_QOS
+from coop_common.testing import isolate_ros_environment
+from rover_hw import protocol as p
+from rover_hw.bridge_node import BridgeNode
 
 
 def pct(ns: list[int]) -> dict:
@@ -95,7 +95,7 @@ def main() -> int:
 
     def on_imu(msg: Imu) -> None:
         t = time.monotonic_ns()
-        i = int(round(msg.linear_acceleration.x / p.ACCEL_M_S2))
+        i = round(msg.linear_acceleration.x / p.ACCEL_M_S2)
         if i in written:
             e2e.append(t - written.pop(i))
     if not args.no_subscriber:

@@ -21,16 +21,16 @@ import time
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.dynparams import load_truth  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_id.excitation import STRATEGIES, constant_excitation  # noqa: E402
-from coop_id.experiment import reference_noise_scales  # noqa: E402
-from coop_id.identifier_core import Identifier, IdentifierConfig  # noqa: E402
-from coop_id.model import FilterBank, SensorNoise, filtered_rows, raw_channels  # noqa: E402
-from coop_id.modelsim import ThesisRover, add_noise, stack_frames  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.dynparams import load_truth
+from coop_common.files import write_json
+from coop_id.excitation import STRATEGIES, Strategy, constant_excitation
+from coop_id.experiment import reference_noise_scales
+from coop_id.identifier_core import Identifier, IdentifierConfig
+from coop_id.model import FilterBank, SensorNoise, filtered_rows, raw_channels
+from coop_id.modelsim import ThesisRover, add_noise, stack_frames
 
 
 def windows(n: int, seed: int = 0) -> tuple[list[dict], dict]:
@@ -101,13 +101,13 @@ def main() -> int:
         t2 = now()
         ident.end_window(optimise_excitation=False)
         t3 = now()
-        if np.all(np.isfinite(ident.row_var)) and ident.cfg.strategy != 'constant':
+        if np.all(np.isfinite(ident.row_var)) and ident.cfg.strategy is not Strategy.CONSTANT:
             ident.excitation = ident._reoptimise()
         t4 = now()
         if k < 3:      # warm-up: R not yet estimated, caches cold
             continue
         for i, out in ((0, wall), (1, cpu)):
-            def d(u, v):
+            def d(u, v, i=i):
                 return 1e3 * (v[i] - u[i])
             out['build_A_80x3_ms'].append(d(ta, tb))
             out['peer_batch_lstsq_ms'].append(d(tp, tq))

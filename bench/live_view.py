@@ -24,31 +24,32 @@ import os
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')     # before numpy: one BLAS thread
 
-import argparse  # noqa: E402
-import socket  # noqa: E402
-import tempfile  # noqa: E402
-import threading  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import itertools
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
-import rclpy  # noqa: E402
-from coop_bringup.live import channel_topics  # noqa: E402
-from coop_bringup.live_view import FEEDBACK_QOS  # noqa: E402
-from coop_bringup.ws_client import receive  # noqa: E402
-from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import Image  # noqa: E402
+import numpy as np
+import rclpy
+from coop_bringup.live import channel_topics
+from coop_bringup.live_view import FEEDBACK_QOS
+from coop_bringup.ws_client import receive
+from geometry_msgs.msg import PoseStamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import Image
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.dynparams import PARAM_NAMES  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_common.qos import LATCHED_QOS, SENSOR_QOS  # noqa: E402
-from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for  # noqa: E402
-from coop_msgs.action import Insert  # noqa: E402
-from coop_msgs.msg import DynamicParameters, VoxelMap  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.dynparams import PARAM_NAMES
+from coop_common.files import write_json
+from coop_common.qos import LATCHED_QOS, SENSOR_QOS
+from coop_common.testing import NodeProcess, isolate_ros_environment, wait_for
+from coop_msgs.action import Insert
+from coop_msgs.msg import DynamicParameters, VoxelMap
 
 ROVERS = ('rover1', 'rover2')
 #: source rates (Hz, wall) and sizes: the mission's
@@ -221,7 +222,7 @@ def _rate(times: list[float], t0: float, t1: float) -> float:
 def run_mission(args) -> dict:
     """A mission with the live view on and a client connected from the start (see the
     module's text); returns the JSON result."""
-    from coop_bringup.mission import Mission, MissionConfig, Progress  # noqa: PLC0415
+    from coop_bringup.mission import Mission, MissionConfig, Progress
 
     with socket.socket() as s:
         s.bind(('127.0.0.1', 0))
@@ -285,8 +286,8 @@ def run_mission(args) -> dict:
         t.join(timeout=30)
     received = got.get('r')
     windows = []
-    bounds = marks + [('end', t_end)]
-    for (phase, t0), (_, t1) in zip(bounds, bounds[1:]):
+    bounds = [*marks, ('end', t_end)]
+    for (phase, t0), (_, t1) in itertools.pairwise(bounds):
         c = [(t, v) for t, v in cpu if t0 <= t <= t1]
         frac = (c[-1][1] - c[0][1]) / (c[-1][0] - c[0][0]) if len(c) > 1 and \
             c[-1][0] > c[0][0] else None

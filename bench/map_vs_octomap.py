@@ -30,28 +30,28 @@ from pathlib import Path
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 try:
     import coop_mapping  # noqa: F401
 except ImportError:  # run from a source checkout before the package is built
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'coop_mapping'))
 
-import octomap  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
+import octomap
+from scipy.spatial import cKDTree
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_mapping.octomap_peer import leaf_states  # noqa: E402
-from coop_mapping.render import TexturedScene, look_at  # noqa: E402
-from coop_mapping.stereo import (  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
+from coop_mapping.octomap_peer import leaf_states
+from coop_mapping.render import TexturedScene, look_at
+from coop_mapping.stereo import (
     FULL_WIDTH_DEFAULT,
     SUBPIXEL_DEFAULT,
     SUBPIXEL_MODES,
     StereoCamera,
     StereoRanger,
 )
-from coop_mapping.voxelmap import (  # noqa: E402
+from coop_mapping.voxelmap import (
     OCCUPIED,
     SURFACE_BANDWIDTH,
     SURFACE_RADIUS,
@@ -110,8 +110,8 @@ def stereo_scans(width: int, height: int, seed: int = 0, subpixel: str = SUBPIXE
                           full_width=full_width)
     scans, truth = [], []
     with TexturedScene(cam, seed=seed, supersample=supersample) as scene:
-        for rover, eye, target in STEREO_POSES:
-            eye = np.asarray(eye, float)
+        for rover, eye_xyz, target in STEREO_POSES:
+            eye = np.asarray(eye_xyz, float)
             R = look_at(eye, np.asarray(target, float))
             left, right, depth = scene.render(R, eye)
             s = ranger.process(left, right, R, eye)
@@ -195,7 +195,7 @@ def surface_errors(vm: VoxelMap, tree, res: float, dist, surface_keys, origins,
     e = np.stack([dist(mean), dist(centre), dist(mean_lit), dist(kern), dist(octo_kern)])
     surf = np.isin(keys, surface_keys)
     L = np.min(np.linalg.norm(centre[:, None, :] - np.asarray(origins)[None], axis=2), axis=1)
-    near = surf & (S_VGA * L * L < res)
+    near = surf & (res > S_VGA * L * L)
     return {'all': e, 'surface': e[:, surf], 'near': e[:, near], 'off_surface': e[:, ~surf],
             'surface_range_m': L[surf]}
 
@@ -205,7 +205,7 @@ SURFACE_RANGE_BANDS_M = ((0.0, 3.0), (3.0, 5.0), (5.0, 7.0), (7.0, 100.0))
 
 
 def grid_offsets(res: float, n: int, seed: int = 0) -> np.ndarray:
-    """n seeded offsets uniform in [0, res)^3. A map's error depends on where the surfaces fall
+    """N seeded offsets uniform in [0, res)^3. A map's error depends on where the surfaces fall
     in their voxels: a plane on voxel faces puts every leaf centre res/2 from it (OctoMap's
     worst case), one through the centres puts them on it (its best). The stereo scene as built
     has its box faces and ground on voxel faces, so it is not one of the placements (before

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Circular-marker detectors side by side (thesis §5.3): the thesis pipeline, the default
 sub-pixel ellipse detector with the perspective correction, and cv2.HoughCircles, on the same
-640x480 renders with known centres, in families (coop_insertion.marker_render):
+640x480 renders with known centres, in families (coop_insertion.marker_render).
 
 - `plates`: the card's and the site's markers at 0.25-0.6 m (random_scene), tilts up to
   45 deg, noise, uneven lighting, blur, a quarter of the images with a bar hiding up to 25 % of
@@ -36,19 +36,19 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
+import cv2
+import numpy as np
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_insertion.marker_render import (  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
+from coop_insertion.marker_render import (
     BACKGROUNDS,
     SLOT,
     background_scene,
     random_scene,
     sim_intrinsics,
 )
-from coop_insertion.markers import make_detector  # noqa: E402
+from coop_insertion.markers import make_detector
 
 WIDTH, HEIGHT = 640, 480
 NAMES = ('thesis', 'default', 'hough')
@@ -84,7 +84,7 @@ def run(det, scenes, empty) -> dict:
         cpu += time.process_time() - c0
         wall += time.perf_counter() - w0
         used = set()
-        for k, (c, r) in enumerate(zip(s.centres, s.radius_px)):
+        for k, (c, r) in enumerate(zip(s.centres, s.radius_px, strict=False)):
             d = [math.hypot(m.u - c[0], m.v - c[1]) for m in found]
             j = int(np.argmin(d)) if d else -1
             if j >= 0 and d[j] < 0.5 * r and j not in used:

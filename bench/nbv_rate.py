@@ -3,6 +3,7 @@
 time, and task-placement time (2-D study scene; 3-D map as the view planner node serves it);
 batched scoring is compared with scoring one pose at a time (the peer) in the same run.
 The printed table is `format_table` of the JSON `--json` writes.
+
 Usage: bench/nbv_rate.py --json OUT"""
 from __future__ import annotations
 
@@ -11,26 +12,27 @@ import os
 import sys
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'coop_viewplan'))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_viewplan.grid import OccupancyGrid, markov_estimate, occlusion_estimate  # noqa: E402
-from coop_viewplan.nbv import CameraState, InfoLookup, NbvConfig, NextBestViewPlanner, score_views  # noqa: E402
-from coop_viewplan.params import PARAMS as NODE_SPECS  # noqa: E402
-from coop_viewplan.placement import (  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
+from coop_viewplan.grid import OccupancyGrid, markov_estimate, occlusion_estimate
+from coop_viewplan.nbv import CameraState, InfoLookup, NbvConfig, NextBestViewPlanner, score_views
+from coop_viewplan.params import PARAMS as NODE_SPECS
+from coop_viewplan.placement import (
     CameraModel,
     PlacementError,
     Target,
     TaskPlacer,
     mast_stations,
 )
-from coop_viewplan.task_study import StudyConfig, make_scenario  # noqa: E402
+from coop_viewplan.task_study import StudyConfig, make_scenario
 
 
 def world_3d(rng: np.random.Generator, *, size_m: float = 24.0, height_m: float = 3.0,
@@ -93,24 +95,25 @@ def main(argv: list[str] | None = None) -> int:
         cfg = NbvConfig(fov_deg=75, depth_m=10, n_az=n_az, n_el=n_el, step_cells=step)
         tpl = cfg.template(ndim=3, resolution=g.resolution)
         lk = InfoLookup.build(g, est)      # once per map, timed separately below
-        t_batch = timed(lambda: score_views(g, est, pos, yaw, pitch, tpl, lookup=lk))
+        t_batch = timed(partial(score_views, g, est, pos, yaw, pitch, tpl, lookup=lk))
         k = 40
-        t_one = timed(lambda: [score_views(g, est, pos[i:i + 1], yaw[i:i + 1],
-                                           pitch[i:i + 1], tpl, lookup=lk)
-                               for i in range(k)], repeat=1)
+        t_one = timed(lambda tpl=tpl, lk=lk, k=k: [
+            score_views(g, est, pos[i:i + 1], yaw[i:i + 1], pitch[i:i + 1], tpl, lookup=lk)
+            for i in range(k)], repeat=1)
         rows.append({'what': f'NI scoring 3-D, {label}', 'samples_per_pose': int(tpl.weights.size),
                      'poses_per_s': args.poses / t_batch, 'peer_one_at_a_time_poses_per_s':
                      k / t_one, 'speedup': (args.poses / t_batch) / (k / t_one)})
         # the opt-in occlusion-aware expected view (NbvConfig.unknown_occlusion='expected')
         occ = occlusion_estimate(g, prior='density')
-        t_occ = timed(lambda: score_views(g, est, pos, yaw, pitch, tpl, lookup=lk, occlusion=occ))
+        t_occ = timed(partial(score_views, g, est, pos, yaw, pitch, tpl, lookup=lk,
+                              occlusion=occ))
         rows.append({'what': f'NI scoring 3-D, {label}, unknown space occludes (expected)',
                      'samples_per_pose': int(tpl.weights.size),
                      'poses_per_s': args.poses / t_occ,
                      'ratio_to_histogram_ni': t_batch / t_occ})
         if step == 1.0:   # App. C's predictor-5 NI on the same poses (NbvConfig.ni_measure)
-            t_p5 = timed(lambda: score_views(g, est, pos, yaw, pitch, tpl, lookup=lk,
-                                             measure='predictor5'))
+            t_p5 = timed(partial(score_views, g, est, pos, yaw, pitch, tpl, lookup=lk,
+                                 measure='predictor5'))
             rows.append({'what': f'NI scoring 3-D, {label}, predictor-5 NI (App. C)',
                          'samples_per_pose': int(tpl.weights.size),
                          'poses_per_s': args.poses / t_p5,

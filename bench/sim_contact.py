@@ -19,13 +19,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.dynparams import load_truth  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from rover_sim.config import Integrator, NoiseConfig, SimConfig  # noqa: E402
-from rover_sim.scenarios import card_over_slot, lower_card  # noqa: E402
-from rover_sim.world import World  # noqa: E402
-from rover_sim.worldgen import INCH, TABLE_5_1_GAPS_M  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.dynparams import load_truth
+from coop_common.files import write_json
+from rover_sim.config import Integrator, NoiseConfig, SimConfig
+from rover_sim.scenarios import card_over_slot, lower_card
+from rover_sim.world import World
+from rover_sim.worldgen import INCH, TABLE_5_1_GAPS_M
 
 OFFSETS_MM = (0.0, 1.0, 2.0, 4.0)
 
@@ -58,7 +58,7 @@ def format_table(result: dict) -> str:
              f'{"max pen. (mm)":>13} {"peak F (N)":>10}  touched']
     for r in result['cases']:
         depth = f'{r["depth_mm"]:10.1f}' if math.isfinite(r['depth_mm']) else f'{"-":>10}'
-        lines.append(f'{r["gap_in"]:>9.3f} {r["offset_mm"]:>11.1f} {str(r["seated"]):>7} {depth} '
+        lines.append(f'{r["gap_in"]:>9.3f} {r["offset_mm"]:>11.1f} {r["seated"]!s:>7} {depth} '
                      f'{r["max_penetration_mm"]:>13.4f} {r["peak_force_n"]:>10.2f}  '
                      f'{", ".join(r["bodies"]) or "-"}')
     rate = result['rate']

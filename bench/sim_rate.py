@@ -16,13 +16,13 @@ import time
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-import pybullet as pb  # noqa: E402
+import pybullet as pb
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.dynparams import load_truth  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from rover_sim.config import Integrator, SimConfig  # noqa: E402
-from rover_sim.world import World  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.dynparams import load_truth
+from coop_common.files import write_json
+from rover_sim.config import Integrator, SimConfig
+from rover_sim.world import World
 
 
 def world_rtf(seconds: float, **cfg) -> tuple[float, float, int]:
@@ -30,7 +30,7 @@ def world_rtf(seconds: float, **cfg) -> tuple[float, float, int]:
     grow when other processes load the machine, so it is the figure compared with the target."""
     config = SimConfig(rovers=2, **cfg)
     with World(config, [load_truth()] * 2) as w:
-        render_every = (int(round(config.physics_rate_hz / config.stereo_rate_hz))
+        render_every = (round(config.physics_rate_hz / config.stereo_rate_hz)
                         if config.stereo_rate_hz > 0 else 0)
         w.command_velocity(0, 0.1, 0.1)
         w.command_arm(1, ['arm_joint_2'], [seconds], [[0.8]])

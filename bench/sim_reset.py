@@ -16,13 +16,13 @@ import time
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.dynparams import load_truth  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from rover_sim.config import SimConfig  # noqa: E402
-from rover_sim.world import World  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.dynparams import load_truth
+from coop_common.files import write_json
+from rover_sim.config import SimConfig
+from rover_sim.world import World
 
 
 def reset_times(resets: int, *, keep_worker: bool) -> list[float]:

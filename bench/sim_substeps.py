@@ -16,14 +16,14 @@ import time
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
-import numpy as np  # noqa: E402
-from scipy.signal import butter, filtfilt  # noqa: E402
+import numpy as np
+from scipy.signal import butter, filtfilt
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.dynparams import load_truth  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from rover_sim.config import Integrator, NoiseConfig, SimConfig  # noqa: E402
-from rover_sim.world import World  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.dynparams import load_truth
+from coop_common.files import write_json
+from rover_sim.config import Integrator, NoiseConfig, SimConfig
+from rover_sim.world import World
 
 SIGNALS = ('base dr', 'base dtheta', 'F/T force', 'F/T torque', 'accel', 'gyro')
 
@@ -102,8 +102,8 @@ def main() -> int:
         x = filtfilt(b, a, x, axis=0)
         per = [relative_rms(x[:, 3 * k:3 * k + 3], ref[:, 3 * k:3 * k + 3])
                for k in range(len(SIGNALS))]
-        result['rows'][f'{integrator.value} {n}'] = {'rel_rms_error': dict(zip(SIGNALS, per)),
-                                                    'cpu_rtf': rtf}
+        result['rows'][f'{integrator.value} {n}'] = {
+            'rel_rms_error': dict(zip(SIGNALS, per, strict=False)), 'cpu_rtf': rtf}
     print(format_table(result))
     write_json(args.json, result, indent=2)
     return 0

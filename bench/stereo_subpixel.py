@@ -36,15 +36,15 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
-from map_vs_octomap import STEREO_POSES  # noqa: E402
+import cv2
+import numpy as np
+from map_vs_octomap import STEREO_POSES
 
-from coop_common.cli import number, output_path  # noqa: E402
-from coop_common.files import write_json  # noqa: E402
-from coop_mapping.render import TexturedScene, look_at  # noqa: E402
-from coop_mapping.stereo import SUBPIXEL_DEFAULT, StereoCamera, compute_disparity  # noqa: E402
-from coop_mapping.stereo import SUBPIXEL_MODES as MODES  # noqa: E402
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
+from coop_mapping.render import TexturedScene, look_at
+from coop_mapping.stereo import SUBPIXEL_DEFAULT, StereoCamera, compute_disparity
+from coop_mapping.stereo import SUBPIXEL_MODES as MODES
 
 N_BINS = 8
 SEARCH_PX = 64
@@ -57,8 +57,8 @@ def frames(width: int, height: int, seed: int, supersample: int = 1):
     cam = StereoCamera.from_fov(width, height, np.radians(41.2), 0.038)
     out = []
     with TexturedScene(cam, seed=seed, supersample=supersample) as scene:
-        for _, eye, target in STEREO_POSES:
-            eye = np.asarray(eye, float)
+        for _, eye_xyz, target in STEREO_POSES:
+            eye = np.asarray(eye_xyz, float)
             R = look_at(eye, np.asarray(target, float))
             left, right, depth = scene.render(R, eye)
             with np.errstate(divide='ignore', invalid='ignore'):
@@ -134,7 +134,8 @@ def normal_errors(cam: StereoCamera, pairs) -> tuple[np.ndarray, np.ndarray, np.
         cnt = cv2.boxFilter(ok.astype(np.float32), -1, (k, k), normalize=False)
         tot = cv2.boxFilter(e0, -1, (k, k), normalize=False)
         full = ok & (cnt >= 0.5 * k ** 2)
-        for acc, x in zip(out, (z_true[full], e_n[full], (tot / np.maximum(cnt, 1))[full])):
+        for acc, x in zip(out, (z_true[full], e_n[full], (tot / np.maximum(cnt, 1))[full]),
+                          strict=False):
             acc.append(x)
     return tuple(np.concatenate(a) for a in out)
 
@@ -168,8 +169,7 @@ def format_table(result: dict) -> str:
     lines.append(f'{"mode":>10} {"valid px":>9} {"<1/8 px of int":>14} {"bias swing px":>13} '
                  f'{"mean px":>8} {"rms px":>7} {"range rms m":>11} {"/ Eq.3-7":>8} '
                  f'{"ms/frame":>8} {"left 64 px":>10} {"rms px":>6} {"gross":>6}')
-    for m in res:
-        r = res[m]
+    for m, r in res.items():
         lines.append(
             f'{m:>10} {r["pixels"]:9d} {100 * r["near_integer_share"]:13.1f}% '
             f'{r["bias_swing_px"]:13.3f} {r["mean_error_px"]:+8.3f} {r["rms_error_px"]:7.3f} '

@@ -94,18 +94,20 @@ def test_mapping_bag_replays_into_the_nodes_as_the_offline_map(tmp_path, probe, 
         with player:
             def done() -> bool:
                 m = probe.msgs['/map/voxels']
-                return bool(m) and dict(zip(m[-1].contributors, m[-1].contributions)) == expected
+                return bool(m) and dict(zip(m[-1].contributors, m[-1].contributions,
+                                            strict=False)) == expected
             try:
                 probe.spin_until(done, 60.0, f'the map of {expected} scans', nodes)
             except TimeoutError:
                 last = probe.msgs['/map/voxels'][-1]
-                pytest.fail(f'replayed map has {dict(zip(last.contributors, last.contributions))}'
+                got = dict(zip(last.contributors, last.contributions, strict=False))
+                pytest.fail(f'replayed map has {got}'
                             f' scans, offline {expected}\nplay:\n{player.log_text()}\nmapper:\n'
                             f'{mapper.log_text()}\nstereo:\n{stereo[0].log_text()}')
         replay_s = time.monotonic() - t0
         probe.spin_for(0.5)       # nothing more may arrive
     last = probe.msgs['/map/voxels'][-1]
-    assert dict(zip(last.contributors, last.contributions)) == expected
+    assert dict(zip(last.contributors, last.contributions, strict=False)) == expected
     assert last.sequence == sum(expected.values())
     keys, states = _msg_states(last)
     om = offline_map.map
@@ -185,7 +187,7 @@ def test_ident_bag_replays_into_the_identifier_as_its_core(tmp_path, probe):
     from coop_msgs.msg import DynamicParameters
     bag = _bag('ident_rover1')
     _, rows = bag_samples(bag)
-    per = int(round(SPECS['window_s'].default * SPECS['rate_hz'].default))
+    per = round(SPECS['window_s'].default * SPECS['rate_hz'].default)
     probe.listen(DynamicParameters, '/rover1/dynamic_parameters', LATCHED_QOS)
     ident = NodeProcess('coop_id', 'identifier',
                         ['-r', '__ns:=/rover1', '-p', 'use_sim_time:=true',

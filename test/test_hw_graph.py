@@ -3,6 +3,7 @@ lifecycle transitions, the topics rover_sim publishes for one rover (names, type
 rates), commands, the watchdog, the e-stop, fault injection and unplug / re-plug."""
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import time
@@ -136,7 +137,7 @@ def test_lifecycle_topics_commands_watchdog_estop(tmp_path):
             assert head.frame_id == frame, topic
         imu = rig.msgs('imu')
         stamps = [t_of(m.header) for m in imu]
-        dts = sorted(b - a for a, b in zip(stamps, stamps[1:]))
+        dts = sorted(b - a for a, b in itertools.pairwise(stamps))
         rate = 1.0 / dts[len(dts) // 2]
         assert abs(rate - 200.0) < 10.0, rate                   # device rate, within 5 %
         # the device's frames reach the graph (the emulator may run slower than real time on
@@ -301,7 +302,7 @@ def stamp_rate(msgs: list) -> float:
     """A topic's rate by its stamps: one over the median interval (robust to the messages a
     best-effort subscriber drops; 0 with fewer than 5)."""
     stamps = sorted(t_of(m.header) for m in msgs)
-    dts = sorted(b - a for a, b in zip(stamps, stamps[1:]) if b > a)
+    dts = sorted(b - a for a, b in itertools.pairwise(stamps) if b > a)
     return 1.0 / dts[len(dts) // 2] if len(dts) >= 4 else 0.0
 
 

@@ -74,7 +74,7 @@ def run_hw_identification(tmp_path, *, duration_s: float, strategy: str = 'infor
                 rclpy.try_shutdown(context=ctx)
     assert emu.proc.returncode is not None
     x = load_truth(None).to_vector()
-    est = dict(zip(res.estimate.names, res.estimate.values))
+    est = dict(zip(res.estimate.names, res.estimate.values, strict=False))
     v = np.array([est[n] for n in PARAM_NAMES])
     nz = x != 0
     return {'success': bool(res.success), 'message': res.message, 'truth': x, 'estimate': v,

@@ -6,6 +6,7 @@ Ctrl-C ending every node cleanly. Without the tools the tests skip and say why; 
 COOP_REQUIRE_ROS2_TOOLS=1 (CI) they fail instead."""
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -64,7 +65,7 @@ class Launch:
         os.killpg(self.proc.pid, signal.SIGINT)
 
     def wait(self, timeout_s: float = 30.0) -> int:
-        """launch's exit code; on a timeout, what it printed and which of its processes live."""
+        """Launch's exit code; on a timeout, what it printed and which of its processes live."""
         try:
             return self.proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
@@ -90,18 +91,14 @@ class Launch:
             if stuck:
                 time.sleep(2.0)      # a fixed grace for launch to relay what they print
             os.kill(self.proc.pid, signal.SIGABRT)
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 self.proc.wait(timeout=5.0)
-            except subprocess.TimeoutExpired:
-                pass
             raise AssertionError(f'launch still running {timeout_s} s after Ctrl-C; its '
                                  f'processes:\n{ps}\nits output:\n{self.text()[-8000:]}') from None
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(self.proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
         self.proc.wait(timeout=10)
         self._out.close()
         self.log.unlink(missing_ok=True)
@@ -214,7 +211,7 @@ def test_mission_launch_brings_up_the_whole_mission_graph(ros2, graph_node):
                       (['stereo_rovers:=rover3'], 'not among'),
                       (['live_view:=maybe'], 'give true or false')):
         out = subprocess.run([ros2, 'launch', 'coop_bringup', 'mission.launch.py', *args],
-                             capture_output=True, text=True, timeout=60)
+                             capture_output=True, text=True, timeout=60, check=False)
         assert out.returncode != 0 and why in out.stdout + out.stderr, (args, out.stdout[-2000:])
 
 
@@ -263,7 +260,7 @@ def test_bag_source_and_bad_arguments(ros2, graph_node):
                       (['rovers:=rover1 rover1'], 'distinct'),
                       (['rovers:=alpha'], 'the simulator names its rovers')):
         out = subprocess.run([ros2, 'launch', 'coop_bringup', 'team.launch.py', *args],
-                             capture_output=True, text=True, timeout=60)
+                             check=False, capture_output=True, text=True, timeout=60)
         assert out.returncode != 0 and why in out.stdout + out.stderr, (args, out.stdout[-2000:])
 
 
@@ -316,7 +313,7 @@ def test_two_teams_in_one_domain_do_not_cross_talk(ros2, graph_node):
             got = []
             graph_node.create_subscription(MarkerArray, f'/{t}/sim/world', got.append,
                                            LATCHED_QOS)
-            wait_for(lambda: got, 30.0, spin=spin, what=f'{t}/sim/world')
+            wait_for(lambda got=got: got, 30.0, spin=spin, what=f'{t}/sim/world')
             worlds[t] = len(got[-1].markers)
         assert worlds['team_a'] != worlds['team_b'], worlds
         # one /tf, two trees: every frame of each under its team's prefix, none shared
@@ -415,7 +412,7 @@ def test_the_team_publishes_one_tree_that_holds_every_stamped_frame(ros2, graph_
                               'transient_local', '--qos-reliability', 'reliable',
                               '--filter', 'len(m.transforms) > 1', '/tf_static',
                               'tf2_msgs/msg/TFMessage'],
-                             capture_output=True, text=True, timeout=60)
+                             check=False, capture_output=True, text=True, timeout=60)
         assert out.returncode == 0, out.stderr[-2000:]
         echoed = {(t['header']['frame_id'], t['child_frame_id']): t
                   for t in yaml.safe_load(out.stdout.split('---')[0])['transforms']}
@@ -481,7 +478,7 @@ def test_a_simulator_whose_frames_are_taken_refuses_to_start(tmp_path):
             [first.cmd[0], '--ros-args', '-r', '__ns:=/team_b', '-p', 'rovers:=1',
              '-p', 'stereo_rate_hz:=0.0', '-p', 'frame_prefix:=site_x/',
              '-p', 'frame_check_s:=5.0'],
-            capture_output=True, text=True, timeout=60)
+            check=False, capture_output=True, text=True, timeout=60)
         said = out.stdout + out.stderr
         assert out.returncode == 1, said[-3000:]
         assert 'site_x/rover1/' in said and 'frame_prefix' in said, said[-3000:]

@@ -58,7 +58,7 @@ class Source:
         m.voxels.keys = keys.ravel().tolist()
         m.voxels.occupancy = [0.9, 0.8, 0.7, 0.1]
         self.map.publish(m)
-        for r, p in self.ident.items():
+        for p in self.ident.values():
             k = len(PARAM_NAMES)
             p.publish(DynamicParameters(names=list(PARAM_NAMES), values=[1.0] * k,
                                         std_devs=[0.1] * k, information_bits=[5.0] * k,

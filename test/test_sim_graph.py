@@ -119,7 +119,8 @@ def test_units_and_frames(live):
     js = probe.msgs['/rover1/joint_states'][-1]
     assert {'arm_joint_1', 'arm_joint_2', 'wheel_fl', 'articulation', 'mast_tilt'} <= set(js.name)
     truth = probe.msgs['/sim/rover1/parameters'][-1]
-    assert dict(zip(truth.names, truth.values))['k_pitch'] == 200.0   # the truth_yaml took
+    # the truth_yaml took
+    assert dict(zip(truth.names, truth.values, strict=False))['k_pitch'] == 200.0
     probe.listen(Odometry, '/rover2/odom')
     probe.spin_until(lambda: probe.count('/rover2/odom') > 0, 10.0, 'odometry')
     odom = probe.msgs['/rover2/odom'][-1]
@@ -160,7 +161,7 @@ def _move_arm(probe: Probe, positions: list[float], duration: float) -> None:
 
     def there() -> bool:
         recent = probe.msgs['/rover1/joint_states'][-40:]
-        q = np.mean([[dict(zip(m.name, m.position))[j] for j in traj.joint_names]
+        q = np.mean([[dict(zip(m.name, m.position, strict=False))[j] for j in traj.joint_names]
                      for m in recent], axis=0)
         return bool(np.all(np.abs(q - positions) < 0.05))
 
@@ -297,8 +298,8 @@ def _first_imus(tmp_path: Path, seeds: list[int], n: int = 100, name: str = 'det
                 assert future.result().success
                 msgs = probe.msgs['/det/rover1/imu']
                 msgs.clear()
-                probe.spin_until(lambda: sum(t_of(m.header) < 1.0 for m in msgs) >= n, 60.0,
-                                 'imu messages after the reset')
+                probe.spin_until(lambda msgs=msgs: sum(t_of(m.header) < 1.0 for m in msgs) >= n,
+                                 60.0, 'imu messages after the reset')
                 out.append({round(t_of(m.header), 4): (m.linear_acceleration.x,
                                                        m.angular_velocity.y)
                             for m in msgs if t_of(m.header) < 1.0})
@@ -342,8 +343,8 @@ def test_namespace_and_params_file(tmp_path):
 
 def _run_to_exit(tmp_path: Path, *ros_args: str) -> tuple[int, str]:
     exe = executable_path('rover_sim', 'sim')
-    out = subprocess.run([str(exe), '--ros-args', *ros_args], capture_output=True, text=True,
-                         timeout=60)
+    out = subprocess.run([str(exe), '--ros-args', *ros_args], check=False, capture_output=True,
+                         text=True, timeout=60)
     return out.returncode, out.stdout + out.stderr
 
 

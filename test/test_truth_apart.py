@@ -8,6 +8,7 @@ import ast
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 #: the loop nodes' modules (coop_bringup.rig.LOOP_NODES by name)
 LOOP_MODULES = ('coop_insertion.master_node', 'coop_insertion.slave_node',
@@ -28,7 +29,7 @@ print(json.dumps(own))
 
 
 def _names(path: str) -> set[str]:
-    tree = ast.parse(open(path).read())
+    tree = ast.parse(Path(path).read_text())
     out = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Name):

@@ -17,6 +17,8 @@ BUILD_PREFIX = '/opt/python/cp311-cp311'
 
 
 def main() -> int:
+    """Rewrite the build machine's paths in the venv's exported CMake files; 1 if an
+    include directory is missing."""
     import numpy  # noqa: PLC0415 - the venv's numpy, imported only here
 
     prefix = Path(sys.prefix)

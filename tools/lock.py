@@ -12,6 +12,7 @@ import sys
 
 
 def main(report_path: str) -> int:
+    """Print the lock for the pip resolver report at `report_path`."""
     with open(report_path, encoding='utf-8') as f:
         report = json.load(f)
     pins = sorted(

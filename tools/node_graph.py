@@ -99,6 +99,7 @@ def mermaid(graph: dict[str, dict[str, list[str]]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Start one team, read its graph and write the flowchart (`--out`)."""
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=ROOT / 'docs' / 'node-graph.md')
     args = ap.parse_args(argv)

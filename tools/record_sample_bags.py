@@ -31,7 +31,7 @@ os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
 
 import rclpy  # noqa: E402
 from builtin_interfaces.msg import Duration  # noqa: E402
-from geometry_msgs.msg import PoseStamped, Twist  # noqa: E402
+from geometry_msgs.msg import PoseStamped, Twist, Vector3  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -72,7 +72,7 @@ class Driver:
     def trajectory(self, topic: str, names: list[str], times: list[float],
                    positions: list[list[float]]) -> None:
         msg = JointTrajectory(joint_names=names)
-        for t, p in zip(times, positions):
+        for t, p in zip(times, positions, strict=False):
             sec = int(t)
             msg.points.append(JointTrajectoryPoint(
                 positions=[float(x) for x in p],
@@ -188,7 +188,6 @@ def drive_insertion(d: Driver, seconds: float) -> None:
 
 
 def _v(x: float):
-    from geometry_msgs.msg import Vector3
     return Vector3(x=x)
 
 
@@ -199,6 +198,9 @@ STEREO = ['stereo/left/image_raw', 'stereo/right/image_raw', 'stereo/left/camera
 
 @dataclass
 class Run:
+    """One sample bag: its name and README line, the simulator's arguments, the topics
+    recorded, how long and how the rovers are driven, and other nodes started with it."""
+
     name: str
     what: str
     sim_args: list[str]
@@ -238,6 +240,7 @@ RUNS = [
 
 
 def record_run(run: Run, out_dir: Path, tmp: Path) -> Path:
+    """Record `run` into `out_dir`/<name> (replacing it), logs in `tmp`; the bag's path."""
     out = out_dir / run.name
     if out.exists():
         shutil.rmtree(out)
@@ -276,6 +279,7 @@ def record_run(run: Run, out_dir: Path, tmp: Path) -> Path:
 
 
 def main() -> int:
+    """Record the runs asked for (all by default) and write bags/README.md's table."""
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--out', type=Path, default=ROOT / 'bags')
     ap.add_argument('--only', nargs='*', help='run names (default: all)')
@@ -299,6 +303,7 @@ def main() -> int:
 
 
 def write_readme(out: Path, lines) -> None:
+    """Write the table of runs into `out`/README.md."""
     rows = '\n'.join(
         f'| `{run.name}/` | {run.what} | {info.duration_s:.1f} | {info.message_count} | '
         f'{size:.1f} | `python tools/record_sample_bags.py --only {run.name}` (sim '

@@ -77,6 +77,7 @@ def render(page: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Regenerate the result pages, or with `--check` report the stale ones."""
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--check', action='store_true',
                     help='change nothing; exit 1 and show a diff when a page is stale')

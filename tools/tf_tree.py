@@ -18,6 +18,7 @@ from coop_common.tf_tree import TF_QOS, TF_STATIC_LISTENER_QOS
 
 
 def main() -> int:
+    """Listen to /tf and /tf_static for `--seconds` and print the frame tree."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--seconds', type=float, default=10.0, help='how long to listen (wall s)')
     a = ap.parse_args()

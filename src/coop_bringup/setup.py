@@ -1,3 +1,4 @@
+"""colcon's ament_python set-up of coop_bringup (its package.xml says what it is)."""
 from glob import glob
 
 from setuptools import find_packages, setup

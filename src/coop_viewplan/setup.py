@@ -1,3 +1,4 @@
+"""colcon's ament_python set-up of coop_viewplan (its package.xml says what it is)."""
 from setuptools import find_packages, setup
 
 package_name = 'coop_viewplan'

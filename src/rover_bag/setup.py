@@ -1,3 +1,4 @@
+"""colcon's ament_python set-up of rover_bag (its package.xml says what it is)."""
 from setuptools import find_packages, setup
 
 package_name = 'rover_bag'

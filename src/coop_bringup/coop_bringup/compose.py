@@ -1,7 +1,7 @@
-"""Several of the project's nodes in one process and one executor (a composed bring-up), the
-rclpy counterpart of a component container:
+r"""Several of the project's nodes in one process and one executor (a composed bring-up), the
+rclpy counterpart of a component container.
 
-    ros2 run coop_bringup compose coop_insertion/master coop_insertion/slave \\
+    ros2 run coop_bringup compose coop_insertion/master coop_insertion/slave \
         --ros-args --params-file insertion.yaml -p use_sim_time:=true
 
 Each positional argument names a node as `ros2 run` does (`<package>/<executable>`); the node
@@ -70,6 +70,7 @@ def factories(specs: list[str]) -> list[Callable[[], Node]]:
 
 
 def main(args: list[str] | None = None) -> int:
+    """Run the nodes the arguments name in one process (the module docstring); its exit code."""
     argv = list(sys.argv if args is None else args)
     split = argv.index('--ros-args') if '--ros-args' in argv else len(argv)
     specs = argv[1:split]

@@ -25,6 +25,10 @@ import sys
 import time
 from collections.abc import Iterable
 from pathlib import Path
+from typing import IO, Any
+
+import yaml
+from ament_index_python.packages import get_package_share_directory
 
 from coop_common.files import write_json
 
@@ -54,7 +58,7 @@ class LaunchedGraph(contextlib.AbstractContextManager):
         self.log_dir = Path(log_dir)
         self.state_file = self.log_dir / 'graph.json'
         self.proc: subprocess.Popen | None = None
-        self._log = None
+        self._log: IO[bytes] | None = None
         self._stopped: set[str] = set()
 
     # -- the child ------------------------------------------------------------------------
@@ -64,22 +68,20 @@ class LaunchedGraph(contextlib.AbstractContextManager):
         cmd = [sys.executable, '-m', 'coop_bringup.graph', '--state', str(self.state_file),
                '--log-dir', str(self.log_dir), str(self.launch_file),
                *(f'{k}:={v}' for k, v in self.arguments.items())]
-        self._log = open(self.log_dir / 'launch_output.log', 'wb')  # noqa: SIM115 - __exit__
+        self._log = open(self.log_dir / 'launch_output.log', 'wb')
         self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT,
                                      start_new_session=True)
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         """SIGINT to launch, which stops its processes (escalating as it does); whatever is
         left after STOP_S is killed with the whole session."""
         if self.proc is not None:
             if self.proc.poll() is None:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(self.proc.pid, signal.SIGINT)
-                try:
+                with contextlib.suppress(subprocess.TimeoutExpired):
                     self.proc.wait(timeout=STOP_S)
-                except subprocess.TimeoutExpired:
-                    pass
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(self.proc.pid, signal.SIGKILL)
             with contextlib.suppress(subprocess.TimeoutExpired):
@@ -172,8 +174,10 @@ def launch_arguments_table(file_name: str) -> str:
     """The arguments coop_bringup's launch file `file_name` declares, as a Markdown table
     (name, default, description), read by launch from the file itself: a README shows the
     file's own list, so the two cannot drift."""
-    from launch.actions import DeclareLaunchArgument
-    from launch.launch_description_sources import get_launch_description_from_python_launch_file
+    from launch.actions import DeclareLaunchArgument  # noqa: PLC0415 - launch only here
+    from launch.launch_description_sources import (  # noqa: PLC0415 - launch only here
+        get_launch_description_from_python_launch_file,
+    )
     path = Path(__file__).resolve().parents[1] / 'launch' / file_name
     if not path.exists():       # installed, not run from the source tree
         path = mission_launch_file().with_name(file_name)
@@ -201,7 +205,6 @@ def node_logs(log_dir: Path) -> dict[str, Path]:
 
 def mission_launch_file() -> Path:
     """coop_bringup's launch/mission.launch.py, as installed."""
-    from ament_index_python.packages import get_package_share_directory
     return Path(get_package_share_directory('coop_bringup')) / 'launch' / 'mission.launch.py'
 
 
@@ -209,10 +212,8 @@ def node_settings(node: str, params_file: Path | None = None) -> dict:
     """What the graph's parameter file (default: coop_bringup's config/mission.yaml) sets for
     `node` under `/**/<node>`: for a client that plans as the node does (the mission's paths
     on the view planner's grid)."""
-    import yaml
     if params_file is None:
-        from ament_index_python.packages import get_package_share_directory
-        params_file = Path(get_package_share_directory('coop_bringup')) / 'config' / \
+            params_file = Path(get_package_share_directory('coop_bringup')) / 'config' / \
             'mission.yaml'
     try:
         doc = yaml.safe_load(Path(params_file).read_text()) or {}
@@ -221,7 +222,7 @@ def node_settings(node: str, params_file: Path | None = None) -> dict:
     return dict((doc.get(f'/**/{node}') or {}).get('ros__parameters') or {})
 
 
-def _key(event) -> str:
+def _key(event: Any) -> str:
     """A started or exited process's key: its node's full name, or for a process of no one
     named node (`coop_bringup compose`) its executable's name."""
     with contextlib.suppress(Exception):   # a plain process, or a node without a name
@@ -233,6 +234,7 @@ def _key(event) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The child: run a launch file with its arguments, writing the state file."""
     p = argparse.ArgumentParser(prog='python -m coop_bringup.graph',
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('launch_file', type=Path)
@@ -244,11 +246,11 @@ def main(argv: list[str] | None = None) -> int:
     bad = [x for x in a.arguments if ':=' not in x]
     if bad:
         p.error(f'launch arguments are name:=value, not {bad}')
-    import launch
-    import launch.logging
-    from launch.actions import IncludeLaunchDescription, RegisterEventHandler
-    from launch.event_handlers import OnProcessExit, OnProcessStart
-    from launch.launch_description_sources import PythonLaunchDescriptionSource
+    import launch  # noqa: PLC0415 - launch only here
+    import launch.logging  # noqa: PLC0415 - launch only here
+    from launch.actions import IncludeLaunchDescription, RegisterEventHandler  # noqa: PLC0415 - launch only here
+    from launch.event_handlers import OnProcessExit, OnProcessStart  # noqa: PLC0415 - launch only here
+    from launch.launch_description_sources import PythonLaunchDescriptionSource  # noqa: PLC0415 - launch only here
     if a.log_dir is not None:
         a.log_dir.mkdir(parents=True, exist_ok=True)
         launch.logging.launch_config.log_dir = str(a.log_dir)
@@ -257,19 +259,20 @@ def main(argv: list[str] | None = None) -> int:
     def save() -> None:
         write_json(a.state, {'launch_file': str(a.launch_file), 'processes': state})
 
-    def started(event, _context) -> None:
+    def started(event: Any, _context: Any) -> None:
         state[_key(event)] = {'pid': event.pid, 'process': event.process_name,
                               'returncode': None}
         save()
 
-    def exited(event, _context) -> None:
+    def exited(event: Any, _context: Any) -> None:
         state.setdefault(_key(event), {'pid': event.pid, 'process': event.process_name})
         state[_key(event)]['returncode'] = event.returncode
         save()
 
     save()
-    service = launch.LaunchService(noninteractive=True)
-    service.include_launch_description(launch.LaunchDescription([
+    # (mypy takes `launch` for coop_bringup's launch/ directory of launch files)
+    service = launch.LaunchService(noninteractive=True)  # type: ignore[attr-defined]
+    service.include_launch_description(launch.LaunchDescription([  # type: ignore[attr-defined]
         RegisterEventHandler(OnProcessStart(on_start=started)),
         RegisterEventHandler(OnProcessExit(on_exit=exited)),
         IncludeLaunchDescription(PythonLaunchDescriptionSource(str(a.launch_file.resolve())),

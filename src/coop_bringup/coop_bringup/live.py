@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal, assert_never, get_args
+from typing import Any, Literal, assert_never, get_args
 
 import foxglove
 import numpy as np
@@ -37,6 +37,7 @@ from foxglove.messages import (
     Timestamp,
     Vector3,
 )
+from numpy.typing import ArrayLike
 
 __all__ = ['INSERT_PHASES', 'LiveView', 'LiveViewConfig', 'RateGate', 'channel_topics',
            'encode_jpeg', 'voxel_cloud', 'voxel_map_cdr']
@@ -70,7 +71,8 @@ class RateGate:
         return True
 
 
-def image_array(encoding: str, height: int, width: int, step: int, data) -> np.ndarray:
+def image_array(encoding: str, height: int, width: int, step: int,
+                data: Any) -> np.ndarray:
     """A sensor_msgs/Image's pixels as an (h, w) or (h, w, 3) uint8 array (mono8, rgb8, bgr8);
     ValueError for another encoding or a short buffer."""
     channels = {'mono8': 1, '8UC1': 1, 'rgb8': 3, 'bgr8': 3}.get(encoding)
@@ -98,7 +100,7 @@ def encode_jpeg(img: np.ndarray, *, quality: int = 70, scale: float = 0.5) -> by
     return buf.tobytes()
 
 
-def voxel_cloud(keys: np.ndarray, occupancy: np.ndarray, resolution_m: float, *,
+def voxel_cloud(keys: ArrayLike, occupancy: ArrayLike, resolution_m: float, *,
                 min_occupancy: float = 0.5) -> tuple[bytes, int]:
     """The occupied voxels of a VoxelSet (flat int32 keys, 3 per voxel) as a packed cloud of
     float32 (x, y, z, occupancy) at the voxel centres, 16 bytes a point; and the point count."""
@@ -154,7 +156,7 @@ def voxel_map_cdr(buf: bytes | memoryview) -> tuple[float, str, float, np.ndarra
 
 def _stamp(t_s: float) -> Timestamp:
     sec = math.floor(t_s)
-    return Timestamp(int(sec), int(round((t_s - sec) * 1e9)) % 1_000_000_000)
+    return Timestamp(int(sec), round((t_s - sec) * 1e9) % 1_000_000_000)
 
 
 def _pose(xyz: Sequence[float], quat_xyzw: Sequence[float]) -> Pose:
@@ -260,8 +262,9 @@ class LiveView:
         self.log_image(rover, img, stamp_s, frame_id)
         return True
 
-    def on_pose(self, rover: str, kind: PoseChannel, xyz, quat_xyzw, stamp_s: float,
-                frame_id: str = '', now_s: float | None = None) -> bool:
+    def on_pose(self, rover: str, kind: PoseChannel, xyz: Sequence[float],
+                quat_xyzw: Sequence[float], stamp_s: float, frame_id: str = '',
+                now_s: float | None = None) -> bool:
         """kind: 'pose' (the rover's base) or 'camera_pose' (its left optical frame)."""
         match kind:
             case 'pose':
@@ -277,7 +280,7 @@ class LiveView:
         self.sent[f'/{rover}/{kind}'] += 1
         return True
 
-    def on_transforms(self, transforms) -> None:
+    def on_transforms(self, transforms: Iterable[Any]) -> None:
         """Keep each child frame's latest transform: `transforms` of (parent, child, xyz,
         quat_xyzw, stamp_s); sent by `send_transforms`."""
         for parent, child, xyz, q, stamp_s in transforms:
@@ -297,7 +300,7 @@ class LiveView:
         return True
 
     # -- state: kept and re-sent at state_rate_hz -------------------------------------------------
-    def on_map(self, keys, occupancy, resolution_m: float, stamp_s: float,
+    def on_map(self, keys: ArrayLike, occupancy: ArrayLike, resolution_m: float, stamp_s: float,
                frame_id: str = '') -> None:
         data, n = voxel_cloud(keys, occupancy, resolution_m,
                               min_occupancy=self.cfg.min_occupancy)

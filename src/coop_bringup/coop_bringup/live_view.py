@@ -82,6 +82,8 @@ def _t(stamp) -> float:
 
 
 class LiveViewNode(Node):
+    """The live view's node: the mission's topics into `coop_bringup.live`'s Foxglove server."""
+
     def __init__(self) -> None:
         super().__init__('live_view')
         p = declare_parameters(self, PARAMS)
@@ -242,6 +244,7 @@ class LiveViewNode(Node):
 
 
 def main(args=None) -> int:
+    """`ros2 run coop_bringup live_view`."""
     return run_node(LiveViewNode, args)
 
 

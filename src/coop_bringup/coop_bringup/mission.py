@@ -32,7 +32,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Literal, assert_never
+from typing import assert_never
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped, Twist
@@ -87,7 +87,14 @@ from coop_viewplan.params import PARAMS as VP_PARAMS
 from .graph import node_settings
 from .mission_seeds import format_table as format_seeds
 from .mission_seeds import parse_seeds, run_seeds
-from .report import MissionError, identification_errors, site_coverage, top_view, write_report
+from .report import (
+    MissionError,
+    PhaseStatus,
+    identification_errors,
+    site_coverage,
+    top_view,
+    write_report,
+)
 
 
 class PhaseName(StrEnum):
@@ -150,8 +157,10 @@ class MissionConfig:
 
 @dataclass
 class Phase:
+    """One phase's row of the report: its status, why it is not ok, its wall and sim time."""
+
     name: PhaseName
-    status: Literal['skipped', 'running', 'ok', 'failed'] = 'skipped'
+    status: PhaseStatus = PhaseStatus.SKIPPED
     reason: str = ''
     wall_s: float | None = None
     sim_s: float | None = None
@@ -169,14 +178,14 @@ class Progress:
     def start(self, phase: str) -> None:
         self.close()
         if self.tty:
-            from tqdm import tqdm
+            from tqdm import tqdm  # noqa: PLC0415 - only on a terminal
             self.bar = tqdm(total=100, desc=phase, file=self.stream, unit='%',
                             bar_format='{desc:>9}: {percentage:3.0f}%|{bar}| {postfix} '
                                        '[{elapsed}<{remaining}]')
         self._phase, self._t0 = phase, time.monotonic()
 
     def update(self, fraction: float, note: str = '') -> None:
-        pct = int(round(100 * min(max(fraction, 0.0), 1.0)))
+        pct = round(100 * min(max(fraction, 0.0), 1.0))
         if self.bar is not None:
             self.bar.n = pct
             self.bar.set_postfix_str(note, refresh=True)
@@ -396,20 +405,21 @@ class Mission:
                     if ph.name is PhaseName.INSERT:
                         continue               # run with 'place' as one goal
                     self._run_phase(ph)
-                    if ph.status == 'failed':
+                    if ph.status is PhaseStatus.FAILED:
                         failed = ph.name
         except KeyboardInterrupt:
             for ph in self.phases:
-                if ph.status == 'running':
-                    ph.status, ph.reason = 'failed', 'interrupted (Ctrl-C)'
-                elif ph.status == 'skipped' and ph.name in cfg.phases and not ph.reason:
+                if ph.status is PhaseStatus.RUNNING:
+                    ph.status, ph.reason = PhaseStatus.FAILED, 'interrupted (Ctrl-C)'
+                elif (ph.status is PhaseStatus.SKIPPED and ph.name in cfg.phases
+                      and not ph.reason):
                     ph.reason = 'interrupted (Ctrl-C)'
             self.rep['interrupted'] = True
         except (InsertionError, MissionError, TimeoutError) as exc:
             self.rep['error'] = str(exc)
             for ph in self.phases:
-                if ph.status == 'running':
-                    ph.status, ph.reason = 'failed', str(exc)
+                if ph.status is PhaseStatus.RUNNING:
+                    ph.status, ph.reason = PhaseStatus.FAILED, str(exc)
         finally:
             self.progress.close()
         self.rep['phases'] = [asdict(p) for p in self.phases]
@@ -445,7 +455,7 @@ class Mission:
         from rover_bag.bagio import bag_info  # noqa: PLC0415 - only with a bag
         try:
             info = bag_info(path)
-        except Exception as exc:  # noqa: BLE001 - a broken bag is reported, not raised
+        except Exception as exc:
             return {'path': 'bag', 'error': f'{type(exc).__name__}: {exc}'}
         size = sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
         return {'path': 'bag', 'closed': (path / 'metadata.yaml').exists(),
@@ -459,14 +469,14 @@ class Mission:
         if bag is not None:
             self.rep['bag'] = bag
         self.rep['wall_s'] = time.monotonic() - t_all
-        self.rep['success'] = all(p.status == 'ok' for p in self.phases
+        self.rep['success'] = all(p.status is PhaseStatus.OK for p in self.phases
                                   if p.name in cfg.phases)
         md, _ = write_report(self.rep, self.out, **self.extras)
         self.log(f'report: {md}')
         return self.rep
 
     def _run_phase(self, ph: Phase) -> None:
-        ph.status = 'running'
+        ph.status = PhaseStatus.RUNNING
         self.progress.start(ph.name)
         w0, s0 = time.monotonic(), self._sim_t()
         try:
@@ -481,9 +491,9 @@ class Mission:
                     raise AssertionError("'insert' runs with 'place', as one insert goal")
                 case _:
                     assert_never(ph.name)
-            ph.status = ph.status if ph.status == 'failed' else 'ok'
+            ph.status = ph.status if ph.status is PhaseStatus.FAILED else PhaseStatus.OK
         except (MissionError, InsertionError, TimeoutError) as exc:
-            ph.status, ph.reason = 'failed', str(exc)
+            ph.status, ph.reason = PhaseStatus.FAILED, str(exc)
             self.log(f'{ph.name} failed: {exc}')
         finally:
             self.progress.close()
@@ -522,8 +532,10 @@ class Mission:
             result = res[r].result().result
             t, e = c.truth[r], result.estimate
             row = identification_errors(
-                dict(zip(t.names, t.values)), dict(zip(e.names, e.values)),
-                dict(zip(e.names, e.std_devs)), dict(zip(e.names, e.information_bits)))
+                dict(zip(t.names, t.values, strict=False)),
+                dict(zip(e.names, e.values, strict=False)),
+                dict(zip(e.names, e.std_devs, strict=False)),
+                dict(zip(e.names, e.information_bits, strict=False)))
             row.update(success=bool(result.success), message=result.message,
                        samples=int(e.samples))
             out[r] = row
@@ -559,7 +571,7 @@ class Mission:
 
     def _path(self, r: str, goal_xy, grid, trav, others: list) -> list:
         """Waypoints from rover r's base to goal_xy on the map, round the other rovers."""
-        clear = int(math.ceil(self.view_planner['clearance_m'] / grid.resolution))
+        clear = math.ceil(self.view_planner['clearance_m'] / grid.resolution)
         for xy in others:
             trav = trav.with_blocked_disk(grid.to_index(np.r_[xy, 0.0])[:2], clear + 2)
         x, y, _ = self.client.odom[r]
@@ -570,7 +582,7 @@ class Mission:
             # a goal inside the clearance of an obstacle (a base a little off its camera's
             # column, a staging pose close to the site): the path goes to the nearest
             # navigable cell within SNAP_M and the last leg straight on
-            r = int(math.ceil(SNAP_M / grid.resolution))
+            r = math.ceil(SNAP_M / grid.resolution)
             lo = np.maximum(goal - r, 0)
             near = np.argwhere(nav[lo[0]:goal[0] + r + 1, lo[1]:goal[1] + r + 1]) + lo
             if not len(near):
@@ -775,9 +787,10 @@ class Mission:
         self.extras['insertion_curves'] = attempt.curves
         self.extras['paths'] = {r: list(p) for r, p in self.client.paths.items()}
         reached = phase['insert_at'] is not None
-        place.status = 'ok' if reached else 'failed'
+        place.status = PhaseStatus.OK if reached else PhaseStatus.FAILED
         place.reason = '' if reached else attempt.reason
-        insert.status = 'ok' if attempt.success else ('failed' if reached else 'skipped')
+        insert.status = PhaseStatus.OK if attempt.success else (
+            PhaseStatus.FAILED if reached else PhaseStatus.SKIPPED)
         insert.reason = '' if attempt.success else (attempt.reason if reached else
                                                     'after place failed')
 
@@ -814,6 +827,7 @@ def _port_free(port: int) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run coop_bringup mission`: run the mission (or its seeds) and write the report."""
     p = argparse.ArgumentParser(
         prog='mission', description=__doc__.split('\n\n')[0],
         formatter_class=argparse.RawDescriptionHelpFormatter)

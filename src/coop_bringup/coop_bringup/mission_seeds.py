@@ -19,7 +19,7 @@ from pathlib import Path
 
 from coop_common.files import write_json
 
-from .report import MissionError
+from .report import MissionError, PhaseStatus
 
 
 def parse_seeds(spec: str) -> list[int]:
@@ -50,12 +50,13 @@ def judge(rep: dict) -> dict:
     ins = rep.get('insertion', {})
     row = {
         'seed': rep.get('config', {}).get('seed'),
-        'identify': status.get('identify') == 'ok' and e is not None
+        'identify': status.get('identify') == PhaseStatus.OK and e is not None
         and e <= t.get('identification_error', 0.15),
         'identification_error': e,
-        'map': status.get('map') == 'ok' and cov is not None and cov >= t.get('coverage', 0.9),
+        'map': (status.get('map') == PhaseStatus.OK and cov is not None
+                and cov >= t.get('coverage', 0.9)),
         'coverage': cov,
-        'place': status.get('place') == 'ok',
+        'place': status.get('place') == PhaseStatus.OK,
         'insert': bool(ins.get('success')),
         'reason': ins.get('reason', ''),
         'search_views': ins.get('search_views'),
@@ -71,7 +72,7 @@ def judge(rep: dict) -> dict:
     return row
 
 
-def _f(v, spec: str) -> str:
+def _f(v: object, spec: str) -> str:
     return '-' if v is None or (isinstance(v, float) and not math.isfinite(v)) \
         else format(v, spec)
 
@@ -98,16 +99,16 @@ def format_table(rows: list[dict]) -> str:
     return '\n'.join(lines)
 
 
-def _pct(v):
+def _pct(v: float | None) -> float | None:
     return None if v is None else 100 * v
 
 
 def run_seeds(seeds: list[int], run_one: Callable[[int, str], dict], out: Path, *,
-              log=print) -> list[dict]:
+              log: Callable[[str], None] = print) -> list[dict]:
     """Each seed's mission (`run_one(seed, run_id)` returns its report) under `out`, or its
     report read back when `out/seed_<k>/report.json` holds one; the judged rows, also written
     to `out/seeds.json` after every seed."""
-    rows = []
+    rows: list[dict] = []
     for seed in seeds:
         run_id = f'seed_{seed}'
         done = out / run_id / 'report.json'

@@ -8,14 +8,24 @@ report.json holds at least `identification.mean_abs_rel_error`, `mapping.coverag
 from __future__ import annotations
 
 import math
+from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from coop_common.files import save_figure, write_json, write_text_atomic
 
-__all__ = ['MissionError', 'site_coverage', 'top_view', 'identification_errors',
-           'write_report', 'format_summary']
+__all__ = [
+    'MissionError',
+    'PhaseStatus',
+    'format_summary',
+    'identification_errors',
+    'site_coverage',
+    'top_view',
+    'write_report',
+]
 
 
 #: the lowest voxel layer counted as the site's surface: the ground at z = 0 lands in layer
@@ -27,7 +37,16 @@ class MissionError(RuntimeError):
     """A mission that cannot go on: the phase and the reason are in the message."""
 
 
-def _site_columns(keys: np.ndarray, resolution: float, centre_xy, half_m: float
+class PhaseStatus(StrEnum):
+    """A mission phase's status in the report (its JSON 'phases' rows)."""
+
+    SKIPPED = 'skipped'
+    RUNNING = 'running'
+    OK = 'ok'
+    FAILED = 'failed'
+
+
+def _site_columns(keys: np.ndarray, resolution: float, centre_xy: ArrayLike, half_m: float
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The work site's ground cells as key ranges: (lo, hi) inclusive (x, y) keys and the
     (N, 3) keys given."""
@@ -38,8 +57,8 @@ def _site_columns(keys: np.ndarray, resolution: float, centre_xy, half_m: float
     return lo, hi, k
 
 
-def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, centre_xy,
-                  half_m: float, z_max_m: float = 1.0) -> float:
+def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *,
+                  centre_xy: ArrayLike, half_m: float, z_max_m: float = 1.0) -> float:
     """Fraction of the work site's ground cells (a square of side 2 half_m about centre_xy)
     whose surface the map has measured: an occupied voxel (the ground, or the top of what stands
     on it) in the column below z_max_m. A column crossed only by rays (free voxels above an
@@ -50,7 +69,7 @@ def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *,
     occ = np.asarray(occupancy, float).reshape(-1)
     if len(occ) != len(k):
         raise MissionError('one occupancy per voxel key')
-    kz = int(math.floor(z_max_m / resolution))
+    kz = math.floor(z_max_m / resolution)
     sel = np.all((k[:, :2] >= lo) & (k[:, :2] <= hi), axis=1) & (k[:, 2] >= GROUND_KEY) & \
         (k[:, 2] < kz) & (occ >= 0.5)
     cols = np.unique(k[sel, :2], axis=0)
@@ -58,14 +77,14 @@ def site_coverage(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *,
     return float(len(cols) / total) if total > 0 else 0.0
 
 
-def top_view(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, centre_xy,
+def top_view(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *, centre_xy: ArrayLike,
              half_m: float, z_max_m: float = 1.0, ground_m: float = 0.1) -> np.ndarray:
     """Per ground cell of the site (x rows, y columns): -1 unknown, 0 seen free, 1 an occupied
     voxel above `ground_m` (an obstacle)."""
     lo, hi, k = _site_columns(keys, resolution, centre_xy, half_m)
     occ = np.asarray(occupancy, float).reshape(-1)
     out = np.full(tuple(hi - lo + 1), -1, np.int8)
-    kz0, kz1 = int(math.floor(ground_m / resolution)), int(math.floor(z_max_m / resolution))
+    kz0, kz1 = math.floor(ground_m / resolution), math.floor(z_max_m / resolution)
     sel = np.all((k[:, :2] >= lo) & (k[:, :2] <= hi), axis=1) & (k[:, 2] >= GROUND_KEY) & \
         (k[:, 2] < kz1)
     ij = k[sel, :2] - lo
@@ -100,12 +119,12 @@ def identification_errors(truth: dict[str, float], estimate: dict[str, float],
 # ------------------------------------------------------------------------------ the report
 
 
-def _fmt(v, spec: str = '.3g', none: str = '-') -> str:
+def _fmt(v: object, spec: str = '.3g', none: str = '-') -> str:
     return none if v is None or (isinstance(v, float) and not math.isfinite(v)) else \
         format(v, spec)
 
 
-def _pct(v):
+def _pct(v: float | None) -> float | None:
     return None if v is None else 100 * v
 
 
@@ -134,17 +153,17 @@ def format_summary(rep: dict) -> str:
              '|---|---|---|---|---|---|']
     for ph in rep.get('phases', []):
         res, tgt = results.get(ph['name'], ('', ''))
-        if ph['status'] != 'ok' and ph.get('reason') and ph['reason'] not in res:
-            res = f'{res}; {ph["reason"]}' if ph['status'] == 'failed' else ph['reason']
+        if ph['status'] != PhaseStatus.OK and ph.get('reason') and ph['reason'] not in res:
+            res = f'{res}; {ph["reason"]}' if ph['status'] == PhaseStatus.FAILED else ph['reason']
         lines.append(f'| {ph["name"]} | {ph["status"]} | {res} | {tgt} | '
                      f'{_fmt(ph.get("wall_s"), ".0f")} | {_fmt(ph.get("sim_s"), ".1f")} |')
     return '\n'.join(lines)
 
 
 def _plots(rep: dict, out: Path, extras: dict) -> dict[str, str]:
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - heavy, only when plotting
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     files = {}
     ident = rep.get('identification', {}).get('rovers', {})
     if ident:
@@ -211,7 +230,7 @@ def _plots(rep: dict, out: Path, extras: dict) -> dict[str, str]:
         plt.close(fig)
     curves = extras.get('insertion_curves')
     if curves and curves.get('t'):
-        from coop_bringup.table_5_1 import plot_curves
+        from coop_bringup.table_5_1 import plot_curves  # noqa: PLC0415 - rclpy; only with insertion curves
         ok = rep.get('insertion', {}).get('success')
         files['insertion'] = plot_curves(
             curves, f'Insertion, {rep["config"]["slot_in"]} in slot: '
@@ -249,7 +268,7 @@ def _run_files(rep: dict) -> list[str]:
     return [*lines, ''] if lines else []
 
 
-def write_report(rep: dict, out: Path, **extras) -> tuple[Path, Path]:
+def write_report(rep: dict, out: Path, **extras: Any) -> tuple[Path, Path]:
     """report.json and report.md (with PNG plots) under `out`. extras: top_view (from
     `top_view`), paths {rover: (N, 2) odometry xy}, occupied_points (N, 3), insertion_curves
     (an Attempt's curves); they go into the plots only."""

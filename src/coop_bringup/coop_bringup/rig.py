@@ -18,27 +18,35 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
 import rclpy
+import yaml
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from rosgraph_msgs.msg import Clock
+from scipy.spatial.transform import Rotation
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import load_truth
 from coop_common.lockstep_node import Lockstep, Pacer, stamp_of
 from coop_common.node_util import in_executor
+from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, joint2_in_base
 from coop_common.testing import isolate_ros_environment, wait_for
 from coop_msgs.action import Insert
 from coop_msgs.msg import ContactState, VoxelMap
 from coop_msgs.srv import SimScenario
+from coop_viewplan.frames import optical_quaternion
+from rover_sim.config import is_truth_topic
 
 from .graph import LaunchedGraph, mission_launch_file
 from .report import MissionError
@@ -99,7 +107,6 @@ def truth_readers(subscriptions: dict[str, list[str]]) -> dict[str, list[str]]:
     """Of a graph's subscriptions (node's full name -> topics, InsertionRig.subscriptions),
     the loop nodes' subscriptions to the simulator's truth (rover_sim.config.is_truth_topic)
     and to /tf (which carries it with the simulator's truth_tf): empty when truth only judges."""
-    from rover_sim.config import is_truth_topic
     out = {}
     for node in loop_nodes(subscriptions):
         truth = [t for t in subscriptions[node] if is_truth_topic(t) or t == '/tf']
@@ -170,16 +177,30 @@ def staging_poses(slot_in: float, rng: np.random.Generator | None = None, *,
                        float(SITE_XY[1] - j2[1] + d[1]), float(d[2]))}
 
 
-#: the placements an attempt can ask the master for (coop_msgs/action/Insert)
-PLACEMENTS = {'optimal': Insert.Goal.PLACEMENT_OPTIMAL, 'random': Insert.Goal.PLACEMENT_RANDOM,
-              'random_fixed': Insert.Goal.PLACEMENT_RANDOM_FIXED,
-              'given': Insert.Goal.PLACEMENT_GIVEN}
+class Placement(StrEnum):
+    """The placements an attempt can ask the master for (coop_msgs/action/Insert's
+    PLACEMENT_*): 'given' pins the camera pose an attempt names."""
+
+    OPTIMAL = 'optimal'
+    RANDOM = 'random'
+    RANDOM_FIXED = 'random_fixed'
+    GIVEN = 'given'
+
+
+#: each placement's constant in the Insert goal
+PLACEMENTS = {Placement.OPTIMAL: Insert.Goal.PLACEMENT_OPTIMAL,
+              Placement.RANDOM: Insert.Goal.PLACEMENT_RANDOM,
+              Placement.RANDOM_FIXED: Insert.Goal.PLACEMENT_RANDOM_FIXED,
+              Placement.GIVEN: Insert.Goal.PLACEMENT_GIVEN}
 
 
 @dataclass
 class Attempt:
+    """One insertion attempt on the rig: the truth's verdict, the action's result, what vision
+    saw, and the curves."""
+
     slot_in: float
-    placement: str
+    placement: Placement
     seed: int
     success: bool                  # the simulator's truth: seated, penetration within limit
     action_success: bool
@@ -252,7 +273,6 @@ class _Client(Node):
 
     def _on_card(self, m: PoseStamped) -> None:
         if self.recording:
-            from scipy.spatial.transform import Rotation
             q = m.pose.orientation
             # the card's width axis (its x) in the map: its tilt out of the horizontal
             axis = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()[:, 0]
@@ -326,7 +346,6 @@ class InsertionRig(contextlib.AbstractContextManager):
             local.write_bytes(Path(site_map).read_bytes())
             args['site_map'] = local
         if overrides:
-            import yaml
             path = self.log_dir / 'overrides.yaml'
             path.write_text(yaml.safe_dump({f'/**/{node}': {'ros__parameters': values}
                                             for node, values in overrides.items()}))
@@ -467,7 +486,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         for name, ns in self.node.get_node_names_and_namespaces():
             try:
                 topics = self.node.get_subscriber_names_and_types_by_node(name, ns)
-            except Exception:  # noqa: BLE001 - rclpy's NodeNameNonExistentError: it left
+            except Exception:
                 continue
             out[f'{ns.rstrip("/")}/{name}'] = sorted(t for t, _ in topics)
         return out
@@ -475,14 +494,12 @@ class InsertionRig(contextlib.AbstractContextManager):
     def set_parameters(self, node: str, **values) -> None:
         """Set parameters of one node of the graph (MissionError with the node's reason
         when it refuses one)."""
-        from rclpy.parameter import Parameter
-        from rclpy.parameter_client import AsyncParameterClient
         client = AsyncParameterClient(self.node, node)
         if not client.wait_for_services(timeout_sec=10.0):
             raise MissionError(f'no {node} parameter services')
         fut = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
         self._wait(fut.done, 10.0, what=f"{node}'s {', '.join(values)}")
-        for name, res in zip(values, fut.result().results):
+        for name, res in zip(values, fut.result().results, strict=False):
             if not res.successful:
                 raise MissionError(f'{node}: {name} refused: {res.reason}')
 
@@ -556,7 +573,7 @@ class InsertionRig(contextlib.AbstractContextManager):
             self._wait(settled, STALL_S, what='the map to take in the survey')
         self.graph.stop('stereo')
 
-    def attempt(self, *, slot_in: float, placement: str, seed: int,
+    def attempt(self, *, slot_in: float, placement: Placement | str, seed: int,
                 timeout_s: float = 120.0, max_force_n: float = 25.0,
                 penetration_limit_mm: float = 0.5,
                 camera: tuple[tuple[float, float], float, float] | None = None) -> Attempt:
@@ -566,16 +583,15 @@ class InsertionRig(contextlib.AbstractContextManager):
                            timeout_s=timeout_s, max_force_n=max_force_n,
                            penetration_limit_mm=penetration_limit_mm, camera=camera)
 
-    def insert(self, *, slot_in: float, placement: str, seed: int = 0,
+    def insert(self, *, slot_in: float, placement: Placement | str, seed: int = 0,
                timeout_s: float = 120.0, max_force_n: float = 25.0,
                penetration_limit_mm: float = 0.5,
                camera: tuple[tuple[float, float], float, float] | None = None) -> Attempt:
         """One `insert` goal from wherever the rovers stand, judged by the simulator's
-        truth. placement: one of PLACEMENTS ('given': the camera's (xy, yaw, pitch) in
+        truth. placement: a Placement or its name ('given': the camera's (xy, yaw, pitch) in
         `camera`); the master's random draws are the attempt's seed's."""
-        if placement not in PLACEMENTS:
-            raise MissionError(f'placement must be one of {", ".join(PLACEMENTS)}')
-        if (placement == 'given') != (camera is not None):
+        placement = choice(Placement, placement, 'placement', error=MissionError)
+        if (placement is Placement.GIVEN) != (camera is not None):
             raise MissionError("a camera pose goes with the 'given' placement, and only")
         node = self.node
         self.hold()
@@ -601,7 +617,6 @@ class InsertionRig(contextlib.AbstractContextManager):
                            placement=PLACEMENTS[placement],
                            max_force_n=float(max_force_n), timeout_s=float(timeout_s))
         if camera is not None:
-            from coop_viewplan.frames import optical_quaternion
             xy, yaw, pitch = camera
             goal.camera_pose.header.frame_id = 'map'
             pos, q = goal.camera_pose.pose.position, goal.camera_pose.pose.orientation
@@ -656,6 +671,7 @@ class InsertionRig(contextlib.AbstractContextManager):
 
 
 def as_row(a: Attempt) -> dict:
+    """The attempt as a JSON row: its fields but the curves, non-finite numbers as None."""
     row = {k: (v if not isinstance(v, float) or math.isfinite(v) else None)
            for k, v in a.__dict__.items() if k != 'curves'}
     row['fix_rate'] = a.fix_rate

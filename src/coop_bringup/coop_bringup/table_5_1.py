@@ -25,12 +25,15 @@ drawn per attempt (rig.rough_site) and finds the slot in it by its markers.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import signal
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -56,9 +59,9 @@ LABELS = {5.0: 'Easy', 4.5: 'Medium', 4.375: 'Hard', 4.2925: '1 % clearance'}
 
 
 def build_site_map(path: Path, *, seed: int, occlusion_density: float, scans: int = 14,
-                   log=None) -> Path:
+                   log: Callable[[str], None] | None = None) -> Path:
     """The scenario's map by the mapping pipeline (coop_viewplan.fig_3_25's exploration)."""
-    from coop_viewplan.fig_3_25 import Fig325Config, PoseSource, run_strategy
+    from coop_viewplan.fig_3_25 import Fig325Config, PoseSource, run_strategy  # noqa: PLC0415 - only to build a site map
     cfg = Fig325Config(rovers=2, scans=scans, seed=seed, occlusion_density=occlusion_density,
                        pose_source=PoseSource.ODOMETRY)
     run_strategy('max_information', cfg, seed=seed, log=log, save_map=path)
@@ -70,7 +73,7 @@ MAX_RESTARTS = 6
 
 
 def open_rig(*, seed: int, occlusion_density: float, slot_in: float, log_dir: Path,
-             site_map: Path, log=print, render_workers: int = 1,
+             site_map: Path, log: Callable[[str], None] = print, render_workers: int = 1,
              lockstep: bool = True, composed: bool = False) -> InsertionRig:
     """The attempts' graph, ready: the rovers placed for the row, the master's survey of the
     site fused into the map, the stereo ranging stopped (the map is the scenario's); in
@@ -94,12 +97,12 @@ def _cell_key(slot_in: float, placement: str, seed: int) -> tuple[float, str, in
     return (round(float(slot_in), 6), placement, int(seed))
 
 
-def _done_attempts(checkpoint: Path | None, settings: dict | None = None, log=print) -> dict:
+def _done_attempts(checkpoint: Path | None, settings: dict | None = None,
+                   log: Callable[[str], None] = print) -> dict:
     """The attempts a previous run of the same `settings` saved in `checkpoint` (its --json):
     (slot_in, placement, seed) -> (row, curves); none when its settings differ."""
     if checkpoint is None or not checkpoint.exists():
         return {}
-    import json
     try:
         old = json.loads(checkpoint.read_text())
     except (OSError, ValueError):
@@ -113,7 +116,7 @@ def _done_attempts(checkpoint: Path | None, settings: dict | None = None, log=pr
         for placement in old.get('placements', []):
             rows = row.get(f'{placement}_attempts') or []
             curves = row.get(f'{placement}_curves') or [{}] * len(rows)
-            for a, c in zip(rows, curves):
+            for a, c in zip(rows, curves, strict=False):
                 done[_cell_key(a['slot_in'], placement, a['seed'])] = (a, thin_curves(c))
     return done
 
@@ -138,7 +141,7 @@ def thin_curves(c: dict, dt_s: float = CURVE_DT_S) -> dict:
             keep.append(i)
             last_t = ti
 
-    def rounded(key: str, v):
+    def rounded(key: str, v: Any) -> Any:
         d = _CURVE_DIGITS.get(key)
         if d is None:
             return v
@@ -152,7 +155,7 @@ def parse_rows(spec: str, *, attempts: int,
     """`width[:attempts[:placement+...]]`, comma-separated (e.g. DEFAULT_ROWS), into (slot
     width in, attempts, placements) per row; `attempts` and `placements` where a row gives
     none (ValueError with the reason)."""
-    rows = []
+    rows: list[tuple[float, int, tuple[str, ...]]] = []
     for item in (x.strip() for x in spec.split(',') if x.strip()):
         parts = item.split(':')
         if len(parts) > 3:
@@ -178,9 +181,9 @@ def parse_rows(spec: str, *, attempts: int,
 
 
 def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple[str, ...]]],
-        placements: tuple[str, ...], seed: int,
-        occlusion_density: float, timeout_s: float, max_force_n: float, site_map: Path | None,
-        checkpoint: Path | None = None, resume: bool = False, log=print) -> dict:
+        placements: tuple[str, ...], seed: int, occlusion_density: float, timeout_s: float,
+        max_force_n: float, site_map: Path | None, checkpoint: Path | None = None,
+        resume: bool = False, log: Callable[[str], None] = print) -> dict:
     """The table: `rows` slot widths (in), each with `attempts` per placement, or (width,
     attempts, placements) per row (parse_rows). With `checkpoint`, the result so far is
     written there (atomically) after every attempt, `complete` false until the end; `resume`
@@ -200,10 +203,10 @@ def run(*, attempts: int, rows: tuple[float, ...] | list[tuple[float, int, tuple
     source = source_revision()
     if done:
         log(f'resuming: {len(done)} attempts from {checkpoint}')
-    res = {'settings': settings, 'attempts': attempts, 'seed': seed,
-           'occlusion_density': occlusion_density,
-           'placements': list(placements), 'rows': [], 'sim_restarts': [],
-           'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
+    res: dict[str, Any] = {'settings': settings, 'attempts': attempts, 'seed': seed,
+                           'occlusion_density': occlusion_density,
+                           'placements': list(placements), 'rows': [], 'sim_restarts': [],
+                           'complete': False, 'seconds': 0.0, 'logs': str(work / 'logs')}
     rig: InsertionRig | None = None
 
     specs = [r if isinstance(r, tuple) else (float(r), attempts, placements) for r in rows]
@@ -309,6 +312,7 @@ def cell_summary(attempts: list[dict]) -> dict:
 
 
 def format_table(res: dict) -> str:
+    """The result as Table 5-1's text: success per row and placement next to the thesis's."""
     counts = sorted({r.get('attempts', res['attempts']) for r in res['rows']})
     placements = res['placements']
     head = (f'Table 5-1 through sim + nodes: {" or ".join(map(str, counts))} attempts per cell '
@@ -362,9 +366,9 @@ def format_table(res: dict) -> str:
 def plot_curves(c: dict, title: str, path: Path) -> Path:
     """One attempt's Figs. 5-13 / 5-14 curves (an Attempt's `curves`): displacement and angular
     error against time, and the F/T force after contact."""
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 - heavy, only when plotting
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
     t = c['t']
     ax[0].plot(t, [1e3 * v for v in c['displacement_m']])
@@ -401,6 +405,7 @@ def plot(res: dict, out: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_insertion.table_5_1`: the attempts per row and placement, resumable."""
     p = argparse.ArgumentParser(prog='table_5_1', description=__doc__.split('\n\n')[0])
     p.add_argument('--attempts', type=number(int, lo=1), default=DEFAULT_ATTEMPTS,
                    help='per cell, where --rows gives none')

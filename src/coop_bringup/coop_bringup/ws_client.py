@@ -38,11 +38,12 @@ async def _receive(url: str, topics: Iterable[str] | None, duration_s: float,
                    until_each: bool, stop: threading.Event | None) -> Received:
     import websockets  # noqa: PLC0415 - only the test and the bench use the client
     from websockets.exceptions import ConnectionClosed  # noqa: PLC0415
+    from websockets.typing import Subprotocol  # noqa: PLC0415
 
     want = set(topics) if topics is not None else None
     got = Received()
     by_sub: dict[int, str] = {}
-    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None,
+    async with websockets.connect(url, subprotocols=[Subprotocol(SUBPROTOCOL)], max_size=None,
                                   open_timeout=20) as ws:
         t_end = time.monotonic() + duration_s
         while (left := t_end - time.monotonic()) > 0:

@@ -1,4 +1,4 @@
-"""The whole mission graph (thesis ch. 5.1, Fig. 4-2): the data source, each rover's
+r"""The whole mission graph (thesis ch. 5.1, Fig. 4-2): the data source, each rover's
 identifier and stereo node, the team's mapper and view planner, the insertion's master and
 slave, and optionally the recorder and the live view, all on sim time.
 
@@ -280,6 +280,7 @@ def _bring_up(bridge: LifecycleNode) -> list:
 
 
 def generate_launch_description() -> LaunchDescription:
+    """The arguments, then the graph they describe (made when launch runs it)."""
     config = Path(get_package_share_directory('coop_bringup')) / 'config' / 'mission.yaml'
     return LaunchDescription([
         *(DeclareLaunchArgument(name, default_value=default, description=text)

@@ -26,6 +26,7 @@ PASSED = (('team', ''), ('bag', ''), ('rovers', 'rover1 rover2'),
 
 
 def generate_launch_description() -> LaunchDescription:
+    """mission.launch.py without the insertion (its arguments passed on)."""
     share = Path(get_package_share_directory('coop_bringup'))
     return LaunchDescription([
         *(DeclareLaunchArgument(name, default_value=default,

@@ -82,5 +82,5 @@ def test_node_settings_come_from_the_one_parameter_file(tmp_path):
     assert node_settings('nobody') == {}
     bad = tmp_path / 'bad.yaml'
     bad.write_text('/**/x: [')
-    with pytest.raises(GraphError, match='bad.yaml'):
+    with pytest.raises(GraphError, match=r'bad\.yaml'):
         node_settings('x', bad)

@@ -20,8 +20,8 @@ RES = 0.1
 
 def _ground(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
     """Keys of the ground voxels (z key -1, the ground at z = 0) over [x0, x1) x [y0, y1)."""
-    i = np.arange(int(round(x0 / RES)), int(round(x1 / RES)))
-    j = np.arange(int(round(y0 / RES)), int(round(y1 / RES)))
+    i = np.arange(round(x0 / RES), round(x1 / RES))
+    j = np.arange(round(y0 / RES), round(y1 / RES))
     ii, jj = np.meshgrid(i, j, indexing='ij')
     return np.column_stack([ii.ravel(), jj.ravel(), np.full(ii.size, -1)])
 

@@ -1,6 +1,7 @@
 """table_5_1's bookkeeping without the graph: an attempt the simulator stalled in runs again on a
 fresh graph, every attempt is checkpointed, and --resume reuses what a stopped run saved."""
 import json
+from typing import ClassVar
 
 import pytest
 from coop_bringup.rig import Attempt, SimStalled
@@ -10,8 +11,8 @@ from coop_bringup import table_5_1
 
 class FakeRig:
     opened = 0
-    calls: list = []
-    stall_on: set = set()
+    calls: ClassVar[list] = []
+    stall_on: ClassVar[set] = set()
 
     def __init__(self, **kw):
         self.kw = kw

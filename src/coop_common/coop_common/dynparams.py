@@ -56,7 +56,7 @@ class BaseParameters:
 
     @classmethod
     def from_vector(cls, x: np.ndarray) -> BaseParameters:
-        d = dict(zip(PARAM_NAMES, np.asarray(x, dtype=float)))
+        d = dict(zip(PARAM_NAMES, np.asarray(x, dtype=float), strict=False))
         inertia = np.array([
             [d['Ixx'], d['Ixy'], d['Ixz']],
             [d['Ixy'], d['Iyy'], d['Iyz']],
@@ -80,7 +80,7 @@ class BaseParameters:
         ])
 
     def to_dict(self) -> dict[str, float]:
-        return {n: float(v) for n, v in zip(PARAM_NAMES, self.to_vector())}
+        return {n: float(v) for n, v in zip(PARAM_NAMES, self.to_vector(), strict=False)}
 
 
 def check_physical(x: np.ndarray) -> list[str]:

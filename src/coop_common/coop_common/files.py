@@ -14,7 +14,8 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)
 
 
-def write_atomic(path: str | Path, mode: str, write: Callable[[IO], None]) -> Path:
+def write_atomic(path: str | os.PathLike[str], mode: str, write: Callable[[IO], object]
+                 ) -> Path:
     """Call `write` on a temporary file in `path`'s directory, fsync, then os.replace. The file
     gets the permissions a plain open() would give it (an existing file's, else 0666 less the
     umask), not mkstemp's 0600."""
@@ -27,7 +28,7 @@ def write_atomic(path: str | Path, mode: str, write: Callable[[IO], None]) -> Pa
     fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
     try:
         os.fchmod(fd, perms)
-        with os.fdopen(fd, mode, **({} if 'b' in mode else {'encoding': 'utf-8'})) as f:
+        with os.fdopen(fd, mode, encoding=None if 'b' in mode else 'utf-8') as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())

@@ -197,6 +197,11 @@ def quat_of(r: np.ndarray) -> tuple[float, float, float, float]:
     return float(q[0]), float(q[1]), float(q[2]), float(q[3])
 
 
+def _xyz(v: Sequence[float] | np.ndarray) -> tuple[float, float, float]:
+    """A 3-vector's components as floats."""
+    return float(v[0]), float(v[1]), float(v[2])
+
+
 def _about_z(a: float) -> tuple[float, float, float, float]:
     return 0.0, 0.0, math.sin(a / 2), math.cos(a / 2)
 
@@ -222,7 +227,7 @@ def static_transforms(frames: RoverFrames, *,
     return [
         Transform(frames.base_link, frames.ft_sensor, (r2[0], r2[1], r2[2])),
         Transform(frames.mast_tilt, frames.optical('left'),
-                  tuple(float(v) for v in CAMERA_OFFSET), quat_of(OPTICAL_IN_TILT)),
+                  _xyz(CAMERA_OFFSET), quat_of(OPTICAL_IN_TILT)),
         Transform(frames.optical('left'), frames.optical('right'), (STEREO_BASELINE_M, 0.0, 0.0)),
     ]
 
@@ -234,14 +239,14 @@ def mast_transforms(frames: RoverFrames, names: Sequence[str],
     one."""
     if len(names) != len(positions):
         raise FrameError(f'joint state with {len(names)} names and {len(positions)} positions')
-    by_name = dict(zip(names, positions))
+    by_name = dict(zip(names, positions, strict=False))
     missing = [j for j in MAST_JOINTS if j not in by_name]
     if missing:
         raise FrameError(f'joint state without {", ".join(missing)}')
     pan, tilt = (float(by_name[j]) for j in MAST_JOINTS)
     _finite('mast joints', pan, tilt)
     return [
-        Transform(frames.base_link, frames.mast_pan, tuple(float(v) for v in MAST_POSITION),
+        Transform(frames.base_link, frames.mast_pan, _xyz(MAST_POSITION),
                   _about_z(pan)),
         Transform(frames.mast_pan, frames.mast_tilt, (0.0, 0.0, TILT_ABOVE_PAN_M),
                   _about_y(tilt)),

@@ -82,6 +82,8 @@ class CountingPublisher:
 
 
 class Lockstep:
+    """A node's side of the lockstep rounds (module docstring); rclpy's own when disabled."""
+
     def __init__(self, node: Node, enabled: bool, *, timeout_s: float = 10.0) -> None:
         self.node = node
         self.enabled = enabled
@@ -180,7 +182,7 @@ class Lockstep:
         if self._unacked is not None or self._holds or not self._ticks:
             return
         tick = self._ticks[0]
-        counts = dict(zip(tick.topics, tick.counts))
+        counts = dict(zip(tick.topics, tick.counts, strict=False))
         if self._inbox.missing(counts) or (tick.round == 0 and self._unconnected()):
             return
         self._ticks.popleft()
@@ -234,7 +236,7 @@ class Lockstep:
         else:
             tick = self._ticks[0]
             what = f'messages of round {tick.round}: ' + str(
-                self._inbox.missing(dict(zip(tick.topics, tick.counts))))
+                self._inbox.missing(dict(zip(tick.topics, tick.counts, strict=False))))
         self.node.get_logger().warn(f'lockstep: waiting {now - self._since:.0f} s for {what}')
 
 

@@ -27,14 +27,22 @@ from rclpy.task import Future
 from .errors import CoopCommonError
 from .params import ParamSpec, check_values
 
-__all__ = ['ParamSpec', 'declare_parameters', 'BadInputCounter', 'NodeFailed', 'run_node',
-           'run_nodes', 'stamp', 'in_executor']
+__all__ = [
+    'BadInputCounter',
+    'NodeFailed',
+    'ParamSpec',
+    'declare_parameters',
+    'in_executor',
+    'run_node',
+    'run_nodes',
+    'stamp',
+]
 
 
 def stamp(t_s: float) -> Time:
     """Seconds -> builtin_interfaces/Time, rounded to the nanosecond (a time just below a
     whole second carries into sec rather than wrapping nanosec to 0)."""
-    ns = int(round(t_s * 1e9))
+    ns = round(t_s * 1e9)
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
@@ -73,7 +81,7 @@ def declare_parameters(node: Node, specs: dict[str, ParamSpec],
                        ) -> dict[str, Any]:
     """Declare every spec with its descriptor, validate the initial values (raising ValueError with
     the reason, so a bad --params-file stops the node at start), and install the Jazzy pair of
-    parameter callbacks (ros2/demos `demo_nodes_py/parameters/set_parameters_callback.py`):
+    parameter callbacks (ros2/demos `demo_nodes_py/parameters/set_parameters_callback.py`).
 
     * an on-set callback that only validates: each value against its spec, then `check_all`, a
       rule between parameters (e.g. near < far) given all values as they would be, returning

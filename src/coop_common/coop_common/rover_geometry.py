@@ -10,6 +10,7 @@ turns about z above it, joints 2..4 pitch about their y axes in the arm's plane.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -30,6 +31,8 @@ GROUP_JOINTS: dict[JointGroup, tuple[str, ...]] = {'arm': ARM_JOINTS, 'mast': MA
 
 @dataclass(frozen=True)
 class ArmLink:
+    """One arm link's mass properties and length (link frame, SI units)."""
+
     name: str
     mass: float
     com: tuple[float, float, float]
@@ -102,7 +105,7 @@ def card_fk(q2: float, q3: float, q4: float) -> tuple[float, float, float]:
 
 
 
-def arm_gravity_moment(q, *, g: float = 9.81) -> np.ndarray:
+def arm_gravity_moment(q: Sequence[float] | np.ndarray, *, g: float = 9.81) -> np.ndarray:
     """The moment of the arm's own weight (ARM_LINKS beyond the F/T sensor) that the sensor
     reads at joint angles q (4, rad): base axes, about the sensor's origin, the base level.
     Quasi-static (no link accelerations). The force part is the arm's weight whatever q is; the
@@ -116,7 +119,7 @@ def arm_gravity_moment(q, *, g: float = 9.81) -> np.ndarray:
              ARM_LINKS[1].com[0] * np.cos(t2),
              l2 * np.cos(t2) + ARM_LINKS[2].com[0] * np.cos(t3),
              l2 * np.cos(t2) + l3 * np.cos(t3) + ARM_LINKS[3].com[0] * np.cos(t4))
-    first = sum(link.mass * x for link, x in zip(ARM_LINKS, reach))
+    first = sum(link.mass * x for link, x in zip(ARM_LINKS, reach, strict=False))
     return np.array([g * first * np.sin(q1), -g * first * np.cos(q1), 0.0])
 
 
@@ -144,14 +147,15 @@ def _rot_y(a: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def joint2_in_base(cg_to_arm) -> np.ndarray:
+def joint2_in_base(cg_to_arm: Sequence[float] | np.ndarray) -> np.ndarray:
     """Arm joint 2's axis point in the base frame at joint 1 = 0 (joint 1 turns about the
     vertical through it): r_2 plus the heights of joint 1 and of joint 2 above it."""
     r2 = np.asarray(cg_to_arm, float)
     return r2 + np.array([0.0, 0.0, ARM_JOINT1_ABOVE_SENSOR_M + ARM_LINKS[0].length])
 
 
-def card_in_base(q, cg_to_arm) -> np.ndarray:
+def card_in_base(q: Sequence[float] | np.ndarray, cg_to_arm: Sequence[float] | np.ndarray
+                 ) -> np.ndarray:
     """4x4 pose of the card frame (centre; x along its width, y its face normal, z its height)
     in the base frame from the arm's four joint angles and r_2."""
     q1, q2, q3, q4 = (float(v) for v in q)
@@ -163,8 +167,8 @@ def card_in_base(q, cg_to_arm) -> np.ndarray:
     return t
 
 
-def card_joints(position, heading: float, pitch: float, cg_to_arm
-                ) -> tuple[float, float, float, float]:
+def card_joints(position: Sequence[float] | np.ndarray, heading: float, pitch: float,
+                cg_to_arm: Sequence[float] | np.ndarray) -> tuple[float, float, float, float]:
     """Arm joints that put the card's centre at `position` (base frame) with joint 1 at
     `heading` (rad about z: the card's width axis then points along it) and pitched by `pitch`;
     the centre must lie in the plane joint 1 turns the arm into. ReachError otherwise."""

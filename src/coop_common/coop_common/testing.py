@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -33,7 +34,6 @@ def isolate_ros_environment(domain_id: int | None = None) -> int:
 def executable_path(package: str, executable: str) -> Path:
     """Where `ros2 run <package> <executable>` would find it: <prefix>/lib/<package>/<executable>,
     prefix from the ament index on AMENT_PREFIX_PATH."""
-
     path = Path(get_package_prefix(package)) / 'lib' / package / executable
     if not (path.is_file() and os.access(path, os.X_OK)):
         raise FileNotFoundError(f'no executable {executable!r} in package {package!r} ({path})')
@@ -119,7 +119,7 @@ class NodeProcess:
 
     def __enter__(self) -> NodeProcess:
         if self.log_path is not None:
-            self._log = open(self.log_path, 'wb')  # noqa: SIM115 - closed in __exit__
+            self._log = open(self.log_path, 'wb')
         out = self._log if self._log is not None else subprocess.DEVNULL
         self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT,
                                      start_new_session=True)
@@ -156,12 +156,11 @@ class Probe:
     tests (a context of its own, so it shuts down apart from the process under test)."""
 
     def __init__(self, name: str = 'probe', **node_kwargs) -> None:
-        import threading
 
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
+        import rclpy  # noqa: PLC0415 - rclpy only for a Probe: the other helpers serve ROS-free tests
+        from rclpy.context import Context  # noqa: PLC0415 - see import rclpy
+        from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415 - see import rclpy
+        from rclpy.node import Node  # noqa: PLC0415 - see import rclpy
 
         self.context = Context()
         rclpy.init(context=self.context)
@@ -174,7 +173,7 @@ class Probe:
     def listen(self, msg_type, topic: str, qos=None) -> None:
         """Keep every message of `topic` in `msgs[topic]` (sensor QoS unless told)."""
         if qos is None:
-            from .qos import SENSOR_QOS
+            from .qos import SENSOR_QOS  # noqa: PLC0415 - qos imports rclpy
             qos = SENSOR_QOS
         self.msgs[topic] = []
 
@@ -204,7 +203,7 @@ class Probe:
             self.executor.spin_once(timeout_sec=0.02)
 
     def close(self) -> None:
-        import rclpy
+        import rclpy  # noqa: PLC0415 - rclpy only for a Probe: the other helpers serve ROS-free tests
 
         self.executor.shutdown()
         self.node.destroy_node()

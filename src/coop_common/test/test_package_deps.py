@@ -42,7 +42,7 @@ ROS_PACKAGES = {
     'rclpy', 'rcl_interfaces', 'ament_index_python', 'builtin_interfaces', 'std_msgs',
     'std_srvs', 'geometry_msgs', 'sensor_msgs', 'nav_msgs', 'trajectory_msgs',
     'visualization_msgs', 'rosgraph_msgs', 'coop_msgs', 'action_msgs', 'lifecycle_msgs',
-    'tf2_msgs',
+    'tf2_msgs', 'launch', 'launch_ros',
 } | {p.name for p in PACKAGES}
 
 

@@ -12,7 +12,7 @@ def test_parse_value_types_as_the_default():
     assert parse_value(SPECS['mode'], 'b') == 'b'
     assert parse_value(SPECS['on'], 'False') is False
     for spec, text in [(SPECS['n'], '7.5'), (SPECS['x'], 'half'), (SPECS['on'], '1')]:
-        with pytest.raises(ValueError, match='not an? '):
+        with pytest.raises(ValueError, match=r'not an? '):
             parse_value(spec, text)
 
 
@@ -63,7 +63,7 @@ def test_enum_choices_are_named_by_their_strings():
         A = 'a'
         B = 'b'
 
-    class Old(str, enum.Enum):          # str() of such a member is 'Old.X', not its value
+    class Old(str, enum.Enum):  # noqa: UP042 - the pre-StrEnum idiom, on purpose          # str() of such a member is 'Old.X', not its value
         X = 'x'
 
     assert ParamSpec('a', 'how', choices=tuple(Mode)).choices == ('a', 'b')

@@ -29,6 +29,9 @@ class RankDeficientError(EstimationError):
 
 @dataclass(frozen=True)
 class BatchResult:
+    """A batch least-squares solution: estimate, covariance, the scaled system's rank and singular
+    values, and the residual variance per weighted row."""
+
     x: np.ndarray          # estimate, SI units
     cov: np.ndarray        # covariance, SI units
     rank: int

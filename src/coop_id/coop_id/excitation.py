@@ -21,6 +21,7 @@ posterior covariance, hence each strategy's cost:
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Literal, assert_never, get_args
@@ -102,6 +103,10 @@ def constant_excitation() -> Excitation:
     return Excitation(2 * np.pi / 9, np.pi / 2, np.pi / 4)
 
 
+#: the arm's joint limits ExcitationBounds holds unless told otherwise
+DEFAULT_LIMITS = JointLimits()
+
+
 @dataclass(frozen=True)
 class ExcitationBounds:
     """Box on d plus the arm joint position / speed / acceleration (torque) limits."""
@@ -109,12 +114,12 @@ class ExcitationBounds:
     amplitude: tuple[float, float] = (0.05, 1.2)
     frequency: tuple[float, float] = (0.5, 30.0)
     offset: tuple[float, float] = (-1.0, 1.0)
-    limits: JointLimits = JointLimits()
+    limits: JointLimits = DEFAULT_LIMITS
 
     def feasible(self, d: np.ndarray) -> np.ndarray:
         """Clip d into the box, then shrink the amplitude to the joint limits."""
         a, w, a0 = (float(np.clip(v, *b)) for v, b in
-                    zip(d, (self.amplitude, self.frequency, self.offset)))
+                    zip(d, (self.amplitude, self.frequency, self.offset), strict=False))
         lim = self.limits
         a = min(a, lim.position_rad - abs(a0), lim.speed_rad_s / w, lim.accel_rad_s2 / w ** 2)
         return np.array([max(a, 1e-3), w, a0])
@@ -249,11 +254,13 @@ def _mv(m: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (m @ v[..., None])[..., 0]
 
 
-def _sine(a, w, a0, t) -> tuple:
+def _sine(a: np.ndarray | float, w: np.ndarray | float, a0: np.ndarray | float,
+          t: np.ndarray | float) -> tuple:
     return a0 + a * np.sin(w * t), a * w * np.cos(w * t), -a * w * w * np.sin(w * t)
 
 
-def _matrices(x: np.ndarray, arm: ArmModel, kin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _matrices(x: np.ndarray, arm: ArmModel, kin: ArmKinematics
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mass, stiffness (with the arm's gravity term) and damping of the coupled base, per mode
     (kin with leading axes (..., 3 modes)): (..., 3, 6, 6) each, damping (6, 6)."""
     m2 = arm.mass
@@ -400,7 +407,10 @@ def optimise(current: Excitation, predictor: WindowPredictor, ctx: CostContext, 
         step = -np.linalg.solve(jtj + mu * (np.diag(np.diag(jtj)) + 1e-9 * np.eye(3)), g)
         trial = [np.clip(u + a * step, 0.0, 1.0) for a in alphas]
         last = it == iterations - 1
-        nb, du = neighbours(trial[0]) if not last else ([], None)
+        if last:
+            nb = []                     # no finite differences after the last step
+        else:
+            nb, du = neighbours(trial[0])
         v_all, r_all = costs(trial + nb)
         fd = None
         moved = False
@@ -431,20 +441,22 @@ class ArmReference:
     resolves). A mode driving a joint that is not one of ARM_JOINTS is refused
     (ExcitationError)."""
 
-    def __init__(self, modes, *, speed_rad_s: float = 1.5, min_blend_s: float = 0.2) -> None:
+    def __init__(self, modes: Sequence[tuple[str, float, float]], *, speed_rad_s: float = 1.5,
+                 min_blend_s: float = 0.2) -> None:
         bad = [m[0] for m in modes if m[0] not in ARM_JOINTS]
         if bad:
             raise ExcitationError(f'a mode drives one of {list(ARM_JOINTS)}, got {bad}')
         self.modes = modes
         self.speed, self.min_blend = speed_rad_s, min_blend_s
-        self._key = None
-        self._old = None
-        self._new = None
+        self._key: tuple | None = None
+        self._old: Callable[[float], tuple[np.ndarray, np.ndarray]] | None = None
+        self._new: Callable[[float], tuple[np.ndarray, np.ndarray]] | None = None
         self._t0 = 0.0
         self._dur = 1.0
-        self._home = None
+        self._home: np.ndarray | None = None
 
-    def _target(self, mode: int, exc: Excitation, t0: float):
+    def _target(self, mode: int, exc: Excitation, t0: float
+                ) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
         joint, hold1, _ = self.modes[mode]
 
         def ref(t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -479,19 +491,21 @@ class ArmReference:
         self._switch(('rest',), still, now, here, 1.0, lead_s)   # 1 s: the swing's reach
         return self._t0 + self._dur
 
-    def _switch(self, key, new, now: float, here: np.ndarray, horizon_s: float,
-                lead_s: float) -> None:
+    def _switch(self, key: tuple, new: Callable[[float], tuple[np.ndarray, np.ndarray]],
+                now: float, here: np.ndarray, horizon_s: float, lead_s: float) -> None:
         if key == self._key:
             if self._old is not None and now >= self._t0 + self._dur:
                 self._old = None            # blend over: forget the old trajectory
             return
+        live: Callable[[float], tuple[np.ndarray, np.ndarray]]
         if self._new is None:
             here = np.asarray(here, dtype=float)
             self._home = here.copy()
             zero = np.zeros(2)
 
-            def live(_t: float) -> tuple[np.ndarray, np.ndarray]:
+            def hold(_t: float) -> tuple[np.ndarray, np.ndarray]:
                 return here, zero
+            live = hold
         else:
             live = self.__call__
         start = now + lead_s
@@ -503,7 +517,7 @@ class ArmReference:
         # overlap never nest
         t_a = now - 0.05
         grid = np.linspace(t_a, start + dur, int(np.ceil((start + dur - t_a) / 1e-3)) + 1)
-        pos, vel = (np.array(v) for v in zip(*(live(t) for t in grid)))
+        pos, vel = (np.array(v) for v in zip(*(live(t) for t in grid), strict=False))
 
         def old(t: float) -> tuple[np.ndarray, np.ndarray]:
             return (np.array([np.interp(t, grid, pos[:, j]) for j in range(2)]),
@@ -514,10 +528,13 @@ class ArmReference:
 
     def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(position, speed) of (arm_joint_1, arm_joint_2) at t."""
+        assert self._new is not None, 'no reference yet (start or rest first)'
         return _blend(self._old, self._new, self._t0, self._dur, t)
 
 
-def _blend(old, new, t0: float, dur: float, t: float) -> tuple[np.ndarray, np.ndarray]:
+def _blend(old: Callable[[float], tuple[np.ndarray, np.ndarray]] | None,
+           new: Callable[[float], tuple[np.ndarray, np.ndarray]], t0: float, dur: float, t: float
+           ) -> tuple[np.ndarray, np.ndarray]:
     qn, vn = new(t)
     u = (t - t0) / dur
     if old is None or u >= 1.0:

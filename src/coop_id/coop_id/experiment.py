@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -16,15 +17,19 @@ import numpy as np
 from coop_common.cli import enum_choices, number, output_path
 from coop_common.dynparams import BaseParameters, load_truth
 from coop_common.files import write_json
+from coop_common.params import choice
 
 from .excitation import Excitation, Strategy, constant_excitation
-from .identifier_core import Identifier, IdentifierConfig
+from .identifier_core import Identifier, IdentifierConfig, IdentifierError
 from .model import IDX, SensorNoise
 from .modelsim import ThesisRover, add_noise, noise_scales, stack_frames
 
 
 @dataclass
 class RunResult:
+    """One identification run: the estimates, their standard deviations and information bits, and
+    the excitation, per window."""
+
     strategy: Strategy
     seed: int
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -32,9 +37,10 @@ class RunResult:
     std: list[np.ndarray] = field(default_factory=list)
     info_bits: list[np.ndarray] = field(default_factory=list)
     excitation: list[np.ndarray] = field(default_factory=list)  # d per window
-    final_low: np.ndarray | None = None
-    final_high: np.ndarray | None = None
-    observable: np.ndarray | None = None
+    # the last window's 95 % interval and observability (set at the run's end)
+    final_low: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    final_high: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    observable: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     consistent: list[bool] = field(default_factory=list)
 
 
@@ -43,7 +49,7 @@ def reference_noise_scales(truth: BaseParameters, duration_s: float) -> dict[str
     rover = ThesisRover(truth)
     exc = constant_excitation()
     frames = [rover.rest_frame()]
-    for k in range(int(round(duration_s / 0.005))):
+    for k in range(round(duration_s / 0.005)):
         frames.append(rover.step(exc((k + 1) * 0.005)))
     return noise_scales(stack_frames(frames))
 
@@ -57,7 +63,8 @@ def run_identification(truth: BaseParameters, *, strategy: Strategy | str, seed:
     the identifier absorbs noisy samples window by window and re-optimises the excitation.
     mass_step=(t, dm): add dm kg to the base at time t (a rock picked up). `config` is not
     changed: the run's is a copy with `strategy` (IdentifierError for an unknown one)."""
-    cfg = replace(config or IdentifierConfig(), strategy=strategy)
+    cfg = replace(config or IdentifierConfig(),
+                  strategy=choice(Strategy, strategy, 'strategy', error=IdentifierError))
     noise_model = None
     if bias_compensation and noise > 0:
         # the sensors' datasheet: uniform +-noise x scale has sigma noise x scale / sqrt(3)
@@ -67,8 +74,8 @@ def run_identification(truth: BaseParameters, *, strategy: Strategy | str, seed:
     ident = Identifier(cfg, sensor_noise=noise_model)
     rng = np.random.default_rng(seed)
     rover = ThesisRover(truth)
-    per_window = int(round(cfg.window_s * cfg.rate_hz))
-    n_windows = int(round(duration_s / cfg.window_s))
+    per_window = round(cfg.window_s * cfg.rate_hz)
+    n_windows = round(duration_s / cfg.window_s)
     if n_windows < 1:
         raise ValueError(f'duration {duration_s} s holds no {cfg.window_s} s identification '
                          'window')
@@ -143,9 +150,10 @@ class StepTracking:
         return float(self.mass_error()[sel].max()), float(self.mean_error[sel].max())
 
 
-def mass_step_tracking(truth: BaseParameters, *, seeds: list[int], config_factory,
-                       step_s: float = 8.0, duration_s: float = 14.0, fraction: float = 0.2,
-                       noise: float = 0.1, strategy: Strategy | str = Strategy.INFORMATION,
+def mass_step_tracking(truth: BaseParameters, *, seeds: list[int],
+                       config_factory: Callable[[], IdentifierConfig], step_s: float = 8.0,
+                       duration_s: float = 14.0, fraction: float = 0.2, noise: float = 0.1,
+                       strategy: Strategy | str = Strategy.INFORMATION,
                        scales: dict[str, np.ndarray] | None = None) -> list[StepTracking]:
     """The drift scenario of issue #3 item 5: the rover identifies itself, then at step_s
     (after convergence, so that an estimator that does not track visibly lags) picks up a rock
@@ -171,13 +179,14 @@ def mass_step_tracking(truth: BaseParameters, *, seeds: list[int], config_factor
 
 def format_tracking(runs: list[StepTracking], *, tol: float = 0.05, delay_s: float = 2.0
                     ) -> str:
+    """The mass-step runs as a text table: the mass estimate about the step, settling, errors."""
     step = runs[0].step_s
     lines = [f'mass step {runs[0].mass_before:g} -> {runs[0].mass_after:g} kg at {step:g} s, '
              f'{len(runs)} seed(s)',
              f'{"seed":>4s}{"m@step":>8s}{"+1 s":>7s}{"+2 s":>7s}{"+4 s":>7s}{"end":>7s}'
              f'{"t5% s":>7s}{"m err":>9s}{"all err":>9s}  (max from {delay_s:g} s after)']
     for r in runs:
-        def at(t: float) -> float:
+        def at(t: float, r: StepTracking = r) -> float:
             return float(r.mass[np.argmin(np.abs(r.times - t))])
         settle = r.settle_time(tol)
         wm, we = r.worst_after(delay_s)
@@ -226,6 +235,7 @@ def format_json(doc: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_id.experiment`: the mass step (drift) scenario over seeds."""
     ap = argparse.ArgumentParser(prog='coop_id.experiment',
                                  description='the +20 % mass step (drift) scenario')
     ap.add_argument('--seeds', type=number(int, lo=1, hi=10_000), default=20)

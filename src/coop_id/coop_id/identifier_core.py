@@ -10,7 +10,9 @@ re-optimised. The same class serves the model-level experiment and the ROS node.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +54,9 @@ class IdentifierError(CoopIdError):
 
 @dataclass
 class IdentifierConfig:
+    """Identifier settings: the excitation strategy, sample rate and window, decimation, the
+    information resolution and the optional drift model."""
+
     strategy: Strategy = Strategy.INFORMATION
     rate_hz: float = 200.0
     window_s: float = 0.4
@@ -96,7 +101,7 @@ class IdentifierConfig:
                                        'condition_matrix', error=IdentifierError)
 
     @classmethod
-    def thesis(cls, **changes) -> IdentifierConfig:
+    def thesis(cls, **changes: Any) -> IdentifierConfig:
         """Ch. 2 as the thesis prints it: the information-based excitation costed by Eq. 2-13
         as printed (literal_eq_2_13), constant parameters (no random walk) and no detection of
         parameter changes. `changes`: the rest (rates, sensors, priors)."""
@@ -104,7 +109,7 @@ class IdentifierConfig:
                       'drift_per_s': 0.0, 'detect_changes': False, **changes})
 
     @classmethod
-    def best_measured(cls, **changes) -> IdentifierConfig:
+    def best_measured(cls, **changes: Any) -> IdentifierConfig:
         """The defaults, with the extensions beyond the thesis that measured best (coop_id
         README): the information-based excitation costed by the information deficit
         1 - In_i / n (Eq. 2-13 as printed rates a fully known parameter like an unknown one)
@@ -163,7 +168,7 @@ class Identifier:
         self.detector = ChangeDetector() if cfg.detect_changes else None
         self.excitation: Excitation = constant_excitation()
         # predict at half the update instants (the rows are smooth), each counting twice
-        n_pred = max(int(round(cfg.window_s * cfg.rate_hz / cfg.decimation / 2)), 1)
+        n_pred = max(round(cfg.window_s * cfg.rate_hz / cfg.decimation / 2), 1)
         self.predictor = WindowPredictor(
             arm=self.arm, times=np.arange(n_pred) * 2 * cfg.decimation / cfg.rate_hz,
             accelerometer=cfg.accelerometer, weight=2.0)
@@ -186,7 +191,7 @@ class Identifier:
         self.walked = np.zeros((0, 0))
         self._pending: list[tuple[list[_Call], float]] = []     # (calls, weight)
         self._score_tail = np.zeros((0, N_PARAMS))
-        self._cache = None
+        self._cache: tuple[np.ndarray, np.ndarray] | None = None
         self.report: Report = self._make_report()
 
     # -- data in -----------------------------------------------------------------------------
@@ -270,7 +275,8 @@ class Identifier:
         tracker = self.tilts.setdefault(mode, TiltTracker(rate_hz=self.cfg.rate_hz))
         return tracker.update(gyro, incl)
 
-    def _eiv_per_instant(self, modes, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _eiv_per_instant(self, modes: Sequence[int], r: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
         """Per decimated instant, sum over its rows of Sigma_A / R and cov(e_A, e_y) / R
         (scaled): the expected attenuation of the information and the score."""
         s_inst, c_inst = np.zeros((N_PARAMS, N_PARAMS)), np.zeros(N_PARAMS)

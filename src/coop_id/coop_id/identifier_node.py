@@ -100,6 +100,9 @@ SPECS = {
 
 
 class IdentifierNode(Node):
+    """The identifier: pairs the rover's IMU, inclinometer and F/T samples, excites its arm and
+    estimates the base's dynamic parameters (the Identify action)."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('identifier', **kwargs)
         self.p = declare_parameters(self, SPECS, on_change=self._on_change,
@@ -185,7 +188,7 @@ class IdentifierNode(Node):
         self.pairer.wrench(stamp_ns(msg.header), [f.x, f.y, f.z], [n.x, n.y, n.z])
 
     def _on_joints(self, msg: JointState) -> None:
-        for name, pos in zip(msg.name, msg.position):
+        for name, pos in zip(msg.name, msg.position, strict=False):
             if math.isfinite(pos):
                 self.joint_positions[name] = pos
 
@@ -198,7 +201,7 @@ class IdentifierNode(Node):
         elif last is not None:
             # The filter bank assumes a uniform sample stream (its integrators would lose the
             # missing samples' area): fill a short gap of lost (best-effort) samples linearly.
-            missing = int(round((t - last[0]) * self.p['rate_hz'])) - 1
+            missing = round((t - last[0]) * self.p['rate_hz']) - 1
             for j in range(1, missing + 1):
                 u = j / (missing + 1)
                 self._buffer.append((last[0] + u * (t - last[0]), (1 - u) * last[1] + u * row))
@@ -211,7 +214,7 @@ class IdentifierNode(Node):
             self._t0 = t
             self._exc_t0 = t
             self._command_arm()
-        per_window = int(round(self.p['window_s'] * self.p['rate_hz']))
+        per_window = round(self.p['window_s'] * self.p['rate_hz'])
         if len(self._buffer) >= per_window + (1 if self._windows == 0 else 0):
             self._process_window()
 
@@ -256,7 +259,7 @@ class IdentifierNode(Node):
         # the same live, on sim time and on a replayed bag), the clock only before any window
         if self._windows:
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(
-                int(round(self._t_estimate * 1e9)), 10**9)
+                round(self._t_estimate * 1e9), 10**9)
         else:
             msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.base_frame
@@ -342,7 +345,7 @@ class IdentifierNode(Node):
         # picks either segment).
         step, off = TRAJECTORY_STEP_S, 0.5 / self.p['rate_hz']
         g0 = math.floor((now - off) / step) * step + off
-        traj.header.stamp.sec, traj.header.stamp.nanosec = divmod(int(round(g0 * 1e9)), 10**9)
+        traj.header.stamp.sec, traj.header.stamp.nanosec = divmod(round(g0 * 1e9), 10**9)
         traj.joint_names = ['arm_joint_1', 'arm_joint_2']
         for k in range(int(horizon / step) + 2):
             tk = k * step
@@ -350,7 +353,7 @@ class IdentifierNode(Node):
             pt = JointTrajectoryPoint()
             pt.positions = [float(v) for v in q]
             pt.velocities = [float(v) for v in qd]
-            sec, nsec = divmod(int(round(tk * 1e9)), 10**9)
+            sec, nsec = divmod(round(tk * 1e9), 10**9)
             pt.time_from_start = Duration(sec=sec, nanosec=nsec)
             traj.points.append(pt)
         self.pub_cmd.publish(traj)
@@ -459,10 +462,11 @@ def identifier_config(p: dict, strategy: Strategy | str) -> IdentifierConfig:
 
 
 def _ns(seconds: float) -> int:
-    return int(round(seconds * 1e9))
+    return round(seconds * 1e9)
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run coop_id identifier`."""
     return run_node(IdentifierNode, args)
 
 

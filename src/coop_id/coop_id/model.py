@@ -118,7 +118,7 @@ def raw_channels(*, specific_force: np.ndarray, gyro: np.ndarray, incl_roll_pitc
     n = arrays[0].shape[0]
     shapes = [(n, 3), (n, 3), (n, 2), (n, 3), (n, 3)]
     for a, shp, name in zip(arrays, shapes, ('specific_force', 'gyro', 'incl', 'force',
-                                              'torque')):
+                                              'torque'), strict=False):
         if a.shape != shp:
             raise ModelError(f'{name}: expected shape {shp}, got {a.shape}')
     f_sp, w, incl, force, torque = arrays
@@ -275,8 +275,8 @@ def regressor_noise(noise: SensorNoise, gram: np.ndarray, *, accelerometer: bool
             var = s_f[i] ** 2 + (GRAVITY * tilt[i]) ** 2
             cols = [IDX['mass'], IDX[B_R[i]], IDX[K_R[i]]]
             pw = [2, 1, 0]                       # W, W/s, W/s^2 -> gram index p + 2
-            for a_, pa in zip(cols, pw):
-                for b_, pb in zip(cols, pw):
+            for a_, pa in zip(cols, pw, strict=False):
+                for b_, pb in zip(cols, pw, strict=False):
                     cov[i, a_, b_] = var * g[pa, pb]
             # rhs -(F + theta x F): (theta x F)_x = pitch F_z, _y = -roll F_z with F_z ~ m2 g;
             # the mass column carries +g pitch (x) and -g roll (y): correlated with the rhs

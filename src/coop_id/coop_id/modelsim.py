@@ -25,7 +25,7 @@ Z_HAT = np.array([0.0, 0.0, 1.0])
 MODE_AXES = np.eye(3)  # rotation about x, y, z (§2.2)
 
 
-def rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+def rotation(axis: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
     """Rodrigues: (..., 3, 3) rotations about unit `axis` by `angle` (...)."""
     angle = np.asarray(angle, dtype=float)
     k = skew(axis)

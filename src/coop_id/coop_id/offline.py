@@ -7,6 +7,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from coop_common.dynparams import PARAM_NAMES
 
@@ -26,6 +27,7 @@ class BagError(CoopIdError):
 
 
 def ident_topics(rover: str) -> tuple[str, str, str]:
+    """The IMU, inclinometer and F/T topics of `rover` in a bag."""
     return (f'/{rover}/imu', f'/{rover}/inclinometer', f'/{rover}/arm/wrench')
 
 
@@ -45,7 +47,7 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
     topics = ident_topics(rover)
     stamps: list[int] = []
     rows: list[np.ndarray] = []
-    heard = Counter()
+    heard: Counter[str] = Counter()
     skipped = rejects if rejects is not None else Counter()
 
     def on_sample(t: int, row: np.ndarray) -> None:
@@ -53,7 +55,7 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
         rows.append(row)
 
     pairer = SamplePairer(int(QUEUE_S * IdentifierConfig.rate_hz),
-                          tolerance_ns=int(round(tolerance_s * 1e9)),
+                          tolerance_ns=round(tolerance_s * 1e9),
                           force_limit=force_limit, torque_limit=torque_limit,
                           on_sample=on_sample, on_reject=lambda r, _d: skipped.update([r]))
     try:
@@ -78,8 +80,8 @@ def bag_samples(bag: str | Path, *, rover: str = 'rover1',
     return np.array(stamps, dtype=np.int64), np.stack(rows)
 
 
-def sensor_noise(acc_var, gyro_var, incl_var, force_std: float = 0.0,
-                 ) -> dict[int, SensorNoise] | None:
+def sensor_noise(acc_var: ArrayLike, gyro_var: ArrayLike, incl_var: ArrayLike,
+                 force_std: float = 0.0) -> dict[int, SensorNoise] | None:
     """The errors-in-variables noise model from the sensors' published variances (IMU
     covariance diagonals, inclinometer roll/pitch variances) and the F/T force sigma; None
     when a variance is missing (zero, negative or not finite): then no bias correction."""
@@ -118,7 +120,7 @@ def identify_rows(rows: np.ndarray, config: IdentifierConfig | None = None, *,
     the errors-in-variables model (sensor_noise(); None: no bias correction)."""
     cfg = config or IdentifierConfig()
     ident = Identifier(cfg, sensor_noise=noise)
-    per = int(round(cfg.window_s * cfg.rate_hz))
+    per = round(cfg.window_s * cfg.rate_hz)
     if n_samples is None:
         n_samples = 1 + per * ((len(rows) - 1) // per) if len(rows) > per else 0
     if n_samples < per + 1 or n_samples > len(rows):
@@ -146,7 +148,7 @@ def bag_truth(bag: str | Path, *, rover: str = 'rover1') -> np.ndarray | None:
         if topic not in bag_info(bag).topics:
             return None
         for m in read_messages(bag, [topic]):
-            d = dict(zip(m.msg.names, m.msg.values))
+            d = dict(zip(m.msg.names, m.msg.values, strict=False))
             missing = [n for n in PARAM_NAMES if n not in d]
             if missing:
                 raise BagError(f'{bag}: {topic} lacks {missing}')

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -33,7 +34,7 @@ STREAMS = ('imu', 'inclinometer', 'wrench')
 QUEUE_S = 5.0
 
 
-def stamp_ns(header) -> int:
+def stamp_ns(header: Any) -> int:
     """A std_msgs/Header's stamp in integer nanoseconds."""
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
@@ -55,6 +56,7 @@ class SamplePairer:
                  on_reset: Callable[[int, int], None] | None = None) -> None:
         if capacity < 1:
             raise ValueError('capacity must be >= 1')
+        self.capacity = capacity
         self.tolerance_ns = int(tolerance_ns)
         self.reset_after_ns = int(reset_after_ns)
         self._on_reset = on_reset
@@ -74,7 +76,7 @@ class SamplePairer:
             old = self.last_stamp[name]
             self.reset()
             if self._on_reset is not None:
-                self._on_reset(old, t)
+                self._on_reset(int(old), t)     # a stamp, finite: t is below it
         if t <= self.last_stamp[name]:
             self._on_reject('out-of-order stamp', f'{name} {t * 1e-9:.4f} <= '
                             f'{self.last_stamp[name] * 1e-9:.4f}')
@@ -140,7 +142,7 @@ class SamplePairer:
             _trim(wrench, t - tol)
             if not final and min(self.last_stamp['inclinometer'],
                                  self.last_stamp['wrench']) < t:
-                if len(imu) < imu.maxlen:
+                if len(imu) < self.capacity:
                     return        # the partners of this instant may still come: wait
                 imu.popleft()
                 self._on_reject('silent sensor', 'inclinometer or wrench')
@@ -160,7 +162,7 @@ def _trim(buf: deque, t_min: int) -> None:
         buf.popleft()
 
 
-def _nearest(buf: deque, t: int, tol: int):
+def _nearest(buf: deque, t: int, tol: int) -> tuple[int, Sequence[float]] | None:
     """The values of `buf` (stamp-ordered) nearest to t within tol, searched from the newest
     (of two equally near, the older)."""
     best, best_dt = None, tol

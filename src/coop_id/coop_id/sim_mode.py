@@ -112,9 +112,9 @@ def run_sim_identification(*, duration_s: float, strategy: Strategy | str, noise
             ex.shutdown()
             node.destroy_node()
             rclpy.try_shutdown(context=ctx)
-    t = dict(zip(truth[-1].names, truth[-1].values))
+    t = dict(zip(truth[-1].names, truth[-1].values, strict=False))
     x = np.array([t[n] for n in PARAM_NAMES])
-    est = dict(zip(res.estimate.names, res.estimate.values))
+    est = dict(zip(res.estimate.names, res.estimate.values, strict=False))
     v = np.array([est[n] for n in PARAM_NAMES])
     nz = x != 0
     return {'success': bool(res.success), 'message': res.message, 'truth': x, 'estimate': v,

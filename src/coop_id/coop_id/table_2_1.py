@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,9 @@ def time_to(times: np.ndarray, curve: np.ndarray, level: float) -> float | None:
     return float(times[above[-1] + 1])
 
 
-def summarise(runs: dict[str, list[RunResult]], truth: np.ndarray) -> dict:
+def summarise(runs: Mapping[Strategy, list[RunResult]], truth: np.ndarray) -> dict:
+    """Per strategy: final and per-parameter errors over the seeds, error curves, coverage and
+    consistency (the JSON summary)."""
     out = {}
     for name, rs in runs.items():
         final = np.stack([r.estimates[-1] for r in rs])
@@ -99,6 +102,7 @@ def _median_or_none(v: list[float | None]) -> float | None:
 
 
 def format_table(summary: dict, truth: np.ndarray, seeds: int) -> str:
+    """The summary as Table 2-1's text: the estimates next to the thesis's, then per strategy."""
     names = list(summary)
     head = f'{"Parameter":16s}{"True":>10s}{"thesis:const":>13s}{"thesis:var":>12s}'
     head += ''.join(f'{n:>13s}' for n in names)
@@ -129,10 +133,10 @@ def format_table(summary: dict, truth: np.ndarray, seeds: int) -> str:
                      f'{100 * s["mean_abs_rel_error_seed_std"]:8.1f}{t20:>8s}{t20m:>9s}'
                      f'{100 * s["coverage_95"]:8.1f}%'
                      f'{100 * s["physically_consistent_fraction"]:8.1f}%')
-    if 'constant' in summary:
-        base = summary['constant']['mean_abs_rel_error']
+    if Strategy.CONSTANT in summary:
+        base = summary[Strategy.CONSTANT]['mean_abs_rel_error']
         for n in names:
-            if n != 'constant':
+            if n != Strategy.CONSTANT:
                 lines.append(f'ratio {n}/constant = {summary[n]["mean_abs_rel_error"] / base:.3f}')
     return '\n'.join(lines)
 
@@ -167,7 +171,9 @@ def format_json(doc: dict) -> str:
     return '\n'.join(lines)
 
 
-def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Path) -> list[Path]:
+def draw_plots(runs: Mapping[Strategy, list[RunResult]], truth: np.ndarray, out_dir: Path
+               ) -> list[Path]:
+    """Draw the convergence plots into `out_dir`; the files written."""
     import matplotlib  # noqa: PLC0415 - only when plots are asked for
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt  # noqa: PLC0415
@@ -186,7 +192,7 @@ def draw_plots(runs: dict[str, list[RunResult]], truth: np.ndarray, out_dir: Pat
     paths.append(save_figure(fig, out_dir / 'fig_2_6_information_k_pitch.png'))
     params = ('cg_y', 'cg_z', 'mass', 'Ixx', 'b_y', 'k_pitch', 'k_y')
     fig, axes = plt.subplots(2, 4, figsize=(14, 6))
-    for ax, p in zip(axes.ravel(), params):
+    for ax, p in zip(axes.ravel(), params, strict=False):
         i = PARAM_NAMES.index(p)
         for name, rs in runs.items():
             ax.plot(rs[0].times, np.stack(rs[0].estimates)[:, i], label=name)
@@ -239,6 +245,7 @@ def _given(ap: argparse.ArgumentParser, argv: list[str]) -> set[str]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """table_2_1's command line."""
     window_s = IdentifierConfig().window_s
     # no abbreviations: an option is given when one of its spellings is in argv (_given)
     ap = argparse.ArgumentParser(prog='table_2_1', description=__doc__.splitlines()[0],
@@ -430,6 +437,7 @@ def _main_bag(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run coop_id table_2_1`: Table 2-1 off-line, from a bag, or through the simulator."""
     args = parse_args(argv if argv is not None else sys.argv[1:])
     if args.sim:
         return _main_sim(args)
@@ -455,9 +463,9 @@ def main(argv: list[str] | None = None) -> int:
     doc = {'seeds': args.seeds, 'first_seed': args.first_seed, 'duration_s': args.duration,
            'noise': args.noise, 'accelerometer': not args.no_accelerometer,
            'bias_compensation': not args.no_bias_compensation,
-           'truth': dict(zip(PARAM_NAMES, truth.tolist())),
-           'thesis': {'constant': dict(zip(PARAM_NAMES, THESIS_CONSTANT)),
-                      'variable': dict(zip(PARAM_NAMES, THESIS_VARIABLE)),
+           'truth': dict(zip(PARAM_NAMES, truth.tolist(), strict=False)),
+           'thesis': {'constant': dict(zip(PARAM_NAMES, THESIS_CONSTANT, strict=False)),
+                      'variable': dict(zip(PARAM_NAMES, THESIS_VARIABLE, strict=False)),
                       'avg_error_pct': THESIS_AVG_ERROR},
            'strategies': summarise(runs, truth)}
     print(format_json(doc))

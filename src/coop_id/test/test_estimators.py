@@ -28,7 +28,7 @@ def test_batch_recovers_exactly_without_noise():
 
 
 def test_rank_deficient_window_flagged_not_solved():
-    a, x, y, scale = _problem()
+    a, _x, y, scale = _problem()
     a[:, 2] = 0.0
     with pytest.raises(RankDeficientError) as info:
         batch_estimate(a, y, scale=scale)

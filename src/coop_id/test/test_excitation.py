@@ -17,7 +17,7 @@ from coop_id.model import ArmModel, load_prior_ranges
 
 def test_constant_is_eq_2_21():
     e = constant_excitation()
-    f, fd, fdd = e(1.0)
+    f, fd, _fdd = e(1.0)
     assert f == pytest.approx(np.pi / 4 + 2 * np.pi / 9 * np.sin(np.pi / 2))
     assert fd == pytest.approx(2 * np.pi / 9 * np.pi / 2 * np.cos(np.pi / 2), abs=1e-12)
 
@@ -132,7 +132,7 @@ def test_arm_reference_rest_blends_into_standing_still_at_home():
     t_rest = ref.rest(3.0, np.array([9.0, 9.0]), lead_s=0.1)    # `here` unused once started
     assert 3.1 + 0.2 <= t_rest < 3.1 + 1.875 * (0.8 + 0.3 + 1.0 + 0.7) / 1.5
     ts = np.arange(2.95, t_rest + 1.0, 0.001)   # (it holds from 50 ms before `now` on)
-    q, qd = map(np.array, zip(*(ref(t) for t in ts)))
+    q, qd = map(np.array, zip(*(ref(t) for t in ts), strict=False))
     assert np.abs(np.diff(q, axis=0)).max() < 0.01 and np.abs(np.diff(qd, axis=0)).max() < 0.1
     before = ts < 3.1           # the lead: the excitation goes on (tabulated at 1 ms)
     np.testing.assert_allclose(q[before][:, 1], [exc(t)[0] for t in ts[before]], atol=1e-6)

@@ -84,7 +84,7 @@ def test_bias_compensation_removes_errors_in_variables_bias(scenario):
 
 def test_a_duration_without_a_window_is_refused(scenario):
     truth, scales = scenario
-    with pytest.raises(ValueError, match='holds no 0.4 s identification window'):
+    with pytest.raises(ValueError, match=r'holds no 0\.4 s identification window'):
         run_identification(truth, strategy='information', seed=0, duration_s=0.1, noise=0.1,
                            scales=scales)
 

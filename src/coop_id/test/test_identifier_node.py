@@ -38,7 +38,7 @@ def _data(seconds: float):
 
 def _stamp(msg, t):
     msg.header.stamp.sec = int(t)
-    msg.header.stamp.nanosec = int(round((t - int(t)) * 1e9))
+    msg.header.stamp.nanosec = round((t - int(t)) * 1e9)
 
 
 def _send(peer, client, goal):
@@ -122,7 +122,7 @@ def test_identify_action_over_dds(graph):
         pub_imu.publish(imu)
         # best-effort sensor QoS: pace the stream by the node's consumption, not by sleeping
         t_ns = round(t * 1e9) - 1000
-        wait_for(lambda: node.pairer.last_stamp['imu'] >= t_ns or k == 50, 5,
+        wait_for(lambda t_ns=t_ns, k=k: node.pairer.last_stamp['imu'] >= t_ns or k == 50, 5,
                  poll_s=0.0005, what=f'sample {k} consumed')
     wait_for(res_fut.done, 30, what='action result')
     result = res_fut.result().result
@@ -189,12 +189,12 @@ def test_a_goal_ends_when_the_sensors_fall_silent_or_time_jumps_back(graph):
     wait_for(fut.done, 10, what='goal answer')
     res = _result(peer, fut.result())
     pub_imu = peer.create_publisher(Imu, 'imu', SENSOR_QOS)
-    wait_for(lambda: pub_imu.get_subscription_count(), 10, what='node subscription')
+    wait_for(pub_imu.get_subscription_count, 10, what='node subscription')
     for t in (100.0, 100.005, 0.0):
         m = Imu()
         _stamp(m, t)
         pub_imu.publish(m)
-        wait_for(lambda: node.pairer.last_stamp['imu'] == round(t * 1e9), 5,
+        wait_for(lambda t=t: node.pairer.last_stamp['imu'] == round(t * 1e9), 5,
                  what=f'imu {t} taken')
     wait_for(res.done, 10, what='the aborted result')
     r = res.result().result

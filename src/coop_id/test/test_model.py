@@ -48,7 +48,7 @@ def test_single_axis_spring_mass_recovered_through_filter_bank():
 
 def test_filter_bank_integrates_consistently():
     t = np.arange(-1, 1600) * 0.005
-    x, xd, xdd = _two_tone(t)
+    x, _xd, xdd = _two_tone(t)
     bank = FilterBank()
     pos_from_acc = bank.apply('a', -2, xdd[:, None])
     pos = bank.apply('p', 0, x[:, None])
@@ -84,7 +84,7 @@ def test_noise_free_thesis_scenario_recovers_all_22_exactly():
     nz = xt != 0
     rel = np.abs(res.x - xt)[nz] / np.abs(xt[nz])
     # exact up to the model's neglected second-order terms (theta x a, arm-base coupling)
-    assert rel.max() < 5e-3, dict(zip(np.array(PARAM_NAMES)[nz], rel))
+    assert rel.max() < 5e-3, dict(zip(np.array(PARAM_NAMES)[nz], rel, strict=False))
     assert np.all(np.abs(res.x[~nz]) < 1e-3)
 
 

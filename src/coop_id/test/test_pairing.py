@@ -61,7 +61,7 @@ def test_a_saturated_partner_loses_its_instant_without_a_wait():
 
 
 def test_bad_values_and_stamps_are_rejected():
-    p, rows, rejects = make()
+    p, _rows, rejects = make()
     assert not p.imu(5 * MS, [math.nan, 0, 0], [0, 0, 0])
     assert imu(p, 5)
     assert not imu(p, 5)                        # not after the stream's last stamp

@@ -17,6 +17,8 @@ moment rows then balance to the inertias' precision only if the simulated body, 
 its gyro are consistent to ~0.1 %. The decisive checks are the moment rows with the truth and
 the inertias a least-squares fit of the moment rows finds.
 """
+import itertools
+
 import numpy as np
 import pytest
 
@@ -56,9 +58,9 @@ def _record(exc: Excitation, **sim) -> dict:
     ref = ArmReference(MODES)
     rec = {k: [] for k in ('f', 'n', 'sf', 'gyro', 'incl', 'dr', 'rot')}
     with world_mod.World(cfg, [truth]) as w:
-        n_settle = int(round(SETTLE_S / w.dt))
+        n_settle = round(SETTLE_S / w.dt)
         t0 = None
-        for k in range(n_settle + int(round(3 * MODE_S / w.dt))):
+        for k in range(n_settle + round(3 * MODE_S / w.dt)):
             if k >= n_settle and (k - n_settle) % 80 == 0:      # a 0.4 s window
                 now = w.time_s
                 t0 = now if t0 is None else t0
@@ -124,7 +126,7 @@ def _truth_rows(d):
     th = np.array([compliance.rotation_vector(rot[0].T @ r) for r in rot])
     # period-mean body rate from consecutive poses (the gyroscopic products only)
     w = np.zeros_like(th)
-    w[1:] = [compliance.rotation_vector(a.T @ b) / d['dt'] for a, b in zip(rot[:-1], rot[1:])]
+    w[1:] = [compliance.rotation_vector(a.T @ b) / d['dt'] for a, b in itertools.pairwise(rot)]
     pos, ang = _mid(d['dr'], lag), _mid(th, lag)
     n = th.shape[0]
     reg = cross(w[:, None, :], np.einsum('jab,nb->nja', inertia_basis(), w)).reshape(n, 18)
@@ -162,11 +164,11 @@ def _fit_moment_rows(a, y, x):
     cols = [IDX[n] for n in MOMENT_PARAMS]
     aa = a[SKIP:, 3:6][:, :, cols].reshape(-1, len(cols))
     sol, *_ = np.linalg.lstsq(aa, y[SKIP:, 3:6].reshape(-1), rcond=None)
-    return dict(zip(MOMENT_PARAMS, sol))
+    return dict(zip(MOMENT_PARAMS, sol, strict=False))
 
 
 def test_excitation_moves_the_base_in_every_row(run):
-    a, y = _truth_rows(run)
+    _a, y = _truth_rows(run)
     rms = np.sqrt((y[SKIP:] ** 2).mean(axis=0))
     assert np.all(rms[:3] > 0.5) and np.all(rms[3:] > 0.2), rms     # N, N m
 
@@ -211,7 +213,7 @@ def test_implicit_step_balances_the_moment_rows_too(fast_implicit):
     inertia = _inertia_term(a, x)
     assert np.all(res[3:] < 0.25 * inertia[3:]), (res[3:], inertia[3:])
     fit = _fit_moment_rows(a, y, x)
-    truth = dict(zip(MOMENT_PARAMS, x[[IDX[n] for n in MOMENT_PARAMS]]))
+    truth = dict(zip(MOMENT_PARAMS, x[[IDX[n] for n in MOMENT_PARAMS]], strict=False))
     for name in ('Ixx', 'Iyy', 'Izz'):
         assert fit[name] == pytest.approx(truth[name], rel=0.10), (name, fit)
     for name in ('Ixz', 'Iyz', 'Ixy'):
@@ -239,7 +241,7 @@ def test_moment_rows_alone_give_the_true_inertias(fast):
     noise-free sensors, the identifier's own rows) finds the true inertia tensor."""
     a, y = _sensor_rows(fast)
     fit = _fit_moment_rows(a, y, fast['x'])
-    truth = dict(zip(MOMENT_PARAMS, fast['x'][[IDX[n] for n in MOMENT_PARAMS]]))
+    truth = dict(zip(MOMENT_PARAMS, fast['x'][[IDX[n] for n in MOMENT_PARAMS]], strict=False))
     for name in ('Ixx', 'Iyy', 'Izz'):
         assert fit[name] == pytest.approx(truth[name], rel=0.10), (name, fit)
     for name in ('Ixz', 'Iyz', 'Ixy'):

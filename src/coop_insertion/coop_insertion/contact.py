@@ -74,16 +74,32 @@ from __future__ import annotations
 
 import enum
 import itertools
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import nnls
 
 from .errors import InsertionError
 
-__all__ = ['ContactState', 'SlotGeometry', 'CardPose', 'Contact', 'Identification', 'SeatCheck',
-           'ContactIdentifier', 'Step', 'LeastResistance', 'task_wrench', 'planar_wrench',
-           'planar_step_in_frame', 'INCH']
+__all__ = [
+    'INCH',
+    'CardPose',
+    'Contact',
+    'ContactIdentifier',
+    'ContactKind',
+    'ContactState',
+    'Identification',
+    'LeastResistance',
+    'SeatCheck',
+    'SlotGeometry',
+    'Step',
+    'planar_step_in_frame',
+    'planar_wrench',
+    'task_wrench',
+]
 
 INCH = 0.0254
 #: weight per newton of the contact forces in the fit (chi^2 units: 0.01 costs 0.0625 at 25 N)
@@ -91,6 +107,8 @@ SQUEEZE_RIDGE = 0.01
 
 
 class ContactState(enum.Enum):
+    """The contact states of app. A.4 (Fig. A-6) between the card and the slot."""
+
     FREE = 'free'
     EDGE_ON_FACE = 'edge_on_face'
     EDGE_ON_SIDE = 'edge_on_side'
@@ -102,7 +120,20 @@ class ContactState(enum.Enum):
     SEATED = 'seated'
 
 
-def _pos(name: str, v, *, zero_ok: bool = False) -> float:
+class ContactKind(enum.StrEnum):
+    """What touches what in one fitted contact (Contact.kind): the single-contact states of
+    ContactState, of which the two-point ones are made, and a seated card's corner on the
+    floor."""
+
+    EDGE_ON_FACE = 'edge_on_face'
+    EDGE_ON_SIDE = 'edge_on_side'
+    CORNER_ON_MOUTH = 'corner_on_mouth'
+    CORNER_ON_WALL = 'corner_on_wall'
+    CORNER_ON_BOTTOM = 'corner_on_bottom'
+    SEATED = 'seated'
+
+
+def _pos(name: str, v: float, *, zero_ok: bool = False) -> float:
     x = float(v)
     if not np.isfinite(x) or x < 0 or (x == 0 and not zero_ok):
         raise InsertionError(f'{name} must be finite and {">=" if zero_ok else ">"} 0, got {v}')
@@ -172,7 +203,7 @@ class Contact:
     normal_force_n: float
     friction_force_n: float
     side: int
-    kind: str
+    kind: ContactKind
 
 
 @dataclass(frozen=True)
@@ -229,10 +260,10 @@ class Identification:
         """The slot floor's normal force on the card (N): its corners on the bottom, alone or
         wedged, or the card seated; 0 without."""
         return float(sum(c.normal_force_n for c in self.contacts
-                         if c.kind in ('corner_on_bottom', 'seated')))
+                         if c.kind in (ContactKind.CORNER_ON_BOTTOM, ContactKind.SEATED)))
 
 
-def _check_wrench(w) -> np.ndarray:
+def _check_wrench(w: Sequence[float] | np.ndarray) -> np.ndarray:
     a = np.asarray(w, float)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise InsertionError(f'planar wrench must be a finite (F_x, F_y, M_z), got {w}')
@@ -249,7 +280,7 @@ class _Spec:
     b: np.ndarray | None
     feature: np.ndarray
     side: int
-    kind: str
+    kind: ContactKind
 
 
 class ContactIdentifier:
@@ -320,17 +351,17 @@ class ContactIdentifier:
             # the point of side face s (from corner s back along u) nearest the edge
             eta = float(np.clip(np.dot(e - corner, u), 0.0, g.card_height_m))
             on_side = corner + eta * u
-            edge_on_side = _Spec(-s * v, e, None, on_side, s, 'edge_on_side')
+            edge_on_side = _Spec(-s * v, e, None, on_side, s, ContactKind.EDGE_ON_SIDE)
             wall = _Spec(-s * lat, np.array([s * half, 0.0]), np.array([s * half, -d]), corner,
-                         s, 'corner_on_wall')
+                         s, ContactKind.CORNER_ON_WALL)
             bottom = _Spec(up, np.array([-half, -d]), np.array([half, -d]), corner, s,
-                           'corner_on_bottom')
+                           ContactKind.CORNER_ON_BOTTOM)
             hyps[(ContactState.EDGE_ON_FACE, s)] = [_Spec(u, e, None, on_face, s,
-                                                          'edge_on_face')]
+                                                          ContactKind.EDGE_ON_FACE)]
             hyps[(ContactState.EDGE_ON_SIDE, s)] = [edge_on_side]
             hyps[(ContactState.CORNER_ON_MOUTH, s)] = [
                 _Spec(up, np.array([s * half, 0.0]), np.array([s * (half + jaw), 0.0]), corner,
-                      s, 'corner_on_mouth')]
+                      s, ContactKind.CORNER_ON_MOUTH)]
             hyps[(ContactState.CORNER_ON_WALL, s)] = [wall]
             hyps[(ContactState.CORNER_ON_BOTTOM, s)] = [bottom]
             # wedged: corner s on wall s (or on the bottom) and the other jaw's edge on the
@@ -339,18 +370,21 @@ class ContactIdentifier:
             e_o = self._edge(other)
             c_o = pose.corner(other, g.card_width_m)
             eta_o = float(np.clip(np.dot(e_o - c_o, u), 0.0, g.card_height_m))
-            side_o = _Spec(-other * v, e_o, None, c_o + eta_o * u, other, 'edge_on_side')
+            side_o = _Spec(-other * v, e_o, None, c_o + eta_o * u, other,
+                           ContactKind.EDGE_ON_SIDE)
             hyps[(ContactState.TWO_POINT, s)] = [wall, side_o]
             hyps[(ContactState.TWO_POINT, 2 * s)] = [bottom, side_o]
             # on corner s, held up by a jaw: the other corner on the other jaw's wall, or side
             # face s on jaw s's mouth edge (the card leaning towards s)
             wall_o = _Spec(-other * lat, np.array([other * half, 0.0]),
-                           np.array([other * half, -d]), c_o, other, 'corner_on_wall')
+                           np.array([other * half, -d]), c_o, other,
+                           ContactKind.CORNER_ON_WALL)
             hyps[(ContactState.CORNER_AND_SIDE, s)] = [bottom, wall_o]
             hyps[(ContactState.CORNER_AND_SIDE, 2 * s)] = [bottom, edge_on_side]
         c_l, c_r = pose.corner(-1, g.card_width_m), pose.corner(1, g.card_width_m)
         hyps[(ContactState.SEATED, 0)] = [
-            _Spec(up, np.array([np.clip(c[0], -half, half), -d]), None, c, k, 'seated')
+            _Spec(up, np.array([np.clip(c[0], -half, half), -d]), None, c, k,
+                  ContactKind.SEATED)
             for k, c in ((-1, c_l), (1, c_r))]
         return hyps
 
@@ -366,7 +400,8 @@ class ContactIdentifier:
 
     def _fit_points(self, w: np.ndarray, specs: list[_Spec], points: list[np.ndarray]
                     ) -> tuple[float, np.ndarray, list[np.ndarray]]:
-        a = np.hstack([self._generators(pt, sp.normal) for pt, sp in zip(points, specs)])
+        a = np.hstack([self._generators(pt, sp.normal)
+                       for pt, sp in zip(points, specs, strict=False)])
         # the least contact forces that fit: two opposed contacts can squeeze the card with any
         # force and leave the wrench unchanged, and a bare NNLS put 54 N of such squeeze on
         # each contact from a 0.76 N reading (then a 23 mm 'retreat' from it); the tiny ridge
@@ -378,7 +413,8 @@ class ContactIdentifier:
         ncol = a.shape[1] // len(specs)
         return float(r @ r), lam, [lam[k * ncol:(k + 1) * ncol] for k in range(len(specs))]
 
-    def _fit(self, w: np.ndarray, specs: list[_Spec]):
+    def _fit(self, w: np.ndarray, specs: list[_Spec]
+             ) -> tuple[float, float, list[tuple[np.ndarray, np.ndarray]]]:
         """Best (chi2 + geometric term) over the hypothesis's contact points."""
         if not specs:
             r = w * self._scale
@@ -393,8 +429,9 @@ class ContactIdentifier:
                 # points within +-3 pose sigmas of the feature's projection (further ones cost
                 # more than a contact in the geometric term)
                 choices.append(self._locus(sp))
-        combos = itertools.product(*choices)
-        if [sp.kind for sp in specs] == ['corner_on_bottom', 'corner_on_wall'] and \
+        combos: Iterable[tuple[np.ndarray, ...]] = itertools.product(*choices)
+        if [sp.kind for sp in specs] == [ContactKind.CORNER_ON_BOTTOM,
+                                         ContactKind.CORNER_ON_WALL] and \
                 specs[0].side == -specs[1].side:
             # the card spans the slot from the other corner, h up the other wall, to its corner
             # on the floor sqrt(w^2 - h^2) across: one point fixes the other
@@ -403,10 +440,12 @@ class ContactIdentifier:
         best = None
         for pts in combos:
             chi2, _, lams = self._fit_points(w, specs, list(pts))
-            geo = sum(float(np.sum((pt - sp.feature) ** 2)) for pt, sp in zip(pts, specs))
+            geo = sum(float(np.sum((pt - sp.feature) ** 2))
+                      for pt, sp in zip(pts, specs, strict=False))
             geo /= self.pose_sigma_m ** 2
             if best is None or chi2 + geo < best[0] + best[1]:
-                best = (chi2, geo, list(zip(pts, lams)))
+                best = (chi2, geo, list(zip(pts, lams, strict=False)))
+        assert best is not None                     # every spec has a point to try
         return best
 
     def _spanned(self, wall_pt: np.ndarray, wall_side: int) -> np.ndarray:
@@ -429,7 +468,7 @@ class ContactIdentifier:
             s = (w[2] - (sp.a[0] * f[1] - sp.a[1] * f[0])) / den
         return sp.a + float(np.clip(s, 0.0, 1.0)) * d
 
-    def seat_check(self, wrench, pose: CardPose) -> SeatCheck:
+    def seat_check(self, wrench: Sequence[float] | np.ndarray, pose: CardPose) -> SeatCheck:
         """Whether the wrench says both corners carry the card on the floor, by a margin over
         every one-corner rival (see the module notes). Only the wrench's chi^2 compares: the
         pose estimate sets where the features may be (within 3 pose sigmas), not which
@@ -447,7 +486,8 @@ class ContactIdentifier:
             return np.array([float(np.clip(x, -half, half)), -d])
 
         corners = {s: pose.corner(s, g.card_width_m) for s in (-1, 1)}
-        floor = {s: _Spec(up, floor_at(corners[s][0]), None, corners[s], s, 'seated')
+        floor = {s: _Spec(up, floor_at(corners[s][0]), None, corners[s], s,
+                          ContactKind.SEATED)
                  for s in (-1, 1)}
         best_seat = None
         for dx in shifts:
@@ -458,11 +498,14 @@ class ContactIdentifier:
             cost = chi2 + 2 * (dx / self.pose_sigma_m) ** 2
             if best_seat is None or cost < best_seat[0]:
                 best_seat = (cost, chi2, lams)
+        assert best_seat is not None                # `shifts` is never empty
         _, seated_chi2, lams = best_seat
         loads = (float(lams[0].sum()), float(lams[1].sum()))
 
         # (pairs: the specs, and the point sets tried together, one point per spec)
-        rivals: dict[str, tuple[list[_Spec], list[list[np.ndarray]]]] = {}
+        # a rival's point sets: points for its specs, or (a spec that moves with them, points)
+        rivals: dict[str, tuple[list[_Spec],
+                                Sequence[list[np.ndarray] | tuple[_Spec, list[np.ndarray]]]]] = {}
         wc = g.card_width_m
         for s in (-1, 1):
             bottom = floor[s]
@@ -472,7 +515,7 @@ class ContactIdentifier:
             wall_pt = np.array([s * half, -d])
             rivals[f'corner_in_corner:{s:+d}'] = (
                 [bottom, _Spec(np.array([-s, 0.0]), wall_pt, None, corners[s], s,
-                               'corner_on_wall')], [[wall_pt, wall_pt]])
+                               ContactKind.CORNER_ON_WALL)], [[wall_pt, wall_pt]])
             # the other corner h up the other jaw's wall, h from seat_depth_m (lower, the card
             # is seated) within 3 pose sigmas of where the estimate puts that corner; the card
             # spans the slot from it, so corner s is on the floor sqrt(w^2 - h^2) across
@@ -480,7 +523,7 @@ class ContactIdentifier:
             heights = np.linspace(max(self.seat_depth_m, h_est - span), h_est + span,
                                   self.samples)
             wall = _Spec(np.array([s, 0.0]), np.array([-s * half, 0.0]), None, corners[-s], -s,
-                         'corner_on_wall')
+                         ContactKind.CORNER_ON_WALL)
             # (each only where the estimate's corner is within 3 pose sigmas of where the
             # rival puts it: in a wide slot a centred card spans no jaw to jaw)
             sets = [[self._spanned(np.array([-s * half, -d + h]), -s),
@@ -491,16 +534,17 @@ class ContactIdentifier:
             # side face s on jaw s's mouth edge, the card leaning towards s by phi (the other
             # corner h = w sin(phi) up, over the same heights): corner s is D tan(phi) in from
             # the wall, and the edge pushes along -v of the card's tilt -s phi
-            sets, specs = [], None
+            leaning: list[tuple[_Spec, list[np.ndarray]]] = []
             for h in heights:
                 phi = float(np.arcsin(min(h / wc, 1.0)))
                 v = np.array([np.cos(phi), -s * np.sin(phi)])
-                edge = _Spec(-s * v, self._edge(s), None, corners[s], s, 'edge_on_side')
+                edge = _Spec(-s * v, self._edge(s), None, corners[s], s,
+                             ContactKind.EDGE_ON_SIDE)
                 x_s = s * (half - d * np.tan(phi))
                 if abs(x_s - corners[s][0]) <= span:
-                    sets.append((edge, [np.array([x_s, -d]), self._edge(s)]))
-            if sets:
-                rivals[f'corner_and_side:{2 * s:+d}'] = ([bottom, sets[0][0]], sets)
+                    leaning.append((edge, [np.array([x_s, -d]), self._edge(s)]))
+            if leaning:
+                rivals[f'corner_and_side:{2 * s:+d}'] = ([bottom, leaning[0][0]], leaning)
         rival, rival_chi2 = '', np.inf
         for name, (specs, point_sets) in rivals.items():
             for item in point_sets:
@@ -529,7 +573,7 @@ class ContactIdentifier:
               np.array([min(max(proj, 0.0), length)]))
         return [sp.a + s / length * seg for s in ss]
 
-    def identify(self, wrench, pose: CardPose) -> Identification:
+    def identify(self, wrench: Sequence[float] | np.ndarray, pose: CardPose) -> Identification:
         """The contact state from the summed planar wrench (F_x, F_y, M_z about the site origin;
         the force the site exerts on the card, see task_wrench / planar_wrench) and the card's
         estimated pose in the site frame."""
@@ -550,9 +594,10 @@ class ContactIdentifier:
             scores[key] = score
             if best is None or score < best[0]:
                 best = (score, state, side, chi2, specs, fitted)
+        assert best is not None                     # there is always a FREE hypothesis
         score, state, side, chi2, specs, fitted = best
         contacts = []
-        for sp, (pt, lam) in zip(specs, fitted):
+        for sp, (pt, lam) in zip(specs, fitted, strict=False):
             fn = float(lam.sum())
             ft = float(self.friction * (lam[0] - lam[1])) if lam.size == 2 else 0.0
             contacts.append(Contact(np.asarray(pt, float), sp.normal.copy(), fn, ft, sp.side,
@@ -734,6 +779,7 @@ class LeastResistance:
         loads, which the check needs at mu 0.6); the press is held at 2 x seat_force_n (more
         load, more chi^2 between the hypotheses)."""
         seat, step, k = ident.seat, self.insert_step_m, self.probe_stiffness
+        assert seat is not None                     # a probe follows a failed seat check
         g = self.geometry
         light = seat.lighter_side
         f_light, f_heavy = sorted(seat.corner_forces_n)
@@ -775,7 +821,8 @@ class LeastResistance:
             out.append((a, (force - self.force_limit_n) / self.stiffness, force))
         return out
 
-    def step(self, ident: Identification, wrench, pose: CardPose) -> Step:
+    def step(self, ident: Identification, wrench: Sequence[float] | np.ndarray, pose: CardPose
+             ) -> Step:
         """The bounded increment for this control step (site frame, about the card's
         leading-edge centre)."""
         if not isinstance(ident, Identification) or not isinstance(pose, CardPose):
@@ -815,7 +862,8 @@ class LeastResistance:
             worst = max(worst, force - self.stiffness * float(a @ d))
         return worst
 
-    def _project(self, desired: np.ndarray, cons) -> np.ndarray:
+    def _project(self, desired: np.ndarray, cons: Sequence[tuple[np.ndarray, float, Any]]
+                 ) -> np.ndarray:
         """Nearest (weighted) d to desired with a_k . d >= b_k: enumerate active sets."""
         wgt = self._weight
         # work in scaled coordinates z = W d, so the metric is Euclidean
@@ -842,7 +890,7 @@ class LeastResistance:
         if best is None:
             # conflicting retreats (cannot happen for b <= 0, where d = 0 is feasible): retreat
             # along the summed constraint normals
-            a = sum(a for a, _, _ in cons)
+            a = np.asarray(sum(a for a, _, _ in cons))
             need = max(b for _, b, _ in cons)
             return a * need / max(float(a @ a), 1e-12)
         return best[1] / wgt
@@ -871,8 +919,8 @@ class LeastResistance:
         return d_min + lo * (d - d_min)
 
 
-def task_wrench(sensor_wrench, t_task_sensor, *, tare=None, reaction: bool = True
-                ) -> np.ndarray:
+def task_wrench(sensor_wrench: Sequence[float] | np.ndarray, t_task_sensor: ArrayLike, *,
+                tare: ArrayLike | None = None, reaction: bool = True) -> np.ndarray:
     """A rover's 6-axis F/T reading (F, M in its sensor frame) as the wrench the environment
     exerts on the carried card, in the task (site) frame, moments about the task origin.
 
@@ -900,7 +948,7 @@ def task_wrench(sensor_wrench, t_task_sensor, *, tare=None, reaction: bool = Tru
     return -out if reaction else out
 
 
-def planar_wrench(task_wrenches) -> np.ndarray:
+def planar_wrench(task_wrenches: ArrayLike) -> np.ndarray:
     """Sum of the rovers' task-frame wrenches (N, 6) reduced to the plane of the insertion:
     (F_x, F_y, M_z). "The measured forces/torques are evaluated from force/torque sensor
     readings of all cooperating robots" (app. A.4)."""
@@ -911,7 +959,7 @@ def planar_wrench(task_wrenches) -> np.ndarray:
     return np.array([total[0], total[1], total[5]])
 
 
-def planar_step_in_frame(step: Step, pose: CardPose, t_frame_task) -> tuple[np.ndarray,
+def planar_step_in_frame(step: Step, pose: CardPose, t_frame_task: ArrayLike) -> tuple[np.ndarray,
                                                                               np.ndarray]:
     """A Step as a 3-D translation of the card's leading-edge centre and a rotation vector
     (about that point), both in the frame t_frame_task maps into (e.g. the slave's base frame

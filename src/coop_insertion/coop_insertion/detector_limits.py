@@ -29,15 +29,28 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+
+from coop_common.cli import number, output_path
+from coop_common.files import write_json
 
 from .errors import InsertionError
 from .markers import make_detector
 
-__all__ = ['DIAMETERS_PX', 'INCIDENCES_DEG', 'CellResult', 'camera_pose', 'measure',
-           'derive_limits', 'format_table', 'main']
+__all__ = [
+    'DIAMETERS_PX',
+    'INCIDENCES_DEG',
+    'CellResult',
+    'camera_pose',
+    'derive_limits',
+    'format_table',
+    'main',
+    'measure',
+]
 
 #: the grid: marker diameter (px, f * 2 r / range) and incidence (deg)
 DIAMETERS_PX = (3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 16.0)
@@ -46,6 +59,8 @@ INCIDENCES_DEG = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0)
 
 @dataclass(frozen=True)
 class CellResult:
+    """One (diameter, incidence) cell: renders, detections, false markers and centre errors."""
+
     diameter_px: float
     incidence_deg: float
     renders: int
@@ -93,7 +108,7 @@ def camera_pose(marker: np.ndarray, normal: np.ndarray, range_m: float, incidenc
 def measure(*, diameters_px: tuple[float, ...] = DIAMETERS_PX,
             incidences_deg: tuple[float, ...] = INCIDENCES_DEG, per_cell: int = 20,
             seed: int = 0, world_seed: int = 1, width: int = 640, height: int = 480,
-            log=None) -> tuple[list[CellResult], dict]:
+            log: Callable[[str], None] | None = None) -> tuple[list[CellResult], dict]:
     """Render and detect every cell `per_cell` times; the cells and the settings used."""
     if per_cell < 1:
         raise InsertionError(f'per_cell must be >= 1, got {per_cell}')
@@ -101,9 +116,9 @@ def measure(*, diameters_px: tuple[float, ...] = DIAMETERS_PX,
         raise InsertionError(f'incidences must be in [0, 90) deg, got {incidences_deg}')
     if not all(d > 0 for d in diameters_px):
         raise InsertionError(f'diameters must be > 0 px, got {diameters_px}')
-    from coop_common.dynparams import load_truth
-    from rover_sim.config import SimConfig
-    from rover_sim.world import World
+    from coop_common.dynparams import load_truth  # noqa: PLC0415 - only to render
+    from rover_sim.config import SimConfig  # noqa: PLC0415 - only to render
+    from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only to render
 
     cfg = SimConfig(rovers=1, seed=world_seed, occlusion_density=0.0, stereo_rate_hz=0.0,
                     image_width=width, image_height=height)
@@ -208,7 +223,7 @@ def format_table(result: dict) -> str:
         lines.append(f'{d:7.0f} {rng_m:7.2f} | '
                      + ' '.join(f'{100 * rate[(d, i)]:5.0f}' for i in incs))
 
-    def fmt(x, unit):
+    def fmt(x: float | None, unit: str) -> str:
         return 'none in the grid' if x is None else f'{x:g} {unit}'
 
     lines.append(f'detected in >= {100 * lim["rate"]:g} %: min_diameter_px '
@@ -221,9 +236,7 @@ def format_table(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from coop_common.cli import number, output_path
-    from coop_common.files import write_json
-
+    """`python -m coop_insertion.detector_limits`: measure the limit and write the JSON."""
     os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
     ap = argparse.ArgumentParser(prog='detector_limits', description=__doc__.split('\n\n')[0])
     ap.add_argument('--json', type=output_path, required=True)
@@ -232,7 +245,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--rate', type=number(float, lo=0.5, hi=1.0), default=0.97)
     ap.add_argument('--quiet', action='store_true')
     args = ap.parse_args(argv)
-    import cv2
     cv2.setNumThreads(1)
     t0 = time.perf_counter()
     cells, settings = measure(per_cell=args.per_cell, seed=args.seed,

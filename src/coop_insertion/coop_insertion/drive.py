@@ -4,12 +4,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import InsertionError
 
-__all__ = ['GoToPose', 'FollowPath', 'DriveCommand', 'wrap']
+__all__ = ['DriveCommand', 'FollowPath', 'GoToPose', 'Stage', 'wrap']
+
+
+class Stage(StrEnum):
+    """What a drive command does: turn to face the goal, drive to it, turn to its heading, or
+    nothing (arrived)."""
+
+    FACE = 'face'
+    DRIVE = 'drive'
+    TURN = 'turn'
+    ARRIVED = 'arrived'
 
 
 def wrap(a: float) -> float:
@@ -19,10 +31,12 @@ def wrap(a: float) -> float:
 
 @dataclass(frozen=True)
 class DriveCommand:
+    """One drive step: the twist to send, whether the goal is reached, and the stage."""
+
     linear_x: float
     angular_z: float
     arrived: bool
-    stage: str
+    stage: Stage
 
 
 class GoToPose:
@@ -30,7 +44,7 @@ class GoToPose:
     goal's heading. Options (keyword-only): max_speed_m_s (app. D: 0.25), max_yaw_rate_rad_s,
     gain (1/s, on distance and on heading), position_tolerance_m, yaw_tolerance_rad."""
 
-    def __init__(self, goal_xy, goal_yaw: float, *, max_speed_m_s: float = 0.2,
+    def __init__(self, goal_xy: ArrayLike, goal_yaw: float, *, max_speed_m_s: float = 0.2,
                  max_yaw_rate_rad_s: float = 0.6, gain: float = 1.5,
                  position_tolerance_m: float = 0.02, yaw_tolerance_rad: float = 0.02) -> None:
         g = np.asarray(goal_xy, float)
@@ -45,30 +59,30 @@ class GoToPose:
         self.goal_yaw = float(goal_yaw)
         self.v_max, self.w_max, self.k = max_speed_m_s, max_yaw_rate_rad_s, gain
         self.tol_p, self.tol_yaw = position_tolerance_m, yaw_tolerance_rad
-        self.stage = 'face'
+        self.stage = Stage.FACE
 
     def command(self, x: float, y: float, yaw: float) -> DriveCommand:
         d = self.goal - np.array([x, y])
         dist = float(np.hypot(*d))
-        if self.stage != 'turn' and dist <= self.tol_p:
-            self.stage = 'turn'
-        if self.stage == 'turn':
+        if self.stage != Stage.TURN and dist <= self.tol_p:
+            self.stage = Stage.TURN
+        if self.stage == Stage.TURN:
             e = wrap(self.goal_yaw - yaw)
             if abs(e) <= self.tol_yaw:
-                return DriveCommand(0.0, 0.0, True, 'arrived')
+                return DriveCommand(0.0, 0.0, True, Stage.ARRIVED)
             return DriveCommand(0.0, float(np.clip(self.k * e, -self.w_max, self.w_max)),
-                                False, 'turn')
+                                False, Stage.TURN)
         bearing = math.atan2(d[1], d[0])
         e = wrap(bearing - yaw)
-        if self.stage == 'face':
+        if self.stage == Stage.FACE:
             if abs(e) <= 0.05:
-                self.stage = 'drive'
+                self.stage = Stage.DRIVE
             else:
                 return DriveCommand(0.0, float(np.clip(self.k * e, -self.w_max, self.w_max)),
-                                    False, 'face')
+                                    False, Stage.FACE)
         v = float(np.clip(self.k * dist * max(0.0, math.cos(e)), 0.0, self.v_max))
         w = float(np.clip(2 * self.k * e, -self.w_max, self.w_max))
-        return DriveCommand(v, w, False, 'drive')
+        return DriveCommand(v, w, False, Stage.DRIVE)
 
 
 class FollowPath:
@@ -77,7 +91,7 @@ class FollowPath:
     correction; intermediate waypoints count as passed within `pass_m`, the last within
     `position_tolerance_m`, then (if given) turn to `final_yaw`."""
 
-    def __init__(self, waypoints, final_yaw: float | None = None, *,
+    def __init__(self, waypoints: ArrayLike, final_yaw: float | None = None, *,
                  max_speed_m_s: float = 0.2, max_yaw_rate_rad_s: float = 0.8,
                  turn_above_rad: float = math.radians(20), pass_m: float = 0.25,
                  position_tolerance_m: float = 0.08, yaw_tolerance_rad: float = 0.05) -> None:
@@ -99,17 +113,18 @@ class FollowPath:
             self.todo.pop(0)
         if not self.todo:
             if self.final_yaw is None:
-                return DriveCommand(0.0, 0.0, True, 'arrived')
+                return DriveCommand(0.0, 0.0, True, Stage.ARRIVED)
             e = wrap(self.final_yaw - yaw)
             if abs(e) <= self.tol_yaw:
-                return DriveCommand(0.0, 0.0, True, 'arrived')
+                return DriveCommand(0.0, 0.0, True, Stage.ARRIVED)
             return DriveCommand(0.0, float(np.clip(1.5 * e, -self.w_max, self.w_max)), False,
-                                'turn')
+                                Stage.TURN)
         d = self.todo[0] - xy
         e = wrap(math.atan2(d[1], d[0]) - yaw)
         if abs(e) > self.turn_above:
             return DriveCommand(0.0, float(np.clip(2.5 * e, -self.w_max, self.w_max)), False,
-                                'face')
+                                Stage.FACE)
         dist = float(np.linalg.norm(d)) + self.pass_m * (len(self.todo) - 1)
         v = min(self.v_max, 0.8 * dist + 0.05)
-        return DriveCommand(v, float(np.clip(2.0 * e, -self.w_max, self.w_max)), False, 'drive')
+        return DriveCommand(v, float(np.clip(2.0 * e, -self.w_max, self.w_max)), False,
+                            Stage.DRIVE)

@@ -20,6 +20,7 @@ import math
 import sys
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +39,8 @@ PENETRATION_LIMIT_M = 5e-4
 
 @dataclass
 class Trial:
+    """One force-only trial: the truth's verdict, the slave's own, and what was measured."""
+
     slot_in: float
     seed: int
     success: bool               # the truth: seated, penetration within the limit
@@ -62,11 +65,11 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
     friction: the simulator's contact_friction (None: SimConfig's default). fail_in_contact_s:
     the slave is failed (as by a timeout) once it has been this long in contact, and the
     world runs on 2 s with its commands (what a failure leaves on the card)."""
-    from rover_sim.config import NoiseConfig, SimConfig
-    from rover_sim.world import World
-    from rover_sim.worldgen import INCH
+    from rover_sim.config import NoiseConfig, SimConfig  # noqa: PLC0415 - only to run trials
+    from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only to run trials
+    from rover_sim.worldgen import INCH  # noqa: PLC0415 - only to run trials
     gap = slot_in * INCH
-    extra = {} if friction is None else {'contact_friction': float(friction)}
+    extra: dict[str, Any] = {} if friction is None else {'contact_friction': float(friction)}
     cfg = SimConfig(rovers=2, occlusion_density=0.0, stereo_rate_hz=0.0, slot_gap_m=gap,
                     seed=seed, noise=NoiseConfig(encoder_rad=0.0077), **extra)
     rng = np.random.default_rng(seed)
@@ -87,7 +90,8 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
         xc /= np.linalg.norm(xc)
         r_wc = np.column_stack([xc, np.cross(look, xc), look])
         var = np.array([SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2 / 9, SIGMA_DEPTH_M ** 2])
-        k, pen, phases = 0, 0.0, []
+        k, pen = 0, 0.0
+        phases: list[Phase] = []
         contact_t, end_t = None, math.inf
         fix_every = max(1, round(0.25 / w.dt))
         while w.time_s < min(sim_s, end_t):
@@ -102,7 +106,7 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
             if vision and seen and k % fix_every == 0:
                 pts = [c + r @ m for m in model.card_markers] + \
                     [np.array(m) + [0.0, 0.0, b]
-                     for m, b in zip(w.layout.site.slot_markers, site_bias_m)]
+                     for m, b in zip(w.layout.site.slot_markers, site_bias_m, strict=False)]
                 pc = np.array([r_wc.T @ (p - cam_p) for p in pts])
                 pc += rng.normal(size=(4, 3)) * np.sqrt(var)
                 ctl.add_observation(w.time_s, LabelledMarkers(
@@ -170,6 +174,7 @@ def format_result(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_insertion.force_trials`: the trials over slots and seeds."""
     p = argparse.ArgumentParser(prog='force_trials', description=__doc__.split('\n\n')[0])
     p.add_argument('--slots', default='5.0,4.5,4.375', help='slot widths in inches')
     p.add_argument('--seeds', default='1-5', help='e.g. 1-5 or 1,4,7')

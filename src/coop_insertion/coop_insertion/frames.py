@@ -27,19 +27,34 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from .errors import InsertionError
 
-__all__ = ['rot_x', 'rot_y', 'rot_z', 'rotation_from_euler', 'euler_from_rotation',
-           'euler_eq_5_1', 'frame_from_points', 'third_point', 'homogeneous', 'invert',
-           'a_vt', 'a_ts', 'RequiredMotion', 'required_motion', 'required_motion_from_points']
+__all__ = [
+    'RequiredMotion',
+    'a_ts',
+    'a_vt',
+    'euler_eq_5_1',
+    'euler_from_rotation',
+    'frame_from_points',
+    'homogeneous',
+    'invert',
+    'required_motion',
+    'required_motion_from_points',
+    'rot_x',
+    'rot_y',
+    'rot_z',
+    'rotation_from_euler',
+    'third_point',
+]
 
 #: Below this sine of the angle P2-P1-P3 (or length ratio) the three points count as collinear.
 COLLINEAR_SINE = 1e-3
 
 
-def _vec3(name: str, v) -> np.ndarray:
+def _vec3(name: str, v: ArrayLike) -> np.ndarray:
     a = np.asarray(v, float)
     if a.shape != (3,):
         raise InsertionError(f'{name} must be a 3-vector, got shape {a.shape}')
@@ -48,7 +63,7 @@ def _vec3(name: str, v) -> np.ndarray:
     return a
 
 
-def _transform(name: str, t) -> np.ndarray:
+def _transform(name: str, t: ArrayLike) -> np.ndarray:
     a = np.asarray(t, float)
     if a.shape != (4, 4):
         raise InsertionError(f'{name} must be a 4x4 homogeneous transform, got {a.shape}')
@@ -80,13 +95,13 @@ def rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def rotation_from_euler(angles) -> np.ndarray:
+def rotation_from_euler(angles: ArrayLike) -> np.ndarray:
     """Eq. 5-2's rotation block R^x . R^y . R^z from (R_x, R_y, R_z) in rad."""
     rx, ry, rz = _vec3('angles', angles)
     return rot_x(rx) @ rot_y(ry) @ rot_z(rz)
 
 
-def euler_from_rotation(r) -> np.ndarray:
+def euler_from_rotation(r: ArrayLike) -> np.ndarray:
     """(R_x, R_y, R_z) with r = Rx @ Ry @ Rz (Eq. 5-2's order), R_y in [-pi/2, pi/2].
 
     At R_y = +-pi/2 (gimbal lock) R_x and R_z are not separable; R_x is then returned as 0."""
@@ -112,9 +127,9 @@ def _check_triangle(p1: np.ndarray, p2: np.ndarray, p3: np.ndarray) -> None:
         raise InsertionError('frame points are collinear: three points fix no frame')
 
 
-def euler_eq_5_1(p1, p2, p3) -> np.ndarray:
+def euler_eq_5_1(p1: ArrayLike, p2: ArrayLike, p3: ArrayLike) -> np.ndarray:
     """Eq. 5-1 as printed: (R_x, R_y, R_z) of the frame (P1 origin, P2 on x, P3 on z) in the
-    camera frame, each from one pair of points (decoupled, small-angle; see the module notes):
+    camera frame, each from one pair of points (decoupled, small-angle; see the module notes).
 
         R_z = atan((P1y - P2y) / (P1x - P2x))
         R_y = atan((P1z - P2z) / (sqrt(P1x^2 + P1y^2) - sqrt(P2x^2 + P2y^2)))
@@ -135,7 +150,7 @@ def euler_eq_5_1(p1, p2, p3) -> np.ndarray:
     return np.array([rx, ry, rz])
 
 
-def frame_from_points(p1, p2, p3) -> np.ndarray:
+def frame_from_points(p1: ArrayLike, p2: ArrayLike, p3: ArrayLike) -> np.ndarray:
     """The exact frame Eq. 5-1 reads, as a 4x4 pose in the points' frame: origin P1, x axis
     towards P2, z axis towards P3 made orthogonal to x, y = z x x (right-handed).
 
@@ -148,7 +163,8 @@ def frame_from_points(p1, p2, p3) -> np.ndarray:
     return homogeneous(np.column_stack([x, np.cross(z, x), z]), p1)
 
 
-def third_point(p1, p2, direction, *, length_m: float | None = None) -> np.ndarray:
+def third_point(p1: ArrayLike, p2: ArrayLike, direction: ArrayLike, *,
+                length_m: float | None = None) -> np.ndarray:
     """A third frame point for a two-marker target (the card and the site carry two markers each,
     §5.2): P1 + length * (the part of `direction` orthogonal to P1-P2), so that P3 lies on the
     frame's z axis. `direction` is a known direction of the target in the same frame (the
@@ -171,7 +187,7 @@ def third_point(p1, p2, direction, *, length_m: float | None = None) -> np.ndarr
     return p1 + length * z / np.linalg.norm(z)
 
 
-def homogeneous(r, p) -> np.ndarray:
+def homogeneous(r: ArrayLike, p: ArrayLike) -> np.ndarray:
     """4x4 [[R, p], [0, 1]] (the block form of Eq. 5-2 and 5-3)."""
     m = np.asarray(r, float)
     if m.shape != (3, 3) or not np.all(np.isfinite(m)):
@@ -184,7 +200,7 @@ def homogeneous(r, p) -> np.ndarray:
     return t
 
 
-def invert(t) -> np.ndarray:
+def invert(t: ArrayLike) -> np.ndarray:
     """Inverse of a rigid 4x4 transform."""
     a = _transform('transform', t)
     out = np.eye(4)
@@ -193,7 +209,7 @@ def invert(t) -> np.ndarray:
     return out
 
 
-def a_vt(p1, p2, p3) -> np.ndarray:
+def a_vt(p1: ArrayLike, p2: ArrayLike, p3: ArrayLike) -> np.ndarray:
     """Eq. 5-2: A_VT, the frame of the points P1 (origin), P2 (x axis), P3 (z axis) measured in
     the vision frame R_V: [[R^x R^y R^z, P_1], [0, 1]] with the angles of the exact frame (so
     Eq. 5-2's composition reproduces the frame; see euler_eq_5_1 for the printed approximation).
@@ -202,7 +218,7 @@ def a_vt(p1, p2, p3) -> np.ndarray:
     return homogeneous(rotation_from_euler(euler_from_rotation(frame[:3, :3])), frame[:3, 3])
 
 
-def a_ts(r_ts, p_ts) -> np.ndarray:
+def a_ts(r_ts: ArrayLike, p_ts: ArrayLike) -> np.ndarray:
     """Eq. 5-3: A_TS = [[R_TS, P_TS], [0, 1]], the end-effector frame R_T in the arm-base frame
     R_S, from the slave arm's kinematics (forward kinematics composed with the card offset)."""
     return homogeneous(r_ts, p_ts)
@@ -244,7 +260,8 @@ class RequiredMotion:
         return np.concatenate([self.translation_s, self.rotvec_s])
 
 
-def required_motion(a_vt_, a_vo, a_ts_, *, goal_offset=None) -> RequiredMotion:
+def required_motion(a_vt_: ArrayLike, a_vo: ArrayLike, a_ts_: ArrayLike, *,
+                    goal_offset: ArrayLike | None = None) -> RequiredMotion:
     """Eq. 5-4 and its transformation into the slave's base frame (§5.1).
 
     a_vt_: A_VT (object frame in R_V), a_vo: A_VO (site frame in R_V), a_ts_: A_TS (object frame
@@ -273,7 +290,7 @@ def required_motion(a_vt_, a_vo, a_ts_, *, goal_offset=None) -> RequiredMotion:
         euler_s=euler_from_rotation(rotation_s), goal_s=goal_s)
 
 
-def _points(name: str, p) -> np.ndarray:
+def _points(name: str, p: ArrayLike) -> np.ndarray:
     a = np.asarray(p, float)
     if a.shape != (3, 3):
         raise InsertionError(f'{name} must be (3, 3): P1, P2, P3 as rows, got {a.shape}')
@@ -282,8 +299,10 @@ def _points(name: str, p) -> np.ndarray:
     return a
 
 
-def required_motion_from_points(object_points, site_points, a_ts_, *, goal_offset=None,
-                                covariances=None, step_m: float = 1e-6) -> RequiredMotion:
+def required_motion_from_points(object_points: ArrayLike, site_points: ArrayLike, a_ts_: ArrayLike,
+                                *, goal_offset: ArrayLike | None = None,
+                                covariances: ArrayLike | None = None, step_m: float = 1e-6
+                                ) -> RequiredMotion:
     """Eq. 5-2 for both frames, then Eq. 5-4 in R_S, from the measured points.
 
     object_points, site_points: (3, 3), rows P1, P2, P3 in R_V (P1 origin, P2 on x, P3 on z).

@@ -13,14 +13,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import InsertionError
 from .frames import homogeneous, rot_z
 
-__all__ = ['search_points', 'SiteEstimate']
+__all__ = ['SiteEstimate', 'search_points']
 
 
-def search_points(centre, normal, *, half_width_m: float, spacing_m: float) -> np.ndarray:
+def search_points(centre: ArrayLike, normal: ArrayLike, *, half_width_m: float, spacing_m: float
+                  ) -> np.ndarray:
     """(n, 3) targets over the square region `half_width_m` either side of `centre` in the
     horizontal plane (its sides along the site's face and along its outward `normal`), no two
     neighbours more than `spacing_m` apart, the region's edges included: the centre first,

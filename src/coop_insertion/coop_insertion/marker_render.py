@@ -18,17 +18,34 @@ image of the same background.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, get_args
+from enum import StrEnum
+from typing import assert_never
 
 import cv2
 import numpy as np
 
+from coop_common.params import choice
+
 from .errors import InsertionError
 
-__all__ = ['Plate', 'Rendered', 'render_plate', 'random_pose', 'random_scene', 'CARD', 'SITE',
-           'SLOT', 'sim_intrinsics', 'Background', 'BACKGROUNDS', 'background_texture',
-           'render_discs', 'background_scene']
+__all__ = [
+    'BACKGROUNDS',
+    'CARD',
+    'SITE',
+    'SLOT',
+    'Background',
+    'Plate',
+    'Rendered',
+    'background_scene',
+    'background_texture',
+    'random_pose',
+    'random_scene',
+    'render_discs',
+    'render_plate',
+    'sim_intrinsics',
+]
 
 INCH = 0.0254
 
@@ -55,8 +72,16 @@ SITE = Plate((0.1, 0.06), ((-0.062, 0.0), (0.062, 0.0)), 0.02)
 SLOT = Plate((0.16, 0.1), ((-0.0872, 0.0), (0.0872, 0.0)), 0.125 * INCH,
              plate_reflectance=0.27)
 
-Background = Literal['ground', 'rock', 'metal', 'light']
-BACKGROUNDS: tuple[str, ...] = get_args(Background)
+class Background(StrEnum):
+    """The textures `background_texture` makes (`background_scene`'s backgrounds)."""
+
+    GROUND = 'ground'
+    ROCK = 'rock'
+    METAL = 'metal'
+    LIGHT = 'light'
+
+
+BACKGROUNDS = tuple(Background)
 
 
 def sim_intrinsics(width: int = 640, height: int = 480, hfov_deg: float = 41.2) -> np.ndarray:
@@ -67,6 +92,8 @@ def sim_intrinsics(width: int = 640, height: int = 480, hfov_deg: float = 41.2) 
 
 @dataclass(frozen=True)
 class Rendered:
+    """A rendered image with the true marker centres, radii and plate normal."""
+
     image: np.ndarray          # mono8
     centres: np.ndarray        # (M, 2) true centre images (px), M = 0 for a marker-free image
     radius_px: np.ndarray      # (M,) approximate imaged radius (f r / depth)
@@ -186,7 +213,8 @@ def render_plate(K: np.ndarray, width: int, height: int, R: np.ndarray, t: np.nd
     return Rendered(image, centres, radius, R[:, 2].copy(), occluded, ell_c)
 
 
-def _ellipse_centre(K, R, t, m, r) -> np.ndarray:
+def _ellipse_centre(K: np.ndarray, R: np.ndarray, t: np.ndarray, m: Sequence[float], r: float
+                    ) -> np.ndarray:
     """Centre of the exact imaged ellipse of the circle (radius r at plate point m)."""
     H = K @ np.column_stack([R[:, 0], R[:, 1], R @ np.array([m[0], m[1], 0.0]) + t])
     Hi = np.linalg.inv(H)
@@ -251,7 +279,7 @@ def _octave(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
     return cv2.resize(small, (size, size), interpolation=cv2.INTER_CUBIC).clip(0.0, 1.0)
 
 
-def background_texture(rng: np.random.Generator, kind: Background, size: int = 1024
+def background_texture(rng: np.random.Generator, kind: Background | str, size: int = 1024
                        ) -> np.ndarray:
     """A (size, size) reflectance texture in [0.02, 0.8], about one texel a pixel where it is
     imaged (`render_discs`).
@@ -263,36 +291,38 @@ def background_texture(rng: np.random.Generator, kind: Background, size: int = 1
     - 'metal': brushed streaks (noise smeared along one direction) over a slow sheen.
     - 'light': the plate scenes' smooth background texture; the uneven light is added by
       `background_scene`."""
-    if kind not in BACKGROUNDS:
-        raise InsertionError(f'background must be one of {BACKGROUNDS}, got {kind!r}')
-    if kind == 'ground':
-        fine = cv2.GaussianBlur(rng.random((size, size)), (3, 3), 0)
-        fine = (fine - fine.mean()) / fine.std()
-        base = 0.35 + 0.2 * _octave(rng, size, 6) + 0.1 * _octave(rng, size, 40)
-        tex = base + 0.08 * fine
-    elif kind == 'rock':
-        base = 0.3 + 0.2 * _octave(rng, size, 5) + 0.1 * _octave(rng, size, 24)
-        veins = np.zeros((size, size))
-        for cells, amp in ((10, 0.25), (30, 0.15)):
-            f = _octave(rng, size, cells)
-            veins += amp * np.exp(-((f - 0.5) / 0.02) ** 2)
-        cracks = np.exp(-((_octave(rng, size, 16) - 0.5) / 0.015) ** 2)
-        fine = cv2.GaussianBlur(rng.random((size, size)), (3, 3), 0) - 0.5
-        tex = (base + veins) * (1.0 - 0.6 * cracks) + 0.1 * fine
-    elif kind == 'metal':
-        streak = rng.normal(0.0, 1.0, (size, size))
-        streak = cv2.GaussianBlur(streak, (61, 1), 20.0)
-        streak = cv2.GaussianBlur(streak, (1, 3), 0.7)
-        streak = (streak - streak.mean()) / streak.std()
-        tex = 0.45 + 0.15 * _octave(rng, size, 3) + 0.05 * streak
-        ang = rng.uniform(0.0, 180.0)
-        M = cv2.getRotationMatrix2D((size / 2, size / 2), ang, 1.0)
-        tex = cv2.warpAffine(tex, M, (size, size), borderMode=cv2.BORDER_REFLECT101)
-    else:
-        tex = np.zeros((size, size))
-        for cells, amp in ((8, 0.25), (32, 0.12), (96, 0.05)):
-            tex += amp * _octave(rng, size, cells)
-        tex = 0.1 + tex
+    kind = choice(Background, kind, 'background', error=InsertionError)
+    match kind:
+        case Background.GROUND:
+            fine = cv2.GaussianBlur(rng.random((size, size)), (3, 3), 0)
+            fine = (fine - fine.mean()) / fine.std()
+            base = 0.35 + 0.2 * _octave(rng, size, 6) + 0.1 * _octave(rng, size, 40)
+            tex = base + 0.08 * fine
+        case Background.ROCK:
+            base = 0.3 + 0.2 * _octave(rng, size, 5) + 0.1 * _octave(rng, size, 24)
+            veins = np.zeros((size, size))
+            for cells, amp in ((10, 0.25), (30, 0.15)):
+                f = _octave(rng, size, cells)
+                veins += amp * np.exp(-((f - 0.5) / 0.02) ** 2)
+            cracks = np.exp(-((_octave(rng, size, 16) - 0.5) / 0.015) ** 2)
+            fine = cv2.GaussianBlur(rng.random((size, size)), (3, 3), 0) - 0.5
+            tex = (base + veins) * (1.0 - 0.6 * cracks) + 0.1 * fine
+        case Background.METAL:
+            streak: np.ndarray = rng.normal(0.0, 1.0, (size, size))
+            streak = cv2.GaussianBlur(streak, (61, 1), 20.0)
+            streak = cv2.GaussianBlur(streak, (1, 3), 0.7)
+            streak = (streak - streak.mean()) / streak.std()
+            tex = 0.45 + 0.15 * _octave(rng, size, 3) + 0.05 * streak
+            ang = rng.uniform(0.0, 180.0)
+            M = cv2.getRotationMatrix2D((size / 2, size / 2), ang, 1.0)
+            tex = cv2.warpAffine(tex, M, (size, size), borderMode=cv2.BORDER_REFLECT101)
+        case Background.LIGHT:
+            tex = np.zeros((size, size))
+            for cells, amp in ((8, 0.25), (32, 0.12), (96, 0.05)):
+                tex += amp * _octave(rng, size, cells)
+            tex = 0.1 + tex
+        case _:
+            assert_never(kind)
     return np.clip(tex, 0.02, 0.8)
 
 
@@ -380,7 +410,7 @@ def _lighting(rng: np.random.Generator, width: int, height: int, *, gradient: fl
 
 
 def background_scene(rng: np.random.Generator, K: np.ndarray, width: int, height: int,
-                     background: Background, *, with_markers: bool = True,
+                     background: Background | str, *, with_markers: bool = True,
                      markers: tuple[int, int] = (2, 5),
                      radius_px: tuple[float, float] = (3.0, 70.0),
                      max_tilt_rad: float = math.radians(45.0),
@@ -395,8 +425,7 @@ def background_scene(rng: np.random.Generator, K: np.ndarray, width: int, height
     `background` (`background_texture`), about one texel a pixel; random noise, blur and a
     lighting gradient, for 'light' also a shadow edge darkening 40-65 % and a spot up to 60 %
     brighter. `with_markers=False`: the same kind of image with no disc."""
-    if background not in BACKGROUNDS:
-        raise InsertionError(f'background must be one of {BACKGROUNDS}, got {background!r}')
+    background = choice(Background, background, 'background', error=InsertionError)
     lo, hi = markers
     if not (0 < lo <= hi <= 20):
         raise InsertionError(f'markers must be (min, max) with 0 < min <= max <= 20, got '
@@ -429,7 +458,7 @@ def background_scene(rng: np.random.Generator, K: np.ndarray, width: int, height
         placed.append((u, v, r_px))
     if len(discs) < want:
         raise InsertionError(f'placed {len(discs)} of {want} discs in the image')
-    strong = background == 'light'
+    strong = background is Background.LIGHT
     light = _lighting(rng, width, height, gradient=rng.uniform(*gradient) * (1.5 if strong else 1),
                       vignetting=rng.uniform(0.0, 0.4 if strong else 0.3),
                       shadow=rng.uniform(0.4, 0.65) if strong else 0.0,

@@ -24,18 +24,36 @@ stereo (`triangulate.py`: the true normal is the same in both rectified images).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from enum import Enum
-from typing import Literal, Protocol, runtime_checkable
+from enum import Enum, StrEnum
+from typing import Any, Protocol, assert_never, runtime_checkable
 
 import cv2
 import numpy as np
 
+from coop_common.params import choice
+
 from .errors import InsertionError
 
-__all__ = ['Marker', 'MarkerDetector', 'Polarity', 'ThesisDetector', 'EllipseDetector',
-           'HoughDetector', 'DETECTORS', 'make_detector', 'check_image', 'ellipse_conic',
-           'circle_candidates', 'resolve_coplanar', 'LAPLACIAN_5_6', 'three_point_circles']
+__all__ = [
+    'DETECTORS',
+    'LAPLACIAN_5_6',
+    'Ambiguity',
+    'DetectorKind',
+    'EllipseDetector',
+    'HoughDetector',
+    'Marker',
+    'MarkerDetector',
+    'Polarity',
+    'ThesisDetector',
+    'check_image',
+    'circle_candidates',
+    'ellipse_conic',
+    'make_detector',
+    'resolve_coplanar',
+    'three_point_circles',
+]
 
 
 class Polarity(Enum):
@@ -43,6 +61,14 @@ class Polarity(Enum):
 
     BRIGHT = 'bright'
     DARK = 'dark'
+
+
+class Ambiguity(StrEnum):
+    """What EllipseDetector does with a marker's two perspective candidates when no normal hint
+    is given: pick by the markers' common plane ('coplanar'), or keep the ellipse centre."""
+
+    COPLANAR = 'coplanar'
+    NONE = 'none'
 
 
 @dataclass(frozen=True)
@@ -171,7 +197,7 @@ def resolve_coplanar(markers: list[Marker], *, max_angle_rad: float = math.radia
     else the marker keeps its ellipse centre and `resolved` stays False."""
     out = []
     for i, m in enumerate(markers):
-        if m.normals is None:
+        if m.normals is None or m.candidates is None:       # (set together)
             out.append(m)
             continue
         if normal_hint is not None:
@@ -359,7 +385,7 @@ class ThesisDetector:
         iu, iv, C, R = iu[ok], iv[ok], C[ok], R[ok]
         key = iu * 100000 + iv
         uk, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-        out = []
+        out: list[tuple[float, float, float]] = []
         taken = np.zeros(len(uk), bool)
         for idx in np.argsort(-cnt):
             if cnt[idx] < 3 or taken[idx]:
@@ -385,9 +411,9 @@ class ThesisDetector:
     def _grow(self, binary: np.ndarray, pts: np.ndarray,
               circles: list[tuple[float, float, float]]) -> list[Marker]:
         h, w = binary.shape
-        out = []
+        out: list[Marker] = []
         for cu, cv_, rad in circles:
-            seed = (int(round(cu)), int(round(cv_)))
+            seed = (round(cu), round(cv_))
             if not (0 <= seed[0] < w and 0 <= seed[1] < h):
                 continue
             if binary[seed[1], seed[0]] == 0:
@@ -451,7 +477,7 @@ class EllipseDetector:
                  min_coverage: float = DEFAULT_MIN_COVERAGE,
                  max_residual_px: float = DEFAULT_MAX_RESIDUAL_PX,
                  max_axis_ratio: float = 3.0,
-                 ambiguity: Literal['coplanar', 'none'] = 'coplanar') -> None:
+                 ambiguity: Ambiguity | str = Ambiguity.COPLANAR) -> None:
         self.r_min, self.r_max = _radius_range(radius_px)
         self.polarity = _polarity(polarity)
         self.K = _intrinsics(K)
@@ -470,8 +496,7 @@ class EllipseDetector:
             raise InsertionError(f'max_residual_px must be > 0, got {max_residual_px}')
         if not (max_axis_ratio >= 1):
             raise InsertionError(f'max_axis_ratio must be >= 1, got {max_axis_ratio}')
-        if ambiguity not in ('coplanar', 'none'):
-            raise InsertionError(f"ambiguity must be 'coplanar' or 'none', got {ambiguity!r}")
+        ambiguity = choice(Ambiguity, ambiguity, 'ambiguity', error=InsertionError)
         self.min_contrast = float(min_contrast)
         self.min_coverage = float(min_coverage)
         self.max_residual_px = float(max_residual_px)
@@ -497,8 +522,8 @@ class EllipseDetector:
         img = image if self.polarity is Polarity.BRIGHT else 255 - image
         rows = []
         level, cur = img, 1
-        for s, lo, hi in _LEVELS:
-            lo, hi = max(lo, self.r_min), min(hi, self.r_max)
+        for s, level_lo, level_hi in _LEVELS:
+            lo, hi = max(level_lo, self.r_min), min(level_hi, self.r_max)
             if lo > hi:
                 continue
             while cur < s:
@@ -543,7 +568,7 @@ class EllipseDetector:
         return out
 
     # -- stages 2-3
-    def _refine(self, image: np.ndarray, coarse) -> Marker | None:
+    def _refine(self, image: np.ndarray, coarse: Sequence[float]) -> Marker | None:
         # (coarse a, b: full axes of the half-size image = semi-axes at full resolution)
         img = image if self.polarity is Polarity.BRIGHT else 255 - image
         ell = coarse
@@ -586,9 +611,11 @@ class EllipseDetector:
         sigma = rms * math.sqrt(2.0 / n)
         score = float(coverage * min(contrast / 100.0, 1.0) / (1.0 + rms))
         return Marker(u=float(ell[0]), v=float(ell[1]), radius_px=mr, score=score,
-                      ellipse=tuple(float(x) for x in ell), sigma_px=sigma)
+                      ellipse=(float(ell[0]), float(ell[1]), float(ell[2]), float(ell[3]),
+                               float(ell[4])), sigma_px=sigma)
 
-    def _edge_points(self, img: np.ndarray, ell) -> tuple[np.ndarray, float] | None:
+    def _edge_points(self, img: np.ndarray, ell: Sequence[float]
+                     ) -> tuple[np.ndarray, float] | None:
         """Sub-pixel crossings of the local mid level near the ellipse `ell`, and the contrast."""
         cx, cy, a, b, ang = ell
         pad = 6
@@ -662,13 +689,14 @@ class EllipseDetector:
             return found
         corrected = []
         for m in found:
+            assert m.ellipse is not None                # _refine fits one to every marker
             try:
                 normals, centres = circle_candidates(ellipse_conic(*m.ellipse), self.K)
             except (InsertionError, np.linalg.LinAlgError):
                 corrected.append(m)
                 continue
             corrected.append(replace(m, candidates=centres, normals=normals))
-        if self.normal_hint is None and self.ambiguity == 'none':
+        if self.normal_hint is None and self.ambiguity is Ambiguity.NONE:
             return corrected
         return resolve_coplanar(corrected, normal_hint=self.normal_hint)
 
@@ -679,7 +707,7 @@ _RING = np.linspace(0.0, 2 * math.pi, 16, endpoint=False)[None, :]
 _INNER = np.concatenate([[0.0], np.linspace(0.0, 2 * math.pi, 6, endpoint=False)])[None, :]
 
 
-def _isolation(img: np.ndarray, c: np.ndarray) -> np.ndarray:
+def _isolation(img: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per blob (rows of c: cx, cy, r in full-res px): the median of the image at the centre
     and 6 points at 0.35 r, minus the second brightest of 16 points on the circle 1.8 r + 1.5
     (one bright point, a vein or a speck, is let through)."""
@@ -749,7 +777,7 @@ def _plane_fit(mask: np.ndarray, z: np.ndarray, qx: np.ndarray, qy: np.ndarray,
             rough)
 
 
-def _ellipse_residual(pts: np.ndarray, ell) -> np.ndarray:
+def _ellipse_residual(pts: np.ndarray, ell: Sequence[float]) -> np.ndarray:
     """Approximate signed geometric distance (px) of points from the ellipse (Sampson)."""
     cx, cy, a, b, ang = ell
     ca, sa = math.cos(ang), math.sin(ang)
@@ -779,23 +807,35 @@ class HoughDetector:
         blur = cv2.GaussianBlur(image, (5, 5), 1.0)
         c = cv2.HoughCircles(blur, cv2.HOUGH_GRADIENT, dp=1, minDist=self.r_min * 2,
                              param1=self.canny_high, param2=self.accumulator,
-                             minRadius=int(self.r_min), maxRadius=int(math.ceil(self.r_max)))
+                             minRadius=int(self.r_min), maxRadius=math.ceil(self.r_max))
         if c is None:
             return []
         return [Marker(u=float(x), v=float(y), radius_px=float(r), score=1.0)
                 for x, y, r in c.reshape(-1, c.shape[-1])[:, :3]]
 
 
-DETECTORS = ('default', 'thesis', 'hough')
+class DetectorKind(StrEnum):
+    """The detectors `make_detector` builds by name (the master node's `detector` parameter)."""
+
+    DEFAULT = 'default'
+    THESIS = 'thesis'
+    HOUGH = 'hough'
 
 
-def make_detector(kind: Literal['default', 'thesis', 'hough'] = 'default', **options
+DETECTORS = tuple(DetectorKind)
+
+
+def make_detector(kind: DetectorKind | str = DetectorKind.DEFAULT, **options: Any
                   ) -> MarkerDetector:
-    """The detector by name, with its keyword options."""
-    if kind == 'default':
-        return EllipseDetector(**options)
-    if kind == 'thesis':
-        return ThesisDetector(**options)
-    if kind == 'hough':
-        return HoughDetector(**options)
-    raise InsertionError(f'detector must be one of {DETECTORS}, got {kind!r}')
+    """The detector by name, with its keyword options; InsertionError naming the detectors for
+    an unknown name."""
+    kind = choice(DetectorKind, kind, 'detector', error=InsertionError)
+    match kind:
+        case DetectorKind.DEFAULT:
+            return EllipseDetector(**options)
+        case DetectorKind.THESIS:
+            return ThesisDetector(**options)
+        case DetectorKind.HOUGH:
+            return HoughDetector(**options)
+        case _:
+            assert_never(kind)

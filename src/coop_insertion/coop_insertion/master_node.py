@@ -36,7 +36,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
-from coop_common.params import ParamSpec
+from coop_common.params import ParamSpec, choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import (
     MAST_JOINTS,
@@ -62,6 +62,7 @@ from .markers import (
     DEFAULT_MIN_COVERAGE,
     DEFAULT_RADIUS_PX,
     DETECTORS,
+    DetectorKind,
     make_detector,
 )
 from .task import LABELS, SlotPair, TaskModel, find_slot, label_markers, site_from_slot
@@ -198,6 +199,9 @@ def _stamp(msg) -> float:
 
 
 class MasterNode(Node):
+    """The master: tracks the card's and the slot's markers in its stereo images, places its
+    camera, and guides the slave (the insert action)."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('master', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params, check_all=_check)
@@ -322,9 +326,10 @@ class MasterNode(Node):
         self.camera = StereoCamera(fx=fx, fy=fy, cx=cx, cy=cy, baseline=baseline,
                                    width=li.width, height=li.height)
         k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-        kind = self.p['detector']
+        # a string on the wire, checked against DETECTORS when declared (read-only)
+        kind = choice(DetectorKind, self.p['detector'], 'detector', error=InsertionError)
         opts = {'radius_px': DEFAULT_RADIUS_PX}
-        if kind == 'default':
+        if kind is DetectorKind.DEFAULT:
             opts.update(K=k, min_coverage=self.p['marker_min_coverage'],
                         max_residual_px=self.p['marker_max_residual_px'],
                         min_contrast=self.p['marker_min_contrast'])
@@ -359,7 +364,7 @@ class MasterNode(Node):
         msg = MarkerObservation()
         msg.header = left.header
         msg.labels = list(LABELS)
-        for p, c in zip(lab.points, lab.covariances):
+        for p, c in zip(lab.points, lab.covariances, strict=False):
             msg.positions.append(Point(x=float(p[0]), y=float(p[1]), z=float(p[2])))
             msg.covariances.extend(float(v) for v in c.ravel())
             u = self.camera.cx + self.camera.fx * p[0] / p[2]
@@ -441,7 +446,7 @@ class MasterNode(Node):
         t0 = time.monotonic()
         try:
             res = await self._run(handle)
-        except Exception as exc:     # noqa: BLE001  an action must end with a result
+        except Exception as exc:
             self.get_logger().error(f'insert failed: {exc!r}')
             handle.abort()
             res = Insert.Result(success=False, reason=f'master error: {exc}',
@@ -820,6 +825,7 @@ def _optical_pose(pose) -> tuple[np.ndarray, float, float]:
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run coop_insertion master`."""
     return run_node(MasterNode, args)
 
 

@@ -25,24 +25,26 @@ No rclpy here.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from .errors import InsertionError
 
-__all__ = ['VisionFix', 'ServoCommand', 'VisualServo']
+__all__ = ['ServoCommand', 'VisionFix', 'VisualServo']
 
 
-def _finite(name: str, v, shape: tuple[int, ...]) -> np.ndarray:
+def _finite(name: str, v: ArrayLike, shape: tuple[int, ...]) -> np.ndarray:
     a = np.asarray(v, float)
     if a.shape != shape or not np.all(np.isfinite(a)):
         raise InsertionError(f'{name} must be a finite array of shape {shape}, got {a.shape}')
     return a
 
 
-def _pose(name: str, t) -> np.ndarray:
+def _pose(name: str, t: ArrayLike) -> np.ndarray:
     a = _finite(name, t, (4, 4))
     r = a[:3, :3]
     if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
@@ -133,7 +135,7 @@ class VisualServo:
 
     def __init__(self, *, gain_translation: float = 1.0, gain_rotation: float = 1.0,
                  base_gain: float = 0.5, base_yaw_gain: float = 0.5,
-                 base_deadband_m: float = 0.05, arm_home_m=(0.35, 0.0, 0.25),
+                 base_deadband_m: float = 0.05, arm_home_m: Sequence[float] = (0.35, 0.0, 0.25),
                  max_base_speed_m_s: float = 0.25, max_base_yaw_rate_rad_s: float = 0.5,
                  max_arm_speed_m_s: float = 0.05, max_arm_rate_rad_s: float = 0.3,
                  vision_timeout_s: float = 1.0, history_s: float = 3.0,
@@ -178,7 +180,7 @@ class VisualServo:
         self._last_base: np.ndarray | None = None
 
     # -- inputs -------------------------------------------------------------------------------
-    def add_odometry(self, t: float, t_odom_base, t_base_card) -> None:
+    def add_odometry(self, t: float, t_odom_base: ArrayLike, t_base_card: ArrayLike) -> None:
         """The base's pose in odom (wheel odometry) and the card's in the base (arm encoders and
         kinematics) at time t (s, non-decreasing)."""
         if not np.isfinite(t):
@@ -228,6 +230,7 @@ class VisualServo:
         else:
             q = self._drift(self._last_base, ob, p_goal, self._last_stamp, fix.stamp)
             p = self._cov + q
+            assert self._goal_r is not None          # set with _goal_p
             nu = np.concatenate([p_goal - self._goal_p, _log(r_goal @ self._goal_r.T)])
             k = p @ np.linalg.inv(p + c)
             d = k @ nu
@@ -261,7 +264,8 @@ class VisualServo:
         return q
 
     # -- output -------------------------------------------------------------------------------
-    def _hold(self, reason: str, age: float, e_p=None, e_r=None) -> ServoCommand:
+    def _hold(self, reason: str, age: float, e_p: np.ndarray | None = None,
+              e_r: np.ndarray | None = None) -> ServoCommand:
         z = np.zeros(3)
         return ServoCommand(0.0, 0.0, z.copy(), z.copy(), z if e_p is None else e_p,
                             z if e_r is None else e_r, True, reason, age)

@@ -49,9 +49,11 @@ import dataclasses
 import enum
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from coop_common.params import choice
 from coop_common.rover_geometry import (
@@ -67,6 +69,7 @@ from .contact import (
     CardPose,
     ContactIdentifier,
     ContactState,
+    Identification,
     LeastResistance,
     SeatCheck,
     planar_step_in_frame,
@@ -78,7 +81,7 @@ from .frames import homogeneous, invert
 from .servo import VisionFix, VisualServo
 from .task import LabelledMarkers, TaskModel, card_required_motion
 
-__all__ = ['Phase', 'SlaveStatus', 'SlaveCommand', 'SlaveController', 'pose_2d']
+__all__ = ['Phase', 'SlaveCommand', 'SlaveController', 'SlaveStatus', 'pose_2d']
 
 #: the site frame's axes as contact.py's planar frame sees them (columns: planar x, y, z in site)
 SITE_FROM_PLANAR = homogeneous(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
@@ -104,6 +107,8 @@ def pose_2d(x: float, y: float, yaw: float, z: float = BASE_HEIGHT_M) -> np.ndar
 
 @dataclass(frozen=True)
 class SlaveStatus:
+    """The slave controller's state after a step (the insert action's feedback)."""
+
     phase: Phase
     displacement_error_m: float        # card to its current goal (vision), nan before a fix
     angle_error_rad: float
@@ -119,6 +124,8 @@ class SlaveStatus:
 
 @dataclass(frozen=True)
 class SlaveCommand:
+    """What the slave controller commands for one step: arm joints, base twist, and its status."""
+
     arm_joints: tuple[float, float, float, float] | None     # None: leave the arm as it is
     base_linear_x: float
     base_angular_z: float
@@ -150,8 +157,9 @@ SEAT_CONFIRMATIONS = 3
 FLOOR_GATE_M = 0.008
 
 
-def floor_correction(ident, pose: CardPose, *, slot_depth_m: float, card_width_m: float,
-                     min_force_n: float, gate_m: float = FLOOR_GATE_M) -> float:
+def floor_correction(ident: Identification, pose: CardPose, *, slot_depth_m: float,
+                     card_width_m: float, min_force_n: float, gate_m: float = FLOOR_GATE_M
+                     ) -> float:
     """How far to move the card pose's depth estimate (planar y, m) so that its lowest corner
     lies on the slot's floor, when the floor pushes back by more than min_force_n
     (Identification.floor_force_n); 0 otherwise. The floor is where the card stands: its depth
@@ -221,7 +229,7 @@ class SlaveController:
     approach_speed_m_s, seat_force_n (the floor's push on both corners that ends it),
     seat_verdict (SeatVerdict: what that push must show besides)."""
 
-    def __init__(self, model: TaskModel, cg_to_arm, *, tolerance_m: float = 0.003,
+    def __init__(self, model: TaskModel, cg_to_arm: ArrayLike, *, tolerance_m: float = 0.003,
                  angle_tolerance_rad: float = 0.03, yaw_tolerance_rad: float = 0.15,
                  settle_s: float = 1.0,
                  descent_speed_m_s: float = 0.005, contact_threshold_n: float = 1.5,
@@ -229,7 +237,7 @@ class SlaveController:
                  force_period_s: float = 0.05, carry_reach_m: float = 0.30,
                  carry_height_m: float = 0.0, ready_s: float = 2.0,
                  servo: VisualServo | None = None, contact_options: dict | None = None,
-                 step_options: dict | None = None, site_in_odom=None,
+                 step_options: dict | None = None, site_in_odom: ArrayLike | None = None,
                  approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0,
                  seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE,
                  backoff_m: float = 0.02) -> None:
@@ -308,7 +316,8 @@ class SlaveController:
         self._hold_joints: tuple | None = None    # after a failure in contact: backed off
 
     # -- inputs -------------------------------------------------------------------------------
-    def add_state(self, t: float, q, odom_xy_yaw, wrench) -> None:
+    def add_state(self, t: float, q: ArrayLike, odom_xy_yaw: Sequence[float], wrench: ArrayLike
+                  ) -> None:
         """Servo-rate sensing: arm joints (4, rad), odometry (x, y, yaw) and the F/T reading
         (force, torque in the sensor frame)."""
         qa = np.asarray(q, float)
@@ -351,6 +360,7 @@ class SlaveController:
         if self._target is None:
             self._target = _Target(self.carry.copy(), 0.0)
         if self.phase is Phase.READY:
+            assert self._start_t is not None         # the first state set it
             if t - self._start_t >= self.ready_s:
                 self.phase = Phase.VISUAL_SERVO
             return self._command(self._joints(), 0.0, 0.0)
@@ -390,6 +400,7 @@ class SlaveController:
 
     def _joints(self) -> tuple[float, float, float, float]:
         tg = self._target
+        assert tg is not None                       # the first step sets it
         j2 = joint2_in_base(self.r2)
         heading = math.atan2(tg.position[1] - j2[1], tg.position[0] - j2[0])
         return card_joints(tg.position, heading, tg.pitch, self.r2)
@@ -397,6 +408,7 @@ class SlaveController:
     def _plane_normal(self) -> np.ndarray:
         """The arm plane's normal (base frame): the axis the card's pitch turns about."""
         tg = self._target
+        assert tg is not None
         j2 = joint2_in_base(self.r2)
         heading = math.atan2(tg.position[1] - j2[1], tg.position[0] - j2[0])
         return np.array([-math.sin(heading), math.cos(heading), 0.0])
@@ -407,6 +419,7 @@ class SlaveController:
         the contact identification read as a couple, a wedge)."""
         if self._tare is None:
             return np.zeros(6)
+        assert self._state is not None              # a tare is taken from a state
         moved = arm_gravity_moment(self._state.q) - self._tare_moment
         return w - self._tare - np.concatenate([np.zeros(3), moved])
 
@@ -416,12 +429,14 @@ class SlaveController:
                            self._contact_state, self._done, self._success, self._reason,
                            self._descending, self._card_in_site, self._awaiting_fix)
 
-    def _command(self, joints, v: float, w: float) -> SlaveCommand:
+    def _command(self, joints: tuple[float, float, float, float] | None, v: float, w: float
+                 ) -> SlaveCommand:
         return SlaveCommand(joints, float(v), float(w), self._status())
 
     def _move_target(self, dp: np.ndarray, dpitch: float) -> tuple | None:
         """Move the arm's card target, undoing the move when the arm cannot reach it."""
         tg = self._target
+        assert tg is not None
         old = (tg.position.copy(), tg.pitch)
         tg.position = tg.position + dp
         tg.pitch += dpitch

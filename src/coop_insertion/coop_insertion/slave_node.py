@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from enum import StrEnum
 
 import numpy as np
 from geometry_msgs.msg import Twist, WrenchStamped
@@ -89,7 +90,17 @@ def _stamp(msg) -> float:
     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
 
+class R2Source(StrEnum):
+    """Where the slave's r2 (the arm's offset from the rover's CG) comes from: the
+    `cg_to_arm` parameter, until the identifier has published an observable CG."""
+
+    PARAMETER = 'parameter'
+    IDENTIFIED = 'identified'
+
+
 class SlaveNode(Node):
+    """The slave: carries the card and runs the insertion loop (vision, then force), an action."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('slave', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params,
@@ -97,7 +108,7 @@ class SlaveNode(Node):
         self.bad = BadInputCounter(self)
         r = self.p['rover']
         self.r2 = np.asarray(self.p['cg_to_arm'], float)
-        self.r2_source = 'parameter'
+        self.r2_source = R2Source.PARAMETER
         self.odom: tuple[float, float, float] | None = None
         self.wrench: np.ndarray | None = None
         self.ctl: SlaveController | None = None
@@ -143,17 +154,17 @@ class SlaveNode(Node):
 
     def _on_params(self, changed: dict) -> None:
         self.p.update(changed)
-        if 'cg_to_arm' in changed and self.r2_source == 'parameter':
+        if 'cg_to_arm' in changed and self.r2_source is R2Source.PARAMETER:
             self.r2 = np.asarray(changed['cg_to_arm'], float)
 
     def _on_params_id(self, msg: DynamicParameters) -> None:
-        v = dict(zip(msg.names, msg.values))
-        obs = dict(zip(msg.names, msg.observable)) if len(msg.observable) == len(msg.names) \
-            else {}
+        v = dict(zip(msg.names, msg.values, strict=False))
+        obs = dict(zip(msg.names, msg.observable, strict=False)) \
+            if len(msg.observable) == len(msg.names) else {}
         if all(k in v and obs.get(k, True) and math.isfinite(v[k])
                for k in ('cg_x', 'cg_y', 'cg_z')):
             self.r2 = np.array([v['cg_x'], v['cg_y'], v['cg_z']])
-            self.r2_source = 'identified'
+            self.r2_source = R2Source.IDENTIFIED
 
     # -- sensing ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
@@ -368,6 +379,7 @@ class SlaveNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run coop_insertion slave`."""
     return run_node(SlaveNode, args)
 
 

@@ -31,14 +31,23 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .contact import INCH, SlotGeometry
 from .errors import InsertionError
 from .frames import RequiredMotion, homogeneous, invert, required_motion_from_points, third_point
 from .triangulate import StereoMarker
 
-__all__ = ['TaskModel', 'LabelledMarkers', 'SlotPair', 'label_markers', 'find_slot',
-           'site_from_slot', 'card_required_motion', 'LABELS']
+__all__ = [
+    'LABELS',
+    'LabelledMarkers',
+    'SlotPair',
+    'TaskModel',
+    'card_required_motion',
+    'find_slot',
+    'label_markers',
+    'site_from_slot',
+]
 
 LABELS = ('card_a', 'card_b', 'slot_a', 'slot_b')
 
@@ -68,7 +77,7 @@ class TaskModel:
         for name, v in self.__dict__.items():
             if not (np.isfinite(v) and v > 0):
                 raise InsertionError(f'{name} must be finite and > 0, got {v}')
-        self.geometry        # the slot must be wider than the card
+        _ = self.geometry    # the slot must be wider than the card (SlotGeometry checks)
 
     @property
     def geometry(self) -> SlotGeometry:
@@ -137,7 +146,8 @@ def _size_m(m: StereoMarker, radius_px: float, fx: float) -> float:
     return float(radius_px * m.position[2] / fx)
 
 
-def _site_axes(up, markers: list, radii_px: list[float]) -> tuple[np.ndarray, np.ndarray]:
+def _site_axes(up: ArrayLike, markers: list, radii_px: list[float]
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The unit vertical and the site's x as the camera sees it (the vertical crossed with the
     viewing direction), after checking the inputs (InsertionError)."""
     u = np.asarray(up, float)
@@ -152,7 +162,7 @@ def _site_axes(up, markers: list, radii_px: list[float]) -> tuple[np.ndarray, np
     return u, across / np.linalg.norm(across)
 
 
-def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
+def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float, up: ArrayLike,
                   model: TaskModel, *, size_tolerance: float = 0.6,
                   slot_memory: SlotPair | None = None,
                   memory_gate_m: float = 0.02) -> LabelledMarkers:
@@ -171,7 +181,7 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
              'slot': (model.slot_marker_radius_m,
                       model.slot_markers[1, 0] - model.slot_markers[0, 0])}
     # candidates: sizes within the tolerance of either kind (fiducials and glints drop out)
-    sizes = [_size_m(m, r, fx) for m, r in zip(markers, radii_px)]
+    sizes = [_size_m(m, r, fx) for m, r in zip(markers, radii_px, strict=False)]
     lo = kinds['slot'][0] / (1 + size_tolerance)
     hi = kinds['card'][0] * (1 + size_tolerance)
     cand = [k for k, sz in enumerate(sizes) if lo <= sz <= hi]
@@ -218,9 +228,9 @@ def label_markers(markers: list[StereoMarker], radii_px: list[float], fx: float,
                              "of a marker's size)")
     points, covs = [], []
     for pair in best[1:]:
-        found = sorted(pair, key=lambda k: float(pos[k] @ across))
-        points += [pos[k] for k in found]
-        covs += [markers[k].covariance for k in found]
+        ordered = sorted(pair, key=lambda k: float(pos[k] @ across))
+        points += [pos[k] for k in ordered]
+        covs += [markers[k].covariance for k in ordered]
     return LabelledMarkers(np.array(points), np.array(covs), u)
 
 
@@ -239,14 +249,14 @@ def _best_pair(cand: list[int], pos: list[np.ndarray], sizes: list[float], radiu
     return None if best is None else best[1]
 
 
-def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
+def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up: ArrayLike,
               model: TaskModel, *, size_tolerance: float = 0.6) -> SlotPair | None:
     """The slot's pair alone (the card not in view): markers of a slot marker's size within
     `size_tolerance`, their distance apart the slot's within 20 %, ordered along the site's x
     as in label_markers; None when no pair qualifies."""
     _, across = _site_axes(up, markers, radii_px)
     r = model.slot_marker_radius_m
-    sizes = [_size_m(m, rad, fx) for m, rad in zip(markers, radii_px)]
+    sizes = [_size_m(m, rad, fx) for m, rad in zip(markers, radii_px, strict=False)]
     cand = [k for k, sz in enumerate(sizes) if r / (1 + size_tolerance) <= sz
             <= r * (1 + size_tolerance)]
     pos = [m.position for m in markers]
@@ -258,7 +268,7 @@ def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up,
                     np.array([markers[k].covariance for k in order]))
 
 
-def site_from_slot(pair: SlotPair, up, model: TaskModel) -> np.ndarray:
+def site_from_slot(pair: SlotPair, up: ArrayLike, model: TaskModel) -> np.ndarray:
     """The site frame (4x4: the slot mouth's centre, x across the slot, z up) in the frame of
     the slot's markers `pair` (the camera's), from the task model's marker positions in the
     site frame and the vertical `up` in that frame (InsertionError when the markers stand one
@@ -277,7 +287,7 @@ def site_from_slot(pair: SlotPair, up, model: TaskModel) -> np.ndarray:
     return homogeneous(rot, 0.5 * (a + b) - rot @ mid)
 
 
-def card_required_motion(obs: LabelledMarkers, t_base_card, model: TaskModel, *,
+def card_required_motion(obs: LabelledMarkers, t_base_card: ArrayLike, model: TaskModel, *,
                          above_m: float) -> RequiredMotion:
     """Eq. 5-1..5-4: the card's required motion in the slave's base frame, to the pose with its
     lower edge `above_m` over the mouth, from the master's labelled markers and the card's pose in

@@ -13,17 +13,33 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from enum import StrEnum
+from typing import assert_never
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from coop_common.params import choice
 from coop_mapping.stereo import ErrorModel, StereoCamera, disparity_to_range
 
 from .errors import InsertionError
 from .markers import Marker
 
-__all__ = ['StereoMarker', 'match_markers', 'triangulate_markers', 'stereo_candidates']
+__all__ = [
+    'CovarianceModel',
+    'StereoMarker',
+    'match_markers',
+    'stereo_candidates',
+    'triangulate_markers',
+]
+
+
+class CovarianceModel(StrEnum):
+    """A triangulated marker's covariance (`triangulate_markers`): its centres' errors
+    propagated through (u, v, d) -> (X, Y, Z), or coop_mapping's Eq. 3-7 dense-stereo model."""
+
+    PROPAGATED = 'propagated'
+    EQ3_7 = 'eq3_7'
 
 
 @dataclass(frozen=True)
@@ -41,11 +57,13 @@ class StereoMarker:
 def stereo_candidates(ml: Marker, mr: Marker) -> tuple[tuple[float, float], tuple[float, float]]:
     """The centres to triangulate: the perspective candidates whose normals agree best across
     the two images when both have them, else the markers' own (u, v)."""
-    if ml.normals is None or mr.normals is None:
+    if ml.normals is None or mr.normals is None or ml.candidates is None or \
+            mr.candidates is None:                      # (normals and candidates go together)
         return (ml.u, ml.v), (mr.u, mr.v)
     cos = ml.normals @ mr.normals.T                     # (2, 2)
     i, j = np.unravel_index(int(np.argmax(cos)), cos.shape)
-    return tuple(map(float, ml.candidates[i])), tuple(map(float, mr.candidates[j]))
+    ci, cj = ml.candidates[i], mr.candidates[j]
+    return (float(ci[0]), float(ci[1])), (float(cj[0]), float(cj[1]))
 
 
 def match_markers(left: list[Marker], right: list[Marker], camera: StereoCamera, *,
@@ -87,12 +105,12 @@ def match_markers(left: list[Marker], right: list[Marker], camera: StereoCamera,
                 c += (rel / max_disparity_error) ** 2
             cost[i, j] = c
     rows, cols = linear_sum_assignment(cost)
-    return [(int(i), int(j)) for i, j in zip(rows, cols) if cost[i, j] < big]
+    return [(int(i), int(j)) for i, j in zip(rows, cols, strict=False) if cost[i, j] < big]
 
 
 def triangulate_markers(left: list[Marker], right: list[Marker], camera: StereoCamera, *,
                         sigma_px: float = 0.05, marker_radius_m: float | None = None,
-                        covariance: Literal['propagated', 'eq3_7'] = 'propagated',
+                        covariance: CovarianceModel | str = CovarianceModel.PROPAGATED,
                         max_row_px: float = 2.0) -> list[StereoMarker]:
     """Matched markers -> 3-D centres in the left optical frame with covariances.
 
@@ -102,8 +120,7 @@ def triangulate_markers(left: list[Marker], right: list[Marker], camera: StereoC
     with s_u = s_v = the centres' sigma (each marker's fit sigma, at least `sigma_px`) and
     s_d = sqrt(2) s_u; 'eq3_7' is coop_mapping's Eq. 3-7 error model (ErrorModel.from_stereo
     with that sigma_d), the dense-stereo model the map uses."""
-    if covariance not in ('propagated', 'eq3_7'):
-        raise InsertionError(f"covariance must be 'propagated' or 'eq3_7', got {covariance!r}")
+    covariance = choice(CovarianceModel, covariance, 'covariance', error=InsertionError)
     if not (sigma_px > 0 and math.isfinite(sigma_px)):
         raise InsertionError(f'sigma_px must be finite and > 0, got {sigma_px}')
     out = []
@@ -121,17 +138,20 @@ def triangulate_markers(left: list[Marker], right: list[Marker], camera: StereoC
         Y = (v - camera.cy) * Z / camera.fy
         p = np.array([X, Y, Z])
         s_d = math.sqrt(2.0) * s
-        if covariance == 'propagated':
-            # d(X, Y, Z) / d(u, v, d): Z = f b / d
-            dZ = -Z / d
-            J = np.array([[Z / camera.fx, 0.0, (ul - camera.cx) / camera.fx * dZ],
-                          [0.0, Z / camera.fy, (v - camera.cy) / camera.fy * dZ],
-                          [0.0, 0.0, dZ]])
-            S = np.diag([s * s, s * s / 2.0, s_d * s_d])     # v is the mean of two rows
-            cov = J @ S @ J.T              # cov[2, 2] = range_sigma(Z, f, b, s_d)^2, Eq. 3-6
-        else:
-            c6 = ErrorModel.from_stereo(camera, sigma_d_px=s_d).covariances(p[None])[0]
-            cov = np.array([[c6[0], c6[1], c6[2]], [c6[1], c6[3], c6[4]],
-                            [c6[2], c6[4], c6[5]]])
+        match covariance:
+            case CovarianceModel.PROPAGATED:
+                # d(X, Y, Z) / d(u, v, d): Z = f b / d
+                dZ = -Z / d
+                J = np.array([[Z / camera.fx, 0.0, (ul - camera.cx) / camera.fx * dZ],
+                              [0.0, Z / camera.fy, (v - camera.cy) / camera.fy * dZ],
+                              [0.0, 0.0, dZ]])
+                S = np.diag([s * s, s * s / 2.0, s_d * s_d])     # v is the mean of two rows
+                cov = J @ S @ J.T              # cov[2, 2] = range_sigma(Z, f, b, s_d)^2, Eq. 3-6
+            case CovarianceModel.EQ3_7:
+                c6 = ErrorModel.from_stereo(camera, sigma_d_px=s_d).covariances(p[None])[0]
+                cov = np.array([[c6[0], c6[1], c6[2]], [c6[1], c6[3], c6[4]],
+                                [c6[2], c6[4], c6[5]]])
+            case _:
+                assert_never(covariance)
         out.append(StereoMarker(i, j, p, cov, (ul, vl), (ur, vr)))
     return out

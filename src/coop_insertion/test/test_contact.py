@@ -25,8 +25,8 @@ W, WC, D = GEOM.slot_width_m, GEOM.card_width_m, GEOM.slot_depth_m
 def wrench(*contacts) -> np.ndarray:
     """(point, normal, normal force, friction force along z x normal) -> (F_x, F_y, M_z)."""
     total = np.zeros(3)
-    for pt, n, fn, ft in contacts:
-        n = np.asarray(n, float) / np.linalg.norm(n)
+    for pt, normal, fn, ft in contacts:
+        n = np.asarray(normal, float) / np.linalg.norm(normal)
         f = fn * n + ft * np.array([-n[1], n[0]])
         total += [f[0], f[1], pt[0] * f[1] - pt[1] * f[0]]
     return total
@@ -233,18 +233,18 @@ def plan(case, **kw):
 
 
 def test_free_advances_and_aligns():
-    pose, _, _, s = plan(case_free)
+    _pose, _, _, s = plan(case_free)
     assert s.dy < 0 and s.dx < 0 and not s.done and not s.retreat
 
 
 def test_corner_on_mouth_slides_towards_the_slot():
-    pose, w, ident, s = plan(case_corner_on_mouth)
+    _pose, w, ident, s = plan(case_corner_on_mouth)
     assert s.dx < 0 and s.dy >= 0
     # bounded by max_step_m and by the travel an unforeseen contact allows under the limit
     budget = (25.0 - np.hypot(w[0], w[1])) / 2e4
     assert np.isclose(np.hypot(s.dx, s.dy), min(0.002, budget))
     # with looser bounds it puts the corner just inside the edge
-    pose, _, ident, s = plan(case_corner_on_mouth, max_step_m=0.02, stiffness_n_per_m=500.0)
+    _pose, _, ident, s = plan(case_corner_on_mouth, max_step_m=0.02, stiffness_n_per_m=500.0)
     corner_after = ident.contacts[0].point[0] + s.dx
     lr = LeastResistance(GEOM)
     assert np.isclose(corner_after, W / 2 - lr.entry_margin_m)
@@ -259,7 +259,7 @@ def test_edge_on_face_shifts_clear_and_aligns():
 
 
 def test_edge_on_side_slides_in_and_aligns():
-    pose, _, _, s = plan(case_edge_on_side)
+    _pose, _, _, s = plan(case_edge_on_side)
     assert s.dtheta > 0                      # tilt -0.05 rad reduced
     assert s.dy < 0 and s.dx < 0             # in, and away from the right edge
 
@@ -275,7 +275,7 @@ def test_corner_on_wall_slides_along_the_wall():
 
 
 def test_two_point_backs_off_and_rotates_out():
-    pose, _, _, s = plan(case_two_point)
+    _pose, _, _, s = plan(case_two_point)
     assert s.dy > 0 and s.dtheta > 0
     assert s.predicted_force_n <= 25.0 + 1e-9
 
@@ -410,7 +410,7 @@ def insert(geom: SlotGeometry, start, bias, *, k: float = 2e4, steps: int = 400)
     lr = LeastResistance(geom, stiffness_n_per_m=k, probe_stiffness_n_per_m=k)
     x, y, th = start
     peak = 0.0
-    for i in range(steps):
+    for _ in range(steps):
         w, f = penalty_wrench(geom, CardPose(x, y, th), k)
         peak = max(peak, f)
         w = w + rng.normal(size=3) * [0.3, 0.3, 0.01]

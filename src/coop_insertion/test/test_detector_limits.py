@@ -29,7 +29,7 @@ K = sim_intrinsics(640, 480)
 
 def _match(found, scene):
     hits, used = 0, set()
-    for c, r in zip(scene.centres, scene.radius_px):
+    for c, r in zip(scene.centres, scene.radius_px, strict=False):
         d = [math.hypot(m.u - c[0], m.v - c[1]) for m in found]
         j = int(np.argmin(d)) if d else -1
         if j >= 0 and d[j] < 0.5 * r and j not in used:

@@ -35,7 +35,7 @@ def _match(found, scene):
     """Per true marker: the error (px) of the nearest detection within half its radius, or
     None; and the number of detections matching no marker."""
     errs, used = [], set()
-    for c, r in zip(scene.centres, scene.radius_px):
+    for c, r in zip(scene.centres, scene.radius_px, strict=False):
         d = [math.hypot(m.u - c[0], m.v - c[1]) for m in found]
         j = int(np.argmin(d)) if d else -1
         if j >= 0 and d[j] < 0.5 * r and j not in used:

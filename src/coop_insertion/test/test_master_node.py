@@ -25,7 +25,7 @@ def master():
 
 def _at(msg, t: float):
     msg.header.stamp.sec = int(t)
-    msg.header.stamp.nanosec = int(round((t - int(t)) * 1e9))
+    msg.header.stamp.nanosec = round((t - int(t)) * 1e9)
     return msg
 
 

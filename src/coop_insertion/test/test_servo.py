@@ -76,7 +76,7 @@ def run(servo: VisualServo, *, vision_hz: float, servo_hz: float, latency_s: flo
     pending: list[tuple[float, VisionFix]] = []
     next_image = 0.0
     log = []
-    for k in range(int(round(duration_s * servo_hz))):
+    for k in range(round(duration_s * servo_hz)):
         t = k * dt
         servo.add_odometry(t, *plant.odometry())
         if t + 1e-9 >= next_image:
@@ -136,7 +136,7 @@ def test_prediction_between_fixes_is_what_closes_the_loop():
 
 def test_holds_when_vision_is_lost():
     servo = VisualServo(vision_timeout_s=0.8)
-    plant, log = run(servo, vision_hz=4.0, servo_hz=100.0, latency_s=0.2, duration_s=10.0,
+    _plant, log = run(servo, vision_hz=4.0, servo_hz=100.0, latency_s=0.2, duration_s=10.0,
                      vision_until_s=3.0)
     # the newest fix was taken before 3.0 s and arrived 0.2 s later: held from ~3.8 s on
     held = [row for row in log if row[0] > 3.8]

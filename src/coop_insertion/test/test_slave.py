@@ -31,7 +31,7 @@ def test_an_easy_insertion_seats_the_card_through_every_phase():
 
 
 def test_without_vision_the_slave_stops_short_and_never_descends():
-    st, seated, pen, phases, ctl = _run(5.0, 2, vision=False, sim_s=20.0)
+    st, seated, pen, phases, _ctl = _run(5.0, 2, vision=False, sim_s=20.0)
     assert not st.done and not st.descending and not seated
     assert st.awaiting_fix          # the approach done: what tells the master to re-place
     assert Phase.FORCE_INSERT not in phases
@@ -212,6 +212,6 @@ def test_an_easy_insertion_seats_the_card_by_both_corners():
     between seated, corner-on-bottom and two-point readings, the corners' loads swing from one
     to the other, and the card ends against a jaw, where a card held up by that jaw fits the
     wrench as well. The verdict does not lie (not seated is said, seated is true: a miss)."""
-    st, seated, pen, phases, ctl = _run(5.0, 1, slave_options={'seat_verdict': 'both_corners'})
+    st, seated, pen, _phases, _ctl = _run(5.0, 1, slave_options={'seat_verdict': 'both_corners'})
     assert st.done and st.success, st.reason
     assert seated and pen <= 5e-4

@@ -42,7 +42,7 @@ def _observe(cam, site_card, *, rng=None, sigma=0.0):
         list(MODEL.slot_markers)
     radii = [MODEL.card_marker_radius_m] * 2 + [MODEL.slot_marker_radius_m] * 2
     ms, rs = [], []
-    for k, (p, r) in enumerate(zip(pts, radii)):
+    for k, (p, r) in enumerate(zip(pts, radii, strict=False)):
         pc = invert(cam)[:3, :3] @ p + invert(cam)[:3, 3]
         if rng is not None:
             pc = pc + rng.normal(0.0, sigma, 3)
@@ -172,7 +172,8 @@ def test_follow_path_passes_every_waypoint_and_ends_at_the_heading():
         yaw = wrap(yaw + c.angular_z * dt)
         x += c.linear_x * math.cos(yaw) * dt
         y += c.linear_x * math.sin(yaw) * dt
-        closest = [min(d, math.hypot(x - wx, y - wy)) for d, (wx, wy) in zip(closest, wps)]
+        closest = [min(d, math.hypot(x - wx, y - wy))
+                   for d, (wx, wy) in zip(closest, wps, strict=False)]
     assert c.arrived
     assert closest[0] <= 0.25 and closest[1] <= 0.25        # passed within pass_m
     assert math.hypot(x, y - 1.5) <= 0.08                   # the last within tolerance

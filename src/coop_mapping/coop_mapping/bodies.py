@@ -23,6 +23,9 @@ __all__ = ['BodyFilter', 'pose_at']
 
 @dataclass(frozen=True)
 class BodyFilter:
+    """The volume about each rover's camera whose points are dropped from the map (the rovers'
+    own bodies)."""
+
     radius_m: float = 0.6           # horizontal radius about each rover's camera; 0: no filter
     above_camera_m: float = 0.3     # the volume's top over the camera
     pose_tolerance_s: float = 2.0   # how old a teammate's pose may be, before the cloud
@@ -45,8 +48,8 @@ class BodyFilter:
         if not self.enabled:
             return inside
         r2 = self.radius_m ** 2
-        for c in cameras:
-            c = np.asarray(c, dtype=float).reshape(3)
+        for camera in cameras:
+            c = np.asarray(camera, dtype=float).reshape(3)
             inside |= (((pts[:, 0] - c[0]) ** 2 + (pts[:, 1] - c[1]) ** 2 < r2)
                        & (pts[:, 2] < c[2] + self.above_camera_m))
         return inside
@@ -67,7 +70,7 @@ class BodyFilter:
         """The camera positions whose bodies are filtered out of a cloud taken at `stamp_ns`
         from `own`: `own` and, of every teammate's poses (stamp ns -> position), the one
         `pose_at` picks, where there is one."""
-        tol = int(round(self.pose_tolerance_s * 1e9))
+        tol = round(self.pose_tolerance_s * 1e9)
         out = [np.asarray(own, float)]
         for poses in others:
             p = pose_at(poses, stamp_ns, tol)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import partial
 
 import cv2
 import numpy as np
@@ -60,6 +61,8 @@ METHODS = tuple(PoseMethod)
 
 @dataclass(frozen=True)
 class OdometryConfig:
+    """Fiducial-odometry trial settings: the fiducials, the pose method and the motion errors."""
+
     n_fiducials: int = 40
     method: PoseMethod = PoseMethod.PNP
     scene_distance: float = 1.1     # m, sets the resolution of the first scan's map
@@ -81,7 +84,8 @@ class OdometryConfig:
             raise OptionError('n_fiducials must be >= 4')
         if (self.sigma_t_m is None) != (self.sigma_rot_rad is None):
             raise OptionError('give both sigma_t_m and sigma_rot_rad, or neither')
-        if self.sigma_t_m is not None and not (self.sigma_t_m > 0 and self.sigma_rot_rad > 0):
+        if self.sigma_t_m is not None and self.sigma_rot_rad is not None and \
+                not (self.sigma_t_m > 0 and self.sigma_rot_rad > 0):
             raise OptionError('sigma_t_m and sigma_rot_rad must be > 0')
         if not self.sigma_px > 0:
             raise OptionError('sigma_px must be > 0')
@@ -243,7 +247,7 @@ class FiducialOdometry:
         #: is taken as known (§3.2.5: "the original configuration is known very precisely")
         self.S = np.zeros((6, 6))
         self.Q = np.zeros((6, 6))              # per-step error of the commanded motion
-        if cfg.sigma_t_m is not None:
+        if cfg.sigma_t_m is not None and cfg.sigma_rot_rad is not None:     # both or neither
             self.Q = np.diag([cfg.sigma_rot_rad ** 2] * 3 + [cfg.sigma_t_m ** 2] * 3)
 
     def _cam_cov(self, pc: np.ndarray) -> np.ndarray:
@@ -307,6 +311,7 @@ class FiducialOdometry:
         G = np.kron(np.eye(2), predicted[:3, :3])
         S_pred = F @ self.S @ F.T + G @ self.Q @ G.T
         left0 = frames[0][0]
+        assert self.prev_left is not None, 'start() takes the first frames'
         uv, ok = track(self.prev_left, left0, self.uv)
         stats = RecursivePoseStats()
         fitted = np.zeros(len(uv), bool)          # in at least one frame's g01 fit
@@ -353,8 +358,7 @@ class FiducialOdometry:
                         Ci = self._cam_cov(pc[idx])
                         Si = Sr[keep]
                         S_meas = camera_pose_covariance(
-                            lambda r, p, Si=Si: fit_g01(r, p, method=self.cfg.method,
-                                                        covariances=Si),
+                            partial(fit_g01, method=self.cfg.method, covariances=Si),
                             self.x[idx], pc[idx], self.P[idx], Ci)
             except (MotionError, np.linalg.LinAlgError):
                 continue
@@ -366,6 +370,7 @@ class FiducialOdometry:
             self.fallbacks += 1
         else:
             T_meas = np.linalg.inv(stats.g01())
+            assert S_meas is not None       # set by the first frame the statistics took
             self.C_X = stats.C_X.copy()
             if self.cfg.sigma_t_m is None:
                 self.T, self.S = T_meas, S_meas

@@ -48,6 +48,8 @@ from .stereo import (
 
 @dataclass(frozen=True)
 class TrialConfig:
+    """One Fig. 3-24 trial's settings: the scene's distance, the steps and their errors."""
+
     distance: float = 1.1          # m, average distance of the scene from the camera
     steps: int = 20
     step_m: float = 0.04           # commanded sideways motion per step at 1.1 m (scaled)
@@ -174,7 +176,7 @@ def run_trial(cfg: TrialConfig, seed: int) -> dict:
         nd = _working_range(cfg, cam, scene, T0)
         d_max = [0.0]                    # largest true disparity met, to check the range
 
-        def frames(T):
+        def frames(T: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
             out = []
             for _ in range(cfg.frames_per_step):
                 left, right, depth = scene.render(T[:3, :3], T[:3, 3],
@@ -214,20 +216,21 @@ def run(distances: list[float], trials: int, steps: int, seed: int = 0,
         full_width: bool = FULL_WIDTH_DEFAULT) -> dict:
     """Every method at every distance, `trials` runs each; an unknown method or sub-pixel
     mode, or a distance the rig cannot run, is a ConfigError before the first trial."""
-    methods = tuple(choice(PoseMethod, m, 'method', error=ConfigError) for m in methods)
+    poses = tuple(choice(PoseMethod, m, 'method', error=ConfigError) for m in methods)
     subpixel = choice(Subpixel, subpixel, 'subpixel', error=ConfigError)
-    out = {'distances_m': distances, 'trials': trials, 'steps': steps, 'seed': seed,
-           'width': width, 'height': height, 'fuse_prediction': fuse_prediction,
-           'subpixel': subpixel, 'full_width': full_width, 'results': {}}
+    out: dict[str, Any] = {
+        'distances_m': distances, 'trials': trials, 'steps': steps, 'seed': seed,
+        'width': width, 'height': height, 'fuse_prediction': fuse_prediction,
+        'subpixel': subpixel, 'full_width': full_width, 'results': {}}
 
-    def config(D: float, method: PoseMethod | str) -> TrialConfig:
+    def config(D: float, method: PoseMethod) -> TrialConfig:
         return TrialConfig(distance=D, steps=steps, width=width, height=height, method=method,
                            fuse_prediction=fuse_prediction, subpixel=subpixel,
                            full_width=full_width)
 
     for D in distances:             # every distance checked before the first trial
-        check_config(config(D, methods[0]))
-    for method in methods:
+        check_config(config(D, poses[0]))
+    for method in poses:
         for D in distances:
             cfg = config(D, method)
             # same seeds for every method: the same true trajectories and images
@@ -285,6 +288,8 @@ def format_table(out: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_mapping.fig_3_24`: the camera translation error with and without fiducials
+    (Fig. 3-24)."""
     ap = argparse.ArgumentParser(description='Fig. 3-24: camera translation error with and '
                                  'without fiducial correction')
     ap.add_argument('--json', type=output_path)

@@ -19,7 +19,7 @@ class NotPositiveDefinite(MappingError, ValueError):
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [v]x of (..., 3) vectors: skew(a) @ b = a x b."""
+    """Cross-product matrices [v]x of (..., 3) vectors, [a]x b = a x b."""
     v = np.asarray(v, float)
     z = np.zeros(v.shape[:-1])
     return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
@@ -63,7 +63,7 @@ def sym6_inv(s: np.ndarray, *, require_pd: bool = False) -> np.ndarray:
                                 (o[4], (b, c), (a, e)), (o[5], (a, d), (b, b))):
         np.multiply(p, q, out=out)
         np.multiply(u, w, out=t)
-        out -= t
+        np.subtract(out, t, out=out)
     det = a * o[0]
     np.multiply(b, o[1], out=t)
     det += t

@@ -105,6 +105,8 @@ def _free_name(path: str) -> str:
 
 
 class MapperNode(Node):
+    """The mapper: fuses the rovers' stereo clouds into the team's voxel map and serves it."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('mapper', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self.p_update,
@@ -421,6 +423,7 @@ class MapperNode(Node):
 
 
 def main(args=None) -> int:
+    """`ros2 run coop_mapping mapper`."""
     return run_node(MapperNode, args)
 
 

@@ -25,11 +25,28 @@ from coop_common.params import choice
 from .errors import MappingError, OptionError
 from .gauss import skew
 
-__all__ = ['FiducialWeights', 'fiducial_scores', 'select_fiducials', 'visual_contrast',
-           'depth_contrast', 'certainty_term', 'track', 'solve_g01', 'robust_g01',
-           'solve_g01_so3', 'project_to_so3', 'solve_rigid', 'solve_rigid_cov', 'fit_g01',
-           'camera_pose_covariance', 'RecursivePoseStats', 'ekf_point_update', 'MotionError',
-           'G01Method', 'G01_METHODS']
+__all__ = [
+    'G01_METHODS',
+    'FiducialWeights',
+    'G01Method',
+    'MotionError',
+    'RecursivePoseStats',
+    'camera_pose_covariance',
+    'certainty_term',
+    'depth_contrast',
+    'ekf_point_update',
+    'fiducial_scores',
+    'fit_g01',
+    'project_to_so3',
+    'robust_g01',
+    'select_fiducials',
+    'solve_g01',
+    'solve_g01_so3',
+    'solve_rigid',
+    'solve_rigid_cov',
+    'track',
+    'visual_contrast',
+]
 
 
 class MotionError(MappingError, ValueError):
@@ -132,7 +149,7 @@ def fiducial_scores(image: np.ndarray, depth: np.ndarray, uv: np.ndarray, *,
     g = c * wc
     hh = h * wh
 
-    def norm(x):
+    def norm(x: np.ndarray) -> np.ndarray:
         m = np.median(x[x > 0]) if np.any(x > 0) else 1.0
         return x / m
 
@@ -151,7 +168,7 @@ def select_fiducials(uv: np.ndarray, score: np.ndarray, n: int, *,
     uv = np.asarray(uv, float)
     sig2 = 2 * weights.spacing_px ** 2
 
-    def penalise(p):
+    def penalise(p: np.ndarray) -> None:
         s[:] -= weights.spacing_penalty * np.exp(-np.sum((uv - p) ** 2, 1) / sig2)
 
     if existing is not None:
@@ -177,10 +194,11 @@ def track(prev: np.ndarray, curr: np.ndarray, uv: np.ndarray, *, window: int = 2
         return np.empty((0, 2)), np.zeros(0, bool)
     p0 = np.asarray(uv, np.float32).reshape(-1, 1, 2)
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, curr, p0, None, winSize=(window, window),
-                                          maxLevel=levels, criteria=crit)
-    pb, st2, _ = cv2.calcOpticalFlowPyrLK(curr, prev, p1, None, winSize=(window, window),
-                                          maxLevel=levels, criteria=crit)
+    # (OpenCV's stubs want an array for nextPts; None has it computed)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]
+        prev, curr, p0, None, winSize=(window, window), maxLevel=levels, criteria=crit)
+    pb, st2, _ = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]
+        curr, prev, p1, None, winSize=(window, window), maxLevel=levels, criteria=crit)
     fb = np.linalg.norm((pb - p0).reshape(-1, 2), axis=1)
     p1 = p1.reshape(-1, 2).astype(np.float64)
     h, w = curr.shape
@@ -344,11 +362,11 @@ def robust_g01(r_common: np.ndarray, p_camera: np.ndarray, *, iterations: int = 
     C = None if covariances is None else np.asarray(covariances, float)
     Winv = None if C is None else np.linalg.inv(C)
 
-    def fit(m):
+    def fit(m: np.ndarray) -> np.ndarray:
         return fit_g01(r[m], p[m], method=method, weights=w[m],
                        covariances=None if C is None else C[m])
 
-    def residual(g):
+    def residual(g: np.ndarray) -> np.ndarray:
         e = r @ g[:3, :3].T + g[:3, 3] - p
         if Winv is None:
             return np.linalg.norm(e, axis=1)
@@ -380,7 +398,8 @@ def camera_pose_covariance(fit: Callable[[np.ndarray, np.ndarray], np.ndarray],
     r = np.asarray(r_common, float)
     p = np.asarray(p_meas, float)
 
-    def params(g):                    # as RecursivePoseStats.g01: R projected onto SO(3)
+    # as RecursivePoseStats.g01: R projected onto SO(3)
+    def params(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         R = project_to_so3(g[:3, :3])
         return R.T, -R.T @ g[:3, 3]
 

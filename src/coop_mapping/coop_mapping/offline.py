@@ -37,8 +37,18 @@ from .stereo import (
 )
 from .voxelmap import MapInputError, ScanLimits, ScanRejected, VoxelMap
 
-__all__ = ['StereoSettings', 'MapSettings', 'StereoFrame', 'OfflineMap', 'image_array',
-           'stereo_frames', 'frame_scan', 'build_map', 'map_from_bag', 'stereo_topics']
+__all__ = [
+    'MapSettings',
+    'OfflineMap',
+    'StereoFrame',
+    'StereoSettings',
+    'build_map',
+    'frame_scan',
+    'image_array',
+    'map_from_bag',
+    'stereo_frames',
+    'stereo_topics',
+]
 
 _SIDES = ('left', 'right')
 _TOPIC = re.compile(r'^/(?P<rover>[^/]+)/stereo/(?P<what>left/image_raw|right/image_raw|'
@@ -55,7 +65,7 @@ class StereoSettings:
     min_range_m: float = 0.2
     max_range_m: float = 10.0
     sigma_disparity_px: float = 0.5
-    error_T_lateral: float = 0.1
+    error_T_lateral: float = 0.1    # noqa: N815 - the stereo node's parameter (Eq. 3-7's T)
     error_n: float = 2.0
     subpixel: Subpixel = SUBPIXEL_DEFAULT
     full_width: bool = FULL_WIDTH_DEFAULT
@@ -64,7 +74,8 @@ class StereoSettings:
         object.__setattr__(self, 'subpixel', choice(Subpixel, self.subpixel, 'subpixel',
                                                     error=StereoError))
 
-    def ranger(self, left_p: Sequence[float], right_p: Sequence[float], width: int,
+    def ranger(self, left_p: Sequence[float] | np.ndarray, right_p: Sequence[float] | np.ndarray,
+               width: int,
                height: int) -> StereoRanger:
         """The StereoRanger the node builds from a camera_info pair."""
         cam = StereoCamera.from_projection(np.asarray(left_p, float), np.asarray(right_p, float),
@@ -126,12 +137,12 @@ class OfflineMap:
     body_points: int = 0                                 # points dropped as rover bodies
 
 
-def stamp_ns(stamp) -> int:
+def stamp_ns(stamp: Any) -> int:
     """A builtin_interfaces/Time as integer nanoseconds (the nodes key frames by it too)."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def image_array(msg) -> np.ndarray:
+def image_array(msg: Any) -> np.ndarray:
     """mono8 Image (rclpy or rosbags message) -> (height, width) uint8."""
     if msg.encoding not in ('mono8', '8UC1'):
         raise StereoError(f'encoding {msg.encoding!r}, need mono8')
@@ -235,6 +246,7 @@ def build_map(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | None 
         try:
             if key not in rangers:
                 rangers[key] = stereo.ranger(*key)
+            cov: np.ndarray | None
             pts, cov, origin = frame_scan(fr, stereo, ranger=rangers[key])
         except (StereoError, ValueError, cv2.error):       # as the stereo node counts them
             out.rejected['stereo'] += 1

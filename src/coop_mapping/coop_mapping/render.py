@@ -17,11 +17,13 @@ from coop_common.rendering import fine_intrinsics, pixel_average, projection_mat
 
 from .stereo import StereoCamera
 
-__all__ = ['Box', 'TexturedScene', 'look_at', 'default_boxes']
+__all__ = ['Box', 'TexturedScene', 'default_boxes', 'look_at']
 
 
 @dataclass(frozen=True)
 class Box:
+    """An axis-aligned box: centre and half extents (m)."""
+
     centre: tuple[float, float, float]
     half_extents: tuple[float, float, float]
 
@@ -35,9 +37,11 @@ def default_boxes() -> list[Box]:
             Box((2.2, 0.6, 0.15), (0.15, 0.2, 0.15))]
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])
-            ) -> np.ndarray:
-    """R_wc of an optical frame (z forward, x right, y down) at `eye` looking at `target`."""
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """R_wc of an optical frame (z forward, x right, y down) at `eye` looking at `target`
+    (`up`: the world's up, +z by default)."""
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0])
     z = np.asarray(target, float) - np.asarray(eye, float)
     z /= np.linalg.norm(z)
     x = np.cross(z, up)
@@ -92,9 +96,10 @@ class TexturedScene:
         # blurred noise: texture with contrast at several scales so SGBM has something to match;
         # TinyRenderer maps one texture per face, so big boxes are cut into tiles of <= tile_m
         for i, b in enumerate(_tiles(self.boxes, tile_m)):
-            tex = rng.integers(0, 256, (256, 256)).astype(np.uint8)
+            tex: np.ndarray = rng.integers(0, 256, (256, 256)).astype(np.uint8)
             tex = cv2.GaussianBlur(tex, (0, 0), 1.2)
-            tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX)
+            # (OpenCV's stubs want an array for dst; None returns a new one)
+            tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX)  # type: ignore[call-overload]
             path = os.path.join(self._tmp.name, f'tex{i}.png')
             cv2.imwrite(path, cv2.cvtColor(tex, cv2.COLOR_GRAY2BGR))
             vis = p.createVisualShape(p.GEOM_BOX, halfExtents=b.half_extents,
@@ -117,7 +122,7 @@ class TexturedScene:
     def __enter__(self) -> TexturedScene:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _view(self, R_wc: np.ndarray, t_wc: np.ndarray) -> list[float]:

@@ -7,6 +7,7 @@ little endian, dense (no NaN points).
 from __future__ import annotations
 
 import array
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import Pose
@@ -31,7 +32,8 @@ def _arr(code: str, a: np.ndarray) -> array.array:
     return out
 
 
-def cloud_to_msg(points: np.ndarray, covariances: np.ndarray | None, header) -> PointCloud2:
+def cloud_to_msg(points: np.ndarray, covariances: np.ndarray | None, header: Any) -> PointCloud2:
+    """Points (N, 3) and their sym6 covariances (N, 6) or None as a PointCloud2 under `header`."""
     n = len(points)
     fields = CLOUD_FIELDS if covariances is not None else CLOUD_FIELDS[:3]
     data = np.empty((n, len(fields)), np.float32)
@@ -74,7 +76,7 @@ def msg_to_cloud(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
             msg.height, msg.row_step)[:, :row].reshape(-1)
     has_cov = [f in names for f in CLOUD_FIELDS[3:]]
     if any(has_cov) and not all(has_cov):
-        missing = [f for f, h in zip(CLOUD_FIELDS[3:], has_cov) if not h]
+        missing = [f for f, h in zip(CLOUD_FIELDS[3:], has_cov, strict=False) if not h]
         raise CloudFormatError(f'covariance fields {", ".join(missing)} missing (all six or '
                                'none)')
     want = CLOUD_FIELDS if all(has_cov) else CLOUD_FIELDS[:3]
@@ -89,7 +91,7 @@ def msg_to_cloud(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
         return flat[:, :3], (flat[:, 3:] if len(want) == 9 else None)
     raw = buf.reshape(n, step)
 
-    def col(name):
+    def col(name: str) -> np.ndarray:
         if names[name].datatype != PointField.FLOAT32:
             raise CloudFormatError(f'field {name} is not float32')
         o = names[name].offset

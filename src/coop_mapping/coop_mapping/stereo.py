@@ -6,6 +6,7 @@ Eq. 3-9. No rclpy here.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import assert_never
@@ -18,11 +19,24 @@ from coop_common.params import choice
 from .errors import MappingError
 from .gauss import rotate_sym6
 
-__all__ = ['SUBPIXEL_MODES', 'Subpixel', 'SUBPIXEL_DEFAULT', 'FULL_WIDTH_DEFAULT', 'StereoCamera',
-           'ErrorModel', 'StereoError',
-           'compute_disparity', 'equalize_subpixel', 'phase_averaged_disparity', 'shift_columns',
-           'disparity_to_range', 'range_sigma', 'disparity_to_points',
-           'StereoRanger', 'StereoScan']
+__all__ = [
+    'FULL_WIDTH_DEFAULT',
+    'SUBPIXEL_DEFAULT',
+    'SUBPIXEL_MODES',
+    'ErrorModel',
+    'StereoCamera',
+    'StereoError',
+    'StereoRanger',
+    'StereoScan',
+    'Subpixel',
+    'compute_disparity',
+    'disparity_to_points',
+    'disparity_to_range',
+    'equalize_subpixel',
+    'phase_averaged_disparity',
+    'range_sigma',
+    'shift_columns',
+]
 
 
 class Subpixel(StrEnum):
@@ -178,7 +192,7 @@ def compute_disparity(left: np.ndarray, right: np.ndarray, *, num_disparities: i
     if block_size < 1 or block_size % 2 == 0:
         raise StereoError('block_size must be odd and >= 1')
     subpixel = choice(Subpixel, subpixel, 'subpixel', error=StereoError)
-    sgbm = cv2.StereoSGBM_create(
+    sgbm = cv2.StereoSGBM.create(
         minDisparity=0, numDisparities=num_disparities, blockSize=block_size,
         P1=8 * block_size ** 2, P2=32 * block_size ** 2, disp12MaxDiff=1,
         uniquenessRatio=uniqueness, speckleWindowSize=speckle_window,
@@ -236,8 +250,9 @@ def shift_columns(img: np.ndarray, s: float) -> np.ndarray:
                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def phase_averaged_disparity(match, right: np.ndarray, n_phases: int,
-                             max_spread_px: float = 1.0) -> np.ndarray:
+def phase_averaged_disparity(match: Callable[[np.ndarray], np.ndarray],
+                             right: np.ndarray, n_phases: int, max_spread_px: float = 1.0
+                             ) -> np.ndarray:
     """Pixel-locking cancellation by sub-pixel shifts (Shimizu and Okutomi's half-pixel shift
     of the image, ICCV 2001, generalised to n phases).
 

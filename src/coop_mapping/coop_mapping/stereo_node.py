@@ -111,6 +111,7 @@ PARAMS = {
 
 
 def image_to_array(msg: Image) -> np.ndarray:
+    """A mono8 Image as an (height, width) uint8 array; StereoError for another encoding."""
     if msg.encoding not in ('mono8', '8UC1'):
         raise StereoError(f'encoding {msg.encoding!r}, need mono8')
     if msg.step < msg.width or len(msg.data) < msg.step * msg.height:
@@ -134,6 +135,9 @@ def _check_params(p: dict) -> str | None:
 
 
 class StereoNode(Node):
+    """The stereo node: a rover's image pairs into range clouds with covariances (Eq. 3-7) and the
+    camera's pose."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('stereo', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._changed,
@@ -398,6 +402,7 @@ def _pose_msg(stamp, frame: str, R: np.ndarray, t: np.ndarray, cov: np.ndarray
 
 
 def main(args=None) -> int:
+    """`ros2 run coop_mapping stereo`."""
     return run_node(StereoNode, args)
 
 

@@ -24,7 +24,9 @@ No rclpy here.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -33,9 +35,19 @@ from .errors import MappingError
 from .gauss import mat_from_sym6, skew, sym6_from_mat
 from .stereo import ErrorModel, StereoCamera
 
-__all__ = ['TargetFrameError', 'TargetGeometry', 'PoseFix', 'solve_pose', 'locate_in_target',
-           'transform_to_target', 'frame_alignment', 'detect_markers', 'triangulate_markers',
-           'InitialisationStep', 'Initialiser']
+__all__ = [
+    'InitialisationStep',
+    'Initialiser',
+    'PoseFix',
+    'TargetFrameError',
+    'TargetGeometry',
+    'detect_markers',
+    'frame_alignment',
+    'locate_in_target',
+    'solve_pose',
+    'transform_to_target',
+    'triangulate_markers',
+]
 
 
 class TargetFrameError(MappingError, ValueError):
@@ -86,7 +98,8 @@ class PoseFix:
         return self.R.T, -self.R.T @ self.t
 
 
-def _weighted_kabsch(m: np.ndarray, p: np.ndarray, w: np.ndarray, up_pair=None
+def _weighted_kabsch(m: np.ndarray, p: np.ndarray, w: np.ndarray,
+                     up_pair: tuple[np.ndarray, np.ndarray, float] | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
     """R, t minimising sum w_i |R p_i + t - m_i|^2 (+ w_g |R g - u|^2)."""
     W = w / w.sum()
@@ -103,12 +116,13 @@ def _weighted_kabsch(m: np.ndarray, p: np.ndarray, w: np.ndarray, up_pair=None
 
 def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarray, *,
                up_observed: np.ndarray | None = None, up_sigma_rad: float | None = None,
-               up_target: np.ndarray = np.array([0.0, 0.0, 1.0]), iterations: int = 30
-               ) -> PoseFix:
+               up_target: np.ndarray | None = None, iterations: int = 30) -> PoseFix:
     """Maximum-likelihood camera pose in the target frame from marker i observed at
     observed[i] (camera frame, covariance covariances[i] as (6,) sym6 or (3, 3)) of the known
-    markers[i] (target frame); optional up direction in the camera frame with its angular sigma.
-    See the module docstring."""
+    markers[i] (target frame); optional up direction in the camera frame with its angular sigma
+    (`up_target`: the target frame's up, +z by default). See the module docstring."""
+    if up_target is None:
+        up_target = np.array([0.0, 0.0, 1.0])
     m = np.asarray(markers, float)
     p = np.asarray(observed, float)
     C = np.asarray(covariances, float)
@@ -140,7 +154,7 @@ def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarra
     w = 3.0 / np.trace(C, axis1=1, axis2=2)
     R, t = _weighted_kabsch(m, p, w, up_pair)
 
-    def normal_eq(R, t):
+    def normal_eq(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         q = (m - t) @ R              # R^T (m_i - t), camera frame
         s = p - q
         J = np.concatenate([-skew(q), np.broadcast_to(R.T, (n, 3, 3))], axis=2)  # (n, 3, 6)
@@ -180,7 +194,8 @@ def solve_pose(markers: np.ndarray, observed: np.ndarray, covariances: np.ndarra
     return PoseFix(R, t, 0.5 * (cov + cov.T), chi2, n_obs - 6, tuple(range(n)))
 
 
-def _assignments(M: np.ndarray, p: np.ndarray, C: np.ndarray, gate: float):
+def _assignments(M: np.ndarray, p: np.ndarray, C: np.ndarray, gate: float
+                 ) -> Iterator[tuple[tuple[int, ...], tuple[int, ...]]]:
     """Every injective pairing of k = min(#obs, #markers) observations with markers whose
     pairwise distances all agree with the markers' within `gate` sigma (the distance between
     two points is frame-free): yields (observation indices, marker indices)."""
@@ -192,7 +207,8 @@ def _assignments(M: np.ndarray, p: np.ndarray, C: np.ndarray, gate: float):
     var = np.einsum('ijk,ikl,ijl->ij', u, C, u) + np.einsum('ijk,jkl,ijl->ij', u, C, u)
     tol = gate * np.sqrt(var) + 1e-9
 
-    def extend(mk, obs):
+    def extend(mk: tuple[int, ...], obs: list[int]
+               ) -> Iterator[tuple[tuple[int, ...], tuple[int, ...]]]:
         if len(obs) == k:
             yield tuple(obs), mk
             return
@@ -230,7 +246,8 @@ def locate_in_target(geometry: TargetGeometry, observed: np.ndarray, covariances
         if not geometry.labels:
             raise TargetFrameError('labelled observations need a labelled geometry')
         try:
-            candidates = [(tuple(range(len(p))), tuple(geometry.labels.index(x)
+            candidates: Iterable[tuple[tuple[int, ...], tuple[int, ...]]] = [
+            (tuple(range(len(p))), tuple(geometry.labels.index(x)
                                                        for x in labels))]
         except ValueError as exc:
             raise TargetFrameError(f'unknown marker label ({exc})') from exc
@@ -248,7 +265,7 @@ def locate_in_target(geometry: TargetGeometry, observed: np.ndarray, covariances
             continue
         if best is None or fix.chi2 < best.chi2:
             a = [-1] * len(p)
-            for i, j in zip(o, mk):
+            for i, j in zip(o, mk, strict=False):
                 a[i] = j
             best = PoseFix(fix.R, fix.t, fix.covariance, fix.chi2, fix.dof, tuple(a))
     if best is None:
@@ -315,7 +332,7 @@ def detect_markers(image: np.ndarray, *, min_radius_px: float = 1.5, max_radius_
 
 def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamera, *,
                         error_model: ErrorModel | None = None, max_row_diff_px: float = 1.5,
-                        max_disparity_px: float = 256.0, **detect_kw
+                        max_disparity_px: float = 256.0, **detect_kw: Any
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Markers seen in both images of a rectified pair -> (K, 2) left uv, (K, 3) points in the
     left optical frame (Eq. 3-1..3-3), (K, 6) covariances (Eq. 3-7, default error model of the
@@ -324,9 +341,10 @@ def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamer
     em = error_model or ErrorModel.from_stereo(camera)
     ul, rl = detect_markers(left, **detect_kw)
     ur, rr = detect_markers(right, **detect_kw)
-    uv, pts = [], []
+    uv_rows: list[list[float]] = []
+    pt_rows: list[list[float]] = []
     used = set()
-    for (u, v), r in zip(ul, rl):
+    for (u, v), r in zip(ul, rl, strict=False):
         d = u - ur[:, 0] if len(ur) else np.empty(0)
         ok = (np.abs(ur[:, 1] - v) <= max_row_diff_px) & (d > 0) & (d <= max_disparity_px) & \
             (np.abs(rr - r) <= 0.5 * r + 1.0) if len(ur) else np.zeros(0, bool)
@@ -336,10 +354,10 @@ def triangulate_markers(left: np.ndarray, right: np.ndarray, camera: StereoCamer
         j = min(cand, key=lambda j: d[j])
         used.add(j)
         z = camera.fx * camera.baseline / d[j]
-        uv.append([u, v])
-        pts.append([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z])
-    uv = np.array(uv).reshape(-1, 2)
-    pts = np.array(pts).reshape(-1, 3)
+        uv_rows.append([u, v])
+        pt_rows.append([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z])
+    uv = np.array(uv_rows).reshape(-1, 2)
+    pts = np.array(pt_rows).reshape(-1, 3)
     return uv, pts, em.covariances(pts)
 
 
@@ -369,12 +387,12 @@ class Initialiser:
     target frame sits at (R_ct, t_ct). `to_common` then maps own-frame camera poses there, with
     the alignment's uncertainty added. No rclpy here."""
 
-    def __init__(self, geometry: TargetGeometry, *, R_ct: np.ndarray = np.eye(3),
-                 t_ct: np.ndarray = np.zeros(3), max_position_sigma_m: float = 0.1,
-                 up_sigma_rad: float | None = 0.01, **detect_kw) -> None:
+    def __init__(self, geometry: TargetGeometry, *, R_ct: np.ndarray | None = None,
+                 t_ct: np.ndarray | None = None, max_position_sigma_m: float = 0.1,
+                 up_sigma_rad: float | None = 0.01, **detect_kw: Any) -> None:
         self.geometry = geometry
-        self.R_ct = np.asarray(R_ct, float)
-        self.t_ct = np.asarray(t_ct, float)
+        self.R_ct = np.eye(3) if R_ct is None else np.asarray(R_ct, float)
+        self.t_ct = np.zeros(3) if t_ct is None else np.asarray(t_ct, float)
         self.max_position_sigma_m = float(max_position_sigma_m)
         self.up_sigma_rad = up_sigma_rad if up_sigma_rad and up_sigma_rad > 0 else None
         self.detect_kw = detect_kw
@@ -424,7 +442,7 @@ class Initialiser:
         in ROS order (x, y, z, rot x, rot y, rot z): the own one rotated into the common frame
         plus the alignment's, carried to this camera: a rotation error theta of the alignment
         moves a camera d = t - (camera position at the fix) away by -[d]_x theta."""
-        if self.alignment is None:
+        if self.alignment is None or self.alignment_covariance is None:     # set together
             raise TargetFrameError('not initialised')
         R_a, t_a = self.alignment
         R = R_a @ np.asarray(R_oc, float)

@@ -46,6 +46,7 @@ No rclpy in this module.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import math
 import os
@@ -54,6 +55,7 @@ import zlib
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import IO
 
 import numpy as np
 
@@ -68,10 +70,23 @@ from .gauss import (
     sym6_matvec,
 )
 
-__all__ = ['OccupancyModel', 'VoxelMap', 'InsertResult', 'MapFileError', 'MapInputError',
-           'ScanLimits', 'ScanRejected',
-           'state_agreement', 'kernel_centroids',
-           'pack_keys', 'unpack_keys', 'ray_voxel_keys', 'FREE', 'OCCUPIED', 'UNKNOWN']
+__all__ = [
+    'FREE',
+    'OCCUPIED',
+    'UNKNOWN',
+    'InsertResult',
+    'MapFileError',
+    'MapInputError',
+    'OccupancyModel',
+    'ScanLimits',
+    'ScanRejected',
+    'VoxelMap',
+    'kernel_centroids',
+    'pack_keys',
+    'ray_voxel_keys',
+    'state_agreement',
+    'unpack_keys',
+]
 
 FILE_FORMAT = 'coop_mapping.voxelmap'
 FILE_VERSION = 1
@@ -156,7 +171,7 @@ class OccupancyModel:
                              f'with pmax={lim:.5f} (int16 log-odds range)')
 
     def _q(self, p: float) -> int:
-        return int(round(_logodds(p) * LOGODDS_SCALE))
+        return round(_logodds(p) * LOGODDS_SCALE)
 
     @property
     def hit_q(self) -> int:
@@ -241,7 +256,7 @@ def _ray_visits(origins: np.ndarray, ends: np.ndarray, resolution: float, *,
         first = np.cumsum(reps) - reps
         k1 = np.arange(1, total + 1, dtype=np.int64) - np.repeat(first, reps)
         t = np.repeat(t0[:, a], reps) + (k1 - 1) * np.repeat(dt[:, a], reps)
-        out = [None, None, None]
+        out: dict[int, np.ndarray] = {}
         out[a] = np.repeat(s[:, a], reps) + np.repeat(step[:, a], reps) * k1
         for b in range(3):
             if b == a:
@@ -252,7 +267,7 @@ def _ray_visits(origins: np.ndarray, ends: np.ndarray, resolution: float, *,
         if drop_end:
             keep = ((out[0] != np.repeat(e[:, 0], reps)) | (out[1] != np.repeat(e[:, 1], reps))
                     | (out[2] != np.repeat(e[:, 2], reps)))
-            out = [o[keep] for o in out]
+            out = {b: o[keep] for b, o in out.items()}
         yield out[0], out[1], out[2]
 
 
@@ -293,8 +308,8 @@ def _ray_lin(origin: np.ndarray, ends: np.ndarray, resolution: float, k0: np.nda
     n = np.abs(diff)
     # int32 indices and float32 crossing counts halve the memory traffic, which is what a
     # visit costs in numpy; float32 is exact enough for counts up to ~10^4 crossings per ray
-    ity = np.int32 if lin_s + int(np.abs(st).sum() * (n.max(initial=0) + 1)) < 2 ** 31 \
-        else np.int64
+    ity: type[np.signedinteger] = \
+        np.int32 if lin_s + int(np.abs(st).sum() * (n.max(initial=0) + 1)) < 2 ** 31 else np.int64
     n_i = n.astype(ity)
     nf = n_i.astype(np.float32)
     mov = n_i > 0
@@ -325,7 +340,7 @@ def _ray_lin(origin: np.ndarray, ends: np.ndarray, resolution: float, k0: np.nda
             alpha[a, b], beta[a, b], dirty[a, b] = al, be, bad
     cum = np.cumsum(n_i[0].astype(np.int64) + n_i[1] + n_i[2])
     gb = np.flatnonzero(np.r_[True, octant[1:] != octant[:-1], True])
-    for g0, g1 in zip(gb[:-1], gb[1:]):
+    for g0, g1 in itertools.pairwise(gb):
         oc = int(octant[g0])
         sg = np.array([-1 if oc & 4 else 1, -1 if oc & 2 else 1, -1 if oc & 1 else 1])
         ss = [int(v) for v in sg * st]
@@ -333,7 +348,7 @@ def _ray_lin(origin: np.ndarray, ends: np.ndarray, resolution: float, k0: np.nda
         # batches of about batch_visits visits (at least one ray each)
         lc = (cum[g0:g1] - base) // batch_visits
         edges = np.r_[0, np.flatnonzero(lc[1:] != lc[:-1]) + 1, g1 - g0] + g0
-        for i, j in zip(edges[:-1], edges[1:]):
+        for i, j in itertools.pairwise(edges):
             for a in range(3):
                 reps = n_i[a, i:j]
                 csum = np.cumsum(reps, dtype=ity)
@@ -781,7 +796,7 @@ class VoxelMap:
         klo = np.clip(np.ceil(lo / self.resolution - 0.5), -_OFFSET, _OFFSET).astype(np.int64)
         khi = np.clip(np.floor(hi / self.resolution - 0.5), -_OFFSET - 1,
                       _OFFSET - 1).astype(np.int64)
-        total = math.prod(max(int(b) - int(a) + 1, 0) for a, b in zip(klo, khi))
+        total = math.prod(max(int(b) - int(a) + 1, 0) for a, b in zip(klo, khi, strict=False))
         k = unpack_keys(self.keys)
         inside = np.all((k >= klo) & (k <= khi), axis=1)
         occ = int(np.count_nonzero(self.logodds[inside] >= self.model.thr_q))
@@ -874,9 +889,9 @@ class VoxelMap:
             raise ValueError(f'frustum bounding box has {int(np.prod(dims))} voxels '
                              f'> max_voxels {max_voxels}')
         known, unknown = [], []
-        gy, gz = np.meshgrid(np.arange(klo[1], khi[1] + 1), np.arange(klo[2], khi[2] + 1),
-                             indexing='ij')
-        gy, gz = gy.ravel(), gz.ravel()
+        gy2, gz2 = np.meshgrid(np.arange(klo[1], khi[1] + 1), np.arange(klo[2], khi[2] + 1),
+                               indexing='ij')
+        gy, gz = gy2.ravel(), gz2.ravel()
         for x in range(klo[0], khi[0] + 1):  # one slab at a time bounds the memory
             k = np.stack([np.full(gy.size, x), gy, gz], -1)
             pc = ((k + 0.5) * self.resolution - t) @ R
@@ -919,7 +934,7 @@ class VoxelMap:
                   'model': self.model.__dict__, 'contributions': dict(self.contributions),
                   'voxels': len(self)}
 
-        def write(f) -> None:
+        def write(f: IO[bytes]) -> None:
             with zipfile.ZipFile(f, 'w', compression=zipfile.ZIP_STORED) as z:
                 z.writestr('header.json', json.dumps(header))
                 for name, arr in self._arrays().items():

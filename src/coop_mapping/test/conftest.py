@@ -2,6 +2,8 @@
 /rover1 with a peer node that feeds it camera_info, poses and image pairs on one executor."""
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 import pytest
 import rclpy
@@ -37,10 +39,11 @@ def _image(a: np.ndarray, stamp, frame: str) -> Image:
 class StereoRig:
     """The installed-node's class run in-process: publishes to its inputs, collects outputs."""
 
-    INPUTS = [('l', Image, 'stereo/left/image_raw'), ('r', Image, 'stereo/right/image_raw'),
-              ('li', CameraInfo, 'stereo/left/camera_info'),
-              ('ri', CameraInfo, 'stereo/right/camera_info'),
-              ('pose', PoseWithCovarianceStamped, 'stereo/pose')]
+    INPUTS: ClassVar = [('l', Image, 'stereo/left/image_raw'),
+                        ('r', Image, 'stereo/right/image_raw'),
+                        ('li', CameraInfo, 'stereo/left/camera_info'),
+                        ('ri', CameraInfo, 'stereo/right/camera_info'),
+                        ('pose', PoseWithCovarianceStamped, 'stereo/pose')]
 
     def __init__(self, ctx: Context, cam, params: dict) -> None:
         from coop_mapping.stereo_node import StereoNode

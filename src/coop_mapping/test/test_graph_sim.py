@@ -19,7 +19,7 @@ def _have(pkg, exe):
     try:
         executable_path(pkg, exe)
         return True
-    except Exception:  # noqa: BLE001 - package not built / not installed
+    except Exception:
         return False
 
 
@@ -78,7 +78,7 @@ def test_two_rovers_map_the_sim_scene(tmp_path):
         def enough():
             if not maps:
                 return False
-            c = dict(zip(maps[-1].contributors, maps[-1].contributions))
+            c = dict(zip(maps[-1].contributors, maps[-1].contributions, strict=False))
             return c.get('rover1', 0) >= 3 and c.get('rover2', 0) >= 3
 
         wait_for(enough, 120.0, spin=lambda t: ex.spin_once(timeout_sec=t),

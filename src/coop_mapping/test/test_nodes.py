@@ -1,4 +1,6 @@
 """mapper and stereo nodes in-process with a private context: fusion, services, bad input."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
@@ -115,7 +117,7 @@ def test_mapper_fuses_queries_saves_and_rejects(ctx, tmp_path):
         # save, a corrupted file is refused and the map kept, reload, reset
         save = _call(ex, peer.create_client(MapFile, '/map/save'), MapFile.Request())
         assert save.success and save.voxels == len(node.map)
-        (tmp_path / 'bad.cmap').write_bytes(open(mapfile, 'rb').read()[:100])
+        (tmp_path / 'bad.cmap').write_bytes(Path(mapfile).read_bytes()[:100])
         load = peer.create_client(MapFile, '/map/load')
         r = _call(ex, load, MapFile.Request(path=str(tmp_path / 'bad.cmap')))
         assert not r.success and 'kept' in r.message and r.voxels == save.voxels
@@ -197,7 +199,7 @@ def test_mapper_drops_a_teammate_body(ctx):
                  what='the fused cloud')
         assert node.body_points == len(body)
         p = node.map.probability_at(np.array([[1.0, 0.0, 0.3], [3.05, 0.05, 1.05]]))
-        assert p[0] <= 0.5 < 0.6 < p[1]
+        assert p[0] <= 0.5 and p[1] > 0.6
     finally:
         ex.shutdown()
         node.destroy_node()
@@ -271,7 +273,7 @@ def test_stereo_node_publishes_cloud_with_covariance(stereo_rig, subpixel, full_
     eye = np.array([0.0, 0.0, 1.0])
     R = look_at(eye, np.array([2.5, 0.0, 0.2]))
     with TexturedScene(cam, seed=2) as scene:
-        left, right, depth = scene.render(R, eye)
+        left, right, _depth = scene.render(R, eye)
     rig = stereo_rig(cam, num_disparities=32, subpixel=subpixel, full_width=full_width)
     clouds = rig.listen(PointCloud2, 'stereo/points', SENSOR_QOS)
     rig.start()
@@ -304,11 +306,11 @@ def test_stereo_node_corrects_dead_reckoning_with_fiducials(stereo_rig):
     rig = stereo_rig(cam, num_disparities=32, fiducial_correction='pnp', scene_distance_m=2.0)
     poses = rig.listen(PoseWithCovarianceStamped, 'camera_pose', LATCHED_QOS)
     rig.start()
-    for i, ((left, right), eye) in enumerate(zip(pairs, dr_eyes)):
+    for i, ((left, right), eye) in enumerate(zip(pairs, dr_eyes, strict=False)):
         stamp = rig.peer.get_clock().now().to_msg()
         stamp.sec += i
         rig.send(left, right, stamp, R, eye)
-        wait_for(lambda: len(poses) == i + 1, 20.0, spin=rig.spin, what=f'camera_pose {i}')
+        wait_for(lambda i=i: len(poses) == i + 1, 20.0, spin=rig.spin, what=f'camera_pose {i}')
     p = poses[-1].pose.pose.position
     corrected = np.array([p.x, p.y, p.z])
     err_dr = np.linalg.norm(dr_eyes[1] - true_eyes[1])

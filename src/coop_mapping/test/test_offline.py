@@ -2,7 +2,7 @@
 nodes' defaults, from plain message objects (no DDS)."""
 from __future__ import annotations
 
-from types import SimpleNamespace as NS
+from types import SimpleNamespace as Msg
 
 import numpy as np
 import pytest
@@ -19,25 +19,25 @@ from coop_mapping.stereo import StereoCamera
 
 
 def _stamp(ns: int):
-    return NS(sec=ns // 10**9, nanosec=ns % 10**9)
+    return Msg(sec=ns // 10**9, nanosec=ns % 10**9)
 
 
 def _image(img: np.ndarray, ns: int, as_bytes: bool = False):
     h, w = img.shape
-    return NS(header=NS(stamp=_stamp(ns), frame_id='cam'), height=h, width=w, encoding='mono8',
+    return Msg(header=Msg(stamp=_stamp(ns), frame_id='cam'), height=h, width=w, encoding='mono8',
               step=w, data=img.tobytes() if as_bytes else img.reshape(-1).copy())
 
 
 def _info(cam: StereoCamera, right: bool, ns: int):
     p = [cam.fx, 0.0, cam.cx, -cam.fx * cam.baseline if right else 0.0,
          0.0, cam.fy, cam.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
-    return NS(header=NS(stamp=_stamp(ns)), p=np.array(p), width=cam.width, height=cam.height)
+    return Msg(header=Msg(stamp=_stamp(ns)), p=np.array(p), width=cam.width, height=cam.height)
 
 
 def _pose(ns: int, frame: str = 'map'):
-    return NS(header=NS(stamp=_stamp(ns), frame_id=frame),
-              pose=NS(pose=NS(position=NS(x=0.0, y=0.0, z=1.0),
-                              orientation=NS(x=0.0, y=0.0, z=0.0, w=1.0))))
+    return Msg(header=Msg(stamp=_stamp(ns), frame_id=frame),
+              pose=Msg(pose=Msg(position=Msg(x=0.0, y=0.0, z=1.0),
+                              orientation=Msg(x=0.0, y=0.0, z=0.0, w=1.0))))
 
 
 def _pair(cam: StereoCamera, shift_px: int = 8, seed: int = 0):

@@ -187,8 +187,8 @@ def test_sim_site_markers_locate_the_camera():
         geom = TargetGeometry(markers_site, facing=np.array([1.0, 0.0, 0.0]))
         rng = np.random.default_rng(4)
         errs = []
-        for eye in ([1.9, 0.3, 0.6], [1.6, -0.4, 0.5], [1.3, 0.0, 0.45], [1.6, 0.3, 0.6]):
-            eye = np.asarray(eye)
+        for eye_xyz in ([1.9, 0.3, 0.6], [1.6, -0.4, 0.5], [1.3, 0.0, 0.45], [1.6, 0.3, 0.6]):
+            eye = np.asarray(eye_xyz)
             R_wc = look_at(eye, np.asarray(site.markers).mean(0) + rng.normal(size=3) * 0.05)
             left, right = render(R_wc, eye)
             uv, pts, cov = triangulate_markers(left, right, cam, min_radius_px=2.0,

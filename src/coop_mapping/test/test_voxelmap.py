@@ -56,11 +56,11 @@ def test_map_gaussian_equals_sequential_eq_3_10(voxel_prior):
     if voxel_prior:  # N(centre, V) first, then every point with C_i + V (V = res^2/12 I)
         V = np.eye(3) * res * res / 12
         mean, cov = np.array([2.25, 0.25, 0.25]), V
-        for p, c in zip(pts, covs):
+        for p, c in zip(pts, covs, strict=False):
             mean, cov = merge_two(mean, cov, p, c + V)
     else:
         mean, cov = pts[0], covs[0]
-        for p, c in zip(pts[1:], covs[1:]):
+        for p, c in zip(pts[1:], covs[1:], strict=False):
             mean, cov = merge_two(mean, cov, p, c)
     keys, gm, gc, hits = vm.gaussians()
     assert len(keys) == 1 and hits[0] == 6
@@ -113,7 +113,7 @@ def _sequential_dda(o, e, res):
         a = int(np.argmin(tmax))
         key[a] += step[a]
         tmax[a] += tdel[a]
-        if np.all(key == end) or min(tmax) > 1.0 + 1e-12 and np.all(key == end):
+        if np.all(key == end) or (min(tmax) > 1.0 + 1e-12 and np.all(key == end)):
             break
         if len(out) > 1000:
             raise AssertionError('runaway')

@@ -84,7 +84,7 @@ def unstructured_world(*, seed: int, size_m: float = 100.0, resolution: float = 
     """Fig. 3-12: a 100 m x 100 m field scattered with irregular obstacles (random discs,
     rectangles and rotated blocks of 1..8 m) until `coverage` of the area is occupied."""
     rng = np.random.default_rng(seed)
-    n = int(round(size_m / resolution))
+    n = round(size_m / resolution)
     occ = np.zeros((n, n), bool)
     xx, yy = np.meshgrid((np.arange(n) + 0.5) * resolution, (np.arange(n) + 0.5) * resolution,
                          indexing='ij')
@@ -112,9 +112,9 @@ def rooms_world(*, seed: int, size_m: float = 100.0, resolution: float = 1.0,
     per quadrant, each with a 4 m door onto a corridor and some furniture; the camera starts in
     a room."""
     rng = np.random.default_rng(seed)
-    n = int(round(size_m / resolution))
+    n = round(size_m / resolution)
     occ = np.zeros((n, n), bool)
-    c = lambda m: int(round(m / resolution))  # noqa: E731
+    c = lambda m: round(m / resolution)  # noqa: E731
     occ[0, :] = occ[-1, :] = occ[:, 0] = occ[:, -1] = True
     lo, hi = c(size_m / 2 - 3), c(size_m / 2 + 3)
     occ[lo, :] = occ[hi, :] = occ[:, lo] = occ[:, hi] = True
@@ -268,13 +268,13 @@ def explore(world: World, *, strategy: StrategyName | str, n_cameras: int, confi
                 decisions = plan_cameras(planner, grid, cams, strategy=strategy, rng=rng)
             except PlanningError:
                 decisions = []
-            for cam, d, path in zip(cams, decisions, paths):
+            for cam, d, path in zip(cams, decisions, paths, strict=False):
                 moved += d.path_length if np.isfinite(d.path_length) else 0.0
                 cam.position = d.position.copy()
                 cam.yaw = d.yaw
                 cam.visited.append(grid.to_index(cam.position))
                 path.append(cam.position.copy())
-            for cam, path in zip(cams[len(decisions):], paths[len(decisions):]):
+            for cam, path in zip(cams[len(decisions):], paths[len(decisions):], strict=False):
                 path.append(cam.position.copy())   # no admissible view: it scans from here again
             for cam in cams:
                 scan(world, grid, planner, cam.position, cam.yaw)

@@ -1,7 +1,7 @@
-"""Figs. 3-13, 3-16, 3-20: fraction mapped and distance moved vs scan number for the five pose
+r"""Figs. 3-13, 3-16, 3-20: fraction mapped and distance moved vs scan number for the five pose
 selection methods of §3.3.1 and a nearest-frontier baseline, mean and 95 % interval over seeds.
 
-    ros2 run coop_viewplan fig_3_13 --world unstructured --cameras 1 --seeds 5 --scans 150 \\
+    ros2 run coop_viewplan fig_3_13 --world unstructured --cameras 1 --seeds 5 --scans 150 \
         --json out/fig_3_13.json --plots out/fig_3_13
 """
 from __future__ import annotations
@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +53,7 @@ def _first_reach(frac: np.ndarray, level: float) -> int | None:
     return int(hit[0]) if len(hit) else None
 
 
-def _summary(values: list[float | None]) -> dict:
+def _summary(values: Sequence[float | None]) -> dict:
     got = [v for v in values if v is not None]
     out = {'per_seed': values, 'reached': len(got), 'mean': None, 'ci95': None}
     if got:
@@ -62,7 +63,7 @@ def _summary(values: list[float | None]) -> dict:
 
 
 def run(*, world: WorldName | str, cameras: int, fov_deg: float, depth_m: float, seeds: int,
-        scans: int, resolution_m: float, strategies: list[StrategyName | str], k_rel: float,
+        scans: int, resolution_m: float, strategies: Sequence[StrategyName | str], k_rel: float,
         n_positions: int, distance_metric: DistanceMetric | str = NbvConfig.distance_metric,
         level: float = 0.9, near_fraction: float = 0.0, angle_weight: float = 1.0,
         entropy_weight: EntropyWeight | str = NbvConfig.entropy_weight,
@@ -72,7 +73,15 @@ def run(*, world: WorldName | str, cameras: int, fov_deg: float, depth_m: float,
         ni_floor: float = NbvConfig.ni_floor) -> dict:
     """Each strategy over `seeds` worlds; an unknown strategy or mode (NbvConfig's) is an
     OptionError naming the choices, before any run."""
-    strategies = [choice(StrategyName, s, 'strategy', error=OptionError) for s in strategies]
+    names = [choice(StrategyName, s, 'strategy', error=OptionError) for s in strategies]
+    distance_metric = choice(DistanceMetric, distance_metric, 'distance_metric',
+                             error=OptionError)
+    entropy_weight = choice(EntropyWeight, entropy_weight, 'entropy_weight', error=OptionError)
+    ni_measure = choice(NiMeasure, ni_measure, 'ni_measure', error=OptionError)
+    unknown_occlusion = choice(UnknownOcclusion, unknown_occlusion, 'unknown_occlusion',
+                               error=OptionError)
+    occlusion_prior = choice(OcclusionPrior, occlusion_prior, 'occlusion_prior',
+                             error=OptionError)
     cfg = NbvConfig(fov_deg=fov_deg, depth_m=depth_m, k_rel=k_rel, n_positions=n_positions,
                     distance_metric=distance_metric, near_fraction=near_fraction,
                     alpha=(1.0, 1.0, 1.0, angle_weight, angle_weight),
@@ -80,7 +89,7 @@ def run(*, world: WorldName | str, cameras: int, fov_deg: float, depth_m: float,
                     unknown_occlusion=unknown_occlusion, occlusion_prior=occlusion_prior,
                     ni_floor=ni_floor)
     res: dict = {}
-    for name in strategies:
+    for name in names:
         fr, di, s90, d90, room90, leave, rooms_final = [], [], [], [], [], [], []
         t0 = time.perf_counter()
         for seed in range(seeds):
@@ -92,7 +101,7 @@ def run(*, world: WorldName | str, cameras: int, fov_deg: float, depth_m: float,
             k = _first_reach(tr.fraction, level)
             s90.append(k)
             d90.append(None if k is None else float(tr.distance[k]))
-            if w.start_room is not None:
+            if w.start_room is not None and tr.room_fraction is not None:    # set together
                 room90.append(_first_reach(tr.room_fraction, level))
                 rooms_final.append(float(tr.room_fraction[-1]))
                 leave.append(tr.scans_to_leave_start_room(w))
@@ -146,10 +155,11 @@ def verdict(strategies: dict) -> dict:
             # Runs that never reach 90 % rank after those that do, by their final fraction.
             order = sorted(five, key=lambda s: (key(s, what),
                                                 -strategies[s]['final_fraction']))
-            out[f'{what}_rank_of_max_information'] = order.index('max_information') + 1
+            out[f'{what}_rank_of_max_information'] = order.index(StrategyName.MAX_INFORMATION) + 1
             out[f'{what}_order'] = order
         ranked = sorted(five, key=lambda s: -strategies[s]['final_fraction'])
-        out['final_fraction_rank_of_max_information'] = ranked.index('max_information') + 1
+        out['final_fraction_rank_of_max_information'] = \
+            ranked.index(StrategyName.MAX_INFORMATION) + 1
         for what in ('scans_to_map_start_room', 'scans_to_leave_start_room'):
             if what in strategies['max_information']:
                 def room_key(name: str, what: str = what) -> tuple[float, float]:
@@ -158,7 +168,8 @@ def verdict(strategies: dict) -> dict:
                     return (d['mean'] if d['reached'] == len(d['per_seed']) else float('inf'),
                             -strategies[name]['final_start_room_fraction'])
                 order = sorted(five, key=room_key)
-                out[f'{what}_rank_of_max_information'] = order.index('max_information') + 1
+                out[f'{what}_rank_of_max_information'] = \
+                    order.index(StrategyName.MAX_INFORMATION) + 1
                 out[f'{what}_order'] = order
         if 'frontier' in strategies:
             a = key('max_information', 'distance_to_90pct')
@@ -173,9 +184,10 @@ def verdict(strategies: dict) -> dict:
 
 
 def plot(result: dict, out_dir: Path) -> list[Path]:
+    """Draw the mapped-fraction and distance curves into `out_dir`; the files written."""
     import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     for name, r in result['strategies'].items():
         c = r['curve']
@@ -246,6 +258,7 @@ def format_json(result: dict) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """fig_3_13's command line."""
     p = argparse.ArgumentParser(prog='fig_3_13', description=__doc__.split('\n\n')[0])
     p.add_argument('--world', default=WorldName.UNSTRUCTURED.value,
                    help=f'{" | ".join(enum_choices(WorldName))} | path to a PNG (dark = '
@@ -311,6 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run coop_viewplan fig_3_13`: the exploration runs over seeds, table and plots."""
     parser = build_parser()
     args = parser.parse_args(argv)
     default_wide = args.world == WorldName.UNSTRUCTURED and args.cameras == 1

@@ -28,9 +28,11 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +54,7 @@ from .nbv import (
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
+    ReachModel,
     StrategyName,
     geodesic_path,
     waypoints,
@@ -168,12 +171,12 @@ class SimMapper:
     def __enter__(self) -> SimMapper:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ world
     def step_for(self, seconds: float) -> None:
-        for _ in range(int(round(seconds / self.world.dt))):
+        for _ in range(round(seconds / self.world.dt)):
             self.world.step()
 
     def camera(self, i: int) -> tuple[np.ndarray, float, float]:
@@ -192,7 +195,8 @@ class SimMapper:
             self.world.command_mast(i, self.mast_joints, [0.6], [[pan, tilt]])
         self.step_for(0.6 + settle_s)
 
-    def drive(self, paths: dict[int, np.ndarray], *, tol_m: float = 0.08) -> dict[int, float]:
+    def drive(self, paths: Mapping[int, Sequence[np.ndarray] | np.ndarray], *,
+              tol_m: float = 0.08) -> dict[int, float]:
         """Drive rovers along their waypoint lists (map xy) at once: turn on the spot when the
         heading is off by more than 20 deg, else drive with a proportional heading correction.
         Returns the distance each anchor (the chassis) moved."""
@@ -203,7 +207,7 @@ class SimMapper:
         limit = sum(float(np.sum(np.linalg.norm(np.diff(np.vstack([last[i], *p]), axis=0),
                                                 axis=1))) for i, p in todo.items())
         t_max = w.time_s + limit / (0.5 * self.cfg.max_speed_m_s) + 20.0
-        every = max(1, int(round(0.05 / w.dt)))
+        every = max(1, round(0.05 / w.dt))
         touching: set[int] = set()
         while todo and w.time_s < t_max:
             for i in list(todo):
@@ -260,7 +264,7 @@ class SimMapper:
         if len(pts) == 0:
             return 0
         self.map.insert_scan(pts, t, covariances=cov, source=f'rover{i + 1}')
-        return int(len(pts))
+        return len(pts)
 
     def counts(self) -> dict[str, int]:
         """Known and occupied voxels of the shared map: in the site (the planning volume: the
@@ -279,17 +283,19 @@ class SimMapper:
 
 
 def planner_config(cfg: Fig325Config, mapper: SimMapper, camera_height_m: float) -> NbvConfig:
+    """The planner's settings for the experiment's camera and map."""
     return NbvConfig(fov_deg=mapper.hfov_deg, vfov_deg=mapper.vfov_deg, depth_m=cfg.depth_m,
                      n_az=24, n_el=18, step_cells=1.0, k_rel=cfg.k_rel,
                      n_positions=cfg.n_positions, n_yaw=cfg.n_yaw,
                      pitches_deg=tuple(cfg.pitches_deg), camera_height_m=camera_height_m,
-                     clearance_m=cfg.clearance_m, p_empty=cfg.p_empty, reach_model='evidence',
+                     clearance_m=cfg.clearance_m, p_empty=cfg.p_empty,
+                     reach_model=ReachModel.EVIDENCE,
                      raster_spacing_m=cfg.raster_spacing_m,
                      raster_headings=cfg.raster_headings, free_gray=cfg.free_gray)
 
 
 def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
-                 log=None, save_map: Path | None = None) -> dict:
+                 log: Callable[[str], None] | None = None, save_map: Path | None = None) -> dict:
     """One run of one strategy: mapped voxel counts after the initial scan and each of
     `cfg.scans` planned scans (every rover scans once per scan step). save_map: write the
     shared map there at the end (the mapper's file format: `mapper -p map_file:=...` loads
@@ -320,7 +326,7 @@ def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
                                 iterations=planner.config.markov_iterations)
             base = planner.traversability(grid)
             claimed = np.zeros(grid.shape, bool)
-            clear = int(math.ceil(cfg.clearance_m / grid.resolution)) + 2
+            clear = math.ceil(cfg.clearance_m / grid.resolution) + 2
             goals: dict[int, np.ndarray] = {}
             paths: dict[int, list] = {}
             aims: dict[int, tuple[float, float]] = {}
@@ -393,8 +399,9 @@ def _top_view(sm: SimMapper) -> dict:
 
 
 def run(cfg: Fig325Config, *, strategies: list[StrategyName | str], seeds: int,
-        log=None) -> dict:
-    out = {'config': {k: (list(v) if isinstance(v, tuple) else v)
+        log: Callable[[str], None] | None = None) -> dict:
+    """Each strategy over the seeds: the per-scan rows and their means (the JSON result)."""
+    out: dict[str, Any] = {'config': {k: (list(v) if isinstance(v, tuple) else v)
                       for k, v in cfg.__dict__.items()},
            'seeds': seeds, 'thesis_claim': THESIS_CLAIM, 'strategies': {}}
     for name in strategies:
@@ -449,6 +456,7 @@ def verdict(res: dict) -> str:
 
 
 def format_table(res: dict) -> str:
+    """The result as a text table: mapped voxels per scan and strategy."""
     s = res['strategies']
     names = list(s)
     cfg = res['config']
@@ -485,9 +493,10 @@ def format_table(res: dict) -> str:
 
 
 def plot(res: dict, out_dir: Path) -> Path:
+    """Draw the mapped-voxel curves into `out_dir`; the file written."""
     import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     s = res['strategies']
     fig, ax = plt.subplots(1, 2 + len(s), figsize=(5 * (2 + len(s)), 4.2))
     for name, v in s.items():
@@ -501,7 +510,7 @@ def plot(res: dict, out_dir: Path) -> Path:
     for a in ax[:2]:
         a.grid(alpha=0.3)
         a.legend()
-    for a, (name, v) in zip(ax[2:], s.items()):
+    for a, (name, v) in zip(ax[2:], s.items(), strict=False):
         tv = v['top_view']
         g = np.array(tv['grid'], float)
         ext = [tv['origin_m'][0], tv['origin_m'][0] + g.shape[0] * tv['resolution_m'],
@@ -517,6 +526,7 @@ def plot(res: dict, out_dir: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_viewplan.fig_3_25`: the Fig. 3-25 analogue in rover_sim."""
     p = argparse.ArgumentParser(description='Fig. 3-25 analogue in rover_sim: mapped voxels per '
                                             'scan, raster vs maximum information pose selection')
     d = Fig325Config()

@@ -3,6 +3,7 @@ and the optical frame (z forward, x right, y down) that ViewRating.pose carries.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from .raycast import rotations
@@ -17,7 +18,7 @@ def optical_quaternion(yaw: float, pitch: float) -> np.ndarray:
     return Rotation.from_matrix(r).as_quat()
 
 
-def yaw_pitch_from_optical(quat_xyzw: np.ndarray) -> tuple[float, float]:
+def yaw_pitch_from_optical(quat_xyzw: ArrayLike) -> tuple[float, float]:
     """Inverse of optical_quaternion: heading of the optical axis (z)."""
     q = np.asarray(quat_xyzw, float)
     if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
@@ -26,7 +27,7 @@ def yaw_pitch_from_optical(quat_xyzw: np.ndarray) -> tuple[float, float]:
     return float(np.arctan2(fwd[1], fwd[0])), float(-np.arcsin(np.clip(fwd[2], -1, 1)))
 
 
-def camera_pose(position, quat_xyzw) -> tuple[np.ndarray, float, float]:
+def camera_pose(position: ArrayLike, quat_xyzw: ArrayLike) -> tuple[np.ndarray, float, float]:
     """A camera's pose from a pose message's position (x, y, z) and optical-frame orientation:
     (position (3,), yaw, pitch). The guard the `view_planner` node applies to a request and
     `coop_viewplan.offline` to a bag's poses: ValueError unless the position is finite and the

@@ -171,7 +171,7 @@ def planning_grid(keys: np.ndarray, occupancy: np.ndarray, resolution: float, *,
     k3 = keys.reshape(-1, 3)
     bounds = planning_bounds(k3, resolution, pad_m=pad_m, ceiling_m=ceiling_m,
                              camera_height_m=camera_height_m)
-    cells = math.prod(int(h) - int(lo) + 1 for lo, h in zip(*bounds))
+    cells = math.prod(int(h) - int(lo) + 1 for lo, h in zip(*bounds, strict=False))
     if max_cells is not None and cells > max_cells:
         raise MapError(f'the planning grid would have {cells} cells > max_grid_cells '
                        f'{max_cells}')

@@ -60,9 +60,10 @@ Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, ClassVar, Protocol, assert_never
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, assert_never
 
 import numpy as np
 from scipy import ndimage
@@ -90,6 +91,9 @@ from .raycast import (
     ray_prefix_visibility,
     transmission_table,
 )
+
+if TYPE_CHECKING:    # for annotations only
+    from scipy.sparse import csr_matrix
 
 
 class StrategyName(StrEnum):
@@ -533,7 +537,7 @@ def _disk(radius_cells: int, ndim: int) -> np.ndarray:
     r = max(0, int(radius_cells))
     ax = np.arange(-r, r + 1)
     g = np.meshgrid(*([ax] * ndim), indexing='ij')
-    return sum(x ** 2 for x in g) <= r * r + 1e-9
+    return np.asarray(sum(x ** 2 for x in g) <= r * r + 1e-9)
 
 
 def footprint_probability(grid2d_prob: np.ndarray, known2d: np.ndarray,
@@ -545,7 +549,7 @@ def footprint_probability(grid2d_prob: np.ndarray, known2d: np.ndarray,
                                   cval=1.0)
 
 
-def _grid_graph(nav: np.ndarray, resolution: float):
+def _grid_graph(nav: np.ndarray, resolution: float) -> tuple[csr_matrix, np.ndarray]:
     """8-connected graph of the navigable cells: (CSR matrix of step lengths, cell ids)."""
     h, w = nav.shape
     ids = np.full(nav.shape, -1, np.int64)
@@ -566,7 +570,7 @@ def _grid_graph(nav: np.ndarray, resolution: float):
     return mat, ids
 
 
-def _check_start(nav: np.ndarray, start) -> bool:
+def _check_start(nav: np.ndarray, start: Sequence[int] | np.ndarray) -> bool:
     if nav.ndim != 2:
         raise ValueError('navigable must be 2-D')
     si, sj = (int(v) for v in start)
@@ -683,9 +687,9 @@ class PlanContext:
         pitches = np.radians(np.asarray(cfg.pitches_deg if self.grid.ndim == 3 else (0.0,)))
         if yaws is None:
             yaw_set = np.arange(cfg.n_yaw) * 2 * np.pi / cfg.n_yaw
-            ci, yi, pi = np.meshgrid(np.arange(len(cells2d)), np.arange(len(yaw_set)),
+            cg, yi, pi = np.meshgrid(np.arange(len(cells2d)), np.arange(len(yaw_set)),
                                      np.arange(len(pitches)), indexing='ij')
-            ci, yaw, pitch = ci.ravel(), yaw_set[yi.ravel()], pitches[pi.ravel()]
+            ci, yaw, pitch = cg.ravel(), yaw_set[yi.ravel()], pitches[pi.ravel()]
         else:
             ci = np.repeat(np.arange(len(cells2d)), len(pitches))
             yaw = np.repeat(np.asarray(yaws, float), len(pitches))
@@ -734,7 +738,7 @@ def _sample_cells(ctx: PlanContext) -> np.ndarray:
     n = ctx.config.n_positions
     if len(cells) <= n:
         return cells
-    n_near = int(round(np.clip(ctx.config.near_fraction, 0.0, 1.0) * n))
+    n_near = round(np.clip(ctx.config.near_fraction, 0.0, 1.0) * n)
     if n_near == 0:
         return cells[ctx.rng.choice(len(cells), n, replace=False)]
     order = np.argsort(ctx.reach[cells[:, 0], cells[:, 1]], kind='stable')
@@ -791,15 +795,16 @@ class RasterStrategy:
     def _next_location(self, ctx: PlanContext) -> Decision:
         g = ctx.grid
         spacing = ctx.config.raster_spacing_m or ctx.config.depth_m / 2
-        step = max(1, int(round(spacing / g.resolution)))
+        step = max(1, round(spacing / g.resolution))
         rows = np.arange(step // 2, g.shape[0], step)
         cols = np.arange(step // 2, g.shape[1], step)
-        order, heading = [], []
+        sweep: list[tuple[int, int]] = []
+        heading: list[float] = []
         for k, i in enumerate(rows):
             cs = cols if k % 2 == 0 else cols[::-1]
-            order += [(i, j) for j in cs]
+            sweep += [(int(i), int(j)) for j in cs]
             heading += [np.pi / 2 if k % 2 == 0 else -np.pi / 2] * len(cs)
-        order = np.array(order)
+        order = np.array(sweep)
         visited = np.array(ctx.camera.visited).reshape(-1, 2) if ctx.camera.visited else None
         n = len(order)
         for t in range(n):
@@ -884,8 +889,8 @@ class FrontierStrategy:
         if g.ndim == 2:
             unknown2d, free2d = ~g.known, g.free(p_empty=ctx.config.p_empty)
         else:
-            unknown2d = ~g.known.any(axis=2)
-            free2d = g.free(p_empty=ctx.config.p_empty).any(axis=2)
+            unknown2d = np.asarray(~g.known.any(axis=2))
+            free2d = np.asarray(g.free(p_empty=ctx.config.p_empty).any(axis=2))
         # Frontier: unknown cells bordering known free space (not obstacle interiors).
         # 4-adjacency: an obstacle's interior cell touching free space only at a corner is
         # hidden behind the obstacle's known faces and never observable.
@@ -1073,7 +1078,7 @@ class NextBestViewPlanner:
                                   resolution=grid.resolution)
         reach[cell[0], cell[1]] = np.inf if not nav[cell[0], cell[1]] else 0.0
         if not (np.isfinite(reach) & trav.candidate).any():
-            raise PlanningError('no free reachable candidate (P < %.2f)' % self.config.p_empty)
+            raise PlanningError(f'no free reachable candidate (P < {self.config.p_empty:.2f})')
         est = gray_estimate(grid, free_gray=self.config.free_gray,
                             iterations=self.config.markov_iterations) \
             if estimate is None else estimate
@@ -1133,13 +1138,33 @@ def plan_cameras(planner: NextBestViewPlanner, grid: OccupancyGrid, cameras: lis
     return out
 
 
-__all__ = ['STRATEGIES', 'STRATEGY_CLASSES', 'UNKNOWN_OCCLUSIONS', 'Candidates', 'CameraState',
-           'Decision',
-           'NbvConfig', 'NextBestViewPlanner', 'PlanningError', 'Traversal', 'ViewScores',
-           'binary_entropy', 'ENTROPY_WEIGHTS', 'occupancy_weight', 'plogp',
-           'configuration_distance', 'expected_information', 'geodesic_distance',
-           'geodesic_path', 'make_strategy', 'waypoints',
-           'max_information', 'plan_cameras', 'rating_function', 'score_views']
+__all__ = [
+    'ENTROPY_WEIGHTS',
+    'STRATEGIES',
+    'STRATEGY_CLASSES',
+    'UNKNOWN_OCCLUSIONS',
+    'CameraState',
+    'Candidates',
+    'Decision',
+    'NbvConfig',
+    'NextBestViewPlanner',
+    'PlanningError',
+    'Traversal',
+    'ViewScores',
+    'binary_entropy',
+    'configuration_distance',
+    'expected_information',
+    'geodesic_distance',
+    'geodesic_path',
+    'make_strategy',
+    'max_information',
+    'occupancy_weight',
+    'plan_cameras',
+    'plogp',
+    'rating_function',
+    'score_views',
+    'waypoints',
+]
 
 
 def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:

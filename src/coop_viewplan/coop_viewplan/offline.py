@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,9 +33,13 @@ from .nbv import (
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
+    ReachModel,
     StrategyName,
 )
 from .params import PARAMS, check_params
+
+if TYPE_CHECKING:    # for annotations only
+    from coop_mapping.voxelmap import VoxelMap
 
 #: the node's parameters that the planning here reads (`nbv_config`, the grid, the seed); the
 #: others (topics, frames, task placement) have nothing to act on off line
@@ -72,13 +77,14 @@ def nbv_config(p: dict) -> NbvConfig:
         fov_deg=p['fov_deg'], depth_m=p['depth_m'], n_az=p['rays_az'], n_el=p['rays_el'],
         step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
         n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
-        clearance_m=p['clearance_m'], p_empty=p['p_empty'], reach_model='evidence',
+        clearance_m=p['clearance_m'], p_empty=p['p_empty'],
+        reach_model=ReachModel.EVIDENCE,
         occupied_voxels=p['occupied_voxels'], occupied_p=p['occupied_p'],
         occupied_clamp=p['occupied_clamp'],
         ni_measure=p['ni_measure'], free_gray=p['free_gray'])
 
 
-def grid_from_voxelmap(vm, p: dict) -> OccupancyGrid:
+def grid_from_voxelmap(vm: VoxelMap, p: dict) -> OccupancyGrid:
     """coop_mapping VoxelMap -> dense planning grid, with the node's checks and its parameter
     values `p` (`grid.planning_grid`, as the node converts the map topic)."""
     from coop_mapping.voxelmap import unpack_keys  # noqa: PLC0415 - see map_from_bag below
@@ -108,6 +114,8 @@ def last_camera_poses(bag: str | Path) -> dict[str, CameraState]:
 
 @dataclass
 class Answer:
+    """One rover's answer: its decision, or None with the reason."""
+
     rover: str
     decision: Decision | None
     message: str
@@ -163,6 +171,7 @@ def format_table(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_viewplan.offline`: next best views on a bag's map."""
     ap = argparse.ArgumentParser(description="next best views on a bag's map, without DDS")
     ap.add_argument('bag', type=Path, help='bag with <rover>/stereo/* (poses, and the map '
                                            'unless --map)')

@@ -88,6 +88,7 @@ PARAMS = {
 
 
 def check_params(p: dict) -> str | None:
+    """The rule between the view planner's parameters: the reason they do not fit, or None."""
     if not p['task_near_m'] < p['task_far_m']:
         return f"task_near_m ({p['task_near_m']}) must be below task_far_m ({p['task_far_m']})"
     return check_frame_params(p)

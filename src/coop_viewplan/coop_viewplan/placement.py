@@ -25,6 +25,7 @@ evaluations). `search='random'` rates a random subset of `max_candidates` candid
 from __future__ import annotations
 
 import copy
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
@@ -140,7 +141,8 @@ def _expanded_hulls(points_sets: list[np.ndarray], target_radius: float, *,
     boxes, candidates = _hull_candidates(sets) if all_3d else (None, None)
     verts: list[np.ndarray] = []
     eqs: list[np.ndarray | None] = []
-    for i, pts in enumerate(sets):
+    for i, set_pts in enumerate(sets):
+        pts = set_pts
         nd = pts.shape[1]
         if boxes is not None:
             box = boxes[i]
@@ -165,7 +167,7 @@ def _expanded_hulls(points_sets: list[np.ndarray], target_radius: float, *,
             if keep is not None:
                 keep = keep.reshape(-1)                 # the sum's (point, corner) order
         elif keep is not None:
-            keep = keep.any(axis=1)                     # no growth: a point of any corner
+            keep = np.asarray(keep.any(axis=1))         # no growth: a point of any corner
         if nd == 3:
             hull = _hull_3d(pts, keep)
             if hull is not None:
@@ -254,7 +256,7 @@ def _hull_candidates(sets: list[np.ndarray], *, max_extent: int = 8
         last[:, a, 0], last[:, a, 1] = ~below[at], ~above[at]
     side = (_CUBE_SIGNS > 0).astype(np.int64)                        # (8, 3)
     keep = last[:, np.arange(3), side].all(axis=2)                    # (points, 8)
-    for i, k in zip(rest[small], np.split(keep, np.cumsum(nr[small])[:-1])):
+    for i, k in zip(rest[small], np.split(keep, np.cumsum(nr[small])[:-1]), strict=False):
         cand[i] = k
     return boxes, cand
 
@@ -286,7 +288,7 @@ def _filled_boxes(sets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.nd
     corner = (at_hi | (pts == lo[sid])).all(axis=1)
     present = np.zeros((len(sets), 2 ** nd), bool)
     present[sid[corner], at_hi[corner] @ (1 << np.arange(nd))] = True
-    return present.all(axis=1) & (hi > lo).all(axis=1), lo, hi
+    return np.asarray(present.all(axis=1) & (hi > lo).all(axis=1)), lo, hi
 
 
 _CORNER_SELECT = {nd: np.array(np.meshgrid(*([[0, 1]] * nd), indexing='ij')).reshape(nd, -1).T
@@ -340,7 +342,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     cells = np.argwhere(occ)
     if len(cells) == 0:
         return []
-    lab, n = ndimage.label(occ)
+    lab, _n = ndimage.label(occ)
     tile_of = tiles[occ]
     # filled tiles: their box's corners (one connected piece each)
     full = np.bincount(tile_of, minlength=mult) == np.bincount(tiles.ravel(), minlength=mult)
@@ -357,7 +359,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
     last = np.append(first[1:], len(full_ids))[:len(first)] - 1
     box_lo, box_hi = box_lo[first], box_hi[last]
     boxes = [grid.origin + (lo + np.where(corners == 0, a, b)) * grid.resolution
-             for a, b in zip(box_lo, box_hi)]
+             for a, b in zip(box_lo, box_hi, strict=False)]
     rest = ~full[tile_of]
     cells = cells[rest]
     if len(cells) == 0:
@@ -380,7 +382,7 @@ def grid_occluders(grid: OccupancyGrid, *, threshold: float = 0.5, unknown_occlu
 def _occluder_mask(grid: OccupancyGrid, lo: np.ndarray, hi: np.ndarray, *,
                    threshold: float = 0.5, unknown_occludes: bool = True) -> np.ndarray:
     """The cells grid_occluders cuts into occluders, of the index box [lo, hi) only."""
-    sl = tuple(slice(a, b) for a, b in zip(lo, hi))
+    sl = tuple(slice(a, b) for a, b in zip(lo, hi, strict=False))
     known = grid.known[sl]
     occ = known & (grid.prob[sl] >= threshold)
     return occ | ~known if unknown_occludes else occ
@@ -433,13 +435,13 @@ def _cells_as_boxes(grid: OccupancyGrid, sets: list[np.ndarray], *, unknown_occl
     """The occluder cells (`_occluder_mask`) inside the bounding boxes of cell-corner vertex
     sets (tile pieces of grid_occluders), each cell as its box's corners: the same occluders,
     exactly."""
-    cells = []
+    per_set = []
     for pts in sets:
         lo = np.rint((pts.min(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
         hi = np.rint((pts.max(axis=0) - grid.origin) / grid.resolution).astype(np.int64)
-        cells.append(np.argwhere(_occluder_mask(grid, lo, hi,
-                                                unknown_occludes=unknown_occludes)) + lo)
-    cells = np.unique(np.concatenate(cells), axis=0)
+        per_set.append(np.argwhere(_occluder_mask(grid, lo, hi,
+                                                  unknown_occludes=unknown_occludes)) + lo)
+    cells = np.unique(np.concatenate(per_set), axis=0)
     corners = _CORNER_SELECT[grid.ndim]
     return list(grid.origin + (cells[:, None, :] + corners[None]) * grid.resolution)
 
@@ -519,7 +521,7 @@ def _hull_entry_each(target: np.ndarray, eqs: list[np.ndarray], u: np.ndarray,
 
 
 def _ray_pairs(target: np.ndarray, centre: np.ndarray, rad2: np.ndarray, u: np.ndarray, *,
-               pairs_per_block: int = 1 << 15):
+               pairs_per_block: int = 1 << 15) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """The (direction, shape) pairs whose ray from `target` passes within a shape's bounding
     sphere (centre (S, ndim), squared radius (S,)), in blocks of directions: yields
     (first direction of the block, direction index in the block (ascending), shape index).
@@ -831,8 +833,8 @@ def cells_holding(grid: OccupancyGrid, position: np.ndarray, radius: float) -> n
     # cell i, spanning [i, i + 1) in cells, grown: i - reach < rel < i + 1 + reach
     lo = np.maximum(np.floor(rel - 1 - reach).astype(np.int64) + 1, 0)
     hi = np.minimum(np.ceil(rel + reach).astype(np.int64), np.asarray(grid.shape))
-    axes = [np.arange(a, b) for a, b in zip(lo, hi)]
-    axes = [a[(a - reach < r) & (r < a + 1 + reach)] for a, r in zip(axes, rel)]
+    axes = [np.arange(a, b) for a, b in zip(lo, hi, strict=False)]
+    axes = [a[(a - reach < r) & (r < a + 1 + reach)] for a, r in zip(axes, rel, strict=False)]
     if any(len(a) == 0 for a in axes):
         return np.zeros((0, grid.ndim), np.int64)
     return np.stack(np.meshgrid(*axes, indexing='ij'), axis=-1).reshape(-1, grid.ndim)
@@ -866,7 +868,7 @@ class TaskPlacer:
         self.n_dirs = int(n_dirs)
         self.cache_fields = int(cache_fields)
         self._cache_grid: OccupancyGrid | None = None
-        self._cache: dict[tuple, VisibilityField] = {}
+        self._cache: dict[tuple, VisibilityField | PlacementError] = {}
         self.unknown_occludes = unknown_occludes
 
     def narrowed(self, near_m: float = 0.0, far_m: float = 0.0, *,
@@ -973,8 +975,8 @@ class TaskPlacer:
                                 unknown_occludes=self.unknown_occludes), t.radius)
             keep = np.ones(len(hulls), bool)
             keep[holding] = False
-            hulls = [h for h, k in zip(hulls, keep) if k] + cell_hulls
-            equations = [e for e, k in zip(equations, keep) if k] + cell_eqs
+            hulls = [h for h, k in zip(hulls, keep, strict=False) if k] + cell_hulls
+            equations = [e for e, k in zip(equations, keep, strict=False) if k] + cell_eqs
         try:
             f = VisibilityField(t.position, hulls, n_dirs=self.n_dirs, equations=equations)
         except PlacementError as exc:       # the target inside an occluder: cached too
@@ -1003,7 +1005,7 @@ class TaskPlacer:
             ub = dof ** e.dof * res ** e.res * (1 - p) * target.weight
         return np.where(dof > 0, ub, 0.0)
 
-    def place(self, grid: OccupancyGrid, primary: Target, secondary: list[Target] = (), *,
+    def place(self, grid: OccupancyGrid, primary: Target, secondary: Sequence[Target] = (), *,
               rng: np.random.Generator, hulls: list[np.ndarray] | None = None,
               fields: list[VisibilityField] | None = None,
               stations: Stations | None = None,
@@ -1047,7 +1049,7 @@ class TaskPlacer:
 
         unrated: list[int] = []
 
-        def rating_of(k: int, sel) -> np.ndarray:
+        def rating_of(k: int, sel: np.ndarray | slice) -> np.ndarray:
             """Eq. 4-1 of target k at cams[sel]; 0 for a secondary target that is inside an
             expanded occluder (recorded in `unrated`)."""
             try:

@@ -123,8 +123,8 @@ def cast(grid: OccupancyGrid, positions: np.ndarray, yaw: np.ndarray,
     steps = (template.ranges / grid.resolution).astype(np.float32)            # (S,)
     shape = grid.shape
     itype = np.int32 if grid.prob.size < 2 ** 31 - 1 else np.int64
-    flat = None
-    inb = None
+    flat: np.ndarray | None = None
+    inb: np.ndarray | None = None
     # Per axis, so no (M, R, S, D) temporaries: index = floor(cell + dir * range).
     for ax in range(grid.ndim):
         c = np.floor(cells[:, ax, None, None] + world_dirs[:, :, ax, None] * steps[None, None, :])
@@ -132,6 +132,7 @@ def cast(grid: OccupancyGrid, positions: np.ndarray, yaw: np.ndarray,
         ok = (i >= 0) & (i < shape[ax])
         inb = ok if inb is None else inb & ok
         flat = i if flat is None else flat * itype(shape[ax]) + i
+    assert flat is not None and inb is not None         # a grid has 2 or 3 axes
     np.copyto(flat, -1, where=~inb)
     block = grid.occupied() if blocking is None else np.asarray(blocking, dtype=bool)
     blk = block.reshape(-1)[np.maximum(flat, 0)]

@@ -40,6 +40,8 @@ def _thesis(v: float) -> str:
 
 def format_table(cells: list[dict], trials: int, *,
                  clear_zone_m: float = DEFAULT_CLEAR_ZONE_M) -> str:
+    """The cells as Table 4-1's text: success per method, density and tolerance, ours and the
+    thesis's."""
     idx = {(c['tolerance'], c['method'], c['density'], c['secondary']): c for c in cells}
     dens = sorted({c['density'] for c in cells})
     tols = sorted({c['tolerance'] for c in cells}, reverse=True)
@@ -53,7 +55,7 @@ def format_table(cells: list[dict], trials: int, *,
         lines.append(f'tolerance {tol * 100:g}%')
         for m in METHODS:
             row = f'  {LABEL[m]:42s}'
-            for di, d in enumerate(dens):
+            for d in dens:
                 for si, sec in enumerate((False, True)):
                     c = idx.get((tol, m, d, sec))
                     th = THESIS_TABLE_4_1.get(tol, {}).get(m)
@@ -100,10 +102,10 @@ def plot_rating_maps(out_dir: Path, *, seed: int = 7, density: float = 0.20) -> 
     the thesis)."""
     import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     maps = rating_maps(seed, density)
     fig, axes = plt.subplots(1, len(maps), figsize=(6 * len(maps), 5.5))
-    for ax, m in zip(axes, maps):
+    for ax, m in zip(axes, maps, strict=False):
         g = m['grid']
         ext = [g.origin[0], g.origin[0] + g.shape[0] * g.resolution,
                g.origin[1], g.origin[1] + g.shape[1] * g.resolution]
@@ -127,6 +129,7 @@ def plot_rating_maps(out_dir: Path, *, seed: int = 7, density: float = 0.20) -> 
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run coop_viewplan table_4_1`: the placement study over densities and tolerances."""
     p = argparse.ArgumentParser(prog='table_4_1', description=__doc__.split('\n\n')[0])
     p.add_argument('--trials', type=number(int, lo=1), default=300,
                    help='trials per cell (thesis: 300)')

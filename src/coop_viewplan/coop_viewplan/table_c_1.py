@@ -73,12 +73,12 @@ def study(images: list[np.ndarray], sizes: tuple[int, ...] = SIZES) -> dict:
     for m in range(1, 11):
         row = []
         for s in sizes:
-            crs = []
+            ratios: list[float] = []
             for img in images:
                 h, w = img.shape
                 c = img[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]
-                crs.append(compression_ratio(c, m))
-            crs = np.array(crs)
+                ratios.append(compression_ratio(c, m))
+            crs = np.array(ratios)
             crs = crs[np.isfinite(crs)]
             row.append([float(crs.mean()), float(crs.std())] if len(crs) else [None, None])
         out[m] = row
@@ -95,7 +95,7 @@ def format_json(result: dict) -> str:
         lines.append('method ' + ''.join(f'{f"{s}^2":>22s}' for s in SIZES))
         for m, row in sorted((int(m), row) for m, row in table.items()):
             cells = ''.join(f'{f"{v[0]:.3f}+-{v[1]:.3f} [{t:.3f}]":>22s}'
-                            for v, t in zip(row, thesis[m]))
+                            for v, t in zip(row, thesis[m], strict=False))
             lines.append(f'{m:>6d} {cells}')
     lines.append(f"best predictor at 256^2 on scenes: method {result['best_predictor_256']} "
                  '(thesis: method 5)')
@@ -103,6 +103,7 @@ def format_json(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run coop_viewplan table_c_1`: the compression ratios on rendered and noise images."""
     p = argparse.ArgumentParser(prog='table_c_1', description=__doc__.split('\n\n')[0])
     p.add_argument('--images', type=number(int, lo=1), default=40)
     p.add_argument('--noise', type=number(int, lo=0), default=20, help='pure-noise images')

@@ -67,7 +67,7 @@ DENSITIES = (0.05, 0.20, 0.35)
 TOLERANCES = (0.20, 0.10, 0.01)
 
 #: Table 4-1 as printed (success %, "<<1" as 0.1); [tolerance][method][density][secondary].
-THESIS_TABLE_4_1 = {
+THESIS_TABLE_4_1: dict[float, dict[Method, list[list[float]]]] = {
     0.20: {Method.OPTIMAL_REPLACEMENT: [[100, 100], [76, 95], [13, 25]],
            Method.RANDOM_REPLACEMENT: [[51, 63], [18, 31], [5, 10]],
            Method.RANDOM_FIXED: [[45, 58], [16, 28], [5, 9]]},
@@ -80,8 +80,14 @@ THESIS_TABLE_4_1 = {
 }
 
 
+#: the study's camera (StudyConfig.camera)
+STUDY_CAMERA = CameraModel(fov_deg=60.0, pixels=640, near_m=1.0, far_m=20.0)
+
+
 @dataclass(frozen=True)
 class StudyConfig:
+    """The placement study's world, object, camera and tolerances (§4 study)."""
+
     size_m: float = 60.0
     resolution_m: float = 0.5
     target_radius_m: float = 0.25
@@ -90,7 +96,7 @@ class StudyConfig:
     approach_m: float = 15.0
     stop_m: float = 2.0
     steps: int = 8
-    camera: CameraModel = CameraModel(fov_deg=60.0, pixels=640, near_m=1.0, far_m=20.0)
+    camera: CameraModel = STUDY_CAMERA
     clearance_m: float = 0.5
     kappa_px: float = 1.0
     task_scale_m: float = 0.5
@@ -105,6 +111,8 @@ class StudyConfig:
 
 @dataclass
 class Scenario:
+    """One study scene: the known world, the two targets and the moving object."""
+
     grid: OccupancyGrid          # static world, exactly known (as in the thesis's study)
     primary: Target
     secondary: Target
@@ -126,9 +134,10 @@ def _inside_hull(grid: OccupancyGrid, t: Target, reach_m: float = 4.0) -> bool:
 
 
 def make_scenario(rng: np.random.Generator, density: float, cfg: StudyConfig) -> Scenario:
+    """A random scene of obstacle `density` under `cfg`, drawn from `rng`."""
     if not cfg.clear_zone_m >= 0:
         raise ValueError('clear_zone_m must be >= 0')
-    n = int(round(cfg.size_m / cfg.resolution_m))
+    n = round(cfg.size_m / cfg.resolution_m)
     res = cfg.resolution_m
     xx, yy = np.meshgrid((np.arange(n) + 0.5) * res, (np.arange(n) + 0.5) * res, indexing='ij')
     centre = np.array([cfg.size_m / 2, cfg.size_m / 2])
@@ -185,7 +194,8 @@ def make_scenario(rng: np.random.Generator, density: float, cfg: StudyConfig) ->
     ax = np.arange(-rc, rc + 1)
     gi, gj = np.meshgrid(ax, ax, indexing='ij')
     disc = (gi ** 2 + gj ** 2) * res * res <= cfg.object_radius_m ** 2
-    return Scenario(grid, primary, secondary, path, np.argwhere(disc) - rc, tuple(radii))
+    return Scenario(grid, primary, secondary, path, np.argwhere(disc) - rc,
+                    (radii[0], radii[1]))
 
 
 def _static_field(grid: OccupancyGrid, t: Target, cfg: StudyConfig) -> VisibilityField:
@@ -251,7 +261,8 @@ def run_trial(seed: int, density: float, *, use_secondary: bool,
             obj = move_known_object(grid, obj, sc.object_cells,
                                     grid.to_index(sc.path[k]))
             hull = _object_hull(grid, obj, 0.0)
-            fields = [_with_object(f, hull, t) for f, t in zip(static_fields, targets)]
+            fields = [_with_object(f, hull, t)
+                      for f, t in zip(static_fields, targets, strict=False)]
             if cam is not None and grid.prob[tuple(grid.to_index(cam))] >= 0.5:
                 # the object hit the camera: a fixed one is lost, the others are placed anew
                 if method is Method.RANDOM_FIXED:
@@ -269,22 +280,24 @@ def run_trial(seed: int, density: float, *, use_secondary: bool,
                     cam, watched = pl.position, pl.target_index
                 case Method.RANDOM_REPLACEMENT | Method.RANDOM_FIXED:
                     seen = [] if cam is None else [i for i, (t, f) in enumerate(
-                        zip(targets, fields)) if _seen(cam, t, f, cfg)]
+                        zip(targets, fields, strict=False)) if _seen(cam, t, f, cfg)]
                     if not seen and (cam is None or method is Method.RANDOM_REPLACEMENT):
                         cam = _random_biased(grid, targets, fields, placer, mrng)
                         seen = [] if cam is None else [i for i, (t, f) in enumerate(
-                            zip(targets, fields)) if _seen(cam, t, f, cfg)]
+                            zip(targets, fields, strict=False)) if _seen(cam, t, f, cfg)]
                     if not seen:
                         tracked = False
                         break
                     watched = seen[0]
                 case _:
                     assert_never(method)
+            assert cam is not None          # each method placed one, or the run ended
             if not _seen(cam, targets[watched], fields[watched], cfg):
                 tracked = False
                 break
         err = np.inf
         if tracked:
+            assert cam is not None                  # the last step's check held
             t = targets[watched]
             err = abs(_sigma(cam, t, cfg) * z_meas + (t.sigma * z_rel if watched > 0 else 0.0))
         out[method] = {'tracked': tracked, 'error_m': float(err), 'target': watched}
@@ -300,7 +313,7 @@ def _random_biased(grid: OccupancyGrid, targets: list[Target], fields: list[Visi
     except PlacementError:
         return None
     ok = np.zeros(len(cams), bool)
-    for t, f in zip(targets, fields):
+    for t, f in zip(targets, fields, strict=False):
         d = np.linalg.norm(cams - t.position, axis=1)
         ok |= f.visible(cams) & (d >= placer.camera.near_m) & (d <= placer.camera.far_m)
     idx = np.flatnonzero(ok)
@@ -352,7 +365,7 @@ def rating_maps(seed: int, density: float, *, cfg: StudyConfig = StudyConfig()
         obj = move_known_object(grid, np.zeros((0, 2), np.int64), sc.object_cells,
                                 grid.to_index(sc.path[k]))
         hull = _object_hull(grid, obj, 0.0)
-        fields = [_with_object(f, hull, t) for f, t in zip(static, targets)]
+        fields = [_with_object(f, hull, t) for f, t in zip(static, targets, strict=False)]
         pl = placer.place(grid, targets[0], targets[1:], rng=np.random.default_rng(seed),
                           fields=fields)
         img = np.full(grid.shape, np.nan)

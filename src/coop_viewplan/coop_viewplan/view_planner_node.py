@@ -40,6 +40,8 @@ CHOOSE = {TaskView.Request.CHOOSE_BEST: Choose.BEST,
 
 
 class ViewPlannerNode(Node):
+    """The view planner: the team's map in; next best views and task camera poses served."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('view_planner', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params,
@@ -191,7 +193,7 @@ class ViewPlannerNode(Node):
         pos = np.array([msg.position.x, msg.position.y, msg.position.z])
         nrm = np.array([msg.normal.x, msg.normal.y, msg.normal.z])
         def at_least_0(v: float) -> float:      # nan stays nan: Target rejects it
-            return v if v != v else max(0.0, float(v))
+            return v if math.isnan(v) else max(0.0, float(v))
         weight = 1.0 if primary or msg.weight <= 0 else float(msg.weight)
         return Target(pos, nrm, radius=at_least_0(msg.radius_m),
                       sigma=0.0 if primary else at_least_0(msg.position_sigma_m),
@@ -278,6 +280,7 @@ class ViewPlannerNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run coop_viewplan view_planner`."""
     return run_node(ViewPlannerNode, args)
 
 

@@ -241,7 +241,7 @@ def test_rating_bound_is_an_upper_bound():
     for g, targets, fields, cfg in _study_views([3], 0.20):
         placer = TaskPlacer(cfg.camera, clearance_m=cfg.clearance_m, n_dirs=cfg.n_dirs)
         cams, p = placer.all_candidates(g, targets)
-        for t, f in zip(targets, fields):
+        for t, f in zip(targets, fields, strict=False):
             r = rate(cams, t, f, cfg.camera, p).rating
             ub = placer.rating_bound(cams, t, p)
             assert np.all(r <= ub * (1 + 1e-12))
@@ -330,7 +330,7 @@ def test_vectorised_hull_occlusion_matches_a_per_hull_reference():
     from coop_viewplan.placement import _expanded_hulls, sphere_directions
     rng = np.random.default_rng(5)
     dirs = np.vstack([sphere_directions(720), np.eye(3), -np.eye(3)])
-    for trial in range(6):
+    for _trial in range(6):
         hulls = []
         for _ in range(60):
             centre = rng.uniform(-4, 4, 3)
@@ -391,7 +391,7 @@ def test_expanded_hulls_are_the_direct_convex_hulls():
         public = occluder_hulls(sets, r)
         assert len(public) == len(got) and all(map(np.array_equal, got, public))
         boxes = 0
-        for pts, h, eq in zip(sets, got, eqs):
+        for pts, h, eq in zip(sets, got, eqs, strict=False):
             grown = pts if r == 0 else (pts[:, None, :] + cube[None] * r).reshape(-1, 3)
             lo, hi = pts.min(0), pts.max(0)
             corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])

@@ -85,7 +85,7 @@ def test_clear_zone_honoured_and_targets_valid(radius):
     cfg = StudyConfig(clear_zone_m=radius)
     for seed in range(6):
         sc = make_scenario(np.random.default_rng(seed), 0.35, cfg)
-        for t, r in zip((sc.primary, sc.secondary), sc.clear_radii):
+        for t, r in zip((sc.primary, sc.secondary), sc.clear_radii, strict=False):
             assert r >= radius                      # widened only, never narrowed
             assert _min_obstacle_distance(sc, t) > r   # no obstacle cell centre within it
             assert sc.grid.prob[tuple(sc.grid.to_index(t.position))] == 0.0

@@ -40,7 +40,7 @@ def test_two_unknown_cells_at_one_half_give_1_half_quarter():
     row = c.flat[0, 0] // 3
     p = np.where(g.known, g.prob, 0.5)
     vis = expected_visibility(c, p)[0, 0]
-    per_cell = {int(i): float(v) for i, v in zip(row, vis)}
+    per_cell = {int(i): float(v) for i, v in zip(row, vis, strict=False)}
     assert per_cell[0] == per_cell[1] == 1.0                # known free
     assert per_cell[2] == pytest.approx(1.0)                 # first unknown cell
     assert per_cell[3] == pytest.approx(0.5)

@@ -293,6 +293,8 @@ def test_task_stations_in_unknown_space_only_when_unknown_is_free(graph):
     east = both.positions[:, 0] > 5.0
     assert east.any() and len(both.positions) > len(seen.positions)
     np.testing.assert_allclose(both.collision_p[east], 0.5 * node.p['p_empty'])
-    before = {tuple(np.round(x, 6)): p for x, p in zip(seen.positions, seen.collision_p)}
-    after = {tuple(np.round(x, 6)): p for x, p in zip(both.positions, both.collision_p)}
+    before = {tuple(np.round(x, 6)): p
+              for x, p in zip(seen.positions, seen.collision_p, strict=False)}
+    after = {tuple(np.round(x, 6)): p
+             for x, p in zip(both.positions, both.collision_p, strict=False)}
     assert all(after.get(x) == p for x, p in before.items())    # the seen ones unchanged

@@ -17,9 +17,10 @@ import warnings
 import zlib
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import Enum, StrEnum
 from pathlib import Path
-from typing import IO, Any, NamedTuple
+from types import TracebackType
+from typing import IO, Any, NamedTuple, assert_never, cast
 
 import lz4.frame
 import zstandard
@@ -28,6 +29,7 @@ from mcap.records import Channel as McapChannel
 from mcap.records import Chunk, Footer, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from rosbags.interfaces import (
+    ConnectionExtRosbag2,
     Qos,
     QosDurability,
     QosHistory,
@@ -48,12 +50,23 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 from ruamel.yaml import YAML, YAMLError
 
+from coop_common.params import choice
+
 from .errors import BagError
 
 #: Interface packages of this project whose .msg files are registered in every typestore.
 PROJECT_INTERFACE_PACKAGES: tuple[str, ...] = ('coop_msgs',)
+
+
+class Compression(StrEnum):
+    """BagWriter's MCAP chunk compression (the recorder's `compression` parameter)."""
+
+    NONE = 'none'
+    ZSTD = 'zstd'
+
+
 #: MCAP chunk compression choices of BagWriter
-COMPRESSIONS: tuple[str, ...] = ('none', 'zstd')
+COMPRESSIONS = tuple(Compression)
 
 
 class BagNotFoundError(BagError, FileNotFoundError):
@@ -211,7 +224,7 @@ def _qos_from_entry(index: int, entry: Any) -> Qos:
             except (KeyError, ValueError):
                 raise BagError(f'{where}.{key}: {value!r} is not one of '
                                f'{[m.name.lower() for m in enum]}') from None
-        times = {key: QosTime(int(entry[key]['sec']), int(entry[key]['nsec']))
+        times: dict[str, Any] = {key: QosTime(int(entry[key]['sec']), int(entry[key]['nsec']))
                  for key in _QOS_TIMES}
         avoid = entry['avoid_ros_namespace_conventions']
         if not isinstance(avoid, bool):
@@ -236,15 +249,21 @@ class _SplitFile:
     and, once closed, its MCAP file is moved up to `<bag>/<bag>_<i>.mcap` and its metadata kept
     in memory for the bag's metadata.yaml."""
 
-    def __init__(self, bag: Path, index: int, compression: str) -> None:
+    def __init__(self, bag: Path, index: int, compression: Compression) -> None:
         self.name = f'{bag.name}_{index}.mcap'
         self.file_path = bag / self.name            # where the file is once closed
         self.dir = bag / f'{bag.name}_{index}'      # rosbags' bag of this one file
         self.writer = Writer(self.dir, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compression == 'zstd':
-            # MCAP chunk compression: transparent to every MCAP reader (ros2 bag play included);
-            # the rosbag2 metadata keeps compression_mode '' as rosbag2's own MCAP presets do
-            self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        match compression:
+            case Compression.NONE:
+                pass
+            case Compression.ZSTD:
+                # MCAP chunk compression: transparent to every MCAP reader (ros2 bag play
+                # included); the rosbag2 metadata keeps compression_mode '' as rosbag2's own MCAP
+                # presets do
+                self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            case _:
+                assert_never(compression)
         self.writer.open()
         self.messages = 0
 
@@ -304,12 +323,11 @@ class BagWriter:
     """
 
     def __init__(self, path: str | Path, *, typestore: Typestore | None = None,
-                 max_bytes: int = 0, max_duration_s: float = 0.0, compression: str = 'none',
+                 max_bytes: int = 0, max_duration_s: float = 0.0,
+                 compression: Compression | str = Compression.NONE,
                  custom_data: dict[str, str] | None = None) -> None:
         self.path = Path(path)
-        if compression not in COMPRESSIONS:
-            raise ValueError(f'compression must be one of {COMPRESSIONS}, got {compression!r}')
-        self.compression = compression
+        self.compression = choice(Compression, compression, 'compression')
         if self.path.exists():
             raise BagError(f'{self.path} exists already; a bag is never overwritten')
         if max_bytes < 0 or max_duration_s < 0:
@@ -385,6 +403,7 @@ class BagWriter:
             self._open_file()
         if self._file_start_ns is None:
             self._file_start_ns = t_ns
+        assert self._file is not None                # _open_file opened one
         self._file.write(self._conns[topic], t_ns, data)
         self._file_bytes += len(data) + 31   # message record + index entry
         self.counts[topic] += 1
@@ -460,7 +479,8 @@ class BagWriter:
     def __enter__(self) -> BagWriter:
         return self
 
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         self.close()
 
 
@@ -479,6 +499,8 @@ class BagMessage(NamedTuple):
 
 @dataclass
 class TopicInfo:
+    """One topic of a bag: its type, message count, offered QoS and type description."""
+
     name: str
     msgtype: str
     count: int
@@ -558,15 +580,18 @@ def _chunk_records(chunk: Chunk) -> list[McapRecord]:
     chunk's uncompressed size and CRC (when its writer set one), and read by mcap's StreamReader
     to exactly the chunk's end."""
     try:
-        if chunk.compression == '':
-            raw = chunk.data
-        elif chunk.compression == 'zstd':
-            raw = zstandard.ZstdDecompressor().decompress(
-                chunk.data, max_output_size=chunk.uncompressed_size)
-        elif chunk.compression == 'lz4':
-            raw = lz4.frame.decompress(chunk.data)
-        else:
-            raise _ChunkError(f'unknown compression {chunk.compression!r}')
+        # the MCAP specification's chunk compressions: none, zstd, lz4
+        match chunk.compression:
+            case '':
+                raw = chunk.data
+            case 'zstd':
+                raw = zstandard.ZstdDecompressor().decompress(
+                    chunk.data, max_output_size=chunk.uncompressed_size)
+            case 'lz4':
+                raw = lz4.frame.decompress(chunk.data)
+            case _:
+                raise _ChunkError(f"unknown compression {chunk.compression!r} (MCAP's are '', "
+                                  f"'zstd' and 'lz4')")
     except (zstandard.ZstdError, RuntimeError) as exc:      # lz4 raises RuntimeError
         raise _ChunkError(f'{chunk.compression} data do not decompress ({exc})') from None
     if len(raw) != chunk.uncompressed_size:
@@ -578,7 +603,8 @@ def _chunk_records(chunk: Chunk) -> list[McapRecord]:
         return records
     stream = _ExactReader(io.BytesIO(raw), len(raw))
     try:
-        for record in StreamReader(stream, skip_magic=True).records:
+        # (StreamReader reads any readable binary stream; its annotation names a few)
+        for record in StreamReader(cast(IO[bytes], stream), skip_magic=True).records:
             records.append(record)
             if stream.pos == len(raw):
                 return records
@@ -625,7 +651,7 @@ def _scan_mcap(path: Path) -> _ScanResult:
     with path.open('rb') as fh:
         stream = _ExactReader(fh, size)
         try:
-            for record in StreamReader(stream, emit_chunks=True).records:
+            for record in StreamReader(cast(IO[bytes], stream), emit_chunks=True).records:
                 if isinstance(record, Chunk):
                     try:
                         inner = _chunk_records(record)
@@ -683,7 +709,7 @@ class _Source:
             try:
                 doc = YAML(typ='safe').load(meta.read_text())
                 names = doc['rosbag2_bagfile_information']['relative_file_paths']
-            except Exception as exc:  # noqa: BLE001 - any defect of the YAML is reported
+            except Exception as exc:
                 self.problems.append(f'{meta.name}: unreadable ({exc}); recovered from the '
                                      'MCAP files')
             else:
@@ -725,6 +751,7 @@ class _Source:
         out: dict[str, TopicInfo] = {}
         if self.reader is not None:
             for c in self.reader.connections:
+                assert isinstance(c.ext, ConnectionExtRosbag2)      # a rosbag2 reader's
                 info = out.setdefault(c.topic, TopicInfo(c.topic, c.msgtype, 0,
                                                          list(c.ext.offered_qos_profiles),
                                                          c.digest, c.msgdef.data))
@@ -748,7 +775,7 @@ class _Source:
         # ReaderError, but lets the errors of its zstd and lz4 decompressors out as they are
         try:
             yield from self._indexed_messages(self.reader, topics)
-        except Exception as exc:  # noqa: BLE001 - see above; the messages before it stay
+        except Exception as exc:
             where = ('no message readable' if self._last_t is None
                      else f'nothing readable after t={self._last_t} ns')
             self.problems.append(f'{self.path.name}: {where} ({type(exc).__name__}: {exc})')
@@ -772,9 +799,8 @@ class _Source:
             with Reader(file) as one:          # rosbags opens a lone storage file too
                 conns = [c for c in one.connections if topics is None or c.topic in topics]
                 if conns:
-                    for c, t, data in one.messages(connections=conns):
-                        if unzip is not None:
-                            data = unzip.decompressobj().decompress(data)
+                    for c, t, raw in one.messages(connections=conns):
+                        data = raw if unzip is None else unzip.decompressobj().decompress(raw)
                         yield t, c.topic, c.msgtype, data
         for t, topic, msgtype, data in heapq.merge(*map(stream, self.files),
                                                   key=lambda m: m[0]):
@@ -833,7 +859,7 @@ def _register_bag_types(typestore: Typestore, topics: Iterable[TopicInfo]) -> li
             try:
                 typestore.register(get_types_from_msg(info.msgdef, info.msgtype))
                 continue
-            except Exception:  # noqa: BLE001 - fall back to the ament index
+            except Exception:
                 pass
         try:
             ensure_type(typestore, info.msgtype)
@@ -882,6 +908,7 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None, *, raw:
             if raw or topic in undecodable:
                 yield BagMessage(topic, msgtype, t, data)
             else:
+                assert deser is not None                 # a typestore unless raw
                 yield BagMessage(topic, msgtype, t, deser(data, msgtype))
         if src.problems:
             if strict:

@@ -43,7 +43,7 @@ def publisher_qos(offered: Sequence[Qos], *, depth: int = 100) -> QosChoice:
     reliable = all(q.reliability == QosReliability.RELIABLE for q in offered)
     latched = any(q.durability == QosDurability.TRANSIENT_LOCAL for q in offered)
     if latched:
-        return QosChoice(True, True, max(1, max(q.depth for q in offered)))
+        return QosChoice(True, True, max(1, *(q.depth for q in offered)))
     return QosChoice(reliable, False, depth)
 
 

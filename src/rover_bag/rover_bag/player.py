@@ -124,7 +124,7 @@ class Player(Node):
                 self._play_once()
                 if not self.params['loop']:
                     break
-        except Exception as exc:  # noqa: BLE001 - reported, then the node ends
+        except Exception as exc:
             self.get_logger().error(f'playback failed: {exc}')
         finally:
             stats = summarize_lateness(self.lateness)
@@ -152,10 +152,9 @@ class Player(Node):
             if self._stop.is_set():
                 return
             wait = t0 + ev.due_s - time.perf_counter()
-            if wait > 0:
-                # sleep, not spin: the CPU is shared; Linux wakes ~0.1 ms late
-                if self._stop.wait(wait):
-                    return
+            # sleep, not spin: the CPU is shared; Linux wakes ~0.1 ms late
+            if wait > 0 and self._stop.wait(wait):
+                return
             self.lateness.append(max(0.0, time.perf_counter() - t0 - ev.due_s))
             if ev.topic is None:
                 clock_msg.clock.sec, clock_msg.clock.nanosec = divmod(ev.t_ns, 1_000_000_000)
@@ -171,6 +170,7 @@ class Player(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run rover_bag play`."""
     argv = sys.argv if args is None else args
     cli = argparse.ArgumentParser(prog='play', description=__doc__.split('\n\n')[0])
     cli.add_argument('bag', nargs='?', help='bag directory or .mcap file (same as -p bag:=...)')

@@ -88,7 +88,7 @@ class Recorder(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('rover_bag_recorder', **kwargs)
         p = declare_parameters(self, PARAMS)
-        out = p['output'] or datetime.datetime.now(datetime.timezone.utc).strftime(
+        out = p['output'] or datetime.datetime.now(datetime.UTC).strftime(
             'rosbag2_%Y_%m_%d-%H_%M_%S')
         self._include = [t for t in p['topics'] if t]
         self._exclude = list(p['exclude'])
@@ -212,6 +212,7 @@ class Recorder(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run rover_bag record`."""
     argv = sys.argv if args is None else args
     cli = argparse.ArgumentParser(prog='record', description=__doc__.split('\n\n')[0])
     cli.add_argument('-o', '--output', help='bag directory (same as -p output:=...)')

@@ -247,7 +247,7 @@ def test_foreign_readers_open_the_bag(ts, tmp_path):
         with f.open('rb') as fh:
             reader = make_reader(fh)
             assert reader.get_header().profile == 'ros2'
-            for schema, channel, message in reader.iter_messages():
+            for schema, channel, _message in reader.iter_messages():
                 assert schema.encoding == 'ros2msg' and channel.message_encoding == 'cdr'
                 n += 1
     assert n == 901
@@ -269,7 +269,7 @@ def test_no_metadata_reads_what_the_files_allow(ts, tmp_path):
     written = write_sample(ts, tmp_path / 'bag', max_bytes=20_000)
     (tmp_path / 'bag' / 'metadata.yaml').unlink()
     got = []
-    with pytest.raises(DamagedBagError, match='no metadata.yaml'):
+    with pytest.raises(DamagedBagError, match=r'no metadata\.yaml'):
         for m in read_messages(tmp_path / 'bag', raw=True):
             got.append((m.topic, m.t_ns, bytes(m.msg)))
     assert got == sorted(written, key=lambda w: w[1])      # all of it, before the error
@@ -384,7 +384,7 @@ def test_flush_then_kill_keeps_flushed_messages(ts, tmp_path):
     bag.abort()          # what SIGKILL leaves: no metadata, the unflushed file unfinished
     got = [m.msg.data for m in read_messages(tmp_path / 'bag', strict=False)]
     assert got == [f'm{i}' for i in range(50)]
-    with pytest.raises(DamagedBagError, match='bag_1.mcap: truncated'):
+    with pytest.raises(DamagedBagError, match=r'bag_1\.mcap: truncated'):
         list(read_messages(tmp_path / 'bag'))
 
 
@@ -392,7 +392,7 @@ def test_unknown_type(ts, tmp_path):
     with BagWriter(tmp_path / 'w', typestore=ts) as bag:
         with pytest.raises(UnknownTypeError, match="unknown message type 'nopkg/msg/Nope'"):
             bag.add_topic('/x', 'nopkg/msg/Nope')
-        with pytest.raises(UnknownTypeError, match='has no Nope.msg'):
+        with pytest.raises(UnknownTypeError, match=r'has no Nope\.msg'):
             bag.add_topic('/x', 'coop_msgs/msg/Nope')
         bag.add_topic('/s', STR)
         with pytest.raises(BagError, match='already recorded as std_msgs/msg/String'):

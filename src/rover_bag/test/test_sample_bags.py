@@ -47,7 +47,7 @@ def test_ident_bag():
     (truth,) = [m.msg for m in read_messages(bag, ['/sim/rover1/parameters'])]
     assert list(truth.names) == list(PARAM_NAMES)
     assert truth.values == pytest.approx(load_truth().to_vector())
-    arm = np.array([dict(zip(m.msg.name, m.msg.position))['arm_joint_1']
+    arm = np.array([dict(zip(m.msg.name, m.msg.position, strict=False))['arm_joint_1']
                     for m in read_messages(bag, ['/rover1/joint_states'])])
     assert arm.max() - arm.min() > 1.0          # the excitation moved the arm
     # a live identification: one arm command and one estimate per 0.4 s window

@@ -1,1 +1,2 @@
+"""The rover's hardware side: the serial protocol, the bridge node, the controller emulator."""
 

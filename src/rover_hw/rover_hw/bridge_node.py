@@ -8,6 +8,7 @@ subscriptions and the services. A stop always wins: see rover_hw.safety.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -16,12 +17,14 @@ from typing import assert_never
 
 import numpy as np
 import serial
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseWithCovarianceStamped, Twist, WrenchStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import Node as LifecycleNode
 from rclpy.lifecycle import State, TransitionCallbackReturn
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu, JointState
 from std_srvs.srv import SetBool
 from trajectory_msgs.msg import JointTrajectory
@@ -52,6 +55,7 @@ from coop_common.rover_geometry import (
 from coop_common.tf_tree import TreeBroadcaster
 from coop_msgs.msg import Inclinometer
 from coop_msgs.srv import CalibrateInclinometer
+from rover_sim.compliance import matrix_to_quat
 from rover_sim.trajectory import JointTrajectoryFollower, TrajectoryError
 
 from . import protocol as p
@@ -116,7 +120,6 @@ PARAMS = {
 
 
 def _stamp(t_ns: int):
-    from builtin_interfaces.msg import Time
     return Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
 
 
@@ -163,6 +166,8 @@ class ClockMap:
 
 
 class BridgeNode(LifecycleNode):
+    """The hardware bridge: a lifecycle node between the ROS topics and a rover's serial link."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('bridge', **kwargs)
         self.values = declare_parameters(self, PARAMS, on_change=self._on_param_change,
@@ -339,10 +344,8 @@ class BridgeNode(LifecycleNode):
         port, self._port = self._port, None
         self.connected = False
         if port is not None:
-            try:
+            with contextlib.suppress(serial.SerialException, OSError):
                 port.close()
-            except (serial.SerialException, OSError):
-                pass
 
     def _send(self, payload: p.Payload) -> int | None:
         """Write one frame; its sequence number, or None when the link is down."""
@@ -450,10 +453,10 @@ class BridgeNode(LifecycleNode):
             if pl.status is not p.AckStatus.OK:
                 self.bad.reject('device refused a command',
                                 f'{p.FrameType(pl.frame_type).name} seq {pl.seq}')
-        elif isinstance(pl, p.Heartbeat):
-            if (pl.flags & p.Flags.ESTOP) and not self.safety.estopped:
-                self.safety.engage_estop('device reports its stop latched')
-                self.get_logger().warn('device reports e-stop latched')
+        elif isinstance(pl, p.Heartbeat) and (pl.flags & p.Flags.ESTOP) \
+                and not self.safety.estopped:
+            self.safety.engage_estop('device reports its stop latched')
+            self.get_logger().warn('device reports e-stop latched')
 
     def _on_sensors(self, s: p.Sensors, t_in: int) -> None:
         enc = np.array(s.encoders, dtype=float) * p.ENCODER_RAD
@@ -532,11 +535,11 @@ class BridgeNode(LifecycleNode):
         js.velocity = [*(c * p.ENCODER_RATE_RAD_S for c in s.encoder_rates), *tach, 0.0]
         pubs['joints'].publish(js)
         if s.t_us >= self._next_odom_us:
-            self._next_odom_us = s.t_us + int(round(1e6 / vals['odom_rate_hz'])) - 500
+            self._next_odom_us = s.t_us + round(1e6 / vals['odom_rate_hz']) - 500
             self._publish_odom(stamp, v, w, js)
         rate = vals['stereo_pose_rate_hz']
         if rate > 0 and s.t_us >= self._next_pose_us:
-            self._next_pose_us = s.t_us + int(round(1e6 / rate)) - 500
+            self._next_pose_us = s.t_us + round(1e6 / rate) - 500
             self._publish_pose(stamp, enc)
         self.published += 1
         now = time.monotonic_ns()
@@ -568,7 +571,6 @@ class BridgeNode(LifecycleNode):
         stereo/pose, blind to the compliance)."""
         x, y, yaw = self._odom
         t = camera_in_map(x, y, yaw, float(enc[4]), float(enc[5]))
-        from rover_sim.compliance import matrix_to_quat
         q = matrix_to_quat(t[:3, :3])
         msg = PoseWithCovarianceStamped()
         msg.header.stamp, msg.header.frame_id = stamp, self.rover_frames.map
@@ -659,8 +661,8 @@ class BridgeNode(LifecycleNode):
             # the wheels told to stand (the device's own e-stop holds everything else)
             self._send(p.DriveCommand(p.DriveMode.VELOCITY, (0.0, 0.0, 0.0, 0.0)))
             return
-        lead_ns = int(round(self.values['setpoint_lead_s'] * 1e9))
-        period_us = int(round(1e6 / self.values['command_rate_hz']))
+        lead_ns = round(self.values['setpoint_lead_s'] * 1e9)
+        period_us = round(1e6 / self.values['command_rate_hz'])
         frames: list[p.Payload] = []
         with self._lock:
             if not self._seeded:
@@ -789,7 +791,6 @@ class BridgeNode(LifecycleNode):
             res.success, res.message, res.points = False, str(exc), 1
             return res
         self._calib.pop(axis)
-        from rclpy.parameter import Parameter
         result = self.set_parameters([
             Parameter(f'incl_{axis}_zero_v', value=zero),
             Parameter(f'incl_{axis}_sensitivity_v_per_deg', value=sens)])
@@ -812,6 +813,7 @@ class BridgeNode(LifecycleNode):
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run rover_hw bridge`."""
     return run_node(BridgeNode, args,
                     executor_factory=lambda: MultiThreadedExecutor(num_threads=2))
 

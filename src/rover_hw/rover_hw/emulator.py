@@ -18,14 +18,20 @@ import sys
 import termios
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import assert_never
+from typing import TYPE_CHECKING, assert_never
 
 from coop_common.rover_geometry import GROUP_JOINTS, JointGroup
+from rover_sim.rover_model import ARM_JOINTS, MAST_JOINTS
 
 from . import protocol as p
 from .protocol import Flags
+
+if TYPE_CHECKING:    # for annotations only: the world imports PyBullet
+    from rover_sim.world import World
+from .safety import Limits, wheels_to_twist
 
 ENCODERS = 6
 #: timed set-points a joint group holds ahead (2.5 s at 200 Hz; the bridge sends 0.1 s ahead)
@@ -114,11 +120,11 @@ def corrupt(frame: bytes, rng: random.Random) -> bytes:
     return bytes(b)
 
 
-def make_world(*, seed: int = 1, noise_fraction: float = 0.1, truth_yaml: str = ''):
+def make_world(*, seed: int = 1, noise_fraction: float = 0.1, truth_yaml: str = '') -> World:
     """One rover in rover_sim's world (its sensors, noise and truth). Imports PyBullet."""
-    from coop_common.dynparams import load_truth
-    from rover_sim.config import NoiseConfig, SimConfig
-    from rover_sim.world import World
+    from coop_common.dynparams import load_truth  # noqa: PLC0415 - only with a world
+    from rover_sim.config import NoiseConfig, SimConfig  # noqa: PLC0415 - only with a world
+    from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only with a world
 
     config = SimConfig(rovers=1, seed=seed, stereo_rate_hz=0.0,
                        noise=NoiseConfig(fraction=noise_fraction))
@@ -130,7 +136,7 @@ class Device:
     tick and a heartbeat every 10th of a second, follows the host's commands, and stops every
     motor when the host falls silent for `host_timeout_s` or the e-stop is latched."""
 
-    def __init__(self, world, *, faults: Faults | None = None, host_timeout_s: float = 0.25,
+    def __init__(self, world: World, *, faults: Faults | None = None, host_timeout_s: float = 0.25,
                  heartbeat_hz: float = 10.0) -> None:
         self.world = world
         self.dt = world.dt
@@ -141,7 +147,7 @@ class Device:
         self._setpoints: dict[JointGroup, list[tuple[float, tuple, tuple]]] = {'arm': [],
                                                                                'mast': []}
         self.late_setpoints = 0         # timed set-points that came at or after their time
-        self._hb_every = max(1, int(round(1.0 / (heartbeat_hz * self.dt))))
+        self._hb_every = max(1, round(1.0 / (heartbeat_hz * self.dt)))
         self.estop = False
         self.last_host_s = -math.inf
         self.motors_enabled = False
@@ -178,14 +184,13 @@ class Device:
             self._apply(pl)
         return b''
 
-    def _apply(self, pl) -> None:
+    def _apply(self, pl: p.Payload) -> None:
         w = self.world
         if isinstance(pl, p.ArmCommand):
             self._follow('arm', pl)
         elif isinstance(pl, p.MastCommand):
             self._follow('mast', pl)
         elif isinstance(pl, p.DriveCommand):
-            from .safety import Limits, wheels_to_twist
             wheels = list(pl.wheels)
             if pl.mode is p.DriveMode.PWM:
                 # no-load speed proportional to duty (app. D: 49 rpm at 12 V)
@@ -194,7 +199,7 @@ class Device:
             v, yaw_rate = wheels_to_twist(wheels, Limits())
             w.command_velocity(0, v, yaw_rate)
 
-    def _follow(self, group: JointGroup, pl) -> None:
+    def _follow(self, group: JointGroup, pl: p.ArmCommand | p.MastCommand) -> None:
         """A position-velocity-time set-point stream: the joint references pass through the
         timed set-points still ahead, by cubic interpolation from where the reference is now.
         Re-planned from the reference's own value and speed, the path is the same however a
@@ -232,7 +237,6 @@ class Device:
         for queue in self._setpoints.values():
             queue.clear()
         w.command_velocity(0, 0.0, 0.0)
-        from rover_sim.rover_model import ARM_JOINTS, MAST_JOINTS
         # hold where the joints are (their encoders), not where the last set-point was
         w.command_arm(0, ARM_JOINTS, [self.dt], [list(w.joint_positions(0, ARM_JOINTS))])
         w.command_mast(0, MAST_JOINTS, [self.dt], [list(w.joint_positions(0, MAST_JOINTS))])
@@ -277,20 +281,21 @@ class Device:
         if any(abs(v) >= p.I32 for v in accel + gyro):
             flags |= Flags.IMU_SATURATED
         return p.Sensors(
-            t_us=int(round(s.stamp_s * 1e6)),
+            t_us=round(s.stamp_s * 1e6),
             encoders=tuple(c(v, p.ENCODER_RAD, p.I32) for v in pos[:ENCODERS]),
             encoder_rates=tuple(c(v, p.ENCODER_RATE_RAD_S, p.I32) for v in vel[:ENCODERS]),
             tachometers=tuple(c(v, p.TACH_RAD_S, p.I16) for v in vel[ENCODERS:ENCODERS + 4]),
             pot=c(float(pos[ENCODERS + 4]), p.POT_RAD, p.I16),
-            incl=tuple(max(0, min(65535, int(round(v / p.INCL_VOLTS)))) for v in s.incl_volts),
-            ft=tuple(ft), accel=tuple(accel), gyro=tuple(gyro), flags=flags)
+            incl=tuple(max(0, min(65535, round(v / p.INCL_VOLTS))) for v in s.incl_volts),
+            ft=tuple(ft), accel=(accel[0], accel[1], accel[2]),
+            gyro=(gyro[0], gyro[1], gyro[2]), flags=flags)
 
 
 class PtyEmulator:
     """A Device on a pseudo-terminal, paced in real time (`rate` x), faults on schedule."""
 
     def __init__(self, device: Device, *, link: str | Path | None = None, rate: float = 1.0,
-                 log=None) -> None:
+                 log: Callable[[str], None] | None = None) -> None:
         self.device = device
         self.link = Path(link) if link else None
         self.rate = rate
@@ -325,10 +330,9 @@ class PtyEmulator:
     def _write(self, data: bytes) -> None:
         if not data or self.master is None:
             return
-        try:
+        # nobody reading: the pty buffer is full, as a real UART overruns
+        with contextlib.suppress(BlockingIOError, OSError):
             os.write(self.master, data)
-        except (BlockingIOError, OSError):
-            pass        # nobody reading: the pty buffer is full, as a real UART overruns
 
     def run(self, duration_s: float = math.inf) -> None:
         """Run until duration_s of device time have passed (or forever)."""
@@ -350,7 +354,7 @@ class PtyEmulator:
             if f.stall_at_s >= 0 and stall_end < 0 and now_dev >= f.stall_at_s:
                 self._log('emulator: stalled')
                 stall_end = now_dev + f.stall_s
-            stalled = 0 <= stall_end and now_dev < stall_end
+            stalled = stall_end >= 0 and now_dev < stall_end
             if self.master is not None:
                 try:
                     while select.select([self.master], [], [], 0)[0]:
@@ -373,6 +377,7 @@ class PtyEmulator:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`ros2 run rover_hw emulator`: a simulated controller on a pseudo-terminal."""
     ap = argparse.ArgumentParser(
         prog='emulator', description="A rover's on-board controller on a pseudo-terminal "
         "(rover_hw protocol), backed by rover_sim's world.")
@@ -420,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _interrupt(signum, frame) -> None:
+def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 

@@ -38,6 +38,8 @@ class ProtocolError(HardwareError):
 
 
 class FrameType(enum.IntEnum):
+    """A frame's type byte."""
+
     SENSORS = 0x01      # device -> host, every sensor at one instant (200 Hz)
     ARM = 0x10          # host -> device, arm joint set-points
     MAST = 0x11         # host -> device, mast pan/tilt set-points
@@ -48,11 +50,15 @@ class FrameType(enum.IntEnum):
 
 
 class DriveMode(enum.IntEnum):
+    """How DriveCommand.wheels are read."""
+
     VELOCITY = 0        # wheel speeds, rad/s
     PWM = 1             # duty cycle -1..1 of the supply (app. D PWM amplifier)
 
 
 class AckStatus(enum.IntEnum):
+    """An Ack's verdict."""
+
     OK = 0
     REFUSED = 1         # out of limits, NaN, or e-stop latched
 
@@ -129,23 +135,31 @@ class MastCommand:
 
 @dataclass(frozen=True)
 class DriveCommand:
+    """The four wheels, as speeds or duty cycles (`mode`)."""
+
     mode: DriveMode
     wheels: tuple[float, float, float, float]     # fl, fr, rl, rr
 
 
 @dataclass(frozen=True)
 class EStop:
+    """Engage or clear the latched stop."""
+
     engage: bool
 
 
 @dataclass(frozen=True)
 class Heartbeat:
+    """The 10 Hz keep-alive: status flags and uptime."""
+
     flags: Flags
     uptime_ms: int
 
 
 @dataclass(frozen=True)
 class Ack:
+    """The answer to the frame of `frame_type` and `seq`."""
+
     frame_type: int
     seq: int
     status: AckStatus
@@ -156,6 +170,8 @@ Payload = Sensors | ArmCommand | MastCommand | DriveCommand | EStop | Heartbeat 
 
 @dataclass(frozen=True)
 class Frame:
+    """A decoded frame: type, sequence number and payload."""
+
     type: FrameType
     seq: int
     payload: Payload
@@ -388,4 +404,4 @@ def calibrate_axis(angle1_rad: float, volts1: float, angle2_rad: float, volts2: 
 
 def to_count(value: float, scale: float, limit: int) -> int:
     """SI value -> count, clipped to the converter's rail (+-limit)."""
-    return max(-limit, min(limit, int(round(value / scale))))
+    return max(-limit, min(limit, round(value / scale)))

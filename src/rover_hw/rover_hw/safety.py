@@ -27,7 +27,7 @@ class Limits:
     """Joint ranges (rad), speeds and duty the bridge lets through (app. D rover)."""
 
     joints: tuple[tuple[str, float, float], ...] = (
-        *((n, lo, hi) for n, (lo, hi) in zip(ARM_JOINTS, ARM_LIMITS_RAD)),
+        *((n, lo, hi) for n, (lo, hi) in zip(ARM_JOINTS, ARM_LIMITS_RAD, strict=False)),
         (MAST_JOINTS[0], -3.1, 3.1), (MAST_JOINTS[1], *MAST_TILT_LIMITS_RAD))
     max_linear_m_s: float = 0.25
     max_yaw_rad_s: float = 1.0
@@ -54,7 +54,7 @@ def check_trajectory(names: Sequence[str], positions: Sequence[Sequence[float]],
     for point in positions:
         if len(point) != len(names):
             raise CommandRefused(f'{len(point)} positions for {len(names)} joints')
-        for n, q in zip(names, point):
+        for n, q in zip(names, point, strict=False):
             if not math.isfinite(q):
                 raise CommandRefused(f'{n}: position {q} is not finite')
             lo, hi = limits.joint_range(n)

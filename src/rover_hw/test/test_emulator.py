@@ -101,13 +101,13 @@ def _references(arrivals: list[int], lead: int) -> list[float]:
     try:
         dev = Device(w)
         t0, dt, sent, refs = w.time_s, w.dt, 0, []
-        for k, n in enumerate(arrivals):
+        for n in arrivals:
             for _ in range(n):
                 t = t0 + (sent + lead) * dt
                 q = 0.3 * math.sin(2 * math.pi * t)
                 qd = 0.6 * math.pi * math.cos(2 * math.pi * t)
                 dev.receive(p.encode(p.ArmCommand((q, 0.0, 0.0, 0.0), (qd, 0.0, 0.0, 0.0),
-                                                  int(round(t * 1e6))), sent))
+                                                  round(t * 1e6)), sent))
                 sent += 1
             dev.tick(send=False)
             refs.append(float(w.rovers[0].arm.target(w.time_s)[0][0]))
@@ -126,5 +126,5 @@ def test_timed_setpoints_give_one_path_however_they_arrive(lead):
     bunched = [1] * 10 + [0, 2, 1, 0, 0, 3, 2, 1, 0, 1] * 5
     assert sum(bunched) == sum(steady)
     a, b = _references(steady, lead), _references(bunched, lead)
-    assert max(abs(x - y) for x, y in zip(a[lead + 16:], b[lead + 16:])) < 1e-9
+    assert max(abs(x - y) for x, y in zip(a[lead + 16:], b[lead + 16:], strict=False)) < 1e-9
     assert max(abs(x) for x in a) > 0.1                      # the arm was told to move

@@ -6,6 +6,7 @@ returned in the world frame, ready for the physics engine.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,8 +42,8 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     else:
         s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
         q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q)
-    return q / np.linalg.norm(q)
+    qv = np.array(q)
+    return qv / np.linalg.norm(qv)
 
 
 def rotation_vector(r: np.ndarray) -> np.ndarray:
@@ -126,7 +127,7 @@ def static_preload(masses: np.ndarray, com_positions: np.ndarray, p_cg: np.ndarr
     return np.concatenate([r_anchor.T @ force, r_anchor.T @ torque])
 
 
-def cross3(a, b) -> np.ndarray:
+def cross3(a: Sequence[float] | np.ndarray, b: Sequence[float] | np.ndarray) -> np.ndarray:
     """a x b of two 3-vectors in scalar math (np.cross costs ~50 us on 3-vectors)."""
     ax, ay, az = (float(v) for v in a)
     bx, by, bz = (float(v) for v in b)
@@ -147,7 +148,7 @@ def relative_rotation_vector(qa: tuple[float, float, float, float],
                              qb: tuple[float, float, float, float]) -> np.ndarray:
     """Rotation vector (log map) of R_a^T R_b for unit quaternions (x, y, z, w): the rotation
     from pose a to pose b in a's axes. Scalar math (the gyro model, every control step)."""
-    x, y, z, w = _qmul((-qa[0], -qa[1], -qa[2], qa[3]), tuple(qb))
+    x, y, z, w = _qmul((-qa[0], -qa[1], -qa[2], qa[3]), (qb[0], qb[1], qb[2], qb[3]))
     if w < 0.0:
         x, y, z, w = -x, -y, -z, -w
     n = math.sqrt(x * x + y * y + z * z)
@@ -194,9 +195,10 @@ class FastCompliance:
     (rover_model.base_link_inertial, damper_lag_s)."""
 
     def __init__(self, stiffness: np.ndarray, damping: np.ndarray, preload: np.ndarray,
-                 inertial_quat: np.ndarray, com_offset: np.ndarray = np.zeros(3), *,
+                 inertial_quat: np.ndarray, com_offset: np.ndarray | None = None, *,
                  midpoint_damper: bool = False) -> None:
-        self.com_offset = tuple(float(v) for v in com_offset)
+        c = (0.0, 0.0, 0.0) if com_offset is None else com_offset
+        self.com_offset = (float(c[0]), float(c[1]), float(c[2]))
         self.k = tuple(float(v) for v in stiffness)
         self.b = tuple(float(v) for v in damping)
         self.pre = tuple(float(v) for v in preload)
@@ -209,12 +211,14 @@ class FastCompliance:
         """Forget the velocity history (after the base is placed by hand)."""
         self._dv_prev = None
 
-    def state(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
-              anchor_w: float) -> tuple[tuple, tuple, tuple, tuple, tuple, tuple]:
+    def state(self, com: Sequence[float], quat: Sequence[float], com_vel: Sequence[float],
+              ang: Sequence[float], anchor_pos: Sequence[float], anchor_yaw: float,
+              anchor_vel: Sequence[float], anchor_w: float
+              ) -> tuple[tuple, tuple, tuple, tuple, tuple, tuple]:
         """(sprung c.g. position (world), c.o.m. minus c.g. (world), dr, dtheta, dv, domega
         (anchor axes)) from PyBullet's base link c.o.m. position, principal-axes orientation,
         velocity and angular velocity: the deflection of Eq. B-3 and its rates."""
-        q_link = _qmul(tuple(quat), self.q_in_inv)
+        q_link = _qmul((quat[0], quat[1], quat[2], quat[3]), self.q_in_inv)
         ox, oy, oz = _rotate(q_link, self.com_offset)
         pos = (com[0] - ox, com[1] - oy, com[2] - oz)
         vel = (com_vel[0] - (ang[1] * oz - ang[2] * oy),
@@ -238,8 +242,10 @@ class FastCompliance:
         dth = (scale * qx, scale * qy, scale * qz)
         return pos, (ox, oy, oz), dr, dth, dv, dw
 
-    def wrench(self, com, quat, com_vel, ang, anchor_pos, anchor_yaw: float, anchor_vel,
-               anchor_w: float) -> tuple[list[float], list[float], list[float]]:
+    def wrench(self, com: Sequence[float], quat: Sequence[float], com_vel: Sequence[float],
+               ang: Sequence[float], anchor_pos: Sequence[float], anchor_yaw: float,
+               anchor_vel: Sequence[float], anchor_w: float
+               ) -> tuple[list[float], list[float], list[float]]:
         """(force, torque, point) in the world frame: the compliance wrench acts at the sprung
         body's c.g. (the base link origin); com, com_vel, quat are PyBullet's base link c.o.m.
         position, velocity and principal-axes orientation."""

@@ -35,7 +35,7 @@ def is_truth_topic(topic: str) -> bool:
     truth."""
     parts = topic.strip('/').split('/')
     return (parts[-2:] == WORLD_TOPIC.split('/') or
-            len(parts) >= 3 and parts[-3] == 'sim' and parts[-1] in TRUTH_NAMES)
+            (len(parts) >= 3 and parts[-3] == 'sim' and parts[-1] in TRUTH_NAMES))
 
 
 
@@ -89,6 +89,8 @@ MAX_RENDERED_PIXELS = 16_000_000
 
 @dataclass(frozen=True)
 class SimConfig:
+    """The simulator's settings (its parameters and config YAML)."""
+
     rovers: int = 2
     seed: int = 1
     occlusion_density: float = 0.08

@@ -42,7 +42,7 @@ import numpy as np
 DAMPER_THETA = 0.5
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x, so that skew(v) @ w = v x w."""
+    """[v]x, the matrix with [v]x w = v x w."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 

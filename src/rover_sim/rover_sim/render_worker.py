@@ -16,10 +16,11 @@ import subprocess
 import sys
 import threading
 from collections.abc import Sequence
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO
 
 import numpy as np
 
+from .config import SimConfig
 from .errors import SimError
 
 #: a first image waits for the worker to start and build its world
@@ -31,7 +32,7 @@ class RenderWorkerError(SimError):
     """The render worker failed or stopped answering; the message says how."""
 
 
-def _send(stream: BinaryIO, obj: Any) -> None:
+def _send(stream: IO[bytes], obj: Any) -> None:
     pickle.dump(obj, stream, protocol=pickle.HIGHEST_PROTOCOL)
     stream.flush()
 
@@ -39,7 +40,7 @@ def _send(stream: BinaryIO, obj: Any) -> None:
 def serve(inp: BinaryIO, out: BinaryIO) -> None:
     """The worker's loop: (config, truths) first, then (poses, eye position, rotation, offset)
     in, an image (or an error string) out; None or the end of the input ends it."""
-    from .world import World
+    from .world import World  # noqa: PLC0415 - world imports this module
     config, truths = pickle.load(inp)
     world = World(config.replace(render_workers=0), truths)
     try:
@@ -54,7 +55,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             try:
                 world.set_poses(poses)
                 image = world.render_eye(pos, rot, offset)
-            except Exception as exc:  # noqa: BLE001 - sent back, raised in the simulator
+            except Exception as exc:
                 _send(out, f'{type(exc).__name__}: {exc}')
             else:
                 _send(out, image)
@@ -66,15 +67,18 @@ class RenderWorker:
     """The worker process of one World (`python -m rover_sim.render_worker`, pickles over its
     standard input and output); `request`, then `result`."""
 
-    def __init__(self, config, truths: Sequence[Any]) -> None:
+    def __init__(self, config: SimConfig, truths: Sequence[Any]) -> None:
         self._proc = subprocess.Popen(
             [sys.executable, '-m', 'rover_sim.render_worker'], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, start_new_session=False)
+        assert self._proc.stdin is not None and self._proc.stdout is not None     # PIPE
+        self._stdin: IO[bytes] = self._proc.stdin
+        self._stdout: IO[bytes] = self._proc.stdout
         self._first = True
         self._reply: list = []
         self._got = threading.Event()
         try:
-            _send(self._proc.stdin, (config, list(truths)))
+            _send(self._stdin, (config, list(truths)))
         except OSError as exc:
             self.close()
             raise RenderWorkerError(f'render worker gone at its start: {exc}') from exc
@@ -84,7 +88,7 @@ class RenderWorker:
         self._got.clear()
         self._reply = []
         try:
-            _send(self._proc.stdin, (poses, np.asarray(pos, float), np.asarray(rot, float),
+            _send(self._stdin, (poses, np.asarray(pos, float), np.asarray(rot, float),
                                      float(offset)))
         except (OSError, ValueError) as exc:
             raise RenderWorkerError(f'render worker gone: {exc}') from exc
@@ -92,7 +96,7 @@ class RenderWorker:
 
     def _read(self) -> None:
         try:
-            self._reply.append(pickle.load(self._proc.stdout))
+            self._reply.append(pickle.load(self._stdout))
         except (EOFError, OSError, pickle.UnpicklingError) as exc:
             self._reply.append(f'the worker ended ({type(exc).__name__}), exit code '
                                f'{self._proc.poll()}')
@@ -111,8 +115,8 @@ class RenderWorker:
 
     def close(self) -> None:
         try:
-            _send(self._proc.stdin, None)
-            self._proc.stdin.close()
+            _send(self._stdin, None)
+            self._stdin.close()
         except (OSError, ValueError):
             pass
         try:
@@ -120,10 +124,11 @@ class RenderWorker:
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait(timeout=5.0)
-        self._proc.stdout.close()
+        self._stdout.close()
 
 
 def main() -> None:
+    """The worker process: render the requested eye for each scene on standard input."""
     # the simulator's Ctrl-C ends its input: the worker stops with it, not before it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # the images go out on a copy of standard output; whatever C or Python code prints (PyBullet

@@ -7,6 +7,8 @@ collision shape: it is what touches the insertion site (ch. 5).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from coop_common.dynparams import BaseParameters
@@ -73,7 +75,7 @@ def base_link_inertial(params: BaseParameters, *, damper_lag_s: float = 0.0
         raise ValueError(f'base mass {params.mass} kg does not exceed the mast mass')
     if damper_lag_s < 0:
         raise ValueError(f'damper_lag_s must be >= 0, got {damper_lag_s}')
-    c_b = -sum(m * np.asarray(c) for m, c, _ in mast) / m_b
+    c_b = np.asarray(-sum(m * np.asarray(c) for m, c, _ in mast) / m_b)
     inertia = (params.inertia + damper_lag_s * np.diag(params.damping[3:])
                - _shift(m_b, c_b))
     for m, c, i in mast:
@@ -85,13 +87,14 @@ def base_link_inertial(params: BaseParameters, *, damper_lag_s: float = 0.0
     return m_b, c_b, inertia
 
 
-def _inertial(mass: float, com, inertia) -> str:
+def _inertial(mass: float, com: Sequence[float], inertia: Sequence[float]) -> str:
     ix, iy, iz = inertia
     return (f'<inertial><origin xyz="{com[0]} {com[1]} {com[2]}"/><mass value="{mass}"/>'
             f'<inertia ixx="{ix}" iyy="{iy}" izz="{iz}" ixy="0" ixz="0" iyz="0"/></inertial>')
 
 
-def _box(size, xyz=(0, 0, 0), rgba=(0.6, 0.6, 0.6, 1.0)) -> str:
+def _box(size: Sequence[float], xyz: Sequence[float] = (0, 0, 0),
+         rgba: Sequence[float] = (0.6, 0.6, 0.6, 1.0)) -> str:
     return (f'<visual><origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}"/><geometry><box size="{size[0]} '
             f'{size[1]} {size[2]}"/></geometry><material name="m"><color rgba="{rgba[0]} '
             f'{rgba[1]} {rgba[2]} {rgba[3]}"/></material></visual>')
@@ -150,7 +153,7 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
     parts.append('<joint name="mast_pan" type="revolute"><parent link="base_link"/>'
                  f'<child link="mast_pan_link"/><origin xyz="{mx} {my} {mz}"/><axis xyz="0 0 1"/>'
                  '<limit lower="-3.1" upper="3.1" effort="5" velocity="2"/></joint>')
-    cx, cy, cz = CAMERA_OFFSET
+    cx, _cy, cz = CAMERA_OFFSET
     tilt_inertial = _inertial(MAST_TILT[0], (0.02, 0, 0.06), MAST_TILT[2])
     parts.append(f'<link name="mast_tilt_link">{tilt_inertial}'
                  + _box((0.04, 0.08, 0.04), (cx - 0.02, -STEREO_BASELINE_M / 2, cz),

@@ -41,10 +41,10 @@ def card_over_slot(world: World, index: int, *, offset_m: float = 0.0, away_m: f
 
 def lower_card(world: World, start: CardOverSlot, *, depth_m: float, speed_m_s: float = 0.01,
                hold_s: float = 0.0, command_period_s: float = 0.05
-               ) -> Iterator[ContactState]:
+               ) -> Iterator[ContactState | None]:
     """Lower the card by `depth_m` at `speed_m_s`, then hold `hold_s`; the arm is re-commanded
     every `command_period_s` and keeps the card level against the base's sag from its true
-    pitch (as a vision loop would). Yields each step's ContactState."""
+    pitch (as a vision loop would). Yields each step's ContactState (World.contact)."""
     pitch = 0.0
     every = max(1, round(command_period_s / world.dt))
     for k in range(int((depth_m / speed_m_s + hold_s) / world.dt)):

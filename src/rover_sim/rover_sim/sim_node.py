@@ -197,6 +197,9 @@ def _unknown_rovers(chosen: list[str], rovers: int) -> str | None:
 
 
 class SimNode(Node):
+    """The simulator node: rover_sim's world on the ROS graph (sensors out, commands in,
+    lockstep)."""
+
     def __init__(self, **kwargs) -> None:
         super().__init__('rover_sim', **kwargs)
         self.values = declare_parameters(self, PARAMS, on_change=self._on_param_change,
@@ -444,7 +447,7 @@ class SimNode(Node):
             raise ValueError('place_rovers, place_x, place_y and place_yaw must be of one length')
         known = [f'rover{i + 1}' for i in range(rovers)]
         out = []
-        for name, x, y, yaw in zip(names, *cols):
+        for name, x, y, yaw in zip(names, *cols, strict=False):
             if name not in known:
                 raise ValueError(f'place_rovers: {name!r} is not one of {known}')
             if not all(math.isfinite(v) for v in (x, y, yaw)):
@@ -530,7 +533,7 @@ class SimNode(Node):
             while self._running():
                 self._apply_pending()
                 self._step()
-        except Exception as exc:  # noqa: BLE001 - the node must report, not die silently
+        except Exception as exc:
             # on Ctrl-C the context goes invalid under a publish in flight: a clean stop
             if self._stop.is_set() or not rclpy.ok(context=self.context):
                 return
@@ -543,12 +546,13 @@ class SimNode(Node):
 
     # ------------------------------------------------------------------ lockstep
     def _round_steps(self) -> int:
-        return max(1, int(round(self.values['lockstep_period_s'] * self.config.physics_rate_hz)))
+        return max(1, round(self.values['lockstep_period_s'] * self.config.physics_rate_hz))
 
     def _on_ack(self, msg: LockstepAck) -> None:
         try:
             with self._round_cv:
-                self._gate.answer(msg.node, int(msg.round), dict(zip(msg.topics, msg.counts)))
+                self._gate.answer(msg.node, int(msg.round),
+                                  dict(zip(msg.topics, msg.counts, strict=False)))
                 self._round_cv.notify_all()
         except LockstepError as exc:
             self.bad.reject('lockstep ack', str(exc))
@@ -631,7 +635,7 @@ class SimNode(Node):
     def _every(self, rate_hz: float) -> bool:
         if rate_hz <= 0:
             return False
-        n = max(1, int(round(self.config.physics_rate_hz / rate_hz)))
+        n = max(1, round(self.config.physics_rate_hz / rate_hz))
         return self.world.steps % n == 0
 
     def _publish_step(self) -> None:
@@ -874,7 +878,8 @@ class SimNode(Node):
                 m.scale.z = 0.002
                 m.color.r = m.color.g = m.color.b = m.color.a = 1.0
                 arr.markers.append(m)
-        for k, (name, box) in enumerate(zip(('jaw_near', 'jaw_far', 'floor'), site.jaws)):
+        for k, (name, box) in enumerate(zip(('jaw_near', 'jaw_far', 'floor'), site.jaws,
+                                            strict=False)):
             m = Marker()
             m.header.stamp, m.header.frame_id = t, frame
             m.ns, m.id, m.type = 'site', k, Marker.CUBE
@@ -896,6 +901,7 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """`ros2 run rover_sim sim`."""
     # one executor thread: rclpy's multi-threaded executor hands a callback over to its pool
     # through the GIL that the sim thread holds while it steps (a lockstep ack took 4-650 ms
     # to reach its callback, 0.7 ms with this one)

@@ -3,6 +3,7 @@ the card and the insertion site. No rclpy: `World` steps, senses and renders; th
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib.util
 import math
@@ -171,9 +172,10 @@ class _Rover:
     fast: FastCompliance | None = None
     implicit: ImplicitSolver | None = None
     movable: list[int] | None = None      # every non-fixed joint, in the mass matrix's order
-    mass_index: np.ndarray | None = None  # base + arm rows of the mass matrix (mast locked)
-    actuated: list[int] | None = None
-    mast_joints: list[int] | None = None
+    # base + arm rows of the mass matrix (mast locked); the arm's and the mast's joints
+    mass_index: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))
+    actuated: list[int] = dataclasses.field(default_factory=list)
+    mast_joints: list[int] = dataclasses.field(default_factory=list)
     tau: list[float] = dataclasses.field(default_factory=lambda: [0.0] * 4)
     # base link orientation (quaternion x, y, z, w) at the end of the last control step, and
     # at the start of the last sub-step of the current / previous control step (the gyro)
@@ -181,7 +183,7 @@ class _Rover:
     last_sub_quat: tuple = (0.0, 0.0, 0.0, 1.0)
     prev_sub_quat: tuple = (0.0, 0.0, 0.0, 1.0)
     gyro_mean: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
-    ft_mean: np.ndarray | None = None
+    ft_mean: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(6))
     # the links beyond the F/T sensor (sensor link first): masses, principal inertias, and
     # their momentum state at the end of the last control step (ArmMomentum)
     arm_links: list[int] = dataclasses.field(default_factory=list)
@@ -205,7 +207,7 @@ def substeps_for(params: Sequence[BaseParameters], dt: float) -> int:
         diag = np.concatenate([masses, inertia])
         rate = max(rate, float(np.max(p.damping / diag)),
                    float(np.max(2.0 * np.sqrt(p.stiffness / diag))))
-    return max(1, int(math.ceil(rate * dt)))
+    return max(1, math.ceil(rate * dt))
 
 
 def load_egl(client: int) -> tuple[int, str | None]:
@@ -298,7 +300,7 @@ class World:
             np.full(6, nz['encoder'].bound), np.full(4, nz['tach'].bound), [nz['pot'].bound]])
         self.rovers: list[_Rover] = []
         self.substep_s = self.dt / self.substeps
-        for i, (params, (x, y)) in enumerate(zip(truths, starts)):
+        for i, (params, (x, y)) in enumerate(zip(truths, starts, strict=False)):
             self.rovers.append(self._spawn(f'rover{i + 1}', params, x, y, with_card=(i == 1)))
 
     # ----------------------------------------------------------------- construction
@@ -306,16 +308,17 @@ class World:
         rng = np.random.default_rng(self.config.seed + 7919)
         out = {}
         for name, size, blur in (('ground', 1024, 3), ('rock', 256, 3)):
-            img = rng.integers(0, 256, size=(size, size), dtype=np.uint8)
+            img: np.ndarray = rng.integers(0, 256, size=(size, size), dtype=np.uint8)
             img = cv2.GaussianBlur(img, (blur, blur), 0)
-            img = cv2.normalize(img, None, 40, 230, cv2.NORM_MINMAX)
+            # (OpenCV's stubs want an array for dst; None returns a new one)
+            img = cv2.normalize(img, None, 40, 230, cv2.NORM_MINMAX)  # type: ignore[call-overload]
             path = self._tmp / f'{name}.png'
             cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
             out[name] = pb.loadTexture(str(path), physicsClientId=self.client)
         return out
 
-    def _static_body(self, shape: int, position, orientation=(0, 0, 0, 1), *,
-                     collision: int = -1) -> int:
+    def _static_body(self, shape: int, position: Sequence[float] | np.ndarray,
+                     orientation: Sequence[float] = (0, 0, 0, 1), *, collision: int = -1) -> int:
         body = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
                                   baseCollisionShapeIndex=collision, basePosition=position,
                                   baseOrientation=orientation, physicsClientId=self.client)
@@ -363,7 +366,7 @@ class World:
             self._body_kind[body] = 'obstacle'
         site = self.layout.site
         self.site_bodies = []
-        for kind, box in zip(('jaw_near', 'jaw_far', 'floor'), site.jaws):
+        for kind, box in zip(('jaw_near', 'jaw_far', 'floor'), site.jaws, strict=False):
             vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
                                        rgbaColor=[0.25, 0.25, 0.3, 1], physicsClientId=c)
             col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(box.half_extents),
@@ -530,7 +533,7 @@ class World:
         mom = [0.0, 0.0, 0.0]
         ang = [0.0, 0.0, 0.0]
         grav = [0.0, 0.0, 0.0]
-        for st, m, inertia in zip(sts, r.arm_masses, r.arm_inertias):
+        for st, m, inertia in zip(sts, r.arm_masses, r.arm_inertias, strict=False):
             (cx, cy, cz), quat, (vx, vy, vz), w = st[0], st[1], st[6], st[7]
             # spin I w, the principal inertia in the link's inertial frame
             bx, by, bz = quat_rotate_inverse(quat, w)
@@ -574,6 +577,7 @@ class World:
         row, and that reaction alone put I_x at 0.05 instead of 0.15 and I_xy at -0.06."""
         implicit = self.integrator is Integrator.IMPLICIT
         new, old = self._arm_momentum(r, probe=implicit), r.arm_prev
+        assert old is not None                      # _build took the first
         r.arm_prev = new
         dt = self.dt
         force = (new.momentum - old.momentum) / dt - r.arm_masses.sum() * GRAVITY_VEC
@@ -691,6 +695,7 @@ class World:
         q = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)[1]
         r.prev_quat = r.last_sub_quat = r.prev_sub_quat = q
         r.contact = _Contact()
+        assert r.fast is not None                   # _build gives every rover one
         r.fast.reset()
 
     def command_velocity(self, index: int, v: float, w: float) -> None:
@@ -758,7 +763,7 @@ class World:
                 starts.append((states, com, quat, vel, ang))
             pb.stepSimulation(physicsClientId=pc)
             for r, (q_refs, qd_refs, kp, kd), (states, com, quat, vel, ang) in zip(
-                    self.rovers, targets, starts):
+                    self.rovers, targets, starts, strict=False):
                 q_all = [st[0] for st in states]
                 mass = np.array(pb.calculateMassMatrix(r.body, q_all, physicsClientId=c))
                 mass = mass[np.ix_(r.mass_index, r.mass_index)]
@@ -768,6 +773,7 @@ class World:
                 rot = quat_to_matrix(quat)
                 v, w = r.cmd
                 cy, sy = math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)
+                assert r.fast is not None               # the implicit integrator has one
                 origin, off, dr, dth, dv, dw = r.fast.state(
                     com, quat, vel, ang, (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
                     r.anchor_yaw, (v * cy, v * sy, 0.0), w)
@@ -779,6 +785,7 @@ class World:
                 pqd = [st[1] for st in pb.getJointStates(r.probe_body, r.actuated,
                                                          physicsClientId=pc)]
                 free = np.concatenate([rot.T @ np.array(pw), rot.T @ np.array(pv), pqd]) - u
+                assert r.implicit is not None
                 wrench, tau = r.implicit.solve(
                     h, mass, kin, free, np.asarray(q_refs[sub]) - q,
                     np.asarray(qd_refs[sub]) - qd, np.asarray(kp), np.asarray(kd), effort)
@@ -792,7 +799,7 @@ class World:
                     r.last_sub_quat = quat
             pb.stepSimulation(physicsClientId=c)
             if sub == self.substeps - 1:
-                for r, start in zip(self.rovers, starts):
+                for r, start in zip(self.rovers, starts, strict=False):
                     self._probe_kick_state(r, start)
             for r in self.rovers:
                 if r.card_index is not None:
@@ -826,7 +833,7 @@ class World:
         c = self.client
         last = self.substeps - 1
         for sub in range(self.substeps):
-            for r, (q_refs, qd_refs, kp, kd) in zip(self.rovers, targets):
+            for r, (q_refs, qd_refs, kp, kd) in zip(self.rovers, targets, strict=False):
                 if sub % PD_HOLD == 0:
                     # PD torques held for PD_HOLD sub-steps (zero-order hold, 2 w h << 1)
                     q_ref, qd_ref = q_refs[sub // PD_HOLD], qd_refs[sub // PD_HOLD]
@@ -843,6 +850,7 @@ class World:
                     r.last_sub_quat = quat
                 v, w = r.cmd
                 cy, sy = math.cos(r.anchor_yaw), math.sin(r.anchor_yaw)
+                assert r.fast is not None
                 f, t, at = r.fast.wrench(pos, quat, vel, ang,
                                          (r.anchor_xy[0], r.anchor_xy[1], NOMINAL_HEIGHT_M),
                                          r.anchor_yaw, (v * cy, v * sy, 0.0), w)
@@ -880,10 +888,10 @@ class World:
             r.prev_quat, r.prev_sub_quat = quat, r.last_sub_quat
             v, w = r.cmd
             r.wheel_rates = wheel_speeds(v, w, track_m=TRACK_M, radius_m=WHEEL_RADIUS_M)
-            r.odom_xy, r.odom_yaw = odometry_step(
+            odom_xy, odom_yaw = odometry_step(
                 r.odom_xy, r.odom_yaw, v, w, self.dt, drift=self.config.noise.odom_drift,
                 track_m=TRACK_M, noise=self.rng.standard_normal(3))
-            r.odom_yaw = float(r.odom_yaw)
+            r.odom_xy, r.odom_yaw = odom_xy, float(odom_yaw)
 
     # ----------------------------------------------------------------- sensing
     def camera_pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1059,7 +1067,7 @@ class World:
     def set_poses(self, poses: Sequence[tuple]) -> None:
         """Pose this world's rovers as `poses` (another World's `poses()`), for a picture."""
         c = self.client
-        for r, (pos, orn, joints) in zip(self.rovers, poses):
+        for r, (pos, orn, joints) in zip(self.rovers, poses, strict=False):
             pb.resetBasePositionAndOrientation(r.body, pos, orn, physicsClientId=c)
             pb.resetJointStatesMultiDof(r.body, r.movable, [[q] for q in joints],
                                         physicsClientId=c)
@@ -1083,7 +1091,8 @@ class World:
         each picture, so where they stand does not matter); None otherwise. Handed over, it is
         no longer this world's (close leaves it running)."""
         same = config == self.config and len(truths) == len(self._truths) and all(
-            np.array_equal(a.to_vector(), b.to_vector()) for a, b in zip(truths, self._truths))
+            np.array_equal(a.to_vector(), b.to_vector())
+            for a, b in zip(truths, self._truths, strict=False))
         if not same:
             return None
         worker, self._render_worker = self._render_worker, None
@@ -1099,10 +1108,8 @@ class World:
     def close(self) -> None:
         self._stop_worker(self.render_note)
         if self.probe_client is not None:
-            try:
+            with contextlib.suppress(pb.error):
                 pb.disconnect(physicsClientId=self.probe_client)
-            except pb.error:
-                pass
             self.probe_client = None
         if self.client is not None and self.client >= 0:
             try:
@@ -1117,9 +1124,16 @@ class World:
     def __enter__(self) -> World:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-__all__ = ['ArmMomentum', 'ContactState', 'World', 'Readings', 'Truth', 'substeps_for',
-           'rotation_vector']
+__all__ = [
+    'ArmMomentum',
+    'ContactState',
+    'Readings',
+    'Truth',
+    'World',
+    'rotation_vector',
+    'substeps_for',
+]

@@ -25,6 +25,8 @@ class ObstacleKind(StrEnum):
 
 @dataclass(frozen=True)
 class Obstacle:
+    """One obstacle of the generated world."""
+
     kind: ObstacleKind
     position: tuple[float, float, float]
     radius: float
@@ -100,6 +102,8 @@ class Card:
 
 @dataclass(frozen=True)
 class WorldLayout:
+    """A generated world: its obstacles, the work site, the card and the extent."""
+
     obstacles: tuple[Obstacle, ...]
     site: Site
     card: Card = field(default_factory=Card)

@@ -79,8 +79,7 @@ def test_the_contact_force_reaches_the_ft_sensor():
     (weight moments from the links' own masses and c.o.m.s, not from the sensor model)."""
     with _world(TABLE_5_1_GAPS_M[2]) as w:
         start = card_over_slot(w, 1, offset_m=0.004)
-        for cs in lower_card(w, start, depth_m=0.04, hold_s=1.0):
-            pass
+        *_, cs = lower_card(w, start, depth_m=0.04, hold_s=1.0)
         s, rot, p = w.sense(1), w.truth(1).base_rotation, w._sensor_origin(w.rovers[1])
         centre = w.card_pose(1)[0]
         assert np.linalg.norm(cs.force) > 1.0
@@ -125,8 +124,9 @@ def test_shared_geometry_puts_card_and_camera_where_the_sim_has_them():
 
     with _world(TABLE_5_1_GAPS_M[1]) as w:
         r2 = w.rovers[1].params.cg_to_arm
-        for heading, target, pitch, mast in ((0.0, None, 0.0, (0.0, 0.3)),
-                                             (0.3, None, 0.1, (0.4, -0.2))):
+        for heading, given, pitch, mast in ((0.0, None, 0.0, (0.0, 0.3)),
+                                            (0.3, None, 0.1, (0.4, -0.2))):
+            target = given
             if target is None:     # in the plane joint 1 turns the arm into
                 target = np.array([r2[0] + 0.45 * math.cos(heading),
                                    r2[1] + 0.45 * math.sin(heading), 0.2])

@@ -195,7 +195,7 @@ def test_fast_compliance_midpoint_damper_reads_the_velocity_half_a_substep_on():
     p, pa = np.array([0.0, 0.0, 0.3]), np.array([0.0, 0.0, 0.3])
     v1, v2 = np.array([0.1, -0.2, 0.3]), np.array([0.2, 0.1, -0.1])
     w = np.array([0.5, 0.0, -0.5])
-    f1, t1, _ = fast.wrench(p, q_in, v1, w, pa, 0.0, np.zeros(3), 0.0)
+    f1, _t1, _ = fast.wrench(p, q_in, v1, w, pa, 0.0, np.zeros(3), 0.0)
     np.testing.assert_allclose(f1, -B[:3] * v1)            # no history yet: as measured
     f2, t2, _ = fast.wrench(p, q_in, v2, w, pa, 0.0, np.zeros(3), 0.0)
     np.testing.assert_allclose(f2, -B[:3] * (1.5 * v2 - 0.5 * v1))
@@ -242,7 +242,7 @@ def test_config_errors_name_the_field(tmp_path):
         config_from_mapping({'stereo_rate_hz': 100.0})
     with pytest.raises(ConfigError, match='bogus'):
         config_from_mapping({'bogus': 1})
-    with pytest.raises(ConfigError, match='noise.fraction'):
+    with pytest.raises(ConfigError, match=r'noise\.fraction'):
         config_from_mapping({'noise': {'fraction': 'high'}})
     with pytest.raises(ConfigError, match='rovers'):
         config_from_mapping({'rovers': 2.5})
@@ -297,7 +297,7 @@ def test_odometry_drifts_as_a_random_walk_in_the_wheels_travel():
     assert np.std(errors[250][0]) == pytest.approx(drift / 2, rel=0.05)
     assert abs(np.mean(along)) < 3 * drift / np.sqrt(n)
     # turning on the spot drifts by the wheels' travel too; standing still does not drift
-    xy2, yaw2 = odometry_step(np.zeros(2), 0.0, 0.0, 1.0, dt, drift=drift, track_m=0.4,
+    _xy2, yaw2 = odometry_step(np.zeros(2), 0.0, 0.0, 1.0, dt, drift=drift, track_m=0.4,
                               noise=np.ones(3))
     assert yaw2 == pytest.approx(dt + drift * np.sqrt(0.2 * dt))
     assert np.allclose(odometry_step(np.zeros(2), 0.3, 0.0, 0.0, dt, drift=drift, track_m=0.4,

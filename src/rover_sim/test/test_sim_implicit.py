@@ -9,7 +9,7 @@ from rover_sim.implicit import BaseKinematics, ImplicitSolver, rate_jacobian
 from rover_sim.world import World
 
 
-def _kin(deflection=np.zeros(6), rate=np.zeros(6)) -> BaseKinematics:
+def _kin(deflection=(0.0,) * 6, rate=(0.0,) * 6) -> BaseKinematics:
     return BaseKinematics(rot=np.eye(3), rot_anchor=np.eye(3), offset=np.zeros(3),
                           deflection=np.asarray(deflection, float), rate=np.asarray(rate, float))
 

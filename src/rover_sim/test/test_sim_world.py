@@ -268,7 +268,7 @@ def test_the_render_worker_draws_the_same_pair_and_is_replaced_when_it_dies():
                 again = w.render_stereo(0)
                 assert 'render worker' in w.render_note
                 np.testing.assert_array_equal(again[1], pairs[1][0][1])
-    for (l0, r0), (l1, r1) in zip(pairs[0], pairs[1]):
+    for (l0, r0), (l1, r1) in zip(pairs[0], pairs[1], strict=False):
         np.testing.assert_array_equal(l0, l1)
         np.testing.assert_array_equal(r0, r1)
 
@@ -314,7 +314,7 @@ def test_an_egl_renderer_that_cannot_load_leaves_the_pictures_to_tinyrenderer(mo
     cfg = SimConfig(rovers=1, noise=QUIET, image_width=64, image_height=48, renderer='egl')
     with World(cfg, [load_truth()]) as w:
         assert w.renderer is Renderer.TINY and 'TinyRenderer draws' in w.renderer_note
-        left, right = w.render_stereo(0)
+        left, _right = w.render_stereo(0)
         assert left.shape == (48, 64) and left.std() > 0
     with pytest.raises(ConfigError, match='renderer: must be one of tiny, egl'):
         SimConfig(renderer='opengl')
