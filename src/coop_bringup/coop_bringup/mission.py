@@ -455,7 +455,7 @@ class Mission:
         from rover_bag.bagio import bag_info  # noqa: PLC0415 - only with a bag
         try:
             info = bag_info(path)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - a broken bag is reported, not raised
             return {'path': 'bag', 'error': f'{type(exc).__name__}: {exc}'}
         size = sum(f.stat().st_size for f in path.rglob('*') if f.is_file())
         return {'path': 'bag', 'closed': (path / 'metadata.yaml').exists(),

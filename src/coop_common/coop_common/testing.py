@@ -119,7 +119,7 @@ class NodeProcess:
 
     def __enter__(self) -> NodeProcess:
         if self.log_path is not None:
-            self._log = open(self.log_path, 'wb')
+            self._log = open(self.log_path, 'wb')  # closed in __exit__
         out = self._log if self._log is not None else subprocess.DEVNULL
         self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=out, stderr=subprocess.STDOUT,
                                      start_new_session=True)

@@ -446,7 +446,7 @@ class MasterNode(Node):
         t0 = time.monotonic()
         try:
             res = await self._run(handle)
-        except Exception as exc:
+        except Exception as exc:   # noqa: BLE001  an action must end with a result
             self.get_logger().error(f'insert failed: {exc!r}')
             handle.abort()
             res = Insert.Result(success=False, reason=f'master error: {exc}',

@@ -19,7 +19,7 @@ def _have(pkg, exe):
     try:
         executable_path(pkg, exe)
         return True
-    except Exception:
+    except Exception:  # noqa: BLE001 - package not built / not installed
         return False
 
 

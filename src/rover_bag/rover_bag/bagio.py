@@ -709,7 +709,7 @@ class _Source:
             try:
                 doc = YAML(typ='safe').load(meta.read_text())
                 names = doc['rosbag2_bagfile_information']['relative_file_paths']
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - any defect of the YAML is reported
                 self.problems.append(f'{meta.name}: unreadable ({exc}); recovered from the '
                                      'MCAP files')
             else:
@@ -775,7 +775,7 @@ class _Source:
         # ReaderError, but lets the errors of its zstd and lz4 decompressors out as they are
         try:
             yield from self._indexed_messages(self.reader, topics)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - see above; the messages before it stay
             where = ('no message readable' if self._last_t is None
                      else f'nothing readable after t={self._last_t} ns')
             self.problems.append(f'{self.path.name}: {where} ({type(exc).__name__}: {exc})')
@@ -859,7 +859,7 @@ def _register_bag_types(typestore: Typestore, topics: Iterable[TopicInfo]) -> li
             try:
                 typestore.register(get_types_from_msg(info.msgdef, info.msgtype))
                 continue
-            except Exception:
+            except Exception:  # noqa: BLE001 - fall back to the ament index
                 pass
         try:
             ensure_type(typestore, info.msgtype)

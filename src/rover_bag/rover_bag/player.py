@@ -124,7 +124,7 @@ class Player(Node):
                 self._play_once()
                 if not self.params['loop']:
                     break
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - reported, then the node ends
             self.get_logger().error(f'playback failed: {exc}')
         finally:
             stats = summarize_lateness(self.lateness)

@@ -127,7 +127,7 @@ def _recovered(path: Path) -> int:
         warnings.simplefilter('ignore')
         try:
             return sum(1 for _ in read_messages(path, raw=True, strict=False))
-        except Exception:
+        except Exception:  # noqa: BLE001 - file being written
             return 0
 
 

@@ -26,7 +26,7 @@ def _has_sim() -> bool:
         from coop_common.testing import executable_path
         executable_path('rover_sim', 'sim')
         return True
-    except Exception:
+    except Exception:  # noqa: BLE001 - not built
         return False
 
 

@@ -55,7 +55,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             try:
                 world.set_poses(poses)
                 image = world.render_eye(pos, rot, offset)
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - sent back, raised in the simulator
                 _send(out, f'{type(exc).__name__}: {exc}')
             else:
                 _send(out, image)

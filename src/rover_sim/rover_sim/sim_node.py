@@ -533,7 +533,7 @@ class SimNode(Node):
             while self._running():
                 self._apply_pending()
                 self._step()
-        except Exception as exc:
+        except Exception as exc:  # the node must report, not die silently
             # on Ctrl-C the context goes invalid under a publish in flight: a clean stop
             if self._stop.is_set() or not rclpy.ok(context=self.context):
                 return
