@@ -108,4 +108,4 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     # the live view ran through the whole mission (a node that dies fails the phase it broke;
     # what a client receives from it: test_live_view.py)
     assert on_disk['live_view']['url'] == f'ws://localhost:{port}'
-    assert 'live view on ws://' in (out / 'logs' / 'live_view.log').read_text()
+    assert 'live view on ws://' in logs['/live_view'].read_text()
