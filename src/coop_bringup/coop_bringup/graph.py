@@ -113,8 +113,9 @@ class LaunchedGraph(contextlib.AbstractContextManager):
 
     def pid(self, name: str) -> int | None:
         """The pid of the one running process `name` finds, else None."""
-        keys = [k for k in self.find(name) if self.processes()[k].get('returncode') is None]
-        return self.processes()[keys[0]]['pid'] if len(keys) == 1 else None
+        procs = self.processes()
+        keys = [k for k in self.find(name) if procs[k].get('returncode') is None]
+        return procs[keys[0]]['pid'] if len(keys) == 1 else None
 
     def running(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -145,10 +146,11 @@ class LaunchedGraph(contextlib.AbstractContextManager):
 
     def stop(self, name: str, *, timeout_s: float = 10.0) -> None:
         """SIGINT to the process(es) of `name`, SIGKILL after timeout_s; launch carries on."""
+        procs = self.processes()
         for key in self.find(name):
-            pid = self.processes()[key].get('pid')
+            pid = procs[key].get('pid')
             self._stopped.add(key)
-            if pid is None or self.processes()[key].get('returncode') is not None:
+            if pid is None or procs[key].get('returncode') is not None:
                 continue
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGINT)
