@@ -238,6 +238,9 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
     the bridge reconnects within a second, the motors were stopped while it was down, and the
     arm holds where it is measured to be (the old trajectory is not resumed) until a new one
     comes, which starts from there."""
+    def mean(msgs, f=lambda m: m.position[0]) -> float:     # the encoders' noise averaged
+        return sum(f(m) for m in msgs) / len(msgs)
+
     with Rig(tmp_path, emu_args=['--unplug-at', '8', '--unplug-for', '1.5']) as rig:
         assert rig.transition(Transition.TRANSITION_CONFIGURE)
         assert rig.transition(Transition.TRANSITION_ACTIVATE)
@@ -262,13 +265,12 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
         rig.clear()
         rig.arm.publish(JointTrajectory(joint_names=['arm_joint_1'], points=[
             JointTrajectoryPoint(positions=[0.8], time_from_start=Duration(sec=2))]))
-        rig.spin(3.0)
+        # until it has arrived (wall time under load is not the device's: wait for the state)
+        rig.probe.spin_until(lambda: len(rig.msgs('joint_states')) > 40 and abs(
+            mean(rig.msgs('joint_states')[-40:]) - 0.8) < 0.03, 30.0, 'the arm at 0.8 rad')
         resumed = list(rig.msgs('joint_states'))
         assert rig.bridge.alive()
         assert rig.state() == 'active'
-
-    def mean(msgs, f=lambda m: m.position[0]) -> float:     # the encoders' noise averaged
-        return sum(f(m) for m in msgs) / len(msgs)
     n = 40
     q_start, q_unplug = mean(before[:n]), mean(before[-n:])
     q_back, q_held = mean(held[:n]), mean(held[-n:])
@@ -284,8 +286,11 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
     assert abs(q_back - q_unplug) < 0.02                  # stopped while down
     assert abs(q_held - q_back) < 0.02                    # held: the old trajectory dropped
     assert spin_back < 0.5                                # the wheels stood while down
-    # (0.8 - q) / 2 s is under 0.25 rad/s on average, about 0.35 at its peak
-    assert speed < 0.5 and abs(q_end - 0.8) < 0.03
+    # (0.8 - q) / 2 s is about 0.3 rad/s on average, under 0.5 at its peak on an idle machine
+    # (0.63 seen beside a busy test worker, the emulator's steps late); a trajectory that did
+    # not start from the measured state would step the set-point and the arm would run at its
+    # limit
+    assert speed < 0.9 and abs(q_end - 0.8) < 0.03
     # wall times from both logs: the emulator's [unix time] and the bridge's ROS log stamp
     log = rig.bridge.log_text()
     emu = re.search(r'\[(\d+\.\d+)\] emulator: plugged in again', rig.emu.log_text())
