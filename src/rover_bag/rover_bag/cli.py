@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import threading
 from collections.abc import Callable
+from typing import Any
 
 import rclpy
 from rclpy.exceptions import ParameterException
@@ -17,7 +18,8 @@ from .bagio import BagError
 
 def spin_until_stopped(factory: Callable[[], Node], argv: list[str], *, logger: str,
                        done: Callable[[Node], bool] = lambda node: False,
-                       before_destroy: Callable[[Node], None] = lambda node: None) -> int:
+                       before_destroy: Callable[[Node], None] = lambda node: None,
+                       executor_factory: Callable[[], Any] = SingleThreadedExecutor) -> int:
     """Init rclpy with `argv`, build the node, spin until a signal, `done(node)` or an external
     shutdown; a node that cannot start logs why and returns 1."""
     stop = threading.Event()
@@ -31,7 +33,7 @@ def spin_until_stopped(factory: Callable[[], Node], argv: list[str], *, logger: 
         except (ValueError, OSError, BagError, ParameterException) as exc:
             rclpy.logging.get_logger(logger).fatal(str(exc))
             return 1
-        executor = SingleThreadedExecutor()
+        executor = executor_factory()
         executor.add_node(node)
         while rclpy.ok() and not stop.is_set() and not done(node):
             executor.spin_once(timeout_sec=0.1)
