@@ -24,6 +24,7 @@ from typing import Any
 
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -91,6 +92,7 @@ class Lockstep:
         self.round = -1                      # the last round handed to the node
         self.stamp_s = math.nan              # its stamp (sim s)
         self._callbacks: dict[str, Callable[[Any], None]] = {}
+        self._subscriptions: dict[str, Any] = {}
         self._publishers: list[CountingPublisher] = []
         self._on_round: list[Callable[[], None]] = []
         self._inbox = Inbox()
@@ -122,9 +124,10 @@ class Lockstep:
         name = self.node.resolve_topic_name(topic)
         self._inbox.listen(name)
         self._callbacks[name] = callback
-        return self.node.create_subscription(
+        sub = self._subscriptions[name] = self.node.create_subscription(
             msg_type, topic, lambda m, n=name: self._arrived(n, m), reliable(qos),
             event_callbacks=QUIET_SUB)
+        return sub
 
     def publisher(self, msg_type: Any, topic: str, qos: QoSProfile) -> Any:
         """node.create_publisher, or in lockstep a reliable one counted in the acks."""
@@ -175,7 +178,21 @@ class Lockstep:
         if not self._ticks and self._unacked is None:
             self._since = time.monotonic()
         self._ticks.append(tick)
+        self._take_queued()
         self._advance()
+
+    def _take_queued(self) -> None:
+        """Move what has arrived on the lockstep topics into the inbox at once: the round's
+        messages mostly come just before its tick, and rclpy's executor would otherwise wake,
+        rebuild its wait set and dispatch once per message (the bulk of a participant's CPU
+        time); one that arrives later still comes through its subscription's callback."""
+        for name, sub in self._subscriptions.items():
+            try:
+                with sub.handle:
+                    while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                        self._inbox.put(name, stamp_of(taken[0]), taken[0])
+            except InvalidHandle:       # destroyed with its node (a shutdown under way)
+                continue
 
     def _advance(self) -> None:
         """Hand out the next round once its messages are all here and the last one is acked."""
