@@ -95,12 +95,14 @@ ARGUMENTS = (
     ('output', 'screen', "where the nodes' output goes: screen, log (launch's log), own_log (a "
                          "file per process in launch's log directory) or both"),
 )
-#: what the recorder leaves out: ROS's own chatter always, the bulk streams unless
+#: what the recorder leaves out: ROS's own chatter and the lockstep rounds' tick and acks (a
+#: fifth of a lockstep mission's messages, which a replay has no use for) always, the bulk
+#: streams unless
 #: record_all:=true, each MBs a second (a short mission's 10 sim s held 183 + 162 MB of stereo
 #: clouds, 119 MB of map snapshots, 51 MB of map updates, 19 MB of map clouds; everything
 #: else, 6 MB). The final map is the mapper's file; /map/grid (the 2-D map) stays, as do
 #: sensors, poses and estimates.
-BAG_NEVER = ('/rosout', '/parameter_events')
+BAG_NEVER = ('/rosout', '/parameter_events', *(f'*/{t}' for t in LOCKSTEP_TOPICS))
 BAG_BULK = ('*/image_raw', '*/stereo/points', '/map/voxels', '/map/updates', '/map/surface',
             '/map/occupied')
 

@@ -158,6 +158,11 @@ PARAMS = {
     'stereo_rovers': ParamSpec([''], 'Rovers whose stereo pair is rendered and published '
                                "(e.g. [rover1]: the master watching an insertion); [''] or "
                                'empty: all; settable while running'),
+    'clock_rate_hz': ParamSpec(100.0, '/clock rate (Hz): every node on sim time takes each one, '
+                               'so it costs the graph more than any sensor stream; 100 is the '
+                               "lockstep round and the slave's control period, a clock tick "
+                               'between two is one no loop can act on', lo=1.0, hi=200.0,
+                               read_only=True),
     'odom_rate_hz': ParamSpec(50.0, 'Odometry, stereo/pose-free truth pose rate (Hz)', lo=1.0,
                               hi=200.0, read_only=True),
     'image_width': ParamSpec(320, 'Image width (px)', lo=32, hi=1920, read_only=True),
@@ -641,7 +646,8 @@ class SimNode(Node):
     def _publish_step(self) -> None:
         w = self.world
         t = stamp(w.time_s)
-        self.clock_pub.publish(Clock(clock=t))
+        if self._every(self.values['clock_rate_hz']):
+            self.clock_pub.publish(Clock(clock=t))
         sensors = self._every(self.config.sensor_rate_hz)
         odom = self._every(self.values['odom_rate_hz'])
         stereo = self._every(self._stereo_hz)
