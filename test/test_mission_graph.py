@@ -29,10 +29,12 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
         s.bind(('127.0.0.1', 0))
         port = s.getsockname()[1]
     # the master's region 0.1 m either side (the default 0.3): the search still runs, in
-    # fewer views, to keep `make test` short; in lockstep, so its outcome is not the load's
+    # fewer views, and the master's survey of the site 8 s (the default 20; each frame is
+    # ranged before the sim steps on), to keep `make test` short; in lockstep, so its outcome
+    # is not the load's
     cfg = MissionConfig(seed=1, occlusion_density=0.05, slot_in=5.0, identify_s=6.0,
-                        coverage_target=0.5, max_scans=1, near_start=True, live_port=port,
-                        rough_site_m=0.1, lockstep=True)
+                        coverage_target=0.5, max_scans=1, near_start=True, survey_s=8.0,
+                        live_port=port, rough_site_m=0.1, lockstep=True)
     rep = Mission(cfg, tmp_path, run_id='short', domain_id=int(os.environ['ROS_DOMAIN_ID']),
                   log=print).run()
     out = tmp_path / 'short'

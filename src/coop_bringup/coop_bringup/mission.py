@@ -128,6 +128,8 @@ class MissionConfig:
     coverage_target: float = 0.9
     max_scans: int = 8
     sweep_s: float = 8.0              # scan 0: each rover sweeps its mast over its view (sim s)
+    survey_s: float = 20.0            # the master's sweep over the site from its staging pose
+    #                                   before the map is final (sim s; the table's rig's)
     site_half_m: float = 1.5
     insert_timeout_s: float = 60.0
     rough_site_m: float = 0.3         # the master's region: this far either side of a centre
@@ -723,6 +725,7 @@ class Mission:
 
     def _place_and_insert(self, place: Phase) -> None:
         insert = next(p for p in self.phases if p.name is PhaseName.INSERT)
+        w0, s0 = time.monotonic(), self._sim_t()        # the place phase: staging onwards
         self.progress.update(0.0, 'to the staging poses')
         self.rig.render((), 0.0)
         self._stage()
@@ -732,7 +735,7 @@ class Mission:
         # the markers' range of any search point, and the slot is not found)
         self.progress.update(0.2, 'surveying the site')
         self.rig.render((MASTER,), self.cfg.stereo_rate_hz)
-        self.rig.survey()
+        self.rig.survey(seconds=self.cfg.survey_s)
         # every node of the graph is up (the stereo nodes until the next line): the loop
         # nodes' subscriptions to the simulator's truth, none when truth only judges
         subs = self.rig.subscriptions()
@@ -742,7 +745,6 @@ class Mission:
         # obstacle at the task (the master's re-placement asks task_view again mid-insertion)
         self.rig.stop_mapping()
         self.rig.render((MASTER,), self.cfg.stereo_rate_hz)      # the master watches the task
-        w0, s0 = time.monotonic(), self._sim_t()
         phase = {'insert_at': None}
 
         def watch() -> None:
@@ -854,6 +856,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--strategy', default=d.strategy.value,
                    choices=enum_choices(StrategyName),
                    help='exploration strategy of next_best_view')
+    p.add_argument('--survey-s', type=number(float, lo=1.0, hi=120.0), default=d.survey_s,
+                   help="the master's sweep over the site before the map is final (sim s)")
     p.add_argument('--insert-timeout', type=number(float, lo=1.0), default=d.insert_timeout_s)
     p.add_argument('--rough-site', type=number(float, lo=0.0, hi=2.0), default=d.rough_site_m,
                    help="the master's region: this far (m) either side of a centre drawn "
@@ -882,6 +886,7 @@ def main(argv: list[str] | None = None) -> int:
                             phases=tuple(x for x in a.phases.split(',') if x),
                             identify_s=a.identify_s, coverage_target=a.coverage,
                             max_scans=a.max_scans, strategy=a.strategy,
+                            survey_s=a.survey_s,
                             insert_timeout_s=a.insert_timeout, near_start=a.near_start,
                             rough_site_m=a.rough_site,
                             bag=a.bag, bag_all=a.bag_all, live_port=a.live,
