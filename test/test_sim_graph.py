@@ -95,7 +95,8 @@ def test_topic_rates_within_10_percent(live):
         assert rate == pytest.approx(expected, rel=0.10), (topic, rate)
     clocks = probe.msgs['/clock'][start['/clock']:]
     ticks = [c.clock.sec + c.clock.nanosec * 1e-9 for c in clocks]
-    assert (len(ticks) - 1) / (ticks[-1] - ticks[0]) == pytest.approx(200.0, rel=0.10)
+    # clock_rate_hz: 100 Hz, the lockstep round
+    assert (len(ticks) - 1) / (ticks[-1] - ticks[0]) == pytest.approx(100.0, rel=0.10)
 
 
 def test_units_and_frames(live):
@@ -140,9 +141,12 @@ def test_stamps_follow_clock_and_use_sim_time(live):
         assert abs(now - time.time()) > 1e6          # sim time, not the epoch
     finally:
         user.close()
-    imu_t = t_of(probe.msgs['/rover1/imu'][-1].header)
+    # the sensors are stamped on the clock's time line: /clock ticks every other sensor
+    # reading (clock_rate_hz 100, sensors 200 Hz), each at a reading's stamp
+    imu_t = [t_of(m.header) for m in probe.msgs['/rover1/imu'][-10:]]
     clock_t = [c.clock.sec + c.clock.nanosec * 1e-9 for c in probe.msgs['/clock'][-400:]]
-    assert min(abs(imu_t - c) for c in clock_t) < 1e-9
+    on_clock = [min(abs(t - c) for c in clock_t) < 1e-9 for t in imu_t]
+    assert 4 <= sum(on_clock) <= 6, (imu_t, clock_t[-10:])
 
 
 def _move_arm(probe: Probe, positions: list[float], duration: float) -> None:
