@@ -179,6 +179,13 @@ def _in_constructor(frame, files: tuple[str, ...] = _UNINTERRUPTIBLE, depth: int
     return False
 
 
+def _in_finalizer(frame) -> bool:
+    """Whether `frame` is a `__del__` (a garbage collection the signal landed in): an
+    exception raised there is printed and dropped ('Exception ignored in ...'), and the stop
+    with it."""
+    return frame is not None and frame.f_code.co_name == '__del__'
+
+
 def _interrupt(signum: int, frame) -> None:
     _STOP_REQUESTED.set()
     if signum in _STOP_SIGNALS:
@@ -187,9 +194,9 @@ def _interrupt(signum: int, frame) -> None:
         # SIG_IGN, where raising would break the clean-up (a traceback, exit -2). The stop is
         # under way; a SIGTERM after a SIGINT still raises (launch's escalation)
         return
-    if _in_constructor(frame):
-        # raised here it would leave the object half-made: again in a moment, from wherever
-        # the main thread is then
+    if _in_constructor(frame) or _in_finalizer(frame):
+        # raised here it would leave the object half-made, or be dropped by the interpreter
+        # with a traceback: again in a moment, from wherever the main thread is then
         threading.Timer(_RETRY_S, _thread.interrupt_main, (signum,)).start()
         return
     _STOP_SIGNALS.add(signum)

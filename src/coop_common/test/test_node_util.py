@@ -285,6 +285,33 @@ def test_a_stop_signal_never_lands_inside_an_rclpy_task_being_built():
     assert not node_util._in_constructor(sys._getframe())
 
 
+def test_a_stop_signal_in_a_finalizer_is_raised_after_it(monkeypatch):
+    """A SIGINT that lands while the garbage collector runs a `__del__` (rclpy's Future has
+    one) is not raised inside it, where the interpreter prints 'Exception ignored in ...' with
+    a traceback and drops it (the node would not stop), but sent again a moment later."""
+    import sys
+    import threading
+
+    resent = threading.Event()
+    monkeypatch.setattr(node_util._thread, 'interrupt_main',
+                        lambda signum: resent.set() if signum == signal.SIGINT else None)
+    dropped: list = []
+    monkeypatch.setattr(sys, 'unraisablehook', dropped.append)
+
+    class Finalized:
+        def __del__(self):
+            node_util._interrupt(signal.SIGINT, sys._getframe())
+
+    node_util._STOP_SIGNALS.clear()
+    try:
+        Finalized()              # collected at once: its __del__ runs here
+        assert resent.wait(5.0)
+    finally:
+        node_util._STOP_SIGNALS.clear()
+        node_util._STOP_REQUESTED.clear()
+    assert dropped == []
+
+
 def test_a_request_made_in_the_executor_completes_for_another_thread():
     """in_executor makes the call in the spinning executor's thread (not the caller's) and hands
     its result to a future the caller waits on."""
