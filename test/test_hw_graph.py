@@ -250,11 +250,16 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
         rig.probe.spin_until(lambda: len(rig.msgs('joint_states')) > 50, 30.0, 'joint states')
         rig.arm.publish(JointTrajectory(joint_names=['arm_joint_1'], points=[
             JointTrajectoryPoint(positions=[0.8], time_from_start=Duration(sec=12))]))
-        # drive until the device goes away, then stop commanding
-        while not (arrivals and time.monotonic() - arrivals[-1] > 0.5):
-            assert time.monotonic() - (arrivals or [time.monotonic()])[-1] < 60.0
+        # drive until the device goes away (the emulator says so: on a loaded machine this
+        # process sees the last readings late, and a command sent after the unplug is one the
+        # bridge may rightly pass on at the re-plug), then stop commanding
+        t0 = time.monotonic()
+        while 'emulator: unplugged' not in rig.emu.log_text():
+            assert time.monotonic() - t0 < 60.0, rig.emu.log_text()
             rig.cmd.publish(forward())
             rig.spin(0.05)
+        rig.probe.spin_until(lambda: time.monotonic() - arrivals[-1] > 0.5, 30.0,
+                             'the readings to stop')
         before = list(rig.msgs('joint_states'))
         rig.clear()
         rig.probe.spin_until(lambda: time.monotonic() - arrivals[-1] < 0.1, 60.0,
@@ -267,7 +272,7 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
             JointTrajectoryPoint(positions=[0.8], time_from_start=Duration(sec=2))]))
         # until it has arrived (wall time under load is not the device's: wait for the state)
         rig.probe.spin_until(lambda: len(rig.msgs('joint_states')) > 40 and abs(
-            mean(rig.msgs('joint_states')[-40:]) - 0.8) < 0.03, 30.0, 'the arm at 0.8 rad')
+            mean(rig.msgs('joint_states')[-40:]) - 0.8) < 0.04, 30.0, 'the arm at 0.8 rad')
         resumed = list(rig.msgs('joint_states'))
         assert rig.bridge.alive()
         assert rig.state() == 'active'
@@ -290,7 +295,7 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
     # (0.63 seen beside a busy test worker, the emulator's steps late); a trajectory that did
     # not start from the measured state would step the set-point and the arm would run at its
     # limit
-    assert speed < 0.9 and abs(q_end - 0.8) < 0.03
+    assert speed < 0.9 and abs(q_end - 0.8) < 0.04        # the arm's PD ends ~0.03 short
     # wall times from both logs: the emulator's [unix time] and the bridge's ROS log stamp
     log = rig.bridge.log_text()
     emu = re.search(r'\[(\d+\.\d+)\] emulator: plugged in again', rig.emu.log_text())
