@@ -112,8 +112,11 @@ def graph_node():
     node.executor_ = SingleThreadedExecutor(context=ctx)
     node.executor_.add_node(node)
     yield node
-    node.executor_.shutdown()
+    # the node out of its executor and destroyed before the executor shuts down (the other
+    # order segfaulted once in rclpy's destroy_node, after a launch's processes were killed)
+    node.executor_.remove_node(node)
     node.destroy_node()
+    node.executor_.shutdown()
     rclpy.shutdown(context=ctx)
 
 
