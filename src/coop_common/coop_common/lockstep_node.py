@@ -22,7 +22,6 @@ from collections import Counter, deque
 from collections.abc import Callable
 from typing import Any
 
-from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidHandle
@@ -83,21 +82,6 @@ class CountingPublisher:
         return self._pub.get_subscription_count()
 
 
-class _WakeWhenMissing(ReentrantCallbackGroup):
-    """The lockstep subscriptions' callback group: in the executor's wait set only while the
-    next round lacks messages (`listening`). Otherwise their messages wait in the middleware
-    until the round's tick takes them in one go (`Lockstep._take_queued`): rclpy's executor
-    would wake, rebuild its wait set and dispatch once per message as they come, before the
-    tick, the bulk of a participant's CPU time."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.listening = False
-
-    def can_execute(self, entity: Any) -> bool:
-        return self.listening
-
-
 class Lockstep:
     """A node's side of the lockstep rounds (module docstring); rclpy's own when disabled."""
 
@@ -109,7 +93,6 @@ class Lockstep:
         self.stamp_s = math.nan              # its stamp (sim s)
         self._callbacks: dict[str, Callable[[Any], None]] = {}
         self._subscriptions: dict[str, Any] = {}
-        self._group = _WakeWhenMissing()
         self._publishers: list[CountingPublisher] = []
         self._on_round: list[Callable[[], None]] = []
         self._inbox = Inbox()
@@ -143,7 +126,7 @@ class Lockstep:
         self._callbacks[name] = callback
         sub = self._subscriptions[name] = self.node.create_subscription(
             msg_type, topic, lambda m, n=name: self._arrived(n, m), reliable(qos),
-            callback_group=self._group, event_callbacks=QUIET_SUB)
+            event_callbacks=QUIET_SUB)
         return sub
 
     def publisher(self, msg_type: Any, topic: str, qos: QoSProfile) -> Any:
@@ -195,11 +178,14 @@ class Lockstep:
         if not self._ticks and self._unacked is None:
             self._since = time.monotonic()
         self._ticks.append(tick)
+        self._take_queued()
         self._advance()
 
     def _take_queued(self) -> None:
-        """Move what has arrived on the lockstep topics into the inbox, in one go (see
-        _WakeWhenMissing)."""
+        """Move what has arrived on the lockstep topics into the inbox at once: the round's
+        messages mostly come just before its tick, and rclpy's executor would otherwise wake,
+        rebuild its wait set and dispatch once per message (the bulk of a participant's CPU
+        time); one that arrives later still comes through its subscription's callback."""
         for name, sub in self._subscriptions.items():
             try:
                 with sub.handle:
@@ -211,15 +197,11 @@ class Lockstep:
     def _advance(self) -> None:
         """Hand out the next round once its messages are all here and the last one is acked."""
         if self._unacked is not None or self._holds or not self._ticks:
-            self._group.listening = False
             return
         tick = self._ticks[0]
         counts = dict(zip(tick.topics, tick.counts, strict=False))
-        self._take_queued()
         if self._inbox.missing(counts) or (tick.round == 0 and self._unconnected()):
-            self._group.listening = True     # wake when they come
             return
-        self._group.listening = False
         self._ticks.popleft()
         self.round = int(tick.round)
         self.stamp_s = tick.stamp.sec + 1e-9 * tick.stamp.nanosec
