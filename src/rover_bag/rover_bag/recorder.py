@@ -79,7 +79,6 @@ def _rosbags_qos(profile: QoSProfile):
                     keep_all=profile.history == HistoryPolicy.KEEP_ALL)
 
 
-#: messages taken per callback beyond the dispatched one (bounded: other topics' turn comes)
 class Recorder(Node):
     """Thin node around BagWriter: discovery, raw subscriptions, drop counting, flushing."""
 
