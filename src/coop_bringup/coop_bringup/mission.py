@@ -395,8 +395,12 @@ class Mission:
                 rig.add_node(self.client)
                 if cfg.near_start:
                     rig.place(cfg.slot_in, np.random.default_rng(cfg.seed))
+                if cfg.lockstep:
+                    # rounds, not a wait that lets the sim run until the runner has seen the
+                    # odometry: a phase starts at the same round on an idle or a busy machine
+                    self._sim_wait(0.1, "every rover's odometry")
                 self._wait(lambda: all(r in self.client.odom for r in self.rovers), 60,
-                           "every rover's odometry")
+                           "every rover's odometry", run=False)
                 for ph in self.phases:
                     if ph.name not in cfg.phases:
                         ph.reason = 'not asked for'
@@ -508,7 +512,8 @@ class Mission:
         for r in self.rovers:
             if not c.identify[r].wait_for_server(timeout_sec=60):
                 raise MissionError(f'no {r}/identifier/identify action server')
-        self._wait(lambda: all(r in c.truth for r in self.rovers), 60, "the sim's truth")
+        self._wait(lambda: all(r in c.truth for r in self.rovers), 60, "the sim's truth",
+                   run=False)                     # latched: no round needed
         self.rig.render((), 0.0)                  # no one looks while the arms shake
         self._sim_wait(2.0, 'the rovers at rest')
         goal = Identify.Goal(strategy=cfg.identify_strategy, duration_s=cfg.identify_s)
