@@ -22,6 +22,7 @@ setup(
     entry_points={'console_scripts': [
         'master = coop_insertion.master_node:main',
         'slave = coop_insertion.slave_node:main',
+        'driver = coop_insertion.driver_node:main',
         'force_trials = coop_insertion.force_trials:main',
     ]},
 )

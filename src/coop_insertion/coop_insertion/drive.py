@@ -1,17 +1,20 @@
 """Driving a skid-steer rover to a pose on its odometry (turn, drive, turn; or through
-waypoints). No rclpy here."""
+waypoints), one drive goal with its time limit and distance left (`Drive`, the `driver` node's
+core), and the check of a path against a 2-D occupancy grid (`obstruction`). No rclpy here."""
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import InsertionError
 
-__all__ = ['DriveCommand', 'FollowPath', 'GoToPose', 'Stage', 'wrap']
+__all__ = ['Drive', 'DriveCommand', 'DriveEnd', 'DriveStep', 'FollowPath', 'GoToPose',
+           'GridSlice', 'Obstruction', 'Stage', 'obstruction', 'path_length', 'wrap']
 
 
 class Stage(StrEnum):
@@ -128,3 +131,132 @@ class FollowPath:
         v = min(self.v_max, 0.8 * dist + 0.05)
         return DriveCommand(v, float(np.clip(2.0 * e, -self.w_max, self.w_max)), False,
                             Stage.DRIVE)
+
+
+def path_length(points: ArrayLike) -> float:
+    """Length (m) of the polyline through `points` (n x 2)."""
+    p = np.asarray(points, float).reshape(-1, 2)
+    return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1))) if len(p) > 1 else 0.0
+
+
+class DriveEnd(StrEnum):
+    """How a drive goal ended on its own (a cancel or a newer goal is the caller's)."""
+
+    ARRIVED = 'arrived'
+    TIMEOUT = 'timeout'
+
+
+@dataclass(frozen=True)
+class DriveStep:
+    """One step of a drive goal: the twist to send, the path left (m), and the end if this
+    step ended the goal (the twist is then a stop)."""
+
+    command: DriveCommand
+    remaining_m: float
+    end: DriveEnd | None
+
+
+class Drive:
+    """One drive goal on odometry: FollowPath through `waypoints` (map xy; the last is the
+    goal) to `final_yaw` (None: any heading), from `start_xy` at time `start_s`, ended by
+    arrival or by the time limit: `time_limit_s` if > 0, else `time_margin_s` plus
+    `time_slack` times the path's length at `max_speed_m_s`. `step` takes the odometry's pose
+    at time `t_s` (the same clock as start_s)."""
+
+    def __init__(self, start_xy: ArrayLike, waypoints: ArrayLike, final_yaw: float | None, *,
+                 start_s: float, max_speed_m_s: float = 0.2, max_yaw_rate_rad_s: float = 0.8,
+                 position_tolerance_m: float = 0.08, yaw_tolerance_rad: float = 0.05,
+                 time_limit_s: float = 0.0, time_margin_s: float = 30.0,
+                 time_slack: float = 3.0) -> None:
+        start = np.asarray(start_xy, float)
+        if start.shape != (2,) or not np.all(np.isfinite(start)) or not math.isfinite(start_s):
+            raise InsertionError('a drive starts from a finite (x, y) at a finite time')
+        for name, v in (('max_speed_m_s', max_speed_m_s), ('time_margin_s', time_margin_s),
+                        ('time_slack', time_slack)):
+            if not (math.isfinite(v) and v > 0):
+                raise InsertionError(f'{name} must be finite and > 0, got {v}')
+        if not (math.isfinite(time_limit_s) and time_limit_s >= 0):
+            raise InsertionError(f'time_limit_s must be finite and >= 0, got {time_limit_s}')
+        self.follow = FollowPath(waypoints, final_yaw, max_speed_m_s=max_speed_m_s,
+                                 max_yaw_rate_rad_s=max_yaw_rate_rad_s,
+                                 position_tolerance_m=position_tolerance_m,
+                                 yaw_tolerance_rad=yaw_tolerance_rad)
+        self.length_m = path_length(np.vstack([start, *self.follow.todo]))
+        self.limit_s = time_limit_s or time_margin_s + time_slack * self.length_m / max_speed_m_s
+        self.start_s = float(start_s)
+        self.end: DriveEnd | None = None
+
+    def remaining(self, x: float, y: float) -> float:
+        """The path left from (x, y): to the next waypoint, then along the rest."""
+        todo = self.follow.todo
+        return path_length(np.vstack([[x, y], *todo])) if todo else 0.0
+
+    def step(self, x: float, y: float, yaw: float, t_s: float) -> DriveStep:
+        if self.end is not None:
+            return DriveStep(DriveCommand(0.0, 0.0, self.end is DriveEnd.ARRIVED,
+                                          Stage.ARRIVED), self.remaining(x, y), None)
+        c = self.follow.command(x, y, yaw)
+        if c.arrived:
+            self.end = DriveEnd.ARRIVED
+        elif t_s - self.start_s > self.limit_s:
+            self.end = DriveEnd.TIMEOUT
+            c = DriveCommand(0.0, 0.0, False, c.stage)
+        return DriveStep(c, self.remaining(x, y), self.end)
+
+
+@dataclass(frozen=True)
+class GridSlice:
+    """A 2-D occupancy grid (nav_msgs/OccupancyGrid's convention): `occupancy` rows along y,
+    columns along x, -1 unknown, else 0-100 (%); cell (0, 0)'s corner at `origin_xy`, level."""
+
+    occupancy: np.ndarray
+    origin_xy: tuple[float, float]
+    resolution_m: float
+
+    def __post_init__(self) -> None:
+        if self.occupancy.ndim != 2 or not (math.isfinite(self.resolution_m)
+                                            and self.resolution_m > 0):
+            raise InsertionError('a grid slice is a 2-D array with a resolution > 0')
+        if not all(math.isfinite(v) for v in self.origin_xy):
+            raise InsertionError('the grid slice origin must be finite')
+
+    def occupied(self, xy: np.ndarray, threshold: int) -> np.ndarray:
+        """For points (n x 2): in the grid and at or above `threshold` %."""
+        ij = np.floor((np.asarray(xy, float) - self.origin_xy) / self.resolution_m).astype(int)
+        h, w = self.occupancy.shape
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        out = np.zeros(len(ij), bool)
+        out[inside] = self.occupancy[ij[inside, 1], ij[inside, 0]] >= threshold
+        return out
+
+
+@dataclass(frozen=True)
+class Obstruction:
+    """Why a path cannot be driven: a `point` of it (a waypoint or the goal, index `index`)
+    in an occupied cell, or a `leg` (from point index-1 to index) crossing one at `xy`."""
+
+    kind: Literal['point', 'leg']
+    index: int
+    xy: tuple[float, float]
+
+
+def obstruction(points: ArrayLike, grid: GridSlice, *, threshold: int = 65,
+                start_clear_m: float = 0.3) -> Obstruction | None:
+    """The first obstruction of the path through `points` (n x 2, the first the rover's
+    position) on `grid`, or None. Cells within `start_clear_m` of the start are not counted
+    (the rover itself, seen by the others' cameras); legs are sampled every half cell."""
+    p = np.asarray(points, float).reshape(-1, 2)
+    if len(p) < 2 or not np.all(np.isfinite(p)):
+        raise InsertionError('a path is a start and at least one finite (x, y) point')
+    clear = np.linalg.norm(p - p[0], axis=1) <= start_clear_m
+    hit = grid.occupied(p, threshold) & ~clear
+    for i in range(1, len(p)):
+        if hit[i]:
+            return Obstruction('point', i, (float(p[i, 0]), float(p[i, 1])))
+        n = max(2, math.ceil(2 * np.linalg.norm(p[i] - p[i - 1]) / grid.resolution_m) + 1)
+        s = p[i - 1] + np.linspace(0.0, 1.0, n)[:, None] * (p[i] - p[i - 1])
+        bad = grid.occupied(s, threshold) & (np.linalg.norm(s - p[0], axis=1) > start_clear_m)
+        if np.any(bad):
+            k = int(np.argmax(bad))
+            return Obstruction('leg', i, (float(s[k, 0]), float(s[k, 1])))
+    return None
