@@ -7,6 +7,7 @@ COOP_REQUIRE_ROS2_TOOLS=1 (CI) they fail instead."""
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 import signal
@@ -37,7 +38,7 @@ from coop_common.tf_tree import TF_QOS, TF_STATIC_LISTENER_QOS
 pytestmark = pytest.mark.graph
 
 TEAM_NODES = {'rover_sim', 'mapper', 'view_planner'}
-ROVER_NODES = {'stereo', 'identifier'}
+ROVER_NODES = {'stereo', 'identifier', 'driver'}
 
 
 @pytest.fixture(scope='module')
@@ -164,6 +165,8 @@ def test_team_launch_brings_up_the_graph_and_ctrl_c_ends_it_cleanly(ros2, graph_
                 f'{ns}/rover2/dynamic_parameters', '/clock'} <= topics
         services = {s for s, _ in graph_node.get_service_names_and_types()}
         assert {f'{ns}/viewplan/next_best_view', f'{ns}/map/save', f'{ns}/sim/reset'} <= services
+        if team:
+            _drive_from_the_command_line(ros2, graph_node, ns)
 
         launch.interrupt()
         code = launch.wait()
@@ -175,6 +178,32 @@ def test_team_launch_brings_up_the_graph_and_ctrl_c_ends_it_cleanly(ros2, graph_
         wait_for(lambda: _group_gone(launch.proc.pid), 10.0, what='every launched process gone')
     finally:
         launch.close()
+
+
+def _drive_from_the_command_line(ros2: str, graph_node: Node, ns: str) -> None:
+    """As the coop_bringup README shows a launched team moved: `ros2 action send_goal` to
+    rover1's drive_to_pose, 0.4 m ahead of where its odometry says it stands."""
+    from nav_msgs.msg import Odometry
+    from rclpy.action import get_action_names_and_types
+
+    from coop_common.qos import SENSOR_QOS
+    assert f'{ns}/rover1/drive_to_pose' in {a for a, _ in get_action_names_and_types(graph_node)}
+    odom: list[Odometry] = []
+    sub = graph_node.create_subscription(Odometry, f'{ns}/rover1/odom', odom.append, SENSOR_QOS)
+    try:
+        wait_for(lambda: bool(odom), 30.0, what="rover1's odometry",
+                 spin=lambda dt: graph_node.executor_.spin_once(timeout_sec=dt))
+    finally:
+        graph_node.destroy_subscription(sub)
+    p, q = odom[-1].pose.pose.position, odom[-1].pose.pose.orientation
+    yaw = 2 * math.atan2(q.z, q.w)
+    x, y = p.x + 0.4 * math.cos(yaw), p.y + 0.4 * math.sin(yaw)
+    goal = (f'{{pose: {{header: {{frame_id: {ns[1:]}/map}}, pose: {{position: {{x: {x:.3f}, '
+            f'y: {y:.3f}}}}}}}, ignore_heading: true}}')
+    out = subprocess.run([ros2, 'action', 'send_goal', f'{ns}/rover1/drive_to_pose',
+                          'coop_msgs/action/DriveToPose', goal], capture_output=True, text=True,
+                         timeout=120, check=False)
+    assert out.returncode == 0 and 'SUCCEEDED' in out.stdout, out.stdout[-3000:] + out.stderr
 
 
 def test_mission_launch_brings_up_the_whole_mission_graph(ros2, graph_node):

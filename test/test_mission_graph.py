@@ -50,9 +50,10 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     status = {p['name']: (p['status'], p['reason']) for p in rep['phases']}
     assert all(status[p][0] == 'ok' for p in ('identify', 'map', 'place', 'insert')), status
     # truth judges, never steers: no node that closes a loop subscribes to the simulator's
-    # truth (both identifiers and stereo nodes, the mapper, the planner, master and slave)
+    # truth (both identifiers, drivers and stereo nodes, the mapper, the planner, master and
+    # slave)
     apart = on_disk['truth_apart']
-    assert len(apart['loop_nodes']) == 8 and apart['truth_readers'] == {}, apart
+    assert len(apart['loop_nodes']) == 10 and apart['truth_readers'] == {}, apart
     # identify: both rovers against the sim's truth (6 s of excitation, one turn of the z, y,
     # x modes of 2 s each: fewer never turn the arm about x, and an identifier behind its
     # samples starts the excitation later; the inertias scatter, the mass and the c.g. do not)
@@ -86,6 +87,10 @@ def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
     assert (grids[-1].data != -1).sum() > 0                       # something seen
     assert bag['size_mb'] < 50, bag['size_mb']
     assert 'Bag: `bag/`' in (out / 'report.md').read_text()
+    # the drives (to the staging poses, and any scan's) through each rover's drive_to_pose,
+    # every one arrived
+    drives = on_disk['drives']
+    assert drives and all(d['error_code'] == 0 for d in drives), drives
     # place: the master's camera (the sim's truth at the end: it stays where it was placed)
     # stands where task_view placed it, within the mast's and the drive's tolerances
     pl = rep['placement']

@@ -12,6 +12,7 @@ from pathlib import Path
 
 #: the loop nodes' modules (coop_bringup.rig.LOOP_NODES by name)
 LOOP_MODULES = ('coop_insertion.master_node', 'coop_insertion.slave_node',
+                'coop_insertion.driver_node',
                 'coop_id.identifier_node', 'coop_mapping.stereo_node',
                 'coop_mapping.mapper_node', 'coop_viewplan.view_planner_node')
 #: the truth: the simulator's package, and the truth file's reader

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Draw the node graph from the running graph: start the mission's graph (coop_bringup's
-mission.launch.py: the simulator, each rover's stereo node and identifier, the mapper, the view
-planner, the master and the slave), ask the ROS graph for every node's publishers,
+mission.launch.py: the simulator, each rover's stereo node, identifier and driver, the mapper,
+the view planner, the master and the slave), ask the ROS graph for every node's publishers,
 subscriptions, services and action servers, and write a Mermaid flowchart to
 docs/node-graph.md (GitHub renders it).
 
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
         want = {'/rover_sim', '/mapper', '/view_planner', '/master', '/slave',
-                *(f'/{r}/{n}' for r in ROVERS for n in ('stereo', 'identifier'))}
+                *(f'/{r}/{n}' for r in ROVERS for n in ('stereo', 'identifier', 'driver'))}
         spin = lambda dt: ex.spin_once(timeout_sec=dt)  # noqa: E731
         wait_for(lambda: want <= set(introspect(node)), 90.0, spin=spin, what='the team')
         # every node has declared its interfaces once the mapper subscribes the clouds

@@ -35,9 +35,8 @@ from pathlib import Path
 from typing import assert_never
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped, Twist
+from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
-from rclpy.action import ActionClient
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
@@ -54,7 +53,7 @@ from coop_bringup.rig import (
 from coop_common.cli import enum_choices, number
 from coop_common.dynparams import PARAM_NAMES
 from coop_common.lockstep_node import Lockstep
-from coop_common.node_util import in_executor, stamp
+from coop_common.node_util import stamp
 from coop_common.params import choice
 from coop_common.provenance import source_revision
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
@@ -67,9 +66,9 @@ from coop_common.rover_geometry import (
 )
 from coop_common.testing import isolate_ros_environment, pick_domain_id
 from coop_id.excitation import Strategy
-from coop_insertion.drive import FollowPath
+from coop_insertion.drive import path_length
 from coop_insertion.errors import InsertionError
-from coop_msgs.action import Identify, Insert
+from coop_msgs.action import DriveToPose, Identify, Insert
 from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
 from coop_msgs.srv import MapFile, NextBestView
 from coop_viewplan.frames import camera_pose
@@ -84,6 +83,7 @@ from coop_viewplan.nbv import (
 from coop_viewplan.offline import nbv_config
 from coop_viewplan.params import PARAMS as VP_PARAMS
 
+from .commander import Commander
 from .graph import node_settings
 from .mission_seeds import format_table as format_seeds
 from .mission_seeds import parse_seeds, run_seeds
@@ -206,12 +206,12 @@ class Progress:
 
 
 class _MissionClient(Node):
-    """The runner's view of the graph: odometry, masts, the map, truth, the actions."""
+    """The runner's view of the graph: odometry, masts, the map, truth (to judge by); the
+    actions go through a Commander on this node."""
 
     def __init__(self, ctx, rovers: list[str], lockstep: bool = False) -> None:
         super().__init__('mission', context=ctx)
-        # in lockstep the drive's loop (odometry in, cmd_vel out) and the masts' commands
-        # act in the simulator's rounds (docs/design.md)
+        # in lockstep the masts' commands act in the simulator's rounds (docs/design.md)
         self.ls = Lockstep(self, lockstep)
         self.rovers = rovers
         self.lock = threading.Lock()
@@ -222,13 +222,8 @@ class _MissionClient(Node):
         self.truth: dict[str, DynamicParameters] = {}
         self.map: VoxelMap | None = None
         self.placement: ViewRating | None = None
-        self.follow: dict[str, FollowPath] = {}
-        self.cmd = {r: self.ls.publisher(Twist, f'{r}/cmd_vel', COMMAND_QOS) for r in rovers}
         self.mast_cmd = {r: self.ls.publisher(JointTrajectory, f'{r}/mast/command',
                                               COMMAND_QOS) for r in rovers}
-        self.identify = {r: ActionClient(self, Identify, f'{r}/identifier/identify')
-                         for r in rovers}
-        self.nbv = self.create_client(NextBestView, 'viewplan/next_best_view')
         self.save_map = self.create_client(MapFile, 'map/save')
         for r in rovers:
             self.ls.subscription(Odometry, f'{r}/odom', lambda m, r=r: self._on_odom(r, m),
@@ -260,20 +255,6 @@ class _MissionClient(Node):
             p = self.paths[r]
             if not p or math.hypot(x - p[-1][0], y - p[-1][1]) > 0.05:
                 p.append((x, y))
-            f = self.follow.get(r)
-        if f is not None:
-            c = f.command(x, y, yaw)
-            t = Twist()
-            t.linear.x, t.angular.z = c.linear_x, c.angular_z
-            self.cmd[r].publish(t)
-            if c.arrived:
-                with self.lock:
-                    self.follow.pop(r, None)
-
-    def stop(self, r: str) -> None:
-        with self.lock:
-            self.follow.pop(r, None)
-        self.cmd[r].publish(Twist())
 
     def camera_pose(self, r: str) -> PoseStamped:
         """The camera's optical pose in the map from the rover's odometry and mast encoders."""
@@ -393,6 +374,7 @@ class Mission:
                 self.rig = rig
                 self.client = _MissionClient(rig.ctx, self.rovers, cfg.lockstep)
                 rig.add_node(self.client)
+                self.commander = Commander(self.client, rig.ex, self.rovers)
                 if cfg.near_start:
                     rig.place(cfg.slot_in, np.random.default_rng(cfg.seed))
                 if cfg.lockstep:
@@ -437,11 +419,11 @@ class Mission:
                     signal.signal(sig, handler)
 
     def _launch_args(self) -> dict[str, str]:
-        """mission.launch.py's arguments beyond the rig's: the identifiers, the recorder
-        (stopped first, so that its bag is closed while the graph still runs) and the live
-        view."""
+        """mission.launch.py's arguments beyond the rig's: the identifiers, the drivers, the
+        recorder (stopped first, so that its bag is closed while the graph still runs) and the
+        live view."""
         cfg = self.cfg
-        args = {'identify': str(PhaseName.IDENTIFY in cfg.phases).lower()}
+        args = {'identify': str(PhaseName.IDENTIFY in cfg.phases).lower(), 'driving': 'true'}
         if cfg.bag:
             args |= {'record': str((self.out / 'bag').resolve()),
                      'record_all': str(cfg.bag_all).lower()}
@@ -509,9 +491,10 @@ class Mission:
     # -- phase 1: identification ---------------------------------------------------------------
     def _identify(self) -> None:
         cfg, c = self.cfg, self.client
-        for r in self.rovers:
-            if not c.identify[r].wait_for_server(timeout_sec=60):
-                raise MissionError(f'no {r}/identifier/identify action server')
+        cmd = self.commander
+        missing = cmd.missing(cmd.identifiers, 60)
+        if missing:
+            raise MissionError(f'no {", ".join(missing)} identifier/identify action server')
         self._wait(lambda: all(r in c.truth for r in self.rovers), 60, "the sim's truth",
                    run=False)                     # latched: no round needed
         self.rig.render((), 0.0)                  # no one looks while the arms shake
@@ -519,24 +502,20 @@ class Mission:
         goal = Identify.Goal(strategy=cfg.identify_strategy, duration_s=cfg.identify_s)
         if cfg.lockstep:    # the round the rig holds the sim at: the goals are given there
             goal.stamp = stamp(self.rig.node.ls.stamp_s)
-        ex = self.rig.ex
-        futs = {r: in_executor(ex, lambda r=r: c.identify[r].send_goal_async(goal))
-                for r in self.rovers}
-        self._wait(lambda: all(f.done() for f in futs.values()), 30, 'the goals accepted',
+        tasks = {r: cmd.identify(r, goal) for r in self.rovers}
+        self._wait(lambda: all(t.answered for t in tasks.values()), 30, 'the goals accepted',
                    run=False)
-        handles = {r: f.result() for r, f in futs.items()}
-        for r, h in handles.items():
-            if not h.accepted:
+        for r, t in tasks.items():
+            if not t.accepted:
                 raise MissionError(f'{r}: identify goal rejected')
-        res = {r: in_executor(ex, h.get_result_async) for r, h in handles.items()}
         t0 = self._sim_t()
-        self._wait(lambda: all(f.done() for f in res.values()), 120 + 40 * cfg.identify_s,
+        self._wait(lambda: all(t.done for t in tasks.values()), 120 + 40 * cfg.identify_s,
                    'the identification', tick=lambda: self.progress.update(
                        (self._sim_t() - t0) / cfg.identify_s,
                        f'{self._sim_t() - t0:.0f} of {cfg.identify_s:.0f} sim s'))
         out, errs = {}, []
         for r in self.rovers:
-            result = res[r].result().result
+            result = tasks[r].result()
             t, e = c.truth[r], result.estimate
             row = identification_errors(
                 dict(zip(t.names, t.values, strict=False)),
@@ -600,30 +579,42 @@ class Mission:
             if len(cells) > 1 else [np.asarray(goal_xy, float)]
 
     def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> None:
-        """Drive rovers along (waypoints, final heading) at once, on their odometry."""
-        c = self.client
-        length = 0.0
-        for r, (wps, yaw) in paths.items():
-            pts = np.vstack([c.odom[r][:2], *wps])
-            length = max(length, float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))))
-            with c.lock:
-                c.follow[r] = FollowPath(wps, yaw, max_speed_m_s=0.2)
-        t0 = self._sim_t()
-        limit = 30.0 + 3 * length / 0.2
+        """Drive rovers along (waypoints, final heading) at once: a drive_to_pose goal each,
+        given while the sim is held (in lockstep every driver starts at the same round)."""
+        c, cmd = self.client, self.commander
+        missing = cmd.missing({r: cmd.drivers[r] for r in paths}, 60)
+        if missing:
+            raise MissionError(f'no {", ".join(missing)} drive_to_pose action server')
+        self._hold()
+        length = max(path_length(np.vstack([c.odom[r][:2], *wps]))
+                     for r, (wps, _) in paths.items())
+        tasks = {r: cmd.drive(r, wps[-1], yaw, via=wps[:-1]) for r, (wps, yaw) in paths.items()}
         try:
-            self._wait(lambda: not any(r in c.follow for r in paths) or
-                       self._sim_t() - t0 > limit, 120 + 30 * limit, what)
+            self._wait(lambda: all(t.answered for t in tasks.values()), 30,
+                       f'{what}: the goals accepted', run=False)
+            refused = [r for r, t in tasks.items() if not t.accepted]
+            if refused:
+                raise MissionError(f'{what}: {", ".join(refused)} refused the drive goal')
+            # the drivers' own limit is 30 s + 3x the path at 0.2 m/s of sim time
+            self._wait(lambda: all(t.done for t in tasks.values()),
+                       120 + 30 * (30.0 + 3 * length / 0.2), what)
         finally:
-            for r in paths:
-                c.stop(r)
-        late = [r for r in paths if math.hypot(*(np.asarray(c.odom[r][:2]) -
-                                                 paths[r][0][-1])) > 0.3]
-        if late:
-            self.log(f'{what}: {", ".join(late)} stopped short of the goal after {limit:.0f} s')
+            for t in tasks.values():
+                if not t.done:
+                    t.cancel()
+        for r, t in tasks.items():
+            res = t.result()
+            self.rep.setdefault('drives', []).append({
+                'what': what, 'rover': r, 'error_code': int(res.error_code),
+                'message': res.error_msg, 'driven_m': float(res.distance_driven),
+                'remaining_m': float(res.distance_remaining),
+                'sim_s': float(res.navigation_time_s)})
+            if res.error_code != DriveToPose.Result.NONE:
+                self.log(f'{what}: {r}: {res.error_msg}')
 
     def _map(self) -> None:
         cfg, c = self.cfg, self.client
-        if not c.nbv.wait_for_service(timeout_sec=60):
+        if not self.commander.nbv.wait_for_service(timeout_sec=60):
             raise MissionError('no viewplan/next_best_view service')
         # both cameras range from here on, while the rovers drive too: with the pairs off on
         # the drives, three next-best-view scans of the default mission added nothing to the
@@ -649,7 +640,7 @@ class Mission:
             for r in self.rovers:
                 req = NextBestView.Request(robot=r, strategy=cfg.strategy,
                                            current_pose=c.camera_pose(r))
-                fut = c.nbv.call_async(req)
+                fut = self.commander.next_best_view(req)
                 self._wait(fut.done, 120, f'{r} next best view', run=False)
                 resp = fut.result()
                 if not resp.success:

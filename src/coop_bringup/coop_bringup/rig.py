@@ -25,7 +25,6 @@ import numpy as np
 import rclpy
 import yaml
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -37,7 +36,6 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.dynparams import load_truth
 from coop_common.lockstep_node import Lockstep, Pacer, stamp_of
-from coop_common.node_util import in_executor
 from coop_common.params import choice
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import MAST_JOINTS, joint2_in_base
@@ -48,6 +46,7 @@ from coop_msgs.srv import SimScenario
 from coop_viewplan.frames import optical_quaternion
 from rover_sim.config import is_truth_topic
 
+from .commander import Commander
 from .graph import LaunchedGraph, mission_launch_file
 from .report import MissionError
 
@@ -95,7 +94,7 @@ STOP_RECORD_S = 60.0
 
 #: the nodes that close the insertion's and the mission's loops (by their names, in any
 #: namespace): none may read the simulator's truth (truth_readers)
-LOOP_NODES = ('master', 'slave', 'identifier', 'stereo', 'mapper', 'view_planner')
+LOOP_NODES = ('master', 'slave', 'identifier', 'driver', 'stereo', 'mapper', 'view_planner')
 
 
 def loop_nodes(names) -> list[str]:
@@ -255,7 +254,6 @@ class _Client(Node):
         self.create_subscription(PoseWithCovarianceStamped, 'rover1/camera_pose',
                                  self._on_ranged, LATCHED_QOS)
         self.reset = self.create_client(SimScenario, 'sim/reset')
-        self.insert = ActionClient(self, Insert, 'insert')
         self.mast = self.ls.publisher(JointTrajectory, 'rover1/mast/command', COMMAND_QOS)
 
     def _on_clock(self, m: Clock) -> None:
@@ -335,7 +333,8 @@ class InsertionRig(contextlib.AbstractContextManager):
                 'rovers': rovers, 'stereo_rovers': ' '.join(stereo_rovers),
                 'image_width': image_width, 'image_height': image_height,
                 'stereo_rate_hz': stereo_rate_hz, 'render_workers': render_workers,
-                'rate': real_time_factor, 'identify': False, 'mapping': planner,
+                'rate': real_time_factor, 'identify': False, 'driving': False,
+                'mapping': planner,
                 'insertion': True, 'cg_to_arm': calibrated_r2(seed), 'lockstep': lockstep,
                 'lockstep_period_s': round_s, 'clients': ' '.join((CLIENT, *clients)),
                 'composed': composed, 'output': 'own_log'}
@@ -372,7 +371,8 @@ class InsertionRig(contextlib.AbstractContextManager):
             self._stop = threading.Event()
             self._thread = threading.Thread(target=self._spin, daemon=True)
             self._thread.start()
-            if not self.node.insert.wait_for_server(timeout_sec=60):
+            self.commander = Commander(self.node, self.ex, [])
+            if not self.commander.inserter.wait_for_server(timeout_sec=60):
                 raise MissionError(f'no insert action server (logs in {self.log_dir})')
             if not self.node.reset.wait_for_service(timeout_sec=30):
                 raise MissionError('no sim/reset service')
@@ -604,8 +604,8 @@ class InsertionRig(contextlib.AbstractContextManager):
         t_start = node.ls.now_s(lambda: node.clock)
         node.card = []
 
-        def on_fb(fb) -> None:
-            f = self.feedback = fb.feedback
+        def on_fb(f: Insert.Feedback) -> None:
+            self.feedback = f
             curves['t'].append(node.clock - t_start)
             curves['phase'].append(int(f.phase))
             curves['displacement_m'].append(float(f.displacement_error_m))
@@ -623,23 +623,20 @@ class InsertionRig(contextlib.AbstractContextManager):
             pos.x, pos.y = float(xy[0]), float(xy[1])
             q.x, q.y, q.z, q.w = (float(v) for v in optical_quaternion(yaw, pitch))
         w0 = time.monotonic()
-        fut = in_executor(self.ex, lambda: node.insert.send_goal_async(
-            goal, feedback_callback=on_fb))
+        task = self.commander.insert(goal, on_feedback=on_fb)
         # the master answers from an executor busy with 640x480 marker tracking: on a loaded
         # machine that took over 30 s of wall time
-        self._wait(fut.done, 120, what="the insert goal's acceptance", held=True)
-        handle = fut.result()
-        if not handle.accepted:
+        self._wait(lambda: task.answered, 120, what="the insert goal's acceptance", held=True)
+        if not task.accepted:
             raise MissionError('insert goal rejected')
         node.recording = True
-        res_fut = in_executor(self.ex, handle.get_result_async)
         if self.lockstep:
             node.pacer.run()
         # the goal is bounded in sim time (the master's search and placement, the slave's
         # timeout), and a sim whose clock stops is told apart (SimStalled): the wall-clock bound
         # is a last resort only (a search of several views on a loaded machine took 15 min)
-        self._wait(res_fut.done, RESULT_WALL_S, what='the insert result')
-        res = res_fut.result().result
+        self._wait(lambda: task.done, RESULT_WALL_S, what='the insert result')
+        res = task.result()
         # the goal's end by the stamp of the state it ended on (the sim may have run on while
         # the result came), else by this client's clock
         ended = res.ended.sec + 1e-9 * res.ended.nanosec

@@ -58,6 +58,8 @@ ARGUMENTS = (
     ('stereo_rovers', '', 'the rovers whose stereo pairs the simulator renders and, with '
                           'mapping, ranges into the map (space separated; empty: every rover)'),
     ('identify', 'true', "each rover's base identifier (coop_id identifier)"),
+    ('driving', 'true', "each rover's driver (coop_insertion driver: its drive_to_pose action; "
+                        'sim and hw sources)'),
     ('mapping', 'true', "the team's map: the stereo nodes, the mapper and the view planner"),
     ('insertion', 'true', "the insertion's master (rover1) and slave (rover2)"),
     ('seed', '1', "the simulator's seed (site clutter, sensor noise) and the master's"),
@@ -148,6 +150,7 @@ def _graph(context: LaunchContext) -> list:
         raise ValueError(f'stereo_rovers:={a["stereo_rovers"]!r}: not among {rovers}')
     identify, mapping, insertion = (_flag(a[k], k) for k in ('identify', 'mapping',
                                                               'insertion'))
+    driving = _flag(a['driving'], 'driving') and a['source'] != 'bag'
     lockstep, composed = _flag(a['lockstep'], 'lockstep'), _flag(a['composed'], 'composed')
     if insertion and n < 2:
         raise ValueError('insertion:=true needs a master and a slave: rovers:=2 or more')
@@ -218,6 +221,9 @@ def _graph(context: LaunchContext) -> list:
     for r in rovers:
         if identify:
             node('identifier', 'coop_id', 'identifier', {}, ns=r, participant=True)
+        if driving:       # its obstacles from the team's 2-D map, above the rovers' namespaces
+            node('driver', 'coop_insertion', 'driver', {}, ns=r, participant=True,
+                 remaps=[('map/grid', f'{team_ns}/map/grid')])
         if mapping and r in stereo_rovers:
             node('stereo', 'coop_mapping', 'stereo', {}, ns=r)
     # the team's nodes (master and slave: participants of lockstep)
