@@ -7,6 +7,7 @@ COOP_REQUIRE_ROS2_TOOLS=1 (CI) they fail instead."""
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import re
@@ -32,7 +33,13 @@ from visualization_msgs.msg import MarkerArray
 
 from coop_common.frames import RoverFrames
 from coop_common.qos import LATCHED_QOS
-from coop_common.testing import NodeProcess, pick_domain_id, ros2_tools, wait_for
+from coop_common.testing import (
+    NodeProcess,
+    executable_path,
+    pick_domain_id,
+    ros2_tools,
+    wait_for,
+)
 from coop_common.tf_tree import TF_QOS, TF_STATIC_LISTENER_QOS
 
 pytestmark = pytest.mark.graph
@@ -245,6 +252,39 @@ def test_mission_launch_brings_up_the_whole_mission_graph(ros2, graph_node):
         out = subprocess.run([ros2, 'launch', 'coop_bringup', 'mission.launch.py', *args],
                              capture_output=True, text=True, timeout=60, check=False)
         assert out.returncode != 0 and why in out.stdout + out.stderr, (args, out.stdout[-2000:])
+
+
+def test_the_mission_runs_its_phases_on_a_launched_graph(ros2, graph_node, tmp_path):
+    """`ros2 launch coop_bringup mission.launch.py`, then `ros2 run coop_bringup mission
+    --attach` runs the phases against that graph (here the identification, in lockstep); a
+    client whose scenario is not the launched one is refused with the argument to give."""
+    mission = executable_path('coop_bringup', 'mission')
+    launch = Launch(ros2, 'seed:=3', 'render_workers:=0', 'lockstep:=true',
+                    'clients:=insertion_rig mission', file='mission.launch.py')
+    try:
+        want = {'/rover_sim', '/master', '/slave', '/mapper', '/view_planner',
+                *(f'/{r}/{n}' for r in ('rover1', 'rover2') for n in ROVER_NODES)}
+        wait_for(lambda: want <= _nodes(graph_node) or launch.proc.poll() is not None, 90.0,
+                 spin=lambda dt: graph_node.executor_.spin_once(timeout_sec=dt),
+                 what="the mission's nodes")
+        assert launch.proc.poll() is None, launch.text()[-3000:]
+        base = [str(mission), '--attach', '--lockstep', '--phases', 'identify', '--out',
+                str(tmp_path)]
+        out = subprocess.run([*base, '--seed', '4', '--run-id', 'wrong'], capture_output=True,
+                             text=True, timeout=120, check=False)
+        assert out.returncode != 0 and 'launch with seed:=4' in out.stdout + out.stderr, \
+            out.stdout[-3000:] + out.stderr[-3000:]
+        out = subprocess.run([*base, '--seed', '3', '--identify-s', '4', '--run-id', 'ok'],
+                             capture_output=True, text=True, timeout=600, check=False)
+        assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+        rep = json.loads((tmp_path / 'ok' / 'report.json').read_text())
+        status = {ph['name']: ph['status'] for ph in rep['phases']}
+        assert status['identify'] == 'ok' and rep['domain_id'] == int(os.environ['ROS_DOMAIN_ID'])
+        assert rep['identification']['mean_abs_rel_error'] <= 0.5, rep['identification']
+        launch.interrupt()
+        assert launch.wait() == 0, launch.text()[-3000:]
+    finally:
+        launch.close()
 
 
 def test_mission_launch_with_the_hardware_source_activates_each_bridge(ros2, tmp_path):

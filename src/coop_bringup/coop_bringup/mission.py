@@ -141,8 +141,13 @@ class MissionConfig:
     bag_all: bool = False             # ... with the bulk streams too (mission.launch.py)
     live_port: int | None = None      # serve the live view (Foxglove WebSocket) on this port
     lockstep: bool = False            # the sim in lockstep with the nodes that close loops
+    attach: bool = False              # the graph already launched on this domain, not ours
 
     def __post_init__(self) -> None:
+        if self.attach and (self.bag or self.live_port is not None):
+            raise MissionError('an attached mission records and serves nothing itself: the '
+                               "launch's record:= and live_view:= arguments do (give --no-bag, "
+                               'no --live)')
         object.__setattr__(self, 'identify_strategy', choice(
             Strategy, self.identify_strategy, 'identify_strategy', error=MissionError))
         object.__setattr__(self, 'strategy', choice(StrategyName, self.strategy, 'strategy',
@@ -342,7 +347,11 @@ class Mission:
     # -- the run ------------------------------------------------------------------------------
     def run(self) -> dict:
         cfg = self.cfg
-        isolate_ros_environment(self.domain_id)
+        if cfg.attach:      # the launched graph's domain (tools/env.sh, ROS_DOMAIN_ID)
+            self.domain_id = int(os.environ.get('ROS_DOMAIN_ID', '0'))
+            self.rep['domain_id'] = self.domain_id
+        else:
+            isolate_ros_environment(self.domain_id)
         launch_args = self._launch_args()
         t_all = time.monotonic()
         failed = None
@@ -369,7 +378,7 @@ class Mission:
                               domain_id=self.domain_id, stereo_rate_hz=cfg.stereo_rate_hz,
                               stereo_rovers=tuple(self.rovers), rovers=cfg.rovers,
                               launch_args=launch_args, lockstep=cfg.lockstep,
-                              clients=('mission',),
+                              clients=('mission',), attach=cfg.attach,
                               rough_site_m=cfg.rough_site_m) as rig:
                 self.rig = rig
                 self.client = _MissionClient(rig.ctx, self.rovers, cfg.lockstep)
@@ -405,6 +414,7 @@ class Mission:
             self.rep['interrupted'] = True
         except (InsertionError, MissionError, TimeoutError) as exc:
             self.rep['error'] = str(exc)
+            self.log(f'mission {self.run_id} stopped: {exc}')
             for ph in self.phases:
                 if ph.status is PhaseStatus.RUNNING:
                     ph.status, ph.reason = PhaseStatus.FAILED, str(exc)
@@ -872,8 +882,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--lockstep', action='store_true',
                    help='the simulator in lockstep with the nodes that close loops on it: the '
                         'same outcome on an idle and on a busy machine (docs/design.md)')
+    p.add_argument('--attach', action='store_true',
+                   help='run the phases against the graph already launched on this ROS domain '
+                        '(ros2 launch coop_bringup mission.launch.py with the same seed and '
+                        "slot, and with --lockstep: lockstep:=true clients:='insertion_rig "
+                        "mission'); implies --no-bag")
     p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None)
     a = p.parse_args(argv)
+    if a.attach:
+        if a.domain_id is not None or a.seeds is not None or a.live is not None:
+            p.error('--attach runs on the launched graph: no --domain-id, --seeds or --live')
+        a.bag = False
     if a.live is not None and not _port_free(a.live):
         p.error(f'--live: port {a.live} is in use (another live view?); give another PORT')
     try:
@@ -886,7 +905,7 @@ def main(argv: list[str] | None = None) -> int:
                             insert_timeout_s=a.insert_timeout, near_start=a.near_start,
                             rough_site_m=a.rough_site,
                             bag=a.bag, bag_all=a.bag_all, live_port=a.live,
-                            lockstep=a.lockstep)
+                            lockstep=a.lockstep, attach=a.attach)
         if a.seeds is not None:
             return _run_seeds(cfg, parse_seeds(a.seeds), a.out / (a.run_id or 'seeds'),
                               domain_id=a.domain_id)

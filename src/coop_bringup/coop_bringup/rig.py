@@ -28,7 +28,7 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rosgraph_msgs.msg import Clock
 from scipy.spatial.transform import Rotation
@@ -300,7 +300,7 @@ class InsertionRig(contextlib.AbstractContextManager):
                  slave_start_short_m: float = SLAVE_START_SHORT_M,
                  composed: bool = False, clients: tuple[str, ...] = (),
                  launch_args: dict[str, str] | None = None,
-                 rough_site_m: float = ROUGH_SITE_M) -> None:
+                 rough_site_m: float = ROUGH_SITE_M, attach: bool = False) -> None:
         """The graph is coop_bringup's mission.launch.py (its nodes' settings in
         config/mission.yaml), started through launch's Python API (coop_bringup.graph) with
         this rig's scenario as its arguments. stereo_rovers: whose stereo pairs the sim
@@ -315,7 +315,11 @@ class InsertionRig(contextlib.AbstractContextManager):
         clients: lockstep participants besides the graph's nodes and this rig (the nodes of
         other clients in this process); launch_args: more of the launch file's arguments (the
         mission's identifiers, recorder, live view); rough_site_m: the master's region
-        (rough_site), its centre drawn per attempt."""
+        (rough_site), its centre drawn per attempt; attach: start nothing and stop nothing,
+        but use the graph already launched on this ROS domain (`ros2 launch coop_bringup
+        mission.launch.py` with the same scenario: its simulator's seed and lockstep
+        participants are checked), the rig's changes to it (the sim's rendering, the stereo
+        nodes' ranging) left as they are at the end."""
         self.seed = seed
         self.stereo_rate_hz = stereo_rate_hz
         self.rough_site_m = rough_site_m
@@ -324,7 +328,10 @@ class InsertionRig(contextlib.AbstractContextManager):
         self.starts = {'master': master_start, 'slave_short_m': slave_start_short_m}
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix='insert_'))
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        isolate_ros_environment(domain_id)
+        self.attach = attach
+        if not attach:
+            isolate_ros_environment(domain_id)
+        self.clients = (CLIENT, *clients)
         self.slot_in = slot_in
         self.graph: LaunchedGraph | None = None
         self._extra_nodes: list[Node] = []
@@ -360,9 +367,10 @@ class InsertionRig(contextlib.AbstractContextManager):
 
     def __enter__(self) -> InsertionRig:
         try:
-            self.graph = LaunchedGraph(mission_launch_file(), self.launch_args,
-                                       log_dir=self.log_dir).__enter__()
-            self.graph.wait_started(self.expected, timeout_s=60)
+            if not self.attach:
+                self.graph = LaunchedGraph(mission_launch_file(), self.launch_args,
+                                           log_dir=self.log_dir).__enter__()
+                self.graph.wait_started(self.expected, timeout_s=60)
             self.ctx = Context()
             rclpy.init(context=self.ctx)
             self.node = _Client(self.ctx, self.lockstep)
@@ -372,6 +380,8 @@ class InsertionRig(contextlib.AbstractContextManager):
             self._thread = threading.Thread(target=self._spin, daemon=True)
             self._thread.start()
             self.commander = Commander(self.node, self.ex, [])
+            if self.attach:
+                self._check_attached()
             if not self.commander.inserter.wait_for_server(timeout_sec=60):
                 raise MissionError(f'no insert action server (logs in {self.log_dir})')
             if not self.node.reset.wait_for_service(timeout_sec=30):
@@ -388,8 +398,50 @@ class InsertionRig(contextlib.AbstractContextManager):
         self.ex.add_node(node)
 
     def dead(self) -> list[str]:
-        """The processes of the graph that have ended (a node that died)."""
-        return self.graph.dead() if self.graph is not None else []
+        """The processes of the graph that have ended (a node that died); attached, the
+        expected nodes that left the ROS graph (looked up at most once a second)."""
+        if self.graph is not None:
+            return self.graph.dead()
+        if not self.attach or getattr(self, 'node', None) is None:
+            return []
+        now = time.monotonic()
+        if now - self._gone_at >= 1.0:
+            self._gone_at = now
+            self._gone = [n for n in self.expected if not self.has_node(n)]
+        return self._gone
+
+    def has_node(self, name: str) -> bool:
+        """A node `name` (relative to the graph's root: 'master', 'rover1/stereo') runs."""
+        if self.graph is not None:
+            return bool(self.graph.find(name))
+        ns = self.node.get_namespace().rstrip('/')
+        full = f'{ns}/{name}'
+        return any(f'{n_ns.rstrip("/")}/{n}' == full
+                   for n, n_ns in self.node.get_node_names_and_namespaces())
+
+    def _check_attached(self) -> None:
+        """The launched graph is this rig's: its nodes run, and its simulator has this rig's
+        seed and slot and, in lockstep, this rig's clients among its participants
+        (MissionError naming the launch argument otherwise)."""
+        self._gone_at, self._gone = -math.inf, []
+        wait_for(lambda: all(self.has_node(n) for n in self.expected), 60.0,
+                 what=f'the launched graph ({", ".join(self.expected)})')
+        seed, participants, gap = self.get_parameters('rover_sim', 'seed',
+                                                      'lockstep_participants', 'slot_gap_m')
+        if seed != self.seed:
+            raise MissionError(f'the launched simulator has seed {seed}, not {self.seed}: '
+                               f'launch with seed:={self.seed}')
+        if abs(gap - self.slot_in * INCH) > 1e-6:
+            raise MissionError(f"the launched simulator's slot is {gap / INCH:g} in, not "
+                               f'{self.slot_in:g}: launch with slot_in:={self.slot_in:g}')
+        ours = [c for c in self.clients if c not in participants]
+        if self.lockstep and ours:
+            raise MissionError(f"the launched simulator's lockstep does not wait for "
+                               f"{', '.join(ours)}: launch with lockstep:=true "
+                               f"clients:='{' '.join(self.clients)}'")
+        if not self.lockstep and [p for p in participants if p]:
+            raise MissionError('the launched simulator runs in lockstep: run the client '
+                               'with --lockstep, or launch with lockstep:=false')
 
     def _spin(self) -> None:
         while not self._stop.is_set():
@@ -491,6 +543,15 @@ class InsertionRig(contextlib.AbstractContextManager):
             out[f'{ns.rstrip("/")}/{name}'] = sorted(t for t, _ in topics)
         return out
 
+    def get_parameters(self, node: str, *names: str) -> list:
+        """Parameters of one node of the graph, as Python values."""
+        client = AsyncParameterClient(self.node, node)
+        if not client.wait_for_services(timeout_sec=10.0):
+            raise MissionError(f'no {node} parameter services')
+        fut = client.get_parameters(list(names))
+        wait_for(fut.done, 10.0, what=f"{node}'s {', '.join(names)}")
+        return [parameter_value_to_python(v) for v in fut.result().values]
+
     def set_parameters(self, node: str, **values) -> None:
         """Set parameters of one node of the graph (MissionError with the node's reason
         when it refuses one)."""
@@ -535,7 +596,7 @@ class InsertionRig(contextlib.AbstractContextManager):
         ranged it (it and the mapper are not participants: a busy machine's stereo node would
         drop the frames it is behind on, and the map, and the camera placed in it, differ)."""
         self.node.mast.publish(mast_sweep(seconds))
-        if not self.lockstep or not self.graph.find('rover1/stereo'):
+        if not self.lockstep or not self.has_node('rover1/stereo'):
             self.sim_sleep(seconds + 1.0)
             return self.node.map_voxels
         node, period = self.node, 1.0 / self.stereo_rate_hz
@@ -571,7 +632,12 @@ class InsertionRig(contextlib.AbstractContextManager):
                     seen[:] = [self.node.map_voxels, time.monotonic()]
                 return time.monotonic() - seen[1] >= MAP_QUIET_S
             self._wait(settled, STALL_S, what='the map to take in the survey')
-        self.graph.stop('stereo')
+        if self.graph is not None:
+            self.graph.stop('stereo')
+            return
+        for name in self.expected:       # attached: not ours to stop, told to range no more
+            if name.endswith('/stereo'):
+                self.set_parameters(name, ranging=False)
 
     def attempt(self, *, slot_in: float, placement: Placement | str, seed: int,
                 timeout_s: float = 120.0, max_force_n: float = 25.0,

@@ -107,6 +107,8 @@ PARAMS = {
                                       lo=0.5, hi=100.0, read_only=True),
     'marker_max_radius_px': ParamSpec(25.0, 'largest marker disc radius detected (px)',
                                       lo=1.0, hi=200.0, read_only=True),
+    'ranging': ParamSpec(True, 'false: pairs are dropped unranged (no cloud, no camera_pose; '
+                         'the map keeps what it has), as once a site is mapped'),
 }
 
 
@@ -249,6 +251,8 @@ class StereoNode(Node):
                             f'{" + ".join(have)} arrived')
 
     def _process(self, m: dict) -> None:
+        if not self.p['ranging']:
+            return
         if 'left' not in self.info or 'right' not in self.info:
             # the first frame may complete before its camera_info (other topics, no order
             # between them): hold it until the calibration arrives, as the offline path does
