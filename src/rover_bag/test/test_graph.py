@@ -222,10 +222,14 @@ def test_play_round_trip(ros, tmp_path, sample_bag):
     assert got['truth'] == ['truth']
     imu = got['imu']
     assert len(imu) >= 90 and imu == sorted(imu)
-    # relative timing: never earlier than the recorded schedule at rate 2 (5 ms -> 2.5 ms)
+    # relative timing: never earlier than the recorded schedule at rate 2 (5 ms -> 2.5 ms), as
+    # this side sees it: a message taken up to LATENCY_S after it was sent (a loaded machine:
+    # `make test` runs the mission beside this) makes the ones after it look early by as much;
+    # a player that did not pace would deliver all 200 within a few ms
+    latency_s = 0.1
     r0 = got['inc'][0][1]
     for i, (_r, t) in enumerate(got['inc']):
-        assert t - r0 >= i * 0.0025 - 0.02, (i, t - r0)
+        assert t - r0 >= i * 0.0025 - latency_s, (i, t - r0)
     clock = got['clock']
     assert clock == sorted(clock) and clock[0] >= T0 and clock[-1] <= T0 + 1_000_000_000
     assert len(clock) >= 150
