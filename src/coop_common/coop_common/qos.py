@@ -37,3 +37,13 @@ def reliable(qos: QoSProfile, depth: int = 100) -> QoSProfile:
     reliable writer still serves best-effort readers)."""
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=max(depth, qos.depth),
                       reliability=ReliabilityPolicy.RELIABLE, durability=qos.durability)
+
+
+#: Map contributions (coop_msgs/MapContribution): reliable and transient local with a deep
+#: history, so what a rover makes while its link is down reaches the mapper when the link
+#: returns, also to a mapper that restarts or joins late (its ledger skips what it has fused).
+#: 400 at the stereo's 4 Hz is 100 s of contributions; `contribution_history` sets it.
+CONTRIBUTION_QOS = QoSProfile(
+    depth=400, history=HistoryPolicy.KEEP_LAST,
+    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)

@@ -13,11 +13,22 @@ import numpy as np
 from geometry_msgs.msg import Pose
 from sensor_msgs.msg import PointCloud2, PointField
 
-from coop_msgs.msg import VoxelSet
+from coop_msgs.msg import MapContribution, VoxelSet
 
+from .contribution import (
+    ContributionFormatError,
+    decode_array,
+    decode_gaussians,
+    decode_keys,
+    decode_mask,
+    encode_array,
+    encode_gaussians,
+    encode_keys,
+    encode_mask,
+)
 from .errors import MappingError
 from .gauss import sym6_from_cholesky
-from .voxelmap import LOGODDS_SCALE, VoxelMap, unpack_keys
+from .voxelmap import LOGODDS_SCALE, Contribution, VoxelMap, unpack_keys
 
 CLOUD_FIELDS = ('x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_xz', 'cov_yy', 'cov_yz', 'cov_zz')
 
@@ -141,3 +152,51 @@ def voxelset(vm: VoxelMap, packed: np.ndarray | None = None) -> VoxelSet:
     vs.covariance = _arr('f', cov.astype(np.float32).reshape(-1))
     vs.hits = _arr('I', vm.hits[idx].astype(np.uint32))
     return vs
+
+
+def contribution_to_msg(c: Contribution, vm: VoxelMap, header: Any, *, source: str,
+                        session: int, sequence: int) -> MapContribution:
+    """A contribution made by `vm` (whose settings it carries) as a MapContribution."""
+    m = MapContribution()
+    m.header = header
+    m.source = source
+    m.session, m.sequence = int(session), int(sequence)
+    m.resolution_m = vm.resolution
+    m.ray_subdivision = vm.ray_subdivision
+    m.voxel_prior = vm.voxel_prior
+    m.origin.x, m.origin.y, m.origin.z = (float(v) for v in c.origin)
+    m.n_points, m.n_rays = int(c.n_points), int(c.n_rays)
+    m.n_free, m.n_keys = int(c.free.size), int(c.keys.size)
+    m.free_keys = encode_keys(c.free)
+    m.keys = encode_keys(c.keys)
+    m.hit = encode_mask(np.isin(c.keys, c.hit, assume_unique=True))
+    m.gaussians = encode_gaussians(c.info, c.info_offset, vm.resolution)
+    m.counts = encode_array(np.minimum(c.counts, np.iinfo(np.uint32).max), '<u4')
+    return m
+
+
+def msg_to_contribution(msg: MapContribution, vm: VoxelMap) -> Contribution:
+    """A MapContribution for `vm`: ContributionFormatError when it is malformed or was made
+    with other settings than vm's (its update would not be the scan's)."""
+    if (msg.resolution_m != vm.resolution or msg.ray_subdivision != vm.ray_subdivision
+            or bool(msg.voxel_prior) != vm.voxel_prior):
+        raise ContributionFormatError(
+            f'made for {msg.resolution_m} m voxels, ray_subdivision {msg.ray_subdivision}, '
+            f'voxel_prior {bool(msg.voxel_prior)}; this map has {vm.resolution}, '
+            f'{vm.ray_subdivision}, {vm.voxel_prior}')
+    k = int(msg.n_keys)
+    free = decode_keys(msg.free_keys, int(msg.n_free))
+    keys = decode_keys(msg.keys, k)
+    hit = decode_mask(msg.hit, k)
+    info, off = decode_gaussians(msg.gaussians, k, vm.resolution)
+    counts = decode_array(msg.counts, '<u4', k, 'counts').astype(np.int64)
+    origin = np.array([msg.origin.x, msg.origin.y, msg.origin.z])
+    if not np.all(np.isfinite(origin)):
+        raise ContributionFormatError('non-finite origin')
+    if k and np.any(counts <= 0):
+        raise ContributionFormatError('a voxel without points')
+    if free.size and keys.size and np.isin(free, keys, assume_unique=True).any():
+        raise ContributionFormatError('a voxel both carved free and hit')
+    return Contribution(origin=origin, free=free, hit=keys[hit], keys=keys, info=info,
+                        info_offset=off, counts=counts,
+                        n_points=int(msg.n_points), n_rays=int(msg.n_rays))

@@ -69,11 +69,13 @@ from .gauss import (
     sym6_inv,
     sym6_matvec,
 )
+from .ledger import ContributionLedger
 
 __all__ = [
     'FREE',
     'OCCUPIED',
     'UNKNOWN',
+    'Contribution',
     'InsertResult',
     'MapFileError',
     'MapInputError',
@@ -444,6 +446,23 @@ class InsertResult:
     n_new: int
 
 
+@dataclass(frozen=True, eq=False)
+class Contribution:
+    """What one scan does to any map of the settings it was made with (`VoxelMap.contribution`),
+    whatever that map holds: a rover computes it where its stereo is and sends it, much smaller
+    than the cloud, to the team's mapper, which `apply`s it. Keys are sorted packed keys."""
+
+    origin: np.ndarray          # (3,) the camera, in the map frame
+    free: np.ndarray            # voxels carved free (one miss each)
+    hit: np.ndarray             # end voxels (one hit each)
+    keys: np.ndarray            # voxels that take points into their Gaussian
+    info: np.ndarray            # (K, 6) sum of the points' information (xx xy xz yy yz zz)
+    info_offset: np.ndarray     # (K, 3) sum of information x (point - voxel centre)
+    counts: np.ndarray          # (K,) points per voxel
+    n_points: int
+    n_rays: int
+
+
 class VoxelMap:
     """Sparse probabilistic voxel map (see the module docstring)."""
 
@@ -470,6 +489,8 @@ class VoxelMap:
         self.voxel_prior = bool(voxel_prior)
         self.sequence = 0
         self.contributions: Counter[str] = Counter()
+        #: the contributions (`apply` with a session and sequence) fused, per source
+        self.ledger = ContributionLedger()
         self._init_arrays(0)
 
     # ------------------------------------------------------------------ storage
@@ -517,7 +538,18 @@ class VoxelMap:
         (Eq. 3-8 after the Eq. 3-9 rotation), or None for the isotropic default_sigma.
         Occupancy: one hit per distinct end voxel, one miss per distinct voxel crossed by a
         ray and not an end voxel of this scan, clamped. Gaussians: Eq. 3-10 merge of every
-        point into its voxel. Points beyond max_range carve free space up to max_range only."""
+        point into its voxel. Points beyond max_range carve free space up to max_range only.
+        The same as `apply(contribution(...))`, which is how it is done."""
+        return self.apply(self.contribution(points, origin, covariances=covariances,
+                                            max_range=max_range), source=source)
+
+    def contribution(self, points: np.ndarray, origin: np.ndarray, *,
+                     covariances: np.ndarray | None = None,
+                     max_range: float | None = None) -> Contribution:
+        """What the scan does to a map of this one's settings (resolution, ray_subdivision,
+        voxel prior, default_sigma), whatever the map holds: its misses, hits and per-voxel
+        information sums (`Contribution`). Arguments and checks as `insert_scan`; the map is
+        not changed."""
         pts = np.asarray(points, dtype=np.float64)
         org = np.asarray(origin, dtype=np.float64).reshape(-1)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -533,8 +565,8 @@ class VoxelMap:
             cov = np.asarray(covariances, dtype=np.float64)
             if cov.shape != (len(pts), 6) or not np.all(np.isfinite(cov)):
                 raise MapInputError('covariances must be finite (N, 6)')
-            # each point's information (C_i + V)^-1 for the merge, computed before anything
-            # changes: a covariance that is not positive definite rejects the scan whole
+            # each point's information (C_i + V)^-1 for the merge: a covariance that is not
+            # positive definite rejects the scan whole
             v = self.extent_variance
             try:
                 info = sym6_inv(cov + v * _EYE6 if v else cov, require_pd=True)
@@ -548,10 +580,9 @@ class VoxelMap:
                 f = (max_range / rng[carve_only])[:, None]
                 pts = pts.copy()
                 pts[carve_only] = org + (pts[carve_only] - org) * f
-        m = self.model
         # --- end voxels: distinct keys (ray ends: mean of the points of each end cell)
         pk = pack_keys(self.key_of(pts))
-        order = np.argsort(pk)  # order inside a voxel is irrelevant: sums only
+        order = np.argsort(pk, kind='stable')  # order inside a voxel is irrelevant: sums only
         pk_s = pk[order]
         pts_s = pts[order]
         bounds = np.flatnonzero(np.r_[True, pk_s[1:] != pk_s[:-1]])
@@ -563,11 +594,23 @@ class VoxelMap:
         if carve_only.any():
             co = carve_only[order]
             hit_mask = np.logical_and.reduceat(~co, bounds) if len(co) else hit_mask
-        occ_keys = end_keys[hit_mask]
         if self.ray_subdivision != 1:
             ray_end = self._ray_ends(pts)
         # --- free keys from the rays (end voxels of this scan excluded: occupied preference)
         free = self._carve(org, ray_end, end_keys)
+        keep = ~carve_only[order]
+        keys, lam, lam_off, cnt = self._point_sums(pk_s[keep], pts_s[keep],
+                                                   None if info is None else info[order[keep]])
+        return Contribution(origin=org, free=free, hit=end_keys[hit_mask], keys=keys, info=lam,
+                            info_offset=lam_off, counts=cnt, n_points=len(pts),
+                            n_rays=len(ray_end))
+
+    def apply(self, c: Contribution, *, source: str = '') -> InsertResult:
+        """Fuse a scan's contribution: its misses and hits into the occupancy (clamped), its
+        information sums into the voxels' Gaussians (Eq. 3-10). Contributions made by a map of
+        other settings give a map other than the raw scans would; the caller checks that."""
+        m = self.model
+        free, occ_keys = c.free, c.hit
         # --- occupancy update
         upd_keys = np.concatenate([free, occ_keys])
         delta = np.concatenate([np.full(free.size, m.miss_q, np.int32),
@@ -589,17 +632,12 @@ class VoxelMap:
                                       axis=0)
             self.chol = np.insert(self.chol, ins, np.zeros((n_new, 6), np.float16), axis=0)
             self.hits = np.insert(self.hits, ins, np.zeros(n_new, np.uint32))
-        # --- Gaussian merge (Eq. 3-10 in information form) of the points into their voxels
-        if not carve_only.any():
-            self._merge_points(pk_s, pts_s, None if info is None else info[order])
-        elif not carve_only.all():
-            keep = ~carve_only[order]
-            self._merge_points(pk_s[keep], pts_s[keep],
-                               None if info is None else info[order[keep]])
+        if len(c.keys):
+            self._merge_sums(c.keys, c.info, c.info_offset, c.counts)
         self.sequence += 1
         if source:
             self.contributions[source] += 1
-        return InsertResult(changed=upd_keys, n_points=len(pts), n_rays=len(ray_end),
+        return InsertResult(changed=upd_keys, n_points=c.n_points, n_rays=c.n_rays,
                             n_free_updates=int(free.size), n_occupied_updates=int(occ_keys.size),
                             n_new=n_new)
 
@@ -655,46 +693,54 @@ class VoxelMap:
         voxel prior)."""
         return self.resolution ** 2 / 12.0 if self.voxel_prior else 0.0
 
-    def _merge_points(self, pk_s: np.ndarray, pts_s: np.ndarray, info_s: np.ndarray | None
-                      ) -> None:
-        """Eq. 3-8/3-10: product of the voxel's Gaussian and every new point's Gaussian.
-
-        In information form, Lambda = sum C_i^-1, eta = sum C_i^-1 x_i, which equals repeated
-        pairwise application of Eq. 3-10 in any order (the product is associative). With the
-        voxel prior, C_i + V and a first factor N(centre, V), V = res^2/12 I (module docstring).
+    def _point_sums(self, pk_s: np.ndarray, pts_s: np.ndarray, info_s: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. 3-8/3-10 in information form, per voxel of the (key-sorted) points: the voxel
+        keys, Lambda = sum C_i^-1 (K, 6), Lambda-weighted offsets sum C_i^-1 (x_i - centre)
+        (K, 3) and the point counts. Any order of pairwise Eq. 3-10 products gives the same
+        sums (the product is associative); offsets from the voxel centre keep them small.
         info_s: each point's information (C_i + V)^-1 (None: the isotropic default_sigma)."""
+        if len(pk_s) == 0:
+            return (np.empty(0, np.int64), np.empty((0, 6)), np.empty((0, 3)),
+                    np.empty(0, np.int64))
         bounds = np.flatnonzero(np.r_[True, pk_s[1:] != pk_s[:-1]])
         keys = pk_s[bounds]
         cnt = np.diff(np.r_[bounds, len(pk_s)])
-        v = self.extent_variance
+        centre = (unpack_keys(pk_s) + 0.5) * self.resolution
+        off = pts_s - centre
         if info_s is None:
-            w = 1.0 / (self.default_sigma ** 2 + v)
+            w = 1.0 / (self.default_sigma ** 2 + self.extent_variance)
             lam = np.zeros((len(keys), 6))
             lam[:, [0, 3, 5]] = (w * cnt)[:, None]
-            eta = np.add.reduceat(pts_s, bounds, axis=0) * w
+            lam_off = np.add.reduceat(off, bounds, axis=0) * w
         else:
             lam = np.add.reduceat(info_s, bounds, axis=0)
-            eta = np.add.reduceat(sym6_matvec(info_s, pts_s), bounds, axis=0)
+            lam_off = np.add.reduceat(sym6_matvec(info_s, off), bounds, axis=0)
+        return keys, lam, lam_off, cnt
+
+    def _merge_sums(self, keys: np.ndarray, lam: np.ndarray, lam_off: np.ndarray,
+                    cnt: np.ndarray) -> None:
+        """Multiply each voxel's Gaussian by the points' factor (`_point_sums`); with the voxel
+        prior, C_i + V and a first factor N(centre, V), V = res^2/12 I (module docstring)."""
         pos, found = self._find(keys)
         if not np.all(found):
             raise AssertionError('end voxels missing from the map after the occupancy update')
         res = self.resolution
-        centre = (unpack_keys(keys) + 0.5) * res
+        v = self.extent_variance
+        lam = np.array(lam, np.float64)          # sums in the voxel-centre frame
+        eta = np.array(lam_off, np.float64)
         old = self.hits[pos] > 0
         if old.any():
             c_old = sym6_from_cholesky(self.chol[pos[old]].astype(np.float64)) * res * res
             l_old = sym6_inv(c_old)
-            m_old = centre[old] + self.mean_off[pos[old]].astype(np.float64) * res
             lam[old] += l_old
-            eta[old] += sym6_matvec(l_old, m_old)
-        if v and not old.all():  # first points of a voxel: the prior factor, once
+            eta[old] += sym6_matvec(l_old, self.mean_off[pos[old]].astype(np.float64) * res)
+        if v and not old.all():  # first points of a voxel: the prior factor, at the centre
             lam[~old, 0] += 1.0 / v
             lam[~old, 3] += 1.0 / v
             lam[~old, 5] += 1.0 / v
-            eta[~old] += centre[~old] / v
         c_new = sym6_inv(lam)
-        m_new = sym6_matvec(c_new, eta)
-        self.mean_off[pos] = ((m_new - centre) / res).astype(np.float16)
+        self.mean_off[pos] = (sym6_matvec(c_new, eta) / res).astype(np.float16)
         try:
             L = sym6_cholesky(c_new / (res * res))
         except NotPositiveDefinite as exc:  # pragma: no cover - guarded by sym6_inv above
@@ -932,7 +978,7 @@ class VoxelMap:
                   'resolution': self.resolution, 'sequence': self.sequence,
                   'default_sigma': self.default_sigma, 'voxel_prior': self.voxel_prior,
                   'model': self.model.__dict__, 'contributions': dict(self.contributions),
-                  'voxels': len(self)}
+                  'ledger': self.ledger.to_json(), 'voxels': len(self)}
 
         def write(f: IO[bytes]) -> None:
             with zipfile.ZipFile(f, 'w', compression=zipfile.ZIP_STORED) as z:
@@ -988,6 +1034,7 @@ class VoxelMap:
             m.sequence = int(header['sequence'])
             m.contributions = Counter({str(k): int(v)
                                        for k, v in header['contributions'].items()})
+            m.ledger = ContributionLedger.from_json(header.get('ledger', {}))
             # both go out as uint64 (VoxelMap message, MapFile answer)
             for what, v in [('sequence', m.sequence), *m.contributions.items()]:
                 if not 0 <= v < 2 ** 64:
