@@ -60,16 +60,24 @@ def offline_map():
     return map_from_bag(_bag('mapping_two_rovers'), ['rover1', 'rover2'])
 
 
-def test_mapping_bag_replays_into_the_nodes_as_the_offline_map(tmp_path, probe, offline_map):
+@pytest.mark.parametrize('map_input', ['clouds', 'contributions'])
+def test_mapping_bag_replays_into_the_nodes_as_the_offline_map(tmp_path, probe, offline_map,
+                                                               map_input):
+    """Fed clouds or the contributions the stereo nodes make of them (what crosses a
+    rover's link), the mapper builds the offline map."""
     bag = _bag('mapping_two_rovers')
     rovers = ('rover1', 'rover2')
     sim_time = ['-p', 'use_sim_time:=true']
+    contribute = map_input == 'contributions'
     probe.listen(VoxelMapMsg, '/map/voxels', LATCHED_QOS)
-    stereo = [NodeProcess('coop_mapping', 'stereo', ['-r', f'__ns:=/{r}', *sim_time],
+    stereo = [NodeProcess('coop_mapping', 'stereo', ['-r', f'__ns:=/{r}', *sim_time,
+                                                     '-p', f'contribute:={contribute}'],
                           log_path=tmp_path / f'stereo_{r}.log') for r in rovers]
     mapper = NodeProcess('coop_mapping', 'mapper',
-                         [*sim_time, '-p', 'publish_period_s:=0.2'],
+                         [*sim_time, '-p', 'publish_period_s:=0.2',
+                          '-p', f'map_input:={map_input}'],
                          log_path=tmp_path / 'mapper.log')
+    inputs = ['map_contribution'] if contribute else ['stereo/points', 'camera_pose']
     topics = "['" + "','".join(stereo_topics(rovers)) + "']"
     # at half speed: the stereo nodes take best-effort sensor streams, and beside another
     # test run's work (make test runs two at once) a node behind at full speed drops pairs
@@ -87,8 +95,8 @@ def test_mapping_bag_replays_into_the_nodes_as_the_offline_map(tmp_path, probe, 
         # every cloud publisher matched to the mapper before the bag starts
         probe.spin_until(lambda: all(
             probe.node.count_publishers(f'/{r}/stereo/points') == 1
-            and probe.node.count_subscribers(f'/{r}/stereo/points') == 1
-            and probe.node.count_subscribers(f'/{r}/camera_pose') == 1 for r in rovers)
+            and all(probe.node.count_subscribers(f'/{r}/{t}') == 1 for t in inputs)
+            for r in rovers)
             and probe.msgs['/map/voxels'], 30.0, 'the stereo nodes and the mapper', nodes)
         t0 = time.monotonic()
         with player:
@@ -112,7 +120,7 @@ def test_mapping_bag_replays_into_the_nodes_as_the_offline_map(tmp_path, probe, 
     keys, states = _msg_states(last)
     om = offline_map.map
     agree = state_agreement(keys, states, om.keys, om.states())
-    print(f'replay {replay_s:.1f} s: {len(keys)} voxels replayed, {len(om)} offline, '
+    print(f'{map_input}: replay {replay_s:.1f} s: {len(keys)} voxels replayed, {len(om)} offline, '
           f'agreement {100 * agree:.3f} %')
     assert agree >= 0.995
     assert len(keys) == pytest.approx(len(om), rel=0.005)

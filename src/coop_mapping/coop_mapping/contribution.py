@@ -14,14 +14,17 @@ same way. The mapper turns them back into information sums.
 from __future__ import annotations
 
 import zlib
+from dataclasses import replace
 
 import numpy as np
 
+from .bodies import BodyFilter
 from .gauss import NotPositiveDefinite, sym6_cholesky, sym6_from_cholesky, sym6_inv, sym6_matvec
-from .voxelmap import MapInputError
+from .voxelmap import Contribution, MapInputError, ScanLimits, ScanRejected, VoxelMap
 
 __all__ = ['ContributionFormatError', 'decode_array', 'decode_gaussians', 'decode_keys',
-           'decode_mask', 'encode_array', 'encode_gaussians', 'encode_keys', 'encode_mask']
+           'decode_mask', 'drop_voxels', 'encode_array', 'encode_gaussians', 'encode_keys',
+           'encode_mask', 'make_contribution']
 
 #: the most a decoded list may hold (a scan of 5 M points carves fewer voxels than this)
 MAX_KEYS = 50_000_000
@@ -116,3 +119,32 @@ def decode_gaussians(data: bytes, k: int, resolution: float) -> tuple[np.ndarray
     except NotPositiveDefinite as exc:
         raise ContributionFormatError(f'gaussians: {exc}') from exc
     return info, sym6_matvec(info, g[:, :3] * resolution)
+
+
+def make_contribution(vm: VoxelMap, points: np.ndarray, covariances: np.ndarray | None,
+                      origin: np.ndarray, *, limits: ScanLimits, bodies: BodyFilter
+                      ) -> tuple[Contribution, int]:
+    """A rover's side of the mapping: one scan, checked as the mapper checks a cloud
+    (`limits`), without the points on the rover's own body (`bodies` about its camera), as a
+    contribution made by `vm` (of the mapper's settings). Returns it and the points dropped
+    as body; ScanRejected for a scan the mapper would not fuse."""
+    limits.check(points, covariances, origin)
+    pts, cov, dropped = bodies.drop(points, covariances, [origin])
+    if len(pts) == 0:
+        raise ScanRejected('body_only', 'every point on the rover body')
+    return vm.contribution(pts, origin, covariances=cov), dropped
+
+
+def drop_voxels(c: Contribution, mask: np.ndarray) -> tuple[Contribution, int]:
+    """The contribution without the points of the voxels `mask` (over c.keys) marks: their
+    Gaussian sums and hits go; the free space the scan's rays carved stays (the mapper's
+    teammate-body filter on a contribution, which no longer has the points). Returns it and
+    the points dropped."""
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        return c, 0
+    keep = ~mask
+    return replace(c, hit=c.hit[np.isin(c.hit, c.keys[mask], assume_unique=True,
+                                        invert=True)],
+                   keys=c.keys[keep], info=c.info[keep], info_offset=c.info_offset[keep],
+                   counts=c.counts[keep]), int(c.counts[mask].sum())

@@ -8,6 +8,10 @@ the ray origin). Publishes `map/voxels` (coop_msgs/VoxelMap, latched, at most ev
 (PointCloud2 of occupied voxel centres, latched), `map/surface` (PointCloud2 of the occupied
 voxels' surface points, `VoxelMap.surface_points`: sub-voxel, computed only while somebody
 subscribes, latched) and `map/grid` (nav_msgs/OccupancyGrid slice at `grid_z_m`, latched).
+With `map_input` `contributions` it subscribes `<r>/map_contribution`
+(coop_msgs/MapContribution, made by each rover's stereo node from its cloud: what crosses a
+field radio) instead, fuses each (source, session, sequence) once (the map's ledger) and
+reports a rover silent for `silent_after_s`.
 Before fusing a cloud it drops the points inside the body volume of its own rover and of every
 teammate whose camera pose it holds (`bodies.BodyFilter`: `body_radius_m` about each camera,
 0 = off). Services `map/save`, `map/load` (coop_msgs/srv/MapFile),
@@ -17,6 +21,7 @@ shutdown), and loads it at start if it is there.
 """
 from __future__ import annotations
 
+import enum
 import os
 import time
 from collections import OrderedDict
@@ -34,19 +39,47 @@ from std_srvs.srv import Trigger
 
 from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
+from coop_common.qos import COMMAND_QOS, CONTRIBUTION_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
+from coop_msgs.msg import MapContribution, VoxelMapUpdate
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
-from coop_msgs.msg import VoxelMapUpdate
 from coop_msgs.srv import MapFile, QueryMap
 
 from .bodies import BodyFilter
+from .contribution import ContributionFormatError, drop_voxels
+from .ledger import Admission
 from .offline import stamp_ns
-from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, voxelset
-from .voxelmap import MapFileError, MapInputError, ScanLimits, ScanRejected, VoxelMap
+from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, msg_to_contribution, voxelset
+from .voxelmap import (
+    Contribution,
+    InsertResult,
+    MapFileError,
+    MapInputError,
+    ScanLimits,
+    ScanRejected,
+    VoxelMap,
+    unpack_keys,
+)
+
+
+class MapInput(enum.Enum):
+    """What the mapper fuses (`map_input`)."""
+
+    CLOUDS = 'clouds'                  # <rover>/stereo/points + <rover>/camera_pose
+    CONTRIBUTIONS = 'contributions'    # <rover>/map_contribution
+
 
 PARAMS = {
     'rovers': ParamSpec(['rover1', 'rover2'], 'rover namespaces whose clouds are fused',
                         read_only=True),
+    'map_input': ParamSpec(MapInput.CLOUDS.value, "what is fused: each rover's stereo clouds, "
+                           "or the contributions its stereo node makes from them (`contribute`:"
+                           ' a field radio carries those)', choices=[m.value for m in MapInput],
+                           read_only=True),
+    'contribution_history': ParamSpec(CONTRIBUTION_QOS.depth, 'contributions queued per rover '
+                                      '(a rejoining link delivers its backlog at once)', lo=1,
+                                      hi=100_000, read_only=True),
+    'silent_after_s': ParamSpec(30.0, 'a rover that has sent nothing for this long is reported '
+                                '(wall time; 0 = never)', lo=0.0, hi=86400.0),
     'resolution_m': ParamSpec(0.1, 'voxel edge (m)', lo=0.005, hi=10.0, read_only=True),
     'map_frame': ParamSpec('map', 'common frame of clouds and map, after frame_prefix',
                            read_only=True),
@@ -128,9 +161,18 @@ class MapperNode(Node):
         self._surface_dirty = True
         self.poses: dict[str, OrderedDict[int, np.ndarray]] = {}
         self.pending: dict[str, OrderedDict[int, tuple[PointCloud2, float]]] = {}
+        self.input = MapInput(self.p['map_input'])
+        self.last_heard: dict[str, float] = {}     # rover -> monotonic time of its last input
+        self._reported_silent: set[str] = set()
         for r in self.p['rovers']:
             self.poses[r] = OrderedDict()
             self.pending[r] = OrderedDict()
+            if self.input is MapInput.CONTRIBUTIONS:
+                self.create_subscription(
+                    MapContribution, f'{r}/map_contribution',
+                    lambda m, r=r: self.on_contribution(r, m),
+                    with_depth(CONTRIBUTION_QOS, self.p['contribution_history']))
+                continue
             self.create_subscription(PointCloud2, f'{r}/stereo/points',
                                      lambda m, r=r: self.on_cloud(r, m), SENSOR_QOS)
             # latched (a late mapper gets the last pose) but a stream of one pose per
@@ -226,6 +268,7 @@ class MapperNode(Node):
 
     def on_cloud(self, rover: str, msg: PointCloud2) -> None:
         t_arrival = time.monotonic()
+        self.last_heard[rover] = t_arrival
         if msg.header.frame_id != self.map_frame:
             self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
             return
@@ -268,8 +311,11 @@ class MapperNode(Node):
         except MapInputError as exc:
             self.bad.reject('map_input', f'{rover}: {exc}')
             return
+        self._fused(rover, msg.header.stamp, base, res, t_arrival)
+
+    def _fused(self, rover: str, stamp, base: int, res: InsertResult, t_arrival: float) -> None:
         upd = VoxelMapUpdate()
-        upd.header = Header(stamp=msg.header.stamp, frame_id=self.map_frame)
+        upd.header = Header(stamp=stamp, frame_id=self.map_frame)
         upd.resolution_m = self.map.resolution
         upd.base_sequence = base
         upd.sequence = self.map.sequence
@@ -281,6 +327,57 @@ class MapperNode(Node):
         self.last_latency_s = time.monotonic() - t_arrival
         self.get_logger().debug(f'{rover}: {res.n_points} points, {res.n_new} new voxels, '
                                 f'{1e3 * self.last_latency_s:.1f} ms')
+
+    def on_contribution(self, rover: str, msg: MapContribution) -> None:
+        """A scan made into a contribution on the rover: checked, fused once (the map's
+        ledger), without the voxels inside a teammate's body (this rover's own body left it
+        on the rover)."""
+        t_arrival = time.monotonic()
+        self.last_heard[rover] = t_arrival
+        if msg.header.frame_id != self.map_frame:
+            self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
+            return
+        if msg.source != rover:
+            self.bad.reject('source', f'{rover}/map_contribution from {msg.source!r}')
+            return
+        try:
+            c = msg_to_contribution(msg, self.map)
+        except ContributionFormatError as exc:
+            self.bad.reject('format', f'{rover}: {exc}')
+            return
+        adm = self.map.ledger.admit(rover, msg.session, msg.sequence)
+        if adm is not Admission.NEW:
+            # a resent backlog or a replay after a restart: counted, never fused twice
+            self.bad.reject(adm.value, f'{rover}: session {msg.session} sequence '
+                            f'{msg.sequence}')
+            return
+        st = stamp_ns(msg.header.stamp)
+        poses = self.poses[rover]
+        poses[st] = c.origin
+        while len(poses) > 50:
+            poses.popitem(last=False)
+        c = self._without_teammates(rover, st, c)
+        base = self.map.sequence
+        try:
+            res = self.map.apply(c, source=rover)
+        except MapInputError as exc:     # pragma: no cover - msg_to_contribution checks
+            self.bad.reject('map_input', f'{rover}: {exc}')
+            return
+        self._fused(rover, msg.header.stamp, base, res, t_arrival)
+
+    def _without_teammates(self, rover: str, stamp: int, c: Contribution) -> Contribution:
+        bodies = BodyFilter(self.p['body_radius_m'], self.p['body_above_camera_m'],
+                            self.p['body_pose_tolerance_s'])
+        if not bodies.enabled or len(c.keys) == 0:
+            return c
+        cams = bodies.cameras_at(stamp, c.origin,
+                                 [self.poses[r] for r in self.poses if r != rover])[1:]
+        if not cams:
+            return c
+        centres = (unpack_keys(c.keys) + 0.5) * self.map.resolution
+        c, dropped = drop_voxels(c, bodies.mask(centres, cams))
+        self.body_points += dropped
+        return c
 
     # ---------------------------------------------------------------- outputs
     def publish_map(self) -> None:
@@ -335,11 +432,28 @@ class MapperNode(Node):
             for st in [s for s, (_, t) in pend.items() if now - t > self.p['pose_wait_s']]:
                 del pend[st]
                 self.bad.reject('no_pose', f'{rover}: cloud without a camera pose')
+        self._report_silent(now)
         per = self.p['autosave_period_s']
         if per > 0 and self.p['map_file'] and now - self._last_save >= per:
             self._last_save = now
             if self.unsaved:
                 self._save(self.p['map_file'])
+
+    def _report_silent(self, now: float) -> None:
+        """A rover heard from before and silent for silent_after_s: said once (and once
+        more when it is back); the map keeps what it sent."""
+        limit = self.p['silent_after_s']
+        for rover, t in self.last_heard.items():
+            silent = limit > 0 and now - t > limit
+            if silent and rover not in self._reported_silent:
+                self._reported_silent.add(rover)
+                self.get_logger().warn(
+                    f'{rover}: nothing for {now - t:.0f} s; the map keeps its '
+                    f'{self.map.contributions[rover]} scans, {self.map.ledger.missing(rover)} '
+                    'of its contributions missing so far')
+            elif not silent and rover in self._reported_silent:
+                self._reported_silent.discard(rover)
+                self.get_logger().info(f'{rover}: heard again')
 
     def _save(self, path: str) -> str | None:
         try:

@@ -26,6 +26,7 @@ alignment's uncertainty added to `camera_pose`.
 """
 from __future__ import annotations
 
+import time
 from collections import OrderedDict
 from dataclasses import fields
 
@@ -38,14 +39,18 @@ from std_msgs.msg import Header
 
 from coop_common.frames import FRAME_PARAMS, RoverFrames, Transform, check_frame_params, quat_of
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import LATCHED_QOS, SENSOR_QOS
+from coop_common.qos import CONTRIBUTION_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_common.tf_tree import TreeBroadcaster
+from coop_msgs.msg import MapContribution
 
+from .bodies import BodyFilter
+from .contribution import make_contribution
 from .fiducial_odometry import FiducialOdometry, OdometryConfig, PoseMethod
-from .offline import StereoSettings, stamp_ns
-from .ros_conv import cloud_to_msg, pose_to_rt
+from .offline import MapSettings, StereoSettings, stamp_ns
+from .ros_conv import cloud_to_msg, contribution_to_msg, pose_to_rt
 from .stereo import FULL_WIDTH_DEFAULT, SUBPIXEL_DEFAULT, SUBPIXEL_MODES, StereoError, StereoRanger
 from .target_frame import Initialiser, TargetFrameError, TargetGeometry
+from .voxelmap import ScanLimits, ScanRejected, VoxelMap
 
 # rover_sim's insertion site (worldgen, slot 4 mm): its frame has the origin at the block's
 # centre, x out of the marker face, z up; the block sits at (3, 0, 0.2) with yaw pi in `map`
@@ -107,6 +112,24 @@ PARAMS = {
                                       lo=0.5, hi=100.0, read_only=True),
     'marker_max_radius_px': ParamSpec(25.0, 'largest marker disc radius detected (px)',
                                       lo=1.0, hi=200.0, read_only=True),
+    'contribute': ParamSpec(False, 'also send every scan as a map contribution '
+                            '(`map_contribution`, coop_msgs/MapContribution) for a mapper with '
+                            'map_input contributions: what crosses a field radio instead of '
+                            'the cloud', read_only=True),
+    'map_resolution_m': ParamSpec(0.1, "the mapper's resolution_m (contributions)", lo=0.005,
+                                  hi=10.0, read_only=True),
+    'ray_subdivision': ParamSpec(4, "the mapper's ray_subdivision (contributions)", lo=0,
+                                 hi=16, read_only=True),
+    'max_points': ParamSpec(1_000_000, "the mapper's max_points (contributions)", lo=1,
+                            hi=50_000_000),
+    'body_radius_m': ParamSpec(BodyFilter.radius_m, "the mapper's body_radius_m: this rover's "
+                               'body volume, dropped from its contributions (0 = off)',
+                               lo=0.0, hi=10.0),
+    'body_above_camera_m': ParamSpec(BodyFilter.above_camera_m, "the mapper's "
+                                     'body_above_camera_m (contributions)', lo=0.0, hi=10.0),
+    'contribution_history': ParamSpec(CONTRIBUTION_QOS.depth, 'contributions kept for a '
+                                      'mapper that is cut off or restarts (reliable, transient '
+                                      'local)', lo=1, hi=100_000, read_only=True),
     'ranging': ParamSpec(True, 'false: pairs are dropped unranged (no cloud, no camera_pose; '
                          'the map keeps what it has), as once a site is mapped'),
 }
@@ -183,6 +206,16 @@ class StereoNode(Node):
         self.create_subscription(PoseWithCovarianceStamped, 'stereo/pose',
                                  lambda m: self._put('pose', m), SENSOR_QOS)
         self.frames = 0
+        self.contributions = 0
+        if self.p['contribute']:
+            # a session per start (ns since the epoch): the mapper tells a restart by it
+            self.session = time.time_ns()
+            self.source = self.get_namespace().rstrip('/').rsplit('/', 1)[-1] or 'rover'
+            self.contribution_map = VoxelMap(self.p['map_resolution_m'],
+                                             ray_subdivision=self.p['ray_subdivision'])
+            self.pub_contribution = self.create_publisher(
+                MapContribution, 'map_contribution',
+                with_depth(CONTRIBUTION_QOS, self.p['contribution_history']))
         self._waiting: list[dict] = []     # complete frames that came before any camera_info
         self.odometry: FiducialOdometry | None = None
         self._prev_dr: np.ndarray | None = None
@@ -290,6 +323,27 @@ class StereoNode(Node):
         self.pub_pose.publish(pose)
         self.pub_cloud.publish(cloud_to_msg(scan.points, scan.covariances, hdr))
         self.frames += 1
+        if self.p['contribute']:
+            self._contribute(scan.points, scan.covariances, t, hdr)
+
+    def _contribute(self, points: np.ndarray, covariances: np.ndarray, origin: np.ndarray,
+                    hdr: Header) -> None:
+        """The scan as the mapper would fuse the cloud (its float32 numbers, its checks,
+        this rover's body dropped), sent as a contribution."""
+        pts = points.astype(np.float32).astype(np.float64)
+        cov = covariances.astype(np.float32).astype(np.float64)
+        try:
+            c, _ = make_contribution(
+                self.contribution_map, pts, cov, np.asarray(origin, float),
+                limits=ScanLimits(self.p['max_points'], MapSettings.max_range_m),
+                bodies=BodyFilter(self.p['body_radius_m'], self.p['body_above_camera_m']))
+        except ScanRejected as exc:
+            self.bad.reject(exc.reason, str(exc))
+            return
+        self.contributions += 1
+        self.pub_contribution.publish(contribution_to_msg(
+            c, self.contribution_map, hdr, source=self.source, session=self.session,
+            sequence=self.contributions))
 
     def _initialise(self, m: dict, pose: PoseWithCovarianceStamped
                     ) -> PoseWithCovarianceStamped | None:

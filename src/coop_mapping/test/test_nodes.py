@@ -469,3 +469,79 @@ def test_mapper_refuses_a_map_file_that_is_a_directory(ctx, tmp_path):
         MapperNode(context=ctx, parameter_overrides=[
             Parameter('map_file', value=str(tmp_path / 'maps'))])
     assert (tmp_path / 'maps').is_dir() and not list(tmp_path.glob('maps.refused*'))
+
+
+def test_mapper_fuses_each_contribution_once_across_resends_and_restarts(ctx, tmp_path):
+    """Contributions (map_input contributions): fused once whatever comes again (a resent
+    backlog, an old session), with the missing counted; a teammate's body dropped voxel by
+    voxel; the wrong source or settings refused; a mapper restarted from its save skips what
+    it had fused."""
+    from coop_common.qos import CONTRIBUTION_QOS
+    from coop_mapping.ros_conv import contribution_to_msg
+    from coop_mapping.voxelmap import VoxelMap
+    from coop_msgs.msg import MapContribution
+    mapfile = tmp_path / 'team.cmap'
+    node, peer, ex = _mapper_and_peer(ctx, map_input='contributions', map_file=str(mapfile),
+                                      autosave_period_s=3600.0)
+    spin = {'spin': lambda t: ex.spin_once(timeout_sec=t)}
+    rng = np.random.default_rng(3)
+    maker = VoxelMap(0.1)
+
+    def contribution(seq, *, session=100, source='rover1', org=(0.0, 0.0, 0.8), body=False,
+                     vm=maker, sec=10):
+        wall = np.column_stack([np.full(500, 3.03), rng.uniform(-1, 1, 500),
+                                rng.uniform(0, 2, 500)])
+        pts = np.vstack([wall, np.array([1.0, 0.0, 0.3]) + rng.uniform(-0.2, 0.2, (200, 3))]) \
+            if body else wall
+        cov = np.tile([1e-4, 0, 0, 1e-4, 0, 1e-4], (len(pts), 1))
+        c = vm.contribution(pts, np.array(org), covariances=cov)
+        return contribution_to_msg(c, vm, Header(stamp=Time(sec=sec + seq), frame_id='map'),
+                                   source=source, session=session, sequence=seq)
+    try:
+        pub = {r: peer.create_publisher(MapContribution, f'/{r}/map_contribution',
+                                        CONTRIBUTION_QOS) for r in ('rover1', 'rover2')}
+        wait_for(lambda: all(peer.count_subscribers(f'/{r}/map_contribution') for r in pub),
+                 10.0, what='discovery', **spin)
+        pub['rover1'].publish(contribution(1))
+        pub['rover1'].publish(contribution(3))
+        pub['rover1'].publish(contribution(1))                 # resent
+        wait_for(lambda: node.fused == 2 and node.bad.counts['duplicate'] == 1, 10.0,
+                 what='two fused, one duplicate', **spin)
+        assert node.map.ledger.missing('rover1') == 1          # 2 has not come
+        pub['rover1'].publish(contribution(1, session=200))    # rover1's stereo restarted
+        pub['rover1'].publish(contribution(4))                 # its old session, late
+        pub['rover1'].publish(contribution(5, source='rover2'))
+        pub['rover2'].publish(contribution(1, vm=VoxelMap(0.2), source='rover2'))
+        wait_for(lambda: node.fused == 3 and node.bad.counts['old_session'] == 1
+                 and node.bad.counts['source'] == 1 and node.bad.counts['format'] == 1, 10.0,
+                 what='the restart and the refusals', **spin)
+        # rover2 stands 1 m ahead of rover1 (its camera known from its contribution): rover1's
+        # view of it is not fused, the wall behind is
+        pub['rover2'].publish(contribution(1, source='rover2', org=(1.05, 0.0, 0.8), sec=20))
+        wait_for(lambda: node.fused == 4, 10.0, what="rover2's contribution", **spin)
+        pub['rover1'].publish(contribution(2, session=200, body=True, sec=21))
+        wait_for(lambda: node.fused == 5, 10.0, what="rover1's view of rover2", **spin)
+        assert node.body_points >= 150
+        p = node.map.probability_at(np.array([[1.0, 0.0, 0.3], [3.05, 0.05, 1.05]]))
+        assert p[0] <= 0.5 and p[1] > 0.6
+        assert node.map.contributions == {'rover1': 4, 'rover2': 1}
+    finally:
+        ex.shutdown()
+        node.destroy_node()             # saves the map and its ledger
+        peer.destroy_node()
+    node, peer, ex = _mapper_and_peer(ctx, map_input='contributions', map_file=str(mapfile),
+                                      autosave_period_s=3600.0)
+    try:
+        pub = peer.create_publisher(MapContribution, '/rover1/map_contribution',
+                                    CONTRIBUTION_QOS)
+        wait_for(lambda: peer.count_subscribers('/rover1/map_contribution'), 10.0,
+                 what='discovery', **spin)
+        pub.publish(contribution(2, session=200))           # fused before the restart
+        pub.publish(contribution(3, session=200))
+        wait_for(lambda: node.fused == 1 and node.bad.counts['duplicate'] == 1, 10.0,
+                 what='the replay after the restart', **spin)
+        assert node.map.contributions == {'rover1': 5, 'rover2': 1}
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        peer.destroy_node()
