@@ -51,7 +51,8 @@ __all__ = [
 ]
 
 _SIDES = ('left', 'right')
-_TOPIC = re.compile(r'^/(?P<rover>[^/]+)/stereo/(?P<what>left/image_raw|right/image_raw|'
+#: a rover's stereo topic in a bag: groups `rover` and `what`
+STEREO_TOPIC = re.compile(r'^/(?P<rover>[^/]+)/stereo/(?P<what>left/image_raw|right/image_raw|'
                     r'left/camera_info|right/camera_info|pose)$')
 
 
@@ -169,7 +170,7 @@ def stereo_frames(messages: Iterable[tuple[str, Any]], rovers: Iterable[str] | N
     infos: dict[str, dict[str, Any]] = {}
     waiting: dict[str, list[tuple[int, dict[str, Any]]]] = {}
     for topic, msg in messages:
-        m = _TOPIC.match(topic)
+        m = STEREO_TOPIC.match(topic)
         if m is None or (wanted is not None and m['rover'] not in wanted):
             continue
         rover, what = m['rover'], m['what']
@@ -282,7 +283,7 @@ def map_from_bag(bag: str | Path, rovers: Iterable[str] | None = None, *,
     from rover_bag.bagio import bag_info, read_messages  # noqa: PLC0415
 
     names = list(rovers) if rovers is not None else sorted(
-        {m['rover'] for t in bag_info(bag).topics if (m := _TOPIC.match(t))})
+        {m['rover'] for t in bag_info(bag).topics if (m := STEREO_TOPIC.match(t))})
     topics = [t for t in stereo_topics(names) if t in bag_info(bag).topics]
     msgs = ((m.topic, m.msg) for m in read_messages(bag, topics))
     return build_map(msgs, names, stereo=stereo, mapping=mapping)
