@@ -76,7 +76,7 @@ def test_two_rovers_map_through_shaped_links_and_one_cut(tmp_path):
     assert 0 < cut_at < result.frames_in_bag['rover1'], 'the cut came mid-mapping'
     assert result.missing == {'rover1': 0, 'rover2': 0}
     assert result.sessions == {'rover1': 1, 'rover2': 1}
-    assert result.agreement_with_offline >= 0.995
+    assert result.agreement_with_offline >= 0.999      # late scans fused in stamp order
     assert result.mean_diff_mm_max < 1.0
     for r in ('rover1', 'rover2'):
         assert result.link_bytes[r]['sent'] < 0.1 * 20 * 1.76e6

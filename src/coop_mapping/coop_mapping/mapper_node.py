@@ -48,10 +48,10 @@ from .bodies import BodyFilter
 from .contribution import ContributionFormatError, drop_voxels
 from .ledger import Admission
 from .offline import stamp_ns
+from .ordering import OrderedFusion
 from .ros_conv import CloudFormatError, cloud_to_msg, msg_to_cloud, msg_to_contribution, voxelset
 from .voxelmap import (
     Contribution,
-    InsertResult,
     MapFileError,
     MapInputError,
     ScanLimits,
@@ -78,6 +78,16 @@ PARAMS = {
     'contribution_history': ParamSpec(CONTRIBUTION_QOS.depth, 'contributions queued per rover '
                                       '(a rejoining link delivers its backlog at once)', lo=1,
                                       hi=100_000, read_only=True),
+    'reorder_horizon_s': ParamSpec(30.0, 'scans up to this late (stamp time: a link that was '
+                                   'cut) are fused in their stamp order, by rebuilding the map '
+                                   'from a checkpoint (coop_mapping.ordering; 0 = in arrival '
+                                   'order)', lo=0.0, hi=3600.0, read_only=True),
+    'reorder_late_s': ParamSpec(1.0, 'a scan this far behind the newest fused one is late; '
+                                'closer ones are fused as they come', lo=0.0, hi=60.0,
+                                read_only=True),
+    'reorder_checkpoint_s': ParamSpec(5.0, 'a copy of the map every this much stamp time '
+                                      '(where a rebuild starts)', lo=0.01, hi=600.0,
+                                      read_only=True),
     'silent_after_s': ParamSpec(30.0, 'a rover that has sent nothing for this long is reported '
                                 '(wall time; 0 = never)', lo=0.0, hi=86400.0),
     'resolution_m': ParamSpec(0.1, 'voxel edge (m)', lo=0.005, hi=10.0, read_only=True),
@@ -150,8 +160,9 @@ class MapperNode(Node):
         # generation (its sequence may come back to the one saved: a reset starts at 0)
         self._generation = 0
         self._saved = (0, 0)
-        self.map = VoxelMap(self.p['resolution_m'], max_points=self.p['max_points'],
-                            ray_subdivision=self.p['ray_subdivision'])
+        self.fusion = self._fusion(VoxelMap(self.p['resolution_m'],
+                                            max_points=self.p['max_points'],
+                                            ray_subdivision=self.p['ray_subdivision']))
         self._load_at_start()
         self.pub_map = self.create_publisher(VoxelMapMsg, 'map/voxels', LATCHED_QOS)
         self.pub_upd = self.create_publisher(VoxelMapUpdate, 'map/updates', COMMAND_QOS)
@@ -199,6 +210,16 @@ class MapperNode(Node):
             f'mapper up: rovers {self.p["rovers"]}, {self.p["resolution_m"]} m voxels, '
             f'{len(self.map)} voxels loaded')
 
+    @property
+    def map(self) -> VoxelMap:
+        """The team's map (a rebuild replaces the object: never keep it)."""
+        return self.fusion.map
+
+    def _fusion(self, vm: VoxelMap) -> OrderedFusion:
+        return OrderedFusion(vm, horizon_s=self.p['reorder_horizon_s'],
+                             late_s=self.p['reorder_late_s'],
+                             checkpoint_s=self.p['reorder_checkpoint_s'])
+
     def p_update(self, changed: dict) -> None:
         self.p.update(changed)
         self.map.max_points = self.p['max_points']
@@ -238,7 +259,7 @@ class MapperNode(Node):
     def _adopt(self, m: VoxelMap) -> None:
         m.max_points = self.p['max_points']
         m.ray_subdivision = self.p['ray_subdivision']
-        self.map = m
+        self.fusion = self._fusion(m)
         self._generation += 1
 
     @property
@@ -305,28 +326,50 @@ class MapperNode(Node):
                 self.bad.reject('body_only', f'{rover}: every point on a rover body')
                 return
             self.body_points += dropped
-        base = self.map.sequence
         try:
-            res = self.map.insert_scan(pts, origin, covariances=cov, source=rover)
+            c = self.map.contribution(pts, origin, covariances=cov)
         except MapInputError as exc:
             self.bad.reject('map_input', f'{rover}: {exc}')
             return
-        self._fused(rover, msg.header.stamp, base, res, t_arrival)
+        self._fuse(rover, msg.header.stamp, c, t_arrival)
 
-    def _fused(self, rover: str, stamp, base: int, res: InsertResult, t_arrival: float) -> None:
+    def _fuse(self, rover: str, stamp, c: Contribution, t_arrival: float) -> None:
+        """Into the map in stamp order (`fusion`): now, or at the next settle if late."""
+        base = self.map.sequence
+        f = self.fusion.add(c, stamp_ns=stamp_ns(stamp), source=rover)
+        if f.beyond_horizon:
+            self.bad.reject('beyond_horizon', f'{rover}: a scan older than reorder_horizon_s, '
+                            'fused at the end')
+        if f.result is None:
+            return
+        self._publish_update(rover, stamp, base, f.result.changed)
+        self.last_latency_s = time.monotonic() - t_arrival
+        self.get_logger().debug(f'{rover}: {f.result.n_points} points, {f.result.n_new} new '
+                                f'voxels, {1e3 * self.last_latency_s:.1f} ms')
+
+    def _publish_update(self, source: str, stamp, base: int, changed: np.ndarray) -> None:
         upd = VoxelMapUpdate()
         upd.header = Header(stamp=stamp, frame_id=self.map_frame)
         upd.resolution_m = self.map.resolution
         upd.base_sequence = base
         upd.sequence = self.map.sequence
-        upd.source = rover
-        upd.changed = voxelset(self.map, res.changed)
+        upd.source = source
+        upd.changed = voxelset(self.map, changed)
         self.pub_upd.publish(upd)
-        self.fused += 1
+        self.fused += self.map.sequence - base
         self._dirty = True
-        self.last_latency_s = time.monotonic() - t_arrival
-        self.get_logger().debug(f'{rover}: {res.n_points} points, {res.n_new} new voxels, '
-                                f'{1e3 * self.last_latency_s:.1f} ms')
+
+    def _settle(self) -> None:
+        """Late scans into their place: one rebuild for all that came since the last."""
+        if not self.fusion.pending:
+            return
+        base, t0 = self.map.sequence, time.monotonic()
+        changed = self.fusion.settle()
+        if changed is None:
+            return
+        self._publish_update('', self.get_clock().now().to_msg(), base, changed)
+        self.get_logger().info(f'{self.map.sequence - base} late scans put in their stamp '
+                               f'order: map rebuilt in {time.monotonic() - t0:.2f} s')
 
     def on_contribution(self, rover: str, msg: MapContribution) -> None:
         """A scan made into a contribution on the rover: checked, fused once (the map's
@@ -357,13 +400,7 @@ class MapperNode(Node):
         while len(poses) > 50:
             poses.popitem(last=False)
         c = self._without_teammates(rover, st, c)
-        base = self.map.sequence
-        try:
-            res = self.map.apply(c, source=rover)
-        except MapInputError as exc:     # pragma: no cover - msg_to_contribution checks
-            self.bad.reject('map_input', f'{rover}: {exc}')
-            return
-        self._fused(rover, msg.header.stamp, base, res, t_arrival)
+        self._fuse(rover, msg.header.stamp, c, t_arrival)
 
     def _without_teammates(self, rover: str, stamp: int, c: Contribution) -> Contribution:
         bodies = BodyFilter(self.p['body_radius_m'], self.p['body_above_camera_m'],
@@ -422,6 +459,7 @@ class MapperNode(Node):
         self._surface_dirty = False
 
     def on_timer(self) -> None:
+        self._settle()
         now = time.monotonic()
         if self._dirty and now - self._last_pub >= self.p['publish_period_s']:
             self.publish_map()
@@ -456,6 +494,7 @@ class MapperNode(Node):
                 self.get_logger().info(f'{rover}: heard again')
 
     def _save(self, path: str) -> str | None:
+        self._settle()              # late scans waiting for their place go in first
         try:
             self.map.save(path)
         except OSError as exc:
@@ -470,6 +509,7 @@ class MapperNode(Node):
     def destroy_node(self) -> None:
         """A clean stop saves what the last autosave does not hold (with autosave on), so a
         restart loses nothing; a killed mapper loses what came after its last autosave."""
+        self.fusion.settle()
         if self.p['autosave_period_s'] > 0 and self.p['map_file'] and self.unsaved:
             self._save(self.p['map_file'])
         super().destroy_node()

@@ -501,6 +501,18 @@ class VoxelMap:
         self.chol = np.zeros((n, 6), np.float16)
         self.hits = np.zeros(n, np.uint32)
 
+    def copy(self) -> VoxelMap:
+        """An independent copy: voxels, settings, sequence, contributions and ledger."""
+        out = VoxelMap(self.resolution, model=self.model, default_sigma=self.default_sigma,
+                       max_points=self.max_points, ray_subdivision=self.ray_subdivision,
+                       voxel_prior=self.voxel_prior)
+        for name, arr in self._arrays().items():
+            setattr(out, name, arr.copy())
+        out.sequence = self.sequence
+        out.contributions = Counter(self.contributions)
+        out.ledger = self.ledger.copy()
+        return out
+
     def _arrays(self) -> dict[str, np.ndarray]:
         return {'keys': self.keys, 'logodds': self.logodds, 'mean_off': self.mean_off,
                 'chol': self.chol, 'hits': self.hits}
