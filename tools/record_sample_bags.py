@@ -140,16 +140,23 @@ def _aim_mast(d: Driver, rover: str, target: tuple[float, float, float]) -> None
     d.trajectory(f'/{rover}/mast/command', ['mast_pan', 'mast_tilt'], [0.3], [[pan, tilt]])
 
 
-def drive_mapping(d: Driver, seconds: float) -> None:
-    """Both rovers scan: mast pan sweeps -0.6..0.6 rad while the rovers creep forward."""
+def drive_mapping(d: Driver, seconds: float, rovers: tuple[str, ...] = ('rover1', 'rover2')
+                  ) -> None:
+    """The rovers scan: mast pan sweeps -0.6..0.6 rad (in opposite phase from rover to rover)
+    while the rovers creep forward."""
 
     def every(t: float) -> None:
-        for i, rover in enumerate(('rover1', 'rover2')):
+        for i, rover in enumerate(rovers):
             d.pub(Twist, f'/{rover}/cmd_vel').publish(Twist(linear=_v(0.15)))
             pan = 0.6 * math.sin(2 * math.pi * t / seconds + i * math.pi)
             d.trajectory(f'/{rover}/mast/command', ['mast_pan', 'mast_tilt'], [0.2],
                          [[pan, 0.15]])
     d.spin_for(seconds, every, period_s=0.1)
+
+
+def drive_mapping_four(d: Driver, seconds: float) -> None:
+    """drive_mapping with four rovers (two pairs)."""
+    drive_mapping(d, seconds, ('rover1', 'rover2', 'rover3', 'rover4'))
 
 
 def _go_to(d: Driver, rover: str, goal: tuple[float, float], v_max: float = 0.5) -> None:
@@ -227,6 +234,13 @@ RUNS = [
         ['/clock', '/sim/world', '/sim/rover1/camera_pose', '/sim/rover2/camera_pose',
          '/sim/rover1/base_pose', '/sim/rover2/base_pose']
         + [f'/{r}/{t}' for r in ('rover1', 'rover2') for t in STEREO], 5.0, drive_mapping),
+    Run('mapping_four_rovers', 'four-rover stereo mapping (two pairs), as '
+        '`mapping_two_rovers`: every rover creeps forward, masts sweeping; 320x240 stereo '
+        'pairs at 4 Hz + camera_info, stereo/pose, odom, true poses',
+        ['-p', 'rovers:=4', '-p', 'seed:=1', '-p', 'stereo_rate_hz:=4.0'],
+        ['/clock', '/sim/world']
+        + [f'/sim/rover{i}/{t}' for i in range(1, 5) for t in ('camera_pose', 'base_pose')]
+        + [f'/rover{i}/{t}' for i in range(1, 5) for t in STEREO], 5.0, drive_mapping_four),
     Run('insertion_site', 'insertion site: rover2 (slave, carries the card) drives up to the '
         'slot, rover1 (master) stops short with card and slot in its stereo view; stereo 4 Hz, '
         'rover2 arm F/T + joints, true poses',

@@ -60,6 +60,11 @@ from .voxelmap import (
     unpack_keys,
 )
 
+#: late scans wait for their rebuild until none has come for this long (s) ...
+SETTLE_QUIET_S = 0.5
+#: ... or the first of them has waited this long (s)
+SETTLE_MAX_WAIT_S = 5.0
+
 
 class MapInput(enum.Enum):
     """What the mapper fuses (`map_input`)."""
@@ -204,6 +209,7 @@ class MapperNode(Node):
         self.create_timer(0.1, self.on_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._last_save = time.monotonic()
         self.fused = 0
+        self._late_since = self._late_last = 0.0     # monotonic times of the waiting late scans
         self.body_points = 0
         self.last_latency_s = float('nan')
         self.get_logger().info(
@@ -341,6 +347,9 @@ class MapperNode(Node):
             self.bad.reject('beyond_horizon', f'{rover}: a scan older than reorder_horizon_s, '
                             'fused at the end')
         if f.result is None:
+            now = time.monotonic()
+            self._late_since = self._late_since or now
+            self._late_last = now
             return
         self._publish_update(rover, stamp, base, f.result.changed)
         self.last_latency_s = time.monotonic() - t_arrival
@@ -359,10 +368,17 @@ class MapperNode(Node):
         self.fused += self.map.sequence - base
         self._dirty = True
 
-    def _settle(self) -> None:
-        """Late scans into their place: one rebuild for all that came since the last."""
+    def _settle(self, *, now: float | None = None) -> None:
+        """Late scans into their place: one rebuild for all that came since the last. From the
+        timer (`now` given), once the backlog has stopped coming for SETTLE_QUIET_S or the
+        first late scan has waited SETTLE_MAX_WAIT_S: a link that comes back delivers it one
+        scan at a time, and each rebuild fuses the whole journal after its place again."""
         if not self.fusion.pending:
             return
+        if now is not None and now - self._late_last < SETTLE_QUIET_S and \
+                now - self._late_since < SETTLE_MAX_WAIT_S:
+            return
+        self._late_since = self._late_last = 0.0
         base, t0 = self.map.sequence, time.monotonic()
         changed = self.fusion.settle()
         if changed is None:
@@ -459,8 +475,8 @@ class MapperNode(Node):
         self._surface_dirty = False
 
     def on_timer(self) -> None:
-        self._settle()
         now = time.monotonic()
+        self._settle(now=now)
         if self._dirty and now - self._last_pub >= self.p['publish_period_s']:
             self.publish_map()
         elif not self._dirty:
