@@ -123,3 +123,24 @@ def test_sim_reset_table_of_a_hand_built_result():
     assert lines[1].split()[-2:] == ['0.310', '0.400']
     assert lines[2].split()[-2:] == ['1.240', '1.500']
     assert lines[3] == 'handed over / new, median: 0.25 (5 resets each)'
+
+
+def test_link_table_of_a_hand_built_result():
+    from bench.link import format_table
+    off = {'frames': 40, 'points_per_frame': 49000.0, 'raw_kb_per_frame': 1763.1,
+           'compact_kb_per_frame': 40.4, 'raw_mbit_per_s_per_rover': 56.4,
+           'compact_mbit_per_s_per_rover': 1.29, 'compact_vs_raw_agreement': 1.0,
+           'compact_vs_raw_mean_diff_mm': 0.115, 'contribution_ms_p50': 38.0}
+    run = {'scans_in_map': {'rover1': 20, 'rover2': 20}, 'missing': {'rover1': 0, 'rover2': 0},
+           'link_kb_per_frame': {'rover1': 45.2, 'rover2': 60.9},
+           'link_mbit_per_s_at_4hz': {'rover1': 1.45, 'rover2': 1.95},
+           'latency_ms_p50': 91.4, 'latency_ms_p99': 277.5, 'agreement_with_offline': 0.9999}
+    res = {'rate_mbit': 2.0, 'cut_s': 10.0, 'offline': {'320x240': off},
+           'network': {'compact': run, 'compact_cut': run, 'raw_unshaped': run,
+                       'cut_vs_uncut_agreement': 0.9998, 'cut_vs_uncut_mean_diff_mm': 0.1}}
+    lines = format_table(res).splitlines()
+    assert lines[2] == ('| 320x240 | 40 | 49000 | 1763 | 40.4 | 56.4 | 1.29 | 100.000 % | '
+                        '0.115 | 38 |')
+    assert lines[6] == ('| compact | 20, 20 | 0, 0 | 45, 61 | 1.45, 1.95 | 91.4 / 277.5 | '
+                        '99.990 % |')
+    assert lines[-1].startswith('cut (10 s, rover1) vs uncut: 99.980 % voxel states')

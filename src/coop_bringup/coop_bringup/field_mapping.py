@@ -2,19 +2,21 @@ r"""Rovers on separate computers mapping one site: each rover's data source and 
 host of its own, the team's mapper on a base station, joined by rate-limited links that can be
 cut (coop_common.netns; root).
 
-    sudo -E python -m coop_bringup.field_mapping --bag bags/mapping_two_rovers \\
+    sudo -E python -m coop_bringup.field_mapping --bag bags/mapping_two_rovers \
         --rate-mbit 2 --cut rover1:2:6 --json out/field.json
 
 Each rover host plays its own rover's recorded streams from the bag (images, camera_info,
-stereo/pose: raw sensor data that never leaves the rover) into its stereo node; the base host runs
-the mapper. What crosses a rover's link is what the mapper subscribes: the contributions
-(`--map-input contributions`, the default) or the clouds and camera poses (`clouds`, to measure
-what raw clouds would cost). `--cut ROVER:AT:FOR` takes a rover's link down AT seconds after
-the map's first scan, for FOR seconds. When every player has finished and the map holds what the
-stereo nodes sent (or `--settle-s` has passed), the mapper is stopped cleanly (it saves its map
-and ledger) and the run reports, per rover: scans sent, scans in the map, contributions
-missing, bytes over its link; and the map against the one built offline from the same bag
-(coop_mapping.offline).
+stereo/pose: raw sensor data that never leaves the rover) into its stereo node; the base host
+runs the mapper. A rover's link is limited to `--rate-mbit`, the base's to that times the number
+of rovers (the base's radio serves them all). What crosses a rover's link is what the mapper
+subscribes: the contributions (`--map-input contributions`, the default) or the clouds and
+camera poses (`clouds`, to measure what raw clouds would cost). `--cut ROVER:AT:FOR` takes a
+rover's link down AT seconds after the map's first scan, for FOR seconds; `--restart ROVER:AT`
+kills its stereo node then and starts it again. When every player has finished and the map
+holds what the stereo nodes sent (or `--settle-s` has passed), the mapper is stopped cleanly (it
+saves its map and ledger) and the run reports, per rover: frames in the bag, scans in the map,
+contributions missing, sessions, bytes over its link; and the map against the one built offline
+from the same bag (coop_mapping.offline).
 """
 from __future__ import annotations
 
@@ -38,7 +40,7 @@ from coop_mapping.offline import STEREO_TOPIC, map_from_bag, stereo_topics
 from coop_mapping.voxelmap import MapFileError, VoxelMap, state_agreement
 from rover_bag.bagio import bag_info
 
-__all__ = ['Cut', 'FieldRun', 'main', 'run']
+__all__ = ['Cut', 'FieldRun', 'format_json', 'main', 'run', 'score', 'table']
 
 
 
@@ -66,6 +68,7 @@ class FieldRun:
     cuts: list[dict]
     play_rate: float
     scans_at_cut: list[dict] = field(default_factory=list)
+    restarts: list[dict] = field(default_factory=list)
     scans_in_map: dict[str, int] = field(default_factory=dict)
     frames_in_bag: dict[str, int] = field(default_factory=dict)
     missing: dict[str, int] = field(default_factory=dict)
@@ -86,9 +89,12 @@ def _node(package: str, exe: str, ros_args: list[str], args: list[str] | None = 
 
 
 def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contributions',
-        rate_mbit: float | None = 2.0, cuts: Sequence[Cut] = (), play_rate: float = 0.5,
+        rate_mbit: float | None = 2.0, cuts: Sequence[Cut] = (),
+        restarts: Sequence[tuple[str, float]] = (), play_rate: float = 0.5,
         settle_s: float = 60.0, domain_id: int | None = None) -> tuple[FieldRun, Path]:
-    """One run (the module docstring); returns the measurements and the mapper's saved map."""
+    """One run (the module docstring); returns the measurements and the mapper's saved map.
+    `restarts`: (rover, at_s): its stereo node is killed (SIGKILL) at_s after the map's first
+    scan and started again at once; the frames in between are not ranged."""
     info = bag_info(bag)
     frames = {r: info.topics[f'/{r}/stereo/left/image_raw'].count for r in rovers
               if f'/{r}/stereo/left/image_raw' in info.topics}
@@ -104,7 +110,9 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
                       cuts=[asdict(c) for c in cuts], play_rate=play_rate,
                       frames_in_bag=frames)
     contribute = map_input == 'contributions'
-    with FieldNetwork(['base', *rovers], rate_mbit=rate_mbit) as net:
+    # the base's radio serves every rover: its link carries their sum
+    base_rate = {'base': rate_mbit * len(rovers)} if rate_mbit is not None else {}
+    with FieldNetwork(['base', *rovers], rate_mbit=rate_mbit, rates_mbit=base_rate) as net:
         env = net.ros_env(domain_id=pick_domain_id() if domain_id is None else domain_id)
         rl = '[' + ','.join(f"'{r}'" for r in rovers) + ']'
         mapper = net.start('base', _node('coop_mapping', 'mapper', [
@@ -112,10 +120,14 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
             '-p', f'map_file:={map_file}', '-p', 'autosave_period_s:=1.0',
             '-p', 'publish_period_s:=1.0']), env=env, log=out_dir / 'mapper.log')
         stereo, players = {}, {}
-        for r in rovers:
+
+        def start_stereo(r: str) -> None:
             stereo[r] = net.start(r, _node('coop_mapping', 'stereo', [
                 '-r', f'__ns:=/{r}', '-p', f'contribute:={contribute}']), env=env,
                 log=out_dir / f'stereo_{r}.log')
+        for r in rovers:
+            start_stereo(r)
+        kills = sorted(restarts, key=lambda k: k[1])
         for r in rovers:
             topics = '[' + ','.join(f"'{t}'" for t in stereo_topics([r])
                                     if t in info.topics) + ']'
@@ -145,13 +157,19 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
                 net.cut(c.rover)
                 result.scans_at_cut.append({'rover': c.rover, 'scans': scans.get(c.rover, 0)})
                 down.append((now + c.for_s, c.rover))
+            while t_mapping is not None and kills and kills[0][1] <= now - t_mapping:
+                r = kills.pop(0)[0]
+                stereo[r].kill()
+                stereo[r].wait(10.0)
+                result.restarts.append({'rover': r, 'scans': scans.get(r, 0)})
+                start_stereo(r)
             for until, r in list(down):
                 if until <= now:
                     net.restore(r)
                     down.remove((until, r))
             if t_played is None and all(p.poll() is not None for p in players.values()):
                 t_played = now
-            if t_played is not None and not pending and not down and (
+            if t_played is not None and not pending and not down and not kills and (
                     scans == expected or now - t_played > settle_s):
                 break
             if mapper.poll() is not None:
@@ -217,6 +235,11 @@ def table(result: FieldRun) -> str:
     return '\n'.join(lines)
 
 
+def format_json(d: dict) -> str:
+    """`table` of a run's JSON (docs/results)."""
+    return table(FieldRun(**d))
+
+
 def main(argv: list[str] | None = None) -> int:
     """`python -m coop_bringup.field_mapping` (the module docstring); exit 1 when the map does
     not hold every scan."""
@@ -230,6 +253,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="every link's rate limit (0: none)")
     ap.add_argument('--cut', type=Cut.parse, action='append', default=[],
                     metavar='ROVER:AT_S:FOR_S')
+    ap.add_argument('--restart', action='append', default=[], metavar='ROVER:AT_S',
+                    type=lambda t: (t.split(':')[0], float(t.split(':')[1])),
+                    help="kill the rover's stereo node AT_S after the first scan and start it "
+                    'again')
     ap.add_argument('--play-rate', type=float, default=0.5)
     ap.add_argument('--settle-s', type=float, default=60.0)
     ap.add_argument('--out', type=Path, default=None, help='logs and the map (default: a '
@@ -241,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix='field_mapping_') as tmp:
         out = a.out or Path(tmp)
         result, map_file = run(a.bag, rovers, out_dir=out, map_input=a.map_input,
-                               rate_mbit=a.rate_mbit or None, cuts=a.cut,
+                               rate_mbit=a.rate_mbit or None, cuts=a.cut, restarts=a.restart,
                                play_rate=a.play_rate, settle_s=a.settle_s)
         score(result, map_file, a.bag)
     print(table(result))

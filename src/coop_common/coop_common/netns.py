@@ -108,9 +108,11 @@ def remove_stale() -> list[str]:
 
 class FieldNetwork:
     """Hosts on a switch (the module docstring). `rate_mbit`: every link's rate limit (None:
-    the veth's own speed); `burst_kbit`: the token bucket's depth."""
+    the veth's own speed), `rates_mbit` another one for some hosts (a base station's radio that
+    serves every rover); `burst_kbit`: the token bucket's depth."""
 
     def __init__(self, hosts: Sequence[str], *, rate_mbit: float | None = None,
+                 rates_mbit: Mapping[str, float] | None = None,
                  burst_kbit: float = 256.0) -> None:
         if len(set(hosts)) != len(hosts) or not hosts:
             raise NetnsError(f'hosts {list(hosts)}: need distinct names')
@@ -121,6 +123,9 @@ class FieldNetwork:
             raise NetnsError('at most 200 hosts')
         self.hosts = list(hosts)
         self.rate_mbit = rate_mbit
+        self.rates_mbit = dict(rates_mbit or {})
+        if set(self.rates_mbit) - set(self.hosts):
+            raise NetnsError(f'rates for hosts that are not there: {self.rates_mbit}')
         self.burst_kbit = burst_kbit
         self.tag = f'{PREFIX}{os.getpid()}'
         self.switch = f'{self.tag}-switch'
@@ -175,8 +180,9 @@ class FieldNetwork:
             _ip('ip', 'route', 'add', '224.0.0.0/4', 'dev', 'eth0', ns=ns)
             _ip('ip', 'link', 'set', port, 'master', 'br0', ns=sw)
             _ip('ip', 'link', 'set', port, 'up', ns=sw)
-            if self.rate_mbit is not None:
-                self.shape(host, self.rate_mbit)
+            rate = self.rates_mbit.get(host, self.rate_mbit)
+            if rate is not None:
+                self.shape(host, rate)
 
     def close(self) -> None:
         """Stop every process started in the hosts, delete the namespaces (idempotent)."""

@@ -24,7 +24,7 @@ from __future__ import annotations
 import enum
 import os
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -186,7 +186,7 @@ class MapperNode(Node):
             if self.input is MapInput.CONTRIBUTIONS:
                 self.create_subscription(
                     MapContribution, f'{r}/map_contribution',
-                    lambda m, r=r: self.on_contribution(r, m),
+                    lambda m, info, r=r: self.on_contribution(r, m, info),
                     with_depth(CONTRIBUTION_QOS, self.p['contribution_history']))
                 continue
             self.create_subscription(PointCloud2, f'{r}/stereo/points',
@@ -210,6 +210,9 @@ class MapperNode(Node):
         self._last_save = time.monotonic()
         self.fused = 0
         self._late_since = self._late_last = 0.0     # monotonic times of the waiting late scans
+        self._source_ns: int | None = None
+        #: seconds from a contribution's publication on its rover to its update of the map
+        self.link_latency_s: deque[float] = deque(maxlen=10_000)
         self.body_points = 0
         self.last_latency_s = float('nan')
         self.get_logger().info(
@@ -352,6 +355,11 @@ class MapperNode(Node):
             self._late_last = now
             return
         self._publish_update(rover, stamp, base, f.result.changed)
+        if self._source_ns is not None:
+            # from the rover's publish to the map's update: the link and the fusion (wall
+            # clocks: the rovers' and the base's must be synchronised, e.g. by chrony)
+            self.link_latency_s.append(1e-9 * (time.time_ns() - self._source_ns))
+            self._source_ns = None
         self.last_latency_s = time.monotonic() - t_arrival
         self.get_logger().debug(f'{rover}: {f.result.n_points} points, {f.result.n_new} new '
                                 f'voxels, {1e3 * self.last_latency_s:.1f} ms')
@@ -387,11 +395,14 @@ class MapperNode(Node):
         self.get_logger().info(f'{self.map.sequence - base} late scans put in their stamp '
                                f'order: map rebuilt in {time.monotonic() - t0:.2f} s')
 
-    def on_contribution(self, rover: str, msg: MapContribution) -> None:
+    def on_contribution(self, rover: str, msg: MapContribution, info: dict | None = None
+                        ) -> None:
         """A scan made into a contribution on the rover: checked, fused once (the map's
         ledger), without the voxels inside a teammate's body (this rover's own body left it
-        on the rover)."""
+        on the rover). `info`: rclpy's message info (the writer's source timestamp gives the
+        link latency)."""
         t_arrival = time.monotonic()
+        self._source_ns = int(info['source_timestamp']) if info else None
         self.last_heard[rover] = t_arrival
         if msg.header.frame_id != self.map_frame:
             self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
@@ -526,6 +537,13 @@ class MapperNode(Node):
         """A clean stop saves what the last autosave does not hold (with autosave on), so a
         restart loses nothing; a killed mapper loses what came after its last autosave."""
         self.fusion.settle()
+        if self.link_latency_s:
+            lat = 1e3 * np.asarray(self.link_latency_s)
+            self.get_logger().info(
+                f'contributions fused at once: {len(lat)}, from publication to map update '
+                f'p50 {np.percentile(lat, 50):.1f} ms, p99 {np.percentile(lat, 99):.1f} ms; '
+                f'{self.fusion.rebuilds} rebuilds for late ones; skipped: '
+                f'{dict(self.bad.counts)}')
         if self.p['autosave_period_s'] > 0 and self.p['map_file'] and self.unsaved:
             self._save(self.p['map_file'])
         super().destroy_node()
