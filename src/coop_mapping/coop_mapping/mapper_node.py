@@ -24,7 +24,7 @@ from __future__ import annotations
 import enum
 import os
 import time
-from collections import OrderedDict, deque
+from collections import Counter, OrderedDict, deque
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -190,7 +190,8 @@ class MapperNode(Node):
                     with_depth(CONTRIBUTION_QOS, self.p['contribution_history']))
                 continue
             self.create_subscription(PointCloud2, f'{r}/stereo/points',
-                                     lambda m, r=r: self.on_cloud(r, m), SENSOR_QOS)
+                                     lambda m, info, r=r: self.on_cloud(r, m, info),
+                                     SENSOR_QOS)
             # latched (a late mapper gets the last pose) but a stream of one pose per
             # cloud: a queue, so a busy callback does not lose the pose of a cloud
             self.create_subscription(PoseWithCovarianceStamped, f'{r}/camera_pose',
@@ -210,7 +211,9 @@ class MapperNode(Node):
         self._last_save = time.monotonic()
         self.fused = 0
         self._late_since = self._late_last = 0.0     # monotonic times of the waiting late scans
-        self._source_ns: int | None = None
+        self.cloud_seq: dict[str, int] = {}
+        #: clouds per rover the middleware dropped before they reached this node
+        self.clouds_missed: Counter[str] = Counter()
         #: seconds from a contribution's publication on its rover to its update of the map
         self.link_latency_s: deque[float] = deque(maxlen=10_000)
         self.body_points = 0
@@ -296,9 +299,13 @@ class MapperNode(Node):
         if cloud is not None:
             self.fuse(rover, cloud[0], origin, cloud[1])
 
-    def on_cloud(self, rover: str, msg: PointCloud2) -> None:
+    def on_cloud(self, rover: str, msg: PointCloud2, info: dict | None = None) -> None:
+        """A rover's cloud (best effort): fused once its camera pose is there. Clouds the
+        middleware dropped are counted from the writer's sequence numbers (`info`)."""
         t_arrival = time.monotonic()
         self.last_heard[rover] = t_arrival
+        if info and info.get('publication_sequence_number') is not None:
+            self._count_missed(rover, int(info['publication_sequence_number']))
         if msg.header.frame_id != self.map_frame:
             self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
             return
@@ -342,8 +349,18 @@ class MapperNode(Node):
             return
         self._fuse(rover, msg.header.stamp, c, t_arrival)
 
-    def _fuse(self, rover: str, stamp, c: Contribution, t_arrival: float) -> None:
-        """Into the map in stamp order (`fusion`): now, or at the next settle if late."""
+    def _count_missed(self, rover: str, seq: int) -> None:
+        """Clouds of `rover` the middleware never delivered: the gaps in its writer's
+        sequence numbers (a sequence that starts again is a restarted stereo node)."""
+        last = self.cloud_seq.get(rover)
+        if last is not None and seq > last + 1:
+            self.clouds_missed[rover] += seq - last - 1
+        self.cloud_seq[rover] = seq
+
+    def _fuse(self, rover: str, stamp, c: Contribution, t_arrival: float,
+              source_ns: int | None = None) -> None:
+        """Into the map in stamp order (`fusion`): now, or at the next settle if late.
+        `source_ns`: when the rover published it (wall clock), for the link latency."""
         base = self.map.sequence
         f = self.fusion.add(c, stamp_ns=stamp_ns(stamp), source=rover)
         if f.beyond_horizon:
@@ -355,11 +372,10 @@ class MapperNode(Node):
             self._late_last = now
             return
         self._publish_update(rover, stamp, base, f.result.changed)
-        if self._source_ns is not None:
+        if source_ns is not None:
             # from the rover's publish to the map's update: the link and the fusion (wall
             # clocks: the rovers' and the base's must be synchronised, e.g. by chrony)
-            self.link_latency_s.append(1e-9 * (time.time_ns() - self._source_ns))
-            self._source_ns = None
+            self.link_latency_s.append(1e-9 * (time.time_ns() - source_ns))
         self.last_latency_s = time.monotonic() - t_arrival
         self.get_logger().debug(f'{rover}: {f.result.n_points} points, {f.result.n_new} new '
                                 f'voxels, {1e3 * self.last_latency_s:.1f} ms')
@@ -402,7 +418,6 @@ class MapperNode(Node):
         on the rover). `info`: rclpy's message info (the writer's source timestamp gives the
         link latency)."""
         t_arrival = time.monotonic()
-        self._source_ns = int(info['source_timestamp']) if info else None
         self.last_heard[rover] = t_arrival
         if msg.header.frame_id != self.map_frame:
             self.bad.reject('unknown_frame', f'{rover}: frame {msg.header.frame_id!r}')
@@ -427,7 +442,8 @@ class MapperNode(Node):
         while len(poses) > 50:
             poses.popitem(last=False)
         c = self._without_teammates(rover, st, c)
-        self._fuse(rover, msg.header.stamp, c, t_arrival)
+        self._fuse(rover, msg.header.stamp, c, t_arrival,
+                   int(info['source_timestamp']) if info else None)
 
     def _without_teammates(self, rover: str, stamp: int, c: Contribution) -> Contribution:
         bodies = BodyFilter(self.p['body_radius_m'], self.p['body_above_camera_m'],
@@ -515,7 +531,8 @@ class MapperNode(Node):
                 self.get_logger().warn(
                     f'{rover}: nothing for {now - t:.0f} s; the map keeps its '
                     f'{self.map.contributions[rover]} scans, {self.map.ledger.missing(rover)} '
-                    'of its contributions missing so far')
+                    f'of its contributions missing, {self.clouds_missed[rover]} clouds dropped '
+                    'so far')
             elif not silent and rover in self._reported_silent:
                 self._reported_silent.discard(rover)
                 self.get_logger().info(f'{rover}: heard again')
@@ -537,6 +554,8 @@ class MapperNode(Node):
         """A clean stop saves what the last autosave does not hold (with autosave on), so a
         restart loses nothing; a killed mapper loses what came after its last autosave."""
         self.fusion.settle()
+        if self.clouds_missed:
+            self.get_logger().info(f'clouds the middleware dropped: {dict(self.clouds_missed)}')
         if self.link_latency_s:
             lat = 1e3 * np.asarray(self.link_latency_s)
             self.get_logger().info(
