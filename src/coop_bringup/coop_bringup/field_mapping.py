@@ -228,6 +228,9 @@ def table(result: FieldRun) -> str:
                      f"{b['sent'] / 1e6:.2f} | {b['received'] / 1e6:.2f} | "
                      f'{result.link_mbit_per_s.get(r, 0):.2f} |')
     lines.append('')
+    if result.restarts:
+        lines.append('restarts (stereo node killed and started again, with the scans in the '
+                     f'map then): {result.restarts}')
     lines.append(f'{result.map_input}, links {result.rate_mbit} Mbit/s, cuts {result.cuts}: '
                  f'{result.voxels} voxels ({result.offline_voxels} offline), agreement with '
                  f'the offline map {100 * result.agreement_with_offline:.3f} %, merged means '
