@@ -61,6 +61,9 @@ ARGUMENTS = (
     ('driving', 'true', "each rover's driver (coop_insertion driver: its drive_to_pose action; "
                         'sim and hw sources)'),
     ('mapping', 'true', "the team's map: the stereo nodes, the mapper and the view planner"),
+    ('map_input', 'clouds', "what each rover's stereo node sends the mapper: its clouds, or "
+                            "map contributions made from them (what a rover's radio link can "
+                            'carry: coop_mapping README, Contributions)'),
     ('insertion', 'true', "the insertion's master (rover1) and slave (rover2)"),
     ('seed', '1', "the simulator's seed (site clutter, sensor noise) and the master's"),
     ('occlusion_density', '', "the simulator's obstacles' footprint fraction of the site "
@@ -151,6 +154,9 @@ def _graph(context: LaunchContext) -> list:
     identify, mapping, insertion = (_flag(a[k], k) for k in ('identify', 'mapping',
                                                               'insertion'))
     driving = _flag(a['driving'], 'driving') and a['source'] != 'bag'
+    if a['map_input'] not in ('clouds', 'contributions'):
+        raise ValueError(f'map_input:={a["map_input"]!r}: give clouds or contributions')
+    contribute = a['map_input'] == 'contributions'
     lockstep, composed = _flag(a['lockstep'], 'lockstep'), _flag(a['composed'], 'composed')
     if insertion and n < 2:
         raise ValueError('insertion:=true needs a master and a slave: rovers:=2 or more')
@@ -225,12 +231,13 @@ def _graph(context: LaunchContext) -> list:
             node('driver', 'coop_insertion', 'driver', {}, ns=r, participant=True,
                  remaps=[('map/grid', f'{team_ns}/map/grid')])
         if mapping and r in stereo_rovers:
-            node('stereo', 'coop_mapping', 'stereo', {}, ns=r)
+            node('stereo', 'coop_mapping', 'stereo', {'contribute': contribute}, ns=r)
     # the team's nodes (master and slave: participants of lockstep)
     team: dict[str, tuple[str, str, dict]] = {}
     if mapping:
         team['mapper'] = ('coop_mapping', 'mapper', {
-            'rovers': stereo_rovers, **({'map_file': a['site_map']} if a['site_map'] else {})})
+            'rovers': stereo_rovers, 'map_input': a['map_input'],
+            **({'map_file': a['site_map']} if a['site_map'] else {})})
         team['view_planner'] = ('coop_viewplan', 'view_planner', {})
     if insertion:
         slot = {'slot_width_m': float(a['slot_in']) * INCH}
