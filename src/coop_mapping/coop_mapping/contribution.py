@@ -34,6 +34,19 @@ class ContributionFormatError(MapInputError):
     """A contribution message this package cannot read."""
 
 
+def _inflate(data: bytes, size: int, what: str) -> bytes:
+    """zlib data that must inflate to exactly `size` bytes (never more is inflated: a small
+    message cannot make the mapper allocate gigabytes)."""
+    try:
+        z = zlib.decompressobj()
+        raw = z.decompress(bytes(data), size + 1)
+    except zlib.error as exc:
+        raise ContributionFormatError(f'{what}: {exc}') from exc
+    if len(raw) != size or not z.eof:
+        raise ContributionFormatError(f'{what}: {len(raw)} bytes, expected {size}')
+    return raw
+
+
 def encode_array(a: np.ndarray, dtype: str, *, level: int = 6) -> bytes:
     """An array as `dtype` (little endian, e.g. '<f2'), byte-shuffled, zlib-compressed."""
     dt = np.dtype(dtype)
@@ -47,14 +60,7 @@ def decode_array(data: bytes, dtype: str, n: int, what: str) -> np.ndarray:
     dt = np.dtype(dtype)
     if not 0 <= n <= MAX_KEYS * 9:
         raise ContributionFormatError(f'{what}: {n} values is out of range')
-    size = n * dt.itemsize
-    try:
-        z = zlib.decompressobj()
-        raw = z.decompress(bytes(data), size + 1)
-    except zlib.error as exc:
-        raise ContributionFormatError(f'{what}: {exc}') from exc
-    if len(raw) != size or not z.eof:
-        raise ContributionFormatError(f'{what}: {len(raw)} bytes, expected {size}')
+    raw = _inflate(data, n * dt.itemsize, what)
     return np.frombuffer(raw, np.uint8).reshape(dt.itemsize, n).T.copy().view(dt).reshape(n)
 
 
@@ -83,14 +89,9 @@ def encode_mask(mask: np.ndarray, *, level: int = 6) -> bytes:
 
 def decode_mask(data: bytes, n: int) -> np.ndarray:
     """The inverse of encode_mask for n entries."""
-    nbytes = (n + 7) // 8
-    try:
-        z = zlib.decompressobj()
-        raw = z.decompress(bytes(data), nbytes + 1)
-    except zlib.error as exc:
-        raise ContributionFormatError(f'mask: {exc}') from exc
-    if len(raw) != nbytes or not z.eof:
-        raise ContributionFormatError(f'mask: {len(raw)} bytes, expected {nbytes}')
+    if not 0 <= n <= MAX_KEYS:
+        raise ContributionFormatError(f'mask: {n} entries is out of range')
+    raw = _inflate(data, (n + 7) // 8, 'mask')
     return np.unpackbits(np.frombuffer(raw, np.uint8), count=n).astype(bool)
 
 

@@ -482,7 +482,7 @@ def test_mapper_fuses_each_contribution_once_across_resends_and_restarts(ctx, tm
     from coop_msgs.msg import MapContribution
     mapfile = tmp_path / 'team.cmap'
     node, peer, ex = _mapper_and_peer(ctx, map_input='contributions', map_file=str(mapfile),
-                                      autosave_period_s=3600.0)
+                                      autosave_period_s=3600.0, silent_after_s=1.0)
     spin = {'spin': lambda t: ex.spin_once(timeout_sec=t)}
     rng = np.random.default_rng(3)
     maker = VoxelMap(0.1)
@@ -524,6 +524,10 @@ def test_mapper_fuses_each_contribution_once_across_resends_and_restarts(ctx, tm
         assert node.body_points >= 150
         p = node.map.probability_at(np.array([[1.0, 0.0, 0.3], [3.05, 0.05, 1.05]]))
         assert p[0] <= 0.5 and p[1] > 0.6
+        assert node.map.contributions == {'rover1': 4, 'rover2': 1}
+        # rovers that stop sending are reported; the map keeps what they sent
+        wait_for(lambda: node._reported_silent == {'rover1', 'rover2'}, 10.0,
+                 what='the silent rovers reported', **spin)
         assert node.map.contributions == {'rover1': 4, 'rover2': 1}
     finally:
         ex.shutdown()
