@@ -21,7 +21,9 @@ from the same bag (coop_mapping.offline).
 from __future__ import annotations
 
 import argparse
+import ast
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -42,6 +44,9 @@ from rover_bag.bagio import bag_info
 
 __all__ = ['Cut', 'FieldRun', 'format_json', 'main', 'run', 'score', 'table']
 
+
+
+_DROPPED = re.compile(r'clouds the middleware dropped: (\{[^}]*\})')
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,7 @@ class FieldRun:
     scans_in_map: dict[str, int] = field(default_factory=dict)
     frames_in_bag: dict[str, int] = field(default_factory=dict)
     missing: dict[str, int] = field(default_factory=dict)
+    clouds_dropped: dict[str, int] = field(default_factory=dict)
     sessions: dict[str, int] = field(default_factory=dict)
     link_bytes: dict[str, dict[str, int]] = field(default_factory=dict)
     link_mbit_per_s: dict[str, float] = field(default_factory=dict)
@@ -106,6 +112,8 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
     out_dir.mkdir(parents=True, exist_ok=True)
     map_file = out_dir / 'field_map.cmap'
     map_file.unlink(missing_ok=True)
+    for log in out_dir.glob('*.log'):      # the processes append: this run's only
+        log.unlink()
     result = FieldRun(rovers=list(rovers), map_input=map_input, rate_mbit=rate_mbit,
                       cuts=[asdict(c) for c in cuts], play_rate=play_rate,
                       frames_in_bag=frames)
@@ -189,6 +197,12 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
                 stereo[r].wait(15.0)
             except subprocess.TimeoutExpired:
                 stereo[r].kill()
+    # the mapper's count of the clouds the middleware dropped (map_input clouds), from its
+    # clean stop's log line
+    found = _DROPPED.findall((out_dir / 'mapper.log').read_text(errors='replace'))
+    result.clouds_dropped = {r: 0 for r in rovers} if map_input == 'clouds' else {}
+    if found and map_input == 'clouds':
+        result.clouds_dropped.update(ast.literal_eval(found[-1]))
     for h in after:
         result.link_bytes[h] = {k: after[h][k] - before[h][k] for k in after[h]}
     for r in rovers:
@@ -228,6 +242,9 @@ def table(result: FieldRun) -> str:
                      f"{b['sent'] / 1e6:.2f} | {b['received'] / 1e6:.2f} | "
                      f'{result.link_mbit_per_s.get(r, 0):.2f} |')
     lines.append('')
+    if result.clouds_dropped:
+        lines.append(f"clouds the middleware dropped (the mapper's count from the writers' "
+                     f'sequence numbers): {result.clouds_dropped}')
     if result.restarts:
         lines.append('restarts (stereo node killed and started again, with the scans in the '
                      f'map then): {result.restarts}')
