@@ -4,7 +4,10 @@ Needs root (CI runs as root)."""
 from __future__ import annotations
 
 import os
+import re
+import signal
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,7 +22,8 @@ BAG = Path(__file__).resolve().parents[1] / 'bags' / 'mapping_two_rovers'
 def _ours() -> list[str]:
     out = subprocess.run(['ip', 'netns', 'list'], capture_output=True, text=True,
                          check=True).stdout
-    return [ln.split()[0] for ln in out.splitlines() if ln.startswith(f'coop{os.getpid()}-')]
+    return [ln.split()[0] for ln in out.splitlines()
+            if re.match(rf'coop{os.getpid()}(x\d+)?-', ln)]
 
 
 def test_hosts_reach_each_other_only_over_their_links_and_are_removed_on_error():
@@ -48,6 +52,25 @@ def test_hosts_reach_each_other_only_over_their_links_and_are_removed_on_error()
         assert net.link_bytes()['a']['sent'] > before
         raise RuntimeError('on purpose')
     assert _ours() == []
+
+
+def test_a_terminated_run_leaves_no_namespace_and_no_process():
+    """SIGTERM (a CI job's timeout) to a process that holds a network with a process on a
+    host: both are gone once it has exited."""
+    code = ('import time\nfrom coop_common.netns import FieldNetwork\n'
+            "with FieldNetwork(['a']) as net:\n"
+            "    p = net.start('a', ['sleep', '300'])\n"
+            "    print(net.tag, p.pid, flush=True)\n"
+            '    time.sleep(300)\n')
+    proc = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE, text=True)
+    tag, pid = proc.stdout.readline().split()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(30) == 128 + signal.SIGTERM
+    names = subprocess.run(['ip', 'netns', 'list'], capture_output=True, text=True,
+                           check=True).stdout
+    assert tag not in names
+    with pytest.raises(ProcessLookupError):
+        os.kill(int(pid), 0)
 
 
 def test_host_names_are_checked():

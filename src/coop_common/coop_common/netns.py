@@ -14,19 +14,22 @@ processes in two hosts talk over the link or not at all: DDS discovery runs as o
 down (both directions), a restore sets it up. Nothing outside the namespaces this object made
 carries its traffic.
 
-Names carry the creating process's id (`coop<pid>-<host>`), so parallel runs never meet, and a
-run that was killed before it could clean up is cleaned up by the next one
-(`remove_stale`). Leaving the `with` block (also by an exception) stops every process started in
-the hosts and deletes the namespaces, which deletes their links and the switch.
+Names carry the creating process's id (`coop<pid>-<host>`, `coop<pid>x<k>-<host>` for its
+k-th network), so parallel runs never meet, and a run that was killed before it could clean up
+is cleaned up by the next one (`remove_stale`). Leaving the `with` block (also by an exception,
+or a SIGTERM while no other handler is set) stops every process started in the hosts and
+deletes the namespaces, which deletes their links and the switch.
 """
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import re
 import signal
 import subprocess
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -37,7 +40,8 @@ from .errors import CoopCommonError
 __all__ = ['FieldNetwork', 'NetnsError', 'remove_stale']
 
 PREFIX = 'coop'
-_NAME = re.compile(rf'^{PREFIX}(\d+)-')
+_NAME = re.compile(rf'^{PREFIX}(\d+)(?:x\d+)?-')
+_made_here = itertools.count()
 SUBNET = '10.77.0'
 #: a Fast DDS profile with the UDPv4 transport only: no shared memory between hosts that share
 #: one kernel (in the field there is none to share)
@@ -94,6 +98,10 @@ def _delete(ns: str) -> None:
     _ip('ip', 'netns', 'delete', ns, check=False)
 
 
+def _terminate(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
 def remove_stale() -> list[str]:
     """Delete the namespaces of runs whose process is gone (a run killed before it could clean
     up); returns their names."""
@@ -127,7 +135,8 @@ class FieldNetwork:
         if set(self.rates_mbit) - set(self.hosts):
             raise NetnsError(f'rates for hosts that are not there: {self.rates_mbit}')
         self.burst_kbit = burst_kbit
-        self.tag = f'{PREFIX}{os.getpid()}'
+        k = next(_made_here)
+        self.tag = f'{PREFIX}{os.getpid()}' + (f'x{k}' if k else '')
         self.switch = f'{self.tag}-switch'
         self._procs: list[subprocess.Popen] = []
         self._made: list[str] = []
@@ -150,6 +159,11 @@ class FieldNetwork:
         if os.geteuid() != 0:
             raise NetnsError('network namespaces need root')
         remove_stale()
+        # a SIGTERM (a CI job's timeout, `kill`) unwinds through close() like an exception
+        self._old_term = None
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            self._old_term = signal.signal(signal.SIGTERM, _terminate)
         try:
             self._build()
         except BaseException:
@@ -201,6 +215,9 @@ class FieldNetwork:
         for ns in reversed(self._made):
             _delete(ns)
         self._made.clear()
+        if getattr(self, '_old_term', None) is not None:
+            signal.signal(signal.SIGTERM, self._old_term)
+            self._old_term = None
 
     # ------------------------------------------------------------------ links
     def shape(self, host: str, rate_mbit: float) -> None:
