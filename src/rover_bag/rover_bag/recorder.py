@@ -19,6 +19,7 @@ from typing import Any
 import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.experimental.events_executor import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -50,6 +51,12 @@ PARAMS = {
                              read_only=True),
     'queue_depth': ParamSpec(1000, 'subscription history depth (KEEP_LAST)', lo=1, hi=100000,
                              read_only=True),
+    'count_losses': ParamSpec(False, "count the messages that never reached the bag from each "
+                              "topic's publication sequence numbers (the middleware reports "
+                              'none when a reliable KEEP_LAST queue overflows): exact for a '
+                              'topic with one publisher, counted from the first message '
+                              'received; spins a SingleThreadedExecutor, which costs more CPU '
+                              'per message than the default EventsExecutor', read_only=True),
 }
 
 
@@ -96,6 +103,11 @@ class Recorder(Node):
                              compression=p['compression'])
         self.lost: Counter[str] = Counter()
         self.received: Counter[str] = Counter()
+        self.count_losses = bool(p['count_losses'])
+        #: per topic: messages missing between the ones received (publication sequence numbers)
+        self.missed: Counter[str] = Counter()
+        self._last_seq: dict[str, int] = {}
+        self._several_publishers: set[str] = set()     # not countable from sequence numbers
         self._subs: dict[str, Any] = {}
         self._skipped: set[str] = set()
         self.get_logger().info(f'recording to {self.bag.path} '
@@ -119,6 +131,14 @@ class Recorder(Node):
             if (local := bag_topic(name, ns)) is not None:
                 full[local], names_types[local] = name, types
         for topic in select_topics(names_types, include=self._include, exclude=self._exclude):
+            if topic in self._subs and self.count_losses and \
+                    topic not in self._several_publishers and \
+                    self.count_publishers(full[topic]) > 1:
+                # each writer numbers its own messages, and rclpy's message info does not say
+                # whose a message is
+                self._several_publishers.add(topic)
+                self.get_logger().warn(f'{topic}: several publishers, its losses are not '
+                                       'counted')
             if topic in self._subs or topic in self._skipped:
                 continue
             types = names_types[topic]
@@ -167,7 +187,20 @@ class Recorder(Node):
             # use_sim_time, else the system's (the EventsExecutor passes no message info)
             write(topic, clock.now().nanoseconds, data)
             received[topic] += 1
-        return on_message
+        if not self.count_losses:
+            return on_message
+        last, missed = self._last_seq, self.missed
+
+        def on_message_counted(data: bytes, info: dict) -> None:
+            on_message(data)
+            seq = info.get('publication_sequence_number')
+            if seq is None:
+                return
+            before = last.get(topic)
+            if before is not None and seq > before + 1:
+                missed[topic] += seq - before - 1
+            last[topic] = seq
+        return on_message_counted
 
     def _on_lost(self, topic: str, info: Any) -> None:
         self.lost[topic] += int(info.total_count_change)
@@ -179,6 +212,13 @@ class Recorder(Node):
         if self.lost:
             self.bag.custom_data['messages_lost'] = ', '.join(
                 f'{t}: {n}' for t, n in sorted(self.lost.items()))
+        missed = {t: n for t, n in self.missed.items() if t not in self._several_publishers}
+        if self.count_losses:
+            self.bag.custom_data['messages_missed'] = ', '.join(
+                f'{t}: {n}' for t, n in sorted(missed.items())) or 'none'
+            if self._several_publishers:
+                self.bag.custom_data['messages_missed_not_counted'] = ', '.join(
+                    sorted(self._several_publishers))
         self.bag.close()
         total = sum(self.received.values())
         # after SIGINT the context is gone and the node logger's /rosout publisher with it
@@ -187,7 +227,9 @@ class Recorder(Node):
         logger.info(
             f'closed {self.bag.path}: {total} messages on {len(self.received)} topics, '
             f'{sum(self.lost.values())} lost'
-            + (f' ({dict(self.lost)})' if self.lost else ''))
+            + (f' ({dict(self.lost)})' if self.lost else '')
+            + (f', {sum(missed.values())} missed by sequence number'
+               + (f' ({missed})' if missed else '') if self.count_losses else ''))
 
     def destroy_node(self) -> None:
         try:
@@ -211,8 +253,16 @@ def main(args: list[str] | None = None) -> int:
         overrides.append(Parameter('topics', value=ns.topics))
     # a KeyboardInterrupt raised in the middle of a write callback would leave the bag's
     # counts one message off: signals only set a flag (cli.spin_until_stopped)
-    return spin_until_stopped(lambda: Recorder(parameter_overrides=overrides), argv,
-                              logger='record', executor_factory=EventsExecutor)
+    made: list[Recorder] = []
+
+    def make() -> Recorder:
+        made.append(Recorder(parameter_overrides=overrides))
+        return made[0]
+
+    def executor() -> Any:
+        # the EventsExecutor passes no message info (a callback that takes it fails)
+        return SingleThreadedExecutor() if made[0].count_losses else EventsExecutor()
+    return spin_until_stopped(make, argv, logger='record', executor_factory=executor)
 
 
 if __name__ == '__main__':
