@@ -18,6 +18,7 @@ Writer / AnyReader) in the same run. Ratios matter, not absolute times (2 shared
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 import re
@@ -144,7 +145,7 @@ def _ros():
     return ctx, node, ex
 
 
-def bench_live_record(seconds: float, tmp: Path) -> dict:
+def bench_live_record(seconds: float, tmp: Path, count_losses: bool = False) -> dict:
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
@@ -181,11 +182,16 @@ def bench_live_record(seconds: float, tmp: Path) -> dict:
     published['/clock'] = 0
     res = {}
     with NodeProcess('rover_bag', 'record',
-                     ['-p', f'output:={out}', '-p', 'discovery_period_s:=0.2'],
+                     ['-p', f'output:={out}', '-p', 'discovery_period_s:=0.2',
+                      '-p', f'count_losses:={str(count_losses).lower()}'],
                      log_path=tmp / 'record.log') as rec:
         wait_for(lambda: all(p.get_subscription_count() for p, _ in pubs.values())
                  and burst.get_subscription_count(), 60,
                  spin=lambda dt: ex.spin_once(timeout_sec=dt), what='recorder subscriptions')
+        # one burst message long before the burst: the recorder's first of the topic, from
+        # which count_losses counts (a writer's earlier messages are not the recorder's to miss)
+        burst.publish(String(data='first'))
+        published['/burst'] = 1
         t0 = time.perf_counter()
         steps = int(seconds * 200)
         clock = Clock()
@@ -209,7 +215,7 @@ def bench_live_record(seconds: float, tmp: Path) -> dict:
         for _ in range(n_burst):
             burst.publish(msg)
         res['burst_publish_msgs_s'] = n_burst / (time.perf_counter() - t1)
-        published['/burst'] = n_burst
+        published['/burst'] += n_burst
         # caught up: every burst message in the file, or no new one for 2 s (it dropped some)
         seen = [-1, time.perf_counter()]
 
@@ -217,7 +223,7 @@ def bench_live_record(seconds: float, tmp: Path) -> dict:
             c = _count_flushed(out, '/burst')
             if c != seen[0]:
                 seen[:] = [c, time.perf_counter()]
-            return c >= n_burst or time.perf_counter() - seen[1] > 2.0
+            return c >= n_burst + 1 or time.perf_counter() - seen[1] > 2.0
         wait_for(settled, 300, poll_s=0.5, what='recorder to catch up with the burst')
         rec.stop()
     log = rec.log_text()
@@ -225,8 +231,10 @@ def bench_live_record(seconds: float, tmp: Path) -> dict:
     recorded = {t: info.topics[t].count if t in info.topics else 0 for t in published}
     stamps = [m.t_ns for m in read_messages(out, ['/burst'], raw=True)]
     res['burst_recorded'] = len(stamps)
-    # the recorder stamps with the middleware's reception time: its own sustained rate
-    res['burst_record_msgs_s'] = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1e9)
+    # the recorder stamps with the middleware's reception time: its own sustained rate (from
+    # the burst's first message on: the first of the topic came before the live load)
+    burst_t = stamps[1:]
+    res['burst_record_msgs_s'] = (len(burst_t) - 1) / ((burst_t[-1] - burst_t[0]) / 1e9)
     res['live_published'] = published
     res['live_recorded'] = recorded
     res['live_missing_total'] = sum(published[t] - recorded[t] for t in published)
@@ -234,6 +242,11 @@ def bench_live_record(seconds: float, tmp: Path) -> dict:
     res['live_rover1_imu_missing_steps'] = sorted(set(range(int(seconds * 200))) - steps)
     m = re.search(r'(\d+) lost', log)
     res['recorder_reported_lost'] = int(m.group(1)) if m else None
+    if count_losses:
+        m = re.search(r'(\d+) missed by sequence number(?: \((\{.*\})\))?', log)
+        res['recorder_reported_missed'] = int(m.group(1)) if m else None
+        res['recorder_reported_missed_per_topic'] = (
+            ast.literal_eval(m.group(2)) if m and m.group(2) else {})
     ex.shutdown()
     node.destroy_node()
     ctx.try_shutdown()
@@ -308,16 +321,18 @@ LARGE_SHM_PROFILE = (Path(__file__).resolve().parents[1] / 'src' / 'rover_bag' /
                      / 'fastdds_large_shm.xml')
 
 
-def live_in_child(seconds: float, profile: Path | None, tmp: Path) -> dict:
+def live_in_child(seconds: float, profile: Path | None, tmp: Path,
+                  count_losses: bool = False) -> dict:
     """Fast DDS reads its XML profile once per process: each transport setting in a child."""
     import subprocess
     env = dict(os.environ)
     env.pop('FASTRTPS_DEFAULT_PROFILES_FILE', None)
     if profile is not None:
         env['FASTRTPS_DEFAULT_PROFILES_FILE'] = str(profile)
-    out = tmp / f'live_{"large" if profile else "default"}.json'
+    out = tmp / f'live_{"large" if profile else "default"}{"_counted" * count_losses}.json'
     subprocess.run([sys.executable, __file__, '--live-only', str(out), '--seconds',
-                    str(seconds)], env=env, check=True)
+                    str(seconds), *(['--count-losses'] if count_losses else [])], env=env,
+                   check=True)
     return json.loads(out.read_text())
 
 
@@ -349,6 +364,19 @@ def format_table(res: dict) -> str:
             out.append(f'{t:34s} ' + ' '.join(
                 f'{str(r["live_recorded"][t]) + " / " + str(r["live_published"][t]):>24s}'
                 for _n, r in lives))
+        if 'live_counted' in res:
+            r = res['live_counted']
+            missing = {t: r['live_published'][t] - r['live_recorded'][t]
+                       for t in r['live_published']}
+            reported = r['recorder_reported_missed_per_topic']
+            out.append(f'\n16 MB SHM, record count_losses:=true: missing {r["live_missing_total"]}'
+                       f', counted from sequence numbers {r["recorder_reported_missed"]}, '
+                       f'reported lost {r["recorder_reported_lost"]}; burst of 20000 reliable: '
+                       f'recorded {r["burst_recorded"]} of 20001, missing '
+                       f'{missing["/burst"]}, counted {reported.get("/burst", 0)}')
+            out.append('per topic, missing / counted: ' + ', '.join(
+                f'{t} {missing[t]} / {reported.get(t, 0)}' for t in missing
+                if missing[t] or reported.get(t, 0)))
         for name, r in lives:
             out.append(f'{name}: missing {r["live_missing_total"]} (recorder reported lost '
                        f'{r["recorder_reported_lost"]}); /rover1/imu steps missing '
@@ -376,16 +404,20 @@ def main() -> int:
                     help='live record / play duration')
     ap.add_argument('--skip-live', action='store_true', help='core figures only (no DDS)')
     ap.add_argument('--live-only', type=Path, help=argparse.SUPPRESS)
+    ap.add_argument('--count-losses', action='store_true', help=argparse.SUPPRESS)
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix='bag_rate_'))
     try:
         if args.live_only:
-            write_json(args.live_only, bench_live_record(args.seconds, tmp))
+            write_json(args.live_only, bench_live_record(args.seconds, tmp,
+                                                         args.count_losses))
             return 0
         res = bench_core(args.messages, args.repeats, tmp)
         if not args.skip_live:
             res['live_fastdds_default'] = live_in_child(args.seconds, None, tmp)
             res['live_large_shm'] = live_in_child(args.seconds, LARGE_SHM_PROFILE, tmp)
+            res['live_counted'] = live_in_child(args.seconds, LARGE_SHM_PROFILE, tmp,
+                                                count_losses=True)
             res.update(bench_play_jitter(args.seconds, tmp))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
