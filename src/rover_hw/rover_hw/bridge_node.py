@@ -77,9 +77,21 @@ ACCEL_VAR = (0.1 * 0.16) ** 2 / 3
 GYRO_VAR = (0.1 * 0.001) ** 2 / 3
 INCL_VAR = (0.1 * 0.0004) ** 2 / 3 + (40.0 / 1024 * p.DEG) ** 2 / 12
 
+#: pyserial URL schemes that reach a serial server over the network
+NETWORK_SCHEMES = ('rfc2217', 'socket')
+
+
+def is_network_port(port: str) -> bool:
+    """Whether a pyserial port names a serial server on the network."""
+    return port.split('://', 1)[0].lower() in NETWORK_SCHEMES if '://' in port else False
+
+
 PARAMS = {
     'port': ParamSpec('', 'Device path or pyserial URL of the on-board controller (e.g. '
                       '/dev/ttyUSB0, /dev/serial/by-id/..., a pty, loop://); read at configure'),
+    'allow_network_port': ParamSpec(False, 'accept a port that is a network URL (rfc2217://, '
+                                    'socket://): such serial servers take any client on the '
+                                    'network, with no authentication', read_only=True),
     'baudrate': ParamSpec(921600, 'Serial baud rate (a USB CDC or pty port ignores it)',
                           lo=9600, hi=4000000),
     'command_timeout_s': ParamSpec(0.5, 'Wheels stop when no cmd_vel came within this long (s)',
@@ -237,6 +249,11 @@ class BridgeNode(LifecycleNode):
         port = self.values['port']
         if not port:
             self.get_logger().error('configure: parameter port is empty')
+            return TransitionCallbackReturn.FAILURE
+        if is_network_port(port) and not self.values['allow_network_port']:
+            self.get_logger().error(
+                f'configure: {port} is a network port (no authentication: anyone on the '
+                'network can drive the rover); set allow_network_port to use it')
             return TransitionCallbackReturn.FAILURE
         try:
             self._open()
