@@ -103,3 +103,68 @@ def test_two_rovers_map_through_shaped_links_and_one_cut(tmp_path):
     assert result.mean_diff_mm_max < 1.0
     for r in ('rover1', 'rover2'):
         assert result.link_bytes[r]['sent'] < 0.1 * 20 * 1.76e6
+
+
+PUBLISH_CONTRIBUTIONS = """
+import sys, time
+import numpy as np
+import rclpy
+from std_msgs.msg import Header
+from builtin_interfaces.msg import Time
+from coop_common.qos import CONTRIBUTION_QOS
+from coop_mapping.ros_conv import contribution_to_msg
+from coop_mapping.voxelmap import VoxelMap
+from coop_msgs.msg import MapContribution
+ns, n, wait_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+rclpy.init()
+node = rclpy.create_node('contributor', namespace=ns)
+pub = node.create_publisher(MapContribution, 'map_contribution', CONTRIBUTION_QOS)
+t_end = time.monotonic() + wait_s
+while pub.get_subscription_count() == 0 and time.monotonic() < t_end:
+    rclpy.spin_once(node, timeout_sec=0.1)
+print('subscribers', pub.get_subscription_count(), flush=True)
+rng = np.random.default_rng(1)
+vm = VoxelMap(0.1)
+for k in range(n):
+    pts = np.c_[np.full(300, 3.0), rng.uniform(-1, 1, 300), rng.uniform(0, 1, 300)]
+    c = vm.contribution(pts, np.array([0.0, 0.0, 0.8]))
+    pub.publish(contribution_to_msg(c, vm, Header(stamp=Time(sec=k + 1), frame_id='map'),
+                                    source='rover1', session=time.time_ns(), sequence=k + 1))
+    rclpy.spin_once(node, timeout_sec=0.2)
+time.sleep(2.0)
+"""
+
+
+def test_a_second_team_on_the_network_never_reaches_this_teams_map(tmp_path):
+    """Team A's mapper (namespace /team_a) and a rover of each team on one network and domain:
+    team B's rover1 finds no subscriber for its contributions and team A's map holds only team
+    A's rover1's."""
+    from coop_common.testing import executable_path, pick_domain_id
+    from coop_mapping.voxelmap import MapFileError, VoxelMap
+    map_file = tmp_path / 'team_a.cmap'
+    with FieldNetwork(['base', 'rover_a', 'rover_b']) as net:
+        env = net.ros_env(domain_id=pick_domain_id())
+        net.start('base', [str(executable_path('coop_mapping', 'mapper')), '--ros-args',
+                           '-r', '__ns:=/team_a', '-p', "rovers:=['rover1']",
+                           '-p', 'map_input:=contributions', '-p', f'map_file:={map_file}',
+                           '-p', 'autosave_period_s:=0.5'], env=env,
+                  log=tmp_path / 'mapper.log')
+        b_log = tmp_path / 'team_b.log'
+        team_b = net.start('rover_b', [sys.executable, '-c', PUBLISH_CONTRIBUTIONS,
+                                       '/team_b/rover1', '5', '15'], env=env, log=b_log)
+        team_a = net.start('rover_a', [sys.executable, '-c', PUBLISH_CONTRIBUTIONS,
+                                       '/team_a/rover1', '3', '30'], env=env,
+                           log=tmp_path / 'team_a.log')
+        assert team_a.wait(60) == 0 and team_b.wait(60) == 0
+
+        def scans() -> dict:
+            try:
+                return dict(VoxelMap.load(map_file).contributions)
+            except MapFileError:
+                return {}
+        from coop_common.testing import wait_for
+        wait_for(lambda: scans() == {'rover1': 3}, 20.0, poll_s=0.2,
+                 what="team A's three contributions in its map")
+    assert 'subscribers 1' in (tmp_path / 'team_a.log').read_text()
+    assert 'subscribers 0' in b_log.read_text()
+    assert scans() == {'rover1': 3}
