@@ -33,8 +33,6 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from coop_common.files import write_atomic
 from coop_common.netns import FieldNetwork
 from coop_common.testing import executable_path, pick_domain_id
@@ -149,11 +147,17 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
         down: list[tuple[float, str]] = []
         expected = dict(frames)
 
+        read: dict = {'mtime': None, 'scans': {}}
+
         def map_scans() -> dict[str, int]:
+            """The scans per rover in the mapper's autosave, read again only when it changed."""
             try:
-                return dict(VoxelMap.load(map_file).contributions)
-            except MapFileError:
-                return {}
+                mtime = map_file.stat().st_mtime_ns
+                if mtime != read['mtime']:
+                    read.update(mtime=mtime, scans=dict(VoxelMap.load(map_file).contributions))
+            except (OSError, MapFileError):
+                pass
+            return read['scans']
         t_played = t_mapping = None
         while True:
             now = time.monotonic()
@@ -223,11 +227,7 @@ def score(result: FieldRun, map_file: Path, bag: Path) -> None:
     result.voxels, result.offline_voxels = len(vm), len(off)
     result.agreement_with_offline = state_agreement(vm.keys, vm.states(), off.keys,
                                                     off.states())
-    pos, found = off._find(vm.keys)
-    both = np.flatnonzero(found & (vm.hits > 0))
-    if both.size:
-        d = (vm.mean_off[both].astype(float) - off.mean_off[pos[both]].astype(float))
-        result.mean_diff_mm_max = float(np.linalg.norm(d, axis=1).max() * vm.resolution * 1e3)
+    result.mean_diff_mm_max = 1e3 * vm.largest_mean_distance(off)
     result.complete = result.scans_in_map == result.frames_in_bag
 
 

@@ -40,6 +40,7 @@ from std_srvs.srv import Trigger
 from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
 from coop_common.qos import COMMAND_QOS, CONTRIBUTION_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
+from coop_common.seqgaps import SequenceGaps
 from coop_msgs.msg import MapContribution, VoxelMapUpdate
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
 from coop_msgs.srv import MapFile, QueryMap
@@ -211,9 +212,8 @@ class MapperNode(Node):
         self._last_save = time.monotonic()
         self.fused = 0
         self._late_since = self._late_last = 0.0     # monotonic times of the waiting late scans
-        self.cloud_seq: dict[str, int] = {}
         #: clouds per rover the middleware dropped before they reached this node
-        self.clouds_missed: Counter[str] = Counter()
+        self.cloud_gaps = SequenceGaps()
         #: seconds from a contribution's publication on its rover to its update of the map
         self.link_latency_s: deque[float] = deque(maxlen=10_000)
         self.body_points = 0
@@ -351,11 +351,16 @@ class MapperNode(Node):
 
     def _count_missed(self, rover: str, seq: int) -> None:
         """Clouds of `rover` the middleware never delivered: the gaps in its writer's
-        sequence numbers (a sequence that starts again is a restarted stereo node)."""
-        last = self.cloud_seq.get(rover)
-        if last is not None and seq > last + 1:
-            self.clouds_missed[rover] += seq - last - 1
-        self.cloud_seq[rover] = seq
+        sequence numbers (coop_common.seqgaps; a restarted stereo node starts again)."""
+        self.cloud_gaps.seen(rover, seq)
+
+    @property
+    def cloud_seq(self) -> dict:
+        return self.cloud_gaps.last
+
+    @property
+    def clouds_missed(self) -> Counter:
+        return self.cloud_gaps.missed
 
     def _fuse(self, rover: str, stamp, c: Contribution, t_arrival: float,
               source_ns: int | None = None) -> None:

@@ -765,6 +765,17 @@ class VoxelMap:
         self.hits[pos] = np.minimum(self.hits[pos].astype(np.uint64) + cnt,
                                     np.iinfo(np.uint32).max).astype(np.uint32)
 
+    def largest_mean_distance(self, other: VoxelMap) -> float:
+        """The largest distance (m) between this map's merged means and `other`'s, over the
+        voxels with points here that `other` knows (nan: none): two maps of the same scans
+        compared."""
+        pos, found = other._find(self.keys)
+        both = np.flatnonzero(found & (self.hits > 0))
+        if not both.size:
+            return float('nan')
+        d = self.mean_off[both].astype(float) - other.mean_off[pos[both]].astype(float)
+        return float(np.linalg.norm(d, axis=1).max() * self.resolution)
+
     # ------------------------------------------------------------------ fusion of maps
     def merge_map(self, other: VoxelMap) -> None:
         """Fuse another map of the same resolution and model (e.g. one rover's map into the

@@ -26,6 +26,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from coop_common.node_util import ParamSpec, declare_parameters
+from coop_common.seqgaps import SequenceGaps
 
 from .bagio import COMPRESSIONS, BagWriter, UnknownTypeError, make_qos, make_typestore
 from .cli import spin_until_stopped
@@ -105,8 +106,7 @@ class Recorder(Node):
         self.received: Counter[str] = Counter()
         self.count_losses = bool(p['count_losses'])
         #: per topic: messages missing between the ones received (publication sequence numbers)
-        self.missed: Counter[str] = Counter()
-        self._last_seq: dict[str, int] = {}
+        self.gaps = SequenceGaps()
         self._several_publishers: set[str] = set()     # not countable from sequence numbers
         self._subs: dict[str, Any] = {}
         self._skipped: set[str] = set()
@@ -189,17 +189,13 @@ class Recorder(Node):
             received[topic] += 1
         if not self.count_losses:
             return on_message
-        last, missed = self._last_seq, self.missed
+        seen = self.gaps.seen
 
         def on_message_counted(data: bytes, info: dict) -> None:
             on_message(data)
             seq = info.get('publication_sequence_number')
-            if seq is None:
-                return
-            before = last.get(topic)
-            if before is not None and seq > before + 1:
-                missed[topic] += seq - before - 1
-            last[topic] = seq
+            if seq is not None:
+                seen(topic, seq)
         return on_message_counted
 
     def _on_lost(self, topic: str, info: Any) -> None:
@@ -212,7 +208,8 @@ class Recorder(Node):
         if self.lost:
             self.bag.custom_data['messages_lost'] = ', '.join(
                 f'{t}: {n}' for t, n in sorted(self.lost.items()))
-        missed = {t: n for t, n in self.missed.items() if t not in self._several_publishers}
+        missed = {t: n for t, n in self.gaps.missed.items()
+                  if t not in self._several_publishers}
         if self.count_losses:
             self.bag.custom_data['messages_missed'] = ', '.join(
                 f'{t}: {n}' for t, n in sorted(missed.items())) or 'none'
