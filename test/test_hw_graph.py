@@ -9,6 +9,7 @@ import re
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseWithCovarianceStamped, Twist, WrenchStamped
@@ -280,22 +281,26 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
     q_start, q_unplug = mean(before[:n]), mean(before[-n:])
     q_back, q_held = mean(held[:n]), mean(held[-n:])
     spin_back = mean(held[:20], lambda m: abs(wheel_speed(m)))
-    speed = max(mean(resumed[k:k + 20], lambda m: m.velocity[0])
-                for k in range(0, len(resumed) - 20, 10))
+    speed = peak_speed(resumed, window_s=0.5)
+    low = min(mean(resumed[k:k + 20]) for k in range(0, len(resumed) - 20, 10))
     q_end = mean(resumed[-n:])
     print(f'\nre-plug: arm_joint_1 (means of {n} readings) {q_unplug:.3f} rad at the unplug '
           f'(moving since {q_start:.3f}), {q_back:.3f} on return, {q_held:.3f} after '
           f'{len(held)} readings; wheels {spin_back:.2f} rad/s on return; the new trajectory '
-          f'peaked at {speed:.2f} rad/s and ended at {q_end:.3f} rad')
+          f'went no lower than {low:.3f}, peaked at {speed:.2f} rad/s and ended at '
+          f'{q_end:.3f} rad')
     assert q_unplug - q_start > 0.05                      # the arm was moving at the unplug
     assert abs(q_back - q_unplug) < 0.02                  # stopped while down
     assert abs(q_held - q_back) < 0.02                    # held: the old trajectory dropped
     assert spin_back < 0.5                                # the wheels stood while down
-    # (0.8 - q) / 2 s is about 0.3 rad/s on average, under 0.5 at its peak on an idle machine
-    # (0.63 seen beside a busy test worker, the emulator's steps late); a trajectory that did
-    # not start from the measured state would step the set-point and the arm would run at its
-    # limit
-    assert speed < 0.9 and abs(q_end - 0.8) < 0.04        # the arm's PD ends ~0.03 short
+    # (0.8 - q) / 2 s is about 0.25 rad/s on average and 0.37 at the cubic's peak. Measured
+    # over half a second of device time: a set-point the loaded host sends late is a short
+    # step the PD takes in a few readings (0.94 rad/s over 20 readings seen beside a busy
+    # test worker), while a trajectory that did not start from the measured state would step
+    # the set-point and the arm would run at its limit for the whole jump, or first away
+    # from the goal (one started from the old origin, 0 rad, dips to it)
+    assert low > q_held - 0.03
+    assert speed < 0.6 and abs(q_end - 0.8) < 0.04        # the arm's PD ends ~0.03 short
     # wall times from both logs: the emulator's [unix time] and the bridge's ROS log stamp
     log = rig.bridge.log_text()
     emu = re.search(r'\[(\d+\.\d+)\] emulator: plugged in again', rig.emu.log_text())
@@ -306,6 +311,17 @@ def test_unplug_replug_reconnects_within_a_second_without_a_jump(tmp_path):
     print(f'unplug: bridge saw the device lost, reconnected {delay * 1e3:.0f} ms after the '
           'device returned')
     assert 0.0 <= delay < 1.0
+
+
+def peak_speed(msgs: list, *, window_s: float) -> float:
+    """The largest speed of arm_joint_1 over `window_s` of the device's stamps: the slope of
+    a straight line fitted to each window's encoder readings (their noise, a few hundredths
+    of a radian, averaged out; the rate counts come in 0.24 rad/s steps), 0 when none fits."""
+    tq = np.array(sorted((t_of(m.header), m.position[0]) for m in msgs)).reshape(-1, 2)
+    t, q = tq[:, 0], tq[:, 1]
+    ends = np.searchsorted(t, t + window_s)
+    return max((abs(np.polyfit(t[i:j] - t[i], q[i:j], 1)[0])
+                for i, j in enumerate(ends) if j < len(t) and j - i >= 10), default=0.0)
 
 
 def stamp_rate(msgs: list) -> float:
