@@ -84,14 +84,15 @@ class ImplicitSolver:
 
     def solve(self, h: float, mass_matrix: np.ndarray, base: BaseKinematics,
               du_free: np.ndarray, arm_position_error: np.ndarray,
-              arm_rate_error: np.ndarray, kp: np.ndarray, kd: np.ndarray, effort: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray]:
+              arm_rate_error: np.ndarray, kp: np.ndarray, kd: np.ndarray, effort: np.ndarray,
+              arm_feedforward: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(wrench (force, torque) in anchor axes at the sprung c.g., arm joint torques) for the
         engine step of length h; du_free: the step's change of the generalised velocity (6
         base + n_arm) without them.
 
         arm_position_error: q_ref - q; arm_rate_error: qd_ref - qd at the step's instant;
-        torques beyond `effort` are clipped (the joint's actuator limit)."""
+        torques beyond `effort` are clipped (the joint's actuator limit); `arm_feedforward`
+        (n_arm, N m) is added to the PD's torques, held over the step."""
         n = 6 + self.n_arm
         a = np.linalg.inv(mass_matrix)
         y = np.zeros((n, n))
@@ -103,6 +104,8 @@ class ImplicitSolver:
         f0[:6] = -self.k * x - self.b * xd + self.preload
         e[:6] = DAMPER_THETA * self.b
         f0[6:] = kp * arm_position_error + kd * arm_rate_error
+        if arm_feedforward is not None:
+            f0[6:] += arm_feedforward
         e[6:] = DAMPER_THETA * kd
         s = h * (y @ a @ y.T)
         lhs = np.eye(n) + e[:, None] * s

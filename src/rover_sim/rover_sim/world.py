@@ -177,6 +177,8 @@ class _Rover:
     actuated: list[int] = dataclasses.field(default_factory=list)
     mast_joints: list[int] = dataclasses.field(default_factory=list)
     tau: list[float] = dataclasses.field(default_factory=lambda: [0.0] * 4)
+    #: joint torques added to the arm's PD (a feed-forward the host commands), N m
+    tau_ff: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(4))
     # base link orientation (quaternion x, y, z, w) at the end of the last control step, and
     # at the start of the last sub-step of the current / previous control step (the gyro)
     prev_quat: tuple = (0.0, 0.0, 0.0, 1.0)
@@ -667,6 +669,15 @@ class World:
         r.arm.set(names, times_s, positions, now if start_s is None or start_s <= 0 else start_s,
                   q, velocities=velocities, current_velocity=qd)
 
+    def command_arm_feedforward(self, index: int, torques: Sequence[float]) -> None:
+        """Joint torques (N m, one per arm joint) added to the arm's PD from the next step on,
+        held until the next call: a feed-forward the host computes (coop_insertion.feedforward);
+        zeros switch it off."""
+        tau = np.asarray(torques, dtype=float)
+        if tau.shape != (len(ARM_JOINTS),) or not np.all(np.isfinite(tau)):
+            raise ValueError(f'arm feed-forward: need {len(ARM_JOINTS)} finite torques')
+        self.rovers[index].tau_ff = tau
+
     def command_mast(self, index: int, names: Sequence[str], times_s: Sequence[float],
                      positions: Sequence[Sequence[float]], start_s: float | None = None) -> None:
         r = self.rovers[index]
@@ -788,7 +799,8 @@ class World:
                 assert r.implicit is not None
                 wrench, tau = r.implicit.solve(
                     h, mass, kin, free, np.asarray(q_refs[sub]) - q,
-                    np.asarray(qd_refs[sub]) - qd, np.asarray(kp), np.asarray(kd), effort)
+                    np.asarray(qd_refs[sub]) - qd, np.asarray(kp), np.asarray(kd), effort,
+                    r.tau_ff)
                 pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL,
                                              forces=tau.tolist(), physicsClientId=c)
                 pb.applyExternalForce(r.body, -1, (ra @ wrench[:3]).tolist(), origin,
@@ -840,7 +852,8 @@ class World:
                     states = pb.getJointStates(r.body, r.actuated, physicsClientId=c)
                     tau = r.tau
                     for j, st in enumerate(states):
-                        t_j = kp[j] * (q_ref[j] - st[0]) + kd[j] * (qd_ref[j] - st[1])
+                        t_j = (kp[j] * (q_ref[j] - st[0]) + kd[j] * (qd_ref[j] - st[1])
+                               + r.tau_ff[j])
                         tau[j] = max(-ARM_EFFORT_NM[j], min(ARM_EFFORT_NM[j], t_j))
                 pb.setJointMotorControlArray(r.body, r.actuated, pb.TORQUE_CONTROL, forces=r.tau,
                                              physicsClientId=c)
