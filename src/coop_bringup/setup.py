@@ -24,5 +24,6 @@ setup(
     entry_points={'console_scripts': ['mission = coop_bringup.mission:main',
                                       'live_view = coop_bringup.live_view:main',
                                       'compose = coop_bringup.compose:main',
-                                      'table_5_1 = coop_bringup.table_5_1:main']},
+                                      'table_5_1 = coop_bringup.table_5_1:main',
+                                      'appendix_a = coop_bringup.appendix_a:main']},
 )

@@ -194,8 +194,16 @@ class ArmModel:
         F is exact (the torques are linear in d''); f is the derivative at d' = 0 of the
         torques that are quadratic in the base's turn rate (a translation's rate drives no
         torque), taken by a central difference, exact for a quadratic."""
-        big_f, small_f, _ = self.terms(q, qd)
-        return big_f, small_f
+        q, qd = _vec('q', q, self.n), _vec('qd', qd, self.n)
+        eye, zero3 = np.eye(3), np.zeros((3, 3))
+        rates = np.zeros((12, self.n))
+        rates[6:] = qd
+        tau = self._rnea(q, rates, np.zeros((12, self.n)), np.vstack([eye, zero3, zero3, zero3]),
+                         np.vstack([zero3, zero3, eye, -eye]),
+                         np.vstack([zero3, eye, zero3, zero3]))
+        small_f = np.zeros((self.n, 6))
+        small_f[:, 3:] = (tau[6:9] - tau[9:12]).T / 2.0
+        return tau[:6].T, small_f
 
     def gravity(self, q: ArrayLike, *, roll: float = 0.0, pitch: float = 0.0) -> np.ndarray:
         """G: the torques that hold the arm's weight at q on a base tilted by roll and pitch
@@ -205,22 +213,33 @@ class ArmModel:
         return self._rnea(q, zero, zero, GRAVITY * _up(roll, pitch)[None], np.zeros((1, 3)),
                           np.zeros((1, 3)))[0]
 
-    def terms(self, q: ArrayLike, qd: ArrayLike, *, roll: float = 0.0, pitch: float = 0.0
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """F, f (as `coupling`) and G (as `gravity`) in one Newton-Euler pass of 13 cases."""
+    def terms(self, q: ArrayLike, qd: ArrayLike, *, base_rate: ArrayLike = (0.0, 0.0, 0.0),
+              roll: float = 0.0, pitch: float = 0.0, qd_ref: ArrayLike | None = None,
+              qdd_ref: ArrayLike | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What Eq. A-4 needs at one instant, in one Newton-Euler pass of 10 cases: F (as
+        `coupling`); the torques the base's turn rate `base_rate` drives at the joint rates qd
+        (f(q, q', d') d' in full: its linear part, `coupling`'s f d', and the centrifugal
+        rest, which a steady turn makes the larger); G (as `gravity`); and the arm's own
+        H q_r'' + h q_r' for a reference's rates at q (zero without one)."""
         q, qd = _vec('q', q, self.n), _vec('qd', qd, self.n)
-        eye, zero3 = np.eye(3), np.zeros((3, 3))
-        # cases: 3 base accelerations, 3 turn accelerations (no joint rates), each turn rate
-        # +1 and -1 at the joint rates, the weight
-        rates = np.zeros((13, self.n))
-        rates[6:12] = qd
-        tau = self._rnea(q, rates, np.zeros((13, self.n)),
-                         np.vstack([eye, zero3, zero3, zero3, GRAVITY * _up(roll, pitch)]),
-                         np.vstack([zero3, zero3, eye, -eye, np.zeros(3)]),
-                         np.vstack([zero3, eye, zero3, zero3, np.zeros(3)]))
-        small_f = np.zeros((self.n, 6))
-        small_f[:, 3:] = (tau[6:9] - tau[9:12]).T / 2.0
-        return tau[:6].T, small_f, tau[12]
+        omega = _vec('base_rate', base_rate, 3)
+        eye, zero3, none = np.eye(3), np.zeros((3, 3)), np.zeros((4, 3))
+        # cases: 3 base accelerations, 3 turn accelerations, the weight, the reference on a
+        # base at rest, the joint rates with and without the base's turn
+        rates = np.zeros((10, self.n))
+        accels = np.zeros((10, self.n))
+        if qd_ref is not None:
+            rates[7] = _vec('qd_ref', qd_ref, self.n)
+        if qdd_ref is not None:
+            accels[7] = _vec('qdd_ref', qdd_ref, self.n)
+        rates[8:] = qd
+        lin = np.zeros((10, 3))
+        lin[:3], lin[6] = eye, GRAVITY * _up(roll, pitch)
+        turn = np.zeros((10, 3))
+        turn[8] = omega
+        tau = self._rnea(q, rates, accels, lin, turn, np.vstack([zero3, eye, none]))
+        return tau[:6].T, tau[8] - tau[9], tau[6], tau[7]
 
 
 def _up(roll: float, pitch: float) -> np.ndarray:
@@ -317,8 +336,9 @@ class BaseObserver:
     def update(self, *, force: ArrayLike, torque: ArrayLike, gyro: ArrayLike,
                specific_force: ArrayLike, anchor_speed: float = 0.0,
                anchor_yaw_rate: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-        """One sample in; the base's (d'', d') now (each 6: x, y, z, roll, pitch, yaw), d' with
-        the anchor's own yaw rate added (the arm feels the whole turn rate)."""
+        """One sample in; the base's d'' over the next period of dt (the mean the model
+        predicts for it) and d' now (each 6: x, y, z, roll, pitch, yaw), d' with the anchor's
+        own yaw rate added (the arm feels the whole turn rate)."""
         f, n = _vec('force', force, 3), _vec('torque', torque, 3)
         g, sf = _vec('gyro', gyro, 3), _vec('specific_force', specific_force, 3)
         if not (np.isfinite(anchor_speed) and np.isfinite(anchor_yaw_rate)):
@@ -327,29 +347,35 @@ class BaseObserver:
             self._rest = (f, n, sf)
             self._anchor = (float(anchor_speed), float(anchor_yaw_rate))
         f0, n0, sf0 = self._rest
-        # a step of the anchor's velocity is the opposite step of the base's rate relative to it
-        dv, dw = anchor_speed - self._anchor[0], anchor_yaw_rate - self._anchor[1]
-        if dv or dw:
-            self.x[6] -= dv
-            self.x[11] -= dw
-            self._anchor = (float(anchor_speed), float(anchor_yaw_rate))
         w = self.base_wrench(f - f0, n - n0)
-        # predict over the sample's period with this wrench held, then correct
+        # the sample ends the period just gone (its wrench that period's): predict across it
+        # from the last estimate, then correct
         self.x = self._ad @ self.x + self._bd @ w
         self.p = self._ad @ self.p @ self._ad.T + self._q
-        # measurements: the turn rate relative to the anchor, and the c.g.'s acceleration
-        # (deviation of the specific force; the tilt's share of gravity is slow and small)
+        # measurements: the turn rate relative to the anchor (as it was commanded over that
+        # period), and the c.g.'s acceleration (deviation of the specific force; the tilt's
+        # share of gravity is slow and small)
         h = np.zeros((6, 12))
         h[:3, 9:] = np.eye(3)
         h[3:] = self._a_acc[:3]
-        z = np.concatenate([g - (0.0, 0.0, anchor_yaw_rate), sf - sf0])
+        z = np.concatenate([g - (0.0, 0.0, self._anchor[1]), sf - sf0])
         z_hat = h @ self.x + np.concatenate([np.zeros(3), self._b_acc[:3] @ w])
         r = np.diag([self.gyro_std ** 2] * 3 + [self.accel_std ** 2] * 3)
         s = h @ self.p @ h.T + r
         k = np.linalg.solve(s, h @ self.p).T
         self.x = self.x + k @ (z - z_hat)
         self.p = (np.eye(12) - k @ h) @ self.p
-        dd = self._a_acc @ self.x + self._b_acc @ w
+        # the command for the coming period: a step of the anchor's velocity is the opposite
+        # step of the base's rate relative to it
+        dv, dw = anchor_speed - self._anchor[0], anchor_yaw_rate - self._anchor[1]
+        if dv or dw:
+            self.x[6] -= dv
+            self.x[11] -= dw
+            self._anchor = (float(anchor_speed), float(anchor_yaw_rate))
+        # d'' over the coming period, the torque's zero-order hold: the change of rate the
+        # model predicts across it (a drive step settles the base's turn rate within a
+        # millisecond, far inside one period: its instantaneous d'' would overshoot 100-fold)
+        dd = ((self._ad @ self.x + self._bd @ w)[6:] - self.x[6:]) / self.dt
         d = self.x[6:].copy()
         d[5] += anchor_yaw_rate
         return dd, d
@@ -363,17 +389,22 @@ class Acceptance:
     reason: str
 
 
-def accept_estimate(values: Sequence[float], *, observable: Sequence[bool],
-                    physically_consistent: bool, age_s: float, max_age_s: float
-                    ) -> Acceptance:
-    """An estimate is used only when it is a physical body (checked here too, not only
-    trusted from the flag), every parameter is observable and it is at most `max_age_s`
-    old; otherwise the caller keeps its last good set (or the nominal one)."""
+def accept_estimate(values: ArrayLike, *, observable: Sequence[bool],
+                    physically_consistent: bool, age_s: float, max_age_s: float,
+                    min_observable: int = 20) -> Acceptance:
+    """An identified set is used only when it is a physical body (checked here too, not only
+    trusted from the flag), at most `max_age_s` old, and at least `min_observable` of its 22
+    parameters are observed. An unobserved parameter's value is the identifier's best guess
+    so far (its estimate with the prior range's weight), which is kept: replacing it by a
+    nominal value can make the set unphysical (a nominal I_z beside estimated I_x, I_y breaks
+    the triangle inequality). Otherwise the caller keeps its last good set (or the nominal)."""
     x = np.asarray(values, dtype=float)
     if x.shape != (22,) or not np.all(np.isfinite(x)):
         return Acceptance(False, f'{x.size} values or not finite (need 22)')
-    if len(observable) != 22 or not all(observable):
-        return Acceptance(False, 'not every parameter is observable yet')
+    seen = sum(bool(o) for o in observable)
+    if len(observable) != 22 or seen < min_observable:
+        return Acceptance(False, f'{seen} of 22 parameters observable yet (need '
+                                 f'{min_observable})')
     reasons = check_physical(x)
     if not physically_consistent or reasons:
         return Acceptance(False, 'not physically consistent'
@@ -384,7 +415,8 @@ def accept_estimate(values: Sequence[float], *, observable: Sequence[bool],
 
 
 class FeedForward:
-    """Eq. A-4's feed-forward torque for one arm: F d'' + f d' + G from the base observer's
+    """Eq. A-4's feed-forward torque for one arm: F d'' + f d' + G (f d' in full, centrifugal
+    part too) from the base observer's
     d'', d' and the arm's model, with parameter changes blended over `blend_s`.
 
     `source` NONE gives G alone (the baseline: PD and gravity compensation); otherwise
@@ -418,28 +450,32 @@ class FeedForward:
 
     def torque(self, *, q: ArrayLike, qd: ArrayLike, force: ArrayLike, torque: ArrayLike,
                gyro: ArrayLike, specific_force: ArrayLike, roll: float = 0.0,
-               pitch: float = 0.0, anchor_speed: float = 0.0,
-               anchor_yaw_rate: float = 0.0) -> np.ndarray:
-        """The joint torques to add to the PD for one sensor sample (n,): roll and pitch are
-        the base's tilt at rest (the inclinometer's, which reads the specific force's direction
-        and so not the sway); the observer adds the sway."""
+               pitch: float = 0.0, anchor_speed: float = 0.0, anchor_yaw_rate: float = 0.0,
+               qd_ref: ArrayLike | None = None, qdd_ref: ArrayLike | None = None
+               ) -> np.ndarray:
+        """The joint torques to add to the PD for one sensor sample (n,): the arm's own
+        H q_r'' + h q_r' when given a reference's rates, G, and (unless NONE) F d'' + f d'.
+        roll and pitch are the base's tilt at rest (the inclinometer's, which reads the
+        specific force's direction and so not the sway); the observer adds the sway."""
         sample = dict(force=force, torque=torque, gyro=gyro, specific_force=specific_force,
                       anchor_speed=anchor_speed, anchor_yaw_rate=anchor_yaw_rate)
-        tau = self._one(self._observer, self._arm, q, qd, roll, pitch, sample)
+        ref = dict(qd_ref=qd_ref, qdd_ref=qdd_ref)
+        tau = self._one(self._observer, self._arm, q, qd, roll, pitch, sample, ref)
         if self._old is not None:
             self._blend = min(1.0, self._blend + self.dt / self.blend_s)
-            old = self._one(*self._old, q, qd, roll, pitch, sample)
+            old = self._one(*self._old, q, qd, roll, pitch, sample, ref)
             tau = self._blend * tau + (1.0 - self._blend) * old
             if self._blend >= 1.0:
                 self._old = None
         return tau
 
     def _one(self, observer: BaseObserver, arm: ArmModel, q: ArrayLike, qd: ArrayLike,
-             roll: float, pitch: float, sample: dict) -> np.ndarray:
+             roll: float, pitch: float, sample: dict, ref: dict) -> np.ndarray:
         dd, d = observer.update(**sample)
         if self.source is ParameterSource.NONE:
-            return arm.gravity(q, roll=roll, pitch=pitch)
+            _, _, g, own = arm.terms(q, qd, roll=roll, pitch=pitch, **ref)
+            return own + g
         # the weight in the base as it sways: the rest tilt plus the observed deflection
-        big_f, small_f, g = arm.terms(q, qd, roll=roll + observer.x[3],
-                                      pitch=pitch + observer.x[4])
-        return big_f @ dd + small_f @ d + g
+        big_f, turning, g, own = arm.terms(q, qd, base_rate=d[3:], roll=roll + observer.x[3],
+                                           pitch=pitch + observer.x[4], **ref)
+        return own + big_f @ dd + turning + g

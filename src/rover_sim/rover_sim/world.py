@@ -669,7 +669,8 @@ class World:
         r.arm.set(names, times_s, positions, now if start_s is None or start_s <= 0 else start_s,
                   q, velocities=velocities, current_velocity=qd)
 
-    def command_arm_feedforward(self, index: int, torques: Sequence[float]) -> None:
+    def command_arm_feedforward(self, index: int, torques: Sequence[float] | np.ndarray
+                                ) -> None:
         """Joint torques (N m, one per arm joint) added to the arm's PD from the next step on,
         held until the next call: a feed-forward the host computes (coop_insertion.feedforward);
         zeros switch it off."""
