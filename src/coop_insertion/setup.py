@@ -24,5 +24,6 @@ setup(
         'slave = coop_insertion.slave_node:main',
         'driver = coop_insertion.driver_node:main',
         'force_trials = coop_insertion.force_trials:main',
+        'arm_feedforward = coop_insertion.feedforward_node:main',
     ]},
 )

@@ -35,6 +35,7 @@ may be used at all (physically consistent, observable, recent), and why not.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -79,7 +80,13 @@ def _vec(name: str, v: ArrayLike, n: int) -> np.ndarray:
 
 
 def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation by `angle` about the unit `axis` (Rodrigues)."""
+    """Rotation by `angle` about the unit `axis` (Rodrigues; built directly about y and z,
+    the rover arm's axes)."""
+    c, s = math.cos(angle), math.sin(angle)
+    if axis[0] == 0.0 and axis[2] == 0.0 and axis[1] == 1.0:
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    if axis[0] == 0.0 and axis[1] == 0.0 and axis[2] == 1.0:
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     x, y, z = axis
     c, s = np.cos(angle), np.sin(angle)
     k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
@@ -150,20 +157,24 @@ class ArmModel:
               w: np.ndarray, dw: np.ndarray) -> np.ndarray:
         """Newton-Euler for k cases at once on one configuration q (n,): joint rates and
         accelerations (k, n), base acceleration, turn rate and its rate (k, 3); (k, n).
-        Row vectors throughout: v @ rot is rot^T v, v @ [c]x is v x c."""
+        Row vectors throughout: v @ rot is rot^T v, v @ [c]x is v x c; a turn rate's
+        cross products go through its skew matrices, one build per link."""
         rots, forces, moments = [], [], []
+        sw = _skew_rows(w)                                    # the base's
         for i in range(self.n):
             rot = _axis_rotation(self.axes[i], q[i])          # link i in link i-1
-            sp, z = self._skew_origins[i], self.axes[i]
+            sp, z, sz = self._skew_origins[i], self.axes[i], self._skew_axes[i]
             # the joint's origin moves with the link before it, then into link i's axes
-            a = (a + dw @ sp + _cross(w, w @ sp)) @ rot
+            a = (a + dw @ sp + _apply(sw, w @ sp)) @ rot
             w_in = w @ rot
-            spin = qd[:, i, None] * z
-            w = w_in + spin
-            dw = dw @ rot + qdd[:, i, None] * z + _cross(w_in, spin)
+            w = w_in + qd[:, i, None] * z
+            # w_in x (qd z) = qd (w_in x z)
+            dw = dw @ rot + qdd[:, i, None] * z + qd[:, i, None] * (w_in @ sz)
+            sw = _skew_rows(w)
             sc, inertia = self._skew_coms[i], self.inertias[i]
-            forces.append(self.masses[i] * (a + dw @ sc + _cross(w, w @ sc)))
-            moments.append(dw @ inertia.T + _cross(w, w @ inertia.T))
+            spin = _apply(sw, np.stack([w @ sc, w @ inertia.T], axis=-1))
+            forces.append(self.masses[i] * (a + dw @ sc + spin[..., 0]))
+            moments.append(dw @ inertia.T + spin[..., 1])
             rots.append(rot)
         tau = np.empty(qd.shape)
         f_next = n_next = np.zeros((0, 3))
@@ -179,6 +190,10 @@ class ArmModel:
             tau[:, i] = n @ self.axes[i]
             f_next, n_next = f, n
         return tau
+
+    @cached_property
+    def _skew_axes(self) -> np.ndarray:
+        return _skews(self.axes)
 
     @cached_property
     def _skew_origins(self) -> np.ndarray:
@@ -257,15 +272,23 @@ def _skews(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise a x b of two (k, 3) arrays (np.cross is slow on small arrays)."""
-    out = np.empty_like(a)
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    out[:, 0] = a1 * b2 - a2 * b1
-    out[:, 1] = a2 * b0 - a0 * b2
-    out[:, 2] = a0 * b1 - a1 * b0
-    return out
+#: skew(w) = (w @ _LEVI).reshape(3, 3) for a row w: [w]x[i, j] = -eps_ijl w_l
+_LEVI = np.zeros((3, 9))
+for _i, _j, _l, _sign in ((0, 1, 2, -1.0), (0, 2, 1, 1.0), (1, 0, 2, 1.0), (1, 2, 0, -1.0),
+                          (2, 0, 1, -1.0), (2, 1, 0, 1.0)):
+    _LEVI[_l, 3 * _i + _j] = _sign
+
+
+def _skew_rows(w: np.ndarray) -> np.ndarray:
+    """[w]x for each row of w (k, 3): (k, 3, 3), in one product."""
+    return (w @ _LEVI).reshape(-1, 3, 3)
+
+
+def _apply(sw: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """w x v per row, from w's skew matrices (k, 3, 3), for v (k, 3) or several (k, 3, m)."""
+    if v.ndim == 2:
+        return np.matmul(sw, v[:, :, None])[:, :, 0]
+    return np.matmul(sw, v)
 
 
 def _shift(mass: float, c: np.ndarray) -> np.ndarray:

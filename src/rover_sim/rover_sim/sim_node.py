@@ -62,7 +62,7 @@ from .config import (
     load_config,
     truth_topic,
 )
-from .rover_model import STEREO_BASELINE_M
+from .rover_model import ARM_JOINTS, STEREO_BASELINE_M
 from .trajectory import TrajectoryError
 from .world import World
 from .worldgen import TABLE_5_1_GAPS_M, ObstacleKind
@@ -91,6 +91,14 @@ class _Velocity:
 
 
 @dataclass(frozen=True)
+class _Effort:
+    """A checked arm feed-forward (N m per arm joint, ARM_JOINTS order) for rover `index`."""
+
+    index: int
+    torques: tuple[float, ...]
+
+
+@dataclass(frozen=True)
 class _Reset:
     """sim/reset's new world, built by the sim thread; `done` is set once it stands."""
 
@@ -102,7 +110,7 @@ class _Reset:
 
 
 #: what the executor hands the sim thread
-_Pending = _Trajectory | _Velocity | _Reset
+_Pending = _Trajectory | _Velocity | _Effort | _Reset
 
 
 def _listened(pub) -> bool:
@@ -177,6 +185,9 @@ PARAMS = {
                                   lo=0.0, hi=100.0),
     'cmd_vel_timeout_s': ParamSpec(0.5, 'Stop a rover whose cmd_vel is older than this (sim s)',
                                    lo=0.05, hi=10.0),
+    'feedforward_timeout_s': ParamSpec(0.05, "Drop a rover's arm feed-forward torques older "
+                                       'than this (sim s): a silent host leaves the PD alone',
+                                       lo=0.005, hi=10.0),
     'map_frame': ParamSpec('map', 'Common world frame id (REP 105), after frame_prefix',
                            read_only=True),
     **FRAME_PARAMS,
@@ -211,6 +222,7 @@ class SimNode(Node):
                                          check_all=self._check_params)
         self._rtf = float(self.values['real_time_factor'])
         self._cmd_timeout = float(self.values['cmd_vel_timeout_s'])
+        self._effort_timeout = float(self.values['feedforward_timeout_s'])
         self.config = self._make_config()         # raises ValueError (logged by run_node)
         # what the sim thread renders, changed while running (_on_param_change)
         self._stereo_hz = self.config.stereo_rate_hz
@@ -241,6 +253,7 @@ class SimNode(Node):
         self._count_lock = threading.Lock()
         self._lockstep_timeout = float(self.values['lockstep_timeout_s'])
         self._last_cmd_vel: dict[int, float] = {}
+        self._last_effort: dict[int, float] = {}
         self._render_note_logged: str | None = None   # the world's render_note, logged once
         self._make_interfaces()
         self._publish_latched()
@@ -344,6 +357,8 @@ class SimNode(Node):
             self._command(JointTrajectory, f'{n}/mast/command',
                           lambda m, i=i: self._on_traj(i, m, 'mast'))
             self._command(Twist, f'{n}/cmd_vel', lambda m, i=i: self._on_twist(i, m))
+            self._command(JointState, f'{n}/arm/feedforward',
+                          lambda m, i=i: self._on_effort(i, m))
         self.world_pub = pub(MarkerArray, WORLD_TOPIC, LATCHED_QOS)
         self.create_service(SimScenario, 'sim/reset', self._on_reset)
         if self._gate is not None:
@@ -372,6 +387,8 @@ class SimNode(Node):
                 self._pace_origin = None
         if 'cmd_vel_timeout_s' in changed:
             self._cmd_timeout = float(changed['cmd_vel_timeout_s'])
+        if 'feedforward_timeout_s' in changed:
+            self._effort_timeout = float(changed['feedforward_timeout_s'])
         if 'lockstep_timeout_s' in changed:
             self._lockstep_timeout = float(changed['lockstep_timeout_s'])
 
@@ -414,6 +431,21 @@ class SimNode(Node):
             self.bad.reject('cmd_vel NaN')
             return None
         return _Velocity(index, v, w)
+
+    def _on_effort(self, index: int, msg: JointState) -> _Effort | None:
+        """Torques added to the arm's PD (coop_insertion's arm_feedforward): efforts by joint
+        name, joints not named get none."""
+        names = list(msg.name)
+        if (len(msg.effort) != len(names) or len(set(names)) != len(names)
+                or any(n not in ARM_JOINTS for n in names)):
+            self.bad.reject('feedforward joints', f'{names} with {len(msg.effort)} efforts: '
+                            f'need a subset of {list(ARM_JOINTS)}, one effort each')
+            return None
+        if not all(math.isfinite(e) for e in msg.effort):
+            self.bad.reject('feedforward NaN')
+            return None
+        by_name = dict(zip(names, msg.effort, strict=True))
+        return _Effort(index, tuple(float(by_name.get(j, 0.0)) for j in ARM_JOINTS))
 
     def _on_reset(self, request: SimScenario.Request, response: SimScenario.Response):
         changes = {}
@@ -477,6 +509,9 @@ class SimNode(Node):
                 case _Velocity(index=i, linear=v, angular=w):
                     self.world.command_velocity(i, v, w)
                     self._last_cmd_vel[i] = self.world.time_s
+                case _Effort(index=i, torques=tau):
+                    self.world.command_arm_feedforward(i, tau)
+                    self._last_effort[i] = self.world.time_s
                 case _Reset():
                     self._apply_reset(item)
                     reset = True
@@ -512,6 +547,7 @@ class SimNode(Node):
         for name, x, y, yaw in r.places:
             self.world.place_rover(self.world.rover_index(name), x, y, yaw)
         self._last_cmd_vel.clear()
+        self._last_effort.clear()
         self._pace_origin = None
         self._publish_latched()
         self.get_logger().info(f'reset to seed {config.seed}')
@@ -526,6 +562,10 @@ class SimNode(Node):
             if w.time_s - t > self._cmd_timeout:
                 w.command_velocity(i, 0.0, 0.0)
                 del self._last_cmd_vel[i]
+        for i, t in list(self._last_effort.items()):
+            if w.time_s - t > self._effort_timeout:
+                w.command_arm_feedforward(i, np.zeros(len(ARM_JOINTS)))
+                del self._last_effort[i]
         w.step()
         self._publish_step()
         self._pace()
