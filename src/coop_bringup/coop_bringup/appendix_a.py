@@ -39,9 +39,16 @@ import numpy as np
 from coop_common.cli import number, output_dir, output_path
 from coop_common.dynparams import PARAM_NAMES, BaseParameters, load_truth
 from coop_common.files import save_figure, write_json
-from coop_common.rover_geometry import ARM_JOINTS, card_in_base
+from coop_common.rover_geometry import (
+    ARM_JOINTS,
+    BASE_HEIGHT_M,
+    CARD_OFFSET_M,
+    WHEEL_CONTACTS,
+    card_in_base,
+)
 from coop_id.model import load_prior_ranges
-from coop_insertion.feedforward import FeedForward, ParameterSource, accept_estimate
+from coop_insertion.feedforward import ArmModel, FeedForward, ParameterSource, accept_estimate
+from coop_insertion.tipover import Footprint, Limit, Loads, TipOverError, limit_path, zmp
 from rover_sim.config import SimConfig
 from rover_sim.world import World
 
@@ -120,14 +127,15 @@ def reference(scenario: Scenario, t: float) -> Reference:
             return Reference(q, qd, qdd, 0.0, 0.0)
 
 
-def run(variant: Variant, scenario: Scenario, params: BaseParameters, *, seed: int
-        ) -> dict[str, Any]:
-    """One run: the card's error (m, 3 axes, base frame) per control period and its times."""
+def run(variant: Variant, scenario: Scenario, params: BaseParameters, *, seed: int,
+        duration_s: float | None = None) -> dict[str, Any]:
+    """One run (the scenario's whole length, or `duration_s` of it): the card's error (m, 3
+    axes, base frame) per control period and its times."""
     truth = load_truth()
     world = World(SimConfig(rovers=2, seed=seed, stereo_rate_hz=0.0), [truth, truth])
     try:
         dt = world.dt
-        duration = DRIVE_S if scenario == 'driving' else EXCITATION_S
+        duration = duration_s or (DRIVE_S if scenario == 'driving' else EXCITATION_S)
         steps = round(duration / dt)
         # the reference as one dense trajectory (cubic through positions and speeds)
         times = np.arange(1, steps + 1) * dt
@@ -206,13 +214,185 @@ def run_feedforward(*, seed: int, identified: Path) -> tuple[dict[str, Any], dic
     }, series
 
 
-def plot(series: dict, out: Path) -> list[Path]:
-    """One figure per scenario: the card's error over time for each variant."""
+#: the tip-over study: a part this heavy in the gripper (kg: half the arm, 50 cards), random
+#: aggressive arm swings with a drive ramp, the limiter's required margin (fraction of the
+#: footprint's depth) and how finely it checks the plan (s)
+LOAD_KG = 0.5
+TIP_MOTIONS = 100
+MIN_FRACTION = 0.2
+PLAN_STEP_S = 0.02
+TIP_SETTLE_S, TIP_AFTER_S = 0.5, 0.4
+START = (0.0, -0.6, 1.2, 0.0)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A swing of the arm from START to `target` in `duration_s` (quintic), with the rover
+    ramping its speed to `speed` at `accel` (m/s^2) from the same instant."""
+
+    target: tuple[float, float, float, float]
+    duration_s: float
+    speed: float
+    accel: float
+
+    def scaled(self, scale: float) -> Motion:
+        """The same path slower: accelerations times `scale` (time by 1 / sqrt(scale))."""
+        return Motion(self.target, self.duration_s / math.sqrt(scale), self.speed,
+                      self.accel * scale)
+
+    def arm(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """q, q', q'' at t (s from the swing's start)."""
+        u = min(max(t / self.duration_s, 0.0), 1.0)
+        h = 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5
+        hd = (30 * u ** 2 - 60 * u ** 3 + 30 * u ** 4) / self.duration_s
+        hdd = (60 * u - 180 * u ** 2 + 120 * u ** 3) / self.duration_s ** 2
+        d = np.array(self.target) - np.array(START)
+        return np.array(START) + h * d, hd * d, hdd * d
+
+    def drive(self, t: float) -> tuple[float, float]:
+        """The rover's commanded speed and its acceleration at t."""
+        ramp = abs(self.speed) / self.accel if self.accel > 0 else 0.0
+        if t <= 0.0:
+            return 0.0, 0.0
+        if t >= ramp:
+            return self.speed, 0.0
+        return math.copysign(self.accel * t, self.speed), math.copysign(self.accel, self.speed)
+
+
+def random_motions(n: int, seed: int) -> list[Motion]:
+    """n aggressive swings: anywhere in joint 1, reaching out and up, in a quarter to 0.6 s,
+    with a drive ramp of 1-4 m/s^2 to up to the rover's top speed either way."""
+    rng = np.random.default_rng(seed)
+    return [Motion((float(rng.uniform(-math.pi, math.pi)), float(rng.uniform(-1.0, 0.2)),
+                    float(rng.uniform(0.2, 2.2)), float(rng.uniform(-1.2, 1.2))),
+                   float(rng.uniform(0.25, 0.6)), float(rng.uniform(-0.25, 0.25)),
+                   float(rng.uniform(1.0, 4.0))) for _ in range(n)]
+
+
+class TipModel:
+    """The limiter's model of one rover (no truth): its base mass at the c.g. (identified),
+    the arm's links and the load (ArmModel) where the plan puts them, the support polygon of
+    its wheels; a ground frame under the rover at rest (base_footprint, z up)."""
+
+    def __init__(self, params: BaseParameters, load_kg: float) -> None:
+        self.mass = params.mass
+        self.arm = ArmModel.rover(params.cg_to_arm, load_kg=load_kg,
+                                  load_offset_m=CARD_OFFSET_M)
+        self.footprint = Footprint.of(WHEEL_CONTACTS)
+        self.lift = np.array([0.0, 0.0, BASE_HEIGHT_M])
+
+    def path(self, motion: Motion) -> list[tuple[Loads, Loads]]:
+        """The plan's instants as (standing still, moving) loads for limit_path."""
+        ts = np.arange(0.0, motion.duration_s + PLAN_STEP_S, PLAN_STEP_S)
+        masses = np.concatenate([[self.mass], self.arm.masses])
+        # link centres by the plan, their accelerations by its second differences
+        h = 1e-3
+        out = []
+        for t in ts:
+            pos = [self.arm.com_positions(motion.arm(t + k * h)[0]) for k in (-1, 0, 1)]
+            acc = (pos[0] - 2 * pos[1] + pos[2]) / h ** 2
+            base_acc = np.array([motion.drive(t)[1], 0.0, 0.0])
+            where = np.vstack([self.lift, pos[1] + self.lift])
+            moving = np.vstack([base_acc, acc + base_acc])
+            out.append((Loads.of(masses, where), Loads.of(masses, where, moving)))
+        return out
+
+
+def true_margin(world: World, index: int, prev: np.ndarray | None, dt: float,
+                footprint: Footprint) -> tuple[float, np.ndarray]:
+    """The zero-moment point of the simulator's true state (every link's mass, c.o.m. and its
+    acceleration across the last step) as a fraction of the footprint's depth inside it
+    (the wheels where the chassis anchor stands), and the velocities for the next call."""
+    masses, coms, vels = world.mass_points(index)
+    if prev is None:
+        return math.inf, vels
+    truth = world.truth(index)
+    c, s_ = math.cos(truth.anchor_yaw), math.sin(truth.anchor_yaw)
+    rot = np.array([[c, -s_], [s_, c]])
+    p = zmp(Loads.of(masses, coms, (vels - prev) / dt))
+    local = rot.T @ (p - truth.anchor_position[:2])
+    return footprint.margin_fraction(local), vels
+
+
+def run_tipover_motion(motion: Motion | None, *, seed: int) -> dict[str, float]:
+    """One motion on a fresh simulator (None: the arm holds, the rover stands): the true
+    zero-moment point's smallest margin fraction from the swing's start to TIP_AFTER_S after
+    it ends."""
+    truth = load_truth()
+    world = World(SimConfig(rovers=2, seed=seed, stereo_rate_hz=0.0), [truth, truth])
+    footprint = Footprint.of(WHEEL_CONTACTS)
+    try:
+        world.set_gripper_load(SLAVE, LOAD_KG)
+        dt = world.dt
+        world.command_arm(SLAVE, ARM_JOINTS, [0.3], [list(START)])
+        for _ in range(round(TIP_SETTLE_S / dt)):
+            world.step()
+        t0 = world.time_s
+        length = motion.duration_s if motion else 0.0
+        if motion is not None:
+            ts = np.arange(dt, length + dt / 2, dt)
+            refs = [motion.arm(t) for t in ts]
+            world.command_arm(SLAVE, ARM_JOINTS, ts.tolist(), [r[0].tolist() for r in refs],
+                              velocities=[r[1].tolist() for r in refs])
+        worst, prev = math.inf, None
+        for _ in range(round((length + TIP_AFTER_S) / dt)):
+            if motion is not None:
+                world.command_velocity(SLAVE, motion.drive(world.time_s - t0)[0], 0.0)
+            world.step()
+            margin, prev = true_margin(world, SLAVE, prev, dt, footprint)
+            worst = min(worst, margin)
+    finally:
+        world.close()
+    return {'min_margin': float(worst)}
+
+
+def run_tipover(*, seed: int, identified: Path, motions: int) -> dict[str, Any]:
+    """The tip-over study: each random motion run as planned and through the limiter
+    (limit_path on the identified model, MIN_FRACTION of the depth required)."""
+    ident, _ = identified_parameters(identified)
+    model = TipModel(ident, LOAD_KG)
+    rest = model.path(Motion(START, 1.0, 0.0, 0.0))[0]
+    rows: list[dict[str, Any]] = []
+    for k, motion in enumerate(random_motions(motions, seed)):
+        without = run_tipover_motion(motion, seed=seed + k)['min_margin']
+        try:
+            lim: Limit | None = limit_path(model.path(motion), model.footprint,
+                                           min_fraction=MIN_FRACTION)
+        except TipOverError:
+            lim = None
+        if lim is None or lim.stop:
+            limited, scale, planned = None, None, None
+        else:
+            limited = motion.scaled(lim.scale) if lim.scale < 1.0 else motion
+            scale, planned = lim.scale, lim.margin_fraction
+        with_ = run_tipover_motion(limited, seed=seed + k)['min_margin']
+        rows.append({'motion': k, 'without': without, 'with': with_,
+                     'refused': limited is None, 'scale': scale, 'planned_margin': planned})
+    worst_without = min(float(r['without']) for r in rows)
+    worst_with = min(float(r['with']) for r in rows)
+    left_without = sum(r['without'] < 0.0 for r in rows)
+    left_with = sum(r['with'] < 0.0 for r in rows)
+    return {
+        'seed': seed, 'load_kg': LOAD_KG, 'min_fraction': MIN_FRACTION,
+        'rest_margin_model': model.footprint.margin_fraction(zmp(rest[0])),
+        'motions': len(rows), 'left_without': left_without, 'left_with': left_with,
+        'refused': sum(r['refused'] for r in rows),
+        'slowed': sum(r['scale'] is not None and float(r['scale']) < 1.0 for r in rows),
+        'min_margin_without': worst_without,
+        'min_margin_with': worst_with,
+        'below_required_with': sum(r['with'] < MIN_FRACTION for r in rows),
+        'rows': rows,
+    }
+
+
+def plot(series: dict, res: dict, out: Path) -> list[Path]:
+    """The feed-forward runs' card error over time per scenario; the tip-over study's true
+    margins without and with the limiter."""
     import matplotlib  # noqa: PLC0415 - only --plots needs it
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt  # noqa: PLC0415
     paths = []
-    for scenario in SCENARIOS:
+    for scenario in SCENARIOS if series else ():
         fig, ax = plt.subplots(figsize=(8, 3.6))
         for variant in VARIANTS:
             r = series[(scenario, variant)]
@@ -226,24 +406,54 @@ def plot(series: dict, out: Path) -> list[Path]:
         ax.set_title(f'Feed-forward of the base motion (Eq. A-4): {scenario}')
         ax.legend(ncol=4, fontsize=8)
         paths.append(save_figure(fig, out / f'appendix_a_feedforward_{scenario}.png'))
+    if 'tipover' in res:
+        rows = res['tipover']['rows']
+        fig, ax = plt.subplots(figsize=(8, 3.6))
+        k = [r['motion'] for r in rows]
+        ax.scatter(k, [max(r['without'], -1.0) for r in rows], s=10, label='without limiter')
+        ax.scatter(k, [r['with'] for r in rows], s=10, label='with limiter')
+        ax.axhline(0.0, color='k', lw=0.8)
+        ax.axhline(res['tipover']['min_fraction'], color='k', lw=0.8, ls='--')
+        ax.set_xlabel('motion')
+        ax.set_ylabel('true ZMP margin (fraction of depth, clipped at -1)')
+        ax.set_title("Tip-over: the true zero-moment point's smallest margin per motion")
+        ax.legend(fontsize=8)
+        paths.append(save_figure(fig, out / 'appendix_a_tipover.png'))
     return paths
 
 
 def format_json(res: dict) -> str:
     """The printed table of a result JSON (docs/results makes its table the same way)."""
-    ff = res['feedforward']
-    lines = ['App. A, feed-forward of the base motion (Eq. A-4): card position error, mm',
-             f'  identified from {ff["identified_from"]}'
-             + (f' ({", ".join(ff["identified_unobservable"])} not observed: its estimate)'
-                if ff['identified_unobservable'] else ''),
-             f'  {"scenario":<11}' + ''.join(f'{v:>20}' for v in VARIANTS)]
-    for scenario, row in ff['by_scenario'].items():
-        lines.append(f'  {scenario:<11}' + ''.join(
-            f'{1e3 * row[v]["rms"]:>9.3f} rms {1e3 * row[v]["peak"]:>6.2f} pk' for v in VARIANTS))
-    red = ff['ee_error_reduction_vs_none']
-    lines.append('  driving, lower than none: ' + ', '.join(
-        f'{v} {100 * red[v]:.1f} %' for v in VARIANTS if v != 'none'))
+    lines: list[str] = []
+    if 'feedforward' in res:
+        ff = res['feedforward']
+        lines += ['App. A, feed-forward of the base motion (Eq. A-4): card position error, mm',
+                  f'  identified from {ff["identified_from"]}'
+                  + (f' ({", ".join(ff["identified_unobservable"])} not observed: its estimate)'
+                     if ff['identified_unobservable'] else ''),
+                  f'  {"scenario":<11}' + ''.join(f'{v:>20}' for v in VARIANTS)]
+        for scenario, row in ff['by_scenario'].items():
+            lines.append(f'  {scenario:<11}' + ''.join(
+                f'{1e3 * row[v]["rms"]:>9.3f} rms {1e3 * row[v]["peak"]:>6.2f} pk'
+                for v in VARIANTS))
+        red = ff['ee_error_reduction_vs_none']
+        lines.append('  driving, lower than none: ' + ', '.join(
+            f'{v} {100 * red[v]:.1f} %' for v in VARIANTS if v != 'none'))
+    if 'tipover' in res:
+        t = res['tipover']
+        lines += [f'App. A.3, tip-over (Eq. A-5): {t["motions"]} random swings with '
+                  f'{t["load_kg"]} kg in the gripper, limiter margin {t["min_fraction"]:.2f}',
+                  f'  {"":<16}{"left the footprint":>20}{"true min margin":>17}',
+                  f'  {"without limiter":<16}{t["left_without"]:>20d}'
+                  f'{t["min_margin_without"]:>17.3f}',
+                  f'  {"with limiter":<16}{t["left_with"]:>20d}{t["min_margin_with"]:>17.3f}',
+                  f'  with: {t["slowed"]} slowed, {t["refused"]} refused (below the margin '
+                  f'standing still), {t["below_required_with"]} under {t["min_fraction"]:.2f} '
+                  f'at some instant; model margin at rest {t["rest_margin_model"]:.3f}']
     return '\n'.join(lines)
+
+
+PARTS = ('feedforward', 'tipover')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -252,21 +462,34 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--json', type=output_path, help='write the results here')
     p.add_argument('--plots', type=output_dir, help='write the figures into this directory')
     p.add_argument('--seed', type=number(int, lo=0), default=1)
+    p.add_argument('--parts', default=','.join(PARTS),
+                   help=f'comma-separated, of {", ".join(PARTS)} (default: all)')
+    p.add_argument('--motions', type=number(int, lo=1, hi=10_000), default=TIP_MOTIONS,
+                   help=f'random motions of the tip-over study (default {TIP_MOTIONS})')
     p.add_argument('--identified', type=Path, default=DEFAULT_IDENTIFIED,
                    help='a `table_2_1 --sim --json` result whose estimates are the identified '
                         f'model (default: {DEFAULT_IDENTIFIED})')
     args = p.parse_args(argv)
+    parts = [x for x in args.parts.split(',') if x]
+    if not parts or any(x not in PARTS for x in parts):
+        p.error(f'--parts: comma-separated, of {", ".join(PARTS)}; got {args.parts!r}')
+    res: dict[str, Any] = {}
+    series: dict = {}
     try:
-        ff, series = run_feedforward(seed=args.seed, identified=args.identified)
+        if 'feedforward' in parts:
+            res['feedforward'], series = run_feedforward(seed=args.seed,
+                                                         identified=args.identified)
+        if 'tipover' in parts:
+            res['tipover'] = run_tipover(seed=args.seed, identified=args.identified,
+                                         motions=args.motions)
     except ValueError as exc:
         print(f'appendix_a: {exc}', file=sys.stderr)
         return 2
-    res = {'feedforward': ff}
     print(format_json(res))
     if args.json:
         write_json(args.json, res)
     if args.plots:
-        for path in plot(series, args.plots):
+        for path in plot(series, res, args.plots):
             print(f'wrote {path}')
     return 0
 

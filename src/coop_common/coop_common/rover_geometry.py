@@ -21,6 +21,14 @@ from .errors import CoopCommonError
 #: the base's c.g. above flat ground at rest (the odometry frame's z = 0 is the ground)
 BASE_HEIGHT_M = 0.30
 
+#: skid-steer track (m) and the wheelbase (m): the four wheels' ground contacts, base frame
+#: (x forward, y left, on the ground BASE_HEIGHT_M below the c.g.), span the support polygon
+#: the zero-moment point must stay in (app. A.3)
+TRACK_M = 0.30
+WHEELBASE_M = 0.40
+WHEEL_CONTACTS = np.array([[sx * WHEELBASE_M / 2, sy * TRACK_M / 2, -BASE_HEIGHT_M]
+                           for sx in (1, -1) for sy in (1, -1)])
+
 ARM_JOINTS = ('arm_joint_1', 'arm_joint_2', 'arm_joint_3', 'arm_joint_4')
 MAST_JOINTS = ('mast_pan', 'mast_tilt')
 #: the joint groups a rover takes trajectories for, each on its own command topic

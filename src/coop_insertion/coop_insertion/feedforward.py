@@ -138,6 +138,18 @@ class ArmModel:
             masses[-1], coms[-1] = m, c
         return cls(origins, axes, masses, coms, inertias)
 
+    def com_positions(self, q: ArrayLike) -> np.ndarray:
+        """Each link's centre of mass in the base frame at q (n, 3): the arm as particles
+        (Eq. A-5's tip-over sums)."""
+        q = _vec('q', q, self.n)
+        rot, origin = np.eye(3), np.zeros(3)
+        out = np.empty((self.n, 3))
+        for i in range(self.n):
+            origin = origin + rot @ self.origins[i]
+            rot = rot @ _axis_rotation(self.axes[i], q[i])
+            out[i] = origin + rot @ self.coms[i]
+        return out
+
     def joint_torques(self, q: ArrayLike, qd: ArrayLike, qdd: ArrayLike, *,
                       base_acceleration: ArrayLike = (0.0, 0.0, 0.0),
                       base_angular_velocity: ArrayLike = (0.0, 0.0, 0.0),

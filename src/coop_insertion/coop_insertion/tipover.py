@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike
 
 from .errors import InsertionError
 
-__all__ = ['Footprint', 'Limit', 'Loads', 'TipOverError', 'limit_motion', 'zmp']
+__all__ = ['Footprint', 'Limit', 'Loads', 'TipOverError', 'limit_motion', 'limit_path', 'zmp']
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -215,3 +215,24 @@ def limit_motion(at_rest: Loads, commanded: Loads, footprint: Footprint, *,
     s = max(s, 0.0)
     p = (n0 + s * dn) / (d0 + s * dd)
     return Limit(s, footprint.margin_fraction(p), False)
+
+
+def limit_path(path: list[tuple[Loads, Loads]], footprint: Footprint, *,
+               min_fraction: float = 0.2) -> Limit:
+    """`limit_motion` along a planned motion: at each of its instants, the loads with the
+    masses where the plan puts them standing still and with the plan's accelerations (and
+    forces). The scale is the smallest over the instants: the accelerations a time-scaling of
+    the plan by 1 / sqrt(scale) keeps inside the margin. `stop` when some instant is below the
+    margin even standing still: no slowing-down makes that plan safe, and it must not be
+    commanded."""
+    if not path:
+        raise TipOverError('an empty path')
+    worst = Limit(1.0, np.inf, False)
+    for still, moving in path:
+        lim = limit_motion(still, moving, footprint, min_fraction=min_fraction)
+        if lim.stop:
+            return lim
+        if lim.scale < worst.scale or (lim.scale == worst.scale
+                                       and lim.margin_fraction < worst.margin_fraction):
+            worst = lim
+    return worst

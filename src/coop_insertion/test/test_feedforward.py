@@ -57,7 +57,8 @@ def test_one_link_coupling_and_gravity_are_the_hand_derived_ones(q):
 def test_the_rover_arm_matches_pybullets_inverse_dynamics():
     """The four-link arm of rover_geometry on a fixed base against PyBullet's inverse dynamics of
     the simulator's own URDF, gravity tilted: gravity -g is the base accelerating by +g, so
-    this checks F's translational columns, the joint-rate terms h q' and H q''."""
+    this checks F's translational columns, the joint-rate terms h q' and H q''; and the links'
+    centres of mass against PyBullet's."""
     truth = load_truth()
     arm = ArmModel.rover(truth.cg_to_arm)
     client = pb.connect(pb.DIRECT)
@@ -86,6 +87,15 @@ def test_the_rover_arm_matches_pybullets_inverse_dynamics():
                                                        physicsClientId=client))[arm_cols]
             ours = arm.joint_torques(q, qd, qdd, base_acceleration=-g)
             np.testing.assert_allclose(ours, ref, atol=1e-6)
+            # the links' centres (Eq. A-5's particles) where PyBullet puts them
+            for k, v in enumerate(q):
+                pb.resetJointState(body, names.index(f'arm_joint_{k + 1}'), float(v),
+                                   physicsClientId=client)
+            # (a joint's index is its child link's)
+            coms = [pb.getLinkState(body, names.index(f'arm_joint_{k + 1}'),
+                                    computeForwardKinematics=1, physicsClientId=client)[0]
+                    for k in range(4)]
+            np.testing.assert_allclose(arm.com_positions(q), coms, atol=1e-9)
     finally:
         pb.disconnect(client)
 

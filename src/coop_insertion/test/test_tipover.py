@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from coop_insertion.tipover import Footprint, Loads, TipOverError, limit_motion, zmp
+from coop_insertion.tipover import Footprint, Loads, TipOverError, limit_motion, limit_path, zmp
 
 G = 9.81
 WHEELS = [[0.25, 0.18], [0.25, -0.18], [-0.25, -0.18], [-0.25, 0.18]]   # rover_sim's base
@@ -107,3 +107,21 @@ def test_the_limiter_stops_when_already_outside():
     rest = Loads.of(masses, pos)
     lim = limit_motion(rest, Loads.of(masses, pos, [[0, 0, 0], [0.0, -1.0, 0.0]]), fp)
     assert lim.stop and lim.scale == 0.0 and lim.margin_fraction < 0.2
+
+
+def test_a_path_is_limited_by_its_worst_instant_and_stopped_by_an_unsafe_pose():
+    """limit_path: the smallest limit_motion scale over the plan's instants; a plan with an
+    instant below the margin standing still is stopped, not slowed."""
+    fp = Footprint.of(WHEELS)
+    still = Loads.of([10.0], [[0.0, 0.0, 0.5]])
+    gentle = Loads.of([10.0], [[0.0, 0.0, 0.5]], [[1.0, 0.0, 0.0]])
+    hard = Loads.of([10.0], [[0.0, 0.0, 0.5]], [[6.0, 0.0, 0.0]])
+    one = limit_motion(still, hard, fp, min_fraction=0.2)
+    both = limit_path([(still, gentle), (still, hard)], fp, min_fraction=0.2)
+    assert both.scale == pytest.approx(one.scale) and 0.0 < both.scale < 1.0
+    assert both.margin_fraction == pytest.approx(0.2)
+    leaning = Loads.of([10.0], [[0.24, 0.0, 0.5]])           # 1 cm from the front edge
+    stopped = limit_path([(still, gentle), (leaning, leaning)], fp, min_fraction=0.2)
+    assert stopped.stop and stopped.scale == 0.0
+    with pytest.raises(TipOverError):
+        limit_path([], fp)

@@ -20,7 +20,7 @@ import pybullet as pb
 
 from coop_common.dynparams import BaseParameters
 from coop_common.rendering import fine_intrinsics, pixel_average, projection_matrix
-from coop_common.rover_geometry import BASE_HEIGHT_M
+from coop_common.rover_geometry import BASE_HEIGHT_M, TRACK_M
 
 from .compliance import (
     FastCompliance,
@@ -66,7 +66,6 @@ from .worldgen import ObstacleKind, WorldLayout, generate_world
 
 NOMINAL_HEIGHT_M = BASE_HEIGHT_M    # base c.g. above the ground at rest
 GRAVITY_VEC = np.array([0.0, 0.0, -9.81])
-TRACK_M = 0.30
 WHEEL_RADIUS_M = 0.06
 ARM_HOME = np.array([0.0, -0.6, 1.2, 0.0])
 # Arm joint PD: about 15 Hz bandwidth, critically damped, gains scheduled on the inertia each
@@ -640,6 +639,33 @@ class World:
     def _sensor_origin(self, r: _Rover) -> np.ndarray:
         return np.array(pb.getLinkState(r.body, r.ft_index, computeForwardKinematics=1,
                                         physicsClientId=self.client)[4])
+
+    def mass_points(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every link's mass (n,), world c.o.m. (n, 3) and its velocity (n, 3), the base first:
+        the rover as the particles of Eq. A-5, for a ground-truth zero-moment point (the
+        accelerations by differencing the velocities of successive steps)."""
+        r = self.rovers[index]
+        c = self.client
+        com, _ = pb.getBasePositionAndOrientation(r.body, physicsClientId=c)
+        vel, _ = pb.getBaseVelocity(r.body, physicsClientId=c)
+        masses, coms, vels = [pb.getDynamicsInfo(r.body, -1, physicsClientId=c)[0]], [com], [vel]
+        for j in range(pb.getNumJoints(r.body, physicsClientId=c)):
+            st = pb.getLinkState(r.body, j, computeLinkVelocity=1, computeForwardKinematics=1,
+                                 physicsClientId=c)
+            masses.append(pb.getDynamicsInfo(r.body, j, physicsClientId=c)[0])
+            coms.append(st[0])
+            vels.append(st[6])
+        return np.array(masses), np.array(coms), np.array(vels)
+
+    def set_gripper_load(self, index: int, mass_kg: float) -> None:
+        """Make what rover `index` holds (its card link) weigh `mass_kg`: a part, for app. A's
+        heavy-load studies. ValueError for a rover with nothing in its gripper."""
+        r = self.rovers[index]
+        if r.card_index is None or not (math.isfinite(mass_kg) and mass_kg > 0.0):
+            raise ValueError(f'{r.name}: no card to load, or mass {mass_kg} not > 0')
+        pb.changeDynamics(r.body, r.card_index, mass=float(mass_kg), physicsClientId=self.client)
+        r.arm_masses = np.array([pb.getDynamicsInfo(r.body, j, physicsClientId=self.client)[0]
+                                 for j in r.arm_links])
 
     def link_masses_and_coms(self, index: int, links: Sequence[int]) -> tuple[np.ndarray,
                                                                               np.ndarray]:
