@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
 from coop_bringup.appendix_a import (
     SETTLE,
     format_json,
