@@ -40,5 +40,5 @@ def test_the_limiter_keeps_the_true_zmp_inside_where_the_plan_leaves():
 
 
 def test_a_missing_identification_is_a_clear_error(tmp_path):
-    with pytest.raises(ValueError, match='no .information. estimates'):
+    with pytest.raises(ValueError, match="no 'information' estimates"):
         identified_parameters(tmp_path / 'none.json')
