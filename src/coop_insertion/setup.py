@@ -25,5 +25,6 @@ setup(
         'driver = coop_insertion.driver_node:main',
         'force_trials = coop_insertion.force_trials:main',
         'arm_feedforward = coop_insertion.feedforward_node:main',
+        'tipover_guard = coop_insertion.tipover_node:main',
     ]},
 )

@@ -41,14 +41,20 @@ from coop_common.dynparams import PARAM_NAMES, BaseParameters, load_truth
 from coop_common.files import save_figure, write_json
 from coop_common.rover_geometry import (
     ARM_JOINTS,
-    BASE_HEIGHT_M,
-    CARD_OFFSET_M,
     WHEEL_CONTACTS,
     card_in_base,
 )
 from coop_id.model import load_prior_ranges
-from coop_insertion.feedforward import ArmModel, FeedForward, ParameterSource, accept_estimate
-from coop_insertion.tipover import Footprint, Limit, Loads, TipOverError, limit_path, zmp
+from coop_insertion.feedforward import FeedForward, ParameterSource, accept_estimate
+from coop_insertion.tipover import (
+    Footprint,
+    Limit,
+    Loads,
+    RoverMasses,
+    TipOverError,
+    limit_path,
+    zmp,
+)
 from rover_sim.config import SimConfig
 from rover_sim.world import World
 
@@ -220,7 +226,7 @@ def run_feedforward(*, seed: int, identified: Path) -> tuple[dict[str, Any], dic
 LOAD_KG = 0.5
 TIP_MOTIONS = 100
 MIN_FRACTION = 0.2
-PLAN_STEP_S = 0.02
+PLAN_STEP_S = 0.01
 TIP_SETTLE_S, TIP_AFTER_S = 0.5, 0.4
 START = (0.0, -0.6, 1.2, 0.0)
 
@@ -269,33 +275,12 @@ def random_motions(n: int, seed: int) -> list[Motion]:
                    float(rng.uniform(1.0, 4.0))) for _ in range(n)]
 
 
-class TipModel:
-    """The limiter's model of one rover (no truth): its base mass at the c.g. (identified),
-    the arm's links and the load (ArmModel) where the plan puts them, the support polygon of
-    its wheels; a ground frame under the rover at rest (base_footprint, z up)."""
-
-    def __init__(self, params: BaseParameters, load_kg: float) -> None:
-        self.mass = params.mass
-        self.arm = ArmModel.rover(params.cg_to_arm, load_kg=load_kg,
-                                  load_offset_m=CARD_OFFSET_M)
-        self.footprint = Footprint.of(WHEEL_CONTACTS)
-        self.lift = np.array([0.0, 0.0, BASE_HEIGHT_M])
-
-    def path(self, motion: Motion) -> list[tuple[Loads, Loads]]:
-        """The plan's instants as (standing still, moving) loads for limit_path."""
-        ts = np.arange(0.0, motion.duration_s + PLAN_STEP_S, PLAN_STEP_S)
-        masses = np.concatenate([[self.mass], self.arm.masses])
-        # link centres by the plan, their accelerations by its second differences
-        h = 1e-3
-        out = []
-        for t in ts:
-            pos = [self.arm.com_positions(motion.arm(t + k * h)[0]) for k in (-1, 0, 1)]
-            acc = (pos[0] - 2 * pos[1] + pos[2]) / h ** 2
-            base_acc = np.array([motion.drive(t)[1], 0.0, 0.0])
-            where = np.vstack([self.lift, pos[1] + self.lift])
-            moving = np.vstack([base_acc, acc + base_acc])
-            out.append((Loads.of(masses, where), Loads.of(masses, where, moving)))
-        return out
+def motion_path(masses: RoverMasses, motion: Motion) -> list[tuple[Loads, Loads]]:
+    """The limiter's view of a motion (the rover's model, no truth): its instants every
+    PLAN_STEP_S from the swing's start to its end."""
+    ts = np.arange(-PLAN_STEP_S, motion.duration_s + 1.5 * PLAN_STEP_S, PLAN_STEP_S)
+    return masses.path([motion.arm(t)[0] for t in ts], PLAN_STEP_S,
+                       [(motion.drive(t)[1], 0.0, 0.0) for t in ts])
 
 
 def true_margin(world: World, index: int, prev: np.ndarray | None, dt: float,
@@ -314,18 +299,37 @@ def true_margin(world: World, index: int, prev: np.ndarray | None, dt: float,
     return footprint.margin_fraction(local), vels
 
 
-def run_tipover_motion(motion: Motion | None, *, seed: int) -> dict[str, float]:
+def run_tipover_motion(motion: Motion | None, *, seed: int, params: BaseParameters,
+                       servo_feedforward: bool = True) -> dict[str, float]:
     """One motion on a fresh simulator (None: the arm holds, the rover stands): the true
     zero-moment point's smallest margin fraction from the swing's start to TIP_AFTER_S after
-    it ends."""
+    it ends. With `servo_feedforward` the arm's PD gets the load's weight and the plan's own
+    dynamics (coop_insertion.feedforward, no base term): a servo whose gains were set for the
+    card, not the part, lags and overshoots a fast swing by enough to move the true point
+    off the plan's."""
     truth = load_truth()
     world = World(SimConfig(rovers=2, seed=seed, stereo_rate_hz=0.0), [truth, truth])
     footprint = Footprint.of(WHEEL_CONTACTS)
     try:
         world.set_gripper_load(SLAVE, LOAD_KG)
         dt = world.dt
+        ff = (FeedForward(params, dt=dt, source=ParameterSource.NONE, load_kg=LOAD_KG)
+              if servo_feedforward else None)
+        names = list(world.sense(SLAVE).joint_names)
+        cols = [names.index(j) for j in ARM_JOINTS]
+
+        def servo(t: float) -> None:
+            if ff is None:
+                return
+            s = world.sense(SLAVE)
+            _, qd_r, qdd_r = motion.arm(t) if motion is not None else (None, None, None)
+            world.command_arm_feedforward(SLAVE, ff.torque(
+                q=s.joint_positions[cols], qd=s.joint_velocities[cols], force=s.force,
+                torque=s.torque, gyro=s.angular_velocity, specific_force=s.specific_force,
+                qd_ref=qd_r, qdd_ref=qdd_r))
         world.command_arm(SLAVE, ARM_JOINTS, [0.3], [list(START)])
         for _ in range(round(TIP_SETTLE_S / dt)):
+            servo(-1.0)
             world.step()
         t0 = world.time_s
         length = motion.duration_s if motion else 0.0
@@ -336,8 +340,10 @@ def run_tipover_motion(motion: Motion | None, *, seed: int) -> dict[str, float]:
                               velocities=[r[1].tolist() for r in refs])
         worst, prev = math.inf, None
         for _ in range(round((length + TIP_AFTER_S) / dt)):
+            t = world.time_s - t0
             if motion is not None:
-                world.command_velocity(SLAVE, motion.drive(world.time_s - t0)[0], 0.0)
+                world.command_velocity(SLAVE, motion.drive(t)[0], 0.0)
+            servo(t)
             world.step()
             margin, prev = true_margin(world, SLAVE, prev, dt, footprint)
             worst = min(worst, margin)
@@ -350,13 +356,13 @@ def run_tipover(*, seed: int, identified: Path, motions: int) -> dict[str, Any]:
     """The tip-over study: each random motion run as planned and through the limiter
     (limit_path on the identified model, MIN_FRACTION of the depth required)."""
     ident, _ = identified_parameters(identified)
-    model = TipModel(ident, LOAD_KG)
-    rest = model.path(Motion(START, 1.0, 0.0, 0.0))[0]
+    model = RoverMasses.of(ident, load_kg=LOAD_KG)
+    rest = model.loads(START)
     rows: list[dict[str, Any]] = []
     for k, motion in enumerate(random_motions(motions, seed)):
-        without = run_tipover_motion(motion, seed=seed + k)['min_margin']
+        without = run_tipover_motion(motion, seed=seed + k, params=ident)['min_margin']
         try:
-            lim: Limit | None = limit_path(model.path(motion), model.footprint,
+            lim: Limit | None = limit_path(motion_path(model, motion), model.footprint,
                                            min_fraction=MIN_FRACTION)
         except TipOverError:
             lim = None
@@ -365,7 +371,7 @@ def run_tipover(*, seed: int, identified: Path, motions: int) -> dict[str, Any]:
         else:
             limited = motion.scaled(lim.scale) if lim.scale < 1.0 else motion
             scale, planned = lim.scale, lim.margin_fraction
-        with_ = run_tipover_motion(limited, seed=seed + k)['min_margin']
+        with_ = run_tipover_motion(limited, seed=seed + k, params=ident)['min_margin']
         rows.append({'motion': k, 'without': without, 'with': with_,
                      'refused': limited is None, 'scale': scale, 'planned_margin': planned})
     worst_without = min(float(r['without']) for r in rows)
@@ -374,7 +380,7 @@ def run_tipover(*, seed: int, identified: Path, motions: int) -> dict[str, Any]:
     left_with = sum(r['with'] < 0.0 for r in rows)
     return {
         'seed': seed, 'load_kg': LOAD_KG, 'min_fraction': MIN_FRACTION,
-        'rest_margin_model': model.footprint.margin_fraction(zmp(rest[0])),
+        'rest_margin_model': model.footprint.margin_fraction(zmp(rest)),
         'motions': len(rows), 'left_without': left_without, 'left_with': left_with,
         'refused': sum(r['refused'] for r in rows),
         'slowed': sum(r['scale'] is not None and float(r['scale']) < 1.0 for r in rows),

@@ -29,14 +29,20 @@ and the largest s that keeps a required margin is exact, without search.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .errors import InsertionError
+from coop_common.dynparams import BaseParameters
+from coop_common.rover_geometry import BASE_HEIGHT_M, WHEEL_CONTACTS
 
-__all__ = ['Footprint', 'Limit', 'Loads', 'TipOverError', 'limit_motion', 'limit_path', 'zmp']
+from .errors import InsertionError
+from .feedforward import ArmModel
+
+__all__ = ['Footprint', 'Limit', 'Loads', 'RoverMasses', 'TipOverError', 'limit_motion',
+           'limit_path', 'zmp']
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -236,3 +242,73 @@ def limit_path(path: list[tuple[Loads, Loads]], footprint: Footprint, *,
                                        and lim.margin_fraction < worst.margin_fraction):
             worst = lim
     return worst
+
+
+@dataclass(frozen=True)
+class RoverMasses:
+    """One rover as Eq. A-5's particles, from its model only (no truth): the base's mass at its
+    c.g. (the identified mass, which is the rover without its arm), the arm's links and load
+    where its joints put them (feedforward.ArmModel, mounted at the identified r_2), over the
+    wheels' support polygon. Frame: under the base at rest (x forward, z up, the ground at
+    z = 0, the c.g. `height` above it)."""
+
+    base_mass: float
+    arm: ArmModel
+    height: float
+    footprint: Footprint
+    tilt_stiffness: tuple[float, float] = (math.inf, math.inf)    # k_roll, k_pitch (N m/rad)
+
+    @classmethod
+    def of(cls, params: BaseParameters, *, load_kg: float = 0.0,
+           wheel_contacts: ArrayLike = WHEEL_CONTACTS, height: float = BASE_HEIGHT_M
+           ) -> RoverMasses:
+        if not (np.isfinite(params.mass) and params.mass > 0.0):
+            raise TipOverError(f'base mass {params.mass}: must be > 0')
+        k_roll, k_pitch = (float(k) if k > 0 else math.inf for k in params.stiffness[3:5])
+        return cls(float(params.mass), ArmModel.rover(params.cg_to_arm, load_kg=load_kg),
+                   float(height), Footprint.of(wheel_contacts), (k_roll, k_pitch))
+
+    @property
+    def masses(self) -> np.ndarray:
+        return np.concatenate([[self.base_mass], self.arm.masses])
+
+    def positions(self, q: ArrayLike) -> np.ndarray:
+        """The particles' positions at arm joints q ((1 + n, 3): the base's first), the sprung
+        body leaning on its suspension under the arm's weight: rolled and pitched about its
+        c.g. by the weight's moment over the identified stiffness (Eq. B-4 at rest), which
+        moves everything above the ground toward the side the arm loads."""
+        arm = self.arm.com_positions(q)
+        moment = np.sum(self.arm.masses[:, None] * np.cross(arm, GRAVITY), axis=0)
+        roll = moment[0] / self.tilt_stiffness[0]
+        pitch = moment[1] / self.tilt_stiffness[1]
+        cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+        rot = np.array([[cp, sp * sr, sp * cr], [0.0, cr, -sr], [-sp, cp * sr, cp * cr]])
+        lift = np.array([0.0, 0.0, self.height])
+        return np.vstack([lift, arm @ rot.T + lift])
+
+    def loads(self, q: ArrayLike, *, base_acceleration: ArrayLike = (0.0, 0.0, 0.0),
+              arm_accelerations: ArrayLike | None = None) -> Loads:
+        """The loads at q with the base accelerating (base axes) and the links accelerating
+        on top of it ((n, 3); none: the arm still on the base)."""
+        a0 = _arr('base_acceleration', base_acceleration, (3,))
+        n = self.arm.n
+        acc = np.zeros((n + 1, 3)) + a0
+        if arm_accelerations is not None:
+            acc[1:] += _arr('arm_accelerations', arm_accelerations, (n, 3))
+        return Loads.of(self.masses, self.positions(q), acc)
+
+    def path(self, qs: ArrayLike, dt: float, base_accelerations: ArrayLike | None = None
+             ) -> list[tuple[Loads, Loads]]:
+        """A planned motion sampled every dt ((m, n) joint positions, m >= 3; the base's
+        accelerations (m, 3) along it, none: standing): per inner sample, the loads standing
+        still and moving, the links' accelerations by the plan's second differences."""
+        q = _arr('qs', qs, (None, self.arm.n))
+        if len(q) < 3 or not dt > 0.0:
+            raise TipOverError(f'a path needs >= 3 samples and dt > 0 (got {len(q)}, {dt})')
+        base = (np.zeros((len(q), 3)) if base_accelerations is None else
+                _arr('base_accelerations', base_accelerations, (len(q), 3)))
+        pos = np.array([self.arm.com_positions(qk) for qk in q])
+        acc = (pos[:-2] - 2 * pos[1:-1] + pos[2:]) / dt ** 2
+        return [(self.loads(q[k]), self.loads(q[k], base_acceleration=base[k],
+                                              arm_accelerations=acc[k - 1]))
+                for k in range(1, len(q) - 1)]
