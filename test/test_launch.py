@@ -330,7 +330,10 @@ def test_bag_source_and_bad_arguments(ros2, graph_node):
         launch.close()
     for args, why in ((['source:=bag'], 'needs bag:='),
                       (['rovers:=rover1 rover1'], 'distinct'),
-                      (['rovers:=alpha'], 'the simulator names its rovers')):
+                      (['rovers:=alpha'], 'the simulator names its rovers'),
+                      (['arm_feedforward:=true'], 'give identified, nominal, none or off'),
+                      (['source:=hw', 'hw_ports:=rover1=/dev/null rover2=/dev/null',
+                        'arm_feedforward:=identified'], 'source:=sim only')):
         out = subprocess.run([ros2, 'launch', 'coop_bringup', 'team.launch.py', *args],
                              check=False, capture_output=True, text=True, timeout=60)
         assert out.returncode != 0 and why in out.stdout + out.stderr, (args, out.stdout[-2000:])

@@ -65,6 +65,10 @@ ARGUMENTS = (
                             "map contributions made from them (what a rover's radio link can "
                             'carry: coop_mapping README, Contributions)'),
     ('insertion', 'true', "the insertion's master (rover1) and slave (rover2)"),
+    ('arm_feedforward', 'off', "each rover's arm_feedforward (coop_insertion: the base's motion "
+                               'fed into the arm servo, Eq. A-4) on the identified, nominal or '
+                               'no base model (identified, nominal, none), or off; sim source '
+                               'only, and not a lockstep participant'),
     ('seed', '1', "the simulator's seed (site clutter, sensor noise) and the master's"),
     ('occlusion_density', '', "the simulator's obstacles' footprint fraction of the site "
                               "(empty: the simulator's default)"),
@@ -157,6 +161,11 @@ def _graph(context: LaunchContext) -> list:
     if a['map_input'] not in ('clouds', 'contributions'):
         raise ValueError(f'map_input:={a["map_input"]!r}: give clouds or contributions')
     contribute = a['map_input'] == 'contributions'
+    if a['arm_feedforward'] not in ('off', 'identified', 'nominal', 'none'):
+        raise ValueError(f'arm_feedforward:={a["arm_feedforward"]!r}: give identified, nominal, '
+                         'none or off')
+    if a['arm_feedforward'] != 'off' and a['source'] != 'sim':
+        raise ValueError('arm_feedforward: the efforts go to the simulator: source:=sim only')
     lockstep, composed = _flag(a['lockstep'], 'lockstep'), _flag(a['composed'], 'composed')
     if insertion and n < 2:
         raise ValueError('insertion:=true needs a master and a slave: rovers:=2 or more')
@@ -232,6 +241,9 @@ def _graph(context: LaunchContext) -> list:
                  remaps=[('map/grid', f'{team_ns}/map/grid')])
         if mapping and r in stereo_rovers:
             node('stereo', 'coop_mapping', 'stereo', {'contribute': contribute}, ns=r)
+        if a['arm_feedforward'] != 'off':
+            node('arm_feedforward', 'coop_insertion', 'arm_feedforward',
+                 {'source': a['arm_feedforward']}, ns=r)
     # the team's nodes (master and slave: participants of lockstep)
     team: dict[str, tuple[str, str, dict]] = {}
     if mapping:

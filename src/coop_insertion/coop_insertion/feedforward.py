@@ -13,9 +13,11 @@ and the joint command of A.2 step 3 is PD + gravity compensation + that disturba
 
 `ArmModel` is the arm of coop_common.rover_geometry (four links on the F/T sensor at r_2 from the
 base c.g., a load in the gripper) with a recursive Newton-Euler pass on a moving base: F is
-d tau / d d'' (the coupling inertia), f the linear part of the base's velocity terms at the
-current joint rates, G the weight's torques in a tilted base. r_2 is one of the identified
-parameters, so the same arm on nominal or identified parameters has different F and f.
+d tau / d d'' (the coupling inertia), f d' the torques the base's turn rate drives at the
+current joint rates (`coupling` gives f as the thesis's matrix, the linear part; the torque
+uses the whole term, whose centrifugal rest a steady turn makes the larger), G the weight's
+torques in a tilted base. r_2 is one of the identified parameters, so the same arm on nominal
+or identified parameters has different F and f.
 
 The base's motion d'', d' comes from `BaseObserver`: the base of Eq. B-4, linear about rest,
 
@@ -23,15 +25,17 @@ The base's motion d'', d' comes from `BaseObserver`: the base of Eq. B-4, linear
 
 built from the 22 parameters of ch. 2 (mass, inertia, r_2, damping, stiffness), driven by the
 F/T sensor's wrench (F_s, N_s: the base's push on the arm, so the arm's on the base is its
-negative) and corrected by the gyro and accelerometer in a Kalman filter; d'' is the model's at
-the filtered state and the measured wrench. This is A.1's model predictive feed-forward: the
+negative) and corrected by the gyro and accelerometer in a Kalman filter; d'' is the mean the
+model predicts over the coming period from the filtered state with the measured wrench held
+(the torque is held over that period, and a drive step settles the base's turn within a
+millisecond, far inside it). This is A.1's model predictive feed-forward: the
 sensed disturbance passed through the base's dynamic model; a model with the wrong mass,
 stiffness or r_2 predicts the wrong d''. The anchor (where the wheels hold the suspension) is
 the rover's commanded motion: a step of its velocity is a step of the relative rate d'.
 
 `FeedForward` joins them and changes parameter sets without a jump: the torque blends from the
 old model's to the new one's over `blend_s`. `accept_estimate` says whether an identified set
-may be used at all (physically consistent, observable, recent), and why not.
+may be used at all (physically consistent, observed enough, recent), and why not.
 """
 from __future__ import annotations
 
