@@ -54,7 +54,8 @@ from coop_common.rover_geometry import ARM_JOINT1_ABOVE_SENSOR_M, ARM_LINKS, CAR
 
 from .errors import InsertionError
 
-__all__ = ['ArmModel', 'BaseObserver', 'FeedForward', 'FeedForwardError', 'ParameterSource',
+__all__ = ['Acceptance', 'ArmModel', 'BaseObserver', 'FeedForward', 'FeedForwardError',
+           'ParameterSource',
            'accept_estimate']
 
 GRAVITY = 9.81

@@ -33,8 +33,21 @@ from coop_common.rover_geometry import ARM_JOINTS
 from coop_id.model import load_prior_ranges
 from coop_msgs.msg import DynamicParameters, Inclinometer
 
-from .feedforward import FeedForward, FeedForwardError, ParameterSource, accept_estimate
+from .feedforward import (
+    Acceptance,
+    FeedForward,
+    FeedForwardError,
+    ParameterSource,
+    accept_estimate,
+)
 
+#: which coop_id estimates a node takes (judge_estimate); tipover_guard's too
+ESTIMATE_PARAMS = {
+    'max_estimate_age_s': ParamSpec(600.0, 'Refuse an estimate stamped longer ago than this '
+                                    '(s, the node clock)', lo=0.1, hi=1e6),
+    'min_observable': ParamSpec(20, 'Refuse an estimate with fewer of its 22 parameters '
+                                'observable', lo=1, hi=22),
+}
 PARAMS = {
     'source': ParamSpec('identified', 'Base model fed forward: the identified estimates '
                         '(nominal until one is accepted), the nominal set only, or none '
@@ -42,10 +55,7 @@ PARAMS = {
                         read_only=True),
     'blend_s': ParamSpec(0.5, 'A newly accepted parameter set takes over over this long (s)',
                          lo=0.0, hi=10.0),
-    'max_estimate_age_s': ParamSpec(600.0, 'Refuse an estimate stamped longer ago than this '
-                                    '(s, the node clock)', lo=0.1, hi=1e6),
-    'min_observable': ParamSpec(20, 'Refuse an estimate with fewer of its 22 parameters '
-                                'observable', lo=1, hi=22),
+    **ESTIMATE_PARAMS,
     'load_kg': ParamSpec(0.01, "The load in the gripper (kg; the card's 0.01)", lo=0.0, hi=5.0),
     'sample_period_s': ParamSpec(0.005, 'The IMU period the observer integrates over (s; '
                                  "rover_sim's sensor_rate_hz 200)", lo=1e-4, hi=0.1,
@@ -53,6 +63,17 @@ PARAMS = {
 }
 #: inclinometer readings averaged into the rest tilt
 REST_SAMPLES = 200
+
+
+def judge_estimate(node: Node, msg: DynamicParameters, values: dict) -> Acceptance:
+    """accept_estimate on a coop_id estimate, its age on the node's clock, the limits from
+    the node's ESTIMATE_PARAMS values."""
+    now = node.get_clock().now().nanoseconds * 1e-9
+    age = now - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+    return accept_estimate(np.array(msg.values), observable=list(msg.observable),
+                           physically_consistent=msg.physically_consistent, age_s=age,
+                           max_age_s=values['max_estimate_age_s'],
+                           min_observable=values['min_observable'])
 
 
 class FeedForwardNode(Node):
@@ -121,12 +142,7 @@ class FeedForwardNode(Node):
     def _on_estimate(self, msg: DynamicParameters) -> None:
         if self.source is not ParameterSource.IDENTIFIED:
             return
-        now = self.get_clock().now().nanoseconds * 1e-9
-        age = now - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
-        verdict = accept_estimate(np.array(msg.values), observable=list(msg.observable),
-                                  physically_consistent=msg.physically_consistent,
-                                  age_s=age, max_age_s=self.p['max_estimate_age_s'],
-                                  min_observable=self.p['min_observable'])
+        verdict = judge_estimate(self, msg, self.p)
         if not verdict.ok:
             if verdict.reason != self._refusal:
                 self.get_logger().warn(f'estimate not used ({verdict.reason}); keeping the '

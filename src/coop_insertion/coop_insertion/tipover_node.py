@@ -42,7 +42,7 @@ from coop_common.rover_geometry import ARM_JOINTS, BASE_HEIGHT_M
 from coop_id.model import load_prior_ranges
 from coop_msgs.msg import DynamicParameters, TipOver
 
-from .feedforward import accept_estimate
+from .feedforward_node import ESTIMATE_PARAMS, judge_estimate
 from .tipover import RoverMasses, TipOverError, limit_motion, limit_path, zmp
 
 PARAMS = {
@@ -57,10 +57,7 @@ PARAMS = {
                          'stepped (Hz)', lo=1.0, hi=500.0, read_only=True),
     'plan_step_s': ParamSpec(0.01, 'An arm trajectory is checked at instants this far apart '
                              '(s)', lo=0.001, hi=0.2),
-    'max_estimate_age_s': ParamSpec(600.0, 'Refuse an estimate stamped longer ago than this '
-                                    '(s)', lo=0.1, hi=1e6),
-    'min_observable': ParamSpec(20, 'Refuse an estimate with fewer of its 22 parameters '
-                                'observable', lo=1, hi=22),
+    **ESTIMATE_PARAMS,
     'cmd_timeout_s': ParamSpec(0.5, 'A drive command older than this is a stop (s)',
                                lo=0.01, hi=10.0),
     'frame_prefix': FRAME_PARAMS['frame_prefix'],
@@ -131,11 +128,7 @@ class TipOverNode(Node):
         self.base_acc = 0.8 * self.base_acc + 0.2 * (a - np.array([0.0, 0.0, 9.81]))
 
     def _on_estimate(self, msg: DynamicParameters) -> None:
-        age = self._now() - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
-        verdict = accept_estimate(np.array(msg.values), observable=list(msg.observable),
-                                  physically_consistent=msg.physically_consistent,
-                                  age_s=age, max_age_s=self.p['max_estimate_age_s'],
-                                  min_observable=self.p['min_observable'])
+        verdict = judge_estimate(self, msg, self.p)
         if not verdict.ok:
             self.bad.reject('estimate refused', verdict.reason)
             return
