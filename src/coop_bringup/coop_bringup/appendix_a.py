@@ -287,14 +287,18 @@ def true_margin(world: World, index: int, prev: np.ndarray | None, dt: float,
                 footprint: Footprint) -> tuple[float, np.ndarray]:
     """The zero-moment point of the simulator's true state (every link's mass, c.o.m. and its
     acceleration across the last step) as a fraction of the footprint's depth inside it
-    (the wheels where the chassis anchor stands), and the velocities for the next call."""
+    (the wheels where the chassis anchor stands; -inf when the ground carries no weight), and
+    the velocities for the next call."""
     masses, coms, vels = world.mass_points(index)
     if prev is None:
         return math.inf, vels
     truth = world.truth(index)
     c, s_ = math.cos(truth.anchor_yaw), math.sin(truth.anchor_yaw)
     rot = np.array([[c, -s_], [s_, c]])
-    p = zmp(Loads.of(masses, coms, (vels - prev) / dt))
+    try:
+        p = zmp(Loads.of(masses, coms, (vels - prev) / dt))
+    except TipOverError:                  # the ground carries no weight: the rover is airborne
+        return -math.inf, vels
     local = rot.T @ (p - truth.anchor_position[:2])
     return footprint.margin_fraction(local), vels
 

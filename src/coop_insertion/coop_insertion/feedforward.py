@@ -371,7 +371,9 @@ class BaseObserver:
 
     def base_wrench(self, force: np.ndarray, torque: np.ndarray) -> np.ndarray:
         """w of Eq. B-4 (about the c.g.) from a sensor wrench's deviation from rest."""
-        return -np.concatenate([force, torque + np.cross(self._r2, force)])
+        r, f = self._r2, force
+        moment = (r[1] * f[2] - r[2] * f[1], r[2] * f[0] - r[0] * f[2], r[0] * f[1] - r[1] * f[0])
+        return -np.concatenate([force, torque + moment])
 
     def update(self, *, force: ArrayLike, torque: ArrayLike, gyro: ArrayLike,
                specific_force: ArrayLike, anchor_speed: float = 0.0,
