@@ -151,6 +151,8 @@ def run(variant: Variant, scenario: Scenario, params: BaseParameters, *, seed: i
                               refs, times, strict=True) if t > 0.5],
                           velocities=[[0.0] * 4] + [r.qd.tolist() for r, t in zip(
                               refs, times, strict=True) if t > 0.5])
+        # the core feeds forward the set it is given (NOMINAL and IDENTIFIED differ only in
+        # where a node takes it from): here the nominal, identified or true one
         source = ParameterSource.NONE if variant == 'none' else ParameterSource.IDENTIFIED
         ff = FeedForward(params, dt=dt, source=source, load_kg=CARD_KG)
         rest_tilt: np.ndarray | None = None
