@@ -376,8 +376,12 @@ def test_topics_and_frames_match_rover_sim(tmp_path):
             probe.close()
     images = {t for t in sim if '/image_raw' in t or '/camera_info' in t}
     assert images, sim
+    # the arm's torque feed-forward is the simulator's alone: the device's serial protocol
+    # carries set-points, no torques (mission.launch.py refuses arm_feedforward with hw)
+    sim_only = {f'{NS}/arm/feedforward'}
+    assert sim_only <= set(sim), sim
     # the lifecycle node's own ~/transition_event is the one addition
-    assert {t: ty for t, ty in sim.items() if t not in images} == {
+    assert {t: ty for t, ty in sim.items() if t not in images | sim_only} == {
         t: ty for t, ty in hw.items() if not t.startswith(f'{NS}/bridge/')}
     assert sim_frames == hw_frames
     print('\ntopic                          rover_sim Hz   bridge Hz   bridge/sim')

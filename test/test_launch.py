@@ -136,7 +136,9 @@ def _param(node: Node, target: str, name: str):
     client = AsyncParameterClient(node, target)
     assert client.wait_for_services(timeout_sec=10.0), f'{target} has no parameter services'
     future = client.get_parameters([name])
-    node.executor_.spin_until_future_complete(future, timeout_sec=10.0)
+    # a whole team starting on two cores can keep a node from answering for a while
+    node.executor_.spin_until_future_complete(future, timeout_sec=60.0)
+    assert future.done() and future.result() is not None, f'{target} did not answer for {name}'
     return parameter_value_to_python(future.result().values[0])
 
 
