@@ -416,7 +416,7 @@ class BaseObserver:
             self._anchor = (float(anchor_speed), float(anchor_yaw_rate))
         # d'' over the coming period, the torque's zero-order hold: the change of rate the
         # model predicts across it (a drive step settles the base's turn rate within a
-        # millisecond, far inside one period: its instantaneous d'' would overshoot 100-fold)
+        # millisecond, far inside one period: its instantaneous d'' would overshoot 10-fold)
         dd = ((self._ad @ self.x + self._bd @ w)[6:] - self.x[6:]) / self.dt
         d = self.x[6:].copy()
         d[5] += anchor_yaw_rate
