@@ -41,7 +41,10 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
     """The worker's loop: (config, truths) first, then (poses, eye position, rotation, offset)
     in, an image (or an error string) out; None or the end of the input ends it."""
     from .world import World  # noqa: PLC0415 - world imports this module
-    config, truths = pickle.load(inp)
+    try:
+        config, truths = pickle.load(inp)
+    except EOFError:                      # the simulator ended before it sent the scene
+        return
     world = World(config.replace(render_workers=0), truths)
     try:
         while True:
@@ -63,13 +66,21 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
         world.close()
 
 
+#: the worker's command: SIGINT ignored first, then the module run as `python -m` would
+_START = ('import signal; signal.signal(signal.SIGINT, signal.SIG_IGN); import runpy; '
+          "runpy.run_module('rover_sim.render_worker', run_name='__main__', alter_sys=True)")
+
+
 class RenderWorker:
     """The worker process of one World (`python -m rover_sim.render_worker`, pickles over its
     standard input and output); `request`, then `result`."""
 
     def __init__(self, config: SimConfig, truths: Sequence[Any]) -> None:
+        # SIGINT ignored before the module's imports: a Ctrl-C to the simulator's process group
+        # that comes while the worker is still importing numpy and PyBullet would otherwise
+        # end it with a traceback (main ignores it too late for that)
         self._proc = subprocess.Popen(
-            [sys.executable, '-m', 'rover_sim.render_worker'], stdin=subprocess.PIPE,
+            [sys.executable, '-c', _START], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, start_new_session=False)
         assert self._proc.stdin is not None and self._proc.stdout is not None     # PIPE
         self._stdin: IO[bytes] = self._proc.stdin

@@ -1,6 +1,10 @@
 """The PyBullet world without DDS: equilibrium, F/T against Newton-Euler on the arm,
 inclinometer against the compliance, determinism, noise scales, rendering, driving."""
 import dataclasses
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pybullet as pb
@@ -9,6 +13,7 @@ import pytest
 from coop_common.dynparams import BaseParameters, load_truth
 from rover_sim.compliance import matrix_to_rpy
 from rover_sim.config import NoiseConfig, SimConfig
+from rover_sim.render_worker import _START
 from rover_sim.rover_model import ARM_MASS, SENSOR_MASS
 from rover_sim.world import World
 
@@ -343,3 +348,23 @@ def test_a_heavier_load_weighs_on_the_sensor_and_the_true_zmp_is_the_cg_at_rest(
         assert p == pytest.approx((m @ c / m.sum())[:2], abs=1e-3)
         with pytest.raises(ValueError):
             w.set_gripper_load(0, 0.5)                     # rover 1 holds nothing
+
+
+def test_a_render_worker_outlives_a_ctrl_c_while_it_starts_and_ends_quietly():
+    """A Ctrl-C to the simulator's process group can come while the worker is still importing:
+    it is ignored from the first line, and the simulator ending before it sent the scene ends
+    the worker without a traceback."""
+    proc = subprocess.Popen([sys.executable, '-c', _START], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        time.sleep(0.1)                            # importing numpy and PyBullet
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        assert proc.poll() is None
+        proc.stdin.close()
+        proc.wait(timeout=30)
+        err = proc.stderr.read()
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 0 and b'Traceback' not in err, err.decode()[-2000:]
