@@ -63,6 +63,9 @@ def team():
     spinner = threading.Thread(target=ex.spin, daemon=True)
     spinner.start()
     try:
+        # a goal before the driver's first odometry ends at once (NO_ODOMETRY): on a loaded
+        # machine the first messages can take a while
+        wait_for(lambda: driver.pose is not None, 30.0, what="the driver's first odometry")
         yield Commander(client, ex, ['rover1']), base
     finally:
         ex.shutdown()

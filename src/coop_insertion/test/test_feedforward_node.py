@@ -24,7 +24,7 @@ ARM_WEIGHT_N = 9.81 * 1.01
 @pytest.fixture
 def make_node():
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=pick_domain_id() + 130)
+    rclpy.init(context=ctx, domain_id=pick_domain_id() + 115)
     made = []
 
     def make(source: str = 'identified') -> tuple[FeedForwardNode, list[JointState]]:

@@ -26,7 +26,7 @@ START = [0.0, -0.6, 1.2, 0.0]
 @pytest.fixture
 def guard():
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=pick_domain_id() + 140)
+    rclpy.init(context=ctx, domain_id=pick_domain_id() + 125)
     node = TipOverNode(context=ctx, namespace='rover2',
                        parameter_overrides=[Parameter('load_kg', value=0.5)])
     out: dict[str, list] = {'arm': [], 'cmd': [], 'tip': []}

@@ -61,10 +61,12 @@ def test_record_live_sim_then_play(tmp_path: Path):
                          and 'subscribed /rover1/inclinometer' in rec.log_text(), 60,
                          spin=spin, what='recorder subscriptions')
                 n0 = len(live)
-                # 2.2 sim-seconds: the bag must hold >= 400 below, and the recorder may start a
-                # tick after the probe's n0 and lose the sample in flight when it is stopped
-                wait_for(lambda: len(live) >= n0 + 440, 120, spin=spin,
-                         what='2.2 sim-seconds of inclinometer data')
+                # 2.7 sim-seconds: the bag must hold >= 400 below; the recorder's readers can
+                # match the sim's writers a few hundred ms after it logs its subscriptions on a
+                # loaded machine (389 seen after 2.2 s), and it loses the sample in flight when
+                # it is stopped
+                wait_for(lambda: len(live) >= n0 + 540, 120, spin=spin,
+                         what='2.7 sim-seconds of inclinometer data')
                 assert rec.stop() == 0, rec.log_text()
             assert sim.alive(), sim.log_text()
         info = bag_info(out)
