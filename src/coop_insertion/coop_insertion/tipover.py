@@ -312,3 +312,15 @@ class RoverMasses:
         return [(self.loads(q[k]), self.loads(q[k], base_acceleration=base[k],
                                               arm_accelerations=acc[k - 1]))
                 for k in range(1, len(q) - 1)]
+
+    def drive_acceleration(self, q: ArrayLike, *, top: float, min_fraction: float) -> float:
+        """The largest forward or backward base acceleration (up to `top`, m/s^2) that keeps
+        the point `min_fraction` inside at q, either way; 0 when standing still is already
+        below it."""
+        still = self.loads(q)
+        allowed = top
+        for sign in (1.0, -1.0):
+            lim = limit_motion(still, self.loads(q, base_acceleration=(sign * top, 0.0, 0.0)),
+                               self.footprint, min_fraction=min_fraction)
+            allowed = min(allowed, 0.0 if lim.stop else top * lim.scale)
+        return allowed

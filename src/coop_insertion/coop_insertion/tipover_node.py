@@ -43,7 +43,7 @@ from coop_id.model import load_prior_ranges
 from coop_msgs.msg import DynamicParameters, TipOver
 
 from .feedforward_node import ESTIMATE_PARAMS, judge_estimate
-from .tipover import RoverMasses, TipOverError, limit_motion, limit_path, zmp
+from .tipover import RoverMasses, TipOverError, limit_path, zmp
 
 PARAMS = {
     'required_fraction': ParamSpec(0.2, 'Keep the zero-moment point at least this fraction '
@@ -206,7 +206,6 @@ class TipOverNode(Node):
     def _tick(self) -> None:
         if self.q is None:
             return
-        still = self.model.loads(self.q)
         now = self.model.loads(self.q, base_acceleration=self.base_acc)
         try:
             p = zmp(now)
@@ -221,13 +220,8 @@ class TipOverNode(Node):
             self.get_logger().error(f'tip-over margin {self.margin:.2f} < 0: drive and arm '
                                     'held until it is back inside')
         # the drive: the acceleration the margin allows at this pose, either way
-        top = self.p['max_acceleration_m_s2']
-        allowed = top
-        for sign in (1.0, -1.0):
-            lim = limit_motion(still, self.model.loads(
-                self.q, base_acceleration=(sign * top, 0.0, 0.0)), fp,
-                min_fraction=self.p['required_fraction'])
-            allowed = min(allowed, 0.0 if lim.stop else top * lim.scale)
+        allowed = self.model.drive_acceleration(self.q, top=self.p['max_acceleration_m_s2'],
+                                                min_fraction=self.p['required_fraction'])
         self.allowed_acc = allowed
         dt = 1.0 / self.p['rate_hz']
         if self._now() - self.target_t > self.p['cmd_timeout_s']:
