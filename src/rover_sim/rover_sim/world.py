@@ -53,6 +53,7 @@ from .rover_model import (
     base_link_inertial,
     rover_urdf,
 )
+from .segment import SegmentCarry, SegmentSpec, StageSpec
 from .sensors import (
     DEG,
     InclinometerModel,
@@ -228,9 +229,11 @@ class World:
     """The simulated site. Deterministic for a given config (seed) and command sequence."""
 
     def __init__(self, config: SimConfig, truths: Sequence[BaseParameters], *,
-                 render_worker: RenderWorker | None = None) -> None:
+                 render_worker: RenderWorker | None = None, card: bool = True) -> None:
         """render_worker: one that an earlier world of the same scene handed over
-        (`hand_over_renderer`), kept rather than started again."""
+        (`hand_over_renderer`), kept rather than started again. card: rover 2 carries the
+        card (ch. 5); False: no rover holds anything (app. A.4's segment is grasped later,
+        `grasp_segment`)."""
         if len(truths) != config.rovers:
             raise ValueError(f'expected {config.rovers} truth parameter sets, got {len(truths)}')
         self.config = config
@@ -302,7 +305,10 @@ class World:
         self.rovers: list[_Rover] = []
         self.substep_s = self.dt / self.substeps
         for i, (params, (x, y)) in enumerate(zip(truths, starts, strict=False)):
-            self.rovers.append(self._spawn(f'rover{i + 1}', params, x, y, with_card=(i == 1)))
+            self.rovers.append(self._spawn(f'rover{i + 1}', params, x, y,
+                                           with_card=(i == 1 and card)))
+        #: app. A.4's segment in the first two rovers' grippers (grasp_segment), if held
+        self.segment: SegmentCarry | None = None
 
     # ----------------------------------------------------------------- construction
     def _make_textures(self) -> dict[str, int]:
@@ -600,6 +606,13 @@ class World:
             force = force - f_c
             p = self._sensor_origin(r)
             torque = torque - (m_c - cross3(p, f_c))
+        held = [k for k, q in enumerate(self.rovers[:2]) if q is r]
+        if self.segment is not None and held:
+            # the same for the segment's pull on the gripper (rover_sim.segment)
+            f_s, m_s = self.segment.wrench_on_arm(held[0])
+            force = force - f_s
+            p = self._sensor_origin(r)
+            torque = torque - (m_s - cross3(p, f_s))
         rot = 0.5 * (new.sensor_rotation + old.sensor_rotation)
         return np.concatenate([rot.T @ force, rot.T @ torque])
 
@@ -666,6 +679,16 @@ class World:
         pb.changeDynamics(r.body, r.card_index, mass=float(mass_kg), physicsClientId=self.client)
         r.arm_masses = np.array([pb.getDynamicsInfo(r.body, j, physicsClientId=self.client)[0]
                                  for j in r.arm_links])
+
+    def grasp_segment(self, spec: SegmentSpec, stage: StageSpec) -> SegmentCarry:
+        """App. A.4: rovers 1 and 2 grasp one rigid segment where their grippers are now, and
+        the truss stage is built (rover_sim.segment; SegmentError when it cannot be)."""
+        if self.segment is not None:
+            raise ValueError('a segment is already held')
+        if any(r.card_index is not None for r in self.rovers[:2]):
+            raise ValueError('a rover that holds the card cannot grasp the segment')
+        self.segment = SegmentCarry(self, spec, stage)
+        return self.segment
 
     def link_masses_and_coms(self, index: int, links: Sequence[int]) -> tuple[np.ndarray,
                                                                               np.ndarray]:
@@ -897,6 +920,8 @@ class World:
                 pb.applyExternalForce(r.body, -1, f, at, pb.WORLD_FRAME, physicsClientId=c)
                 pb.applyExternalTorque(r.body, -1, t, pb.WORLD_FRAME, physicsClientId=c)
             pb.stepSimulation(physicsClientId=c)
+            if self.segment is not None:
+                self.segment.accumulate()
             for r in self.rovers:
                 if r.card_index is not None:
                     self._accumulate_contact(r)
@@ -907,6 +932,8 @@ class World:
         c = self.client
         self.time_s = (self.steps + 1) * self.dt
         self.steps += 1
+        if self.segment is not None:
+            self.segment.close_step(self.time_s)
         for r in self.rovers:
             # Every inertial sensor reads its mean over the control period (anti-alias
             # filter), all over the same span. The engine's velocities are those of a sub-step
