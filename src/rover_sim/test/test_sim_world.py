@@ -5,6 +5,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pybullet as pb
@@ -350,6 +351,17 @@ def test_a_heavier_load_weighs_on_the_sensor_and_the_true_zmp_is_the_cg_at_rest(
             w.set_gripper_load(0, 0.5)                     # rover 1 holds nothing
 
 
+def _ignores_sigint(pid: int) -> bool:
+    """Whether process `pid` ignores SIGINT now (the SigIgn mask in /proc/<pid>/status)."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except OSError:
+        return False
+    mask = next((line.split()[1] for line in status.splitlines()
+                 if line.startswith('SigIgn:')), '0')
+    return bool(int(mask, 16) & (1 << (signal.SIGINT - 1)))
+
+
 def test_a_render_worker_outlives_a_ctrl_c_while_it_starts_and_ends_quietly():
     """A Ctrl-C to the simulator's process group can come while the worker is still importing:
     it is ignored from the first line, and the simulator ending before it sent the scene ends
@@ -357,7 +369,12 @@ def test_a_render_worker_outlives_a_ctrl_c_while_it_starts_and_ends_quietly():
     proc = subprocess.Popen([sys.executable, '-c', _START], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        time.sleep(0.1)                            # importing numpy and PyBullet
+        # the signal once the worker's first statement has run (its SigIgn mask shows SIGINT),
+        # while it goes on to import numpy and PyBullet; a loaded host may take a while
+        deadline = time.monotonic() + 30.0
+        while not _ignores_sigint(proc.pid) and proc.poll() is None:
+            assert time.monotonic() < deadline, 'the worker never ignored SIGINT'
+            time.sleep(0.005)
         proc.send_signal(signal.SIGINT)
         time.sleep(0.5)
         assert proc.poll() is None
