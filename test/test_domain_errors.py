@@ -20,6 +20,7 @@ ROOTS = {
     'coop_bringup': ('coop_bringup.report', 'MissionError'),
     'rover_hw': ('rover_hw.errors', 'HardwareError'),
     'rover_bag': ('rover_bag.errors', 'BagError'),
+    'coop_braid': ('coop_braid.errors', 'BraidError'),
 }
 #: error classes and the builtin base their callers catch
 KNOWN = {
@@ -56,6 +57,8 @@ KNOWN = {
     'rover_bag.bagio.BagNotFoundError': FileNotFoundError,
     'rover_bag.bagio.UnknownTypeError': KeyError,
     'rover_bag.playback.RemapError': ValueError,
+    'coop_braid.stage.StageSolveError': ValueError,
+    'coop_braid.carrier.CarrierError': ValueError,
 }
 
 
