@@ -23,7 +23,8 @@ READMES = sorted({ROOT / 'README.md', ROOT / 'bags' / 'README.md',
 RUN = re.compile(r'ros2 run ([a-z_]+) ([\w.-]+)')
 LAUNCH = re.compile(r'ros2 launch ([a-z_]+) ([\w.-]+\.launch\.py)')
 MODULE = re.compile(r'python3? -m ([a-z_][\w.]*)')
-PATHS = re.compile(r'(?<![\w/.-])((?:bench|tools)/[\w-]+\.(?:py|sh|yaml|txt)|install/[\w/-]+)')
+PATHS = re.compile(r'(?<![\w/.-])((?:bench|tools)/[\w-]+\.(?:py|sh|yaml|txt)'
+                   r'|install/[\w/-]+(?:\.(?:py|yaml|json|txt))?)')
 
 
 def _commands(kind: re.Pattern) -> list[tuple[str, tuple[str, ...]]]:

@@ -26,5 +26,8 @@ setup(
         'force_trials = coop_insertion.force_trials:main',
         'arm_feedforward = coop_insertion.feedforward_node:main',
         'tipover_guard = coop_insertion.tipover_node:main',
+        'segment_master = coop_insertion.segment_node:main_master',
+        'segment_slave = coop_insertion.segment_node:main_slave',
+        'segment_trials = coop_insertion.segment_trials:main',
     ]},
 )

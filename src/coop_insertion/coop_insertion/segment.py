@@ -30,15 +30,25 @@ share their heading and odometry. Forces are on the part, N.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
 
-from coop_common.rover_geometry import ARM_MASS, arm_gravity_moment, card_in_base
+from coop_common.rover_geometry import (
+    ARM_MASS,
+    BASE_HEIGHT_M,
+    arm_gravity_moment,
+    card_fk,
+    card_ik,
+    card_in_base,
+    joint2_in_base,
+)
 
 from .errors import InsertionError
+from .feedforward import ArmModel
 
 G = 9.81
 UP = np.array([0.0, 0.0, 1.0])
@@ -47,6 +57,7 @@ UP = np.array([0.0, 0.0, 1.0])
 class SegmentPhase(Enum):
     """The master's phases of the segment insertion."""
 
+    HOLD = 'hold'               # holding the part where it was grasped, awaiting a task
     LIFT = 'lift'               # to the approach height above the believed stage
     DESCEND = 'descend'         # down at the insertion speed until contact or the floor
     BACK_OFF = 'back_off'       # up and over after a contact on a wall's top
@@ -117,6 +128,61 @@ def internal_force(f_1: np.ndarray, f_2: np.ndarray) -> np.ndarray:
     return 0.5 * (np.asarray(f_1, float) - np.asarray(f_2, float))
 
 
+def _rz(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class RoverArm:
+    """One rover's own view of its grasp, in the team's common frame: where its grasp point is
+    and what it exerts on the part, from its encoders, odometry and arm-base F/T; the joints that
+    put the grasp at a target; the joint torques that hold the arm and its share of the part
+    (Eq. A-4's G: the arm's PD is tuned to the arm alone, and the wrist's would let the part sag
+    0.15 rad). The base stands level at BASE_HEIGHT_M over the odometry frame's origin plane.
+    q0: the arm's joints at the grasp (the part's pitch is counted from theirs)."""
+
+    def __init__(self, cg_to_arm: np.ndarray, q0: np.ndarray, *, share_kg: float) -> None:
+        self.r2 = np.asarray(cg_to_arm, float)
+        q0 = np.asarray(q0, float)
+        if self.r2.shape != (3,) or q0.shape != (4,) or not (
+                np.all(np.isfinite(self.r2)) and np.all(np.isfinite(q0))):
+            raise InsertionError('RoverArm: cg_to_arm (3) and q0 (4) must be finite')
+        self.pitch0 = card_fk(*q0[1:4])[2]
+        self.model = ArmModel.rover(self.r2, load_kg=share_kg)
+
+    @staticmethod
+    def _base(xy: np.ndarray) -> np.ndarray:
+        return np.array([xy[0], xy[1], BASE_HEIGHT_M])
+
+    def grasp(self, q: np.ndarray, xy: np.ndarray, yaw: float) -> np.ndarray:
+        """The grasp point, common frame."""
+        return _rz(yaw) @ card_in_base(q, self.r2)[:3, 3] + self._base(xy)
+
+    def pitch(self, q: np.ndarray) -> float:
+        """The gripper's pitch from the grasp's (rad)."""
+        return card_fk(*np.asarray(q, float)[1:4])[2] - self.pitch0
+
+    def force(self, force: np.ndarray, torque: np.ndarray, q: np.ndarray, yaw: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """force_on_part in the common frame."""
+        f, m = force_on_part(force, torque, q, self.r2)
+        return _rz(yaw) @ f, _rz(yaw) @ m
+
+    def joints(self, target: np.ndarray, pitch: float, xy: np.ndarray, yaw: float
+               ) -> tuple[float, float, float, float]:
+        """Arm joints that put the grasp at `target` (common frame) with the part at `pitch`
+        from the grasp's (ReachError out of reach)."""
+        p = _rz(yaw).T @ (np.asarray(target, float) - self._base(xy))
+        local = p - joint2_in_base(self.r2)
+        heading = math.atan2(local[1], local[0])
+        return (heading, *card_ik(math.hypot(local[0], local[1]), float(local[2]),
+                                  self.pitch0 + pitch))
+
+    def gravity(self, q: np.ndarray) -> np.ndarray:
+        """The joint torques that hold the arm and its share of the part at q (N m)."""
+        return self.model.gravity(q)
+
+
 class _Lowpass:
     """First-order low-pass of a vector (time constant tau, s) at irregular stamps."""
 
@@ -147,8 +213,9 @@ class MasterSettings:
     seat_n: float = 3.0                # the press at the floor that ends the insertion
     search_halfwidth_m: float = 0.03   # the channel's centre within the prior +- this
     clearance_m: float = 0.004         # the channel's width less the part's, as designed
-    back_off_m: float = 0.008          # up after a wall-top contact before moving over
-    timeout_s: float = 90.0
+    back_off_m: float = 0.004          # up after a wall-top contact before moving over
+    search_step_fraction: float = 0.5  # the search's step, of the clearance (< 1: no gaps)
+    timeout_s: float = 150.0
     filter_tau_s: float = 0.05
     seat_timeout_s: float = 4.0        # at the floor and not seated for this long: failed
     level_rad: float = 0.02            # the part's pitch a seated part is within
@@ -172,11 +239,13 @@ class SegmentMaster:
     grasp point (common frame, from the arm's encoders), the own force and couple on the part
     (force_on_part, rotated to the common frame) and returns the reference to follow and send.
     stage_x, stage_top_z: where it believes the channel's centre and mouth are (common frame),
-    e.g. from its map; the truth may differ by the search half-width."""
+    e.g. from its map; the truth may differ by the search half-width. hold: start in HOLD,
+    holding the part level where it is (its integrals running) until `begin`; else the task
+    begins at t0."""
 
     def __init__(self, model: PartModel, *, grasp: np.ndarray, stage_x: float,
                  stage_top_z: float, stage_depth_m: float, t0: float,
-                 settings: MasterSettings | None = None) -> None:
+                 settings: MasterSettings | None = None, hold: bool = False) -> None:
         self.model = model
         self.s = settings or MasterSettings()
         self.depth = float(stage_depth_m)
@@ -194,12 +263,36 @@ class SegmentMaster:
         self._bias: tuple[np.ndarray, np.ndarray] | None = None
         self._wait_until = -math.inf
         self._back_off_z = self.approach_z
+        #: the grasp line's height at the first wall contact: later tries come down fast to
+        #: just above it
+        self._wall_z: float | None = None
         self.contact = np.zeros(3)
         #: what the master adds to its reference for its own arm: the integral of the
         #: reference less its grasp as its encoders see it (the arm sags under the part)
         self.tracking = np.zeros(3)
         self.pitch_tracking = 0.0
         self._own_pitch = 0.0
+        self.last_touch: tuple[float, float, float] | None = None
+        if hold:
+            self.phase = SegmentPhase.HOLD
+
+    def begin(self, t: float, *, stage_x: float | None = None,
+              stage_top_z: float | None = None, timeout_s: float | None = None) -> None:
+        """Start the task from where the part is held (a new belief of the stage, if given)."""
+        if stage_x is not None:
+            self.prior_x = self.target_x = float(stage_x)
+        if stage_top_z is not None:
+            self.top = float(stage_top_z)
+        if timeout_s is not None:
+            self.s = dataclasses.replace(self.s, timeout_s=float(timeout_s))
+        self.phase, self.t0, self.tries, self.reason = SegmentPhase.LIFT, t, 0, ''
+        self._bias, self._wait_until, self._wall_z = None, -math.inf, None
+        self.contact, self.last_touch = np.zeros(3), None
+
+    def hold(self) -> None:
+        """Back to HOLD where the part is (after a task ended, or to stop one)."""
+        self.phase = SegmentPhase.HOLD
+        self.vel = np.zeros(3)
 
     @property
     def command(self) -> np.ndarray:
@@ -241,21 +334,21 @@ class SegmentMaster:
         # the tracking integral: along x and y always, along z only in free motion (a
         # contact stops the part, and the integral would press through it)
         err = self.pos - np.asarray(own_grasp, float)
-        if self.phase not in (SegmentPhase.LIFT, SegmentPhase.BACK_OFF):
+        if self.phase not in (SegmentPhase.HOLD, SegmentPhase.LIFT, SegmentPhase.BACK_OFF):
             err[2] = 0.0
         if self.phase not in (SegmentPhase.DONE, SegmentPhase.FAILED, SegmentPhase.SEAT):
             self.tracking = np.clip(self.tracking + s.tracking_gain_1_s * err * dt,
                                     -s.max_tracking_m, s.max_tracking_m)
         # and the part kept level in free motion: the wrist's PD is tuned to the arm alone (in
         # contact the integral would wind up against what holds the part)
-        free = self.phase is SegmentPhase.LIFT or (
+        free = self.phase in (SegmentPhase.HOLD, SegmentPhase.LIFT) or (
             self.phase is SegmentPhase.DESCEND and self.contact[2] < 0.5 * s.touch_n
-            and abs(own_pitch) < 0.5 * s.touch_pitch_rad)
+            and abs(self._own_pitch) < 0.5 * s.touch_pitch_rad)
         if free:
             self.pitch_tracking = float(np.clip(
                 self.pitch_tracking - s.tracking_gain_1_s * float(own_pitch) * dt, -0.3, 0.3))
         share = self.model.share(np.zeros(3))
-        if self.phase in (SegmentPhase.DONE, SegmentPhase.FAILED):
+        if self.phase in (SegmentPhase.HOLD, SegmentPhase.DONE, SegmentPhase.FAILED):
             self.vel = np.zeros(3)
             return self._ref(t)
         if t - self.t0 > s.timeout_s:
@@ -282,13 +375,16 @@ class SegmentMaster:
             # wrist gives first: its turn shows before the force has built up)
             if self.contact[2] > s.touch_n or abs(self._own_pitch) > s.touch_pitch_rad:
                 self.vel = np.zeros(3)
+                #: what stopped the last descent: the contact's push (N) and the pitch (rad)
+                self.last_touch = (float(self.contact[2]), self._own_pitch, bottom)
                 if bottom < floor + 0.5 * self.depth:
                     self.phase = SegmentPhase.SEAT
                     self._wait_until = t + 0.3
                     return self._ref(t)
                 return self._wall_contact(t, float(own_grasp[0]), couple)
             goal = np.array([self.pos[0], self.pos[1], floor - 0.02 + self.model.height_m / 2])
-            if self._move_towards(goal, s.insert_speed_m_s, dt):
+            fast = self._wall_z is not None and self.pos[2] > self._wall_z + 0.002
+            if self._move_towards(goal, s.insert_speed_m_s * (3.0 if fast else 1.0), dt):
                 return self._fail(t, 'reached 2 cm below the believed floor without contact')
             return self._ref(t)
         if self.phase is SegmentPhase.BACK_OFF:
@@ -330,7 +426,10 @@ class SegmentMaster:
         del x_now, couple
         self.tries += 1
         k = (self.tries + 1) // 2
-        offset = k * 0.9 * self.s.clearance_m * (1 if self.tries % 2 else -1)
+        offset = k * self.s.search_step_fraction * self.s.clearance_m * (
+            1 if self.tries % 2 else -1)
+        if self._wall_z is None:
+            self._wall_z = float(self.pos[2])
         if abs(offset) > self.s.search_halfwidth_m:
             return self._fail(t, f'no way in after {self.tries - 1} tries (searched '
                                  f'+-{self.s.search_halfwidth_m * 1e3:.0f} mm)')
@@ -370,13 +469,17 @@ class SegmentSlave:
     the latest reference received (or None), its own force on the part (common frame), and
     returns its grasp point's target (common frame) and pitch."""
 
-    def __init__(self, model: PartModel, *, grasp: np.ndarray, master_grasp: np.ndarray,
-                 t0: float, settings: SlaveSettings | None = None) -> None:
+    def __init__(self, model: PartModel, *, grasp: np.ndarray,
+                 master_grasp: np.ndarray | None = None, t0: float,
+                 settings: SlaveSettings | None = None) -> None:
         """grasp, master_grasp: the two grasp points when the part was taken (common frame):
-        the slave's grasp rides the reference at that offset."""
+        the slave's grasp rides the reference at that offset. Without master_grasp, the first
+        reference's position is taken as it (the master sends its grasp first)."""
         self.model = model
         self.s = settings or SlaveSettings()
-        self.offset = np.asarray(grasp, float) - np.asarray(master_grasp, float)
+        self.offset: np.ndarray | None = (
+            None if master_grasp is None
+            else np.asarray(grasp, float) - np.asarray(master_grasp, float))
         self.hold = np.asarray(grasp, float).copy()
         self.delta = np.zeros(3)
         self.t = t0
@@ -407,6 +510,8 @@ class SegmentSlave:
         fresh = ref is not None and t - ref.stamp_s <= self.s.silence_s
         if fresh:
             assert ref is not None
+            if self.offset is None:
+                self.offset = self.hold - ref.position
             self.silent_since = None
             accel = ref.accel
             base = ref.position + self.offset

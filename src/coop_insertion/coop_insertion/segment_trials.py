@@ -28,25 +28,20 @@ from coop_common.dynparams import load_truth
 from coop_common.files import write_json
 from coop_common.rover_geometry import (
     ARM_JOINTS,
-    BASE_HEIGHT_M,
     NOMINAL_CG_TO_ARM,
-    card_fk,
-    card_ik,
     card_in_base,
-    joint2_in_base,
 )
 
 from .errors import InsertionError
-from .feedforward import ArmModel
 from .segment import (
     MasterSettings,
     PartModel,
     PartReference,
+    RoverArm,
     SegmentMaster,
     SegmentPhase,
     SegmentSlave,
     SlaveSettings,
-    force_on_part,
 )
 
 PENETRATION_LIMIT_M = 1e-3
@@ -87,55 +82,18 @@ class Trace:
     phase: list[str] = field(default_factory=list)
 
 
-def _rz(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-class _RoverArm:
-    """One rover's own view: its grasp point and force on the part in the common frame from
-    its encoders, odometry and F/T, and the arm joints that put its grasp at a target."""
-
-    def __init__(self, cg_to_arm: np.ndarray, q0: np.ndarray, share_kg: float) -> None:
-        self.r2 = np.asarray(cg_to_arm, float)
-        self.pitch0 = card_fk(*q0[1:4])[2]
-        # Eq. A-4's gravity compensation with its share of the part in the gripper: the
-        # arm's PD is tuned to the arm alone, and joint 4's would let the part sag 0.15 rad
-        self.model = ArmModel.rover(self.r2, load_kg=share_kg)
-
-    def gravity(self, q: np.ndarray) -> np.ndarray:
-        return self.model.gravity(q)
-
-    def pitch(self, q: np.ndarray) -> float:
-        """The gripper's pitch from the grasp's, from the encoders."""
-        return card_fk(*q[1:4])[2] - self.pitch0
-
-    def grasp(self, q: np.ndarray, xy: np.ndarray, yaw: float) -> np.ndarray:
-        p = card_in_base(q, self.r2)[:3, 3]
-        return _rz(yaw) @ p + np.array([xy[0], xy[1], BASE_HEIGHT_M])
-
-    def force(self, rd_force: np.ndarray, rd_torque: np.ndarray, q: np.ndarray, yaw: float
-              ) -> tuple[np.ndarray, np.ndarray]:
-        f, m = force_on_part(rd_force, rd_torque, q, self.r2)
-        return _rz(yaw) @ f, _rz(yaw) @ m
-
-    def joints(self, target: np.ndarray, pitch: float, xy: np.ndarray, yaw: float
-               ) -> tuple[float, float, float, float]:
-        p = _rz(yaw).T @ (np.asarray(target, float) - np.array([xy[0], xy[1], BASE_HEIGHT_M]))
-        local = p - joint2_in_base(self.r2)
-        heading = math.atan2(local[1], local[0])
-        reach = math.hypot(local[0], local[1])
-        return (heading, *card_ik(reach, float(local[2]), self.pitch0 + pitch))
-
-
 def run_trial(seed: int, *, mass_kg: float = 0.5, clearance_m: float = 0.004,
               prior_error_m: float = 0.015, friction: float | None = None,
-              internal_limit_n: float = 20.0, sim_s: float = 90.0,
-              silent_at_s: float | None = None, trace: Trace | None = None
+              internal_limit_n: float = 20.0, sim_s: float = 160.0,
+              silent_at_s: float | None = None, trace: Trace | None = None,
+              stage: tuple[float, float] | None = None,
+              belief: tuple[float, float] | None = None
               ) -> SegmentTrial:
     """One insertion from the grasp until the master is done or `sim_s` passed.
     silent_at_s: the master stops sending (and moving) this long after the grasp; the trial
-    then runs 3 s more and records whether the slave released the internal force."""
+    then runs 3 s more and records whether the slave released the internal force.
+    stage: the stage's (centre behind the grasp line, mouth height) instead of the seed's
+    draw; belief: the master's (centre x, mouth height) instead of the seed's draw."""
     from rover_sim.config import NoiseConfig, SimConfig  # noqa: PLC0415 - only to run trials
     from rover_sim.segment import SegmentSpec, StageSpec  # noqa: PLC0415
     from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only to run trials
@@ -155,23 +113,26 @@ def run_trial(seed: int, *, mass_kg: float = 0.5, clearance_m: float = 0.004,
         # the stage is placed from the truth (the world's layout); no controller reads it
         grip_x = float((tr0.base_position
                         + tr0.base_rotation @ card_in_base(q_true0, g0)[:3, 3])[0])
-        stage = StageSpec(centre_x=grip_x - 0.05 + rng.uniform(-0.01, 0.01),
-                          top_z=0.28 + rng.uniform(-0.01, 0.01), clearance_m=clearance_m)
+        behind, top = (0.05 + rng.uniform(-0.01, 0.01), 0.28 + rng.uniform(-0.01, 0.01)) \
+            if stage is None else stage
+        spec = StageSpec(centre_x=grip_x - behind, top_z=top, clearance_m=clearance_m)
         seg = w.grasp_segment(SegmentSpec(mass_kg=mass_kg, width_m=model.width_m,
-                                          height_m=model.height_m), stage)
-        belief_x = stage.centre_x + rng.uniform(-prior_error_m, prior_error_m)
-        belief_top = stage.top_z + rng.uniform(-0.003, 0.003)
+                                          height_m=model.height_m), spec)
+        belief_x = spec.centre_x + rng.uniform(-prior_error_m, prior_error_m)
+        belief_top = spec.top_z + rng.uniform(-0.003, 0.003)
+        if belief is not None:
+            belief_x, belief_top = belief
         arms, grasps = [], []
         for k in (0, 1):
             rd = w.sense(k)
             xy, yaw, _, _ = w.odometry(k)
-            arm = _RoverArm(np.array(NOMINAL_CG_TO_ARM), rd.joint_positions[:4],
-                            0.5 * mass_kg)
+            arm = RoverArm(np.array(NOMINAL_CG_TO_ARM), rd.joint_positions[:4],
+                           share_kg=0.5 * mass_kg)
             arms.append(arm)
             grasps.append(arm.grasp(rd.joint_positions[:4], xy, yaw))
         t0 = w.time_s
         master = SegmentMaster(model, grasp=grasps[0], stage_x=belief_x,
-                               stage_top_z=belief_top, stage_depth_m=stage.depth_m, t0=t0,
+                               stage_top_z=belief_top, stage_depth_m=spec.depth_m, t0=t0,
                                settings=MasterSettings())
         slave = SegmentSlave(model, grasp=grasps[1], master_grasp=grasps[0], t0=t0,
                              settings=SlaveSettings())
@@ -196,8 +157,12 @@ def run_trial(seed: int, *, mass_kg: float = 0.5, clearance_m: float = 0.004,
             qs = [rd.joint_positions[:4] for rd in rds]
             fm, mm = arms[0].force(rds[0].force, rds[0].torque, qs[0], odo[0][1])
             fs, _ = arms[1].force(rds[1].force, rds[1].torque, qs[1], odo[1][1])
-            for i in (0, 1):
+            # a silent master's process sends nothing: its arm keeps the last set-point and
+            # loses the gravity torques (the simulator node drops stale ones)
+            for i in ((1,) if silent else (0, 1)):
                 w.command_arm_feedforward(i, arms[i].gravity(qs[i]))
+            if silent:
+                w.command_arm_feedforward(0, np.zeros(len(ARM_JOINTS)))
             if not silent:
                 ref = master.step(t, arms[0].grasp(qs[0], odo[0][0], odo[0][1]), fm, mm,
                                   arms[0].pitch(qs[0]))
@@ -238,7 +203,9 @@ def run_trial(seed: int, *, mass_kg: float = 0.5, clearance_m: float = 0.004,
         said = st.phase is SegmentPhase.DONE
         ok = bool(said and truth.seated and pen <= PENETRATION_LIMIT_M
                   and peak <= internal_limit_n)
-        reason = st.reason or f'not done after {sim_s:.0f} s ({st.phase.value})'
+        reason = st.reason or (
+            f'master silent from {silent_at_s:g} s ({st.phase.value})' if silent_at_s is not None
+            else f'not done after {sim_s:.0f} s ({st.phase.value})')
         if said and not ok:
             reason += (' (the truth: not seated)' if not truth.seated else
                        f' (internal force {peak:.1f} N over {internal_limit_n:g} N)'

@@ -134,7 +134,7 @@ def test_master_searches_out_from_its_belief_by_the_clearance():
             t = _run_master(m, t, t + 30, until=SegmentPhase.DESCEND,
                             force=lambda _: np.zeros(3))
         tried.append(round(m.target_x - 0.05, 4))
-    assert tried[:4] == [0.0036, -0.0036, 0.0072, -0.0072]
+    assert tried[:4] == [0.002, -0.002, 0.004, -0.004]
     assert m.phase is SegmentPhase.FAILED and 'searched +-10 mm' in m.reason
 
 

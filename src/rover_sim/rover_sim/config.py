@@ -18,9 +18,11 @@ class ConfigError(SimError):
     """A world/params YAML or value that the simulator cannot use; the message names the field."""
 
 #: the simulator's ground truth: per rover on `sim/<rover>/<name>` for these names, and the
-#: world on WORLD_TOPIC; for scoring and viewing only: no node that closes a loop reads them
+#: world on WORLD_TOPIC, app. A.4's segment on SEGMENT_TRUTH_TOPIC; for scoring and viewing
+#: only: no node that closes a loop reads them
 TRUTH_NAMES = ('base_pose', 'camera_pose', 'card_pose', 'contact', 'parameters')
 WORLD_TOPIC = 'sim/world'
+SEGMENT_TRUTH_TOPIC = 'sim/segment'
 
 
 def truth_topic(rover: str, name: str) -> str:
@@ -34,7 +36,7 @@ def is_truth_topic(topic: str) -> bool:
     """Whether a topic name (relative, or resolved in any namespace) is the simulator's
     truth."""
     parts = topic.strip('/').split('/')
-    return (parts[-2:] == WORLD_TOPIC.split('/') or
+    return (parts[-2:] in (WORLD_TOPIC.split('/'), SEGMENT_TRUTH_TOPIC.split('/')) or
             (len(parts) >= 3 and parts[-3] == 'sim' and parts[-1] in TRUTH_NAMES))
 
 

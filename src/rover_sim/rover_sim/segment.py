@@ -18,12 +18,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pybullet as pb
-
-from coop_common.rover_geometry import CARD_OFFSET_M
 
 from .compliance import matrix_to_quat
 from .errors import SimError
@@ -178,12 +177,7 @@ class SegmentCarry:
 
     def _grasp_point(self, k: int) -> tuple[np.ndarray, int]:
         """Rover k's grasp point (world) and its last arm link."""
-        r = self.world.rovers[k]
-        link = r.joint_index['arm_joint_4']
-        st = pb.getLinkState(r.body, link, computeForwardKinematics=1,
-                             physicsClientId=self.world.client)
-        rot = np.array(pb.getMatrixFromQuaternion(st[5])).reshape(3, 3)
-        return np.array(st[4]) + rot @ np.array([CARD_OFFSET_M, 0.0, 0.0]), link
+        return self.world.grasp_point(k), self.world.rovers[k].joint_index['arm_joint_4']
 
     def _build_stage(self, centre: np.ndarray, axis: np.ndarray) -> None:
         st, sp, c = self.stage, self.spec, self.world.client
@@ -279,3 +273,24 @@ class SegmentCarry:
             pb.removeConstraint(cid, physicsClientId=c)
         self.constraints = []
 
+
+
+class Scenario(StrEnum):
+    """What the rovers hold: rover 2 the card (ch. 5), or rovers 1 and 2 one segment (A.4)."""
+
+    CARD = 'card'
+    SEGMENT = 'segment'
+
+
+def carry_segment(world: World, spec: SegmentSpec, *, behind_m: float, top_z: float,
+                  clearance_m: float = 0.004, settle_steps: int = 100) -> SegmentCarry:
+    """App. A.4's start: the arms settle at home for `settle_steps` steps, rovers 1 and 2 grasp
+    the segment where their grippers are, and the stage stands with its channel's centre
+    `behind_m` behind the grasp line (-x) and its mouth at `top_z` (world m)."""
+    for _ in range(settle_steps):
+        world.step()
+    if len(world.rovers) < 2:
+        raise SegmentError('the segment needs two rovers')
+    x = 0.5 * sum(float(world.grasp_point(k)[0]) for k in (0, 1))
+    return world.grasp_segment(spec, StageSpec(centre_x=x - behind_m, top_z=top_z,
+                                               clearance_m=clearance_m))

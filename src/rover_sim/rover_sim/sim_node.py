@@ -17,7 +17,13 @@ from typing import assert_never
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Twist, WrenchStamped
+from geometry_msgs.msg import (
+    PoseStamped,
+    PoseWithCovarianceStamped,
+    Twist,
+    Vector3,
+    WrenchStamped,
+)
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -48,11 +54,19 @@ from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters
 from coop_common.qos import CLOCK_QOS, COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, reliable
 from coop_common.rover_geometry import GROUP_JOINTS, JointGroup
 from coop_common.tf_tree import TreeBroadcaster
-from coop_msgs.msg import ContactState, DynamicParameters, Inclinometer, LockstepAck, LockstepTick
+from coop_msgs.msg import (
+    ContactState,
+    DynamicParameters,
+    Inclinometer,
+    LockstepAck,
+    LockstepTick,
+    SegmentTruth,
+)
 from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat, rpy_to_matrix
 from .config import (
+    SEGMENT_TRUTH_TOPIC,
     WORLD_TOPIC,
     ConfigError,
     Integrator,
@@ -62,7 +76,11 @@ from .config import (
     load_config,
     truth_topic,
 )
+from .errors import SimError
+from .render_worker import RenderWorker
 from .rover_model import ARM_JOINTS, STEREO_BASELINE_M
+from .segment import Scenario, SegmentSpec, carry_segment
+from .segment import SegmentTruth as SegmentTruth_
 from .trajectory import TrajectoryError
 from .world import World
 from .worldgen import TABLE_5_1_GAPS_M, ObstacleKind
@@ -188,6 +206,19 @@ PARAMS = {
     'feedforward_timeout_s': ParamSpec(0.05, "Drop a rover's arm feed-forward torques older "
                                        'than this (sim s): a silent host leaves the PD alone',
                                        lo=0.005, hi=10.0),
+    'scenario': ParamSpec(Scenario.CARD.value, "What the rovers hold: 'card' (rover2 the "
+                          "card of ch. 5) or 'segment' (rover1 and rover2 one truss segment and "
+                          'a truss stage ahead of them, app. A.4; the explicit integrator)',
+                          choices=[c.value for c in Scenario], read_only=True),
+    'segment_mass_kg': ParamSpec(0.5, "Segment scenario: the segment's mass (kg)", lo=0.01,
+                                 hi=3.0, read_only=True),
+    'stage_behind_grasp_m': ParamSpec(0.05, "Segment scenario: the stage channel's centre this "
+                                      'far behind the grasp line (m, along -x)', lo=-0.1,
+                                      hi=0.2, read_only=True),
+    'stage_top_z_m': ParamSpec(0.28, "Segment scenario: the stage's mouth above the ground (m)",
+                               lo=0.1, hi=0.4, read_only=True),
+    'stage_clearance_m': ParamSpec(0.004, "Segment scenario: the channel's width less the "
+                                   "segment's (m)", lo=0.0005, hi=0.05, read_only=True),
     'map_frame': ParamSpec('map', 'Common world frame id (REP 105), after frame_prefix',
                            read_only=True),
     **FRAME_PARAMS,
@@ -232,7 +263,8 @@ class SimNode(Node):
             truth = load_truth(self.truth_path)
         except TruthFileError as exc:
             raise ValueError(str(exc)) from exc
-        self.world = World(self.config, [truth] * self.config.rovers)
+        self.scenario = Scenario(self.values['scenario'])
+        self.world = self._make_world(self.config, [truth] * self.config.rovers)
         self.frames = [RoverFrames(r.name, self.values['frame_prefix'], self.values['map_frame'])
                        for r in self.world.rovers]
         self.map_frame = self.frames[0].map
@@ -281,6 +313,23 @@ class SimNode(Node):
     _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_gap_m', 'contact_friction',
                       'integrator', 'physics_substeps', 'sensor_rate_hz', 'stereo_rate_hz',
                       'image_width', 'image_height', 'supersample')
+
+    def _make_world(self, config: SimConfig, truths: list[BaseParameters],
+                    worker: RenderWorker | None = None) -> World:
+        """The world of the scenario: in 'segment', rovers 1 and 2 settle and grasp the
+        segment (rover_sim.segment.carry_segment) before the first message goes out."""
+        card = self.scenario is Scenario.CARD
+        world = World(config, truths, render_worker=worker, card=card)
+        if not card:
+            v = self.values
+            try:
+                carry_segment(world, SegmentSpec(mass_kg=v['segment_mass_kg']),
+                              behind_m=v['stage_behind_grasp_m'], top_z=v['stage_top_z_m'],
+                              clearance_m=v['stage_clearance_m'])
+            except (SimError, ValueError) as exc:
+                world.close()
+                raise ValueError(f'scenario segment: {exc}') from exc
+        return world
 
     def _make_config(self) -> SimConfig:
         """Defaults <- world_yaml <- every parameter set away from its default."""
@@ -360,6 +409,7 @@ class SimNode(Node):
             self._command(JointState, f'{n}/arm/feedforward',
                           lambda m, i=i: self._on_effort(i, m))
         self.world_pub = pub(MarkerArray, WORLD_TOPIC, LATCHED_QOS)
+        self.segment_pub = pub(SegmentTruth, SEGMENT_TRUTH_TOPIC, SENSOR_QOS)
         self.create_service(SimScenario, 'sim/reset', self._on_reset)
         if self._gate is not None:
             self.tick_pub = self.create_publisher(LockstepTick, TICK_TOPIC, ROUND_QOS)
@@ -543,7 +593,7 @@ class SimNode(Node):
         self.config = config
         if r.truth_yaml:
             self.truth_path = r.truth_yaml
-        self.world = World(config, truths, render_worker=worker)
+        self.world = self._make_world(config, truths, worker)
         for name, x, y, yaw in r.places:
             self.world.place_rover(self.world.rover_index(name), x, y, yaw)
         self._last_cmd_vel.clear()
@@ -701,6 +751,21 @@ class SimNode(Node):
                 self._publish_odom(i, pubs, t)
             if stereo and self._renders(r.name):
                 self._publish_stereo(i, pubs, t)
+        if odom and w.segment is not None and w.segment.last is not None:
+            self._publish_segment(w.segment.last, t)
+
+    def _publish_segment(self, st: SegmentTruth_, t: Time) -> None:
+        msg = SegmentTruth()
+        msg.header.stamp, msg.header.frame_id = t, self.map_frame
+        _pose(msg.pose, st.position, st.rotation)
+        msg.grasp_force = [Vector3(x=float(f[0]), y=float(f[1]), z=float(f[2]))
+                           for f in st.grasp_force]
+        c = st.contact_force
+        msg.contact_force = Vector3(x=float(c[0]), y=float(c[1]), z=float(c[2]))
+        msg.internal_force_n = float(np.linalg.norm(st.internal_force))
+        msg.max_penetration_m = float(st.max_penetration_m)
+        msg.seated = bool(st.seated)
+        self.segment_pub.publish(msg)
 
     def _renders(self, name: str) -> bool:
         chosen = self._stereo_rovers

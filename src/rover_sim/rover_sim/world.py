@@ -20,7 +20,7 @@ import pybullet as pb
 
 from coop_common.dynparams import BaseParameters
 from coop_common.rendering import fine_intrinsics, pixel_average, projection_matrix
-from coop_common.rover_geometry import BASE_HEIGHT_M, TRACK_M
+from coop_common.rover_geometry import BASE_HEIGHT_M, CARD_OFFSET_M, TRACK_M
 
 from .compliance import (
     FastCompliance,
@@ -679,6 +679,14 @@ class World:
         pb.changeDynamics(r.body, r.card_index, mass=float(mass_kg), physicsClientId=self.client)
         r.arm_masses = np.array([pb.getDynamicsInfo(r.body, j, physicsClientId=self.client)[0]
                                  for j in r.arm_links])
+
+    def grasp_point(self, index: int) -> np.ndarray:
+        """Where rover `index`'s gripper holds a part (the card's centre's place: CARD_OFFSET_M
+        along the last arm link), world frame, now."""
+        r = self.rovers[index]
+        st = pb.getLinkState(r.body, r.joint_index['arm_joint_4'], computeForwardKinematics=1,
+                             physicsClientId=self.client)
+        return np.array(st[4]) + quat_to_matrix(st[5]) @ np.array([CARD_OFFSET_M, 0.0, 0.0])
 
     def grasp_segment(self, spec: SegmentSpec, stage: StageSpec) -> SegmentCarry:
         """App. A.4: rovers 1 and 2 grasp one rigid segment where their grippers are now, and
