@@ -2,6 +2,7 @@
 with no feed-forward and with the base model on nominal, identified and true parameters.
 
     ros2 run coop_bringup appendix_a --json out/appendix_a.json --plots out
+    ros2 run coop_bringup appendix_a --parts segment --json out/appendix_a_segment.json
 
 Part `feedforward` (A.1-A.2, Eq. A-4): the slave rover's arm (the card in its gripper) holds
 a pose while the rover drives (velocity steps forward, back and a turn in place: each a jolt of
@@ -23,6 +24,16 @@ The simulator's truth judges: the card's centre in the base frame from the true 
 against where the reference puts it. While driving the reference is still, and the error is
 measured from its mean over the half second before the first step (what the base's motion
 adds); under the excitation it is the whole tracking error.
+
+Part `tipover` (A.3, Eq. A-5): random aggressive swings and drives with a heavy part in the
+gripper, without and with coop_insertion.tipover's limiter, judged by the true zero-moment point.
+
+Part `segment` (A.4, Figs. A-9..A-12): the two rovers carry one segment into a truss stage
+(coop_insertion.segment_trials) over `--segment-seeds`, each seed a stage placed anew and a
+master that believes it up to 1.5 cm off; then one run whose master falls silent mid-carriage,
+to see the slave hold and the internal force settle. The truth judges: seated, the peak internal
+force against `--internal-limit-n`, the slave's estimate of the master's force against the
+master's true grasp force.
 """
 from __future__ import annotations
 
@@ -30,7 +41,7 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -46,6 +57,9 @@ from coop_common.rover_geometry import (
 )
 from coop_id.model import load_prior_ranges
 from coop_insertion.feedforward import FeedForward, ParameterSource, accept_estimate
+from coop_insertion.segment_trials import SegmentTrial, Trace
+from coop_insertion.segment_trials import format_table as format_segment
+from coop_insertion.segment_trials import run_trial as run_segment_trial
 from coop_insertion.tipover import (
     Footprint,
     Limit,
@@ -57,6 +71,8 @@ from coop_insertion.tipover import (
 )
 from rover_sim.config import SimConfig
 from rover_sim.world import World
+
+from .mission_seeds import parse_seeds
 
 Variant = Literal['none', 'nominal', 'identified', 'true']
 VARIANTS: tuple[Variant, ...] = get_args(Variant)
@@ -397,6 +413,94 @@ def run_tipover(*, seed: int, identified: Path, motions: int) -> dict[str, Any]:
     }
 
 
+SEGMENT_INTERNAL_LIMIT_N = 20.0
+#: the silent-partner run: the master stops sending this long after the grasp (mid-lift)
+SILENT_AT_S = 2.0
+
+
+def run_segment(*, seeds: list[int], internal_limit_n: float = SEGMENT_INTERNAL_LIMIT_N,
+                log: bool = True) -> tuple[dict[str, Any], Trace]:
+    """Part (c): the two-rover insertion per seed, and the silent-partner run (seed
+    seeds[0]); the first seed's trace for the figures."""
+    trials: list[SegmentTrial] = []
+    trace = Trace()
+    for k, seed in enumerate(seeds):
+        tr = run_segment_trial(seed, internal_limit_n=internal_limit_n,
+                               trace=trace if k == 0 else None)
+        trials.append(tr)
+        if log:
+            print(f'segment seed {seed}: {"seated" if tr.success else "failure"} '
+                  f'({tr.reason}), {tr.tries} tries, peak internal '
+                  f'{tr.peak_internal_force_n:.2f} N', file=sys.stderr, flush=True)
+    silent = run_segment_trial(seeds[0], internal_limit_n=internal_limit_n,
+                               silent_at_s=SILENT_AT_S)
+    errs = [t.partner_error_n for t in trials if math.isfinite(t.partner_error_n)]
+    res = {
+        'seeds': len(trials),
+        'seated': sum(t.success for t in trials),
+        'peak_internal_force_n': max(t.peak_internal_force_n for t in trials),
+        'internal_limit_n': internal_limit_n,
+        'partner_error_rms_n': float(np.median(errs)) if errs else math.nan,
+        'partner_force_rms_n': float(np.median([t.partner_force_n for t in trials
+                                                if math.isfinite(t.partner_force_n)])),
+        'trials': [asdict(t) for t in trials],
+        'silent': asdict(silent),
+    }
+    return res, trace
+
+
+def plot_segment(trace: Trace, out: Path) -> list[Path]:
+    """The Fig. A-10..A-12 analogue of one run: the grasp points (endpoints) and their forces
+    on the part, both rovers' arm joints and base deflections, the internal force and the
+    slave's estimate of the master's force against the truth."""
+    import matplotlib  # noqa: PLC0415 - only --plots needs it
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    t = np.asarray(trace.t)
+    grasp, force = np.asarray(trace.grasp), np.asarray(trace.force)
+    joints, base = np.asarray(trace.joints), np.asarray(trace.base)
+    est = np.asarray(trace.estimate)
+    paths = []
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
+    for k, who in enumerate(('master (rover1)', 'slave (rover2)')):
+        ax = axes[0, k]
+        ax.plot(t, 1e3 * (grasp[:, k, 0] - grasp[0, k, 0]), label='x')
+        ax.plot(t, 1e3 * (grasp[:, k, 2] - grasp[0, k, 2]), label='z')
+        ax.set_title(f'{who}: endpoint (mm from the grasp)')
+        ax.legend(fontsize=8)
+        ax = axes[1, k]
+        ax.plot(t, force[:, k, 0], label='f_x')
+        ax.plot(t, force[:, k, 2], label='f_z')
+        ax.set_title(f'{who}: force on the part (N)')
+        ax.set_xlabel('time (s)')
+        ax.legend(fontsize=8)
+    paths.append(save_figure(fig, out / 'appendix_a_segment_endpoints.png'))
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6), sharex=True)
+    for k, who in enumerate(('master', 'slave')):
+        ax = axes[0, k]
+        for j in range(4):
+            ax.plot(t, joints[:, k, j], lw=0.8, label=ARM_JOINTS[j])
+        ax.set_title(f'{who}: arm joints (rad)')
+        ax.legend(fontsize=7)
+        ax = axes[1, k]
+        ax.plot(t, 1e3 * base[:, k, 0], label='dr_x')
+        ax.plot(t, 1e3 * base[:, k, 2], label='dr_z')
+        ax.set_title(f'{who}: base deflection (mm)')
+        ax.set_xlabel('time (s)')
+        ax.legend(fontsize=8)
+    paths.append(save_figure(fig, out / 'appendix_a_segment_joints_base.png'))
+    fig, ax = plt.subplots(figsize=(10, 3.6))
+    ax.plot(t, np.asarray(trace.internal), label='internal force, truth |1/2 (f_1 - f_2)|')
+    ax.plot(t, force[:, 0, 2], lw=0.8, label="master's f_z, truth")
+    ax.plot(t, est[:, 2], lw=0.8, ls='--', label="master's f_z, the slave's estimate")
+    ax.set_xlabel('time (s)')
+    ax.set_ylabel('N')
+    ax.set_title('Surrogate sensing: the partner force the slave estimates, and the truth')
+    ax.legend(fontsize=8)
+    paths.append(save_figure(fig, out / 'appendix_a_segment_forces.png'))
+    return paths
+
+
 def plot(series: dict, res: dict, out: Path) -> list[Path]:
     """The feed-forward runs' card error over time per scenario; the tip-over study's true
     margins without and with the limiter."""
@@ -462,10 +566,23 @@ def format_json(res: dict) -> str:
                   f'  with: {t["slowed"]} slowed, {t["refused"]} refused (below the margin '
                   f'standing still), {t["below_required_with"]} under {t["min_fraction"]:.2f} '
                   f'at some instant; model margin at rest {t["rest_margin_model"]:.3f}']
+    if 'segment' in res:
+        g = res['segment']
+        lines += [f'App. A.4, two rovers carry one segment into a truss stage: {g["seeds"]} '
+                  'seeds',
+                  format_segment([SegmentTrial(**t) for t in g['trials']],
+                                 internal_limit_n=g['internal_limit_n']),
+                  f'  partner force estimate: rms error {g["partner_error_rms_n"]:.3f} N of a '
+                  f'{g["partner_force_rms_n"]:.3f} N rms force (medians over seeds, in free '
+                  'carriage)']
+        q = g['silent']
+        lines.append(f'  master silent {q["silent_at_s"]:g} s after the grasp: the slave '
+                     f'{"released" if q["released"] else "did not release"} the internal '
+                     f'force (peak {q["peak_internal_force_n"]:.2f} N over the run)')
     return '\n'.join(lines)
 
 
-PARTS = ('feedforward', 'tipover')
+PARTS = ('feedforward', 'tipover', 'segment')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -478,6 +595,10 @@ def main(argv: list[str] | None = None) -> int:
                    help=f'comma-separated, of {", ".join(PARTS)} (default: all)')
     p.add_argument('--motions', type=number(int, lo=1, hi=10_000), default=TIP_MOTIONS,
                    help=f'random motions of the tip-over study (default {TIP_MOTIONS})')
+    p.add_argument('--segment-seeds', default='1-20', metavar='A-B[,C]',
+                   help='seeds of the two-rover segment insertion (default 1-20)')
+    p.add_argument('--internal-limit-n', type=number(float, lo=0.1), default=20.0,
+                   help='the internal force between the rovers a seated run must stay under')
     p.add_argument('--identified', type=Path, default=DEFAULT_IDENTIFIED,
                    help='a `table_2_1 --sim --json` result whose estimates are the identified '
                         f'model (default: {DEFAULT_IDENTIFIED})')
@@ -485,8 +606,13 @@ def main(argv: list[str] | None = None) -> int:
     parts = [x for x in args.parts.split(',') if x]
     if not parts or any(x not in PARTS for x in parts):
         p.error(f'--parts: comma-separated, of {", ".join(PARTS)}; got {args.parts!r}')
+    try:
+        seeds = parse_seeds(args.segment_seeds)
+    except ValueError as exc:
+        p.error(f'--segment-seeds: {exc}')
     res: dict[str, Any] = {}
     series: dict = {}
+    trace: Trace | None = None
     try:
         if 'feedforward' in parts:
             res['feedforward'], series = run_feedforward(seed=args.seed,
@@ -494,6 +620,9 @@ def main(argv: list[str] | None = None) -> int:
         if 'tipover' in parts:
             res['tipover'] = run_tipover(seed=args.seed, identified=args.identified,
                                          motions=args.motions)
+        if 'segment' in parts:
+            res['segment'], trace = run_segment(seeds=seeds,
+                                                internal_limit_n=args.internal_limit_n)
     except ValueError as exc:
         print(f'appendix_a: {exc}', file=sys.stderr)
         return 2
@@ -501,7 +630,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(args.json, res)
     if args.plots:
-        for path in plot(series, res, args.plots):
+        for path in plot(series, res, args.plots) + (
+                plot_segment(trace, args.plots) if trace is not None else []):
             print(f'wrote {path}')
     return 0
 
