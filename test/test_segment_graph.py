@@ -137,5 +137,13 @@ def test_a_silent_master_leaves_the_slave_holding(tmp_path, probe):
     held = truths[start:]
     assert len(held) > 20
     assert 'silent: holding' in slave.log_text()
-    assert max(abs(t.pose.position.z - z0) for t in held) < 0.01
-    assert max(t.internal_force_n for t in held) < 5.0
+    # the master's arm, its process gone, keeps its last set-point but loses the torques that
+    # held its share of the part (the simulator drops stale ones): its side sinks up to 2 cm
+    # (measured under load); a slave that followed a plan or pushed on would move it more
+    assert max(abs(t.pose.position.z - z0) for t in held) < 0.03
+    # the master's side sinking loads the part; the slave yields to it (never pushes on): the
+    # internal force stays under the task's limit and falls from its peak
+    peak = max(t.internal_force_n for t in held)
+    assert peak < INTERNAL_LIMIT_N
+    assert held[-1].internal_force_n <= max(2.0, 0.5 * peak), [
+        round(t.internal_force_n, 2) for t in held[::10]]
