@@ -10,6 +10,8 @@ from typing import Any
 
 import yaml
 
+from coop_braid.mast import DEFAULT_STAGES, MastKind
+
 from .errors import SimError
 from .worldgen import CARD_WIDTH_M, TABLE_5_1_GAPS_M
 
@@ -85,6 +87,9 @@ class Renderer(StrEnum):
     EGL = 'egl'
 
 
+#: the longest BRAID mast the simulator carries (its IK's beam search is timed up to 20 stages,
+#: docs/results/braid.md)
+MAX_BRAID_STAGES = 20
 #: image_width x image_height x supersample^2: TinyRenderer's RGBA and depth buffers of one image
 MAX_RENDERED_PIXELS = 16_000_000
 
@@ -114,10 +119,17 @@ class SimConfig:
     real_time_factor: float = 1.0        # 0: as fast as possible
     max_linear_speed_m_s: float = 0.25   # app. D: about 25 cm/s
     max_yaw_rate_rad_s: float = 1.0
+    # the camera mast: the pan/tilt head, or a BRAID chain of braid_stages on the pan turntable
+    # (coop_braid.mast); a new BRAID state holds the camera where it was for braid_settle_s
+    # (the legs' SMA actuators switching) and then puts it where the state's FK says
+    mast: MastKind = MastKind.PAN_TILT
+    braid_stages: int = DEFAULT_STAGES
+    braid_settle_s: float = 1.0
     noise: NoiseConfig = field(default_factory=NoiseConfig)
 
     def __post_init__(self) -> None:
-        for name, kind in (('integrator', Integrator), ('renderer', Renderer)):
+        for name, kind in (('integrator', Integrator), ('renderer', Renderer),
+                           ('mast', MastKind)):
             try:
                 object.__setattr__(self, name, kind(getattr(self, name)))
             except ValueError:
@@ -148,6 +160,10 @@ class SimConfig:
              <= MAX_RENDERED_PIXELS, f'supersample^2 x image_width x image_height must be '
              f'at most {MAX_RENDERED_PIXELS:,} rendered pixels per image'),
             ('real_time_factor', 0.0 <= self.real_time_factor <= 100.0, 'must be in [0, 100]'),
+            ('braid_stages', isinstance(self.braid_stages, int)
+             and 1 <= self.braid_stages <= MAX_BRAID_STAGES,
+             f'must be an integer in [1, {MAX_BRAID_STAGES}]'),
+            ('braid_settle_s', 0.0 <= self.braid_settle_s <= 60.0, 'must be in [0, 60]'),
             ('noise.fraction', 0.0 <= self.noise.fraction <= 1.0, 'must be in [0, 1]'),
         ]
         for name, ok, why in checks:

@@ -44,6 +44,8 @@ SENSOR_MASS = 1e-3
 CARD_IN_LINK_4 = f'{CARD_OFFSET_M} 0 0'
 #: mast links: (mass, c.o.m. in the base frame at pan = tilt = 0, principal inertia)
 #: Light (50 g in all) so that the Table 2-1 inertia less the mast's is still a physical body.
+#: the stereo camera's housing (m), drawn behind the pair
+CAMERA_BOX_M = (0.04, 0.08, 0.04)
 MAST_PAN = (0.02, (MAST_POSITION[0], MAST_POSITION[1], MAST_POSITION[2] + 0.02), (1e-5,) * 3)
 MAST_TILT = (0.03, (MAST_POSITION[0] + 0.02, MAST_POSITION[1], MAST_POSITION[2] + 0.10),
              (2e-5,) * 3)
@@ -101,9 +103,10 @@ def _box(size: Sequence[float], xyz: Sequence[float] = (0, 0, 0),
 
 
 def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
-               shade: float = 0.55, damper_lag_s: float = 0.0) -> str:
+               shade: float = 0.55, damper_lag_s: float = 0.0, head: bool = True) -> str:
     """URDF text of a rover whose base has the given true parameters (damper_lag_s: see
-    base_link_inertial)."""
+    base_link_inertial). head False: the pan/tilt mast's post and camera head are not drawn
+    (a BRAID mast carries the camera, `World` draws it; the mast links keep their masses)."""
     m_b, c_b, i = base_link_inertial(params, damper_lag_s=damper_lag_s)
     r2 = params.cg_to_arm
     c = (shade, shade * 0.95, shade * 0.85, 1.0)
@@ -111,7 +114,8 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
              f'<link name="base_link"><inertial><origin xyz="{c_b[0]} {c_b[1]} {c_b[2]}"/>'
              f'<mass value="{m_b}"/><inertia ixx="{i[0, 0]}" iyy="{i[1, 1]}" '
              f'izz="{i[2, 2]}" ixy="{i[0, 1]}" ixz="{i[0, 2]}" iyz="{i[1, 2]}"/></inertial>',
-             _box((0.5, 0.36, 0.14), rgba=c), _box((0.04, 0.04, 0.4), (-0.12, -0.10, 0.2), c),
+             _box((0.5, 0.36, 0.14), rgba=c),
+             _box((0.04, 0.04, 0.4), (-0.12, -0.10, 0.2), c) if head else '',
              '</link>',
              f'<link name="ft_sensor_link">{_inertial(SENSOR_MASS, (0, 0, 0), (1e-7,) * 3)}'
              f'{_box((0.06, 0.06, 0.03), rgba=(0.2, 0.2, 0.2, 1))}</link>',
@@ -156,8 +160,8 @@ def rover_urdf(name: str, params: BaseParameters, *, with_card: bool = False,
     cx, _cy, cz = CAMERA_OFFSET
     tilt_inertial = _inertial(MAST_TILT[0], (0.02, 0, 0.06), MAST_TILT[2])
     parts.append(f'<link name="mast_tilt_link">{tilt_inertial}'
-                 + _box((0.04, 0.08, 0.04), (cx - 0.02, -STEREO_BASELINE_M / 2, cz),
-                        (0.1, 0.1, 0.1, 1)) +
+                 + (_box(CAMERA_BOX_M, (cx - 0.02, -STEREO_BASELINE_M / 2, cz),
+                         (0.1, 0.1, 0.1, 1)) if head else '') +
                  '</link>')
     parts.append('<joint name="mast_tilt" type="revolute"><parent link="mast_pan_link"/>'
                  f'<child link="mast_tilt_link"/><origin xyz="0 0 {TILT_ABOVE_PAN_M}"/>'

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pybullet as pb
 
+from coop_braid.mast import BraidMast, MastKind
 from coop_common.dynparams import BaseParameters
 from coop_common.rendering import fine_intrinsics, pixel_average, projection_matrix
 from coop_common.rover_geometry import BASE_HEIGHT_M, CARD_OFFSET_M, TRACK_M
@@ -62,7 +63,7 @@ from .sensors import (
     specific_force,
     wheel_speeds,
 )
-from .trajectory import JointTrajectoryFollower
+from .trajectory import JointTrajectoryFollower, TrajectoryError
 from .worldgen import ObstacleKind, WorldLayout, generate_world
 
 NOMINAL_HEIGHT_M = BASE_HEIGHT_M    # base c.g. above the ground at rest
@@ -197,6 +198,11 @@ class _Rover:
     gravity_start: np.ndarray | None = None  # the arm's gravity moment at the period's start
     contact: _Contact = dataclasses.field(default_factory=_Contact)
     last_contact: ContactState | None = None
+    # BRAID mast (config.mast braid): the state in effect, the commanded one and when it takes
+    # effect
+    braid_states: np.ndarray | None = None
+    braid_pending: tuple[float, np.ndarray] | None = None
+    pan_index: int = -1
 
 
 def substeps_for(params: Sequence[BaseParameters], dt: float) -> int:
@@ -302,6 +308,10 @@ class World:
             np.full(3, nz['accel'].bound), np.full(3, nz['gyro'].bound),
             np.full(3, nz['force'].bound), np.full(3, nz['torque'].bound),
             np.full(6, nz['encoder'].bound), np.full(4, nz['tach'].bound), [nz['pot'].bound]])
+        #: the BRAID mast every rover carries (config.mast braid), else None: its nominal
+        #: kinematics are also the truth (the chain is built as designed)
+        self.braid: BraidMast | None = (BraidMast.rover(config.braid_stages)
+                                        if config.mast is MastKind.BRAID else None)
         self.rovers: list[_Rover] = []
         self.substep_s = self.dt / self.substeps
         for i, (params, (x, y)) in enumerate(zip(truths, starts, strict=False)):
@@ -403,7 +413,8 @@ class World:
         # damping are the truth's
         explicit = self.integrator is Integrator.EXPLICIT
         urdf.write_text(rover_urdf(name, params, with_card=with_card,
-                                   damper_lag_s=0.5 * self.substep_s if explicit else 0.0))
+                                   damper_lag_s=0.5 * self.substep_s if explicit else 0.0,
+                                   head=self.braid is None))
         body = pb.loadURDF(str(urdf), [x, y, NOMINAL_HEIGHT_M], [0, 0, 0, 1],
                            flags=pb.URDF_USE_INERTIA_FROM_FILE, physicsClientId=c)
         joints = {}
@@ -446,6 +457,11 @@ class World:
         rover.preload = self._preload(rover)
         rover.actuated = [joints[j] for j in ARM_JOINTS]
         rover.mast_joints = [joints[j] for j in MAST_JOINTS]
+        rover.pan_index = joints[MAST_JOINTS[0]]
+        if self.braid is not None:
+            # the chain starts straight and retracted (kinematic: its few tens of grams ride on
+            # the mast links' masses, held at home; neither it nor the camera is drawn)
+            rover.braid_states = np.zeros(self.braid.n, dtype=np.int64)
         # Arm joints are driven by explicit PD torques (TORQUE_CONTROL), gains scheduled on the
         # inertia each joint drives; PyBullet's POSITION_CONTROL motors act as velocity
         # constraints whose impulses no joint torque shows. Free the default velocity motors.
@@ -739,9 +755,41 @@ class World:
     def command_mast(self, index: int, names: Sequence[str], times_s: Sequence[float],
                      positions: Sequence[Sequence[float]], start_s: float | None = None) -> None:
         r = self.rovers[index]
+        if self.braid is not None and MAST_JOINTS[1] in names:
+            raise TrajectoryError(f'{MAST_JOINTS[1]}: a BRAID mast has no tilt joint (its '
+                                  'chain pitches the camera: command_braid)')
         now = self.time_s
         r.mast.set(names, times_s, positions, now if start_s is None or start_s <= 0 else start_s,
                    r.mast.target(now)[0])
+
+    def command_braid(self, index: int, states: Sequence[int] | np.ndarray) -> float:
+        """Command rover `index`'s BRAID mast to a chain state (n stage states 0..7, base
+        first): the legs switch (coop_braid.carrier's commands, one per leg that differs) and
+        the camera moves to the state's pose `config.braid_settle_s` later (until then it stays
+        where it was). Returns the sim time it takes effect. ValueError for a pan/tilt mast or
+        a state that is not n integers in 0..7."""
+        if self.braid is None:
+            raise ValueError(f'rover {index + 1} has a {self.config.mast.value} mast, not braid')
+        arr = np.asarray(states)
+        if arr.shape != (self.braid.n,) or not np.issubdtype(arr.dtype, np.integer):
+            raise ValueError(f'BRAID state: {self.braid.n} integers (one per stage), not '
+                             f'{arr.dtype} {arr.shape}')
+        s = self.braid.chain.check_states(arr)      # BraidError (a ValueError): not in 0..7
+        at = self.time_s + self.config.braid_settle_s
+        self.rovers[index].braid_pending = (at, s.copy())
+        if self.config.braid_settle_s == 0.0:
+            self._settle_braid(self.rovers[index])
+        return at
+
+    def braid_state(self, index: int) -> np.ndarray | None:
+        """The BRAID state in effect on rover `index` (None: a pan/tilt mast)."""
+        st = self.rovers[index].braid_states
+        return None if st is None else st.copy()
+
+    def _settle_braid(self, r: _Rover) -> None:
+        if r.braid_pending is not None and self.time_s >= r.braid_pending[0] - 1e-9:
+            r.braid_states = r.braid_pending[1]
+            r.braid_pending = None
 
     def place_rover(self, index: int, x: float, y: float, yaw: float = 0.0) -> None:
         """Put rover `index` at rest at (x, y, yaw) (its chassis anchor and odometry too), arm
@@ -943,6 +991,7 @@ class World:
         if self.segment is not None:
             self.segment.close_step(self.time_s)
         for r in self.rovers:
+            self._settle_braid(r)
             # Every inertial sensor reads its mean over the control period (anti-alias
             # filter), all over the same span. The engine's velocities are those of a sub-step
             # (t_n, t_n+1), its positions those of the instants: the F/T (arm momentum) and
@@ -970,8 +1019,17 @@ class World:
 
     # ----------------------------------------------------------------- sensing
     def camera_pose(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """True left optical frame (origin, rotation) in the map frame."""
+        """True left optical frame (origin, rotation) in the map frame: the tilt link's, or
+        with a BRAID mast the pan link's (the base deflected on its compliance) times the
+        chain's forward kinematics for the state in effect."""
         r = self.rovers[index]
+        if self.braid is not None:
+            assert r.braid_states is not None
+            st = pb.getLinkState(r.body, r.pan_index, computeForwardKinematics=1,
+                                 physicsClientId=self.client)
+            t = self.braid.optical_in_pan(r.braid_states)
+            rot_p = quat_to_matrix(st[5])
+            return np.array(st[4]) + rot_p @ t[:3, 3], rot_p @ t[:3, :3]
         st = pb.getLinkState(r.body, r.tilt_index, computeForwardKinematics=1,
                              physicsClientId=self.client)
         rot_t = quat_to_matrix(st[5])
@@ -1075,11 +1133,17 @@ class World:
         base = np.array([r.odom_xy[0], r.odom_xy[1], NOMINAL_HEIGHT_M])
         rot_pan = rot_base @ rpy_to_matrix(0.0, 0.0, pan)
         p_pan = base + rot_base @ np.array(MAST_POSITION)
+        travelled = np.linalg.norm(r.odom_xy - r.anchor_xy) + 0.01
+        cov = np.diag([travelled ** 2 * 0.25] * 2 + [1e-4] + [(2 * DEG) ** 2] * 3)
+        if self.braid is not None:
+            # the binary mast has no sensor of its own: the state it was commanded to (in
+            # effect once settled) and the chain's nominal forward kinematics
+            assert r.braid_states is not None
+            t = self.braid.optical_in_pan(r.braid_states)
+            return p_pan + rot_pan @ t[:3, 3], rot_pan @ t[:3, :3], cov
         rot_tilt = rot_pan @ rpy_to_matrix(0.0, tilt, 0.0)
         p_tilt = p_pan + rot_pan @ np.array([0.0, 0.0, TILT_ABOVE_PAN_M])
         pos = p_tilt + rot_tilt @ np.array(CAMERA_OFFSET)
-        travelled = np.linalg.norm(r.odom_xy - r.anchor_xy) + 0.01
-        cov = np.diag([travelled ** 2 * 0.25] * 2 + [1e-4] + [(2 * DEG) ** 2] * 3)
         return pos, rot_tilt @ OPTICAL_IN_TILT, cov
 
     # ----------------------------------------------------------------- rendering
