@@ -11,8 +11,10 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose, WrenchStamped
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -26,13 +28,16 @@ from rclpy.task import Future
 
 from .errors import CoopCommonError
 from .params import ParamSpec, check_values
+from .rover_geometry import yaw_of
 
 __all__ = [
     'BadInputCounter',
     'NodeFailed',
     'ParamSpec',
     'declare_parameters',
+    'finite_wrench',
     'in_executor',
+    'planar_pose',
     'run_node',
     'run_nodes',
     'stamp',
@@ -149,6 +154,23 @@ class BadInputCounter:
     @property
     def total(self) -> int:
         return sum(self.counts.values())
+
+
+def finite_wrench(msg: WrenchStamped, bad: BadInputCounter) -> np.ndarray | None:
+    """An F/T reading as (fx, fy, fz, tx, ty, tz); None, counted in `bad` as 'wrench', when a
+    component is not finite."""
+    f, m = msg.wrench.force, msg.wrench.torque
+    w = np.array([f.x, f.y, f.z, m.x, m.y, m.z])
+    if np.all(np.isfinite(w)):
+        return w
+    bad.reject('wrench', 'non-finite')
+    return None
+
+
+def planar_pose(pose: Pose) -> tuple[float, float, float]:
+    """(x, y, yaw) of a pose on the ground plane (an odometry message's `pose.pose`)."""
+    q = pose.orientation
+    return pose.position.x, pose.position.y, yaw_of(q.x, q.y, q.z, q.w)
 
 
 #: set once SIGINT or SIGTERM arrived: whatever a callback raises after it is the stop (a

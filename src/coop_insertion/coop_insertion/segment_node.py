@@ -36,10 +36,17 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.lockstep_node import Lockstep
-from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
+from coop_common.node_util import (
+    BadInputCounter,
+    declare_parameters,
+    finite_wrench,
+    planar_pose,
+    run_node,
+    stamp,
+)
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, SENSOR_QOS, with_depth
-from coop_common.rover_geometry import ARM_JOINTS, NOMINAL_CG_TO_ARM, ReachError, yaw_of
+from coop_common.rover_geometry import ARM_JOINTS, NOMINAL_CG_TO_ARM, ReachError
 from coop_msgs.action import InsertSegment
 from coop_msgs.msg import PartEstimate, PartReference
 
@@ -142,16 +149,12 @@ class _CarryingRover(Node):
         self.pub_ff = self.ls.publisher(JointState, f'{r}/arm/feedforward', COMMAND_QOS)
 
     def _on_odom(self, msg: Odometry) -> None:
-        q, p = msg.pose.pose.orientation, msg.pose.pose.position
-        self.odom = (np.array([p.x, p.y]), yaw_of(q.x, q.y, q.z, q.w))
+        x, y, yaw = planar_pose(msg.pose.pose)
+        self.odom = (np.array([x, y]), yaw)
 
     def _on_wrench(self, msg: WrenchStamped) -> None:
-        f, m = msg.wrench.force, msg.wrench.torque
-        w = np.array([f.x, f.y, f.z, m.x, m.y, m.z])
-        if np.all(np.isfinite(w)):
+        if (w := finite_wrench(msg, self.bad)) is not None:
             self.wrench = w
-        else:
-            self.bad.reject('wrench', 'non-finite')
 
     def _on_joints(self, msg: JointState) -> None:
         if self.odom is None or self.wrench is None:

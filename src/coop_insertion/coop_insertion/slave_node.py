@@ -27,7 +27,14 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from coop_common.lockstep_node import Lockstep
-from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
+from coop_common.node_util import (
+    BadInputCounter,
+    declare_parameters,
+    finite_wrench,
+    planar_pose,
+    run_node,
+    stamp,
+)
 from coop_common.params import ParamSpec
 from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
 from coop_common.rover_geometry import ARM_JOINTS, NOMINAL_CG_TO_ARM, ReachError, yaw_of
@@ -168,17 +175,11 @@ class SlaveNode(Node):
 
     # -- sensing ------------------------------------------------------------------------------
     def _on_odom(self, msg: Odometry) -> None:
-        q = msg.pose.pose.orientation
-        yaw = yaw_of(q.x, q.y, q.z, q.w)
-        self.odom = (msg.pose.pose.position.x, msg.pose.pose.position.y, yaw)
+        self.odom = planar_pose(msg.pose.pose)
 
     def _on_wrench(self, msg: WrenchStamped) -> None:
-        f, m = msg.wrench.force, msg.wrench.torque
-        w = np.array([f.x, f.y, f.z, m.x, m.y, m.z])
-        if np.all(np.isfinite(w)):
+        if (w := finite_wrench(msg, self.bad)) is not None:
             self.wrench = w
-        else:
-            self.bad.reject('wrench', 'non-finite')
 
     def _on_markers(self, msg: MarkerObservation) -> None:
         if self.ctl is None or not self._started:
