@@ -48,6 +48,7 @@ from rover_sim.world import World
 from rover_sim.worldgen import ObstacleKind
 
 from .grid import FreeGray, MapError, OccupancyGrid, gray_estimate
+from .mast import BraidViews, MastKind, braid_views
 from .nbv import (
     STRATEGIES,
     CameraState,
@@ -102,9 +103,16 @@ class Fig325Config:
     # 0.5; the earlier runs)
     free_gray: FreeGray = FreeGray.EMPTY
     max_speed_m_s: float = 0.25
+    # the camera mast (issue #37): the pan/tilt head, or a BRAID chain of braid_stages whose
+    # reachable views (BRAID IK, coop_viewplan.mast) the planner proposes; the planning grid's
+    # top (the site counted stays ground to 0.8 m)
+    mast: MastKind = MastKind.PAN_TILT
+    braid_stages: int = 10
+    ceiling_m: float = 0.8
 
     def __post_init__(self) -> None:
-        for name, kind in (('pose_source', PoseSource), ('free_gray', FreeGray)):
+        for name, kind in (('pose_source', PoseSource), ('free_gray', FreeGray),
+                           ('mast', MastKind)):
             object.__setattr__(self, name, choice(kind, getattr(self, name), name))
 
 
@@ -116,6 +124,7 @@ class RoverRun:
     distance_m: float = 0.0
     poses: list = field(default_factory=list)
     failures: int = 0
+    views: list = field(default_factory=list)     # the BRAID view of each planned scan
 
 
 def _wrap(a: float) -> float:
@@ -131,7 +140,12 @@ class SimMapper:
 
         self.cfg = cfg
         sim = SimConfig(rovers=cfg.rovers, seed=seed, occlusion_density=cfg.occlusion_density,
-                        stereo_rate_hz=0.0, max_linear_speed_m_s=cfg.max_speed_m_s)
+                        stereo_rate_hz=0.0, max_linear_speed_m_s=cfg.max_speed_m_s,
+                        mast=cfg.mast, braid_stages=cfg.braid_stages)
+        #: the BRAID mast's reachable views (None: the pan/tilt head), and each rover's view
+        self.braid: BraidViews | None = (braid_views(cfg.braid_stages,
+                                                     pitches_deg=tuple(cfg.pitches_deg))
+                                         if cfg.mast is MastKind.BRAID else None)
         self.world = World(sim, [load_truth()] * cfg.rovers)
         self.mast_joints = list(MAST_JOINTS)
         k = self.world.intrinsics()
@@ -162,8 +176,12 @@ class SimMapper:
         res = cfg.resolution_m
         self.bounds = (np.floor(np.array([-half, -half, -0.1]) / res + 1e-6).astype(np.int64),
                        np.ceil(np.array([half, half, 0.8]) / res - 1e-6).astype(np.int64) - 1)
+        # the planning grid: the site up to cfg.ceiling_m (a camera above 0.8 m plans in it)
+        self.plan_bounds = (self.bounds[0], np.r_[self.bounds[1][:2], max(
+            self.bounds[1][2], int(np.ceil(cfg.ceiling_m / res - 1e-6)) - 1)])
         size = (self.bounds[1] - self.bounds[0] + 1) * res
         self.site_label = f'{size[0]:.0f} m x {size[1]:.0f} m x {size[2]:.1f} m'
+        self.views = [0] * cfg.rovers      # the BRAID view each rover's mast is in
 
     def close(self) -> None:
         self.world.close()
@@ -185,14 +203,25 @@ class SimMapper:
         fwd = rot[:, 2]
         return pos, float(math.atan2(fwd[1], fwd[0])), float(-math.asin(np.clip(fwd[2], -1, 1)))
 
-    def aim_mast(self, targets: dict[int, tuple[float, float]], *, settle_s: float = 0.8
+    def aim_mast(self, targets: dict[int, tuple[float, float, int]], *, settle_s: float = 0.8
                  ) -> None:
-        """Pan/tilt the masts so each camera heads at yaw (map) with the given pitch."""
-        for i, (yaw, pitch) in targets.items():
+        """Pan/tilt the masts so each camera heads at yaw (map) with the given pitch; with a
+        BRAID mast, command the chain to the state of view index `view` (-1: keep its state)
+        and turn the turntable so that the view's optical axis heads at yaw (its pitch is the
+        view's). settle_s covers the BRAID's settle time (SimConfig.braid_settle_s 1 s)."""
+        for i, (yaw, pitch, view) in targets.items():
             base_yaw = self.world.truth(i).anchor_yaw
-            pan = float(np.clip(_wrap(yaw - base_yaw), -3.0, 3.0))
-            tilt = float(np.clip(pitch, -1.1, 1.1))
-            self.world.command_mast(i, self.mast_joints, [0.6], [[pan, tilt]])
+            if self.braid is None:
+                pan = float(np.clip(_wrap(yaw - base_yaw), -3.0, 3.0))
+                tilt = float(np.clip(pitch, -1.1, 1.1))
+                self.world.command_mast(i, self.mast_joints, [0.6], [[pan, tilt]])
+                continue
+            if view >= 0:
+                self.world.command_braid(i, self.braid.states[view])
+                self.views[i] = view
+            head = self.braid.views[self.views[i]].heading_rad
+            pan = float(np.clip(_wrap(yaw - head - base_yaw), -3.0, 3.0))
+            self.world.command_mast(i, self.mast_joints[:1], [0.6], [[pan]])
         self.step_for(0.6 + settle_s)
 
     def drive(self, paths: Mapping[int, Sequence[np.ndarray] | np.ndarray], *,
@@ -279,12 +308,18 @@ class SimMapper:
     def grid(self) -> OccupancyGrid:
         return OccupancyGrid.from_sparse(unpack_keys(self.map.keys), self.map.probability(),
                                          resolution=self.map.resolution,
-                                         bounds_keys=self.bounds)
+                                         bounds_keys=self.plan_bounds)
 
 
 def planner_config(cfg: Fig325Config, mapper: SimMapper, camera_height_m: float) -> NbvConfig:
-    """The planner's settings for the experiment's camera and map."""
-    return NbvConfig(fov_deg=mapper.hfov_deg, vfov_deg=mapper.vfov_deg, depth_m=cfg.depth_m,
+    """The planner's settings for the experiment's camera and map (with a BRAID mast, the
+    views it reaches; camera_height_m then the lowest of them, where the rover's own voxel is
+    checked)."""
+    views = mapper.braid.views if mapper.braid is not None else ()
+    if views:
+        camera_height_m = min(v.height_m for v in views)
+    return NbvConfig(mast_views=views,
+                     fov_deg=mapper.hfov_deg, vfov_deg=mapper.vfov_deg, depth_m=cfg.depth_m,
                      n_az=24, n_el=18, step_cells=1.0, k_rel=cfg.k_rel,
                      n_positions=cfg.n_positions, n_yaw=cfg.n_yaw,
                      pitches_deg=tuple(cfg.pitches_deg), camera_height_m=camera_height_m,
@@ -305,7 +340,13 @@ def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
     with SimMapper(cfg, seed=seed) as sm:
         n = cfg.rovers
         sm.step_for(0.2)
-        sm.aim_mast({i: (sm.camera(i)[1], math.radians(cfg.initial_tilt_deg))
+        first = -1
+        if sm.braid is not None:      # the lowest view nearest the initial tilt
+            bv = sm.braid.views
+            first = min(range(len(bv)), key=lambda v: (
+                round(bv[v].height_m, 2),
+                abs(bv[v].pitch_rad - math.radians(cfg.initial_tilt_deg))))
+        sm.aim_mast({i: (sm.camera(i)[1], math.radians(cfg.initial_tilt_deg), first)
                      for i in range(n)})
         runs = []
         for i in range(n):
@@ -329,7 +370,7 @@ def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
             clear = math.ceil(cfg.clearance_m / grid.resolution) + 2
             goals: dict[int, np.ndarray] = {}
             paths: dict[int, list] = {}
-            aims: dict[int, tuple[float, float]] = {}
+            aims: dict[int, tuple[float, float, int]] = {}
             for i, r in enumerate(runs):
                 trav = base
                 for j, other in enumerate(runs):       # other rovers: where they are / go
@@ -348,7 +389,7 @@ def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
                     if log:
                         log(f'  {strategy} scan {k} rover{i + 1}: no view ({exc}); '
                             'turning on the spot')
-                    aims[i] = (r.camera.yaw + math.radians(sm.hfov_deg), r.camera.pitch)
+                    aims[i] = (r.camera.yaw + math.radians(sm.hfov_deg), r.camera.pitch, -1)
                     continue
                 claimed |= planner.expected_cells(grid, d)
                 goal = grid.to_index(d.position)[:2]
@@ -358,7 +399,8 @@ def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
                 cells = geodesic_path(nav, tuple(start), tuple(goal),
                                       resolution=grid.resolution)
                 paths[i] = waypoints(cells, grid) if len(cells) > 1 else []
-                aims[i] = (d.yaw, d.pitch)
+                aims[i] = (d.yaw, d.pitch, d.view)
+                r.views.append(d.view)
             plan_s += time.perf_counter() - tp
             moved = sm.drive(paths)
             sm.aim_mast(aims)
@@ -381,6 +423,7 @@ def run_strategy(strategy: StrategyName | str, cfg: Fig325Config, *, seed: int,
             sm.map.save(save_map)
     return {'rows': rows, 'plan_seconds': plan_s, 'seconds': time.perf_counter() - t0,
             'failures': [r.failures for r in runs], 'poses': [r.poses for r in runs],
+            'views': [r.views for r in runs],
             'obstacle_contacts': contacts, 'top_view': top}
 
 
@@ -467,7 +510,10 @@ def format_table(res: dict) -> str:
              f"{cfg['occlusion_density']:.0%}, stereo 320x240 41.2 deg, map "
              f"{cfg['resolution_m']} m, raster sweeps {cfg['raster_headings']} heading(s), poses "
              f"from {cfg['pose_source']}, NI gray of known free voxels: "
-             f"{cfg.get('free_gray', 'occupancy')}",
+             f"{cfg.get('free_gray', 'occupancy')}"
+             + (f", mast {cfg['mast']}" + (f" ({cfg['braid_stages']} stages)"
+                                           if cfg['mast'] == 'braid' else '')
+                + f", planning grid to {cfg['ceiling_m']} m" if 'mast' in cfg else ''),
              'mapped = known voxels (free + occupied) of the shared map in the site (the '
              f"planning volume, {s[names[0]]['top_view'].get('site', '')}); all = out to the "
              'stereo range; occupied = voxels holding range points, in the site']
@@ -551,6 +597,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--free-gray', choices=enum_choices(FreeGray), default=d.free_gray.value,
                    help="NI gray value of known free voxels: 'empty' 0 (the thesis's known "
                         "empty space); 'occupancy' the map's log-odds probability (earlier)")
+    p.add_argument('--mast', choices=enum_choices(MastKind), default=d.mast.value,
+                   help="the rovers' camera mast: the pan/tilt head, or BRAID (the planner "
+                        'proposes the views its IK reaches)')
+    p.add_argument('--braid-stages', type=number(int, lo=1, hi=20), default=d.braid_stages)
+    p.add_argument('--ceiling-m', type=number(lo=0.8, hi=3.0), default=d.ceiling_m,
+                   help='top of the planning grid (m); the site counted stays ground to 0.8 m')
     p.add_argument('--strategies', default='raster,max_information')
     p.add_argument('--json', type=output_path, default=None)
     p.add_argument('--plots', type=output_dir, default=None)
@@ -583,7 +635,8 @@ def main(argv: list[str] | None = None) -> int:
                        occlusion_density=a.occlusion_density, depth_m=a.depth_m,
                        n_positions=a.candidates, raster_spacing_m=a.raster_spacing_m,
                        raster_headings=a.raster_headings,
-                       p_empty=a.p_empty, pose_source=a.pose, free_gray=a.free_gray)
+                       p_empty=a.p_empty, pose_source=a.pose, free_gray=a.free_gray,
+                       mast=a.mast, braid_stages=a.braid_stages, ceiling_m=a.ceiling_m)
     log = None if a.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     res = run(cfg, strategies=names, seeds=a.seeds, log=log)

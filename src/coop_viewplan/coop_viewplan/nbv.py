@@ -185,6 +185,31 @@ def binary_entropy(p: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class MastView:
+    """A camera view a mast reaches, relative to its pan (turntable) axis: the camera's offset
+    from the axis along the turntable's heading and to its left (m), its height above the
+    ground (m), the heading of its optical axis relative to the turntable's (rad) and its
+    nose-down pitch (rad). A planner given a tuple of them (`NbvConfig.mast_views`) places
+    each candidate's camera where one of them puts it, with the turntable turned so that the
+    optical axis has the candidate's heading (issue #37: the BRAID mast's reachable views,
+    `coop_viewplan.mast`)."""
+
+    forward_m: float
+    lateral_m: float
+    height_m: float
+    heading_rad: float
+    pitch_rad: float
+
+    def __post_init__(self) -> None:
+        for name in ('forward_m', 'lateral_m', 'height_m', 'heading_rad', 'pitch_rad'):
+            if not np.isfinite(getattr(self, name)):
+                raise OptionError(f'MastView.{name} must be finite, got {getattr(self, name)}')
+        if not -np.pi / 2 < self.pitch_rad < np.pi / 2:
+            raise OptionError(f'MastView.pitch_rad must be within +-90 deg, got '
+                              f'{self.pitch_rad}')
+
+
+@dataclass(frozen=True)
 class NbvConfig:
     """Planner settings. K is given relative: moving one depth of field costs `k_rel` times the
     NI of a fully unknown, unobstructed view (so K has bits/m^n units without hand scaling)."""
@@ -226,6 +251,9 @@ class NbvConfig:
     occlusion_prior: OcclusionPrior = OcclusionPrior.DENSITY  # 'expected': unknown cells' p
     ni_floor: float = 0.0                      # max_information: skip views below this share
                                                # of the decision's best NI (0: the thesis)
+    # the views the camera's mast reaches (3-D only); empty: a pan/tilt head at
+    # camera_height_m taking every pitch of pitches_deg
+    mast_views: tuple[MastView, ...] = ()
 
     def __post_init__(self) -> None:
         """Every mode taken as its StrEnum member (OptionError naming the choices for any
@@ -234,6 +262,9 @@ class NbvConfig:
             raise OptionError(f'occupied_p must be within [0.5, 1], got {self.occupied_p}')
         if not 0.0 <= self.ni_floor < 1.0:
             raise OptionError(f'ni_floor must be within [0, 1), got {self.ni_floor}')
+        if not all(isinstance(v, MastView) for v in self.mast_views):
+            raise OptionError('mast_views must be MastView instances')
+        object.__setattr__(self, 'mast_views', tuple(self.mast_views))
         for name, kind in self._CHOICES.items():
             object.__setattr__(self, name, choice(kind, getattr(self, name), name,
                                                   error=OptionError))
@@ -269,7 +300,8 @@ class NbvConfig:
 @dataclass
 class Candidates:
     """M candidate poses: positions (M, ndim), yaw, pitch (M,), path length to reach (M,),
-    Eq. 3-11 distance d (M,), collision probability P (M,)."""
+    Eq. 3-11 distance d (M,), collision probability P (M,), and the index of the mast view
+    (`NbvConfig.mast_views`) each is taken with (M,; -1: the pan/tilt head), None: all -1."""
 
     positions: np.ndarray
     yaw: np.ndarray
@@ -277,14 +309,17 @@ class Candidates:
     path_length: np.ndarray
     distance: np.ndarray
     collision_p: np.ndarray
+    view: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.positions.shape[0])
 
     def take(self, sel: np.ndarray) -> Candidates:
-        return Candidates(*(np.asarray(a)[sel] for a in (
+        pos, yaw, pitch, path, dist, coll = (np.asarray(a)[sel] for a in (
             self.positions, self.yaw, self.pitch, self.path_length, self.distance,
-            self.collision_p)))
+            self.collision_p))
+        return Candidates(pos, yaw, pitch, path, dist, coll,
+                          view=None if self.view is None else self.view[sel])
 
 
 @dataclass
@@ -324,6 +359,13 @@ class Decision:
     @property
     def path_length(self) -> float:
         return float(self.candidates.path_length[self.index])
+
+    @property
+    def view(self) -> int:
+        """Index of the mast view (`NbvConfig.mast_views`) the chosen pose is taken with; -1:
+        the pan/tilt head."""
+        v = self.candidates.view
+        return -1 if v is None else int(v[self.index])
 
     def ranked(self) -> np.ndarray:
         return np.argsort(-self.rating, kind='stable')
@@ -681,10 +723,15 @@ class PlanContext:
         return np.hstack([xy, z])
 
     def candidates_at(self, cells2d: np.ndarray, yaws: np.ndarray | None = None) -> Candidates:
-        """All (cell, yaw, pitch) combinations, or cell-wise given yaws (one per cell)."""
+        """All (cell, yaw, pitch) combinations, or cell-wise given yaws (one per cell); with
+        `mast_views`, all (cell, yaw, view) combinations instead (each view its own camera
+        offset, height and pitch)."""
         cells2d = np.asarray(cells2d, np.int64).reshape(-1, 2)
         cfg = self.config
-        pitches = np.radians(np.asarray(cfg.pitches_deg if self.grid.ndim == 3 else (0.0,)))
+        use_mast = bool(cfg.mast_views) and self.grid.ndim == 3
+        # a mast's views carry their own pitches (below): one per (cell, heading) here
+        pitches = np.radians(np.asarray(cfg.pitches_deg if self.grid.ndim == 3 and not use_mast
+                                        else (0.0,)))
         if yaws is None:
             yaw_set = np.arange(cfg.n_yaw) * 2 * np.pi / cfg.n_yaw
             cg, yi, pi = np.meshgrid(np.arange(len(cells2d)), np.arange(len(yaw_set)),
@@ -696,6 +743,23 @@ class PlanContext:
             pitch = np.tile(pitches, len(cells2d))
         c = cells2d[ci]
         pos = self.position_of(c)
+        view = None
+        if use_mast:
+            # every (cell, heading) with each view the mast reaches, its camera where the
+            # view puts it with the turntable turned to give the optical axis that heading
+            mv = cfg.mast_views
+            nv = len(mv)
+            c, pos = np.repeat(c, nv, axis=0), np.repeat(pos, nv, axis=0)
+            yaw = np.repeat(yaw, nv)
+            view = np.tile(np.arange(nv), len(ci))
+            fwd, lat, hgt, head, pit = (np.array([getattr(v, k) for v in mv])[view] for k in (
+                'forward_m', 'lateral_m', 'height_m', 'heading_rad', 'pitch_rad'))
+            turn = yaw - head
+            pos = pos.copy()
+            pos[:, 0] += np.cos(turn) * fwd - np.sin(turn) * lat
+            pos[:, 1] += np.sin(turn) * fwd + np.cos(turn) * lat
+            pos[:, 2] = hgt
+            pitch = pit
         cur = np.r_[self.camera.position, [0.0] * (3 - self.grid.ndim),
                     self.camera.yaw, self.camera.pitch]
         new = np.hstack([pos, np.zeros((len(pos), 3 - self.grid.ndim)), yaw[:, None],
@@ -708,7 +772,7 @@ class PlanContext:
                                          self.config.alpha)
             d = np.sqrt(path ** 2 + ang ** 2)
         return Candidates(pos, yaw, pitch, path, d,
-                          self.collision_p[c[:, 0], c[:, 1]])
+                          self.collision_p[c[:, 0], c[:, 1]], view=view)
 
     def reachable_cells(self) -> np.ndarray:
         return np.argwhere(np.isfinite(self.reach) & self.placeable)

@@ -28,14 +28,17 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
+from std_msgs.msg import UInt8MultiArray
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
+from coop_braid.mast import MastKind
 from coop_common.dynparams import PARAM_NAMES, BaseParameters, TruthFileError, load_truth
 from coop_common.frames import (
     FRAME_PARAMS,
     FrameError,
     RoverFrames,
+    Transform,
     check_frame_params,
     mast_transforms,
     odom_transform,
@@ -66,6 +69,7 @@ from coop_msgs.srv import SimScenario
 
 from .compliance import matrix_to_quat, rpy_to_matrix
 from .config import (
+    MAX_BRAID_STAGES,
     SEGMENT_TRUTH_TOPIC,
     WORLD_TOPIC,
     ConfigError,
@@ -78,7 +82,7 @@ from .config import (
 )
 from .errors import SimError
 from .render_worker import RenderWorker
-from .rover_model import ARM_JOINTS, STEREO_BASELINE_M
+from .rover_model import ARM_JOINTS, CAMERA_OFFSET, OPTICAL_IN_TILT, STEREO_BASELINE_M
 from .segment import Scenario, SegmentSpec, carry_segment
 from .segment import SegmentTruth as SegmentTruth_
 from .trajectory import TrajectoryError
@@ -97,6 +101,14 @@ class _Trajectory:
     positions: list[list[float]]
     velocities: list[list[float]] | None
     start_s: float
+
+
+@dataclass(frozen=True)
+class _Braid:
+    """A checked BRAID state (one 0..7 per stage, base first) for rover `index`'s mast."""
+
+    index: int
+    states: tuple[int, ...]
 
 
 @dataclass(frozen=True)
@@ -128,7 +140,7 @@ class _Reset:
 
 
 #: what the executor hands the sim thread
-_Pending = _Trajectory | _Velocity | _Effort | _Reset
+_Pending = _Trajectory | _Velocity | _Effort | _Braid | _Reset
 
 
 def _listened(pub) -> bool:
@@ -219,6 +231,15 @@ PARAMS = {
                                lo=0.1, hi=0.4, read_only=True),
     'stage_clearance_m': ParamSpec(0.004, "Segment scenario: the channel's width less the "
                                    "segment's (m)", lo=0.0005, hi=0.05, read_only=True),
+    'mast': ParamSpec(MastKind.PAN_TILT.value, "The rovers' camera mast: the pan/tilt head, or "
+                      'a BRAID chain on the pan turntable (app. E; `mast/braid_command` sets its '
+                      'state, the camera renders from its forward kinematics)',
+                      choices=[m.value for m in MastKind], read_only=True),
+    'braid_stages': ParamSpec(10, 'Stages of the BRAID mast (3 binary legs each)', lo=1,
+                              hi=MAX_BRAID_STAGES, read_only=True),
+    'braid_settle_s': ParamSpec(1.0, 'A new BRAID state takes effect this long after its '
+                                'command (sim s: the legs switching)', lo=0.0, hi=60.0,
+                                read_only=True),
     'map_frame': ParamSpec('map', 'Common world frame id (REP 105), after frame_prefix',
                            read_only=True),
     **FRAME_PARAMS,
@@ -287,6 +308,8 @@ class SimNode(Node):
         self._last_cmd_vel: dict[int, float] = {}
         self._last_effort: dict[int, float] = {}
         self._render_note_logged: str | None = None   # the world's render_note, logged once
+        # per rover, the BRAID state last published on mast/braid_state (None: not yet)
+        self._braid_sent: list[tuple[int, ...] | None] = [None] * self.config.rovers
         self._make_interfaces()
         self._publish_latched()
         self._stop = threading.Event()
@@ -312,7 +335,8 @@ class SimNode(Node):
     #: node parameter -> SimConfig field
     _CONFIG_PARAMS = ('rovers', 'seed', 'occlusion_density', 'slot_gap_m', 'contact_friction',
                       'integrator', 'physics_substeps', 'sensor_rate_hz', 'stereo_rate_hz',
-                      'image_width', 'image_height', 'supersample')
+                      'image_width', 'image_height', 'supersample', 'mast', 'braid_stages',
+                      'braid_settle_s')
 
     def _make_world(self, config: SimConfig, truths: list[BaseParameters],
                     worker: RenderWorker | None = None) -> World:
@@ -406,6 +430,11 @@ class SimNode(Node):
             self._command(JointTrajectory, f'{n}/mast/command',
                           lambda m, i=i: self._on_traj(i, m, 'mast'))
             self._command(Twist, f'{n}/cmd_vel', lambda m, i=i: self._on_twist(i, m))
+            if self.world.braid is not None:
+                self._command(UInt8MultiArray, f'{n}/mast/braid_command',
+                              lambda m, i=i: self._on_braid(i, m))
+                pubs['braid_state'] = pub(UInt8MultiArray, f'{n}/mast/braid_state',
+                                          LATCHED_QOS)
             self._command(JointState, f'{n}/arm/feedforward',
                           lambda m, i=i: self._on_effort(i, m))
         self.world_pub = pub(MarkerArray, WORLD_TOPIC, LATCHED_QOS)
@@ -474,6 +503,17 @@ class SimNode(Node):
             return None
         start = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         return _Trajectory(index, group, names, times, positions, velocities, start)
+
+    def _on_braid(self, index: int, msg: UInt8MultiArray) -> _Braid | None:
+        """A BRAID state: one stage state 0..7 per stage (bit j - 1: leg j extended)."""
+        assert self.world.braid is not None
+        n = self.world.braid.n
+        data = list(msg.data)
+        if len(data) != n or any(v > 7 for v in data):
+            self.bad.reject('braid state', f'{len(data)} values {data[:8]}: need {n} stage '
+                            'states in 0..7')
+            return None
+        return _Braid(index, tuple(int(v) for v in data))
 
     def _on_twist(self, index: int, msg: Twist) -> _Velocity | None:
         v, w = msg.linear.x, msg.angular.z
@@ -562,6 +602,9 @@ class SimNode(Node):
                 case _Effort(index=i, torques=tau):
                     self.world.command_arm_feedforward(i, tau)
                     self._last_effort[i] = self.world.time_s
+                case _Braid(index=i, states=st):
+                    self.world.command_braid(i, np.array(st, dtype=np.int64))
+                    self._braid_sent[i] = None          # publish once it takes effect
                 case _Reset():
                     self._apply_reset(item)
                     reset = True
@@ -839,6 +882,10 @@ class SimNode(Node):
     def _publish_odom(self, i: int, pubs: dict, t: Time) -> None:
         xy, yaw, v, w = self.world.odometry(i)
         fr = self.frames[i]
+        braid = self.world.braid_state(i)
+        if braid is not None and tuple(braid) != self._braid_sent[i]:
+            self._braid_sent[i] = tuple(int(b) for b in braid)
+            pubs['braid_state'].publish(UInt8MultiArray(data=list(self._braid_sent[i])))
         if _listened(pubs['odom']):
             self._send_odom(fr, pubs['odom'], t, xy, yaw, v, w)
         if self.tree.listened:
@@ -866,7 +913,10 @@ class SimNode(Node):
         out = [odom_transform(fr, float(xy[0]), float(xy[1]), float(yaw))]
         if self._joints[i] is not None:
             try:
-                out += mast_transforms(fr, *self._joints[i])
+                mast = mast_transforms(fr, *self._joints[i])
+                if self.world.braid is not None:
+                    mast[1] = self._braid_tilt_link(i)
+                out += mast
             except FrameError as exc:
                 self.bad.reject('mast transform', str(exc))
         if self.values['truth_tf']:
@@ -878,6 +928,18 @@ class SimNode(Node):
             cam[:3, :3], cam[:3, 3] = cr, cp
             out += truth_transforms(fr, base, cam)
         self.tree.send(out, t)
+
+    def _braid_tilt_link(self, i: int) -> Transform:
+        """With a BRAID mast, the tilt link (the parent of the camera's optical frames) in the
+        pan link where the chain's nominal forward kinematics of the commanded state put the
+        optical frame: T_pan,tilt = T_pan,optical(s) T_tilt,optical^-1."""
+        assert self.world.braid is not None
+        state = self.world.braid_state(i)
+        tilt_opt = np.eye(4)
+        tilt_opt[:3, :3], tilt_opt[:3, 3] = OPTICAL_IN_TILT, CAMERA_OFFSET
+        m = self.world.braid.optical_in_pan(state) @ np.linalg.inv(tilt_opt)
+        fr = self.frames[i]
+        return Transform.from_matrix(fr.mast_pan, fr.mast_tilt, m)
 
     @staticmethod
     def _send_odom(fr: RoverFrames, pub, t: Time, xy, yaw: float, v: float, w: float) -> None:

@@ -117,3 +117,45 @@ def test_unknown_modes_are_refused_naming_the_allowed_values():
     assert Obstacle('drum', (0.0, 0.0, 0.4), 0.3, 0.8, 0.5).kind is ObstacleKind.DRUM
     with pytest.raises(SimError, match=r"kind must be one of \['rock', 'drum'\], got 'tree'"):
         Obstacle('tree', (0.0, 0.0, 0.0), 0.3, 0.8, 0.5)
+
+
+def test_braid_mast_commands_are_checked_applied_and_put_in_the_tree():
+    """mast:=braid: `mast/braid_command` takes one stage state 0..7 per stage (anything else is
+    refused, nothing applied); the state takes effect in the world, and the tree's tilt link
+    puts the optical frame where the chain's forward kinematics of that state put it."""
+    import numpy as np
+    from std_msgs.msg import UInt8MultiArray
+
+    from coop_common.testing import wait_for
+    from rover_sim.rover_model import CAMERA_OFFSET, OPTICAL_IN_TILT
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = SimNode(context=ctx, parameter_overrides=[
+        Parameter('rovers', value=1), Parameter('stereo_rate_hz', value=0.0),
+        Parameter('real_time_factor', value=0.0), Parameter('mast', value='braid'),
+        Parameter('braid_stages', value=3), Parameter('braid_settle_s', value=0.0)])
+    try:
+        assert node.world.braid is not None and node.world.braid.n == 3
+        assert node._on_braid(0, UInt8MultiArray(data=[1, 2])) is None
+        assert node._on_braid(0, UInt8MultiArray(data=[1, 2, 8])) is None
+        assert node.bad.counts['braid state'] == 2
+        item = node._on_braid(0, UInt8MultiArray(data=[1, 6, 3]))
+        assert item is not None and item.states == (1, 6, 3)
+        with node._lock:
+            node._pending.append(item)
+        wait_for(lambda: list(node.world.braid_state(0)) == [1, 6, 3], 20,
+                 what='the BRAID state in effect')
+        t = node._braid_tilt_link(0)
+        m = np.eye(4)
+        x, y, z, w = t.rotation
+        m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+        m[:3, 3] = t.translation
+        tilt_opt = np.eye(4)
+        tilt_opt[:3, :3], tilt_opt[:3, 3] = OPTICAL_IN_TILT, CAMERA_OFFSET
+        np.testing.assert_allclose(m @ tilt_opt, node.world.braid.optical_in_pan([1, 6, 3]),
+                                   atol=1e-9)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

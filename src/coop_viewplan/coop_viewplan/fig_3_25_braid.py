@@ -1,0 +1,197 @@
+"""What the BRAID mast buys in the Fig. 3-25 run (issue #37, deliverable 5): mapped voxels per
+scan with maximum-information view selection, the same worlds and planner, once with the
+rover's pan/tilt mast and once with a BRAID mast whose reachable views (BRAID IK,
+`coop_viewplan.mast`) the planner proposes.
+
+    python -m coop_viewplan.fig_3_25_braid --scans 10 --seeds 3 --json out/braid_mapping.json
+
+Each run is `fig_3_25.run_strategy('max_information', ...)` on `rover_sim`'s world: the rover
+drives to the chosen view, the mast is commanded (pan and tilt; or the turntable and the
+chain's state, which takes effect after the mast's settle time), the stereo pair is rendered
+from the camera's true pose (with BRAID the pan link times the chain's forward kinematics),
+ranged, and fused. Both masts plan in one grid up to `--ceiling-m` (1.0 m, above the BRAID's
+highest camera); the counted site is fig_3_25's (ground to 0.8 m). Scan 0 is each mast's own
+start view (the pan/tilt head at 12 deg; BRAID its lowest view nearest 12 deg), so the table
+also gives the voxels each planned scan added.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from coop_braid.mast import Tolerance
+from coop_common.cli import number, output_dir, output_path
+from coop_common.files import save_figure, write_json
+
+from .fig_3_25 import Fig325Config, run_strategy
+from .mast import PAN_HEIGHT_M, MastKind, braid_views
+
+MASTS = (MastKind.PAN_TILT, MastKind.BRAID)
+#: the tolerance the views are kept within (braid_views' default)
+TOL = Tolerance()
+STRATEGY = 'max_information'
+
+
+def run(cfg: Fig325Config, *, seeds: int, log: Callable[[str], None] | None = None
+        ) -> dict[str, Any]:
+    """Both masts over the seeds (worlds cfg.seed .. + seeds - 1): the JSON result."""
+    out: dict[str, Any] = {'config': {k: (list(v) if isinstance(v, tuple) else v)
+                                      for k, v in cfg.__dict__.items() if k != 'mast'},
+                           'seeds': seeds, 'strategy': STRATEGY, 'masts': {}}
+    bv = braid_views(cfg.braid_stages, pitches_deg=tuple(cfg.pitches_deg))
+    out['braid_views'] = [
+        {'height_m': v.height_m, 'forward_m': v.forward_m, 'lateral_m': v.lateral_m,
+         'heading_deg': math.degrees(v.heading_rad), 'pitch_deg': math.degrees(v.pitch_rad),
+         'states': s.tolist()} for v, s in zip(bv.views, bv.states, strict=True)]
+    out['braid_tried'] = [
+        {'height_above_pan_m': t.height_m, 'pitch_deg': math.degrees(t.pitch_rad),
+         'pos_err_mm': 1e3 * t.pos_err_m, 'pitch_err_deg': math.degrees(t.pitch_err_rad),
+         'roll_deg': math.degrees(t.roll_rad), 'reached': t.reached} for t in bv.tried]
+    for mast in MASTS:
+        c = Fig325Config(**{**cfg.__dict__, 'mast': mast})
+        runs = [run_strategy(STRATEGY, c, seed=cfg.seed + s, log=log) for s in range(seeds)]
+        col = {k: np.array([[r[k] for r in x['rows']] for x in runs], float)
+               for k in ('known', 'occupied', 'known_all', 'distance_m')}
+        out['masts'][mast.value] = {
+            'known_voxels_per_seed': col['known'].tolist(),
+            'known_voxels': col['known'].mean(axis=0).tolist(),
+            'known_voxels_all': col['known_all'].mean(axis=0).tolist(),
+            'occupied_voxels': col['occupied'].mean(axis=0).tolist(),
+            'distance_m': col['distance_m'].mean(axis=0).tolist(),
+            'views': [x['views'] for x in runs],
+            'poses': [x['poses'] for x in runs],
+            'failures': [x['failures'] for x in runs],
+            'plan_seconds': float(sum(x['plan_seconds'] for x in runs)),
+            'seconds': float(sum(x['seconds'] for x in runs)),
+        }
+    return out
+
+
+def format_table(res: dict[str, Any]) -> str:
+    """The printed result: mapped voxels per scan for both masts, what each planned scan added,
+    the BRAID views reached and chosen."""
+    cfg, m = res['config'], res['masts']
+    pt, br = m['pan_tilt'], m['braid']
+    seeds = res['seeds']
+    lines = [f"Fig. 3-25 run, pan/tilt vs BRAID mast ({cfg['braid_stages']} stages): rover_sim "
+             f"seed {cfg['seed']}" + (f"..{cfg['seed'] + seeds - 1} (mean)" if seeds > 1 else '')
+             + f", {cfg['rovers']} rover(s), {res['strategy']}, {cfg['n_positions']} positions "
+             f"x {cfg['n_yaw']} headings per decision, pitches {cfg['pitches_deg']} deg, "
+             f"planning grid to {cfg['ceiling_m']} m",
+             f'BRAID views (IK, kept within {1e3 * TOL.position_m:.0f} mm / '
+             f'{math.degrees(TOL.pitch_rad):.1f} deg pitch / {math.degrees(TOL.roll_rad):.0f} '
+             'deg roll of the wanted view):']
+    for t in res['braid_tried']:
+        lines.append(f"  wanted {t['height_above_pan_m'] + PAN_HEIGHT_M:.2f} m, "
+                     f"{t['pitch_deg']:4.1f} deg: residual {t['pos_err_mm']:5.1f} mm, "
+                     f"pitch {t['pitch_err_deg']:.2f} deg, roll {t['roll_deg']:5.1f} deg -> "
+                     + ('reached' if t['reached'] else 'NOT reached'))
+    lines.append('mapped = known voxels of the site (12 m x 12 m, ground to 0.8 m); new = what '
+                 'the scan added')
+    lines.append(f"{'scan':>4s} {'pan/tilt':>10s} {'BRAID':>10s} {'ratio':>6s} "
+                 f"{'new p/t':>9s} {'new BRAID':>10s}")
+    a, b = np.array(pt['known_voxels']), np.array(br['known_voxels'])
+    for k in range(len(a)):
+        da = a[k] - a[k - 1] if k else a[k]
+        db = b[k] - b[k - 1] if k else b[k]
+        lines.append(f'{k:4d} {a[k]:10.0f} {b[k]:10.0f} {b[k] / max(a[k], 1):6.2f} '
+                     f'{da:9.0f} {db:10.0f}')
+    per_a = np.array(pt['known_voxels_per_seed'])
+    per_b = np.array(br['known_voxels_per_seed'])
+    gain_a, gain_b = per_a[:, -1] - per_a[:, 0], per_b[:, -1] - per_b[:, 0]
+    lines.append('added by the planned scans, per seed: pan/tilt '
+                 + ', '.join(f'{v:.0f}' for v in gain_a) + '; BRAID '
+                 + ', '.join(f'{v:.0f}' for v in gain_b)
+                 + f' (BRAID / pan-tilt {gain_b.sum() / max(gain_a.sum(), 1):.2f})')
+    lines.append('last scan, per seed: pan/tilt ' + ', '.join(f'{v:.0f}' for v in per_a[:, -1])
+                 + '; BRAID ' + ', '.join(f'{v:.0f}' for v in per_b[:, -1]))
+    used = Counter(v for seed in br['views'] for rover in seed for v in rover)
+    bv = res['braid_views']
+    lines.append('BRAID views chosen (height m / pitch deg: scans): ' + ', '.join(
+        f"{bv[v]['height_m']:.2f}/{bv[v]['pitch_deg']:.1f}: {n}"
+        for v, n in sorted(used.items()) if v >= 0))
+    lines.append('distance moved (m): pan/tilt ' f"{pt['distance_m'][-1]:.1f}, BRAID "
+                 f"{br['distance_m'][-1]:.1f}; planning failures: pan/tilt "
+                 f"{sum(map(sum, pt['failures']))}, BRAID {sum(map(sum, br['failures']))}; "
+                 f"planning time (s): pan/tilt {pt['plan_seconds']:.0f}, BRAID "
+                 f"{br['plan_seconds']:.0f}")
+    return '\n'.join(lines)
+
+
+def plot(res: dict[str, Any], out_dir: Path) -> Path:
+    """Mapped voxels and voxels added per scan, both masts; the file written."""
+    import matplotlib  # noqa: PLC0415 - heavy, only when plots are asked for
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    for key, label in (('pan_tilt', 'pan/tilt mast'), ('braid', 'BRAID mast')):
+        v = res['masts'][key]
+        per = np.array(v['known_voxels_per_seed'])
+        ax[0].plot(per.mean(axis=0), marker='o', label=label)
+        ax[0].fill_between(range(per.shape[1]), per.min(axis=0), per.max(axis=0), alpha=0.15)
+        ax[1].plot(range(1, per.shape[1]), np.diff(per, axis=1).mean(axis=0), marker='o',
+                   label=label)
+    ax[0].set(xlabel='scan number', ylabel='known voxels in the site',
+              title='mapped voxels (mean; band: min-max over seeds)')
+    ax[1].set(xlabel='scan number', ylabel='voxels added by the scan (mean)',
+              title='what each planned scan added')
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend()
+    return save_figure(fig, out_dir / 'braid_mapping.png', dpi=110)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m coop_viewplan.fig_3_25_braid`: pan/tilt vs BRAID in the Fig. 3-25 run."""
+    p = argparse.ArgumentParser(description='Fig. 3-25 run with the pan/tilt and the BRAID '
+                                            'mast: mapped voxels per scan')
+    d = Fig325Config()
+    p.add_argument('--rovers', type=int, default=1, choices=(1, 2))
+    p.add_argument('--scans', type=number(int, lo=1), default=d.scans)
+    p.add_argument('--seed', type=number(int, lo=0), default=d.seed)
+    p.add_argument('--seeds', type=number(int, lo=1), default=3)
+    p.add_argument('--braid-stages', type=number(int, lo=1, hi=20), default=d.braid_stages)
+    p.add_argument('--ceiling-m', type=number(lo=0.8, hi=3.0), default=1.0)
+    p.add_argument('--candidates', type=number(int, lo=1), default=d.n_positions)
+    p.add_argument('--json', type=output_path, default=None)
+    p.add_argument('--plots', type=output_dir, default=None)
+    p.add_argument('--from-json', type=Path, default=None,
+                   help='print the table (and --plots) of a saved --json run')
+    p.add_argument('--quiet', action='store_true')
+    a = p.parse_args(argv)
+    if a.from_json is not None:
+        try:
+            res = json.loads(a.from_json.read_text())
+            print(format_table(res))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            p.error(f'--from-json {a.from_json}: {exc!r}')
+        if a.plots is not None:
+            print(f'plot: {plot(res, a.plots)}')
+        return 0
+    cfg = Fig325Config(rovers=a.rovers, scans=a.scans, seed=a.seed,
+                       braid_stages=a.braid_stages, ceiling_m=a.ceiling_m,
+                       n_positions=a.candidates)
+    log = None if a.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    t0 = time.perf_counter()
+    res = run(cfg, seeds=a.seeds, log=log)
+    res['seconds'] = time.perf_counter() - t0
+    print(format_table(res))
+    print(f"({res['seconds']:.0f} s)")
+    if a.plots is not None:
+        print(f'plot: {plot(res, a.plots)}')
+    if a.json is not None:
+        write_json(a.json, res, indent=1)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
