@@ -27,9 +27,11 @@ from coop_common.params import check_values, choice, parse_value
 
 from .frames import camera_pose
 from .grid import MapError, OccupancyGrid, planning_grid
+from .mast import MastKind, braid_views
 from .nbv import (
     CameraState,
     Decision,
+    MastView,
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
@@ -72,11 +74,20 @@ def node_parameters(overrides: Sequence[str] = ()) -> dict:
 
 def nbv_config(p: dict) -> NbvConfig:
     """The planner settings the node uses, from its parameter values. On the live stereo map
-    constraints (i)/(ii) follow the 'evidence' model (nbv module docstring)."""
+    constraints (i)/(ii) follow the 'evidence' model (nbv module docstring). With mast 'braid'
+    the candidates are the views the BRAID's IK reaches (`mast.braid_views`; OptionError when
+    it reaches none), the camera's own voxel checked at the lowest of them."""
+    views: tuple[MastView, ...] = ()
+    height = p['camera_height_m']
+    if choice(MastKind, p.get('mast', MastKind.PAN_TILT), 'mast') is MastKind.BRAID:
+        views = braid_views(int(p['braid_stages']),
+                            pitches_deg=tuple(float(v) for v in p['braid_pitches_deg'])).views
+        height = min(v.height_m for v in views)
     return NbvConfig(
+        mast_views=views,
         fov_deg=p['fov_deg'], depth_m=p['depth_m'], n_az=p['rays_az'], n_el=p['rays_el'],
         step_cells=1.0, k_rel=p['k_rel'], n_exp=p['n_exp'], n_positions=p['candidates'],
-        n_yaw=p['headings'], camera_height_m=p['camera_height_m'],
+        n_yaw=p['headings'], camera_height_m=height,
         clearance_m=p['clearance_m'], p_empty=p['p_empty'],
         reach_model=ReachModel.EVIDENCE,
         occupied_voxels=p['occupied_voxels'], occupied_p=p['occupied_p'],

@@ -6,6 +6,7 @@ from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.params import ParamSpec
 
 from .grid import FreeGray
+from .mast import MastKind
 from .nbv import NiMeasure
 from .placement import PrimarySpace
 
@@ -84,6 +85,16 @@ PARAMS = {
                                     'reply)',
                                     choices=tuple(PrimarySpace)),
     'seed': ParamSpec(0, 'random seed of candidate sampling', lo=0, hi=2 ** 31 - 1),
+    # issue #37: a BRAID mast's views are the ones its IK reaches (coop_viewplan.mast); the
+    # chosen one's chain state goes to <robot>/mast/braid_command
+    'mast': ParamSpec(MastKind.PAN_TILT.value, "the rovers' camera mast: the pan/tilt head "
+                      '(views at camera_height_m, pitch 0) or BRAID (the views its IK reaches, '
+                      'the chosen state commanded)', choices=tuple(MastKind), read_only=True),
+    'braid_stages': ParamSpec(10, "stages of the BRAID mast (as the simulator's)", lo=1,
+                              hi=20, read_only=True),
+    'braid_pitches_deg': ParamSpec([0.0, 20.0], 'BRAID: the nose-down pitches (deg) wanted at '
+                                   'each camera height (coop_viewplan.mast.BRAID_HEIGHTS_M)',
+                                   read_only=True),
 }
 
 
@@ -91,4 +102,8 @@ def check_params(p: dict) -> str | None:
     """The rule between the view planner's parameters: the reason they do not fit, or None."""
     if not p['task_near_m'] < p['task_far_m']:
         return f"task_near_m ({p['task_near_m']}) must be below task_far_m ({p['task_far_m']})"
+    pitches = list(p['braid_pitches_deg'])
+    if not pitches or not all(isinstance(v, (int, float)) and -60.0 <= v <= 60.0
+                              for v in pitches):
+        return f'braid_pitches_deg must be 1 or more pitches within +-60 deg, got {pitches}'
     return check_frame_params(p)

@@ -4,7 +4,10 @@ on the shared map.
 Subscribes `map/voxels` (coop_msgs/VoxelMap, latched). Services `viewplan/next_best_view`
 (coop_msgs/srv/NextBestView) and `viewplan/task_view` (coop_msgs/srv/TaskView). Bad requests
 (unknown strategy, empty map, no free candidate, target inside an obstacle) answer
-success=false with the reason.
+success=false with the reason. With `mast:=braid` the next best view is one the BRAID mast's IK
+reaches, and its chain state is published on `<robot>/mast/braid_command`
+(std_msgs/UInt8MultiArray, the request's robot; the turntable's heading offset in the reply's
+message: pan = the view's yaw - the rover's heading - that offset).
 """
 from __future__ import annotations
 
@@ -12,16 +15,19 @@ import math
 from dataclasses import replace
 
 import numpy as np
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.node import Node
+from std_msgs.msg import UInt8MultiArray
 
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.params import choice
-from coop_common.qos import LATCHED_QOS
+from coop_common.qos import COMMAND_QOS, LATCHED_QOS
 from coop_msgs.msg import ViewRating, VoxelMap
 from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import camera_pose, look_at_quaternion, optical_quaternion
 from .grid import EmptyMapError, MapError, OccupancyGrid, planning_grid
+from .mast import MastKind, braid_views
 from .nbv import CameraState, NextBestViewPlanner, PlanningError, StrategyName
 from .offline import nbv_config
 from .params import PARAMS, check_params
@@ -56,6 +62,8 @@ class ViewPlannerNode(Node):
         self.sequence = -1
         self.cameras: dict[str, CameraState] = {}
         self.expected: dict[str, tuple[int, np.ndarray]] = {}
+        self.mast = MastKind(self.p['mast'])
+        self._braid_pubs: dict[str, object] = {}     # per robot: its mast/braid_command
         self._build()
         self.create_subscription(VoxelMap, self.p['map_topic'], self._on_map, LATCHED_QOS)
         self.create_service(NextBestView, 'viewplan/next_best_view', self._on_nbv)
@@ -184,7 +192,31 @@ class ViewPlannerNode(Node):
         resp.success = True
         resp.message = (f'{strategy}: {len(c)} candidates, NI {best.new_information_bits:.3f}'
                         f' bits, d {best.distance:.2f} m')
+        if self.mast is MastKind.BRAID and d.view >= 0:
+            resp.message += self._command_braid(req.robot, d.view)
         return resp
+
+    def _command_braid(self, robot: str, view: int) -> str:
+        """Publish the chosen view's chain state to the robot's mast; what to add to the
+        reply's message."""
+        bv = braid_views(int(self.p['braid_stages']),
+                         pitches_deg=tuple(float(v) for v in self.p['braid_pitches_deg']))
+        states = [int(v) for v in bv.states[view]]
+        head = math.degrees(bv.views[view].heading_rad)
+        note = f'; BRAID state {states}, turntable offset {head:.2f} deg'
+        if not robot:
+            return note + ' (no robot named: not commanded)'
+        pub = self._braid_pubs.get(robot)
+        if pub is None:
+            try:
+                pub = self.create_publisher(UInt8MultiArray, f'{robot}/mast/braid_command',
+                                            COMMAND_QOS)
+            except InvalidTopicNameException as exc:
+                self.bad.reject('robot name', f'{robot!r}: {exc}')
+                return note + f' (robot {robot!r} is no topic name: not commanded)'
+            self._braid_pubs[robot] = pub
+        pub.publish(UInt8MultiArray(data=states))
+        return note + f' (commanded on {robot}/mast/braid_command)'
 
     @staticmethod
     def _target(msg, *, primary: bool) -> Target:

@@ -298,3 +298,46 @@ def test_task_stations_in_unknown_space_only_when_unknown_is_free(graph):
     after = {tuple(np.round(x, 6)): p
              for x, p in zip(both.positions, both.collision_p, strict=False)}
     assert all(after.get(x) == p for x, p in before.items())    # the seen ones unchanged
+
+
+def test_braid_mast_views_are_reachable_and_commanded():
+    """mast:=braid: the next best view is one the BRAID's IK reaches (its camera at one of the
+    reached views' heights and pitches) and its chain state goes to rover1/mast/braid_command."""
+    from std_msgs.msg import UInt8MultiArray
+
+    from coop_viewplan.mast import braid_views
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '0')))
+    node = ViewPlannerNode(context=ctx, parameter_overrides=[
+        Parameter('candidates', value=20), Parameter('pad_m', value=1.0),
+        Parameter('mast', value='braid'), Parameter('braid_pitches_deg', value=[0.0])])
+    client = Node('vp_braid_client', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    ex.add_node(client)
+    got = []
+    client.create_subscription(UInt8MultiArray, '/rover1/mast/braid_command',
+                               lambda m: got.append(list(m.data)), 10)
+    try:
+        bv = braid_views(10, pitches_deg=(0.0,))
+        assert len(bv.views) >= 2
+        pub = client.create_publisher(VoxelMap, '/map/voxels', LATCHED_QOS)
+        pub.publish(_voxel_map())
+        wait_for(lambda: node.grid is not None, 10.0,
+                 spin=lambda t: ex.spin_once(timeout_sec=t), what='map received')
+        r = _call(client, ex, NextBestView, '/viewplan/next_best_view', _nbv_req())
+        assert r.success, r.message
+        assert 'BRAID state' in r.message and 'commanded on rover1' in r.message
+        wait_for(lambda: bool(got), 10.0, spin=lambda t: ex.spin_once(timeout_sec=t),
+                 what='the BRAID command')
+        (view,) = [i for i, s in enumerate(bv.states) if list(s) == got[0]]
+        z = r.best.pose.pose.position.z
+        assert z == pytest.approx(bv.views[view].height_m, abs=1e-9)
+        q = r.best.pose.pose.orientation
+        fwd_z = 1 - 2 * (q.x * q.x + q.y * q.y)   # the optical axis' z: -sin(pitch)
+        assert -math.asin(fwd_z) == pytest.approx(bv.views[view].pitch_rad, abs=1e-6)
+    finally:
+        ex.shutdown()
+        client.destroy_node()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
