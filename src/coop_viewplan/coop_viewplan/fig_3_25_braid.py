@@ -90,11 +90,19 @@ def format_table(res: dict[str, Any]) -> str:
              f'BRAID views (IK, kept within {1e3 * TOL.position_m:.0f} mm / '
              f'{math.degrees(TOL.pitch_rad):.1f} deg pitch / {math.degrees(TOL.roll_rad):.0f} '
              'deg roll of the wanted view):']
+    reached = iter(res['braid_views'])
     for t in res['braid_tried']:
-        lines.append(f"  wanted {t['height_above_pan_m'] + PAN_HEIGHT_M:.2f} m, "
-                     f"{t['pitch_deg']:4.1f} deg: residual {t['pos_err_mm']:5.1f} mm, "
-                     f"pitch {t['pitch_err_deg']:.2f} deg, roll {t['roll_deg']:5.1f} deg -> "
-                     + ('reached' if t['reached'] else 'NOT reached'))
+        line = (f"  wanted {t['height_above_pan_m'] + PAN_HEIGHT_M:.2f} m, "
+                f"{t['pitch_deg']:4.1f} deg: residual {t['pos_err_mm']:5.1f} mm, "
+                f"pitch {t['pitch_err_deg']:.2f} deg, roll {t['roll_deg']:5.1f} deg -> ")
+        if t['reached']:
+            v = next(reached)
+            line += (f"reached: {v['height_m']:.3f} m, pitch {v['pitch_deg']:.2f} deg, "
+                     f"turntable offset {v['heading_deg']:5.2f} deg, camera "
+                     f"{100 * math.hypot(v['forward_m'], v['lateral_m']):.1f} cm off the axis")
+        else:
+            line += 'NOT reached'
+        lines.append(line)
     lines.append('mapped = known voxels of the site (12 m x 12 m, ground to 0.8 m); new = what '
                  'the scan added')
     lines.append(f"{'scan':>4s} {'pan/tilt':>10s} {'BRAID':>10s} {'ratio':>6s} "
