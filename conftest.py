@@ -3,6 +3,9 @@ and Ctrl-C as a terminal has it. `make test` runs the tests on two pytest-xdist 
 on its own domain, whole files to a worker, the longest graph files handed out first."""
 import os
 import signal
+from pathlib import Path
+
+import pytest
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
@@ -45,3 +48,31 @@ def pytest_collection_modifyitems(session, config, items) -> None:
         path = item.nodeid.split('::')[0]
         return FIRST.index(path) if path in FIRST else len(FIRST)
     items.sort(key=rank)      # stable: within a rank, collection order
+
+
+# --- Figures a test measures, for the results pages (coop_common.figures) ---------------------
+
+def pytest_addoption(parser) -> None:
+    parser.addoption('--figures-json', metavar='PATH', default=None,
+                     help='write the figures the tests record (the `figures` fixture) to PATH '
+                          'as JSON, for a results page')
+
+
+def pytest_configure(config) -> None:
+    from coop_common.figures import FigureLog
+    path = config.getoption('--figures-json')
+    if path and (config.getoption('numprocesses', None) or os.environ.get('PYTEST_XDIST_WORKER')):
+        raise pytest.UsageError('--figures-json: run without -n (one process keeps the records)')
+    config.coop_figures = FigureLog()
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    path = session.config.getoption('--figures-json')
+    if path:
+        session.config.coop_figures.write(Path(path))
+
+
+@pytest.fixture
+def figures(request):
+    """The session's FigureLog: `figures.add(KEY, {...})` keeps a test's measured figures."""
+    return request.config.coop_figures

@@ -22,6 +22,7 @@ from rclpy.node import Node
 from coop_common.dynparams import PARAM_NAMES, load_truth
 from coop_common.testing import NodeProcess, wait_for
 from coop_msgs.action import Identify
+from rover_hw.figures import bridge_line
 
 pytestmark = [pytest.mark.graph, pytest.mark.slow]
 
@@ -83,14 +84,14 @@ def run_hw_identification(tmp_path, *, duration_s: float, strategy: str = 'infor
             'samples': int(res.estimate.samples), 'wall_s': wall}
 
 
-def test_information_identification_through_emulator_and_bridge(tmp_path):
+def test_information_identification_through_emulator_and_bridge(tmp_path, figures):
     r = run_hw_identification(tmp_path, duration_s=DURATION_S)
     est, std, truth = r['estimate'], r['std'], r['truth']
     table = '\n'.join(f'{p:8s} {truth[i]:9.4g} {est[i]:10.4g} +- {std[i]:.2g}'
                       for i, p in enumerate(PARAM_NAMES))
-    print(f'\n{r["message"]}; {r["samples"]} samples; goal took {r["wall_s"]:.1f} s wall for '
-          f'{DURATION_S:g} s; mean abs. rel. error {100 * r["mean_abs_rel_error"]:.1f} %\n'
-          f'{table}')
+    kept = figures.add('ident_bridge', {k: r[k] for k in (
+        'message', 'samples', 'wall_s', 'mean_abs_rel_error')} | {'duration_s': DURATION_S})
+    print(f'\n{bridge_line(kept)}\n{table}')
     assert r['success'], r['message']
     assert np.all(np.isfinite(est))
     # the band test_identification_graph.py asserts through rover_sim directly

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from coop_common.dynparams import PARAM_NAMES
+from rover_hw.figures import sim_line
 
 pytestmark = pytest.mark.graph
 
@@ -20,7 +21,7 @@ DURATION_S = 20.0
 RATE_HZ = 200.0
 
 
-def test_information_identification_through_rover_sim_is_within_20_percent(tmp_path):
+def test_information_identification_through_rover_sim_is_within_20_percent(tmp_path, figures):
     from coop_id.sim_mode import run_sim_identification
     r = run_sim_identification(duration_s=DURATION_S, strategy='information', noise=0.1,
                                domain_id=int(os.environ['ROS_DOMAIN_ID']), log_dir=tmp_path,
@@ -28,8 +29,9 @@ def test_information_identification_through_rover_sim_is_within_20_percent(tmp_p
     est, std, truth = r['estimate'], r['std'], r['truth']
     table = '\n'.join(f'{p:8s} {truth[i]:9.4g} {est[i]:10.4g} +- {std[i]:.2g}'
                       for i, p in enumerate(PARAM_NAMES))
-    print(f'{r["message"]}; {r["samples"]} samples; mean abs. rel. error '
-          f'{100 * r["mean_abs_rel_error"]:.1f} %\n{table}')
+    kept = figures.add('ident_sim', {k: r[k] for k in ('message', 'samples',
+                                                       'mean_abs_rel_error')})
+    print(f'{sim_line(kept)}\n{table}')
     assert r['success'], r['message']
     # the node loses no sensor sample on the way (in lockstep every one is handed over)
     assert r['samples'] == DURATION_S * RATE_HZ + 1, r['samples']

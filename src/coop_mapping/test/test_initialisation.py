@@ -10,6 +10,7 @@ from sensor_msgs.msg import PointCloud2
 
 from coop_common.qos import LATCHED_QOS, SENSOR_QOS
 from coop_common.testing import wait_for
+from coop_mapping.figures import initialisation_lines
 from coop_mapping.render import look_at
 from coop_mapping.ros_conv import msg_to_cloud, pose_to_rt
 from coop_mapping.stereo import StereoCamera
@@ -20,7 +21,8 @@ def _rot_err(R_true, R):
     return 0.5 * np.array([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])
 
 
-def test_stereo_node_initialises_on_the_sim_site_from_a_wrong_dead_reckoned_frame(stereo_rig):
+def test_stereo_node_initialises_on_the_sim_site_from_a_wrong_dead_reckoned_frame(stereo_rig,
+                                                                                  figures):
     pytest.importorskip('pybullet')
     from coop_common.dynparams import load_truth
     from rover_sim.config import SimConfig
@@ -79,8 +81,7 @@ def test_stereo_node_initialises_on_the_sim_site_from_a_wrong_dead_reckoned_fram
     spin(0.2)
     assert len(got['target']) == 2 and len(got['alignment']) == 1
     fix_sigma = np.sqrt(np.diag(np.reshape(got['target'][1].pose.covariance, (6, 6))))[:3]
-    print(f'target fix position sigma at 1.6 m {np.round(sig0, 3)} m (largest '
-          f'{sig0.max():.3f} > 0.1: waits), at 1.0 m {np.round(fix_sigma, 3)} m')
+    frames = []
     for k, msg in enumerate(got['pose']):
         i = k + 1
         assert msg.header.frame_id == 'map' and got['cloud'][k].header.frame_id == 'map'
@@ -90,16 +91,17 @@ def test_stereo_node_initialises_on_the_sim_site_from_a_wrong_dead_reckoned_fram
         sig = np.sqrt(np.diag(cov))
         err = np.r_[t_true - t, _rot_err(R_true, R)]
         dr_err = np.linalg.norm(own[i][1] - t_true)
-        print(f'frame {i}: dead-reckoned position error {dr_err:.3f} m; common-frame '
-              f'position error {np.round(err[:3], 4)} m, rotation error '
-              f'{np.round(np.degrees(err[3:]), 2)} deg, predicted sigma '
-              f'{np.round(sig[:3], 4)} m / {np.round(np.degrees(sig[3:]), 2)} deg')
+        frames.append({'frame': i, 'dead_reckoned_m': dr_err, 'position_error_m': err[:3],
+                       'rotation_error_deg': np.degrees(err[3:]), 'sigma_m': sig[:3],
+                       'sigma_deg': np.degrees(sig[3:])})
         assert dr_err > 1.0
         assert np.all(np.abs(err) < 3 * sig), (err, sig)
     # the last cloud (markers out of view) lies where the true pose puts it
     pts, _ = msg_to_cloud(got['cloud'][-1])
     ref = node.ranger.process(*pairs[2], *truth[2]).points   # same ranger, true pose
     d = np.linalg.norm(pts - ref, axis=1)
-    print(f'frame 2 cloud: {len(pts)} points, median distance to the true-pose cloud '
-          f'{np.median(d):.3f} m')
+    print(initialisation_lines(figures.add('initialisation', {
+        'far_sigma_m': sig0, 'fix_sigma_m': fix_sigma,
+        'threshold_m': node.p['init_max_position_sigma_m'], 'frames': frames,
+        'cloud_points': len(pts), 'cloud_median_m': float(np.median(d))})))
     assert len(pts) == len(ref) and np.median(d) < 0.05
