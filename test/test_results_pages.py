@@ -78,10 +78,7 @@ PLACEHOLDER = re.compile(r'(?:^|/)[A-Z][A-Z0-9_]*\.json$')
 #: that replaces it. Emptied as they are made; an entry that matches no block fails the test, so
 #: the list cannot rot.
 SLOW = 'not run yet: the run is long on the shared cores (the page says how long)'
-OLD_SETTING = 'printed with a setting no command selects any more (the page says so)'
 QUOTED: list[tuple[str, str, str]] = [
-    ('exploration.md', 'Fig. 3-25 analogue: rover_sim seed 1..3 (mean), 2 rover(s)', SLOW),
-    ('exploration.md', 'Fig. 3-25 analogue: rover_sim seed 1..3 (mean), 2 rover(s)', SLOW),
     ('mapping.md', 'stereo: 4 frames 640x480 (sub-pixel: shift4', SLOW),
     ('mapping.md', 'res m      data   voxels       n  ours mm', SLOW),
     ('mapping.md', 'stereo: 4 frames 640x480, 1063899 points', SLOW),
@@ -94,7 +91,6 @@ QUOTED: list[tuple[str, str, str]] = [
 #: The JSON files the pages name (in `--json PATH` or a marker) that have not been made yet:
 #: the commands the QUOTED blocks are waiting for. Same rule: a file made must leave the list.
 AWAITED: set[str] = {f'docs/results/data/{name}.json' for name in (
-    'fig_3_25_2rovers', 'fig_3_25_2rovers_raster_1heading',
     'map_vs_octomap', 'map_vs_octomap_ss3', 'map_vs_octomap_sgbm', 'map_vs_octomap_equalise',
     'fig_3_24_sgbm', 'fig_3_24_sgbm_no_fusion', 'fig_3_24_sgbm_640',
     'table_4_1')}
