@@ -36,6 +36,8 @@ from .fig_3_25 import Fig325Config, run_strategy
 from .mast import PAN_HEIGHT_M, MastKind, braid_views
 
 MASTS = (MastKind.PAN_TILT, MastKind.BRAID)
+#: the control: the pan/tilt head offered the pitches of the BRAID's reached views
+MATCHED = 'pan_tilt_matched'
 #: the tolerance the views are kept within (braid_views' default)
 TOL = Tolerance()
 STRATEGY = 'max_information'
@@ -56,12 +58,16 @@ def run(cfg: Fig325Config, *, seeds: int, log: Callable[[str], None] | None = No
         {'height_above_pan_m': t.height_m, 'pitch_deg': math.degrees(t.pitch_rad),
          'pos_err_mm': 1e3 * t.pos_err_m, 'pitch_err_deg': math.degrees(t.pitch_err_rad),
          'roll_deg': math.degrees(t.roll_rad), 'reached': t.reached} for t in bv.tried]
-    for mast in MASTS:
-        c = Fig325Config(**{**cfg.__dict__, 'mast': mast})
+    matched = tuple(sorted({round(math.degrees(v.pitch_rad), 2) for v in bv.views}))
+    out['matched_pitches_deg'] = list(matched)
+    for name, mast, pitches in ((MastKind.PAN_TILT.value, MastKind.PAN_TILT, cfg.pitches_deg),
+                                (MastKind.BRAID.value, MastKind.BRAID, cfg.pitches_deg),
+                                (MATCHED, MastKind.PAN_TILT, matched)):
+        c = Fig325Config(**{**cfg.__dict__, 'mast': mast, 'pitches_deg': tuple(pitches)})
         runs = [run_strategy(STRATEGY, c, seed=cfg.seed + s, log=log) for s in range(seeds)]
         col = {k: np.array([[r[k] for r in x['rows']] for x in runs], float)
                for k in ('known', 'occupied', 'known_all', 'distance_m')}
-        out['masts'][mast.value] = {
+        out['masts'][name] = {
             'known_voxels_per_seed': col['known'].tolist(),
             'known_voxels': col['known'].mean(axis=0).tolist(),
             'known_voxels_all': col['known_all'].mean(axis=0).tolist(),
@@ -103,35 +109,44 @@ def format_table(res: dict[str, Any]) -> str:
         else:
             line += 'NOT reached'
         lines.append(line)
+    ctl = m.get(MATCHED)
     lines.append('mapped = known voxels of the site (12 m x 12 m, ground to 0.8 m); new = what '
-                 'the scan added')
-    lines.append(f"{'scan':>4s} {'pan/tilt':>10s} {'BRAID':>10s} {'ratio':>6s} "
-                 f"{'new p/t':>9s} {'new BRAID':>10s}")
+                 'the scan added' + ('; p/t matched = the pan/tilt head offered the BRAID '
+                                     "views' pitches " + str(res['matched_pitches_deg'])
+                                     + ' deg' if ctl else ''))
+    lines.append(f"{'scan':>4s} {'pan/tilt':>10s} {'BRAID':>10s} {'ratio':>6s}"
+                 + (f" {'p/t matched':>12s}" if ctl else '')
+                 + f" {'new p/t':>9s} {'new BRAID':>10s}" + (f" {'new matched':>12s}"
+                                                             if ctl else ''))
     a, b = np.array(pt['known_voxels']), np.array(br['known_voxels'])
+    c = np.array(ctl['known_voxels']) if ctl else None
     for k in range(len(a)):
-        da = a[k] - a[k - 1] if k else a[k]
-        db = b[k] - b[k - 1] if k else b[k]
-        lines.append(f'{k:4d} {a[k]:10.0f} {b[k]:10.0f} {b[k] / max(a[k], 1):6.2f} '
-                     f'{da:9.0f} {db:10.0f}')
-    per_a = np.array(pt['known_voxels_per_seed'])
-    per_b = np.array(br['known_voxels_per_seed'])
-    gain_a, gain_b = per_a[:, -1] - per_a[:, 0], per_b[:, -1] - per_b[:, 0]
-    lines.append('added by the planned scans, per seed: pan/tilt '
-                 + ', '.join(f'{v:.0f}' for v in gain_a) + '; BRAID '
-                 + ', '.join(f'{v:.0f}' for v in gain_b)
-                 + f' (BRAID / pan-tilt {gain_b.sum() / max(gain_a.sum(), 1):.2f})')
-    lines.append('last scan, per seed: pan/tilt ' + ', '.join(f'{v:.0f}' for v in per_a[:, -1])
-                 + '; BRAID ' + ', '.join(f'{v:.0f}' for v in per_b[:, -1]))
+        def new(x: np.ndarray, k: int = k) -> float:
+            return float(x[k] - x[k - 1] if k else x[k])
+        lines.append(f'{k:4d} {a[k]:10.0f} {b[k]:10.0f} {b[k] / max(a[k], 1):6.2f}'
+                     + (f' {c[k]:12.0f}' if c is not None else '')
+                     + f' {new(a):9.0f} {new(b):10.0f}'
+                     + (f' {new(c):12.0f}' if c is not None else ''))
+    per = {k: np.array(v['known_voxels_per_seed']) for k, v in m.items()}
+    gain = {k: v[:, -1] - v[:, 0] for k, v in per.items()}
+    names = {'pan_tilt': 'pan/tilt', 'braid': 'BRAID', MATCHED: 'p/t matched'}
+    lines.append('added by the planned scans, per seed: ' + '; '.join(
+        f'{names[k]} ' + ', '.join(f'{v:.0f}' for v in g) for k, g in gain.items())
+        + f" (BRAID / pan-tilt {gain['braid'].sum() / max(gain['pan_tilt'].sum(), 1):.2f}"
+        + (f", BRAID / p/t matched {gain['braid'].sum() / max(gain[MATCHED].sum(), 1):.2f}"
+           if ctl else '') + ')')
+    lines.append('last scan, per seed: ' + '; '.join(
+        f'{names[k]} ' + ', '.join(f'{x:.0f}' for x in v[:, -1]) for k, v in per.items()))
     used = Counter(v for seed in br['views'] for rover in seed for v in rover)
     bv = res['braid_views']
     lines.append('BRAID views chosen (height m / pitch deg: scans): ' + ', '.join(
         f"{bv[v]['height_m']:.2f}/{bv[v]['pitch_deg']:.1f}: {n}"
         for v, n in sorted(used.items()) if v >= 0))
-    lines.append('distance moved (m): pan/tilt ' f"{pt['distance_m'][-1]:.1f}, BRAID "
-                 f"{br['distance_m'][-1]:.1f}; planning failures: pan/tilt "
-                 f"{sum(map(sum, pt['failures']))}, BRAID {sum(map(sum, br['failures']))}; "
-                 f"planning time (s): pan/tilt {pt['plan_seconds']:.0f}, BRAID "
-                 f"{br['plan_seconds']:.0f}")
+    lines.append('distance moved (m): ' + ', '.join(
+        f"{names[k]} {v['distance_m'][-1]:.1f}" for k, v in m.items()) + '; planning failures: '
+        + ', '.join(f"{names[k]} {sum(map(sum, v['failures']))}" for k, v in m.items())
+        + '; planning time (s): ' + ', '.join(f"{names[k]} {v['plan_seconds']:.0f}"
+                                              for k, v in m.items()))
     return '\n'.join(lines)
 
 
@@ -141,7 +156,10 @@ def plot(res: dict[str, Any], out_dir: Path) -> Path:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt  # noqa: PLC0415 - heavy, only when plotting
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
-    for key, label in (('pan_tilt', 'pan/tilt mast'), ('braid', 'BRAID mast')):
+    for key, label in (('pan_tilt', 'pan/tilt mast'), ('braid', 'BRAID mast'),
+                       (MATCHED, "pan/tilt mast, the BRAID's pitches")):
+        if key not in res['masts']:
+            continue
         v = res['masts'][key]
         per = np.array(v['known_voxels_per_seed'])
         ax[0].plot(per.mean(axis=0), marker='o', label=label)
