@@ -27,7 +27,7 @@ from coop_common.params import check_values, choice, parse_value
 
 from .frames import camera_pose
 from .grid import MapError, OccupancyGrid, planning_grid
-from .mast import MastKind, braid_views
+from .mast import BraidViews, MastKind, braid_views
 from .nbv import (
     CameraState,
     Decision,
@@ -72,6 +72,13 @@ def node_parameters(overrides: Sequence[str] = ()) -> dict:
     return values
 
 
+def node_braid_views(p: dict) -> BraidViews:
+    """The BRAID mast's views from the node's parameter values (`mast.braid_views`, cached)."""
+    return braid_views(int(p['braid_stages']),
+                       heights_m=tuple(float(v) for v in p['braid_heights_m']),
+                       pitches_deg=tuple(float(v) for v in p['braid_pitches_deg']))
+
+
 def nbv_config(p: dict) -> NbvConfig:
     """The planner settings the node uses, from its parameter values. On the live stereo map
     constraints (i)/(ii) follow the 'evidence' model (nbv module docstring). With mast 'braid'
@@ -80,8 +87,7 @@ def nbv_config(p: dict) -> NbvConfig:
     views: tuple[MastView, ...] = ()
     height = p['camera_height_m']
     if choice(MastKind, p.get('mast', MastKind.PAN_TILT), 'mast') is MastKind.BRAID:
-        views = braid_views(int(p['braid_stages']),
-                            pitches_deg=tuple(float(v) for v in p['braid_pitches_deg'])).views
+        views = node_braid_views(p).views
         height = min(v.height_m for v in views)
     return NbvConfig(
         mast_views=views,

@@ -6,7 +6,7 @@ from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.params import ParamSpec
 
 from .grid import FreeGray
-from .mast import MastKind
+from .mast import BRAID_HEIGHTS_M, MastKind
 from .nbv import NiMeasure
 from .placement import PrimarySpace
 
@@ -92,9 +92,11 @@ PARAMS = {
                       'the chosen state commanded)', choices=tuple(MastKind), read_only=True),
     'braid_stages': ParamSpec(10, "stages of the BRAID mast (as the simulator's)", lo=1,
                               hi=20, read_only=True),
+    'braid_heights_m': ParamSpec(list(BRAID_HEIGHTS_M), 'BRAID: the camera heights above the '
+                                 'ground (m) wanted at each pitch (the IK keeps the ones it '
+                                 'reaches)', read_only=True),
     'braid_pitches_deg': ParamSpec([0.0, 20.0], 'BRAID: the nose-down pitches (deg) wanted at '
-                                   'each camera height (coop_viewplan.mast.BRAID_HEIGHTS_M)',
-                                   read_only=True),
+                                   'each camera height', read_only=True),
 }
 
 
@@ -106,4 +108,7 @@ def check_params(p: dict) -> str | None:
     if not pitches or not all(isinstance(v, (int, float)) and -60.0 <= v <= 60.0
                               for v in pitches):
         return f'braid_pitches_deg must be 1 or more pitches within +-60 deg, got {pitches}'
+    heights = list(p['braid_heights_m'])
+    if not heights or not all(isinstance(v, (int, float)) and 0.0 < v <= 3.0 for v in heights):
+        return f'braid_heights_m must be 1 or more heights in (0, 3] m, got {heights}'
     return check_frame_params(p)

@@ -21,15 +21,15 @@ from std_msgs.msg import UInt8MultiArray
 
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node
 from coop_common.params import choice
-from coop_common.qos import COMMAND_QOS, LATCHED_QOS
+from coop_common.qos import LATCHED_QOS
 from coop_msgs.msg import ViewRating, VoxelMap
 from coop_msgs.srv import NextBestView, TaskView
 
 from .frames import camera_pose, look_at_quaternion, optical_quaternion
 from .grid import EmptyMapError, MapError, OccupancyGrid, planning_grid
-from .mast import MastKind, braid_views
+from .mast import MastKind
 from .nbv import CameraState, NextBestViewPlanner, PlanningError, StrategyName
-from .offline import nbv_config
+from .offline import nbv_config, node_braid_views
 from .params import PARAMS, check_params
 from .placement import (
     CameraModel,
@@ -199,8 +199,7 @@ class ViewPlannerNode(Node):
     def _command_braid(self, robot: str, view: int) -> str:
         """Publish the chosen view's chain state to the robot's mast; what to add to the
         reply's message."""
-        bv = braid_views(int(self.p['braid_stages']),
-                         pitches_deg=tuple(float(v) for v in self.p['braid_pitches_deg']))
+        bv = node_braid_views(self.p)
         states = [int(v) for v in bv.states[view]]
         head = math.degrees(bv.views[view].heading_rad)
         note = f'; BRAID state {states}, turntable offset {head:.2f} deg'
@@ -209,8 +208,10 @@ class ViewPlannerNode(Node):
         pub = self._braid_pubs.get(robot)
         if pub is None:
             try:
+                # latched (as the simulator subscribes): the publisher is made at the first
+                # answer for this robot, before discovery has matched it with the mast's
                 pub = self.create_publisher(UInt8MultiArray, f'{robot}/mast/braid_command',
-                                            COMMAND_QOS)
+                                            LATCHED_QOS)
             except InvalidTopicNameException as exc:
                 self.bad.reject('robot name', f'{robot!r}: {exc}')
                 return note + f' (robot {robot!r} is no topic name: not commanded)'

@@ -310,16 +310,17 @@ def test_braid_mast_views_are_reachable_and_commanded():
     rclpy.init(context=ctx, domain_id=int(os.environ.get('ROS_DOMAIN_ID', '0')))
     node = ViewPlannerNode(context=ctx, parameter_overrides=[
         Parameter('candidates', value=20), Parameter('pad_m', value=1.0),
-        Parameter('mast', value='braid'), Parameter('braid_pitches_deg', value=[0.0])])
+        Parameter('mast', value='braid'), Parameter('braid_heights_m', value=[0.85, 0.95]),
+        Parameter('braid_pitches_deg', value=[0.0])])
     client = Node('vp_braid_client', context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     ex.add_node(client)
     got = []
     client.create_subscription(UInt8MultiArray, '/rover1/mast/braid_command',
-                               lambda m: got.append(list(m.data)), 10)
+                               lambda m: got.append(list(m.data)), LATCHED_QOS)
     try:
-        bv = braid_views(10, pitches_deg=(0.0,))
+        bv = braid_views(10, heights_m=(0.85, 0.95), pitches_deg=(0.0,))
         assert len(bv.views) >= 2
         pub = client.create_publisher(VoxelMap, '/map/voxels', LATCHED_QOS)
         pub.publish(_voxel_map())

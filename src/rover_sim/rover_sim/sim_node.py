@@ -382,10 +382,10 @@ class SimNode(Node):
         return CountingPublisher(self.create_publisher(msg_type, topic, reliable(qos, 20)),
                                  self._counts, self._count_lock)
 
-    def _command(self, msg_type, topic: str, handler) -> None:
+    def _command(self, msg_type, topic: str, handler, base_qos=COMMAND_QOS) -> None:
         """Subscribe to a command topic: `handler(msg)` gives the pending item or None (a
         rejected message); in lockstep the item waits in the inbox for its round."""
-        qos = COMMAND_QOS if self._gate is None else reliable(COMMAND_QOS)
+        qos = base_qos if self._gate is None else reliable(base_qos)
         name = self.resolve_topic_name(topic)
         if self._gate is not None:
             self._inbox.listen(name)
@@ -431,8 +431,9 @@ class SimNode(Node):
                           lambda m, i=i: self._on_traj(i, m, 'mast'))
             self._command(Twist, f'{n}/cmd_vel', lambda m, i=i: self._on_twist(i, m))
             if self.world.braid is not None:
+                # latched: a state, the last one commanded reaches a simulator that joins late
                 self._command(UInt8MultiArray, f'{n}/mast/braid_command',
-                              lambda m, i=i: self._on_braid(i, m))
+                              lambda m, i=i: self._on_braid(i, m), LATCHED_QOS)
                 pubs['braid_state'] = pub(UInt8MultiArray, f'{n}/mast/braid_state',
                                           LATCHED_QOS)
             self._command(JointState, f'{n}/arm/feedforward',
