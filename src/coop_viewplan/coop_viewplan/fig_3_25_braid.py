@@ -60,9 +60,11 @@ def run(cfg: Fig325Config, *, seeds: int, log: Callable[[str], None] | None = No
          'roll_deg': math.degrees(t.roll_rad), 'reached': t.reached} for t in bv.tried]
     matched = tuple(sorted({round(math.degrees(v.pitch_rad), 2) for v in bv.views}))
     out['matched_pitches_deg'] = list(matched)
-    for name, mast, pitches in ((MastKind.PAN_TILT.value, MastKind.PAN_TILT, cfg.pitches_deg),
-                                (MastKind.BRAID.value, MastKind.BRAID, cfg.pitches_deg),
-                                (MATCHED, MastKind.PAN_TILT, matched)):
+    runs_of = [(MastKind.PAN_TILT.value, MastKind.PAN_TILT, cfg.pitches_deg),
+               (MastKind.BRAID.value, MastKind.BRAID, cfg.pitches_deg)]
+    if any(min(abs(m - float(p)) for p in cfg.pitches_deg) > 0.1 for m in matched):
+        runs_of.append((MATCHED, MastKind.PAN_TILT, matched))   # else pan_tilt's own pitches
+    for name, mast, pitches in runs_of:
         c = Fig325Config(**{**cfg.__dict__, 'mast': mast, 'pitches_deg': tuple(pitches)})
         runs = [run_strategy(STRATEGY, c, seed=cfg.seed + s, log=log) for s in range(seeds)]
         col = {k: np.array([[r[k] for r in x['rows']] for x in runs], float)
@@ -188,6 +190,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--braid-stages', type=number(int, lo=1, hi=20), default=d.braid_stages)
     p.add_argument('--ceiling-m', type=number(lo=0.8, hi=3.0), default=1.0)
     p.add_argument('--candidates', type=number(int, lo=1), default=d.n_positions)
+    p.add_argument('--pitches-deg', default=','.join(f'{v:g}' for v in d.pitches_deg),
+                   help="the pan/tilt head's pitches and the BRAID's wanted ones (deg, "
+                        'comma-separated)')
     p.add_argument('--json', type=output_path, default=None)
     p.add_argument('--plots', type=output_dir, default=None)
     p.add_argument('--from-json', type=Path, default=None,
@@ -203,9 +208,15 @@ def main(argv: list[str] | None = None) -> int:
         if a.plots is not None:
             print(f'plot: {plot(res, a.plots)}')
         return 0
+    try:
+        pitches = tuple(float(v) for v in a.pitches_deg.split(',') if v.strip())
+    except ValueError:
+        p.error(f'--pitches-deg {a.pitches_deg!r}: comma-separated numbers')
+    if not pitches or not all(-60.0 <= v <= 60.0 for v in pitches):
+        p.error(f'--pitches-deg {a.pitches_deg!r}: 1 or more pitches within +-60 deg')
     cfg = Fig325Config(rovers=a.rovers, scans=a.scans, seed=a.seed,
                        braid_stages=a.braid_stages, ceiling_m=a.ceiling_m,
-                       n_positions=a.candidates)
+                       n_positions=a.candidates, pitches_deg=pitches)
     log = None if a.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     res = run(cfg, seeds=a.seeds, log=log)
