@@ -117,8 +117,12 @@ class Commander:
     `viewplan/task_view` and the master's `insert` (names relative to the node's
     namespace: a commander under /team_a commands team_a)."""
 
-    def __init__(self, node: Node, executor: Executor, rovers: Sequence[str]) -> None:
+    def __init__(self, node: Node, executor: Executor, rovers: Sequence[str], *,
+                 map_frame: str = 'map') -> None:
+        """map_frame: the team's map frame (team_a/map under mission.launch.py's team:=), the
+        frame of the drive goals."""
         self.node, self.ex, self.rovers = node, executor, list(rovers)
+        self.map_frame = map_frame
         # made on first use: each client's endpoints join the wait set of an executor that may
         # be a lockstep participant's, woken by every message
         self._drivers: dict[str, ActionClient] = {}
@@ -172,12 +176,13 @@ class Commander:
     # -- actions ------------------------------------------------------------------------------
     def drive(self, rover: str, xy: Sequence[float], yaw: float | None = None, *,
               via: Sequence[Sequence[float]] = (), max_speed_m_s: float = 0.0,
-              time_limit_s: float = 0.0, frame: str = 'map',
+              time_limit_s: float = 0.0, frame: str | None = None,
               on_feedback: Callable[[DriveToPose.Feedback], None] | None = None) -> GoalTask:
-        """Drive `rover` through `via` to `xy`, then to heading `yaw` (None: any heading)."""
+        """Drive `rover` through `via` to `xy`, then to heading `yaw` (None: any heading), in
+        `frame` (default: the team's map frame)."""
         g = DriveToPose.Goal(ignore_heading=yaw is None, max_speed_m_s=float(max_speed_m_s),
                              time_limit_s=float(time_limit_s))
-        g.pose.header.frame_id = frame
+        g.pose.header.frame_id = self.map_frame if frame is None else frame
         g.pose.pose.position.x, g.pose.pose.position.y = float(xy[0]), float(xy[1])
         h = 0.0 if yaw is None else float(yaw)
         g.pose.pose.orientation.z, g.pose.pose.orientation.w = math.sin(h / 2), math.cos(h / 2)

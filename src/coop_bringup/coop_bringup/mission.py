@@ -48,6 +48,7 @@ from coop_bringup.rig import (
     loop_nodes,
     mast_sweep,
     staging_poses,
+    team_namespace,
     truth_readers,
 )
 from coop_common.cli import enum_choices, number
@@ -142,6 +143,7 @@ class MissionConfig:
     live_port: int | None = None      # serve the live view (Foxglove WebSocket) on this port
     lockstep: bool = False            # the sim in lockstep with the nodes that close loops
     attach: bool = False              # the graph already launched on this domain, not ours
+    team: str = ''                    # the namespace of the whole graph, on its own clock
 
     def __post_init__(self) -> None:
         if self.attach and (self.bag or self.live_port is not None):
@@ -152,6 +154,7 @@ class MissionConfig:
             Strategy, self.identify_strategy, 'identify_strategy', error=MissionError))
         object.__setattr__(self, 'strategy', choice(StrategyName, self.strategy, 'strategy',
                                                     error=MissionError))
+        object.__setattr__(self, 'team', team_namespace(self.team))
         bad = [p for p in self.phases if p not in PHASES]
         if bad:
             raise MissionError(f'unknown phases {bad}; choose from {", ".join(PHASES)}')
@@ -214,8 +217,10 @@ class _MissionClient(Node):
     """The runner's view of the graph: odometry, masts, the map, truth (to judge by); the
     actions go through a Commander on this node."""
 
-    def __init__(self, ctx, rovers: list[str], lockstep: bool = False) -> None:
+    def __init__(self, ctx, rovers: list[str], lockstep: bool = False, *,
+                 map_frame: str = 'map') -> None:
         super().__init__('mission', context=ctx)
+        self.map_frame = map_frame
         # in lockstep the masts' commands act in the simulator's rounds (docs/design.md)
         self.ls = Lockstep(self, lockstep)
         self.rovers = rovers
@@ -265,7 +270,7 @@ class _MissionClient(Node):
         """The camera's optical pose in the map from the rover's odometry and mast encoders."""
         cam = camera_in_map(*self.odom[r], *self.mast.get(r, (0.0, 0.0)))
         msg = PoseStamped()
-        msg.header.frame_id = 'map'
+        msg.header.frame_id = self.map_frame
         p, q = msg.pose.position, msg.pose.orientation
         p.x, p.y, p.z = (float(v) for v in cam[:3, 3])
         q.x, q.y, q.z, q.w = (float(v) for v in Rotation.from_matrix(cam[:3, :3]).as_quat())
@@ -379,11 +384,13 @@ class Mission:
                               stereo_rovers=tuple(self.rovers), rovers=cfg.rovers,
                               launch_args=launch_args, lockstep=cfg.lockstep,
                               clients=('mission',), attach=cfg.attach,
-                              rough_site_m=cfg.rough_site_m) as rig:
+                              rough_site_m=cfg.rough_site_m, team=cfg.team) as rig:
                 self.rig = rig
-                self.client = _MissionClient(rig.ctx, self.rovers, cfg.lockstep)
+                self.client = _MissionClient(rig.ctx, self.rovers, cfg.lockstep,
+                                             map_frame=rig.map_frame)
                 rig.add_node(self.client)
-                self.commander = Commander(self.client, rig.ex, self.rovers)
+                self.commander = Commander(self.client, rig.ex, self.rovers,
+                                           map_frame=rig.map_frame)
                 if cfg.near_start:
                     rig.place(cfg.slot_in, np.random.default_rng(cfg.seed))
                 if cfg.lockstep:
@@ -747,6 +754,8 @@ class Mission:
         subs = self.rig.subscriptions()
         self.rep['truth_apart'] = {'nodes': len(subs), 'loop_nodes': loop_nodes(subs),
                                    'truth_readers': truth_readers(subs)}
+        # and, in a team's namespace, no name of the team's nodes crosses to another's
+        self.rep['names_apart'] = {'team': self.cfg.team, 'stray': self.rig.stray_names()}
         # the map is final: ranging on would map the slave's arm and card over the slot as an
         # obstacle at the task (the master's re-placement asks task_view again mid-insertion)
         self.rig.stop_mapping()
@@ -888,6 +897,10 @@ def main(argv: list[str] | None = None) -> int:
                         "slot, and with --lockstep: lockstep:=true clients:='insertion_rig "
                         "mission'); implies --no-bag")
     p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None)
+    p.add_argument('--team', default=d.team, metavar='NAME',
+                   help="the graph's namespace, on the team's own clock (mission.launch.py's "
+                        'team:= and clock:=team): missions side by side in one domain '
+                        '(--domain-id)')
     a = p.parse_args(argv)
     if a.attach:
         if a.domain_id is not None or a.seeds is not None or a.live is not None:
@@ -905,7 +918,7 @@ def main(argv: list[str] | None = None) -> int:
                             insert_timeout_s=a.insert_timeout, near_start=a.near_start,
                             rough_site_m=a.rough_site,
                             bag=a.bag, bag_all=a.bag_all, live_port=a.live,
-                            lockstep=a.lockstep, attach=a.attach)
+                            lockstep=a.lockstep, attach=a.attach, team=a.team)
         if a.seeds is not None:
             return _run_seeds(cfg, parse_seeds(a.seeds), a.out / (a.run_id or 'seeds'),
                               domain_id=a.domain_id)

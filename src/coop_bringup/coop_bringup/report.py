@@ -238,6 +238,28 @@ def _plots(rep: dict, out: Path, extras: dict) -> dict[str, str]:
     return files
 
 
+def format_apart(rep: dict) -> str:
+    """What the run kept apart: the simulator's truth from the loop nodes, and in a team's
+    namespace the team's names from every other team's (one line each, when measured)."""
+    lines = []
+    apart = rep.get('truth_apart')
+    if apart:
+        readers = apart['truth_readers']
+        lines.append(
+            f'Truth apart: of the graph\'s {apart["nodes"]} nodes, the '
+            f'{len(apart["loop_nodes"])} that close loops '
+            + ("read none of the simulator's truth topics." if not readers else
+               'include truth readers: ' + '; '.join(f'{n} ({", ".join(t)})'
+                                                     for n, t in readers.items()) + '.'))
+    names = rep.get('names_apart')
+    if names and names['team']:
+        stray = '; '.join(f'{n} ({", ".join(t)})' for n, t in names['stray'].items())
+        lines.append(f"Names that cross the team's namespace: {stray}." if stray else
+                     f"Names apart: every topic of the team's nodes is under /{names['team']}/ "
+                     "(ROS 2's own and the transform tree aside).")
+    return '\n'.join(lines)
+
+
 def _run_files(rep: dict) -> list[str]:
     """The bag of the run and the live view, when the mission had them."""
     lines = []
@@ -256,15 +278,7 @@ def _run_files(rep: dict) -> list[str]:
             '`rover_bag.bagio.read_messages`.')
     if rep.get('live_view'):
         lines.append(f'Live view served on {rep["live_view"]["url"]}.')
-    apart = rep.get('truth_apart')
-    if apart:
-        readers = apart['truth_readers']
-        lines.append(
-            f'Truth apart: of the graph\'s {apart["nodes"]} nodes, the '
-            f'{len(apart["loop_nodes"])} that close loops '
-            + ("read none of the simulator's truth topics." if not readers else
-               'include truth readers: ' + '; '.join(f'{n} ({", ".join(t)})'
-                                                     for n, t in readers.items()) + '.'))
+    lines += format_apart(rep).splitlines()
     return [*lines, ''] if lines else []
 
 

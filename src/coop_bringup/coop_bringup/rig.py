@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 import shutil
 import subprocess
 import tempfile
@@ -90,6 +91,58 @@ RESULT_WALL_S = 4 * 3600.0
 STALL_S = 90.0
 #: the longest wall time a recorder has to close its bag at the end (s)
 STOP_RECORD_S = 60.0
+
+
+#: a team's namespace (mission.launch.py's team:=)
+TEAM_NAME = re.compile(r'[A-Za-z]\w*(/[A-Za-z]\w*)*')
+def team_namespace(team: str) -> str:
+    """A team's namespace as mission.launch.py's team:= takes it (no leading or trailing /;
+    '' for the root), or MissionError with the rule."""
+    name = team.strip('/')
+    if name and not TEAM_NAME.fullmatch(name):
+        raise MissionError(f'team {team!r}: a namespace of letters, digits and _ (each level '
+                           'starting with a letter)')
+    return name
+
+
+#: the names every node has outside its namespace: ROS 2's own, and the transform tree, one
+#: for the whole graph as tf2 has it (a team's frames carry the team's prefix)
+SHARED_NAMES = ('/rosout', '/parameter_events', '/tf', '/tf_static')
+
+def team_nodes(node: Node, team: str) -> list[tuple[str, str]]:
+    """(name, namespace) of every node `node` discovers in namespace `team` or below it (the
+    root, '/' or '': every node of the domain)."""
+    team = team.rstrip('/')
+    return [(n, ns) for n, ns in node.get_node_names_and_namespaces()
+            if not team or ns == team or ns.startswith(f'{team}/')]
+
+
+def names_of(node: Node, name: str, ns: str, *, publishers: bool = False) -> list[str] | None:
+    """The topics one node subscribes to (and with `publishers`, publishes), sorted; None when
+    it left the graph meanwhile."""
+    try:
+        got = node.get_subscriber_names_and_types_by_node(name, ns)
+        if publishers:
+            got += node.get_publisher_names_and_types_by_node(name, ns)
+    except Exception:  # noqa: BLE001 - rclpy's NodeNameNonExistentError: it left
+        return None
+    return sorted({t for t, _ in got})
+
+
+def stray_names(node: Node, team: str) -> dict[str, list[str]]:
+    """Of the nodes in namespace `team` (full name), the topics each publishes or subscribes
+    to outside it (SHARED_NAMES aside): empty when no name crosses to another team in the
+    domain, or at the root, where none can."""
+    team = team.rstrip('/')
+    if not team:
+        return {}
+    out = {}
+    for name, ns in team_nodes(node, team):
+        stray = [t for t in names_of(node, name, ns, publishers=True) or ()
+                 if not t.startswith(f'{team}/') and t not in SHARED_NAMES]
+        if stray:
+            out[f'{ns.rstrip("/")}/{name}'] = stray
+    return out
 
 
 #: the nodes that close the insertion's and the mission's loops (by their names, in any
@@ -300,7 +353,8 @@ class InsertionRig(contextlib.AbstractContextManager):
                  slave_start_short_m: float = SLAVE_START_SHORT_M,
                  composed: bool = False, clients: tuple[str, ...] = (),
                  launch_args: dict[str, str] | None = None,
-                 rough_site_m: float = ROUGH_SITE_M, attach: bool = False) -> None:
+                 rough_site_m: float = ROUGH_SITE_M, attach: bool = False,
+                 team: str = '') -> None:
         """The graph is coop_bringup's mission.launch.py (its nodes' settings in
         config/mission.yaml), started through launch's Python API (coop_bringup.graph) with
         this rig's scenario as its arguments. stereo_rovers: whose stereo pairs the sim
@@ -319,7 +373,12 @@ class InsertionRig(contextlib.AbstractContextManager):
         but use the graph already launched on this ROS domain (`ros2 launch coop_bringup
         mission.launch.py` with the same scenario: its simulator's seed and lockstep
         participants are checked), the rig's changes to it (the sim's rendering, the stereo
-        nodes' ranging) left as they are at the end."""
+        nodes' ranging) left as they are at the end; team: the namespace of the whole graph
+        and of this rig's own nodes, on the team's own clock (mission.launch.py's team:= and
+        clock:=team): teams side by side in one domain."""
+        self.team = team_namespace(team)
+        # the team's map frame: mission.launch.py's frame_prefix for team:= ('team_a/')
+        self.map_frame = f'{self.team}/map' if self.team else 'map'
         self.seed = seed
         self.stereo_rate_hz = stereo_rate_hz
         self.rough_site_m = rough_site_m
@@ -356,6 +415,8 @@ class InsertionRig(contextlib.AbstractContextManager):
             path.write_text(yaml.safe_dump({f'/**/{node}': {'ros__parameters': values}
                                             for node, values in overrides.items()}))
             args['overrides'] = path
+        if self.team:
+            args |= {'team': self.team, 'clock': 'team'}
         args |= launch_args or {}
         self.launch_args = {k: (str(v).lower() if isinstance(v, bool) else str(v))
                             for k, v in args.items()}
@@ -372,14 +433,18 @@ class InsertionRig(contextlib.AbstractContextManager):
                                            log_dir=self.log_dir).__enter__()
                 self.graph.wait_started(self.expected, timeout_s=60)
             self.ctx = Context()
-            rclpy.init(context=self.ctx)
+            # the team's namespace and clock for every node of this context (the rig's, a
+            # mission runner's)
+            rclpy.init(context=self.ctx, args=['--ros-args', '-r', f'__ns:=/{self.team}',
+                                               '-r', f'/clock:=/{self.team}/clock']
+                       if self.team else None)
             self.node = _Client(self.ctx, self.lockstep)
             self.ex = SingleThreadedExecutor(context=self.ctx)
             self.ex.add_node(self.node)
             self._stop = threading.Event()
             self._thread = threading.Thread(target=self._spin, daemon=True)
             self._thread.start()
-            self.commander = Commander(self.node, self.ex, [])
+            self.commander = Commander(self.node, self.ex, [], map_frame=self.map_frame)
             if self.attach:
                 self._check_attached()
             if not self.commander.inserter.wait_for_server(timeout_sec=60):
@@ -516,11 +581,14 @@ class InsertionRig(contextlib.AbstractContextManager):
         """Wait `seconds` of sim time (up to 60 s + 20x that of wall time: a loaded machine
         runs the rendering sim at a real-time factor near 0.1), and at least long enough for
         a clock that stands still to be told a stall (SimStalled), not a timeout. In lockstep:
-        let the sim step that many rounds, then hold it."""
+        let the sim step that many rounds, then hold it, however long the rounds take (a
+        stall or a node that died still ends the wait): a bound in wall time would make the
+        outcome the load's (two lockstep missions side by side beside other work ran their
+        rendering sims at a real-time factor below 0.04)."""
         timeout = max(60.0 + 20.0 * seconds, STALL_S + 10.0)
         if self.lockstep:
             self.node.pacer.run(math.ceil(seconds / self.round_s - 1e-9))
-            self._wait(lambda: self.node.pacer.paused, timeout, what='sim time')
+            self._wait(lambda: self.node.pacer.paused, math.inf, what='sim time')
             return
         t0 = self.node.elapsed      # not the clock: a reset may not have reached us yet
         self._wait(lambda: self.node.elapsed >= t0 + seconds, timeout, what='sim time')
@@ -532,16 +600,19 @@ class InsertionRig(contextlib.AbstractContextManager):
             self._wait(lambda: self.node.pacer.paused, STALL_S, what='the sim held')
 
     def subscriptions(self) -> dict[str, list[str]]:
-        """Every node of the graph this rig's client discovers (its full name) and the topics
-        it subscribes to."""
+        """Every node of the team's graph this rig's client discovers (its full name) and the
+        topics it subscribes to."""
+        team = self.node.get_namespace()
         out = {}
-        for name, ns in self.node.get_node_names_and_namespaces():
-            try:
-                topics = self.node.get_subscriber_names_and_types_by_node(name, ns)
-            except Exception:  # noqa: BLE001 - rclpy's NodeNameNonExistentError: it left
-                continue
-            out[f'{ns.rstrip("/")}/{name}'] = sorted(t for t, _ in topics)
+        for name, ns in team_nodes(self.node, team):
+            topics = names_of(self.node, name, ns)
+            if topics is not None:
+                out[f'{ns.rstrip("/")}/{name}'] = topics
         return out
+
+    def stray_names(self) -> dict[str, list[str]]:
+        """The topics of this rig's team's nodes outside its namespace (module stray_names)."""
+        return stray_names(self.node, self.node.get_namespace())
 
     def get_parameters(self, node: str, *names: str) -> list:
         """Parameters of one node of the graph, as Python values."""
@@ -684,7 +755,7 @@ class InsertionRig(contextlib.AbstractContextManager):
                            max_force_n=float(max_force_n), timeout_s=float(timeout_s))
         if camera is not None:
             xy, yaw, pitch = camera
-            goal.camera_pose.header.frame_id = 'map'
+            goal.camera_pose.header.frame_id = self.map_frame
             pos, q = goal.camera_pose.pose.position, goal.camera_pose.pose.orientation
             pos.x, pos.y = float(xy[0]), float(xy[1])
             q.x, q.y, q.z, q.w = (float(v) for v in optical_quaternion(yaw, pitch))

@@ -34,6 +34,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from coop_common.frames import FRAME_PARAMS, check_prefix
 from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import BadInputCounter, declare_parameters, run_node, stamp
 from coop_common.params import ParamSpec, choice
@@ -70,6 +71,7 @@ from .triangulate import triangulate_markers
 
 PARAMS = {
     'rover': ParamSpec('rover1', 'The master rover (its topics are <rover>/...)', read_only=True),
+    'frame_prefix': FRAME_PARAMS['frame_prefix'],
     'slot_width_m': ParamSpec(TaskModel.slot_width_m, "The slot's width (the task's given, as "
                               "the slave's): it sets how far apart the slot's markers are",
                               lo=0.1080, hi=0.25),
@@ -182,6 +184,8 @@ TIME_JUMP_BACK_S = 0.5
 
 
 def _check(p: dict) -> str | None:
+    if (bad := check_prefix(p['frame_prefix'])) is not None:
+        return bad
     for name in ('site_position', 'site_normal', 'view_target_offset_m'):
         v = p[name]
         if len(v) != 3 or not all(math.isfinite(x) for x in v):
@@ -207,6 +211,8 @@ class MasterNode(Node):
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params, check_all=_check)
         self.bad = BadInputCounter(self)
         r = self.p['rover']
+        # the team's map frame (frame_prefix: team_a/map), of the poses it sends and takes
+        self.map_frame = self.p['frame_prefix'] + 'map'
         self.model = TaskModel(slot_width_m=self.p['slot_width_m'])
         self.detector = None
         self.camera: StereoCamera | None = None
@@ -511,7 +517,7 @@ class MasterNode(Node):
                           max_force_n=goal.max_force_n, timeout_s=goal.timeout_s,
                           stamp=stamp(self._now_s()))
         if self.site is not None:
-            sub.site = _pose_stamped(self.site)
+            sub.site = _pose_stamped(self.site, self.map_frame)
         phase = [Insert.Feedback.PHASE_PLACE_CAMERA]
         awaiting = [False]
         seen = (self.looked, self.tracked, self.remembered)
@@ -751,8 +757,9 @@ class MasterNode(Node):
         for every placement: they differ in the task's view)."""
         if goal.placement == Insert.Goal.PLACEMENT_GIVEN:
             pose = goal.camera_pose
-            if pose.header.frame_id not in ('', 'map'):
-                return f'camera_pose must be in the map frame, not {pose.header.frame_id!r}'
+            if pose.header.frame_id not in ('', self.map_frame):
+                return (f'camera_pose must be in the map frame {self.map_frame!r}, not '
+                        f'{pose.header.frame_id!r}')
             try:
                 return (*_optical_pose(pose.pose), 'given')
             except ValueError as exc:
@@ -781,7 +788,7 @@ class MasterNode(Node):
                                        else TaskView.Request.CHOOSE_RANDOM),
                                seed=0 if optimal else int(self.rng.integers(2**32)))
         t = TaskTarget()
-        t.header.frame_id = 'map'
+        t.header.frame_id = self.map_frame
         target = site + offset
         if card is not None:
             target = 0.5 * (target + card)
@@ -792,7 +799,7 @@ class MasterNode(Node):
         t.weight = 1.0
         req.primary = t
         sec = TaskTarget()
-        sec.header.frame_id = 'map'
+        sec.header.frame_id = self.map_frame
         sec.position.x, sec.position.y, sec.position.z = (float(v) for v in site)
         sec.normal = t.normal
         sec.radius_m = self.p['target_radius_m']
@@ -807,10 +814,10 @@ class MasterNode(Node):
                 f'{"optimal" if optimal else "random"}, {resp.message}')
 
 
-def _pose_stamped(t: np.ndarray) -> PoseStamped:
-    """A level 4x4 pose in the map as a PoseStamped (its heading about z)."""
+def _pose_stamped(t: np.ndarray, frame: str) -> PoseStamped:
+    """A level 4x4 pose in the map (frame `frame`) as a PoseStamped (its heading about z)."""
     msg = PoseStamped()
-    msg.header.frame_id = 'map'
+    msg.header.frame_id = frame
     h = math.atan2(t[1, 0], t[0, 0])
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in t[:3, 3])
     msg.pose.orientation.z, msg.pose.orientation.w = math.sin(h / 2), math.cos(h / 2)

@@ -26,6 +26,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from coop_common.frames import FRAME_PARAMS, check_prefix
 from coop_common.lockstep_node import Lockstep
 from coop_common.node_util import (
     BadInputCounter,
@@ -48,6 +49,7 @@ from .task import LABELS, LabelledMarkers, TaskModel
 PARAMS = {
     'rover': ParamSpec('rover2', 'The slave rover (its topics are <rover>/...)',
                        read_only=True),
+    'frame_prefix': FRAME_PARAMS['frame_prefix'],
     'master': ParamSpec('rover1', 'The master rover whose <master>/markers guide the card '
                         '(a goal naming another is rejected)', read_only=True),
     'lockstep': ParamSpec(False, "Answer rover_sim's lockstep rounds (a participant in its "
@@ -153,6 +155,8 @@ class SlaveNode(Node):
 
     @staticmethod
     def _check(p: dict) -> str | None:
+        if (bad := check_prefix(p['frame_prefix'])) is not None:
+            return bad
         for name in ('cg_to_arm', 'site_position'):
             v = p[name]
             if len(v) != 3 or not all(math.isfinite(x) for x in v):
@@ -273,8 +277,9 @@ class SlaveNode(Node):
         for v in (goal.tolerance_m, goal.angle_tolerance_rad, goal.max_force_n, goal.timeout_s):
             if not (math.isfinite(v) and v >= 0):
                 return GoalResponse.REJECT
-        if goal.site.header.frame_id not in ('', 'map'):
-            self.get_logger().warn(f'insert_card: the site must be in the map frame, not '
+        if goal.site.header.frame_id not in ('', self.p['frame_prefix'] + 'map'):
+            self.get_logger().warn(f'insert_card: the site must be in the map frame '
+                                   f"{self.p['frame_prefix'] + 'map'!r}, not "
                                    f'{goal.site.header.frame_id!r}; rejected')
             return GoalResponse.REJECT
         site = goal.site.pose
