@@ -81,3 +81,10 @@ def test_python_module_exists(where, args):
 def test_path_exists(where, args):
     path = ROOT / args[0]
     assert path.exists(), f'{where}: {args[0]} does not exist (after make build)'
+
+
+def test_the_root_readme_stays_short():
+    """The root README is the front page: under 8,000 characters (the rest is in the package
+    READMEs and docs/)."""
+    n = len((ROOT / 'README.md').read_text(encoding='utf-8'))
+    assert n < 8000, f'README.md has {n} characters'
