@@ -32,16 +32,8 @@ demo: build
 	@$(ENV) && python -c 'import launch_ros' 2>/dev/null || { echo "demo: the mission starts its launch file through launch, which this venv lacks: make ros2-tools ROS2_TOOLS_SRC=<bundle> (docs/install.md)" >&2; exit 1; }
 	$(ENV) && python -m coop_bringup.mission --out out
 
-# Two stages: every test but the `solo` ones on two workers, then the `solo` ones alone (a
-# lockstep graph's round waits on every participant: beside another worker's graphs the short
-# mission took 4x its time alone). Both stages always run; pytest's 5 (nothing selected, e.g.
-# PYTEST_ARGS naming one file) is no failure.
-TEST_SELECT := not known_issue and not extra
 test: build
-	$(ENV) && status=0; \
-	python -m pytest -n 2 --dist loadfile --no-loadscope-reorder -m "not solo and $(TEST_SELECT)" $(PYTEST_ARGS) || { rc=$$?; [ $$rc -eq 5 ] || status=$$rc; }; \
-	python -m pytest -m "solo and $(TEST_SELECT)" $(PYTEST_ARGS) || { rc=$$?; [ $$rc -eq 5 ] || status=$$rc; }; \
-	exit $$status
+	$(ENV) && python -m pytest -n 2 --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 
 ros2-tools: venv
 	@test -n "$(ROS2_TOOLS_SRC)" || { echo "ros2-tools: set ROS2_TOOLS_SRC to a ros2-tools bundle (docs/install.md)" >&2; exit 1; }

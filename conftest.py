@@ -38,7 +38,7 @@ signal.signal(signal.SIGINT, signal.default_int_handler)
 
 #: the graph tests that take longest, started first so that no worker ends the run alone
 #: with one of them (the rest by collection order)
-FIRST = ('test/test_lockstep_graph.py',
+FIRST = ('test/test_mission_graph.py', 'test/test_lockstep_graph.py',
          'test/test_hw_identification_graph.py', 'test/test_bag_replay.py',
          'test/test_sim_graph.py')
 

@@ -14,8 +14,7 @@ import socket
 import numpy as np
 import pytest
 
-#: `solo`: make test runs it alone, after the other tests (beside their graphs it took 4x as long)
-pytestmark = [pytest.mark.graph, pytest.mark.solo]
+pytestmark = pytest.mark.graph
 
 
 def test_a_short_mission_identifies_maps_places_and_inserts(tmp_path):
