@@ -118,6 +118,8 @@ class SlaveNode(Node):
         r = self.p['rover']
         self.r2 = np.asarray(self.p['cg_to_arm'], float)
         self.r2_source = R2Source.PARAMETER
+        # the team's map frame (frame_prefix: team_a/map), of the site it takes
+        self.map_frame = self.p['frame_prefix'] + 'map'
         self.odom: tuple[float, float, float] | None = None
         self.wrench: np.ndarray | None = None
         self.ctl: SlaveController | None = None
@@ -277,9 +279,9 @@ class SlaveNode(Node):
         for v in (goal.tolerance_m, goal.angle_tolerance_rad, goal.max_force_n, goal.timeout_s):
             if not (math.isfinite(v) and v >= 0):
                 return GoalResponse.REJECT
-        if goal.site.header.frame_id not in ('', self.p['frame_prefix'] + 'map'):
+        if goal.site.header.frame_id not in ('', self.map_frame):
             self.get_logger().warn(f'insert_card: the site must be in the map frame '
-                                   f"{self.p['frame_prefix'] + 'map'!r}, not "
+                                   f'{self.map_frame!r}, not '
                                    f'{goal.site.header.frame_id!r}; rejected')
             return GoalResponse.REJECT
         site = goal.site.pose
