@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from coop_common.qos import LATCHED_QOS
+from coop_common.qos import LATCHED_QOS, durable_overrides
 from coop_common.testing import NodeProcess, Probe
 from coop_mapping.offline import MapSettings, StereoSettings, map_from_bag, stereo_topics
 from coop_mapping.voxelmap import FREE, OCCUPIED, pack_keys, state_agreement
@@ -70,21 +70,27 @@ def test_mapping_bag_replays_into_the_nodes_as_the_offline_map(tmp_path, probe, 
     sim_time = ['-p', 'use_sim_time:=true']
     contribute = map_input == 'contributions'
     probe.listen(VoxelMapMsg, '/map/voxels', LATCHED_QOS)
-    stereo = [NodeProcess('coop_mapping', 'stereo', ['-r', f'__ns:=/{r}', *sim_time,
-                                                     '-p', f'contribute:={contribute}'],
-                          log_path=tmp_path / f'stereo_{r}.log') for r in rovers]
+    # a replay that must deliver every frame at any load: the sensor topics (and the clouds
+    # with their poses) reliable and transient local at both ends, so a node that matches its
+    # source late, or falls behind, still gets every message
+    cloud_topics = [] if contribute else [f'/{r}/{t}' for r in rovers
+                                          for t in ('stereo/points', 'camera_pose')]
+    stereo = [NodeProcess('coop_mapping', 'stereo', [
+        '-r', f'__ns:=/{r}', *sim_time, '-p', f'contribute:={contribute}',
+        *durable_overrides(stereo_topics([r]), 'subscription'),
+        *durable_overrides([t for t in cloud_topics if t.startswith(f'/{r}/')], 'publisher')],
+        log_path=tmp_path / f'stereo_{r}.log') for r in rovers]
     mapper = NodeProcess('coop_mapping', 'mapper',
                          [*sim_time, '-p', 'publish_period_s:=0.2',
-                          '-p', f'map_input:={map_input}'],
+                          '-p', f'map_input:={map_input}',
+                          *durable_overrides(cloud_topics, 'subscription')],
                          log_path=tmp_path / 'mapper.log')
     inputs = ['map_contribution'] if contribute else ['stereo/points', 'camera_pose']
     topics = "['" + "','".join(stereo_topics(rovers)) + "']"
-    # at half speed: the stereo nodes take best-effort sensor streams, and beside another
-    # test run's work (make test runs two at once) a node behind at full speed drops pairs
-    player = NodeProcess('rover_bag', 'play', ['-p', f'topics:={topics}',
-                                               '-p', 'wait_for_subscribers_s:=30.0',
-                                               '-p', 'rate:=0.5'],
-                         args=[str(bag)], log_path=tmp_path / 'play.log')
+    player = NodeProcess('rover_bag', 'play', [
+        '-p', f'topics:={topics}', '-p', 'wait_for_subscribers_s:=30.0',
+        *durable_overrides(stereo_topics(rovers), 'publisher')],
+        args=[str(bag)], log_path=tmp_path / 'play.log')
     expected = dict(offline_map.scans)
     from rover_bag.bagio import bag_info
     info = bag_info(bag)

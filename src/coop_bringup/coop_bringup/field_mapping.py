@@ -6,7 +6,9 @@ cut (coop_common.netns; root).
         --rate-mbit 2 --cut rover1:2:6 --json out/field.json
 
 Each rover host plays its own rover's recorded streams from the bag (images, camera_info,
-stereo/pose: raw sensor data that never leaves the rover) into its stereo node; the base host
+stereo/pose: raw sensor data that never leaves the rover) into its stereo node, reliable and
+transient local at both ends (QoS overrides), so that no frame is lost on a busy host (a rover
+given `--restart` keeps the best-effort streams of a camera); the base host
 runs the mapper. A rover's link is limited to `--rate-mbit`, the base's to that times the number
 of rovers (the base's radio serves them all). What crosses a rover's link is what the mapper
 subscribes: the contributions (`--map-input contributions`, the default) or the clouds and
@@ -32,9 +34,11 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from coop_common.files import write_atomic
 from coop_common.netns import FieldNetwork
+from coop_common.qos import durable_overrides
 from coop_common.testing import executable_path, pick_domain_id
 from coop_mapping.offline import STEREO_TOPIC, map_from_bag, stereo_topics
 from coop_mapping.voxelmap import MapFileError, VoxelMap, state_agreement
@@ -127,10 +131,17 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
             '-p', 'publish_period_s:=1.0']), env=env, log=out_dir / 'mapper.log')
         stereo, players = {}, {}
 
+        def durable(r: str, endpoint: Literal['publisher', 'subscription']) -> list[str]:
+            """A rover's camera streams reliable and transient local at both ends: at any
+            load, its stereo node gets every frame. Not for a rover whose node restarts: a
+            camera does not send a restarted node the frames it missed, nor may the replay."""
+            return ([] if r in {k[0] for k in restarts}
+                    else durable_overrides(stereo_topics([r]), endpoint))
+
         def start_stereo(r: str) -> None:
             stereo[r] = net.start(r, _node('coop_mapping', 'stereo', [
-                '-r', f'__ns:=/{r}', '-p', f'contribute:={contribute}']), env=env,
-                log=out_dir / f'stereo_{r}.log')
+                '-r', f'__ns:=/{r}', '-p', f'contribute:={contribute}',
+                *durable(r, 'subscription')]), env=env, log=out_dir / f'stereo_{r}.log')
         for r in rovers:
             start_stereo(r)
         kills = sorted(restarts, key=lambda k: k[1])
@@ -139,7 +150,8 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
                                     if t in info.topics) + ']'
             players[r] = net.start(r, _node('rover_bag', 'play', [
                 '-p', f'topics:={topics}', '-p', f'rate:={play_rate}',
-                '-p', 'publish_clock:=false', '-p', 'wait_for_subscribers_s:=60.0'],
+                '-p', 'publish_clock:=false', '-p', 'wait_for_subscribers_s:=60.0',
+                *durable(r, 'publisher')],
                 [str(bag)]), env=env, log=out_dir / f'play_{r}.log')
         before = net.link_bytes()
         t0 = time.monotonic()

@@ -1,6 +1,10 @@
 """QoS profiles of the graph (house style: sensor streams, latched state, commands)."""
 from __future__ import annotations
 
+import copy
+from collections.abc import Iterable
+from typing import Any, Literal
+
 from rclpy.qos import (
                        DurabilityPolicy,
                        HistoryPolicy,
@@ -8,6 +12,7 @@ from rclpy.qos import (
                        ReliabilityPolicy,
                        qos_profile_sensor_data,
 )
+from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 #: Sensor streams: best effort, keep last 5 (publishers and subscribers alike).
 SENSOR_QOS: QoSProfile = qos_profile_sensor_data
@@ -47,3 +52,31 @@ CONTRIBUTION_QOS = QoSProfile(
     depth=400, history=HistoryPolicy.KEEP_LAST,
     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
+
+
+#: what `overridable` lets a user change: rclpy's default policies and durability
+OVERRIDABLE_POLICIES = [QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY,
+                        QoSPolicyKind.DURABILITY]
+
+
+def overridable(qos: QoSProfile) -> dict[str, Any]:
+    """Keyword arguments of `create_subscription` / `create_publisher` with which ROS 2's QoS
+    overrides (read-only parameters `qos_overrides.<topic>.<publisher|subscription>.<policy>`,
+    set at start) may change `qos`. A copy: rclpy writes the overrides into the profile it is
+    given, and the profiles here are shared."""
+    return {'qos_profile': copy.copy(qos),
+            'qos_overriding_options': QoSOverridingOptions(OVERRIDABLE_POLICIES)}
+
+
+def durable_overrides(topics: Iterable[str], endpoint: Literal['publisher', 'subscription'],
+                      *, depth: int = 100) -> list[str]:
+    """`--ros-args` QoS overrides that make `topics` (resolved names) reliable and transient
+    local with history `depth`, for a replay that must deliver every message: a subscriber
+    that matches late (discovery is not symmetric: a writer may see its reader before the
+    reader sees it) still gets the last `depth` messages, and one that falls behind loses
+    none of them. Both ends need them: the player's publishers and the consumer's
+    subscriptions (a transient-local reader does not match a volatile writer)."""
+    policies = {'reliability': 'reliable', 'durability': 'transient_local',
+                'history': 'keep_last', 'depth': str(depth)}
+    return [a for t in topics for k, v in policies.items()
+            for a in ('-p', f'qos_overrides.{t}.{endpoint}.{k}:={v}')]

@@ -39,7 +39,14 @@ from std_srvs.srv import Trigger
 
 from coop_common.frames import FRAME_PARAMS, check_frame_params
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import COMMAND_QOS, CONTRIBUTION_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
+from coop_common.qos import (
+    COMMAND_QOS,
+    CONTRIBUTION_QOS,
+    LATCHED_QOS,
+    SENSOR_QOS,
+    overridable,
+    with_depth,
+)
 from coop_common.seqgaps import SequenceGaps
 from coop_msgs.msg import MapContribution, VoxelMapUpdate
 from coop_msgs.msg import VoxelMap as VoxelMapMsg
@@ -190,14 +197,16 @@ class MapperNode(Node):
                     lambda m, info, r=r: self.on_contribution(r, m, info),
                     with_depth(CONTRIBUTION_QOS, self.p['contribution_history']))
                 continue
+            # both may be overridden (qos_overrides.<topic>.subscription.<policy>), as the
+            # stereo node's publishers, for a pipeline that must not drop a cloud
             self.create_subscription(PointCloud2, f'{r}/stereo/points',
                                      lambda m, info, r=r: self.on_cloud(r, m, info),
-                                     SENSOR_QOS)
+                                     **overridable(SENSOR_QOS))
             # latched (a late mapper gets the last pose) but a stream of one pose per
             # cloud: a queue, so a busy callback does not lose the pose of a cloud
             self.create_subscription(PoseWithCovarianceStamped, f'{r}/camera_pose',
                                      lambda m, r=r: self.on_pose(r, m),
-                                     with_depth(LATCHED_QOS, 10))
+                                     **overridable(with_depth(LATCHED_QOS, 10)))
         self.create_service(MapFile, 'map/save', self.srv_save)
         self.create_service(MapFile, 'map/load', self.srv_load)
         self.create_service(QueryMap, 'map/query', self.srv_query)

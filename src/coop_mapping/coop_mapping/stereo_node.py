@@ -39,7 +39,13 @@ from std_msgs.msg import Header
 
 from coop_common.frames import FRAME_PARAMS, RoverFrames, Transform, check_frame_params, quat_of
 from coop_common.node_util import BadInputCounter, ParamSpec, declare_parameters, run_node
-from coop_common.qos import CONTRIBUTION_QOS, LATCHED_QOS, SENSOR_QOS, with_depth
+from coop_common.qos import (
+    CONTRIBUTION_QOS,
+    LATCHED_QOS,
+    SENSOR_QOS,
+    overridable,
+    with_depth,
+)
 from coop_common.tf_tree import TreeBroadcaster
 from coop_msgs.msg import MapContribution
 
@@ -176,9 +182,12 @@ class StereoNode(Node):
         self.ranger: StereoRanger | None = None
         self.buf: dict[str, OrderedDict[int, object]] = {
             'left': OrderedDict(), 'right': OrderedDict(), 'pose': OrderedDict()}
-        self.pub_cloud = self.create_publisher(PointCloud2, 'stereo/points', SENSOR_QOS)
+        # QoS overrides (qos_overrides.<topic>.publisher.<policy>) may change both, as on
+        # the sensor inputs below
+        self.pub_cloud = self.create_publisher(PointCloud2, 'stereo/points',
+                                               **overridable(SENSOR_QOS))
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'camera_pose',
-                                              LATCHED_QOS)
+                                              **overridable(LATCHED_QOS))
         # the rover's place in the map (REP 105's map -> odom), from what this node estimates:
         # stereo/pose's frame is the rover's odometry frame, and the map is where `initialise`
         # found the target or the fiducials put the camera; without either the two are one
@@ -195,16 +204,18 @@ class StereoNode(Node):
             self.create_timer(1.0 / self.p['tf_rate_hz'], self._send_tree)
         elif self.map_from_odom is not None:
             self._send_static_tree()
+        # sensor streams, whose QoS a replay that must not drop a frame overrides
+        # (coop_common.qos.durable_overrides)
         self.create_subscription(Image, 'stereo/left/image_raw',
-                                 lambda m: self._put('left', m), SENSOR_QOS)
+                                 lambda m: self._put('left', m), **overridable(SENSOR_QOS))
         self.create_subscription(Image, 'stereo/right/image_raw',
-                                 lambda m: self._put('right', m), SENSOR_QOS)
+                                 lambda m: self._put('right', m), **overridable(SENSOR_QOS))
         self.create_subscription(CameraInfo, 'stereo/left/camera_info',
-                                 lambda m: self._info('left', m), SENSOR_QOS)
+                                 lambda m: self._info('left', m), **overridable(SENSOR_QOS))
         self.create_subscription(CameraInfo, 'stereo/right/camera_info',
-                                 lambda m: self._info('right', m), SENSOR_QOS)
+                                 lambda m: self._info('right', m), **overridable(SENSOR_QOS))
         self.create_subscription(PoseWithCovarianceStamped, 'stereo/pose',
-                                 lambda m: self._put('pose', m), SENSOR_QOS)
+                                 lambda m: self._put('pose', m), **overridable(SENSOR_QOS))
         self.frames = 0
         self.contributions = 0
         if self.p['contribute']:

@@ -23,7 +23,7 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 
 from coop_common.node_util import ParamSpec, declare_parameters
-from coop_common.qos import CLOCK_QOS
+from coop_common.qos import CLOCK_QOS, overridable
 
 from .bagio import bag_info, read_messages
 from .cli import spin_until_stopped
@@ -90,8 +90,10 @@ class Player(Node):
             qos = qos_profile(choice)
             if choice.transient_local:
                 self.latched.add(name)
+            # QoS overrides (qos_overrides.<topic>.publisher.<policy>) may change it
             self.pubs[name] = self.create_publisher(message_class(topic.msgtype),
-                                                    play_topic(remap_topic(name, rules)), qos)
+                                                    play_topic(remap_topic(name, rules)),
+                                                    **overridable(qos))
         if not self.pubs:
             raise ValueError(f'nothing to play in {p["bag"]}')
         self.lateness: deque[float] = deque(maxlen=200_000)   # recent, bounded when looping
