@@ -51,7 +51,11 @@ ROVER_NODES = {'stereo', 'identifier', 'driver'}
 
 @pytest.fixture(scope='module')
 def ros2():
-    return ros2_tools()
+    """The `ros2` command. `ros2 action send_goal` (and other verbs that query the graph) start
+    ros2cli's daemon for the domain, which outlives them: stopped once the tests are done."""
+    tool = ros2_tools()
+    yield tool
+    subprocess.run([tool, 'daemon', 'stop'], check=False, capture_output=True, timeout=60)
 
 
 class Launch:
@@ -480,7 +484,7 @@ def test_the_team_publishes_one_tree_that_holds_every_stamped_frame(ros2, graph_
                  <= {(t.header.frame_id, t.child_frame_id) for t in static}, 30.0, spin=spin,
                  what='map -> odom on /tf_static')
         # the simulator's message: the one with the rovers' links (the stereo nodes' hold one)
-        out = subprocess.run([ros2, 'topic', 'echo', '--once', '--qos-durability',
+        out = subprocess.run([ros2, 'topic', 'echo', '--once', '--no-daemon', '--qos-durability',
                               'transient_local', '--qos-reliability', 'reliable',
                               '--filter', 'len(m.transforms) > 1', '/tf_static',
                               'tf2_msgs/msg/TFMessage'],
