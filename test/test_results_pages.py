@@ -80,13 +80,12 @@ PLACEHOLDER = re.compile(r'(?:^|/)[A-Z][A-Z0-9_]*\.json$')
 SLOW = 'not run yet: the run is long on the shared cores (the page says how long)'
 QUOTED: list[tuple[str, str, str]] = [
     ('mapping.md', 'res m      data   voxels       n  ours mm', SLOW),
-    ('mapping.md', 'stereo: 4 frames 640x480, 1063899 points', SLOW),
     ('mapping.md', 'res m      data   voxels       n  ours mm', SLOW),
 ]
 #: The JSON files the pages name (in `--json PATH` or a marker) that have not been made yet:
 #: the commands the QUOTED blocks are waiting for. Same rule: a file made must leave the list.
 AWAITED: set[str] = {f'docs/results/data/{name}.json' for name in (
-    'map_vs_octomap_ss3', 'map_vs_octomap_sgbm', 'map_vs_octomap_equalise')}
+    'map_vs_octomap_ss3', 'map_vs_octomap_equalise')}
 
 
 def _pages() -> list[Path]:
