@@ -77,15 +77,10 @@ PLACEHOLDER = re.compile(r'(?:^|/)[A-Z][A-Z0-9_]*\.json$')
 #: starts, why). The text before each says which command makes its JSON and the generated marker
 #: that replaces it. Emptied as they are made; an entry that matches no block fails the test, so
 #: the list cannot rot.
-SLOW = 'not run yet: the run is long on the shared cores (the page says how long)'
-QUOTED: list[tuple[str, str, str]] = [
-    ('mapping.md', 'res m      data   voxels       n  ours mm', SLOW),
-    ('mapping.md', 'res m      data   voxels       n  ours mm', SLOW),
-]
+QUOTED: list[tuple[str, str, str]] = []
 #: The JSON files the pages name (in `--json PATH` or a marker) that have not been made yet:
 #: the commands the QUOTED blocks are waiting for. Same rule: a file made must leave the list.
-AWAITED: set[str] = {f'docs/results/data/{name}.json' for name in (
-    'map_vs_octomap_ss3', 'map_vs_octomap_equalise')}
+AWAITED: set[str] = set()
 
 
 def _pages() -> list[Path]:
