@@ -11,19 +11,19 @@ os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 os.environ.setdefault('MPLBACKEND', 'Agg')
 
-from coop_common.testing import isolate_ros_environment
+from coop_common.testing import free_domain_id, isolate_ros_environment
 
 
 def _domain_id() -> int | None:
-    """COOP_TEST_DOMAIN_ID, or for an xdist worker (gw0, gw1, ...) one of the run's own: its
-    controller's pid picks the run's ids, the worker's number one of them (None: from the pid,
-    isolate_ros_environment's pick)."""
+    """COOP_TEST_DOMAIN_ID, or for an xdist worker (gw0, gw1, ...) one of the run's own: from
+    its controller's pid on, the worker's number picks one of the domains no other run on the
+    machine uses (free_domain_id; None: isolate_ros_environment's pick from this pid)."""
     if 'COOP_TEST_DOMAIN_ID' in os.environ:
         return int(os.environ['COOP_TEST_DOMAIN_ID'])
     worker = os.environ.get('PYTEST_XDIST_WORKER', '')
     if worker.startswith('gw') and worker[2:].isdigit():
         n = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
-        return 1 + (os.getppid() * n + int(worker[2:])) % (100 - 100 % n)
+        return free_domain_id(os.getppid() * n, nth=int(worker[2:]))
     return None
 
 

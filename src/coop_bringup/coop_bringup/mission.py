@@ -65,7 +65,7 @@ from coop_common.rover_geometry import (
     camera_mount,
     yaw_of,
 )
-from coop_common.testing import isolate_ros_environment, pick_domain_id
+from coop_common.testing import free_domain_id, isolate_ros_environment
 from coop_id.excitation import Strategy
 from coop_insertion.drive import path_length
 from coop_insertion.errors import InsertionError
@@ -295,7 +295,7 @@ class Mission:
         self.run_id = run_id or time.strftime('%Y%m%d-%H%M%S') + f'-{os.getpid()}'
         self.out = Path(out) / self.run_id
         self.out.mkdir(parents=True, exist_ok=False)
-        self.domain_id = domain_id if domain_id is not None else pick_domain_id()
+        self.domain_id = domain_id if domain_id is not None else free_domain_id()
         self.progress = progress or Progress()
         self.log = log
         self.rovers = [f'rover{i + 1}' for i in range(cfg.rovers)]
@@ -896,7 +896,9 @@ def main(argv: list[str] | None = None) -> int:
                         '(ros2 launch coop_bringup mission.launch.py with the same seed and '
                         "slot, and with --lockstep: lockstep:=true clients:='insertion_rig "
                         "mission'); implies --no-bag")
-    p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None)
+    p.add_argument('--domain-id', type=number(int, lo=0, hi=232), default=None,
+                   help='the ROS domain of the run (default: one of 1..100 that no DDS '
+                   'participant on this machine holds)')
     p.add_argument('--team', default=d.team, metavar='NAME',
                    help="the graph's namespace, on the team's own clock (mission.launch.py's "
                         'team:= and clock:=team): missions side by side in one domain '

@@ -22,9 +22,50 @@ def pick_domain_id(pid: int | None = None) -> int:
     return 1 + (pid if pid is not None else os.getpid()) % 100
 
 
+#: RTPS's well-known ports (DDSI-RTPS 2.2, 9.6.1.1): a participant of domain d binds its
+#: discovery and user unicast ports at PB + DG * d + 10 + 2 * participant (+ 1)
+_RTPS_PB, _RTPS_DG = 7400, 250
+_UDP_TABLES = ('/proc/net/udp', '/proc/net/udp6')
+
+
+def domains_in_use(tables: Sequence[str] = _UDP_TABLES) -> set[int]:
+    """The domain ids 1..100 in which a DDS participant runs in this network namespace: those
+    with a UDP port bound in their RTPS range (Linux's /proc/net/udp tables; none where they
+    cannot be read). The ranges of 1..100 end at port 32649, below the kernel's ephemeral
+    ports, so nothing else binds there by chance."""
+    used = set()
+    for table in tables:
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            if len(fields) < 2:
+                continue
+            port = int(fields[1].rsplit(':', 1)[-1], 16)
+            domain, offset = divmod(port - _RTPS_PB, _RTPS_DG)
+            if 1 <= domain <= 100 and offset >= 10:
+                used.add(domain)
+    return used
+
+
+def free_domain_id(start: int | None = None, *, nth: int = 0,
+                   in_use: set[int] | None = None) -> int:
+    """The `nth` (0: first) domain id of 1..100, from `start` on (default: this process's
+    pid), in which no DDS participant runs yet (domains_in_use): a run that picks its domain
+    apart from others on the machine. Workers of one test run give the same start and each
+    its own nth. Where every domain is taken, pick_domain_id's."""
+    base = os.getpid() if start is None else start
+    busy = domains_in_use() if in_use is None else in_use
+    free = [d for d in (1 + (base + i) % 100 for i in range(100)) if d not in busy]
+    return free[nth % len(free)] if free else pick_domain_id(base)
+
+
 def isolate_ros_environment(domain_id: int | None = None) -> int:
-    """Set ROS_DOMAIN_ID / localhost discovery for this process and its children."""
-    domain = pick_domain_id() if domain_id is None else domain_id
+    """Set ROS_DOMAIN_ID / localhost discovery for this process and its children; without a
+    domain_id, a free one (free_domain_id)."""
+    domain = free_domain_id() if domain_id is None else domain_id
     os.environ['ROS_DOMAIN_ID'] = str(domain)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
