@@ -131,12 +131,13 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
             '-p', 'publish_period_s:=1.0']), env=env, log=out_dir / 'mapper.log')
         stereo, players = {}, {}
 
+        restarted = {r for r, _ in restarts}
+
         def durable(r: str, endpoint: Literal['publisher', 'subscription']) -> list[str]:
             """A rover's camera streams reliable and transient local at both ends: at any
             load, its stereo node gets every frame. Not for a rover whose node restarts: a
             camera does not send a restarted node the frames it missed, nor may the replay."""
-            return ([] if r in {k[0] for k in restarts}
-                    else durable_overrides(stereo_topics([r]), endpoint))
+            return [] if r in restarted else durable_overrides(stereo_topics([r]), endpoint)
 
         def start_stereo(r: str) -> None:
             stereo[r] = net.start(r, _node('coop_mapping', 'stereo', [
