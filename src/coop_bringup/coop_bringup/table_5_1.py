@@ -390,13 +390,15 @@ def plot_curves(c: dict, title: str, path: Path) -> Path:
 
 
 def plot(res: dict, out: Path) -> list[Path]:
-    """Figs. 5-13 / 5-14 for the first attempt of the hardest row with each placement."""
-    row = res['rows'][-1]
+    """Figs. 5-13 / 5-14 for each placement: the first attempt of the last (hardest) row that
+    ran it, so a 1 % row of the optimal placement alone does not hide the random one."""
     paths = []
     for placement in res['placements']:
-        curves = row.get(f'{placement}_curves') or []
-        if not curves:
+        ran = [r for r in res['rows'] if r.get(f'{placement}_curves')]
+        if not ran:
             continue
+        row = ran[-1]
+        curves = row[f'{placement}_curves']
         ok = row[f'{placement}_attempts'][0]['success']
         paths.append(plot_curves(
             curves[0], f'{row["label"]} ({row["slot_in"]} in), {placement} placement: '

@@ -164,3 +164,18 @@ def test_thin_curves_keeps_every_phase_change_and_the_ends():
     assert all(len(v) == len(thin['t']) for v in thin.values())
     assert thin['force'][0] == [0.123, 0.0, -1.0]
     assert table_5_1.thin_curves({}) == {}
+
+
+def test_each_placement_is_plotted_from_the_hardest_row_that_ran_it(tmp_path, fake_rig,
+                                                                   monkeypatch):
+    """A last row of the optimal placement alone (the 1 % row) does not hide the random plot."""
+    res = table_5_1.run(attempts=2, rows=[(5.0, 2, ('optimal', 'random')), (4.5, 2, ('optimal',))],
+                        placements=('optimal', 'random'), seed=1, occlusion_density=0.05,
+                        timeout_s=45.0, max_force_n=25.0, site_map=tmp_path / 'site.cmap',
+                        log=lambda s: None)
+    seen = []
+    monkeypatch.setattr(table_5_1, 'plot_curves',
+                        lambda c, title, path: seen.append((title, path.name)) or path)
+    table_5_1.plot(res, tmp_path)
+    assert [(t.split(',')[0], n) for t, n in seen] == [
+        ('Medium (4.5 in)', 'fig_5_13_optimal.png'), ('Easy (5.0 in)', 'fig_5_13_random.png')]
