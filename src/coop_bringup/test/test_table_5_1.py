@@ -1,6 +1,7 @@
 """table_5_1's bookkeeping without the graph: an attempt the simulator stalled in runs again on a
 fresh graph, every attempt is checkpointed, and --resume reuses what a stopped run saved."""
 import json
+import tempfile
 from typing import ClassVar
 
 import pytest
@@ -53,8 +54,10 @@ class FakeRig:
 
 
 @pytest.fixture
-def fake_rig(monkeypatch):
+def fake_rig(monkeypatch, tmp_path):
     monkeypatch.setattr(table_5_1, 'InsertionRig', FakeRig)
+    # the run's work directory (its logs) under the test's, not left in /tmp
+    monkeypatch.setattr(tempfile, 'tempdir', str(tmp_path))
     FakeRig.opened, FakeRig.calls, FakeRig.stall_on = 0, [], set()
     return FakeRig
 
