@@ -291,7 +291,8 @@ def cell_summary(attempts: list[dict]) -> dict:
     """What a cell's attempts show beyond the count: how many got to the descent, the median
     fix rate (fixes per stereo pair the master looked at while the slave ran), the median
     alignment by the truth when the descent began (|offset| across the slot, mm; |tilt|,
-    deg), and the slave's verdicts the truth contradicts."""
+    deg), and the slave's verdicts the truth contradicts: a "seated" the truth denies (false),
+    a card the truth seated that the slave never called seated (missed)."""
     reached = [a for a in attempts if a.get('align_mm') is not None]
     rates = [a['fixes'] / a['frames'] for a in attempts if a.get('frames')]
     recorded = all('align_mm' in a for a in attempts)   # a run that recorded the alignment
@@ -307,6 +308,8 @@ def cell_summary(attempts: list[dict]) -> dict:
             'align_tilt_deg': _median([abs(a['align_tilt_deg']) for a in reached]),
             'false_seated': sum(bool(a['action_success']) and not bool(a['seated'])
                                 for a in attempts),
+            'missed_seated': sum(bool(a['seated']) and not bool(a['action_success'])
+                                 for a in attempts),
             'peak_force_n': max((a['peak_force_n'] for a in attempts
                                  if a['peak_force_n'] is not None), default=None)}
 
@@ -335,12 +338,12 @@ def format_table(res: dict) -> str:
     lines += ['', 'per cell: attempts that located the slot, median views it took and '
               "the located site's error (mm), attempts that got to",
               'the descent, median fix rate, median alignment by the truth at the descent, '
-              "the slave's seated verdicts the truth",
-              'contradicts, peak contact force',
+              "the slave's verdicts the truth",
+              'contradicts (false: said seated, missed: seated and not said), peak contact force',
               f'{"row":16s} {"placement":>12s} {"seated":>7s} {"located":>7s} {"views":>5s} '
               f'{"site mm":>7s} {"descent":>7s} '
               f'{"fix rate":>8s} {"|dx| mm":>8s} {"|tilt| deg":>10s} {"false":>5s} '
-              f'{"peak F (N)":>10s}']
+              f'{"missed":>6s} {"peak F (N)":>10s}']
     for r in res['rows']:
         for p in placements:
             got = r.get(f'{p}_attempts')
@@ -353,7 +356,8 @@ def format_table(res: dict) -> str:
                 f'{_fmt(c["site_error_mm"], 0):>7s} '
                 f'{_fmt(c["reached_descent"], 0):>7s} {_fmt(c["fix_rate"], 2):>8s} '
                 f'{_fmt(c["align_mm"]):>8s} {_fmt(c["align_tilt_deg"], 2):>10s} '
-                f'{c["false_seated"]:>5d} {_fmt(c["peak_force_n"]):>10s}')
+                f'{c["false_seated"]:>5d} {c["missed_seated"]:>6d} '
+                f'{_fmt(c["peak_force_n"]):>10s}')
     restarts = len(res.get('sim_restarts', []))
     if restarts:
         lines.append(f'{restarts} attempt(s) run again on a fresh graph after a simulator stall')

@@ -115,7 +115,13 @@ def test_the_table_shows_why_a_cell_fails(tmp_path, fake_rig):
     assert c == {'n': 3, 'seated': 2, 'located': 2, 'site_error_mm': 20.5,
                  'search_views': 1.0, 'reached_descent': 2, 'fix_rate': 0.75,
                  'align_mm': 1.0, 'align_tilt_deg': 0.2, 'false_seated': 0,
-                 'peak_force_n': 10.0}
+                 'missed_seated': 0, 'peak_force_n': 10.0}
+    # the slave calling a card seated the truth denies, and one the truth seated it never
+    # called: each is a disagreement of its own kind
+    lie = dict(row['optimal_attempts'][0], seated=False, success=False)
+    miss = dict(row['optimal_attempts'][0], action_success=False, success=False)
+    c = table_5_1.cell_summary([*row['optimal_attempts'], lie, miss, miss])
+    assert (c['seated'], c['false_seated'], c['missed_seated']) == (2, 1, 2)
     text = table_5_1.format_table(res)
     assert 'random_fixed' in text.splitlines()[1]
     assert any(line.split()[:9] == ['Medium', 'optimal', '2/3', '2', '1', '20', '2', '0.75',
