@@ -7,8 +7,8 @@ each phase judged as the report does, and one table of them.
 runs `OUT/<run-id>/seed_<k>/` for each seed in turn (a seed whose report is there already is
 read back, not run again: a stopped run resumes; a seed stopped by Ctrl-C or SIGTERM stops the
 batch, and is run again on the next, its directory kept as `seed_<k>.interrupted-<n>`), then
-prints the table and writes it to `OUT/<run-id>/seeds.json`. `judge` and `format_table` need
-no ROS.
+prints the table and writes it to `OUT/<run-id>/seeds.json` (`format_result` prints that
+file). `judge` and the formatting need no ROS.
 """
 from __future__ import annotations
 
@@ -97,6 +97,14 @@ def format_table(rows: list[dict]) -> str:
     lines.append(f'seated {sum(r["insert"] for r in rows)}/{n}; every phase on target '
                  f'{sum(r["all"] for r in rows)}/{n}')
     return '\n'.join(lines)
+
+
+def format_result(res: dict) -> str:
+    """A run's `seeds.json` as its table, saying how far a stopped run got."""
+    text = format_table(res['rows'])
+    if not res.get('complete', True):
+        text += f'\nincomplete: {len(res["rows"])} of {len(res["seeds"])} seeds run'
+    return text
 
 
 def _pct(v: float | None) -> float | None:

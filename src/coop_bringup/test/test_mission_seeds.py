@@ -3,7 +3,7 @@ table's totals, and a stopped run resumed from the reports it left."""
 import json
 
 import pytest
-from coop_bringup.mission_seeds import format_table, judge, parse_seeds, run_seeds
+from coop_bringup.mission_seeds import format_result, format_table, judge, parse_seeds, run_seeds
 from coop_bringup.report import MissionError
 
 
@@ -79,7 +79,10 @@ def test_an_interrupted_seed_stops_the_batch_and_runs_again_on_resume(tmp_path):
         run_seeds([1, 2, 3], lambda s, r: run_one(s, r, interrupt=(2,)), tmp_path,
                   log=lambda m: None)
     assert ran == [1, 2]
-    assert json.loads((tmp_path / 'seeds.json').read_text())['complete'] is False
+    saved = json.loads((tmp_path / 'seeds.json').read_text())
+    assert saved['complete'] is False
+    assert format_result(saved).splitlines()[-2:] == [
+        'seated 1/1; every phase on target 1/1', 'incomplete: 1 of 3 seeds run']
     rows = run_seeds([1, 2, 3], run_one, tmp_path, log=lambda m: None)
     assert ran == [1, 2, 2, 3] and all(r['all'] for r in rows)
     assert (tmp_path / 'seed_2.interrupted-1' / 'report.json').exists()
