@@ -363,7 +363,12 @@ def format_table(res: dict) -> str:
         lines.append(f'{restarts} attempt(s) run again on a fresh graph after a simulator stall')
     if not res.get('complete', True):
         lines.append('incomplete: the run stopped before the last attempt')
-    lines.append(f'{res["seconds"] / 60:.1f} min')
+    # a resumed run's `seconds` is its last sitting's; the attempts carry their own times
+    spent = sum(a.get('duration_s') or 0.0 for r in res['rows'] for p in placements
+                for a in r.get(f'{p}_attempts') or [])
+    lines.append(f'{res["seconds"] / 60:.1f} min' if spent <= res['seconds'] else
+                 f'{res["seconds"] / 60:.1f} min this sitting; the attempts took '
+                 f'{spent / 60:.1f} min in all')
     return '\n'.join(lines)
 
 

@@ -102,6 +102,9 @@ def test_resume_reuses_the_saved_attempts(tmp_path, fake_rig, monkeypatch):
     assert fake_rig.calls == [(4.5, 'optimal', 1001), (4.5, 'optimal', 1002)]
     assert res['complete'] and [r['optimal_successes'] for r in res['rows']] == [2, 2]
     assert len(res['rows'][0]['optimal_curves']) == 3
+    # the time is the attempts' over every sitting, not the last sitting's alone (10 s each)
+    assert table_5_1.format_table(res).splitlines()[-1].endswith(
+        'the attempts took 1.0 min in all')
 
 
 def test_the_table_shows_why_a_cell_fails(tmp_path, fake_rig):
