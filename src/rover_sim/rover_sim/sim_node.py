@@ -304,6 +304,7 @@ class SimNode(Node):
         self._round_cv = threading.Condition()
         self._counts: Counter = Counter()       # what the sim published in this round
         self._count_lock = threading.Lock()
+        self._counted: list[CountingPublisher] = []   # its publishers counted in the ticks
         self._lockstep_timeout = float(self.values['lockstep_timeout_s'])
         self._last_cmd_vel: dict[int, float] = {}
         self._last_effort: dict[int, float] = {}
@@ -379,8 +380,22 @@ class SimNode(Node):
         """A publisher; in lockstep a reliable one, counted in the round's tick."""
         if self._gate is None:
             return self.create_publisher(msg_type, topic, qos)
-        return CountingPublisher(self.create_publisher(msg_type, topic, reliable(qos, 20)),
-                                 self._counts, self._count_lock)
+        counted = CountingPublisher(self.create_publisher(msg_type, topic, reliable(qos, 20)),
+                                    self._counts, self._count_lock)
+        self._counted.append(counted)
+        return counted
+
+    def _unmatched_writers(self) -> dict[str, tuple[int, int]]:
+        """The counted publishers whose writer has matched fewer readers than this node's
+        graph shows on the topic ({topic: (matched, known)}): a reliable writer sends nothing
+        to a reader it does not know yet, so a participant that counts on that topic waits
+        for the round's messages for ever. Logged with a stalled round."""
+        short = {}
+        for pub in self._counted:
+            matched, known = pub.get_subscription_count(), self.count_subscribers(pub.topic_name)
+            if matched < known:
+                short[pub.topic_name] = (matched, known)
+        return short
 
     def _command(self, msg_type, topic: str, handler, base_qos=COMMAND_QOS) -> None:
         """Subscribe to a command topic: `handler(msg)` gives the pending item or None (a
@@ -753,6 +768,10 @@ class SimNode(Node):
                 warned = now
                 what = (f'no answer to round {round_} from {", ".join(waiting)}' if waiting
                         else f'commands of round {round_} still on their way: {missing}')
+                short = self._unmatched_writers()
+                if short:
+                    what += '; writers short of the readers the graph shows: ' + ', '.join(
+                        f'{t} {m} of {k}' for t, (m, k) in sorted(short.items()))
                 self.get_logger().warn(f'lockstep: {what} after {now - since:.0f} s; waiting')
         return None
 

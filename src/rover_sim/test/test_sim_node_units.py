@@ -159,3 +159,21 @@ def test_braid_mast_commands_are_checked_applied_and_put_in_the_tree():
     finally:
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+def test_a_stalled_round_names_the_writers_short_of_their_readers():
+    """A reliable writer sends a round's messages only to the readers it has matched: the
+    stall's log names each counted topic whose writer knows fewer readers than the graph."""
+    from types import SimpleNamespace
+
+    class Pub:
+        def __init__(self, topic, matched):
+            self.topic_name, self.matched = topic, matched
+
+        def get_subscription_count(self):
+            return self.matched
+
+    known = {'/rover1/joint_states': 3, '/rover1/odom': 2}
+    node = SimpleNamespace(_counted=[Pub('/rover1/joint_states', 2), Pub('/rover1/odom', 2)],
+                           count_subscribers=known.__getitem__)
+    assert SimNode._unmatched_writers(node) == {'/rover1/joint_states': (2, 3)}
