@@ -21,6 +21,8 @@ def generate_launch_description():
     return LaunchDescription([
         DeclareLaunchArgument('code', default_value='0'),
         ExecuteProcess(cmd=['sleep', '60'], name='sleeper', output={'both': {'own_log'}}),
+        # launch ends once nothing it started runs: this one keeps it up past the sleeper
+        ExecuteProcess(cmd=['sleep', '60'], name='keeper', output={'both': {'own_log'}}),
         ExecuteProcess(cmd=['sh', '-c', ['echo said; exit ', LaunchConfiguration('code')]],
                        name='quitter', output={'both': {'own_log'}}),
     ])
