@@ -13,8 +13,9 @@ runs the mapper. A rover's link is limited to `--rate-mbit`, the base's to that 
 of rovers (the base's radio serves them all). What crosses a rover's link is what the mapper
 subscribes: the contributions (`--map-input contributions`, the default) or the clouds and
 camera poses (`clouds`, to measure what raw clouds would cost). `--cut ROVER:AT:FOR` takes a
-rover's link down AT seconds after the map's first scan, for FOR seconds; `--restart ROVER:AT`
-kills its stereo node then and starts it again. When every player has finished and the map
+rover's link down AT seconds after the map's first scan from that rover, for FOR seconds;
+`--restart ROVER:AT` kills its stereo node AT seconds after the map's first scan and starts it
+again. When every player has finished and the map
 holds what the stereo nodes sent (or `--settle-s` has passed), the mapper is stopped cleanly (it
 saves its map and ledger) and the run reports, per rover: frames in the bag, scans in the map,
 contributions missing, sessions, bytes over its link; and the map against the one built offline
@@ -53,7 +54,7 @@ _DROPPED = re.compile(r'clouds the middleware dropped: (\{[^}]*\})')
 
 @dataclass(frozen=True)
 class Cut:
-    """A rover's link down from `at_s` after the map's first scan, for `for_s`."""
+    """A rover's link down from `at_s` after the map's first scan from that rover, for `for_s`."""
 
     rover: str
     at_s: float
@@ -172,13 +173,18 @@ def run(bag: Path, rovers: list[str], *, out_dir: Path, map_input: str = 'contri
                 pass
             return read['scans']
         t_played = t_mapping = None
+        t_first: dict[str, float] = {}
         while True:
             now = time.monotonic()
             scans = map_scans()
             if t_mapping is None and scans:
-                t_mapping = now            # the cuts count from the first scan in the map
-            while t_mapping is not None and pending and pending[0].at_s <= now - t_mapping:
-                c = pending.pop(0)
+                t_mapping = now            # the restarts count from the first scan in the map
+            for r, n in scans.items():     # a cut counts from its rover's first scan in it
+                if n:
+                    t_first.setdefault(r, now)
+            for c in [c for c in pending
+                      if c.rover in t_first and c.at_s <= now - t_first[c.rover]]:
+                pending.remove(c)
                 net.cut(c.rover)
                 result.scans_at_cut.append({'rover': c.rover, 'scans': scans.get(c.rover, 0)})
                 down.append((now + c.for_s, c.rover))
