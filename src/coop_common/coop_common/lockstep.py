@@ -35,11 +35,15 @@ class Gate:
             raise LockstepError('lockstep needs at least one participant')
         self._answered = dict.fromkeys(self.participants, -1)
         self._published: dict[int, Counter] = {}
+        #: per topic, the participants that take it (their acks of round 0 say which)
+        self.listeners: dict[str, set[str]] = {}
 
-    def answer(self, node: str, round_: int, counts: Mapping[str, int]) -> bool:
-        """Record `node`'s ack of `round_` with the messages it published per topic; False for
-        a repeated ack (round 0 is ticked until all have answered), LockstepError for a node that
-        is not a participant or a round answered out of order."""
+    def answer(self, node: str, round_: int, counts: Mapping[str, int],
+               listens: Iterable[str] = ()) -> bool:
+        """Record `node`'s ack of `round_` with the messages it published per topic (and, in
+        round 0, the topics it takes); False for a repeated ack (round 0 is ticked until all
+        have answered), LockstepError for a node that is not a participant or a round answered
+        out of order."""
         if node not in self._answered:
             raise LockstepError(f'{node} is not a lockstep participant '
                                 f'({", ".join(self.participants)})')
@@ -52,6 +56,8 @@ class Gate:
             raise LockstepError(f'{node} counted a negative number of messages')
         self._answered[node] = round_
         self._published.setdefault(round_, Counter()).update(counts)
+        for topic in listens:
+            self.listeners.setdefault(topic, set()).add(node)
         return True
 
     def waiting_for(self, round_: int) -> list[str]:

@@ -229,7 +229,8 @@ class Lockstep:
             counts = dict(self._counts)
             self._counts.clear()        # in place: the counting publishers hold this Counter
         ack = LockstepAck(node=self.node.get_fully_qualified_name(), round=self._unacked,
-                          topics=list(counts), counts=[int(v) for v in counts.values()])
+                          topics=list(counts), counts=[int(v) for v in counts.values()],
+                          listens=list(self._inbox.topics) if self._unacked == 0 else [])
         self._unacked = None
         self._last_ack = ack
         self._since = time.monotonic()

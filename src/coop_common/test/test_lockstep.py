@@ -22,6 +22,15 @@ def test_a_round_is_answered_when_every_participant_has_answered_it():
     assert g.published(0) == {}         # handed out once
 
 
+def test_the_gate_keeps_who_takes_which_topic_from_their_acks():
+    g = Gate(['/slave', '/master'])
+    g.answer('/slave', 0, {}, ['/rover2/joint_states', '/sim/rover2/contact'])
+    g.answer('/master', 0, {}, ['/rover2/joint_states'])
+    assert not g.answer('/master', 0, {}, ['/rover1/image'])   # a repeated ack: not taken in
+    assert g.listeners == {'/rover2/joint_states': {'/slave', '/master'},
+                           '/sim/rover2/contact': {'/slave'}}
+
+
 def test_repeated_skipped_and_unknown_answers():
     g = Gate(['/slave'])
     assert g.answer('/slave', 0, {})

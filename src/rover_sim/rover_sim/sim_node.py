@@ -90,6 +90,11 @@ from .world import World
 from .worldgen import TABLE_5_1_GAPS_M, ObstacleKind
 
 
+def _shortfall(short: dict[str, tuple[int, int]]) -> str:
+    """`_unmatched_writers` for a log line: each topic's matched readers of those needed."""
+    return ', '.join(f'{t} {m} of {k}' for t, (m, k) in sorted(short.items()))
+
+
 @dataclass(frozen=True)
 class _Trajectory:
     """A checked JointTrajectory for rover `index`'s arm or mast, applied between steps."""
@@ -253,7 +258,8 @@ PARAMS = {
     'lockstep_period_s': ParamSpec(0.01, 'Lockstep: sim time per round (rounded to whole '
                                    'physics steps)', lo=0.005, hi=1.0, read_only=True),
     'lockstep_timeout_s': ParamSpec(10.0, 'Lockstep: say which nodes have not answered after '
-                                    'this long (wall s), and again as often; it keeps waiting',
+                                    'this long (wall s), and again as often; it keeps waiting '
+                                    '(for its writers to match, round 1 waits this long at most)',
                                     lo=0.5, hi=600.0),
 }
 
@@ -386,15 +392,22 @@ class SimNode(Node):
         return counted
 
     def _unmatched_writers(self) -> dict[str, tuple[int, int]]:
-        """The counted publishers whose writer has matched fewer readers than this node's
-        graph shows on the topic ({topic: (matched, known)}): a reliable writer sends nothing
-        to a reader it does not know yet, so a participant that counts on that topic waits
-        for the round's messages for ever. Logged with a stalled round."""
+        """The counted publishers whose writer has matched fewer readers than it must reach
+        ({topic: (matched, needed)}): every reader this node's graph shows on the topic, and
+        the participants that take it (their acks of round 0) where the graph does not show
+        them yet. A reliable writer sends nothing to a reader it has not matched, so a
+        participant that counts on that topic would wait for the round's messages for ever:
+        round 1 waits for these, and a stalled round logs them."""
+        listeners = self._gate.listeners if self._gate is not None else {}
         short = {}
         for pub in self._counted:
-            matched, known = pub.get_subscription_count(), self.count_subscribers(pub.topic_name)
-            if matched < known:
-                short[pub.topic_name] = (matched, known)
+            topic = pub.topic_name
+            readers = self.get_subscriptions_info_by_topic(topic)
+            shown = {f'{r.node_namespace.rstrip("/")}/{r.node_name}' for r in readers}
+            needed = len(readers) + len(listeners.get(topic, set()) - shown)
+            matched = pub.get_subscription_count()
+            if matched < needed:
+                short[topic] = (matched, needed)
         return short
 
     def _command(self, msg_type, topic: str, handler, base_qos=COMMAND_QOS) -> None:
@@ -706,7 +719,7 @@ class SimNode(Node):
         try:
             with self._round_cv:
                 self._gate.answer(msg.node, int(msg.round),
-                                  dict(zip(msg.topics, msg.counts, strict=False)))
+                                  dict(zip(msg.topics, msg.counts, strict=False)), msg.listens)
                 self._round_cv.notify_all()
         except LockstepError as exc:
             self.bad.reject('lockstep ack', str(exc))
@@ -745,19 +758,31 @@ class SimNode(Node):
         """What the participants published for `round_`, once all have answered it and the
         commands among it have arrived, and whether the world was reset meanwhile (a
         participant holds the round while it resets the world); every lockstep_timeout_s the
-        wait is logged with the nodes or messages it waits for. None when the node stops."""
+        wait is logged with the nodes or messages it waits for. Round 0 is over once, besides,
+        the simulator's writers have matched the readers they must reach
+        (`_unmatched_writers`), or lockstep_timeout_s after the answers. None when the node
+        stops."""
         due: dict[str, int] | None = None
         reset = False
         since = last_tick = time.monotonic()
         warned = since
+        answered = math.inf
         while self._running():
             with self._round_cv:
                 waiting = self._gate.waiting_for(round_)
                 if not waiting and due is None:
                     due = self._gate.published(round_)
+                    answered = time.monotonic()
                 missing = self._inbox.missing(due) if due is not None else {}
                 if due is not None and not missing:
-                    return due, reset
+                    short = self._unmatched_writers() if round_ == 0 else {}
+                    if not short:
+                        return due, reset
+                    if time.monotonic() - answered > self._lockstep_timeout:
+                        self.get_logger().warn(
+                            'lockstep: stepping round 1 with writers short of their readers '
+                            f'after {self._lockstep_timeout:.0f} s: ' + _shortfall(short))
+                        return due, reset
                 self._round_cv.wait(0.05)
             reset = self._apply_pending() or reset
             now = time.monotonic()
@@ -770,8 +795,7 @@ class SimNode(Node):
                         else f'commands of round {round_} still on their way: {missing}')
                 short = self._unmatched_writers()
                 if short:
-                    what += '; writers short of the readers the graph shows: ' + ', '.join(
-                        f'{t} {m} of {k}' for t, (m, k) in sorted(short.items()))
+                    what += '; writers short of their readers: ' + _shortfall(short)
                 self.get_logger().warn(f'lockstep: {what} after {now - since:.0f} s; waiting')
         return None
 

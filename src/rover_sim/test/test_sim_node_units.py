@@ -161,9 +161,11 @@ def test_braid_mast_commands_are_checked_applied_and_put_in_the_tree():
         rclpy.try_shutdown(context=ctx)
 
 
-def test_a_stalled_round_names_the_writers_short_of_their_readers():
-    """A reliable writer sends a round's messages only to the readers it has matched: the
-    stall's log names each counted topic whose writer knows fewer readers than the graph."""
+def test_round_1_waits_for_writers_to_match_every_reader_and_listening_participant():
+    """A reliable writer sends a round's messages only to the readers it has matched: round 1
+    waits (and a stalled round's log names) each counted topic whose writer knows fewer
+    readers than the graph shows, or than the participants that said in round 0 they take it
+    where the graph does not show them yet."""
     from types import SimpleNamespace
 
     class Pub:
@@ -173,7 +175,19 @@ def test_a_stalled_round_names_the_writers_short_of_their_readers():
         def get_subscription_count(self):
             return self.matched
 
-    known = {'/rover1/joint_states': 3, '/rover1/odom': 2}
-    node = SimpleNamespace(_counted=[Pub('/rover1/joint_states', 2), Pub('/rover1/odom', 2)],
-                           count_subscribers=known.__getitem__)
-    assert SimNode._unmatched_writers(node) == {'/rover1/joint_states': (2, 3)}
+    def reader(ns, name):
+        return SimpleNamespace(node_namespace=ns, node_name=name)
+    graph = {'/rover1/joint_states': [reader('/rover1', 'identifier'), reader('/', 'recorder')],
+             '/rover1/odom': [reader('/rover1', 'driver'), reader('/', 'recorder')],
+             '/rover2/odom': [reader('/rover2', 'driver'), reader('/', 'recorder')]}
+    listeners = {'/rover1/joint_states': {'/rover1/identifier', '/master'},
+                 '/rover1/odom': {'/rover1/driver'}}
+    node = SimpleNamespace(
+        _counted=[Pub('/rover1/joint_states', 2), Pub('/rover1/odom', 2),
+                  Pub('/rover2/odom', 1)],
+        _gate=SimpleNamespace(listeners=listeners),
+        get_subscriptions_info_by_topic=graph.__getitem__)
+    # /master takes joint_states, the graph does not show it yet: 3 needed; rover2's odom has
+    # 2 readers in the graph, 1 matched
+    assert SimNode._unmatched_writers(node) == {'/rover1/joint_states': (2, 3),
+                                                '/rover2/odom': (1, 2)}
