@@ -126,8 +126,9 @@ def test_a_silent_master_leaves_the_slave_holding(tmp_path, probe):
     est = probe.msgs['/rover2/segment/estimate']
     truths = probe.msgs['/sim/segment']
     with sim, master, slave:
-        probe.spin_until(lambda: len(est) > 100 and not est[-1].partner_silent, 120.0,
-                         "the slave hearing the master's reference", (sim, master, slave))
+        probe.spin_until(lambda: len(est) > 100 and not est[-1].partner_silent and truths,
+                         120.0, "the slave hearing the master's reference, the probe the truth",
+                         (sim, master, slave))
         master.stop()
         probe.spin_until(lambda: est[-1].partner_silent, 30.0, 'the slave saying silent',
                          (sim, slave))

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 from collections import defaultdict
@@ -121,9 +122,11 @@ def test_record_round_trip(ros, tmp_path):
 
 def test_record_counts_what_a_burst_overflowed_from_sequence_numbers(ros, tmp_path):
     """A reliable burst faster than the recorder takes it, into a 10-deep queue: the middleware
-    reports nothing lost, and the recorder with count_losses counts from the publication
-    sequence numbers exactly the messages the bag lacks (after the first one it got, a sync
-    message it has in the bag before the burst starts)."""
+    reports few or none of the messages lost (a reliable KEEP_LAST writer drops what it
+    overwrites without a word; it says 'lost' only of a gap a reader saw), and the recorder with
+    count_losses counts from the publication sequence numbers exactly the messages the bag
+    lacks (after the first one it got, a sync message it has in the bag before the burst
+    starts)."""
     node, ex = ros
     pub = node.create_publisher(String, '/burst', QoSProfile(
         depth=10, reliability=ReliabilityPolicy.RELIABLE))
@@ -145,7 +148,8 @@ def test_record_counts_what_a_burst_overflowed_from_sequence_numbers(ros, tmp_pa
     missing = n + 1 - len(got)
     log = rec.log_text()
     assert missing > 0, 'the burst must overflow the queue for the test to mean anything'
-    assert ' 0 lost' in log                     # what the middleware reports
+    said = re.search(r'on 1 topics, (\d+) lost', log)
+    assert said and int(said[1]) < missing, log     # what the middleware reports
     assert f'{missing} missed by sequence number' in log, log
     import yaml
     meta = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
