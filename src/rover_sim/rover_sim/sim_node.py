@@ -767,6 +767,7 @@ class SimNode(Node):
         since = last_tick = time.monotonic()
         warned = since
         answered = math.inf
+        first_short: dict[str, tuple[int, int]] = {}
         while self._running():
             with self._round_cv:
                 waiting = self._gate.waiting_for(round_)
@@ -776,7 +777,12 @@ class SimNode(Node):
                 missing = self._inbox.missing(due) if due is not None else {}
                 if due is not None and not missing:
                     short = self._unmatched_writers() if round_ == 0 else {}
+                    first_short = first_short or short
                     if not short:
+                        if first_short:     # what the wait held back, for a run's record
+                            self.get_logger().info(
+                                f'lockstep: round 1 waited {time.monotonic() - answered:.2f} s '
+                                'for writers to match their readers: ' + _shortfall(first_short))
                         return due, reset
                     if time.monotonic() - answered > self._lockstep_timeout:
                         self.get_logger().warn(
