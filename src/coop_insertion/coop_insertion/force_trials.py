@@ -57,14 +57,17 @@ class Trial:
 
 def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 45.0,
               slave_options: dict | None = None, site_bias_m: tuple[float, float] = (0.0, 0.0),
-              friction: float | None = None, fail_in_contact_s: float | None = None
+              friction: float | None = None, fail_in_contact_s: float | None = None,
+              map_error_m: tuple[float, float] = (0.0, 0.0)
               ) -> tuple[Trial, SlaveStatus, list[Phase], SlaveController]:
     """One insertion from the perturbed start until the slave is done or `sim_s` passed.
     site_bias_m: (near, far) slot markers seen this much higher than they are (m), a constant
     error of the site frame as the master's stereo makes it (equal: depth; opposite: tilt).
     friction: the simulator's contact_friction (None: SimConfig's default). fail_in_contact_s:
     the slave is failed (as by a timeout) once it has been this long in contact, and the
-    world runs on 2 s with its commands (what a failure leaves on the card)."""
+    world runs on 2 s with its commands (what a failure leaves on the card). map_error_m:
+    (x, y) the site the slave approaches is off by (its odometry frame and the master's
+    disagree), the fixes still the true markers'."""
     from rover_sim.config import NoiseConfig, SimConfig  # noqa: PLC0415 - only to run trials
     from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only to run trials
     from rover_sim.worldgen import INCH  # noqa: PLC0415 - only to run trials
@@ -81,7 +84,7 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
         w.place_rover(1, sx - 0.30 - j2[0] - 0.55 + rng.uniform(-0.03, 0.03),
                       sy - j2[1] + rng.uniform(-0.02, 0.02), rng.uniform(-0.05, 0.05))
         site = np.eye(4)
-        site[:3, 3] = (sx, sy, top)
+        site[:3, 3] = (sx + map_error_m[0], sy + map_error_m[1], top)
         ctl = SlaveController(model, r2, site_in_odom=site, **(slave_options or {}))
         cam_p = np.array([sx, sy + 0.6, top + 0.35])
         look = np.array([sx, sy, top]) - cam_p

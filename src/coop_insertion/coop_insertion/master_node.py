@@ -56,6 +56,7 @@ from coop_viewplan.frames import yaw_pitch_from_optical
 
 from .drive import GoToPose, wrap
 from .errors import InsertionError
+from .frames import invert
 from .locate import SiteEstimate, search_points
 from .markers import (
     DEFAULT_MAX_RESIDUAL_PX,
@@ -66,7 +67,15 @@ from .markers import (
     DetectorKind,
     make_detector,
 )
-from .task import LABELS, SlotPair, TaskModel, find_slot, label_markers, site_from_slot
+from .task import (
+    LABELS,
+    SlotPair,
+    TaskModel,
+    find_slot,
+    label_markers,
+    site_from_slot,
+    slot_from_site,
+)
 from .triangulate import triangulate_markers
 
 PARAMS = {
@@ -231,6 +240,7 @@ class MasterNode(Node):
         self.looked = 0                    # stereo pairs looked at
         self.tracked = 0                   # of them, those that gave a fix
         self.remembered = 0                # fixes labelled against the remembered slot pair
+        self.predicted = 0                 # ... against the slot pair the located site predicts
         self.replacements = 0
         self.search_views = 0
         # the site's pose from the slot pairs seen since the camera was placed, and the site
@@ -355,6 +365,10 @@ class MasterNode(Node):
         # where the slot is for as long as it stands
         standing = _stamp(left) >= self._stood_t
         memory = self._slot if standing and self.p['remember_slot'] else None
+        predicted = memory is None and standing and self.site is not None
+        if predicted:
+            memory = self._slot_out_of_view()
+            predicted = memory is not None
         try:
             lab = label_markers(st, radii, self.camera.fx, up, self.model, slot_memory=memory)
         except InsertionError as exc:
@@ -363,7 +377,9 @@ class MasterNode(Node):
                 self._saw_slot(slot, up)
             self.get_logger().info(f'markers: {exc}', throttle_duration_sec=5.0)
             return
-        if lab.slot_remembered:
+        if lab.slot_remembered and predicted:
+            self.predicted += 1
+        elif lab.slot_remembered:
             self.remembered += 1
         elif standing:
             self._saw_slot(lab.slot, up)
@@ -386,6 +402,24 @@ class MasterNode(Node):
             cam = camera_in_map(*self.odom, *self.mast)
             mid = 0.5 * (lab.points[0] + lab.points[1])
             self.card_in_map = cam[:3, :3] @ mid + cam[:3, 3]
+
+    def _slot_out_of_view(self) -> SlotPair | None:
+        """The slot's markers in the camera frame where the located site puts them (through
+        the camera's pose by odometry and the mast), when that is out of the image: the card
+        seen alone then still gives a fix, which relates the slave's odometry frame to this
+        rover's (thesis Fig. 5-4). None when the site would be in view (its own markers give
+        the fixes there, both in the image) or the pose is unknown."""
+        if self.site is None or self.odom is None or self.camera is None:
+            return None
+        cam = camera_in_map(*self.odom, *self.mast)
+        pair = slot_from_site(invert(cam) @ self.site, self.model,
+                              sigma_m=self.p['target_sigma_m'])
+        c = self.camera
+        x, y, z = pair.points.T
+        z = np.maximum(z, 1e-9)
+        u, v = c.cx + c.fx * x / z, c.cy + c.fy * y / z
+        inside = (pair.points[:, 2] > 0) & (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+        return None if inside.all() else pair
 
     def _saw_slot(self, slot: SlotPair, up: np.ndarray) -> None:
         """The slot pair seen from where the camera stands: remembered, and the site's pose in
@@ -520,11 +554,13 @@ class MasterNode(Node):
             sub.site = _pose_stamped(self.site, self.map_frame)
         phase = [Insert.Feedback.PHASE_PLACE_CAMERA]
         awaiting = [False]
-        seen = (self.looked, self.tracked, self.remembered)
+        relocating = [False]
+        seen = (self.looked, self.tracked, self.remembered, self.predicted)
 
         def relay(fb) -> None:
             phase[0] = fb.feedback.phase
             awaiting[0] = fb.feedback.awaiting_fix
+            relocating[0] = fb.feedback.relocating
             handle.publish_feedback(fb.feedback)
 
         sh = await self.ls.hold(client.send_goal_async(sub, feedback_callback=relay))
@@ -533,8 +569,12 @@ class MasterNode(Node):
         res_future = sh.get_result_async()
         # the fix is judged lost from when the card should be in view: the slave's coarse
         # approach done (it holds for the first fix), or a fix of this goal had come; while
-        # the card is still on its way the camera stays where it was placed
+        # the card is still on its way (or the slave's base relocates it) the camera stays
+        # where it was placed. No fix yet in this goal: the mast pans for the card once per
+        # placement (the slave's odometry frame may disagree with this rover's by more than
+        # the view is wide); then, as when fixes are lost, the camera is placed again
         since, started = -math.inf, self._image_t
+        searched = False
         while not res_future.done():
             await self._sleep_until_wake()
             if handle.is_cancel_requested:
@@ -546,9 +586,23 @@ class MasterNode(Node):
                 if not (awaiting[0] or self._fix_t > started):
                     continue
                 since = self._image_t
+            if relocating[0]:
+                since = self._image_t
+                continue
             lost = self._image_t - max(self._fix_t, since)
-            if (goal.placement in REPLACED and lost > self.p['replace_after_s'] and
+            if lost <= self.p['replace_after_s']:
+                continue
+            if not searched and self._fix_t <= started:
+                searched = True
+                if await self._look_for_card(handle):
+                    since = self._image_t
+                    continue
+                if handle.is_cancel_requested:
+                    continue
+                since = self._image_t
+            if (goal.placement in REPLACED and
                     self.replacements < self.p['max_replacements']):
+                searched = False
                 self.replacements += 1
                 self.get_logger().info(f'no fix for {lost:.1f} s while the slave servos: '
                                        f're-placing the camera ({self.replacements})')
@@ -571,7 +625,8 @@ class MasterNode(Node):
         self._report_site(res)
         self.get_logger().info(
             f'goal ended ({res.reason}): {res.fixes} fixes in {res.frames} frames, '
-            f'{self.remembered - seen[2]} of them against the remembered slot pair')
+            f'{self.remembered - seen[2]} of them against the remembered slot pair, '
+            f'{self.predicted - seen[3]} against the one the located site predicts')
         if handle.is_cancel_requested:
             handle.canceled()
         elif res.success:
@@ -579,6 +634,45 @@ class MasterNode(Node):
         else:
             handle.abort()
         return res
+
+    async def _look_for_card(self, handle) -> bool:
+        """No fix while the slave holds where its map puts the site: the two rovers' odometry
+        frames disagree by more than the view is wide. Pan the mast through search_pans_rad
+        (search_look_s of frames at each) until the card gives fixes (against the slot pair the
+        located site predicts, out of view: they relate the slave's frame to this rover's),
+        then back to the task's pan; True when the card was seen."""
+        task_pan, before = self.mast[0], self._fix_t
+        found = None
+        for pan in self.p['search_pans_rad']:
+            if abs(pan) <= MAST_TOLERANCE_RAD:
+                continue
+            self._command_mast(task_pan + pan, self._tilt)
+            if not await self._mast_at(handle, task_pan + pan, self._tilt):
+                return False
+            look = self._image_t
+            while self._image_t < look + self.p['search_look_s'] and self._fix_t <= before:
+                await self._sleep_until_wake()
+                if handle.is_cancel_requested:
+                    return False
+            if self._fix_t > before:
+                found = pan
+                # a few more of the card's fixes for the slave's goal
+                first = self._image_t
+                while self._image_t < first + SITE_AVERAGE_S and \
+                        not handle.is_cancel_requested:
+                    await self._sleep_until_wake()
+                break
+        where = '' if self.card_in_map is None or self.site is None else \
+            f', {1e3 * float(np.linalg.norm(self.card_in_map[:2] - self.site[:2, 3])):.0f} mm ' \
+            'from the site'
+        self.get_logger().info(
+            f'no fix for {self.p["replace_after_s"]:g} s: the card ' +
+            ('not seen at any pan' if found is None else f'seen at pan {found:+.2f} rad{where}')
+            + ": the mast back to the task's view")
+        self._command_mast(task_pan, self._tilt)
+        if not await self._mast_at(handle, task_pan, self._tilt):
+            return False
+        return found is not None
 
     async def _see_slot(self, handle, seconds: float) -> bool:
         """Look at `seconds` of the frames taken standing (by their stamps: a master behind

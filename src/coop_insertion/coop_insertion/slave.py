@@ -76,6 +76,7 @@ from .contact import (
     planar_wrench,
     task_wrench,
 )
+from .drive import GoToPose
 from .errors import InsertionError
 from .frames import homogeneous, invert
 from .servo import VisionFix, VisualServo
@@ -120,6 +121,8 @@ class SlaveStatus:
     descending: bool = False
     card_in_site: tuple[float, float, float] | None = None   # planar (x, y, theta) estimate
     awaiting_fix: bool = False         # VISUAL_SERVO, no fix yet, the coarse approach done
+    #                                    (or no fix since a relocation ended)
+    relocating: bool = False           # VISUAL_SERVO: the base drives the card to a goal aside
 
 
 @dataclass(frozen=True)
@@ -240,7 +243,8 @@ class SlaveController:
                  step_options: dict | None = None, site_in_odom: ArrayLike | None = None,
                  approach_speed_m_s: float = 0.1, seat_force_n: float = 3.0,
                  seat_verdict: SeatVerdict | str = SeatVerdict.FLOOR_FORCE,
-                 backoff_m: float = 0.02) -> None:
+                 backoff_m: float = 0.02, relocate_beyond_m: float = 0.10,
+                 max_relocations: int = 2) -> None:
         if not isinstance(model, TaskModel):
             raise InsertionError('model must be a TaskModel')
         self.model = model
@@ -252,7 +256,7 @@ class SlaveController:
                         ('contact_threshold_n', contact_threshold_n),
                         ('max_force_n', max_force_n), ('force_period_s', force_period_s),
                         ('carry_reach_m', carry_reach_m), ('ready_s', ready_s),
-                        ('backoff_m', backoff_m)):
+                        ('backoff_m', backoff_m), ('relocate_beyond_m', relocate_beyond_m)):
             if not (math.isfinite(v) and v > 0):
                 raise InsertionError(f'{name} must be finite and > 0, got {v}')
         if not abort_force_factor >= 1:
@@ -269,6 +273,10 @@ class SlaveController:
         self.carry = joint2_in_base(self.r2) + np.array([carry_reach_m, 0.0, carry_height_m])
         self.ready_s = float(ready_s)
         self.backoff_m = float(backoff_m)
+        self.relocate_beyond_m = float(relocate_beyond_m)
+        if not (isinstance(max_relocations, int) and max_relocations >= 0):
+            raise InsertionError('max_relocations must be an integer >= 0')
+        self.max_relocations = max_relocations
         self.site_in_odom = None if site_in_odom is None else np.asarray(site_in_odom, float)
         if self.site_in_odom is not None and (self.site_in_odom.shape != (4, 4) or not
                                               np.all(np.isfinite(self.site_in_odom))):
@@ -314,6 +322,9 @@ class SlaveController:
         self.last_seat: SeatCheck | None = None   # the last force step's seat check (SEATED)
         self._seat_passes = 0                     # consecutive force periods it passed
         self._hold_joints: tuple | None = None    # after a failure in contact: backed off
+        self._relocation: GoToPose | None = None  # the base on its way to a far fix's goal
+        self._relocated_t = -math.inf             # when the last relocation ended
+        self.relocations = 0
 
     # -- inputs -------------------------------------------------------------------------------
     def add_state(self, t: float, q: ArrayLike, odom_xy_yaw: Sequence[float], wrench: ArrayLike
@@ -427,7 +438,8 @@ class SlaveController:
         w = self._tared(self._state.wrench) if self._state is not None else np.zeros(6)
         return SlaveStatus(self.phase, self._errors[0], self._errors[1], w,
                            self._contact_state, self._done, self._success, self._reason,
-                           self._descending, self._card_in_site, self._awaiting_fix)
+                           self._descending, self._card_in_site, self._awaiting_fix,
+                           self._relocation is not None)
 
     def _command(self, joints: tuple[float, float, float, float] | None, v: float, w: float
                  ) -> SlaveCommand:
@@ -465,11 +477,48 @@ class SlaveController:
         w = float(np.clip(0.8 * math.atan2(e[1], max(abs(e[0]), 0.3)), -0.3, 0.3))
         return self._command(joints, v, w)
 
+    def _relocate(self, t: float, s: _State) -> SlaveCommand | None:
+        """A fix whose goal lies more than relocate_beyond_m to the side of the card (the two
+        rovers' odometry frames disagree: the card stood where the slave's map put the site,
+        out of the master's view, until the master panned to it): the servo closes distance
+        ahead with the base and the rest with the arm, but a skid-steer base cannot move
+        sideways. The arm back at its carry pose, the base drives (turn, drive, turn) to the
+        pose that puts the card at the goal, on odometry, at most max_relocations times; the
+        servo is for what is left. The command while the base is on its way, else None."""
+        goal = self.servo.goal
+        if self._relocation is None:
+            if goal is None or self._descending or self.relocations >= self.max_relocations:
+                return None
+            card = s.odom @ self._card_marker_in_base(s.q)
+            e = s.odom[:3, :3].T @ (goal[:3, 3] - card[:3, 3])      # base frame
+            if abs(float(e[1])) <= self.relocate_beyond_m:
+                return None
+            self._errors = (float(np.linalg.norm(e)), math.nan)
+            self._target = _Target(self.carry.copy(), 0.0)
+            base = goal @ invert(self._card_marker_in_base(np.asarray(self._joints())))
+            self._relocation = GoToPose(base[:2, 3], math.atan2(base[1, 0], base[0, 0]),
+                                        max_speed_m_s=self.approach_speed)
+            self.relocations += 1
+        c = self._relocation.command(s.odom[0, 3], s.odom[1, 3],
+                                     math.atan2(s.odom[1, 0], s.odom[0, 0]))
+        self._last_t = t            # the servo's next step integrates from here, not before
+        self._awaiting_fix = False
+        if c.arrived:
+            self._relocation = None
+            self._relocated_t = t
+            return None
+        return self._command(self._joints(), c.linear_x, c.angular_z)
+
     def _visual(self, t: float, s: _State) -> SlaveCommand:
         if self.servo.goal is None and self.site_in_odom is not None:
             return self._approach(s)
-        # guided by the fixes; before the first with no map to approach by, it holds there
-        self._awaiting_fix = self.servo.goal is None
+        relocating = self._relocate(t, s)
+        if relocating is not None:
+            return relocating
+        # guided by the fixes; before the first with no map to approach by, it holds there,
+        # as it does after a relocation until a fix from where the card now is
+        self._awaiting_fix = self.servo.goal is None or \
+            self.servo.newest_fix_stamp < self._relocated_t
         cmd = self.servo.command(t)
         self._errors = (cmd.displacement_error_m, cmd.angle_error_rad) \
             if math.isfinite(cmd.vision_age_s) else (math.nan, math.nan)

@@ -341,6 +341,7 @@ class SlaveNode(Node):
                                f'{np.round(self.r2, 4).tolist()} ({self.r2_source}), slot '
                                f'{model.slot_width_m * 1e3:.1f} mm')
         last_fb = -math.inf
+        relocations = 0
         while True:
             self._wake = Future()
             await self._wake
@@ -355,6 +356,11 @@ class SlaveNode(Node):
                                     t0)
             if st is None:
                 continue
+            if self.ctl.relocations > relocations:
+                relocations = self.ctl.relocations
+                self.get_logger().info(
+                    f'a fix {st.displacement_error_m * 1e3:.0f} mm from the card: the base '
+                    f'relocates it ({relocations} of {self.ctl.max_relocations})')
             if time.monotonic() - last_fb > 0.2:
                 last_fb = time.monotonic()
                 fb = Insert.Feedback(phase=int(min(st.phase, Phase.DONE)) if st.phase !=
@@ -362,6 +368,7 @@ class SlaveNode(Node):
                                      displacement_error_m=st.displacement_error_m,
                                      angle_error_rad=st.angle_error_rad,
                                      awaiting_fix=bool(st.awaiting_fix),
+                                     relocating=bool(st.relocating),
                                      descending=bool(st.descending))
                 w = st.wrench
                 fb.wrench.force.x, fb.wrench.force.y, fb.wrench.force.z = (float(v) for v in w[:3])

@@ -28,6 +28,7 @@ No rclpy here.
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,7 @@ __all__ = [
     'find_slot',
     'label_markers',
     'site_from_slot',
+    'slot_from_site',
 ]
 
 LABELS = ('card_a', 'card_b', 'slot_a', 'slot_b')
@@ -266,6 +268,20 @@ def find_slot(markers: list[StereoMarker], radii_px: list[float], fx: float, up:
     order = sorted(pair, key=lambda k: float(pos[k] @ across))
     return SlotPair(np.array([pos[k] for k in order]),
                     np.array([markers[k].covariance for k in order]))
+
+
+def slot_from_site(site_in_camera: ArrayLike, model: TaskModel, *, sigma_m: float) -> SlotPair:
+    """The slot's markers in the camera frame where the site frame's pose in that frame (4x4: a
+    located site through the camera's odometry) puts them, ordered as find_slot orders them,
+    each with an isotropic covariance of `sigma_m` (how well that pose is known): the inverse
+    of site_from_slot."""
+    t = np.asarray(site_in_camera, float)
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        raise InsertionError('the site pose must be a finite 4x4 matrix')
+    if not (math.isfinite(sigma_m) and sigma_m > 0):
+        raise InsertionError(f'sigma_m must be finite and > 0, got {sigma_m}')
+    points = model.slot_markers @ t[:3, :3].T + t[:3, 3]
+    return SlotPair(points, np.repeat(np.eye(3)[None] * sigma_m ** 2, 2, axis=0))
 
 
 def site_from_slot(pair: SlotPair, up: ArrayLike, model: TaskModel) -> np.ndarray:

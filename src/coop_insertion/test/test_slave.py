@@ -179,7 +179,7 @@ def test_the_first_step_after_a_vision_hold_moves_the_arm_one_period_not_the_who
     from types import SimpleNamespace
 
     from coop_insertion.servo import ServoCommand
-    ctl = SlaveController(TaskModel(), [0.01, 0.3, 0.1])
+    ctl = SlaveController(TaskModel(), [0.01, 0.3, 0.1], max_relocations=0)
     q = [0.0, 0.6, -1.0, 0.4]
     arm_v = np.array([0.01, 0.0, 0.0])          # 10 mm/s forward, the card's own direction
     held = {'now': False}
@@ -188,7 +188,7 @@ def test_the_first_step_after_a_vision_hold_moves_the_arm_one_period_not_the_who
         return ServoCommand(0.0, 0.0, arm_v if not held['now'] else np.zeros(3), np.zeros(3),
                             np.full(3, 0.05), np.zeros(3), held['now'],
                             'vision too old' if held['now'] else '', 0.1)
-    ctl.servo = SimpleNamespace(goal=object(), command=command,
+    ctl.servo = SimpleNamespace(goal=object(), command=command, newest_fix_stamp=0.0,
                                 add_odometry=lambda *_: None)
     ctl.phase = Phase.VISUAL_SERVO
     t = 0.0
@@ -203,6 +203,24 @@ def test_the_first_step_after_a_vision_hold_moves_the_arm_one_period_not_the_who
             moves.append(float(np.linalg.norm(ctl._target.position - before)))
     # every step moves the card at most one 5 ms period at 10 mm/s (0.05 mm)
     assert max(moves) <= 0.01 * 0.005 + 1e-9, max(moves)
+
+
+def test_a_fix_far_from_the_card_relocates_the_base_and_the_card_still_seats():
+    """The slave's map puts the site 0.25 m aside of the true one (its odometry frame and the
+    master's disagree, as after a long mission): the first fix's goal lies where the base
+    cannot move the card (sideways), the base drives it there on odometry (once: turn, drive,
+    turn), and the servo and the force phase finish the task."""
+    trial, st, phases, ctl = run_trial(5.0, 1, map_error_m=(-0.08, 0.25), sim_s=60.0)
+    assert ctl.relocations == 1
+    assert st.done and st.success, st.reason
+    assert trial.seated and trial.max_penetration_mm <= 0.5
+    assert phases == [Phase.READY, Phase.VISUAL_SERVO, Phase.FORCE_INSERT, Phase.DONE]
+
+
+def test_a_fix_within_reach_of_the_card_does_not_relocate():
+    """6 cm aside and 5 cm ahead: the servo's own base and arm motion."""
+    _trial, st, _phases, ctl = run_trial(5.0, 1, map_error_m=(-0.05, 0.06))
+    assert ctl.relocations == 0 and st.success, st.reason
 
 
 @pytest.mark.known_issue

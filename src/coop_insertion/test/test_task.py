@@ -17,6 +17,7 @@ from coop_insertion.task import (
     find_slot,
     label_markers,
     site_from_slot,
+    slot_from_site,
 )
 from coop_insertion.triangulate import StereoMarker
 
@@ -197,6 +198,24 @@ def test_the_site_from_the_slot_pair_is_the_site_frame_in_the_camera():
     with pytest.raises(InsertionError, match='side by side'):
         site_from_slot(SlotPair(np.array([[0, 0, 1.0], [0, -0.1, 1.0]]), np.zeros((2, 3, 3))),
                        [0, -1.0, 0], MODEL)
+
+
+def test_the_slot_pair_a_located_site_predicts_is_the_one_the_camera_sees():
+    """slot_from_site is site_from_slot's inverse: the pair it predicts from the site's pose
+    in the camera is the pair seen (same order), and gives that pose back."""
+    for yaw in (-0.6, 0.0, 0.5):
+        cam = homogeneous(rot_z(yaw), np.zeros(3)) @ _camera()
+        ms, rs, up = _observe(cam, MODEL.card_goal(0.05))
+        slot = [k for k, m in enumerate(ms) if m.left >= 2]
+        seen = find_slot([ms[k] for k in slot], [rs[k] for k in slot], 850.0, up, MODEL)
+        pred = slot_from_site(invert(cam), MODEL, sigma_m=0.01)
+        np.testing.assert_allclose(pred.points, seen.points, atol=1e-9)
+        np.testing.assert_allclose(pred.covariances, [np.eye(3) * 1e-4] * 2)
+        np.testing.assert_allclose(site_from_slot(pred, up, MODEL), invert(cam), atol=1e-9)
+    for bad in ({'site_in_camera': np.full((4, 4), np.nan), 'sigma_m': 0.01},
+                {'site_in_camera': np.eye(4), 'sigma_m': 0.0}):
+        with pytest.raises(InsertionError):
+            slot_from_site(bad['site_in_camera'], MODEL, sigma_m=bad['sigma_m'])
 
 
 def test_the_search_covers_the_region_from_its_centre_out():
