@@ -28,6 +28,7 @@ def test_an_easy_insertion_seats_the_card_through_every_phase():
     assert pen <= 5e-4
     assert phases == [Phase.READY, Phase.VISUAL_SERVO, Phase.FORCE_INSERT, Phase.DONE]
     assert 0.0 < ctl.peak_force_n <= 25.0
+    assert ctl.relocations == 0     # the first fix within the servo's reach
 
 
 def test_without_vision_the_slave_stops_short_and_never_descends():
@@ -215,12 +216,6 @@ def test_a_fix_far_from_the_card_relocates_the_base_and_the_card_still_seats():
     assert st.done and st.success, st.reason
     assert trial.seated and trial.max_penetration_mm <= 0.5
     assert phases == [Phase.READY, Phase.VISUAL_SERVO, Phase.FORCE_INSERT, Phase.DONE]
-
-
-def test_a_fix_within_reach_of_the_card_does_not_relocate():
-    """6 cm aside and 5 cm ahead: the servo's own base and arm motion."""
-    _trial, st, _phases, ctl = run_trial(5.0, 1, map_error_m=(-0.05, 0.06))
-    assert ctl.relocations == 0 and st.success, st.reason
 
 
 @pytest.mark.known_issue
