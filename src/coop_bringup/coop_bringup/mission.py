@@ -132,7 +132,7 @@ class MissionConfig:
     survey_s: float = 20.0            # the master's sweep over the site from its staging pose
     #                                   before the map is final (sim s; the table's rig's)
     site_half_m: float = 1.5
-    insert_timeout_s: float = 60.0
+    insert_timeout_s: float = 120.0     # sim s, with room for the slave to relocate its card
     rough_site_m: float = 0.3         # the master's region: this far either side of a centre
     #                                   drawn from the seed (coop_bringup.rig.rough_site)
     max_force_n: float = 25.0
@@ -572,8 +572,11 @@ class Mission:
                              m.resolution_m,
                              centre_xy=SITE_XY, half_m=self.cfg.site_half_m)
 
-    def _path(self, r: str, goal_xy, grid, trav, others: list) -> list:
-        """Waypoints from rover r's base to goal_xy on the map, round the other rovers."""
+    def _path(self, r: str, goal_xy, grid, trav, others: list, *, last_leg: bool = True
+              ) -> list:
+        """Waypoints from rover r's base to goal_xy on the map, round the other rovers; a
+        goal off the navigable cells is reached by a straight last leg from the nearest one
+        (without `last_leg`, the path ends on that cell)."""
         clear = math.ceil(self.view_planner['clearance_m'] / grid.resolution)
         for xy in others:
             trav = trav.with_blocked_disk(grid.to_index(np.r_[xy, 0.0])[:2], clear + 2)
@@ -592,12 +595,13 @@ class Mission:
                 raise PlanningError(f'no navigable cell within {SNAP_M} m of the goal')
             goal = near[np.argmin(np.hypot(*(near - goal).T))]
         cells = geodesic_path(nav, tuple(start), tuple(goal), resolution=grid.resolution)
-        return [*waypoints(cells, grid)[:-1], np.asarray(goal_xy, float)] \
-            if len(cells) > 1 else [np.asarray(goal_xy, float)]
+        end = np.asarray(goal_xy, float) if last_leg else grid.to_world(np.r_[goal, 0])[:2]
+        return [*waypoints(cells, grid)[:-1], end] if len(cells) > 1 else [end]
 
-    def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> None:
+    def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> list[str]:
         """Drive rovers along (waypoints, final heading) at once: a drive_to_pose goal each,
-        given while the sim is held (in lockstep every driver starts at the same round)."""
+        given while the sim is held (in lockstep every driver starts at the same round); the
+        rovers whose drive ended short (logged)."""
         c, cmd = self.client, self.commander
         missing = cmd.missing({r: cmd.drivers[r] for r in paths}, 60)
         if missing:
@@ -628,6 +632,7 @@ class Mission:
                 'sim_s': float(res.navigation_time_s)})
             if res.error_code != DriveToPose.Result.NONE:
                 self.log(f'{what}: {r}: {res.error_msg}')
+        return [r for r, t in tasks.items() if t.result().error_code != DriveToPose.Result.NONE]
 
     def _map(self) -> None:
         cfg, c = self.cfg, self.client
@@ -724,16 +729,26 @@ class Mission:
         grid, trav, _ = self._grid()
         poses = staging_poses(self.cfg.slot_in)
         slave_xy, master_xy = poses[SLAVE][:2], poses[MASTER][:2]
-        plans = {}
-        for r, xy, others, yaw in ((SLAVE, slave_xy, [c.odom[MASTER][:2], master_xy],
-                                    poses[SLAVE][2]),
-                                   (MASTER, master_xy, [slave_xy], poses[MASTER][2])):
-            try:
-                plans[r] = (self._path(r, xy, grid, trav, others), yaw)
-            except PlanningError as exc:
-                raise MissionError(f'no path for {r} from {np.round(c.odom[r][:2], 2)} to '
-                                   f'its staging pose {np.round(xy, 2)}: {exc}') from exc
-        self._drive(plans, 'to the staging poses')
+        targets = {SLAVE: (slave_xy, [c.odom[MASTER][:2], master_xy], poses[SLAVE][2]),
+                   MASTER: (master_xy, [slave_xy], poses[MASTER][2])}
+        # a straight last leg to a staging pose close to the site may cross a cell the map
+        # holds occupied (the driver refuses the goal at once): then to the nearest navigable
+        # cell, from which the slave's approach (the master's placement) goes on
+        short = list(targets)
+        for last_leg in (True, False):
+            plans = {}
+            for r in short:
+                xy, others, yaw = targets[r]
+                try:
+                    plans[r] = (self._path(r, xy, grid, trav, others, last_leg=last_leg), yaw)
+                except PlanningError as exc:
+                    raise MissionError(f'no path for {r} from {np.round(c.odom[r][:2], 2)} '
+                                       f'to its staging pose {np.round(xy, 2)}: {exc}') from exc
+            short = self._drive(plans, 'to the staging poses' if last_leg else
+                                'to the navigable cells nearest the staging poses')
+            if not short:
+                break
+            grid, trav, _ = self._grid()
         rig.set_slot(self.cfg.slot_in)
 
     def _place_and_insert(self, place: Phase) -> None:
