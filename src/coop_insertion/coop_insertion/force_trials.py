@@ -58,7 +58,7 @@ class Trial:
 def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 45.0,
               slave_options: dict | None = None, site_bias_m: tuple[float, float] = (0.0, 0.0),
               friction: float | None = None, fail_in_contact_s: float | None = None,
-              map_error_m: tuple[float, float] = (0.0, 0.0)
+              map_error_m: tuple[float, float] = (0.0, 0.0), start_yaw_rad: float = 0.0
               ) -> tuple[Trial, SlaveStatus, list[Phase], SlaveController]:
     """One insertion from the perturbed start until the slave is done or `sim_s` passed.
     site_bias_m: (near, far) slot markers seen this much higher than they are (m), a constant
@@ -67,7 +67,8 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
     the slave is failed (as by a timeout) once it has been this long in contact, and the
     world runs on 2 s with its commands (what a failure leaves on the card). map_error_m:
     (x, y) the site the slave approaches is off by (its odometry frame and the master's
-    disagree), the fixes still the true markers'."""
+    disagree), the fixes still the true markers'. start_yaw_rad: added to the slave's heading
+    at the start."""
     from rover_sim.config import NoiseConfig, SimConfig  # noqa: PLC0415 - only to run trials
     from rover_sim.world import World  # noqa: PLC0415 - PyBullet, only to run trials
     from rover_sim.worldgen import INCH  # noqa: PLC0415 - only to run trials
@@ -82,7 +83,8 @@ def run_trial(slot_in: float, seed: int, *, vision: bool = True, sim_s: float = 
         sx, sy, top = w.layout.site.slot_centre
         j2 = joint2_in_base(r2)
         w.place_rover(1, sx - 0.30 - j2[0] - 0.55 + rng.uniform(-0.03, 0.03),
-                      sy - j2[1] + rng.uniform(-0.02, 0.02), rng.uniform(-0.05, 0.05))
+                      sy - j2[1] + rng.uniform(-0.02, 0.02),
+                      rng.uniform(-0.05, 0.05) + start_yaw_rad)
         site = np.eye(4)
         site[:3, 3] = (sx + map_error_m[0], sy + map_error_m[1], top)
         ctl = SlaveController(model, r2, site_in_odom=site, **(slave_options or {}))

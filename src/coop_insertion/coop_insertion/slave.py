@@ -480,20 +480,25 @@ class SlaveController:
     def _relocate(self, t: float, s: _State) -> SlaveCommand | None:
         """A fix whose goal lies more than relocate_beyond_m to the side of the card (the two
         rovers' odometry frames disagree: the card stood where the slave's map put the site,
-        out of the master's view, until the master panned to it): the servo closes distance
-        ahead with the base and the rest with the arm, but a skid-steer base cannot move
-        sideways. The arm back at its carry pose, the base drives (turn, drive, turn) to the
-        pose that puts the card at the goal, on odometry, at most max_relocations times; the
-        servo is for what is left. The command while the base is on its way, else None."""
+        out of the master's view, until the master panned to it), or turned about the
+        vertical by more than yaw_tolerance_rad (the base came in at an angle): the servo
+        closes distance ahead with the base and the rest with the arm, but a skid-steer base
+        cannot move sideways and the 4-DOF arm cannot turn the card about the vertical. The
+        arm back at its carry pose, the base drives (turn, drive, turn) to the pose that puts
+        the card at the goal, on odometry, at most max_relocations times; the servo is for
+        what is left. The command while the base is on its way, else None."""
         goal = self.servo.goal
         if self._relocation is None:
             if goal is None or self._descending or self.relocations >= self.max_relocations:
                 return None
             card = s.odom @ self._card_marker_in_base(s.q)
             e = s.odom[:3, :3].T @ (goal[:3, 3] - card[:3, 3])      # base frame
-            if abs(float(e[1])) <= self.relocate_beyond_m:
+            r = goal[:3, :3] @ card[:3, :3].T
+            yaw = math.atan2(r[1, 0], r[0, 0])          # the card's turn about the vertical
+            if abs(float(e[1])) <= self.relocate_beyond_m and \
+                    abs(yaw) <= self.yaw_tolerance_rad:
                 return None
-            self._errors = (float(np.linalg.norm(e)), math.nan)
+            self._errors = (float(np.linalg.norm(e)), abs(yaw))
             self._target = _Target(self.carry.copy(), 0.0)
             base = goal @ invert(self._card_marker_in_base(np.asarray(self._joints())))
             self._relocation = GoToPose(base[:2, 3], math.atan2(base[1, 0], base[0, 0]),

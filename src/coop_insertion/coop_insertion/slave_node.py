@@ -359,8 +359,9 @@ class SlaveNode(Node):
             if self.ctl.relocations > relocations:
                 relocations = self.ctl.relocations
                 self.get_logger().info(
-                    f'a fix {st.displacement_error_m * 1e3:.0f} mm from the card: the base '
-                    f'relocates it ({relocations} of {self.ctl.max_relocations})')
+                    f'a fix {st.displacement_error_m * 1e3:.0f} mm and {st.angle_error_rad:.2f} '
+                    f'rad from the card: the base relocates it ({relocations} of '
+                    f'{self.ctl.max_relocations})')
             if time.monotonic() - last_fb > 0.2:
                 last_fb = time.monotonic()
                 fb = Insert.Feedback(phase=int(min(st.phase, Phase.DONE)) if st.phase !=
