@@ -206,16 +206,40 @@ def test_the_first_step_after_a_vision_hold_moves_the_arm_one_period_not_the_who
     assert max(moves) <= 0.01 * 0.005 + 1e-9, max(moves)
 
 
-def test_a_fix_far_from_the_card_relocates_the_base_and_the_card_still_seats():
-    """The slave's map puts the site 0.25 m aside of the true one (its odometry frame and the
-    master's disagree, as after a long mission): the first fix's goal lies where the base
-    cannot move the card (sideways), the base drives it there on odometry (once: turn, drive,
-    turn), and the servo and the force phase finish the task."""
-    trial, st, phases, ctl = run_trial(5.0, 1, map_error_m=(-0.08, 0.25), sim_s=60.0)
+def test_a_fix_far_to_the_side_relocates_the_base_once():
+    """A fix whose goal lies 0.25 m to the card's left (the two rovers' odometry frames
+    disagree, as after a long mission): a skid-steer base cannot move the card sideways, so
+    the slave does not servo; the arm goes back to its carry pose and the base turns to face
+    the pose that puts the card at the goal (relocating, not awaiting a fix), once."""
+    from coop_insertion.servo import VisionFix
+    ctl = SlaveController(TaskModel(), [0.01, 0.3, 0.1], ready_s=0.1)
+    q = [0.0, 0.6, -1.0, 0.4]
+    for k in range(40):                          # READY, then VISUAL_SERVO with no fix
+        ctl.add_state(0.005 * k, q, [0.0] * 3, [0.0] * 6)
+        ctl.step(0.005 * k)
+    assert ctl.phase is Phase.VISUAL_SERVO and ctl.relocations == 0
+    t = 0.2
+    ctl.add_state(t, q, [0.0] * 3, [0.0] * 6)
+    ctl.servo.add_vision(VisionFix(t, np.array([0.02, 0.25, 0.0]), np.zeros(3),
+                                   np.eye(6) * 1e-6))
+    cmd = ctl.step(t)
     assert ctl.relocations == 1
-    assert st.done and st.success, st.reason
-    assert trial.seated and trial.max_penetration_mm <= 0.5
-    assert phases == [Phase.READY, Phase.VISUAL_SERVO, Phase.FORCE_INSERT, Phase.DONE]
+    assert cmd.status.relocating and not cmd.status.awaiting_fix
+    assert cmd.base_linear_x == 0.0 and cmd.base_angular_z > 0.0   # turning left, on the spot
+    np.testing.assert_allclose(ctl._target.position, ctl.carry)
+    for k in range(1, 20):                       # still on its way: no second relocation
+        ctl.add_state(t + 0.005 * k, q, [0.0] * 3, [0.0] * 6)
+        assert ctl.step(t + 0.005 * k).status.relocating
+    assert ctl.relocations == 1
+    # within reach: 3 cm aside is the servo's
+    near = SlaveController(TaskModel(), [0.01, 0.3, 0.1], ready_s=0.1)
+    for k in range(40):
+        near.add_state(0.005 * k, q, [0.0] * 3, [0.0] * 6)
+        near.step(0.005 * k)
+    near.add_state(t, q, [0.0] * 3, [0.0] * 6)
+    near.servo.add_vision(VisionFix(t, np.array([0.02, 0.03, 0.0]), np.zeros(3),
+                                    np.eye(6) * 1e-6))
+    assert not near.step(t).status.relocating and near.relocations == 0
 
 
 def test_a_card_come_in_at_an_angle_is_turned_by_the_base_and_seats():
