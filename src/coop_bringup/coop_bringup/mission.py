@@ -78,8 +78,7 @@ from coop_viewplan.nbv import (
     NextBestViewPlanner,
     PlanningError,
     StrategyName,
-    geodesic_path,
-    waypoints,
+    team_route,
 )
 from coop_viewplan.offline import nbv_config
 from coop_viewplan.params import PARAMS as VP_PARAMS
@@ -574,29 +573,11 @@ class Mission:
 
     def _path(self, r: str, goal_xy, grid, trav, others: list, *, last_leg: bool = True
               ) -> list:
-        """Waypoints from rover r's base to goal_xy on the map, round the other rovers; a
-        goal off the navigable cells is reached by a straight last leg from the nearest one
-        (without `last_leg`, the path ends on that cell)."""
-        clear = math.ceil(self.view_planner['clearance_m'] / grid.resolution)
-        for xy in others:
-            trav = trav.with_blocked_disk(grid.to_index(np.r_[xy, 0.0])[:2], clear + 2)
-        x, y, _ = self.client.odom[r]
-        start = grid.to_index(np.r_[x, y, 0.0])[:2]
-        goal = grid.to_index(np.r_[goal_xy, 0.0])[:2]
-        nav = trav.with_free_disk(start, clear).navigable.copy()
-        if not nav[tuple(goal)]:
-            # a goal inside the clearance of an obstacle (a base a little off its camera's
-            # column, a staging pose close to the site): the path goes to the nearest
-            # navigable cell within SNAP_M and the last leg straight on
-            r = math.ceil(SNAP_M / grid.resolution)
-            lo = np.maximum(goal - r, 0)
-            near = np.argwhere(nav[lo[0]:goal[0] + r + 1, lo[1]:goal[1] + r + 1]) + lo
-            if not len(near):
-                raise PlanningError(f'no navigable cell within {SNAP_M} m of the goal')
-            goal = near[np.argmin(np.hypot(*(near - goal).T))]
-        cells = geodesic_path(nav, tuple(start), tuple(goal), resolution=grid.resolution)
-        end = np.asarray(goal_xy, float) if last_leg else grid.to_world(np.r_[goal, 0])[:2]
-        return [*waypoints(cells, grid)[:-1], end] if len(cells) > 1 else [end]
+        """Waypoints from rover r's base to goal_xy on the map, round the other rovers
+        (`coop_viewplan.nbv.team_route`)."""
+        return team_route(trav, grid, self.client.odom[r][:2], goal_xy, others=others,
+                          clearance_m=self.view_planner['clearance_m'], snap_m=SNAP_M,
+                          last_leg=last_leg)
 
     def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> list[str]:
         """Drive rovers along (waypoints, final heading) at once: a drive_to_pose goal each,

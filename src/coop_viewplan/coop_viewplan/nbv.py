@@ -60,6 +60,7 @@ Constraints (i) and (ii) on a map (`NbvConfig.reach_model`):
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -1247,3 +1248,56 @@ def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
             run = 0
     out.append(xy[-1])
     return out
+
+
+def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: Sequence[float],
+               goal_xy: Sequence[float], *, others: Sequence[Sequence[float]] = (),
+               clearance_m: float, snap_m: float = 1.0, last_leg: bool = True
+               ) -> list[np.ndarray]:
+    """Waypoints (map xy) for a rover from start_xy to goal_xy on `trav`'s navigable cells,
+    round the other rovers of its team (`others`: where each stands or will stand, kept out
+    of by the clearance and two cells). A goal off the navigable cells is reached by a
+    straight last leg from the nearest navigable cell within `snap_m` that the rover can reach
+    (without `last_leg` the route ends on that cell). PlanningError when the goal lies in
+    another rover's keep-out or cannot be reached."""
+    clear = math.ceil(clearance_m / grid.resolution)
+    keep = clear + 2
+    start = _plane_index(grid, start_xy)
+    goal = _plane_index(grid, goal_xy)
+    for xy in others:
+        cell = _plane_index(grid, xy)
+        if np.hypot(*(goal - cell)) <= keep:
+            # the straight last leg would end beside (or on) the other rover
+            raise PlanningError(f'the goal is within {keep * grid.resolution:.1f} m of '
+                                f'another rover at {np.round(np.asarray(xy, float), 2)}')
+        # a rover close to this one (side by side, or within the odometry's error) keeps out
+        # of a smaller disk, one that leaves this rover's own footprint a way out
+        radius = min(keep, int(np.hypot(*(start - cell))) - clear - 1)
+        if radius > 0:
+            trav = trav.with_blocked_disk(cell, radius)
+    nav = trav.with_free_disk(start, clear).navigable
+    if not nav[tuple(goal)]:
+        # a goal inside the clearance of an obstacle (a base a little off its camera's column,
+        # a staging pose close to the site), never a speck of free cells among the obstacles
+        reach, _ = ndimage.label(nav, structure=np.ones((3, 3), bool))    # 8-connected
+        r = math.ceil(snap_m / grid.resolution)
+        lo = np.maximum(goal - r, 0)
+        window = reach[lo[0]:goal[0] + r + 1, lo[1]:goal[1] + r + 1]
+        near = np.argwhere(window == reach[tuple(start)]) + lo
+        if not len(near):
+            raise PlanningError(f'no navigable cell within {snap_m} m of the goal that the '
+                                'rover can reach')
+        goal = near[np.argmin(np.hypot(*(near - goal).T))]
+    cells = geodesic_path(nav, tuple(start), tuple(goal), resolution=grid.resolution)
+    end = np.asarray(goal_xy, float) if last_leg else _plane_world(grid, goal)
+    return [*waypoints(cells, grid)[:-1], end] if len(cells) > 1 else [end]
+
+
+def _plane_index(grid: OccupancyGrid, xy: Sequence[float]) -> np.ndarray:
+    """The ground-plane cell (i, j) of map xy, for a 3-D or a 2-D grid."""
+    p = np.asarray(xy, float)[:2]
+    return grid.to_index(np.r_[p, 0.0])[:2] if grid.ndim == 3 else grid.to_index(p)
+
+
+def _plane_world(grid: OccupancyGrid, cell: np.ndarray) -> np.ndarray:
+    return grid.to_world(np.r_[cell, 0])[:2] if grid.ndim == 3 else grid.to_world(cell)

@@ -1,6 +1,8 @@
 """Unit tests of the next-best-view core (Eq. 3-11..3-15, §3.3.1 strategies)."""
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from coop_viewplan.nbv import (
     NbvConfig,
     NextBestViewPlanner,
     PlanningError,
+    Traversal,
     binary_entropy,
     configuration_distance,
     make_strategy,
@@ -19,6 +22,7 @@ from coop_viewplan.nbv import (
     plan_cameras,
     rating_function,
     score_views,
+    team_route,
 )
 from coop_viewplan.raycast import cast, make_template
 
@@ -371,3 +375,48 @@ def test_unknown_modes_are_refused_naming_the_allowed_values(tmp_path):
     # every strategy name has its class, each named by its member
     assert set(STRATEGY_CLASSES) == set(StrategyName)
     assert all(make_strategy(s.value).name is s for s in StrategyName)
+
+
+def _open_field(n: int = 60, res: float = 0.1) -> tuple[OccupancyGrid, Traversal]:
+    """An n x n field of known free ground (0.1 m cells), every cell navigable."""
+    g = OccupancyGrid.empty((n, n), resolution=res)
+    g.known[:] = True
+    g.prob[:] = 0.0
+    nav = np.ones((n, n), bool)
+    return g, Traversal(nav, np.zeros((n, n)), nav.copy())
+
+
+def test_team_route_leaves_a_teammate_standing_beside_the_rover():
+    """Two rovers side by side (0.1 m apart: the mission's map scans once put them there): the
+    teammate's keep-out (0.7 m) would wall the rover's own footprint in; it shrinks to leave it
+    a way out, and the route keeps clear of the teammate beyond its start."""
+    g, trav = _open_field()
+    route = team_route(trav, g, (1.0, 1.0), (5.0, 5.0), others=[(1.1, 1.0)], clearance_m=0.5)
+    assert np.allclose(route[-1], (5.0, 5.0))
+    # a teammate 1.5 m off: its full keep-out stands, and the route goes round it
+    route = team_route(trav, g, (1.0, 3.0), (5.0, 3.0), others=[(3.0, 3.0)], clearance_m=0.5)
+    pts = np.vstack([(1.0, 3.0), *route])
+    dense = np.vstack([np.linspace(a, b, 20) for a, b in itertools.pairwise(pts)])
+    assert np.hypot(*(dense - (3.0, 3.0)).T).min() >= 0.6
+
+
+def test_team_route_refuses_a_goal_beside_a_teammate():
+    g, trav = _open_field()
+    with pytest.raises(PlanningError, match=r'within 0\.7 m of another rover'):
+        team_route(trav, g, (1.0, 1.0), (4.0, 4.0), others=[(4.3, 4.2)], clearance_m=0.5)
+
+
+def test_team_route_snaps_to_a_reachable_cell_not_a_speck():
+    """A goal inside an obstacle's clearance: the route ends on the nearest navigable cell
+    the rover can reach, never on a free speck walled off from it, and the last leg goes on
+    straight (or not, without last_leg)."""
+    g, trav = _open_field()
+    nav = trav.navigable.copy()
+    nav[35:52, 35:52] = False            # an obstacle's clearance round the goal (4.35, 4.35)
+    nav[42, 42] = True                    # a speck inside it, next to the goal
+    trav = Traversal(nav, trav.collision_p, trav.candidate)
+    end = team_route(trav, g, (1.0, 1.0), (4.35, 4.35), clearance_m=0.2, last_leg=False)[-1]
+    assert np.hypot(*(end - (4.25, 4.25))) > 0.5          # not the speck's cell centre
+    assert nav[tuple(g.to_index(end))]
+    assert np.allclose(team_route(trav, g, (1.0, 1.0), (4.35, 4.35), clearance_m=0.2)[-1],
+                       (4.35, 4.35))
