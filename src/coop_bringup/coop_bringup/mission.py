@@ -36,7 +36,7 @@ from typing import assert_never
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
@@ -67,7 +67,8 @@ from coop_common.rover_geometry import (
 )
 from coop_common.testing import free_domain_id, isolate_ros_environment
 from coop_id.excitation import Strategy
-from coop_insertion.drive import path_length
+from coop_insertion.drive import GridSlice, grid_slice_of, obstruction, path_length
+from coop_insertion.driver_node import PARAMS as DRIVER_PARAMS
 from coop_insertion.errors import InsertionError
 from coop_msgs.action import DriveToPose, Identify, Insert
 from coop_msgs.msg import DynamicParameters, ViewRating, VoxelMap
@@ -109,6 +110,8 @@ class PhaseName(StrEnum):
 PHASES = tuple(PhaseName)
 #: a goal within an obstacle's clearance is reached by a straight last leg of at most this (m)
 SNAP_M = 1.0
+#: routes planned again round a corner cell the drivers refused, at most
+REROUTES = 3
 MASTER, SLAVE = 'rover1', 'rover2'
 LIVE_PORT = 8765
 
@@ -230,6 +233,7 @@ class _MissionClient(Node):
         self.distance: dict[str, float] = dict.fromkeys(rovers, 0.0)
         self.truth: dict[str, DynamicParameters] = {}
         self.map: VoxelMap | None = None
+        self.grid: GridSlice | None = None     # the drivers' map/grid (what they refuse)
         self.placement: ViewRating | None = None
         self.mast_cmd = {r: self.ls.publisher(JointTrajectory, f'{r}/mast/command',
                                               COMMAND_QOS) for r in rovers}
@@ -242,11 +246,18 @@ class _MissionClient(Node):
             self.create_subscription(DynamicParameters, f'sim/{r}/parameters',
                                      lambda m, r=r: self.truth.__setitem__(r, m), LATCHED_QOS)
         self.create_subscription(VoxelMap, 'map/voxels', self._on_map, LATCHED_QOS)
+        self.create_subscription(OccupancyGrid, 'map/grid', self._on_grid, LATCHED_QOS)
         self.create_subscription(ViewRating, f'{MASTER}/camera_placement',
                                  lambda m: setattr(self, 'placement', m), LATCHED_QOS)
 
     def _on_map(self, m: VoxelMap) -> None:
         self.map = m
+
+    def _on_grid(self, m: OccupancyGrid) -> None:
+        try:
+            self.grid = grid_slice_of(m)
+        except InsertionError as exc:
+            self.get_logger().warning(f'map/grid: {exc}; skipped')
 
     def _on_joints(self, r: str, m: JointState) -> None:
         idx = {n: i for i, n in enumerate(m.name)}
@@ -301,6 +312,9 @@ class Mission:
         # the view planner's settings, as the graph's node has them: the runner plans its
         # paths on the same grid
         self.view_planner = node_settings('view_planner')
+        # the drivers refuse a path across a cell of map/grid they take for occupied: the
+        # mission's paths keep off those cells by the drivers' own rule
+        self.driver = {k: s.default for k, s in DRIVER_PARAMS.items()} | node_settings('driver')
         self.phases = [Phase(p) for p in PHASES]
         self.rep: dict = {'run_id': self.run_id, 'config': {**asdict(cfg),
                                                            'phases': list(cfg.phases)},
@@ -574,10 +588,33 @@ class Mission:
     def _path(self, r: str, goal_xy, grid, trav, others: list, *, last_leg: bool = True
               ) -> list:
         """Waypoints from rover r's base to goal_xy on the map, round the other rovers
-        (`coop_viewplan.nbv.team_route`)."""
-        return team_route(trav, grid, self.client.odom[r][:2], goal_xy, others=others,
-                          clearance_m=self.view_planner['clearance_m'], snap_m=SNAP_M,
-                          last_leg=last_leg)
+        (`coop_viewplan.nbv.team_route`), through no cell the drivers take for occupied on
+        map/grid (`coop_insertion.drive.obstruction`, their own check)."""
+        start = np.asarray(self.client.odom[r][:2], float)
+        seen = self.client.grid
+        threshold, start_clear = self.driver['occupied_threshold'], self.driver['start_clear_m']
+        blocked = None
+        if seen is not None:        # the drivers' occupied cells, but for the rover's body
+            plane = grid.shape[:2]
+            ij = np.stack(np.meshgrid(*(np.arange(n) for n in plane), indexing='ij'), -1)
+            xy = grid.to_world(np.concatenate([ij, np.zeros((*plane, 1), int)], -1))[..., :2]
+            blocked = (seen.occupied(xy.reshape(-1, 2), threshold).reshape(plane)
+                       & (np.hypot(*(xy - start).transpose(2, 0, 1)) > start_clear))
+        route: list = []
+        for _ in range(REROUTES + 1):
+            route = team_route(trav, grid, start, goal_xy, others=others,
+                               clearance_m=self.view_planner['clearance_m'], snap_m=SNAP_M,
+                               last_leg=last_leg, blocked=blocked)
+            hit = None if seen is None else obstruction(
+                np.vstack([start, *route]), seen, threshold=threshold, start_clear_m=start_clear)
+            if hit is None:
+                return route
+            cell = grid.to_index(np.r_[hit.xy, 0.0])[:2]
+            if hit.kind == 'point' or blocked is None or blocked[tuple(cell)]:
+                break           # the goal itself, or a cell no route here can miss
+            blocked[tuple(cell)] = True       # a leg cut a corner of an occupied cell
+        raise PlanningError(f'every route to {np.round(goal_xy, 2)} crosses a cell map/grid '
+                            f'holds occupied, at {np.round(hit.xy, 2)}')
 
     def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> list[str]:
         """Drive rovers along (waypoints, final heading) at once: a drive_to_pose goal each,
@@ -712,19 +749,23 @@ class Mission:
         slave_xy, master_xy = poses[SLAVE][:2], poses[MASTER][:2]
         targets = {SLAVE: (slave_xy, [c.odom[MASTER][:2], master_xy], poses[SLAVE][2]),
                    MASTER: (master_xy, [slave_xy], poses[MASTER][2])}
-        # a straight last leg to a staging pose close to the site may cross a cell the map
-        # holds occupied (the driver refuses the goal at once): then to the nearest navigable
+        # a straight last leg to a staging pose close to the site may cross a cell map/grid
+        # holds occupied (planned so, or found so by the driver): then to the nearest navigable
         # cell, from which the slave's approach (the master's placement) goes on
         short = list(targets)
         for last_leg in (True, False):
             plans = {}
             for r in short:
                 xy, others, yaw = targets[r]
-                try:
-                    plans[r] = (self._path(r, xy, grid, trav, others, last_leg=last_leg), yaw)
-                except PlanningError as exc:
+                for leg in (last_leg, False) if last_leg else (False,):
+                    try:
+                        plans[r] = (self._path(r, xy, grid, trav, others, last_leg=leg), yaw)
+                        break
+                    except PlanningError as exc:
+                        why = exc
+                else:
                     raise MissionError(f'no path for {r} from {np.round(c.odom[r][:2], 2)} '
-                                       f'to its staging pose {np.round(xy, 2)}: {exc}') from exc
+                                       f'to its staging pose {np.round(xy, 2)}: {why}')
             short = self._drive(plans, 'to the staging poses' if last_leg else
                                 'to the navigable cells nearest the staging poses')
             if not short:

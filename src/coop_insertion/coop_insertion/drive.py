@@ -6,10 +6,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+from coop_common.rover_geometry import yaw_of
 
 from .errors import InsertionError
 
@@ -228,6 +230,17 @@ class GridSlice:
         out = np.zeros(len(ij), bool)
         out[inside] = self.occupancy[ij[inside, 1], ij[inside, 0]] >= threshold
         return out
+
+
+def grid_slice_of(msg: Any) -> GridSlice:
+    """A nav_msgs/OccupancyGrid message as a GridSlice; InsertionError for a grid that is
+    rotated or whose data does not fill width x height."""
+    info = msg.info
+    q = info.origin.orientation
+    if abs(yaw_of(q.x, q.y, q.z, q.w)) > 1e-6 or len(msg.data) != info.width * info.height:
+        raise InsertionError('a rotated or ragged grid')
+    return GridSlice(np.asarray(msg.data, np.int8).reshape(info.height, info.width),
+                     (info.origin.position.x, info.origin.position.y), info.resolution)
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ from coop_common.qos import COMMAND_QOS, LATCHED_QOS, SENSOR_QOS
 from coop_common.rover_geometry import yaw_of
 from coop_msgs.action import DriveToPose
 
-from .drive import Drive, DriveEnd, GridSlice, obstruction
+from .drive import Drive, DriveEnd, GridSlice, grid_slice_of, obstruction
 from .errors import InsertionError
 
 PARAMS = {
@@ -120,18 +120,11 @@ class DriverNode(Node):
         return self.ls.now_s(lambda: self.get_clock().now().nanoseconds * 1e-9)
 
     def _on_grid(self, msg: OccupancyGrid) -> None:
-        info = msg.info
-        q = info.origin.orientation
-        if abs(yaw_of(q.x, q.y, q.z, q.w)) > 1e-6 or len(msg.data) != info.width * info.height:
-            self.bad.reject('map/grid', 'a rotated or ragged grid')
-            return
         if msg.header.frame_id not in self.frames:
             self.bad.reject('map/grid', f'frame {msg.header.frame_id!r}')
             return
         try:
-            self.grid = GridSlice(
-                np.asarray(msg.data, np.int8).reshape(info.height, info.width),
-                (info.origin.position.x, info.origin.position.y), info.resolution)
+            self.grid = grid_slice_of(msg)
         except InsertionError as exc:
             self.bad.reject('map/grid', str(exc))
 

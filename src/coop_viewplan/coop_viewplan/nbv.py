@@ -1252,14 +1252,15 @@ def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
 
 def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: Sequence[float],
                goal_xy: Sequence[float], *, others: Sequence[Sequence[float]] = (),
-               clearance_m: float, snap_m: float = 1.0, last_leg: bool = True
-               ) -> list[np.ndarray]:
+               clearance_m: float, snap_m: float = 1.0, last_leg: bool = True,
+               blocked: np.ndarray | None = None) -> list[np.ndarray]:
     """Waypoints (map xy) for a rover from start_xy to goal_xy on `trav`'s navigable cells,
     round the other rovers of its team (`others`: where each stands or will stand, kept out
-    of by the clearance and two cells). A goal off the navigable cells is reached by a
-    straight last leg from the nearest navigable cell within `snap_m` that the rover can reach
-    (without `last_leg` the route ends on that cell). PlanningError when the goal lies in
-    another rover's keep-out or cannot be reached."""
+    of by the clearance and two cells), never through a `blocked` ground-plane cell (even in
+    the rover's own footprint: the cells whoever drives the route refuses). A goal off the
+    navigable cells is reached by a straight last leg from the nearest navigable cell within
+    `snap_m` that the rover can reach (without `last_leg` the route ends on that cell).
+    PlanningError when the goal lies in another rover's keep-out or cannot be reached."""
     clear = math.ceil(clearance_m / grid.resolution)
     keep = clear + 2
     start = _plane_index(grid, start_xy)
@@ -1276,6 +1277,10 @@ def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: Sequence[float],
         if radius > 0:
             trav = trav.with_blocked_disk(cell, radius)
     nav = trav.with_free_disk(start, clear).navigable
+    if blocked is not None:
+        nav = nav & ~blocked
+        if np.all((start >= 0) & (start < nav.shape)):
+            nav[tuple(start)] = True                # where the rover stands, it can leave
     if not nav[tuple(goal)]:
         # a goal inside the clearance of an obstacle (a base a little off its camera's column,
         # a staging pose close to the site), never a speck of free cells among the obstacles

@@ -420,3 +420,16 @@ def test_team_route_snaps_to_a_reachable_cell_not_a_speck():
     assert nav[tuple(g.to_index(end))]
     assert np.allclose(team_route(trav, g, (1.0, 1.0), (4.35, 4.35), clearance_m=0.2)[-1],
                        (4.35, 4.35))
+
+
+def test_team_route_keeps_off_blocked_cells_even_in_its_own_footprint():
+    """`blocked`: the cells whoever drives the route refuses (the drivers' map/grid); the
+    rover's own footprint is freed on the planning grid, not of these."""
+    g, trav = _open_field()
+    blocked = np.zeros(g.shape, bool)
+    blocked[12:40, 13] = True               # a wall at y 1.3-1.4 m, x 1.2-4.0 m
+    route = team_route(trav, g, (2.0, 1.0), (2.0, 2.0), clearance_m=0.5, blocked=blocked)
+    pts = np.vstack([(2.0, 1.0), *route])
+    dense = np.vstack([np.linspace(a, b, 40) for a, b in itertools.pairwise(pts)])
+    assert not blocked[tuple(g.to_index(dense).T)].any()
+    assert pts[:, 0].min() < 1.2                   # round the wall's end, not through it
