@@ -67,7 +67,7 @@ from coop_common.rover_geometry import (
 )
 from coop_common.testing import free_domain_id, isolate_ros_environment
 from coop_id.excitation import Strategy
-from coop_insertion.drive import GridSlice, grid_slice_of, obstruction, path_length
+from coop_insertion.drive import GridSlice, grid_slice_of, path_length
 from coop_insertion.driver_node import PARAMS as DRIVER_PARAMS
 from coop_insertion.errors import InsertionError
 from coop_msgs.action import DriveToPose, Identify, Insert
@@ -79,7 +79,6 @@ from coop_viewplan.nbv import (
     NextBestViewPlanner,
     PlanningError,
     StrategyName,
-    team_route,
 )
 from coop_viewplan.offline import nbv_config
 from coop_viewplan.params import PARAMS as VP_PARAMS
@@ -96,6 +95,7 @@ from .report import (
     top_view,
     write_report,
 )
+from .routes import DriverRule, drivable_route
 
 
 class PhaseName(StrEnum):
@@ -110,8 +110,6 @@ class PhaseName(StrEnum):
 PHASES = tuple(PhaseName)
 #: a goal within an obstacle's clearance is reached by a straight last leg of at most this (m)
 SNAP_M = 1.0
-#: routes planned again round a corner cell the drivers refused, at most
-REROUTES = 3
 MASTER, SLAVE = 'rover1', 'rover2'
 LIVE_PORT = 8765
 
@@ -314,7 +312,9 @@ class Mission:
         self.view_planner = node_settings('view_planner')
         # the drivers refuse a path across a cell of map/grid they take for occupied: the
         # mission's paths keep off those cells by the drivers' own rule
-        self.driver = {k: s.default for k, s in DRIVER_PARAMS.items()} | node_settings('driver')
+        driver = {k: s.default for k, s in DRIVER_PARAMS.items()} | node_settings('driver')
+        self.driver_rule = DriverRule(int(driver['occupied_threshold']),
+                                      float(driver['start_clear_m']))
         self.phases = [Phase(p) for p in PHASES]
         self.rep: dict = {'run_id': self.run_id, 'config': {**asdict(cfg),
                                                            'phases': list(cfg.phases)},
@@ -585,36 +585,14 @@ class Mission:
                              m.resolution_m,
                              centre_xy=SITE_XY, half_m=self.cfg.site_half_m)
 
-    def _path(self, r: str, goal_xy, grid, trav, others: list, *, last_leg: bool = True
-              ) -> list:
-        """Waypoints from rover r's base to goal_xy on the map, round the other rovers
-        (`coop_viewplan.nbv.team_route`), through no cell the drivers take for occupied on
-        map/grid (`coop_insertion.drive.obstruction`, their own check)."""
-        start = np.asarray(self.client.odom[r][:2], float)
-        seen = self.client.grid
-        threshold, start_clear = self.driver['occupied_threshold'], self.driver['start_clear_m']
-        blocked = None
-        if seen is not None:        # the drivers' occupied cells, but for the rover's body
-            plane = grid.shape[:2]
-            ij = np.stack(np.meshgrid(*(np.arange(n) for n in plane), indexing='ij'), -1)
-            xy = grid.to_world(np.concatenate([ij, np.zeros((*plane, 1), int)], -1))[..., :2]
-            blocked = (seen.occupied(xy.reshape(-1, 2), threshold).reshape(plane)
-                       & (np.hypot(*(xy - start).transpose(2, 0, 1)) > start_clear))
-        route: list = []
-        for _ in range(REROUTES + 1):
-            route = team_route(trav, grid, start, goal_xy, others=others,
-                               clearance_m=self.view_planner['clearance_m'], snap_m=SNAP_M,
-                               last_leg=last_leg, blocked=blocked)
-            hit = None if seen is None else obstruction(
-                np.vstack([start, *route]), seen, threshold=threshold, start_clear_m=start_clear)
-            if hit is None:
-                return route
-            cell = grid.to_index(np.r_[hit.xy, 0.0])[:2]
-            if hit.kind == 'point' or blocked is None or blocked[tuple(cell)]:
-                break           # the goal itself, or a cell no route here can miss
-            blocked[tuple(cell)] = True       # a leg cut a corner of an occupied cell
-        raise PlanningError(f'every route to {np.round(goal_xy, 2)} crosses a cell map/grid '
-                            f'holds occupied, at {np.round(hit.xy, 2)}')
+    def _path(self, r: str, goal_xy, grid, trav, others: list, *, moving: list | None = None,
+              last_leg: bool = True) -> list:
+        """Waypoints from rover r's base to goal_xy on the map, round the other rovers, that
+        its driver accepts (`coop_bringup.routes.drivable_route`)."""
+        return drivable_route(trav, grid, self.client.odom[r][:2], goal_xy,
+                              seen=self.client.grid, rule=self.driver_rule, others=others,
+                              moving=moving or [], clearance_m=self.view_planner['clearance_m'],
+                              snap_m=SNAP_M, last_leg=last_leg)
 
     def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> list[str]:
         """Drive rovers along (waypoints, final heading) at once: a drive_to_pose goal each,
@@ -747,8 +725,10 @@ class Mission:
         grid, trav, _ = self._grid()
         poses = staging_poses(self.cfg.slot_in)
         slave_xy, master_xy = poses[SLAVE][:2], poses[MASTER][:2]
-        targets = {SLAVE: (slave_xy, [c.odom[MASTER][:2], master_xy], poses[SLAVE][2]),
-                   MASTER: (master_xy, [slave_xy], poses[MASTER][2])}
+        # the slave's path keeps off where the master stands now, not its goal: the master
+        # leaves for its own staging pose meanwhile
+        targets = {SLAVE: (slave_xy, [master_xy], [c.odom[MASTER][:2]], poses[SLAVE][2]),
+                   MASTER: (master_xy, [slave_xy], [], poses[MASTER][2])}
         # a straight last leg to a staging pose close to the site may cross a cell map/grid
         # holds occupied (planned so, or found so by the driver): then to the nearest navigable
         # cell, from which the slave's approach (the master's placement) goes on
@@ -756,16 +736,24 @@ class Mission:
         for last_leg in (True, False):
             plans = {}
             for r in short:
-                xy, others, yaw = targets[r]
-                for leg in (last_leg, False) if last_leg else (False,):
-                    try:
-                        plans[r] = (self._path(r, xy, grid, trav, others, last_leg=leg), yaw)
-                        break
-                    except PlanningError as exc:
-                        why = exc
-                else:
+                xy, others, moving, yaw = targets[r]
+                try:
+                    plans[r] = (self._path(r, xy, grid, trav, others, moving=moving,
+                                           last_leg=last_leg), yaw)
+                    continue
+                except PlanningError as exc:
+                    if not last_leg:
+                        raise MissionError(f'no path for {r} from '
+                                           f'{np.round(c.odom[r][:2], 2)} to its staging pose '
+                                           f'{np.round(xy, 2)}: {exc}') from exc
+                    self.log(f'to the staging poses: {r}: {exc}; to the navigable cell '
+                             'nearest its staging pose')
+                try:
+                    plans[r] = (self._path(r, xy, grid, trav, others, moving=moving,
+                                           last_leg=False), yaw)
+                except PlanningError as exc:
                     raise MissionError(f'no path for {r} from {np.round(c.odom[r][:2], 2)} '
-                                       f'to its staging pose {np.round(xy, 2)}: {why}')
+                                       f'to its staging pose {np.round(xy, 2)}: {exc}') from exc
             short = self._drive(plans, 'to the staging poses' if last_leg else
                                 'to the navigable cells nearest the staging poses')
             if not short:

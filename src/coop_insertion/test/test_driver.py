@@ -16,7 +16,14 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from coop_common.testing import pick_domain_id
-from coop_insertion.drive import Drive, DriveEnd, GridSlice, obstruction, path_length
+from coop_insertion.drive import (
+    Drive,
+    DriveEnd,
+    GridSlice,
+    grid_slice_of,
+    obstruction,
+    path_length,
+)
 from coop_insertion.driver_node import DriverNode
 from coop_insertion.errors import InsertionError
 from coop_msgs.action import DriveToPose
@@ -84,6 +91,25 @@ def test_obstruction_names_the_occupied_goal_the_crossed_leg_and_ignores_the_rov
     # unknown (-1) and outside the grid are free to drive
     assert obstruction([(0.0, 0.0), (0.0, 5.0)], _grid()) is None
     assert path_length([(0, 0), (3, 4), (3, 5)]) == pytest.approx(6.0)
+
+
+def test_a_map_grid_message_is_the_slice_the_driver_checks_or_refused():
+    msg = OccupancyGrid()
+    msg.info.width, msg.info.height, msg.info.resolution = 3, 2, 0.5
+    msg.info.origin.position.x, msg.info.origin.position.y = -1.0, 2.0
+    msg.info.origin.orientation.w = 1.0
+    msg.data = [0, 0, 100, -1, 0, 0]            # rows along y: (x 0..1 m, y 2..2.5 m) occupied
+    g = grid_slice_of(msg)
+    assert g.occupancy.shape == (2, 3) and g.origin_xy == (-1.0, 2.0)
+    assert g.occupied(np.array([[0.2, 2.2], [-0.8, 2.2], [0.2, 2.7]]), 65).tolist() == \
+        [True, False, False]
+    msg.data = [0] * 5
+    with pytest.raises(InsertionError, match='ragged'):
+        grid_slice_of(msg)
+    msg.data = [0] * 6
+    msg.info.origin.orientation.z, msg.info.origin.orientation.w = 0.3826834, 0.9238795
+    with pytest.raises(InsertionError, match='rotated'):
+        grid_slice_of(msg)
 
 
 class _Rover:

@@ -67,6 +67,7 @@ from enum import StrEnum
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, assert_never
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
@@ -1250,37 +1251,47 @@ def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
     return out
 
 
-def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: Sequence[float],
-               goal_xy: Sequence[float], *, others: Sequence[Sequence[float]] = (),
-               clearance_m: float, snap_m: float = 1.0, last_leg: bool = True,
+def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: ArrayLike,
+               goal_xy: ArrayLike, *, others: Sequence[ArrayLike] = (),
+               moving: Sequence[ArrayLike] = (), clearance_m: float,
+               snap_m: float = 1.0, last_leg: bool = True,
                blocked: np.ndarray | None = None) -> list[np.ndarray]:
     """Waypoints (map xy) for a rover from start_xy to goal_xy on `trav`'s navigable cells,
-    round the other rovers of its team (`others`: where each stands or will stand, kept out
-    of by the clearance and two cells), never through a `blocked` ground-plane cell (even in
-    the rover's own footprint: the cells whoever drives the route refuses). A goal off the
-    navigable cells is reached by a straight last leg from the nearest navigable cell within
-    `snap_m` that the rover can reach (without `last_leg` the route ends on that cell).
-    PlanningError when the goal lies in another rover's keep-out or cannot be reached."""
+    round the other rovers of its team, each kept out of by the clearance and two cells:
+    `others` stand (or will stand) where they are, and no goal may lie beside them; `moving`
+    stand there now but leave as this rover drives (its path keeps off, its goal need not).
+    Never through a `blocked` ground-plane cell (even in the rover's own footprint: the cells
+    whoever drives the route refuses). The route passes through its start cell's and its last
+    cell's centres (within a cell of where the rover and the goal are), so that every leg runs
+    along the cells the path was planned on. A goal off the navigable cells is reached by a
+    straight last leg from the nearest navigable cell within `snap_m` that the rover can reach
+    (without `last_leg` the route ends on that cell). PlanningError when the start or the goal
+    lies off the grid, the goal in another rover's keep-out, or it cannot be reached."""
     clear = math.ceil(clearance_m / grid.resolution)
     keep = clear + 2
     start = _plane_index(grid, start_xy)
     goal = _plane_index(grid, goal_xy)
+    plane = np.asarray(trav.navigable.shape)
+    for what, cell in (('start', start), ('goal', goal)):
+        if not np.all((cell >= 0) & (cell < plane)):
+            raise PlanningError(f"the {what} lies off the map's grid")
     for xy in others:
-        cell = _plane_index(grid, xy)
-        if np.hypot(*(goal - cell)) <= keep:
+        if np.hypot(*(goal - _plane_index(grid, xy))) <= keep:
             # the straight last leg would end beside (or on) the other rover
             raise PlanningError(f'the goal is within {keep * grid.resolution:.1f} m of '
                                 f'another rover at {np.round(np.asarray(xy, float), 2)}')
+    for xy in (*others, *moving):
+        cell = _plane_index(grid, xy)
         # a rover close to this one (side by side, or within the odometry's error) keeps out
-        # of a smaller disk, one that leaves this rover's own footprint a way out
-        radius = min(keep, int(np.hypot(*(start - cell))) - clear - 1)
+        # of a smaller disk, one that leaves a way out of this rover's own footprint (freed
+        # below): walled in only once the disk reaches clear + 1 cells past the start
+        radius = min(keep, int(np.hypot(*(start - cell))) + clear - 1)
         if radius > 0:
             trav = trav.with_blocked_disk(cell, radius)
     nav = trav.with_free_disk(start, clear).navigable
     if blocked is not None:
         nav = nav & ~blocked
-        if np.all((start >= 0) & (start < nav.shape)):
-            nav[tuple(start)] = True                # where the rover stands, it can leave
+        nav[tuple(start)] = True                # where the rover stands, it can leave
     if not nav[tuple(goal)]:
         # a goal inside the clearance of an obstacle (a base a little off its camera's column,
         # a staging pose close to the site), never a speck of free cells among the obstacles
@@ -1294,11 +1305,14 @@ def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: Sequence[float],
                                 'rover can reach')
         goal = near[np.argmin(np.hypot(*(near - goal).T))]
     cells = geodesic_path(nav, tuple(start), tuple(goal), resolution=grid.resolution)
-    end = np.asarray(goal_xy, float) if last_leg else _plane_world(grid, goal)
-    return [*waypoints(cells, grid)[:-1], end] if len(cells) > 1 else [end]
+    route = [_plane_world(grid, start), *waypoints(cells, grid)] if len(cells) > 1 else \
+        [_plane_world(grid, goal)]
+    if last_leg:
+        route.append(np.asarray(goal_xy, float)[:2])
+    return route
 
 
-def _plane_index(grid: OccupancyGrid, xy: Sequence[float]) -> np.ndarray:
+def _plane_index(grid: OccupancyGrid, xy: ArrayLike) -> np.ndarray:
     """The ground-plane cell (i, j) of map xy, for a 3-D or a 2-D grid."""
     p = np.asarray(xy, float)[:2]
     return grid.to_index(np.r_[p, 0.0])[:2] if grid.ndim == 3 else grid.to_index(p)

@@ -393,11 +393,42 @@ def test_team_route_leaves_a_teammate_standing_beside_the_rover():
     g, trav = _open_field()
     route = team_route(trav, g, (1.0, 1.0), (5.0, 5.0), others=[(1.1, 1.0)], clearance_m=0.5)
     assert np.allclose(route[-1], (5.0, 5.0))
-    # a teammate 1.5 m off: its full keep-out stands, and the route goes round it
-    route = team_route(trav, g, (1.0, 3.0), (5.0, 3.0), others=[(3.0, 3.0)], clearance_m=0.5)
+    # a teammate 2 m off, or 0.6 m off ahead: the route goes round its keep-out (past the
+    # rover's own footprint, 0.5 m)
+    for start in ((1.0, 3.0), (2.4, 3.0)):
+        route = team_route(trav, g, start, (5.0, 3.0), others=[(3.0, 3.0)], clearance_m=0.5)
+        pts = np.vstack([start, *route])
+        dense = np.vstack([np.linspace(a, b, 20) for a, b in itertools.pairwise(pts)])
+        far = np.hypot(*(dense - start).T) > 0.5
+        assert np.hypot(*(dense[far] - (3.0, 3.0)).T).min() >= 0.5, start
+
+
+def test_team_route_drives_past_where_a_leaving_teammate_stands_not_to_it():
+    """`moving`: a teammate that leaves as the rover drives keeps the path off it, not the
+    goal; `others` keeps both."""
+    g, trav = _open_field()
+    route = team_route(trav, g, (1.0, 3.0), (4.0, 3.0), moving=[(2.5, 3.0), (4.3, 3.0)],
+                       clearance_m=0.5)
+    assert np.allclose(route[-1], (4.0, 3.0))
     pts = np.vstack([(1.0, 3.0), *route])
-    dense = np.vstack([np.linspace(a, b, 20) for a, b in itertools.pairwise(pts)])
-    assert np.hypot(*(dense - (3.0, 3.0)).T).min() >= 0.6
+    assert np.abs(pts[:, 1] - 3.0).max() > 0.5             # round the one on the way
+    with pytest.raises(PlanningError):
+        team_route(trav, g, (1.0, 3.0), (4.0, 3.0), others=[(4.3, 3.0)], clearance_m=0.5)
+
+
+def test_team_route_on_the_mission_s_3d_grid_and_off_it():
+    """The mission plans on a 3-D grid (its ground plane the traversal's); a start or goal
+    off the grid is a PlanningError, not an index error."""
+    g = OccupancyGrid.empty((60, 60, 4), resolution=0.1)
+    g.known[:] = True
+    g.prob[:] = 0.0
+    nav = np.ones((60, 60), bool)
+    trav = Traversal(nav, np.zeros((60, 60)), nav.copy())
+    route = team_route(trav, g, (1.02, 1.03), (4.0, 2.0), clearance_m=0.5)
+    assert np.allclose(route[0], (1.05, 1.05)) and np.allclose(route[-1], (4.0, 2.0))
+    for start, goal in (((1.0, 1.0), (6.5, 1.0)), ((-0.5, 1.0), (2.0, 2.0))):
+        with pytest.raises(PlanningError, match='off the map'):
+            team_route(trav, g, start, goal, clearance_m=0.5)
 
 
 def test_team_route_refuses_a_goal_beside_a_teammate():
