@@ -725,15 +725,15 @@ class Mission:
         grid, trav, _ = self._grid()
         poses = staging_poses(self.cfg.slot_in)
         slave_xy, master_xy = poses[SLAVE][:2], poses[MASTER][:2]
-        # the slave's path keeps off where the master stands now, not its goal: the master
-        # leaves for its own staging pose meanwhile
-        targets = {SLAVE: (slave_xy, [master_xy], [c.odom[MASTER][:2]], poses[SLAVE][2]),
-                   MASTER: (master_xy, [slave_xy], [], poses[MASTER][2])}
         # a straight last leg to a staging pose close to the site may cross a cell map/grid
         # holds occupied (planned so, or found so by the driver): then to the nearest navigable
         # cell, from which the slave's approach (the master's placement) goes on
-        short = list(targets)
+        short = [SLAVE, MASTER]
         for last_leg in (True, False):
+            # the slave's path keeps off where the master stands now, not its goal: the master
+            # leaves for its own staging pose meanwhile
+            targets = {SLAVE: (slave_xy, [master_xy], [c.odom[MASTER][:2]], poses[SLAVE][2]),
+                       MASTER: (master_xy, [slave_xy], [], poses[MASTER][2])}
             plans = {}
             for r in short:
                 xy, others, moving, yaw = targets[r]
