@@ -585,13 +585,13 @@ class Mission:
                              m.resolution_m,
                              centre_xy=SITE_XY, half_m=self.cfg.site_half_m)
 
-    def _path(self, r: str, goal_xy, grid, trav, others: list, *, moving: list | None = None,
+    def _path(self, r: str, goal_xy, grid, trav, others: list, *, moving: tuple | list = (),
               last_leg: bool = True) -> list:
         """Waypoints from rover r's base to goal_xy on the map, round the other rovers, that
         its driver accepts (`coop_bringup.routes.drivable_route`)."""
         return drivable_route(trav, grid, self.client.odom[r][:2], goal_xy,
                               seen=self.client.grid, rule=self.driver_rule, others=others,
-                              moving=moving or [], clearance_m=self.view_planner['clearance_m'],
+                              moving=moving, clearance_m=self.view_planner['clearance_m'],
                               snap_m=SNAP_M, last_leg=last_leg)
 
     def _drive(self, paths: dict[str, tuple[list, float]], what: str) -> list[str]:
@@ -737,23 +737,19 @@ class Mission:
             plans = {}
             for r in short:
                 xy, others, moving, yaw = targets[r]
-                try:
-                    plans[r] = (self._path(r, xy, grid, trav, others, moving=moving,
-                                           last_leg=last_leg), yaw)
-                    continue
-                except PlanningError as exc:
-                    if not last_leg:
-                        raise MissionError(f'no path for {r} from '
-                                           f'{np.round(c.odom[r][:2], 2)} to its staging pose '
-                                           f'{np.round(xy, 2)}: {exc}') from exc
-                    self.log(f'to the staging poses: {r}: {exc}; to the navigable cell '
-                             'nearest its staging pose')
-                try:
-                    plans[r] = (self._path(r, xy, grid, trav, others, moving=moving,
-                                           last_leg=False), yaw)
-                except PlanningError as exc:
+                for leg in dict.fromkeys((last_leg, False)):   # the last leg, then without
+                    try:
+                        plans[r] = (self._path(r, xy, grid, trav, others, moving=moving,
+                                               last_leg=leg), yaw)
+                        break
+                    except PlanningError as exc:
+                        why = exc
+                        if leg:
+                            self.log(f'to the staging poses: {r}: {exc}; to the navigable '
+                                     'cell nearest its staging pose')
+                else:
                     raise MissionError(f'no path for {r} from {np.round(c.odom[r][:2], 2)} '
-                                       f'to its staging pose {np.round(xy, 2)}: {exc}') from exc
+                                       f'to its staging pose {np.round(xy, 2)}: {why}') from why
             short = self._drive(plans, 'to the staging poses' if last_leg else
                                 'to the navigable cells nearest the staging poses')
             if not short:

@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike
 
 from coop_insertion.drive import GridSlice, obstruction
 from coop_viewplan.grid import OccupancyGrid
-from coop_viewplan.nbv import PlanningError, Traversal, team_route
+from coop_viewplan.nbv import PlanningError, Traversal, plane_index, plane_world, team_route
 
 #: routes planned again round a cell a leg cut, at most
 REROUTES = 3
@@ -33,10 +33,7 @@ def driver_blocked(grid: OccupancyGrid, seen: GridSlice, start_xy: ArrayLike,
     """The ground-plane cells of `grid` whose centre `seen` holds occupied by `rule`, but for
     those within its start_clear_m of the start (the rover's own body as the team saw it)."""
     plane = grid.shape[:2]
-    ij = np.stack(np.meshgrid(*(np.arange(n) for n in plane), indexing='ij'), -1)
-    if grid.ndim == 3:
-        ij = np.concatenate([ij, np.zeros((*plane, 1), np.int64)], -1)
-    xy = grid.to_world(ij)[..., :2]
+    xy = plane_world(grid, np.stack(np.meshgrid(*map(np.arange, plane), indexing='ij'), -1))
     occupied = seen.occupied(xy.reshape(-1, 2), rule.occupied_threshold).reshape(plane)
     return occupied & (np.hypot(*(xy - np.asarray(start_xy, float)[:2]).transpose(2, 0, 1))
                        > rule.start_clear_m)
@@ -73,7 +70,7 @@ def drivable_route(trav: Traversal, grid: OccupancyGrid, start_xy: ArrayLike,
                 f'no route to {np.round(np.asarray(goal_xy, float), 2)} that the driver '
                 f'accepts: the {"goal" if hit.kind == "point" else "path"} meets a cell '
                 f'map/grid holds occupied at {np.round(hit.xy, 2)}')
-        cell = grid.to_index(np.r_[hit.xy, 0.0] if grid.ndim == 3 else np.r_[hit.xy])[:2]
+        cell = plane_index(grid, hit.xy)
         lo = np.maximum(cell - 1, 0)
         blocked[lo[0]:cell[0] + 2, lo[1]:cell[1] + 2] = True
         tries += 1

@@ -1235,8 +1235,7 @@ __all__ = [
 
 def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
     """Cell path -> map xy waypoints at its corners (and every ~1 m on long straights)."""
-    xy = grid.to_world(np.c_[cells, np.zeros(len(cells), np.int64)])[:, :2] \
-        if grid.ndim == 3 else grid.to_world(cells)
+    xy = plane_world(grid, cells)
     if len(xy) <= 2:
         return [xy[-1]]
     out = []
@@ -1269,19 +1268,19 @@ def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: ArrayLike,
     lies off the grid, the goal in another rover's keep-out, or it cannot be reached."""
     clear = math.ceil(clearance_m / grid.resolution)
     keep = clear + 2
-    start = _plane_index(grid, start_xy)
-    goal = _plane_index(grid, goal_xy)
+    start = plane_index(grid, start_xy)
+    goal = plane_index(grid, goal_xy)
     plane = np.asarray(trav.navigable.shape)
     for what, cell in (('start', start), ('goal', goal)):
         if not np.all((cell >= 0) & (cell < plane)):
             raise PlanningError(f"the {what} lies off the map's grid")
     for xy in others:
-        if np.hypot(*(goal - _plane_index(grid, xy))) <= keep:
+        if np.hypot(*(goal - plane_index(grid, xy))) <= keep:
             # the straight last leg would end beside (or on) the other rover
             raise PlanningError(f'the goal is within {keep * grid.resolution:.1f} m of '
                                 f'another rover at {np.round(np.asarray(xy, float), 2)}')
     for xy in (*others, *moving):
-        cell = _plane_index(grid, xy)
+        cell = plane_index(grid, xy)
         # a rover close to this one (side by side, or within the odometry's error) keeps out
         # of a smaller disk, one that leaves a way out of this rover's own footprint (freed
         # below): walled in only once the disk reaches clear + 1 cells past the start
@@ -1305,18 +1304,24 @@ def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: ArrayLike,
                                 'rover can reach')
         goal = near[np.argmin(np.hypot(*(near - goal).T))]
     cells = geodesic_path(nav, tuple(start), tuple(goal), resolution=grid.resolution)
-    route = [_plane_world(grid, start), *waypoints(cells, grid)] if len(cells) > 1 else \
-        [_plane_world(grid, goal)]
+    route = [plane_world(grid, start), *waypoints(cells, grid)] if len(cells) > 1 else \
+        [plane_world(grid, goal)]
     if last_leg:
         route.append(np.asarray(goal_xy, float)[:2])
     return route
 
 
-def _plane_index(grid: OccupancyGrid, xy: ArrayLike) -> np.ndarray:
-    """The ground-plane cell (i, j) of map xy, for a 3-D or a 2-D grid."""
-    p = np.asarray(xy, float)[:2]
-    return grid.to_index(np.r_[p, 0.0])[:2] if grid.ndim == 3 else grid.to_index(p)
+def plane_index(grid: OccupancyGrid, xy: ArrayLike) -> np.ndarray:
+    """The ground-plane cells (..., 2) of map points xy (..., 2+), for a 3-D or a 2-D grid."""
+    p = np.asarray(xy, float)[..., :2]
+    if grid.ndim == 3:
+        p = np.concatenate([p, np.zeros((*p.shape[:-1], 1))], -1)
+    return grid.to_index(p)[..., :2]
 
 
-def _plane_world(grid: OccupancyGrid, cell: np.ndarray) -> np.ndarray:
-    return grid.to_world(np.r_[cell, 0])[:2] if grid.ndim == 3 else grid.to_world(cell)
+def plane_world(grid: OccupancyGrid, cells: ArrayLike) -> np.ndarray:
+    """The map xy (..., 2) of ground-plane cells' centres (..., 2), for a 3-D or a 2-D grid."""
+    c = np.asarray(cells)
+    if grid.ndim == 3:
+        c = np.concatenate([c, np.zeros((*c.shape[:-1], 1), c.dtype)], -1)
+    return grid.to_world(c)[..., :2]
