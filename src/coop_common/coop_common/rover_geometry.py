@@ -145,6 +145,36 @@ def camera_in_map(x: float, y: float, yaw: float, pan: float, tilt: float) -> np
     return base @ camera_in_base(pan, tilt)
 
 
+def mast_aim(x: float, y: float, yaw: float, target: Sequence[float] | np.ndarray
+             ) -> tuple[float, float]:
+    """The mast's pan and tilt (rad) that put the map point `target` on the left camera's
+    optical axis for a rover standing at (x, y) with heading yaw (camera_in_map's rover). The
+    camera moves with the joints, so the angles are refined until they point at the target
+    from where they put the camera. ReachError when the target lies within the mast's own
+    reach or the tilt it needs is beyond the joint's limits."""
+    base = np.eye(4)
+    base[:3, :3] = _rot_z(yaw)
+    base[:3, 3] = (x, y, BASE_HEIGHT_M)
+    local = (np.linalg.inv(base) @ np.append(np.asarray(target, float), 1.0))[:3]
+    if not np.all(np.isfinite(local)):
+        raise ReachError(f'target {np.asarray(target).tolist()} is not a finite point')
+    pan = tilt = 0.0
+    for _ in range(20):
+        v = local - camera_in_base(pan, tilt)[:3, 3]
+        if np.linalg.norm(v) < 0.1:
+            raise ReachError(f'target {np.round(np.asarray(target, float), 3).tolist()} lies '
+                             "within the mast's reach")
+        new = (float(np.arctan2(v[1], v[0])), float(np.arctan2(-v[2], np.hypot(v[0], v[1]))))
+        done = max(abs(new[0] - pan), abs(new[1] - tilt)) < 1e-9
+        pan, tilt = new
+        if done:
+            break
+    lo, hi = MAST_TILT_LIMITS_RAD
+    if not lo <= tilt <= hi:
+        raise ReachError(f'tilt {tilt:.3f} rad is beyond the mast tilt limits [{lo}, {hi}]')
+    return pan, tilt
+
+
 def _rot_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

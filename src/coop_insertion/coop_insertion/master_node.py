@@ -15,9 +15,10 @@ Runs in the team's namespace (like the mapper) for the rover named by `rover`:
   `viewplan/task_view`: its best, or one drawn from the same feasible poses for the random
   placement; or the goal's own pose; the rover drives there on its odometry and tilts its
   mast; where the planner has no view of the located site, the camera stays where it saw the
-  slot); then it hands the task with the located site to the slave's `<slave>/insert_card`
-  action, relays its feedback and result, and places its camera again when the fixes stop
-  (optimal and random).
+  slot, its mast aimed at the task's target); then it hands the task with the located site to
+  the slave's `<slave>/insert_card` action, relays its feedback and result, and places its
+  camera again when the fixes stop (optimal and random; with no pose to place it at, the mast
+  aimed at the task's target from where it stands).
 """
 from __future__ import annotations
 
@@ -45,6 +46,7 @@ from coop_common.rover_geometry import (
     camera_in_base,
     camera_in_map,
     camera_mount,
+    mast_aim,
     yaw_of,
 )
 from coop_mapping.stereo import StereoCamera, StereoError
@@ -521,8 +523,12 @@ class MasterNode(Node):
         where = await self._choose_pose(goal)
         if isinstance(where, str) and self.site is not None:
             # the located site carries the odometry's drift: where the planner finds no view of
-            # it, the camera stays where it saw the slot (and sees it)
+            # it, the camera stays where it saw the slot (and sees it), its mast aimed at the
+            # task's target (the search's tilt may leave the card above the image)
             self.get_logger().info(f'{where}: the camera stays where it found the slot')
+            failed = await self._aim(handle, self._task_target())
+            if failed:
+                return self._end(handle, failed)
         else:
             failed = await self._place(handle, where)
             if failed:
@@ -612,7 +618,14 @@ class MasterNode(Node):
                     # the target half-way to the card may lie in the card's (or the slave's)
                     # voxels: the site's own target, nearer
                     where = await self._choose_pose(goal, closer=self.replacements)
-                failed = await self._place(handle, where)
+                if isinstance(where, str):
+                    # no pose to drive to: the mast aimed at the task's target from where the
+                    # camera stands (the slave brings the card there)
+                    self.get_logger().warn(f're-placement: {where}: aiming the mast from '
+                                           'where the camera stands')
+                    failed = await self._aim(handle, self._task_target())
+                else:
+                    failed = await self._place(handle, where)
                 if failed and handle.is_cancel_requested:
                     await self.ls.hold(sh.cancel_goal_async())
                 elif failed:
@@ -784,6 +797,34 @@ class MasterNode(Node):
             return 'canceled while placing the camera'
         return None
 
+    def _task_target(self, site: np.ndarray | None = None, card: np.ndarray | None = None
+                     ) -> np.ndarray:
+        """The task view's primary target (map, this rover's frame): view_target_offset_m from
+        `site` (by default the located one), or half-way from there to `card` (the card's last
+        fix)."""
+        if site is None:
+            assert self.site is not None
+            site = self.site[:3, 3]
+        target = np.asarray(site, float) + np.asarray(self.p['view_target_offset_m'], float)
+        return target if card is None else 0.5 * (target + card)
+
+    async def _aim(self, handle, target: np.ndarray) -> str | None:
+        """Turn the mast to put `target` on the camera's axis from where the rover stands (by
+        its odometry, the frame the site was located in); the reason when it cannot."""
+        if self.odom is None:
+            return 'no odometry to aim the mast from'
+        try:
+            pan, tilt = mast_aim(*self.odom, target)
+        except ReachError as exc:
+            return f'the mast cannot aim at the task target: {exc}'
+        self.get_logger().info(f"the mast aimed at the task's target from where the camera "
+                               f'stands: pan {pan:.2f}, tilt {tilt:.2f}')
+        self._tilt = tilt
+        self._command_mast(pan, tilt)
+        if not await self._mast_at(handle, pan, tilt):
+            return 'canceled while aiming the camera'
+        return None
+
     def _command_mast(self, pan: float, tilt: float) -> None:
         cmd = JointTrajectory(joint_names=list(MAST_JOINTS))
         cmd.points = [JointTrajectoryPoint(positions=[float(pan), float(tilt)])]
@@ -883,9 +924,7 @@ class MasterNode(Node):
                                seed=0 if optimal else int(self.rng.integers(2**32)))
         t = TaskTarget()
         t.header.frame_id = self.map_frame
-        target = site + offset
-        if card is not None:
-            target = 0.5 * (target + card)
+        target = self._task_target(site, card)
         t.position.x, t.position.y, t.position.z = (float(v) for v in target)
         t.normal.x, t.normal.y, t.normal.z = (float(v) for v in normal)
         t.radius_m = self.p['target_radius_m']
