@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import assert_never
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import Point, PoseStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
@@ -656,8 +656,13 @@ class Mission:
             goals: list = []
             self._hold()
             for r in self.rovers:
+                # the teammates where they stand and where this scan sends them: no view beside
+                # one (the route would refuse it, and the rover pan instead)
+                others = [c.odom[o][:2] for o in self.rovers if o != r] + goals
                 req = NextBestView.Request(robot=r, strategy=cfg.strategy,
-                                           current_pose=c.camera_pose(r))
+                                           current_pose=c.camera_pose(r),
+                                           teammates=[Point(x=float(xy[0]), y=float(xy[1]))
+                                                      for xy in others])
                 fut = self.commander.next_best_view(req)
                 self._wait(fut.done, 120, f'{r} next best view', run=False)
                 resp = fut.result()
@@ -671,7 +676,6 @@ class Mission:
                 xyz, yaw, pitch = camera_pose([pos.x, pos.y, pos.z], [q.x, q.y, q.z, q.w])
                 try:
                     mount = camera_mount(xyz[:2], yaw, pitch)
-                    others = [c.odom[o][:2] for o in self.rovers if o != r] + goals
                     wps = self._path(r, mount.base_xy, grid, trav, others)
                 except (ReachError, PlanningError, MapError) as exc:
                     self.log(f'scan {k} {r}: view not reachable ({exc}); panning')

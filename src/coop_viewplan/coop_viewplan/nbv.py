@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, assert_never
 
@@ -73,6 +73,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from coop_common.params import choice
+from coop_common.rover_geometry import CAMERA_FROM_BASE_M
 
 from .errors import OptionError, ViewplanError
 from .grid import (
@@ -1111,7 +1112,8 @@ class NextBestViewPlanner:
              estimate: np.ndarray | None = None,
              traversability: Traversal | None = None,
              free_footprint: bool = False,
-             occlusion: np.ndarray | None = None) -> Decision:
+             occlusion: np.ndarray | None = None,
+             teammates: Sequence[ArrayLike] = ()) -> Decision:
         """Choose one camera's next view. Raises PlanningError when no admissible view exists
         and OptionError for an unknown strategy (a StrategyName's string, or a Strategy).
 
@@ -1122,7 +1124,12 @@ class NextBestViewPlanner:
         there. Off in the experiments, on in the node.
 
         occlusion: the per-cell stop probability of unknown_occlusion 'expected' if already
-        computed (`occlusion_map`); ignored with 'none'."""
+        computed (`occlusion_map`); ignored with 'none'.
+
+        teammates: map xy where the team's other rovers stand or will stand: no view whose
+        rover would stand in one's keep-out (`keep_out_cells`, as `team_route` refuses such a
+        goal; the camera stands up to CAMERA_FROM_BASE_M from its rover). Only the candidates
+        change: the path round them is the route's to plan."""
         strat = make_strategy(strategy) if isinstance(strategy, str) else strategy
         if not grid.known.any():
             raise MapError('empty map: nothing known, no free candidate')
@@ -1137,6 +1144,13 @@ class NextBestViewPlanner:
             else:
                 trav = trav.with_free_disk(cell, int(np.ceil(self.config.clearance_m
                                                              / grid.resolution)))
+        if len(teammates):
+            keep = keep_out_cells(self.config.clearance_m, grid.resolution) + \
+                math.ceil(CAMERA_FROM_BASE_M / grid.resolution)
+            near = np.zeros(trav.candidate.shape, bool)
+            for xy in teammates:
+                near |= trav._disk(plane_index(grid, xy), keep)
+            trav = replace(trav, candidate=trav.candidate & ~near)
         nav = trav.navigable
         start_nav = nav.copy()
         start_nav[cell[0], cell[1]] = True     # the rover is where it is, even if hemmed in
@@ -1250,6 +1264,12 @@ def waypoints(cells: np.ndarray, grid: OccupancyGrid) -> list[np.ndarray]:
     return out
 
 
+def keep_out_cells(clearance_m: float, resolution: float) -> int:
+    """A teammate's keep-out radius on the ground plane (cells): the rovers' clearance and two
+    cells. No rover's goal lies within it (`team_route`), nor a view's rover (`plan`)."""
+    return math.ceil(clearance_m / resolution) + 2
+
+
 def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: ArrayLike,
                goal_xy: ArrayLike, *, others: Sequence[ArrayLike] = (),
                moving: Sequence[ArrayLike] = (), clearance_m: float,
@@ -1267,7 +1287,7 @@ def team_route(trav: Traversal, grid: OccupancyGrid, start_xy: ArrayLike,
     (without `last_leg` the route ends on that cell). PlanningError when the start or the goal
     lies off the grid, the goal in another rover's keep-out, or it cannot be reached."""
     clear = math.ceil(clearance_m / grid.resolution)
-    keep = clear + 2
+    keep = keep_out_cells(clearance_m, grid.resolution)
     start = plane_index(grid, start_xy)
     goal = plane_index(grid, goal_xy)
     plane = np.asarray(trav.navigable.shape)

@@ -168,7 +168,8 @@ class ViewPlannerNode(Node):
             planner = NextBestViewPlanner(replace(planner.config, n_positions=n))
         try:
             d = planner.plan(g, cam, strategy=strategy, rng=self.rng, claimed=claimed,
-                             free_footprint=True)
+                             free_footprint=True,
+                             teammates=[(p.x, p.y) for p in req.teammates])
         except (MapError, PlanningError, ValueError) as exc:
             resp.message = str(exc)
             return resp

@@ -6,6 +6,7 @@ import itertools
 import numpy as np
 import pytest
 
+from coop_common.rover_geometry import CAMERA_FROM_BASE_M
 from coop_viewplan.grid import MapError, OccupancyGrid, markov_estimate
 from coop_viewplan.nbv import (
     STRATEGIES,
@@ -16,6 +17,7 @@ from coop_viewplan.nbv import (
     Traversal,
     binary_entropy,
     configuration_distance,
+    keep_out_cells,
     make_strategy,
     max_information,
     occupancy_weight,
@@ -191,6 +193,28 @@ def test_max_information_looks_at_the_unknown():
     # unknown is at +y: the chosen heading points there (within the 90 deg FOV)
     assert abs(((d.yaw - np.pi / 2) + np.pi) % (2 * np.pi) - np.pi) <= np.radians(45) + 1e-9
     assert d.rating[d.index] == pytest.approx(d.rating.max())
+
+
+def test_no_view_is_offered_beside_a_teammate():
+    """The planner's best view, with a teammate standing there (or sent there), moves out of the
+    teammate's keep-out (as team_route would refuse the goal); a team all round the rover
+    leaves no view."""
+    g = _half_known_world()
+    planner = NextBestViewPlanner(NbvConfig(fov_deg=90, depth_m=15, n_positions=60))
+    cam = CameraState(np.array([30.5, 20.5]))
+    best = planner.plan(g, cam, strategy='max_information', rng=np.random.default_rng(2))
+    keep = keep_out_cells(planner.config.clearance_m, g.resolution) + \
+        int(np.ceil(CAMERA_FROM_BASE_M / g.resolution))
+    mate = best.position[:2]
+    d = planner.plan(g, cam, strategy='max_information', rng=np.random.default_rng(2),
+                     teammates=[mate])
+    assert np.hypot(*(d.position[:2] - mate)) > keep * g.resolution
+    # none of the candidates scored lies in the keep-out
+    assert np.hypot(*(d.candidates.positions[:, :2] - mate).T).min() > keep * g.resolution
+    team = [(x + 0.5, y + 0.5) for x in range(0, 60, keep) for y in range(0, 60, keep)]
+    with pytest.raises(PlanningError, match='no free reachable candidate'):
+        planner.plan(g, cam, strategy='max_information', rng=np.random.default_rng(2),
+                     teammates=team)
 
 
 def test_no_free_candidate_raises():

@@ -7,6 +7,7 @@ import os
 import numpy as np
 import pytest
 import rclpy
+from geometry_msgs.msg import Point
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -16,6 +17,7 @@ from coop_common.testing import wait_for
 from coop_msgs.msg import TaskTarget, VoxelMap
 from coop_msgs.srv import NextBestView, TaskView
 from coop_viewplan.frames import optical_quaternion
+from coop_viewplan.nbv import keep_out_cells
 from coop_viewplan.view_planner_node import ViewPlannerNode
 
 
@@ -105,6 +107,17 @@ def test_services_fail_cleanly_then_plan(graph):
     assert r.best.new_information_bits > 0 and len(r.ranked) >= 1
     assert r.ranked[0].rating == pytest.approx(r.best.rating)
     assert math.isnan(r.best.field_visibility)
+    # a teammate standing at that view: the next best lies out of its keep-out
+    req = _nbv_req()
+    req.teammates = [Point(x=p.x, y=p.y)]
+    again = _call(client, ex, NextBestView, '/viewplan/next_best_view', req)
+    keep = keep_out_cells(node.planner.config.clearance_m, node.grid.resolution) * \
+        node.grid.resolution
+    assert again.success, again.message
+    q = again.best.pose.pose.position
+    assert math.hypot(q.x - p.x, q.y - p.y) > keep, (again.best.pose, keep)
+    assert all(math.hypot(v.pose.pose.position.x - p.x, v.pose.pose.position.y - p.y) > keep
+               for v in again.ranked)
 
     req = TaskView.Request()
     req.robot = 'rover1'
