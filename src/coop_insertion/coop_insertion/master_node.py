@@ -527,8 +527,10 @@ class MasterNode(Node):
             # task's target (the search's tilt may leave the card above the image)
             self.get_logger().info(f'{where}: the camera stays where it found the slot')
             failed = await self._aim(handle, self._task_target())
-            if failed:
+            if failed and handle.is_cancel_requested:
                 return self._end(handle, failed)
+            if failed:
+                self.get_logger().warn(f'{failed}: the mast stays as it is')
         else:
             failed = await self._place(handle, where)
             if failed:
