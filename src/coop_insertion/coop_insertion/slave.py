@@ -603,17 +603,23 @@ class SlaveController:
         sensor = base_in_planar.copy()
         sensor[:3, 3] = base_in_planar[:3, :3] @ self.r2 + base_in_planar[:3, 3]
         w = planar_wrench([task_wrench(self._tared(s.wrench), sensor)])
-        # the seat check reads the mean of the last force period's readings (the torque's
-        # noise over one reading is a few times the identifier's moment noise)
+        # the contact is identified (and the seat checked) on the mean of the last force
+        # period's readings: one reading holds the jolt of the arm's links as each new arm
+        # command starts (a straight move done in 20 ms: the joints are up to speed within a
+        # physics step), which the sensor reads as a push; through the graph one such reading
+        # (3.8 N, the card touching nothing 8 mm above the floor) was taken for a seated
+        # card, floor_correction having moved the depth estimate onto the floor on the one
+        # before. Over a period a completed move's momentum change averages out, and the
+        # torque's noise too (a few times the identifier's moment noise over one reading)
         period = [r for tr, r in self._recent if tr > t - self.force_period_s] or [s.wrench]
         w_mean = planar_wrench([task_wrench(self._tared(np.mean(period, axis=0)), sensor)])
-        ident = self.identifier.identify(w, pose)
+        ident = self.identifier.identify(w_mean, pose)
         dy = floor_correction(ident, pose, slot_depth_m=m.slot_depth_m,
                               card_width_m=m.card_width_m, min_force_n=self.contact_threshold_n)
         if dy:
             self._floor_offset_m += dy
             pose = CardPose(pose.x, pose.y + dy, pose.theta)
-            ident = self.identifier.identify(w, pose)
+            ident = self.identifier.identify(w_mean, pose)
         if ident.state is ContactState.SEATED:
             ident = dataclasses.replace(ident, seat=self.identifier.seat_check(w_mean, pose))
         self.last_seat = ident.seat

@@ -263,3 +263,35 @@ def test_an_easy_insertion_seats_the_card_by_both_corners():
     st, seated, pen, _phases, _ctl = _run(5.0, 1, slave_options={'seat_verdict': 'both_corners'})
     assert st.done and st.success, st.reason
     assert seated and pen <= 5e-4
+
+
+def test_one_jolting_reading_counts_for_its_share_of_the_force_period():
+    """Each arm command starts with a jolt of the links that the F/T sensor reads for a
+    reading or two: through the graph one such reading (3.8 N, the card touching nothing
+    8 mm above the floor) was identified as both corners on the floor and ended the goal
+    "seated". The contact is identified on the mean of the force period's readings: one jolt
+    among quiet readings weighs as that jolt spread over the period."""
+    site = np.eye(4)
+    site[:3, 3] = (0.9, 0.0, 0.4)
+    q = [0.0, 0.6, -1.0, 0.4]
+    jolt = np.array([0.4, -3.0, 3.8, 0.05, -0.1, 0.0])
+
+    def identified(readings) -> np.ndarray:
+        ctl = SlaveController(TaskModel(), [0.01, 0.3, 0.1])
+        ctl.phase, ctl._tare, ctl._last_force_step = Phase.FORCE_INSERT, np.zeros(6), -1.0
+        ctl._site_in_odom = lambda: site          # the site the fixes put there
+        seen = []
+        identify = ctl.identifier.identify
+        ctl.identifier.identify = lambda w, pose: seen.append(np.array(w)) or identify(w, pose)
+        for k, w in enumerate(readings):
+            ctl.add_state(0.005 * k, q, [0.0] * 3, w)
+        ctl.step(0.005 * (len(readings) - 1))
+        return seen[0]
+
+    n = round(0.05 / 0.005)                     # the force period's readings
+    one = identified([np.zeros(6)] * (n - 1) + [jolt])
+    np.testing.assert_allclose(one, identified([jolt / n] * n), atol=1e-9)
+    # its push a tenth of what the jolt read in every reading would be
+    full = identified([jolt] * n)
+    assert np.linalg.norm(full[:2]) > 3.0
+    np.testing.assert_allclose(one[:2], full[:2] / n, atol=1e-9)
