@@ -657,7 +657,7 @@ class Mission:
             self._hold()
             for r in self.rovers:
                 # the teammates where they stand and where this scan sends them: no view beside
-                # one (the route would refuse it, and the rover pan instead)
+                # one (the route would refuse it, and the rover would pan instead)
                 others = [c.odom[o][:2] for o in self.rovers if o != r] + goals
                 req = NextBestView.Request(robot=r, strategy=cfg.strategy,
                                            current_pose=c.camera_pose(r),
