@@ -68,11 +68,6 @@ ARM_JOINT1_ABOVE_SENSOR_M = 0.015
 #: the mast's tilt joint sits this far above its pan joint
 TILT_ABOVE_PAN_M = 0.04
 MAST_TILT_LIMITS_RAD = (-1.2, 1.2)
-#: the farthest the left camera stands from the base c.g. across the ground, at any tilt (m):
-#: a view's camera and the rover that takes it are at most this far apart
-CAMERA_FROM_BASE_M = float(max(
-    np.hypot(MAST_POSITION[0] + np.cos(t) * CAMERA_OFFSET[0] + np.sin(t) * CAMERA_OFFSET[2],
-             MAST_POSITION[1]) for t in np.linspace(*MAST_TILT_LIMITS_RAD, 241)))
 #: r_2 as designed: the arm mount from the base c.g. (m); each rover's own is identified (coop_id)
 NOMINAL_CG_TO_ARM = (0.0, 0.3, 0.1)
 OPTICAL_IN_TILT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -233,6 +228,12 @@ def camera_in_base(pan: float, tilt: float) -> np.ndarray:
     t[:3, 3] = np.asarray(MAST_POSITION) + rz @ (np.array([0.0, 0.0, TILT_ABOVE_PAN_M]) +
                                                 ry @ np.asarray(CAMERA_OFFSET))
     return t
+
+
+#: the farthest the left camera stands from the base c.g. across the ground, at any tilt (m):
+#: a view's camera and the rover that takes it are at most this far apart
+CAMERA_FROM_BASE_M = float(max(np.hypot(*camera_in_base(0.0, t)[:2, 3])
+                               for t in np.linspace(*MAST_TILT_LIMITS_RAD, 241)))
 
 
 @dataclass(frozen=True)
